@@ -1,0 +1,19 @@
+//! roam-server: terrain data sets, the variance tree and the split-only ROAM tessellator.
+//!
+//! Everything here is plain library code: no clocks, no sockets, no threads of its own
+//! beyond scoped workers in builds. See `ARCHITECTURE.md` for the map.
+
+pub mod camera;
+pub mod dataset;
+pub mod diamond;
+pub mod generate;
+pub mod heightfield;
+pub mod map;
+pub mod pnm;
+pub mod tessellate;
+pub mod validate;
+pub mod variance;
+
+pub use dataset::{ColorMap, DataError, Terrain};
+pub use heightfield::{Heightfield, ShapeError};
+pub use map::{MapParams, Start};

@@ -1,0 +1,269 @@
+//! Property and data-driven tests of the variance tree and the tessellator.
+
+use proptest::prelude::*;
+use roam_server::camera::Camera;
+use roam_server::diamond::{Diamond, Triangle};
+use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
+use roam_server::validate::check_mesh;
+use roam_server::variance::{VarianceTree, triangle_error};
+use roam_server::Heightfield;
+
+/// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
+fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
+    let side = (1u32 << levels) + 1;
+    let mut state = seed;
+    let mut rnd = || {
+        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = state;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    };
+    let bumps: Vec<[f64; 4]> = (0..4)
+        .map(|_| [rnd() * side as f64, rnd() * side as f64, 2.0 + rnd() * side as f64 / 3.0, rnd() * 20000.0])
+        .collect();
+    let floor = rnd() * 8000.0;
+    let mut samples = Vec::with_capacity((side * side) as usize);
+    for z in 0..side {
+        for x in 0..side {
+            let mut h = 10000.0 + roughness * rnd() * 3000.0;
+            for [bx, bz, r, a] in &bumps {
+                let d2 = ((x as f64 - bx).powi(2) + (z as f64 - bz).powi(2)) / (r * r);
+                h += a * (-d2).exp();
+            }
+            samples.push(h.max(10000.0 + floor).min(65535.0) as u16);
+        }
+    }
+    Heightfield::new(side, samples).expect("side is 2^N + 1")
+}
+
+fn scales() -> Scales {
+    Scales { h: 10.0, v: 0.02 }
+}
+
+/// Camera at grid position (gx, gz), `above` world units over the ground.
+fn camera(hf: &Heightfield, gx: f64, gz: f64, above: f64, yaw: f64, pitch: f64, fov: f64) -> Camera {
+    let s = scales();
+    let (cx, cz) = (gx.clamp(0.0, hf.size() as f64) as u32, gz.clamp(0.0, hf.size() as f64) as u32);
+    let ground = f64::from(hf.get(cx, cz)) * s.v;
+    Camera {
+        eye: [gx * s.h, ground + above, gz * s.h],
+        yaw_deg: yaw,
+        pitch_deg: pitch,
+        fov_y_deg: fov,
+        width: 640,
+        height: 480,
+    }
+}
+
+fn run(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, limits: Limits) -> (Mesh, Tessellator) {
+    let mut t = Tessellator::new(hf.side());
+    let mut mesh = Mesh::default();
+    t.tessellate(hf, vt, scales(), cam, limits, &mut mesh);
+    (mesh, t)
+}
+
+/// Every diamond split without being forced (no split child needs it) must not lie wholly
+/// outside the frustum, unless it holds the eye's ground position.
+fn check_frustum(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, t: &Tessellator) -> Result<(), String> {
+    let size = hf.size();
+    let s = scales();
+    let split: std::collections::HashSet<(u32, u32)> = t.split_diamonds().collect();
+    let forced: std::collections::HashSet<(u32, u32)> = split
+        .iter()
+        .flat_map(|&(x, z)| Diamond::at(x, z, size).expect("split diamonds exist").parents(size))
+        .flatten()
+        .collect();
+    let planes = cam.frustum();
+    for &(x, z) in &split {
+        if forced.contains(&(x, z)) {
+            continue;
+        }
+        let d = Diamond::at(x, z, size).expect("split diamonds exist");
+        let tris = d.triangles(size);
+        let e = f64::from(vt.error(hf, x, z));
+        let hts: Vec<f64> = tris
+            .iter()
+            .flat_map(|t| t.vertices())
+            .map(|(vx, vz)| f64::from(hf.get(vx, vz)))
+            .collect();
+        let lo = (hts.iter().copied().fold(f64::INFINITY, f64::min) - e) * s.v;
+        let hi = (hts.iter().copied().fold(f64::NEG_INFINITY, f64::max) + e) * s.v;
+        let h = f64::from(d.h());
+        let foot: Vec<(f64, f64)> = match d.shape {
+            roam_server::diamond::Shape::Square => vec![(-h, -h), (h, -h), (-h, h), (h, h)],
+            _ => vec![(-h, 0.0), (h, 0.0), (0.0, -h), (0.0, h)],
+        };
+        let (ex, ez) = (cam.eye[0] / s.h - f64::from(x), cam.eye[2] / s.h - f64::from(z));
+        let under = match d.shape {
+            roam_server::diamond::Shape::Square => ex.abs() <= h && ez.abs() <= h,
+            _ => ex.abs() + ez.abs() <= h,
+        };
+        if under {
+            continue;
+        }
+        for p in &planes {
+            let outside = foot.iter().all(|&(dx, dz)| {
+                [lo, hi].iter().all(|&y| {
+                    p.distance([(f64::from(x) + dx) * s.h, y, (f64::from(z) + dz) * s.h]) < -1e-3
+                })
+            });
+            if outside {
+                return Err(format!("diamond ({x}, {z}) h {h} is outside the frustum but split"));
+            }
+        }
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 256, .. ProptestConfig::default() })]
+
+    #[test]
+    fn meshes_are_conforming_within_budget_deterministic_and_culled(
+        levels in 2u32..=7,
+        seed in any::<u64>(),
+        rough in 0.0f64..1.0,
+        gx in -0.2f64..1.2,
+        gz in -0.2f64..1.2,
+        above in 1.0f64..400.0,
+        yaw in 0.0f64..360.0,
+        pitch in -89.0f64..60.0,
+        fov in 20.0f64..100.0,
+        budget in 2u32..6000,
+        threshold in prop_oneof![Just(0.0f32), 0.0f32..4.0],
+    ) {
+        let hf = terrain(levels, seed, rough);
+        let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+        let size = f64::from(hf.size());
+        let cam = camera(&hf, gx * size, gz * size, above, yaw, pitch, fov);
+        let limits = Limits { budget, threshold_px: threshold };
+        let (mesh, mut t) = run(&hf, &vt, &cam, limits);
+        check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| TestCaseError::fail(e.to_string()))?;
+        prop_assert!(mesh.triangle_count() <= budget as usize);
+        prop_assert!(mesh.error_bound_px >= 0.0);
+        check_frustum(&hf, &vt, &cam, &t).map_err(TestCaseError::fail)?;
+        // Same inputs, same mesh: from a fresh tessellator and from this warm one after a
+        // different frame.
+        let (again, _) = run(&hf, &vt, &cam, limits);
+        prop_assert_eq!(&again, &mesh);
+        let other = camera(&hf, size / 2.0, size / 3.0, 50.0, yaw + 90.0, -20.0, 60.0);
+        let mut scratch = Mesh::default();
+        t.tessellate(&hf, &vt, scales(), &other, limits, &mut scratch);
+        t.tessellate(&hf, &vt, scales(), &cam, limits, &mut scratch);
+        prop_assert_eq!(&scratch, &mesh);
+    }
+
+    #[test]
+    fn variance_bounds_every_sample_and_grows_towards_the_root(
+        levels in 1u32..=6,
+        seed in any::<u64>(),
+        rough in 0.0f64..1.0,
+    ) {
+        let hf = terrain(levels, seed, rough);
+        let vt = VarianceTree::build(&hf, 2, &mut |_, _| {});
+        let size = hf.size();
+        let mut stack = Triangle::roots(size).to_vec();
+        while let Some(t) = stack.pop() {
+            let Some((x, z)) = t.split_vertex() else { continue };
+            let stored = f64::from(vt.error(&hf, x, z));
+            let exact = triangle_error(&hf, &t);
+            prop_assert!(exact <= stored, "{t:?}: exact {exact} > stored {stored}");
+            for c in t.children().expect("has a split vertex") {
+                if let Some((cx, cz)) = c.split_vertex() {
+                    prop_assert!(f64::from(vt.error(&hf, cx, cz)) <= stored);
+                }
+                stack.push(c);
+            }
+        }
+    }
+}
+
+#[test]
+fn flat_ground_needs_two_triangles() {
+    let hf = Heightfield::new(65, vec![1000; 65 * 65]).expect("valid");
+    let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+    let cam = camera(&hf, 32.0, 32.0, 2.0, 0.0, -10.0, 60.0);
+    let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 1000, threshold_px: 0.0 });
+    assert_eq!(mesh.triangle_count(), 2);
+    assert_eq!(mesh.error_bound_px, 0.0);
+    assert_eq!(mesh.vertices.len(), 4);
+}
+
+#[test]
+fn one_spike_is_refined_down_to_full_resolution() {
+    // A single raised sample: the only triangles that need splitting are those around it.
+    let mut samples = vec![1000u16; 65 * 65];
+    samples[37 * 65 + 21] = 3000;
+    let hf = Heightfield::new(65, samples).expect("valid");
+    let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+    let cam = camera(&hf, 32.0, 80.0, 100.0, 180.0, -30.0, 60.0);
+    let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 10_000, threshold_px: 0.0 });
+    check_mesh(&mesh.vertices, &mesh.indices, hf.size()).expect("conforming");
+    assert!(mesh.vertices.contains(&[21, 37]), "the spike is a vertex");
+    assert_eq!(mesh.error_bound_px, 0.0, "every error is resolved");
+    // Far fewer triangles than full resolution (2 * 64 * 64).
+    assert!(mesh.triangle_count() < 200, "{}", mesh.triangle_count());
+}
+
+#[test]
+fn the_ground_under_the_eye_is_exact() {
+    for seed in 0..20 {
+        let hf = terrain(6, seed, 1.0);
+        let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+        // Looking up and away: the ground below is outside the frustum, yet exact.
+        let (gx, gz) = (10.3 + seed as f64, 50.7 - seed as f64);
+        let cam = camera(&hf, gx, gz, 3.0, 45.0, 40.0, 40.0);
+        let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 2000, threshold_px: 1e9 });
+        let under = mesh
+            .indices
+            .chunks_exact(3)
+            .map(|t| {
+                let v = |i: u32| {
+                    let [x, z] = mesh.vertices[i as usize];
+                    (u32::from(x), u32::from(z))
+                };
+                Triangle { apex: v(t[0]), left: v(t[1]), right: v(t[2]) }
+            })
+            .find(|t| contains(t, gx, gz))
+            .expect("the mesh covers the map");
+        assert_eq!(triangle_error(&hf, &under), 0.0, "seed {seed}: {under:?}");
+    }
+}
+
+fn contains(t: &Triangle, x: f64, z: f64) -> bool {
+    let v = t.vertices().map(|(a, b)| (f64::from(a), f64::from(b)));
+    (0..3).all(|k| {
+        let (a, b) = (v[k], v[(k + 1) % 3]);
+        (b.1 - a.1) * (x - a.0) - (b.0 - a.0) * (z - a.1) >= 0.0
+    })
+}
+
+#[test]
+fn the_budget_is_reached_on_rough_ground_and_never_passed() {
+    let hf = terrain(7, 3, 1.0);
+    let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+    // High above the centre looking down: the whole map is in view.
+    let cam = camera(&hf, 64.0, 64.0, 5000.0, 0.0, -90.0, 60.0);
+    for budget in [2, 3, 10, 100, 1000, 4096, 20_000] {
+        let (mesh, _) = run(&hf, &vt, &cam, Limits { budget, threshold_px: 0.0 });
+        let n = mesh.triangle_count() as u32;
+        assert!(n <= budget, "budget {budget}: {n}");
+        // A split adds at most a short chain of forced splits: the frame stops close to it.
+        assert!(n + 64 >= budget.min(2 * 128 * 128), "budget {budget}: only {n}");
+    }
+}
+
+#[test]
+fn a_higher_threshold_gives_fewer_triangles_and_a_bound_below_it() {
+    let hf = terrain(7, 11, 0.7);
+    let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+    let cam = camera(&hf, 10.0, 10.0, 30.0, 45.0, -15.0, 60.0);
+    let mut last = usize::MAX;
+    for threshold in [0.5f32, 1.0, 2.0, 4.0, 8.0] {
+        let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 1 << 20, threshold_px: threshold });
+        assert!(mesh.error_bound_px < threshold, "{threshold}: {}", mesh.error_bound_px);
+        assert!(mesh.triangle_count() <= last);
+        last = mesh.triangle_count();
+    }
+}
