@@ -90,18 +90,41 @@ pub struct Tessellator {
     stack: Vec<[u32; 6]>,
     triangles: u32,
     dropped_max: f32,
+    stats: Stats,
+}
+
+/// Counts from the last frame, for benchmarks and tests.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Stats {
+    /// Diamonds whose priority was computed.
+    pub evaluated: u32,
+    /// Of those, wholly outside the frustum (never queued).
+    pub culled: u32,
+    /// Entries popped from the queue (some already taken by forced splits).
+    pub popped: u32,
+    /// Diamonds split, forced ones included.
+    pub split: u32,
 }
 
 /// Everything `evaluate` needs about the frame, precomputed.
 struct Frame<'a> {
     heights: &'a [u16],
-    variance: &'a VarianceTree,
-    hf: &'a Heightfield,
+    codes: &'a [u8],
+    table: &'a [f32; 256],
+    square_offset: [usize; 16],
+    rotated_offset: [usize; 16],
     side: u32,
     size: u32,
-    /// Planes in mixed units: `a·x_grid + b·sample + c·z_grid + d >= 0` inside; with
-    /// `|b|`, `|a| + |c|` and `max(|a|, |c|)` for the extents.
-    planes: [[f32; 7]; 5],
+    /// The four side planes of the view pyramid (its apex, the eye, makes a near plane
+    /// unnecessary), as columns: `a·x_grid + b·sample + c·z_grid + d >= 0` inside; `|b|`,
+    /// and the footprint extents `|a| + |c|` (square) and `max(|a|, |c|)` (rotated).
+    pa: [f32; 4],
+    pb: [f32; 4],
+    pc: [f32; 4],
+    pd: [f32; 4],
+    abs_b: [f32; 4],
+    ext_square: [f32; 4],
+    ext_rotated: [f32; 4],
     eye_grid: [f32; 2],
     eye: [f32; 3],
     hs: f32,
@@ -109,6 +132,35 @@ struct Frame<'a> {
     /// `v_scale · pixels_per_radian`: turns sample-unit error over world distance into px.
     px: f32,
     threshold: f32,
+}
+
+impl Frame<'_> {
+    #[inline(always)]
+    fn at(&self, x: u32, z: u32) -> u16 {
+        self.heights[(z * self.side + x) as usize]
+    }
+
+    /// Stored error of a diamond with `m >= 1`, sample units.
+    #[inline(always)]
+    fn stored(&self, x: u32, z: u32, m: u32, shape: Shape) -> f32 {
+        let i = variance::slot(&self.square_offset, &self.rotated_offset, self.size, x, z, m, shape);
+        self.table[self.codes[i] as usize]
+    }
+}
+
+#[inline(always)]
+fn dev(c: u16, p: u16, q: u16) -> f32 {
+    (f32::from(c) - 0.5 * (f32::from(p) + f32::from(q))).abs()
+}
+
+#[inline(always)]
+fn min4(a: u16, b: u16, c: u16, d: u16) -> u16 {
+    a.min(b).min(c.min(d))
+}
+
+#[inline(always)]
+fn max4(a: u16, b: u16, c: u16, d: u16) -> u16 {
+    a.max(b).max(c.max(d))
 }
 
 #[inline(always)]
@@ -149,6 +201,7 @@ impl Tessellator {
             stack: Vec::new(),
             triangles: 0,
             dropped_max: 0.0,
+            stats: Stats::default(),
         }
     }
 
@@ -160,6 +213,11 @@ impl Tessellator {
             + self.buckets.iter().map(|b| b.capacity() * 8).sum::<usize>()
             + self.chain.capacity() * 4
             + self.stack.capacity() * 24
+    }
+
+    /// Counts from the last frame.
+    pub fn stats(&self) -> Stats {
+        self.stats
     }
 
     /// Centres of the diamonds split in the last frame, in the order they were split.
@@ -194,12 +252,22 @@ impl Tessellator {
         let frame = self.frame(hf, variance, scales, camera, limits);
         let budget = limits.budget.max(2);
         self.triangles = 2;
-        let (rx, rz) = (self.size / 2, self.size / 2);
-        self.evaluate(&frame, rx, rz, rx.trailing_zeros(), Shape::Square);
+        self.evaluate_root(&frame);
         while let Some(entry) = self.pop() {
+            self.stats.popped += 1;
             let (x, z) = unpack(entry as u32);
             if self.is_active(x, z) {
                 continue; // taken earlier by a forced split
+            }
+            if let Some(tris) = self.parents_split(x, z) {
+                // The common case: nothing to force.
+                if self.triangles + tris > budget {
+                    self.push(entry);
+                    break;
+                }
+                self.triangles += tris;
+                self.commit(&frame, x, z);
+                continue;
             }
             let mut delta = 0;
             self.chain.clear();
@@ -227,25 +295,48 @@ impl Tessellator {
         camera: &Camera,
         limits: Limits,
     ) -> Frame<'a> {
-        let planes = camera.frustum().map(|p| {
-            let (a, b, c) = (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h);
-            [
-                a as f32,
-                b as f32,
-                c as f32,
-                p.d as f32,
-                b.abs() as f32,
-                (a.abs() + c.abs()) as f32,
-                a.abs().max(c.abs()) as f32,
-            ]
-        });
+        let planes = camera.frustum();
+        let col = |k: usize| -> [f32; 4] {
+            std::array::from_fn(|i| {
+                let p = &planes[i + 1];
+                let (a, b, c) = (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h);
+                (match k {
+                    0 => a,
+                    1 => b,
+                    2 => c,
+                    3 => p.d,
+                    4 => b.abs(),
+                    5 => a.abs() + c.abs(),
+                    _ => a.abs().max(c.abs()),
+                }) as f32
+            })
+        };
+        let mut square_offset = [0; 16];
+        let mut rotated_offset = [0; 16];
+        for (m, (so, ro)) in variance
+            .square_offsets()
+            .iter()
+            .zip(variance.rotated_offsets())
+            .enumerate()
+        {
+            square_offset[m] = *so;
+            rotated_offset[m] = *ro;
+        }
         Frame {
             heights: hf.samples(),
-            variance,
-            hf,
+            codes: variance.codes(),
+            table: variance.table(),
+            square_offset,
+            rotated_offset,
             side: self.side,
             size: self.size,
-            planes,
+            pa: col(0),
+            pb: col(1),
+            pc: col(2),
+            pd: col(3),
+            abs_b: col(4),
+            ext_square: col(5),
+            ext_rotated: col(6),
             eye_grid: [
                 (camera.eye[0] / scales.h) as f32,
                 (camera.eye[2] / scales.h) as f32,
@@ -275,6 +366,7 @@ impl Tessellator {
             self.clear_bucket_bit(b);
         }
         self.dropped_max = 0.0;
+        self.stats = Stats::default();
     }
 
     /// Collects, parents first, the unsplit diamonds that splitting `(x, z)` needs, and the
@@ -311,126 +403,158 @@ impl Tessellator {
         *delta += tris;
     }
 
-    /// Splits `(x, z)` (its parents are split) and queues the children it uncovers.
+    /// `Some(triangles the split adds)` when every parent of `(x, z)` is split already.
+    #[inline(always)]
+    fn parents_split(&self, x: u32, z: u32) -> Option<u32> {
+        let (m, shape) = classify(x, z);
+        let h = 1 << m;
+        let s = self.size;
+        match shape {
+            Shape::Square if 2 * h == s => Some(2),
+            Shape::Square => {
+                let ok = if ((x + h) >> (m + 1)) + ((z + h) >> (m + 1)) & 1 == 1 {
+                    self.is_active(x + h, z + h) && self.is_active(x - h, z - h)
+                } else {
+                    self.is_active(x + h, z - h) && self.is_active(x - h, z + h)
+                };
+                ok.then_some(2)
+            }
+            Shape::Rotated { horizontal } => {
+                let (c, ox, oz) = if horizontal { (z, 0, h) } else { (x, h, 0) };
+                let lo = c >= h;
+                let hi = c + h <= s;
+                let ok = (!lo || self.is_active(x - ox, z - oz)) && (!hi || self.is_active(x + ox, z + oz));
+                ok.then_some(u32::from(lo) + u32::from(hi))
+            }
+        }
+    }
+
+    /// Splits `(x, z)` (its parents are split) and queues the children it uncovers. A
+    /// child is queued by whichever of its two parents is split first.
+    #[inline(always)]
     fn commit(&mut self, f: &Frame, x: u32, z: u32) {
         self.set_active(x, z);
         self.active_list.push(pack(x, z));
+        self.stats.split += 1;
         let (m, shape) = classify(x, z);
         let h = 1 << m;
         let s = self.size;
         match shape {
             Shape::Square => {
-                // Children: rotated diamonds on the cell's edge midpoints; each one's other
-                // parent is the next cell over.
+                // Children: rotated diamonds on the cell's edge midpoints, each sharing an
+                // edge and the centre with this cell; the far corner of each is the centre
+                // of its other parent, the next cell over.
+                let (nw, ne, sw, se) = (f.at(x - h, z - h), f.at(x + h, z - h), f.at(x - h, z + h), f.at(x + h, z + h));
+                let c = f.at(x, z);
                 let vertical = Shape::Rotated { horizontal: false };
                 let horizontal = Shape::Rotated { horizontal: true };
-                if x + 2 * h > s || !self.is_active(x + 2 * h, z) {
-                    self.evaluate(f, x + h, z, m, vertical);
-                }
-                if x < 2 * h || !self.is_active(x - 2 * h, z) {
-                    self.evaluate(f, x - h, z, m, vertical);
-                }
-                if z + 2 * h > s || !self.is_active(x, z + 2 * h) {
-                    self.evaluate(f, x, z + h, m, horizontal);
-                }
-                if z < 2 * h || !self.is_active(x, z - 2 * h) {
-                    self.evaluate(f, x, z - h, m, horizontal);
+                // (child centre, its hypotenuse ends, far corner, far corner on the map)
+                let kids = [
+                    (x + h, z, ne, se, x + 2 * h, z, x + 2 * h <= s, vertical),
+                    (x - h, z, nw, sw, x.wrapping_sub(2 * h), z, x >= 2 * h, vertical),
+                    (x, z + h, sw, se, x, z + 2 * h, z + 2 * h <= s, horizontal),
+                    (x, z - h, nw, ne, x, z.wrapping_sub(2 * h), z >= 2 * h, horizontal),
+                ];
+                for (cx, cz, p, q, fx, fz, far_on_map, shape) in kids {
+                    if far_on_map && self.is_active(fx, fz) {
+                        continue; // queued when its other parent was split
+                    }
+                    // A missing far corner (map edge) repeats a hypotenuse end.
+                    let far = if far_on_map { f.at(fx, fz) } else { p };
+                    let e = if m == 0 { dev(f.at(cx, cz), p, q) } else { f.stored(cx, cz, m, shape) };
+                    self.evaluate(f, cx, cz, h, false, e, min4(p, q, c, far), max4(p, q, c, far));
                 }
             }
             Shape::Rotated { .. } if m == 0 => {}
-            Shape::Rotated { .. } => {
-                // Children: squares half as big around the four leg midpoints, those inside
-                // the map; each one's other parent is the far corner of its cell.
+            Shape::Rotated { horizontal } => {
+                // Children: squares of half-size h/2 in the four quarter cells around the
+                // centre that lie on the map; each cell's corners are this centre, a
+                // hypotenuse end, an apex, and the far corner: the child's other parent.
+                let c = f.at(x, z);
                 let k = h / 2;
-                for (dx, dz) in [(1i32, 1i32), (-1, 1), (1, -1), (-1, -1)] {
-                    let cx = x as i64 + i64::from(dx) * k as i64;
-                    let cz = z as i64 + i64::from(dz) * k as i64;
-                    if cx < 0 || cz < 0 || cx > s as i64 || cz > s as i64 {
-                        continue;
+                let (ux, uz, vx, vz) = if horizontal { (h, 0, 0, h) } else { (0, h, h, 0) };
+                for (su, sv) in [(false, false), (true, false), (false, true), (true, true)] {
+                    // `u` runs along the hypotenuse, `v` towards an apex.
+                    let (ax, az) = if sv { (x.wrapping_sub(vx), z.wrapping_sub(vz)) } else { (x + vx, z + vz) };
+                    if ax > s || az > s {
+                        continue; // no apex: the child is off the map
                     }
-                    let ox = x as i64 + i64::from(dx) * h as i64;
-                    let oz = z as i64 + i64::from(dz) * h as i64;
-                    let other_inside = ox >= 0 && oz >= 0 && ox <= s as i64 && oz <= s as i64;
-                    if !other_inside || !self.is_active(ox as u32, oz as u32) {
-                        self.evaluate(f, cx as u32, cz as u32, m - 1, Shape::Square);
+                    let (ex, ez) = if su { (x.wrapping_sub(ux), z.wrapping_sub(uz)) } else { (x + ux, z + uz) };
+                    let (fx, fz) = (ex + ax - x, ez + az - z);
+                    if self.is_active(fx, fz) {
+                        continue; // queued when its other parent was split
                     }
+                    let (cx, cz) = ((x + fx) / 2, (z + fz) / 2);
+                    let (end, apex, far) = (f.at(ex, ez), f.at(ax, az), f.at(fx, fz));
+                    let e = if m == 1 {
+                        // Finest square: exact, from its centre and edge midpoints. Its
+                        // hypotenuse joins `end` and `apex`.
+                        let mid = |ax: u32, az: u32, bx: u32, bz: u32| f.at((ax + bx) / 2, (az + bz) / 2);
+                        dev(f.at(cx, cz), end, apex)
+                            .max(dev(mid(x, z, ex, ez), c, end))
+                            .max(dev(mid(ex, ez, fx, fz), end, far))
+                            .max(dev(mid(fx, fz, ax, az), far, apex))
+                            .max(dev(mid(ax, az, x, z), apex, c))
+                    } else {
+                        f.stored(cx, cz, m - 1, Shape::Square)
+                    };
+                    self.evaluate(f, cx, cz, k, true, e, min4(c, end, apex, far), max4(c, end, apex, far));
                 }
             }
         }
     }
 
-    /// Computes the priority of diamond `(x, z)` and queues it, unless it is outside the
+    /// Queues the root diamond.
+    fn evaluate_root(&mut self, f: &Frame) {
+        let r = self.size / 2;
+        let s = self.size;
+        let (nw, ne, sw, se) = (f.at(0, 0), f.at(s, 0), f.at(0, s), f.at(s, s));
+        let e = if r == 1 {
+            // Side 3: the root is the finest square.
+            let c = f.at(1, 1);
+            dev(c, nw, se)
+                .max(dev(f.at(1, 0), nw, ne))
+                .max(dev(f.at(2, 1), ne, se))
+                .max(dev(f.at(1, 2), sw, se))
+                .max(dev(f.at(0, 1), nw, sw))
+        } else {
+            f.stored(r, r, r.trailing_zeros(), Shape::Square)
+        };
+        self.evaluate(f, r, r, r, true, e, min4(nw, ne, sw, se), max4(nw, ne, sw, se));
+    }
+
+    /// Computes the priority of diamond `(x, z)` (half-size `h`, error `e` in sample units,
+    /// corner heights within `lo..=hi`) and queues it, unless it is wholly outside the
     /// frustum (never queued) or below the threshold (remembered for the error bound).
     #[inline(always)]
-    fn evaluate(&mut self, f: &Frame, x: u32, z: u32, m: u32, shape: Shape) {
-        let h = 1u32 << m;
-        let e = if m == 0 {
-            variance::finest(
-                f.hf,
-                &crate::diamond::Diamond { x, z, m, shape },
-            )
-        } else {
-            let slot = variance::slot(
-                f.variance.square_offsets(),
-                f.variance.rotated_offsets(),
-                f.size,
-                x,
-                z,
-                m,
-                shape,
-            );
-            f.variance.code_value(slot)
-        };
+    #[allow(clippy::too_many_arguments)]
+    fn evaluate(&mut self, f: &Frame, x: u32, z: u32, h: u32, square: bool, e: f32, lo: u16, hi: u16) {
+        self.stats.evaluated += 1;
         if e <= 0.0 {
             return; // exact already: splitting adds nothing
         }
-        let s = f.size;
-        let hts = f.heights;
-        let at = |x: u32, z: u32| hts[(z * f.side + x) as usize];
-        let c0_h = if shape == (Shape::Rotated { horizontal: true }) { at(x - h, z) } else { 0 };
-        let c0_v = if shape == (Shape::Rotated { horizontal: false }) { at(x, z - h) } else { 0 };
-        let (c0, c1, c2, c3, ext_col) = match shape {
-            Shape::Square => (
-                at(x - h, z - h),
-                at(x + h, z - h),
-                at(x - h, z + h),
-                at(x + h, z + h),
-                5,
-            ),
-            Shape::Rotated { horizontal: true } => (
-                c0_h,
-                at(x + h, z),
-                // A missing apex (map edge) repeats a hypotenuse end: no widening.
-                if z >= h { at(x, z - h) } else { c0_h },
-                if z + h <= s { at(x, z + h) } else { c0_h },
-                6,
-            ),
-            Shape::Rotated { horizontal: false } => (
-                c0_v,
-                at(x, z + h),
-                if x >= h { at(x - h, z) } else { c0_v },
-                if x + h <= s { at(x + h, z) } else { c0_v },
-                6,
-            ),
-        };
-        let lo = f32::from(c0.min(c1).min(c2.min(c3))) - e;
-        let hi = f32::from(c0.max(c1).max(c2.max(c3))) + e;
+        let lo = f32::from(lo) - e;
+        let hi = f32::from(hi) + e;
         let (yc, hy) = (0.5 * (lo + hi), 0.5 * (hi - lo));
         let (xf, zf, hf) = (x as f32, z as f32, h as f32);
-        for p in &f.planes {
-            let dist = p[0] * xf + p[1] * yc + p[2] * zf + p[3];
-            if dist + hf * p[ext_col] + hy * p[4] < 0.0 {
-                return; // wholly outside one plane
-            }
+        let ext = if square { &f.ext_square } else { &f.ext_rotated };
+        let mut outside = false;
+        for i in 0..4 {
+            let dist = f.pa[i] * xf + f.pb[i] * yc + f.pc[i] * zf + f.pd[i] + hf * ext[i] + hy * f.abs_b[i];
+            outside |= dist < 0.0;
+        }
+        if outside {
+            self.stats.culled += 1;
+            return; // wholly outside one plane
         }
         let (ex, ez) = (f.eye_grid[0] - xf, f.eye_grid[1] - zf);
-        let under = if ext_col == 5 {
+        let under = if square {
             ex.abs() <= hf && ez.abs() <= hf
         } else {
             ex.abs() + ez.abs() <= hf
         };
         let (dx, dy, dz) = (ex * f.hs, f.eye[1] - yc * f.vs, ez * f.hs);
-        let reach = f.hs * hf * if ext_col == 5 { std::f32::consts::SQRT_2 } else { 1.0 } + f.vs * hy;
+        let reach = f.hs * hf * if square { std::f32::consts::SQRT_2 } else { 1.0 } + f.vs * hy;
         let d = ((dx * dx + dy * dy + dz * dz).sqrt() - reach).max(MIN_DISTANCE);
         let prio = e * f.px / d;
         let bucket = if under {
@@ -475,7 +599,7 @@ impl Tessellator {
         }
     }
 
-    #[inline(always)]
+    #[inline(never)]
     fn pop(&mut self) -> Option<u64> {
         let b = self.top_bucket()?;
         let bucket = &mut self.buckets[b];
@@ -517,6 +641,7 @@ impl Tessellator {
 
     /// Writes the mesh: vertices are the corners and the split diamonds' centres, indexed by
     /// rank in the active bitset; triangles in bintree order.
+    #[inline(never)]
     fn emit(&mut self, out: &mut Mesh) {
         let s = self.size;
         for (x, z) in [(0, 0), (s, 0), (0, s), (s, s)] {

@@ -131,11 +131,6 @@ impl VarianceTree {
         )
     }
 
-    #[inline]
-    pub(crate) fn code_value(&self, slot: usize) -> f32 {
-        self.table[self.codes[slot] as usize]
-    }
-
     /// Bytes of the stored codes and the table.
     pub fn heap_bytes(&self) -> usize {
         self.codes.capacity() + std::mem::size_of_val(&self.table)
@@ -150,6 +145,10 @@ impl VarianceTree {
     /// The value of each code, in sample units (code 0 is exactly zero).
     pub fn table(&self) -> &[f32; 256] {
         &self.table
+    }
+
+    pub(crate) fn codes(&self) -> &[u8] {
+        &self.codes
     }
 
     pub(crate) fn square_offsets(&self) -> &[usize] {

@@ -74,7 +74,8 @@ fn check_frustum(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, t: &Tessella
         .flat_map(|&(x, z)| Diamond::at(x, z, size).expect("split diamonds exist").parents(size))
         .flatten()
         .collect();
-    let planes = cam.frustum();
+    // The view pyramid: the near plane adds nothing to culling (the apex is the eye).
+    let planes = &cam.frustum()[1..];
     for &(x, z) in &split {
         if forced.contains(&(x, z)) {
             continue;
@@ -102,7 +103,7 @@ fn check_frustum(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, t: &Tessella
         if under {
             continue;
         }
-        for p in &planes {
+        for p in planes {
             let outside = foot.iter().all(|&(dx, dz)| {
                 [lo, hi].iter().all(|&y| {
                     p.distance([(f64::from(x) + dx) * s.h, y, (f64::from(z) + dz) * s.h]) < -1e-3

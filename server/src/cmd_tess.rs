@@ -1,0 +1,232 @@
+//! `mesh` and `bench`: one tessellation to a Wavefront OBJ, and the tessellation benchmark.
+
+use std::fs::File;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use roam_server::camera::Camera;
+use roam_server::flyover::{self, quantile};
+use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
+use roam_server::variance::VarianceTree;
+use roam_server::{Terrain, dataset};
+
+use crate::progress::Progress;
+
+/// Camera options shared by `mesh` and `bench`.
+#[derive(Args, Clone)]
+pub struct CameraArgs {
+    /// Eye position in world coordinates, `X,Y,Z`.
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
+    pub eye: Option<[f64; 3]>,
+    /// Heading of the view in degrees: 0 faces south (+Z), 90 east (+X).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub yaw: f64,
+    /// Pitch in degrees, positive looking up.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub pitch: f64,
+}
+
+#[derive(Args)]
+pub struct MeshArgs {
+    /// Data-set directory.
+    pub dir: PathBuf,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 60.0)]
+    pub fov: f64,
+    /// Viewport width in pixels.
+    #[arg(long, default_value_t = 1920)]
+    pub width: u32,
+    /// Viewport height in pixels.
+    #[arg(long, default_value_t = 1080)]
+    pub height: u32,
+    /// Triangle budget.
+    #[arg(long, default_value_t = 65536)]
+    pub budget: u32,
+    /// Stop splitting below this screen-space error, pixels.
+    #[arg(long, default_value_t = 0.0)]
+    pub threshold: f32,
+    /// Output Wavefront OBJ (world coordinates, faces counter-clockwise from above).
+    #[arg(long)]
+    pub obj: PathBuf,
+}
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Data-set directory.
+    pub dir: PathBuf,
+    /// Triangle budget per frame.
+    #[arg(long, default_value_t = 65536)]
+    pub budget: u32,
+    /// Frames to time (after warm-up frames that are not counted).
+    #[arg(long, default_value_t = 300)]
+    pub frames: usize,
+    /// Stop splitting below this screen-space error, pixels.
+    #[arg(long, default_value_t = 0.0)]
+    pub threshold: f32,
+    /// One fixed camera instead of the fly-over path (needs `--eye`).
+    #[command(flatten)]
+    pub camera: CameraArgs,
+    /// Print one JSON object instead of text.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts.as_slice() else {
+        return Err(format!("expected X,Y,Z (three numbers), got {s:?}"));
+    };
+    let num = |v: &str| {
+        v.parse::<f64>()
+            .ok()
+            .filter(|f| f.is_finite())
+            .ok_or_else(|| format!("expected a finite number, got {v:?}"))
+    };
+    Ok([num(x)?, num(y)?, num(z)?])
+}
+
+/// Loads a data set and builds its variance tree, with progress bars on a terminal.
+pub fn load(dir: &Path) -> Result<(Terrain, VarianceTree, f64)> {
+    let terrain = {
+        let mut p = Progress::new("loading");
+        dataset::load(dir, &mut p.callback())?
+    };
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let started = Instant::now();
+    let vt = {
+        let mut p = Progress::new("variance");
+        VarianceTree::build(&terrain.heights, threads, &mut p.callback())
+    };
+    let build_ms = started.elapsed().as_secs_f64() * 1e3;
+    Ok((terrain, vt, build_ms))
+}
+
+fn scales(t: &Terrain) -> Scales {
+    Scales {
+        h: t.map.h_scale,
+        v: t.map.v_scale,
+    }
+}
+
+pub fn mesh(args: MeshArgs) -> Result<()> {
+    let (terrain, vt, _) = load(&args.dir)?;
+    let Some(eye) = args.camera.eye else {
+        bail!("--eye X,Y,Z is required");
+    };
+    if args.width == 0 || args.height == 0 || !(1.0..179.0).contains(&args.fov) {
+        bail!("--width and --height must be positive and --fov within 1..179 degrees");
+    }
+    let camera = Camera {
+        eye,
+        yaw_deg: args.camera.yaw,
+        pitch_deg: args.camera.pitch,
+        fov_y_deg: args.fov,
+        width: args.width,
+        height: args.height,
+    };
+    let mut tess = Tessellator::new(terrain.heights.side());
+    let mut mesh = Mesh::default();
+    let limits = Limits {
+        budget: args.budget,
+        threshold_px: args.threshold,
+    };
+    tess.tessellate(&terrain.heights, &vt, scales(&terrain), &camera, limits, &mut mesh);
+    write_obj(&args.obj, &terrain, &mesh)
+        .with_context(|| format!("writing {}", args.obj.display()))?;
+    println!(
+        "{} triangles, error bound {:.2} px",
+        mesh.triangle_count(),
+        mesh.error_bound_px
+    );
+    Ok(())
+}
+
+fn write_obj(path: &Path, terrain: &Terrain, mesh: &Mesh) -> std::io::Result<()> {
+    let mut w = BufWriter::new(File::create(path)?);
+    writeln!(w, "# roam-server mesh: {} triangles", mesh.triangle_count())?;
+    let h = terrain.map.h_scale;
+    for &[x, z] in &mesh.vertices {
+        let y = terrain.world_height(u32::from(x), u32::from(z));
+        writeln!(w, "v {} {} {}", f64::from(x) * h, y, f64::from(z) * h)?;
+    }
+    for t in mesh.indices.chunks_exact(3) {
+        writeln!(w, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1)?;
+    }
+    w.flush()
+}
+
+pub fn bench(args: BenchArgs) -> Result<()> {
+    let (terrain, vt, variance_build_ms) = load(&args.dir)?;
+    let frames = args.frames.max(1);
+    let cameras: Vec<Camera> = match args.camera.eye {
+        Some(eye) => vec![Camera {
+            eye,
+            yaw_deg: args.camera.yaw,
+            pitch_deg: args.camera.pitch,
+            fov_y_deg: flyover::FOV_Y_DEG,
+            width: flyover::WIDTH,
+            height: flyover::HEIGHT,
+        }],
+        None => flyover::flyover(&terrain, frames),
+    };
+    let limits = Limits {
+        budget: args.budget,
+        threshold_px: args.threshold,
+    };
+    let mut tess = Tessellator::new(terrain.heights.side());
+    let mut mesh = Mesh::default();
+    let sc = scales(&terrain);
+    // Warm-up: fill the pools and caches.
+    for cam in cameras.iter().cycle().take(10) {
+        tess.tessellate(&terrain.heights, &vt, sc, cam, limits, &mut mesh);
+    }
+    let (mut ms, mut ns_per_tri, mut tris, mut err) = (vec![], vec![], vec![], vec![]);
+    for cam in cameras.iter().cycle().take(frames) {
+        let started = Instant::now();
+        tess.tessellate(&terrain.heights, &vt, sc, cam, limits, &mut mesh);
+        let ns = started.elapsed().as_nanos() as f64;
+        let n = mesh.triangle_count().max(1) as f64;
+        ms.push(ns / 1e6);
+        ns_per_tri.push(ns / n);
+        tris.push(n);
+        err.push(f64::from(mesh.error_bound_px));
+    }
+    let samples = f64::from(terrain.heights.side()).powi(2);
+    let resident = (terrain.heights.heap_bytes() + vt.heap_bytes()) as f64 / samples;
+    let report = serde_json::json!({
+        "data_set": args.dir.display().to_string(),
+        "side": terrain.heights.side(),
+        "budget": args.budget,
+        "frames": frames,
+        "triangles": quantile(&tris, 0.5),
+        "tessellate_ns_per_triangle_median": quantile(&ns_per_tri, 0.5),
+        "tessellate_ms_median": quantile(&ms, 0.5),
+        "tessellate_ms_p99": quantile(&ms, 0.99),
+        "variance_bytes_per_sample": vt.bytes_per_sample(),
+        "variance_build_ms": variance_build_ms,
+        "screen_error_px_median": quantile(&err, 0.5),
+        "screen_error_px_p99": quantile(&err, 0.99),
+        "resident_bytes_per_sample": resident,
+        "tessellator_bytes": tess.heap_bytes(),
+        "last_frame": {
+            "evaluated": tess.stats().evaluated,
+            "culled": tess.stats().culled,
+            "popped": tess.stats().popped,
+            "split": tess.stats().split,
+        },
+    });
+    if args.json {
+        println!("{report}");
+    } else {
+        let obj = report.as_object().expect("built as an object above");
+        for (k, v) in obj {
+            println!("{k:>36}  {v}");
+        }
+    }
+    Ok(())
+}

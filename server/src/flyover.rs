@@ -1,0 +1,68 @@
+//! The benchmark's camera path and its statistics: pure functions, no clock. The binary
+//! times each frame and hands the durations back here.
+
+use crate::camera::Camera;
+use crate::dataset::Terrain;
+
+/// Viewport of the benchmark (the 1920×1080 at 60° vertical field of view).
+pub const WIDTH: u32 = 1920;
+pub const HEIGHT: u32 = 1080;
+pub const FOV_Y_DEG: f64 = 60.0;
+/// Height of the eye above the ground along the path, world units.
+pub const EYE_ABOVE_GROUND: f64 = 10.0;
+/// Pitch along the path, degrees (slightly down, as a driver looks).
+pub const PITCH_DEG: f64 = -5.0;
+
+/// `frames` cameras along a closed loop around the map centre (radius a third of the map),
+/// each `EYE_ABOVE_GROUND` over the terrain below it and looking along the loop.
+pub fn flyover(terrain: &Terrain, frames: usize) -> Vec<Camera> {
+    let size = f64::from(terrain.heights.size());
+    let h = terrain.map.h_scale;
+    (0..frames)
+        .map(|i| {
+            let t = std::f64::consts::TAU * i as f64 / frames.max(1) as f64;
+            let (gx, gz) = (size * (0.5 + t.cos() / 3.0), size * (0.5 + t.sin() / 3.0));
+            // Tangent of the loop: d/dt (cos t, sin t) = (-sin t, cos t); heading 0 faces +Z.
+            let heading = (-t.sin()).atan2(t.cos()).to_degrees();
+            let ground = terrain.world_height(gx.round() as u32, gz.round() as u32);
+            Camera {
+                eye: [gx * h, ground + EYE_ABOVE_GROUND, gz * h],
+                yaw_deg: heading,
+                pitch_deg: PITCH_DEG,
+                fov_y_deg: FOV_Y_DEG,
+                width: WIDTH,
+                height: HEIGHT,
+            }
+        })
+        .collect()
+}
+
+/// The `q`-quantile (0..=1) of `values` by the nearest-rank method; 0 when empty.
+pub fn quantile(values: &[f64], q: f64) -> f64 {
+    if values.is_empty() {
+        return 0.0;
+    }
+    let mut v = values.to_vec();
+    v.sort_by(f64::total_cmp);
+    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
+    v[rank - 1]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn quantiles() {
+        for (values, q, want) in [
+            (vec![], 0.5, 0.0),
+            (vec![3.0], 0.5, 3.0),
+            (vec![5.0, 1.0, 3.0], 0.5, 3.0),
+            (vec![4.0, 1.0, 3.0, 2.0], 0.5, 2.0),
+            ((1..=100).map(f64::from).collect(), 0.99, 99.0),
+            ((1..=100).map(f64::from).collect(), 1.0, 100.0),
+        ] {
+            assert_eq!(quantile(&values, q), want, "{values:?} q {q}");
+        }
+    }
+}
