@@ -34,7 +34,11 @@ impl Camera {
     /// Unit view direction.
     pub fn forward(&self) -> [f64; 3] {
         let (yaw, pitch) = (self.yaw_deg.to_radians(), self.pitch_deg.to_radians());
-        [yaw.sin() * pitch.cos(), pitch.sin(), yaw.cos() * pitch.cos()]
+        [
+            yaw.sin() * pitch.cos(),
+            pitch.sin(),
+            yaw.cos() * pitch.cos(),
+        ]
     }
 
     /// Pixels per unit of `size / distance` at the centre of the view:
@@ -48,7 +52,11 @@ impl Camera {
         let f = self.forward();
         // Right = forward × up, normalised; up' = right × forward.
         let r = normalize([-f[2], 0.0, f[0]]);
-        let r = if r[0].is_finite() { r } else { [-1.0, 0.0, 0.0] };
+        let r = if r[0].is_finite() {
+            r
+        } else {
+            [-1.0, 0.0, 0.0]
+        };
         let u = cross(r, f);
         let half_v = (self.fov_y_deg.to_radians() / 2.0).clamp(1e-6, 1.5);
         let aspect = f64::from(self.width.max(1)) / f64::from(self.height.max(1));
@@ -124,7 +132,11 @@ mod tests {
         let c = cam(90.0, -10.0);
         let planes = c.frustum();
         let f = c.forward();
-        let ahead = [c.eye[0] + 100.0 * f[0], c.eye[1] + 100.0 * f[1], c.eye[2] + 100.0 * f[2]];
+        let ahead = [
+            c.eye[0] + 100.0 * f[0],
+            c.eye[1] + 100.0 * f[1],
+            c.eye[2] + 100.0 * f[2],
+        ];
         assert!(planes.iter().all(|p| p.distance(ahead) > 0.0));
         // Behind, far left (north when facing east), far right, above and below are out.
         for p in [
@@ -140,7 +152,11 @@ mod tests {
         // horizontal half-angle is ~45.7°) is out, one at 40° is in.
         let at = |deg: f64| {
             let a = (90.0 - deg).to_radians();
-            [c.eye[0] + 100.0 * a.sin(), c.eye[1] - 100.0 * 0.17, c.eye[2] + 100.0 * a.cos()]
+            [
+                c.eye[0] + 100.0 * a.sin(),
+                c.eye[1] - 100.0 * 0.17,
+                c.eye[2] + 100.0 * a.cos(),
+            ]
         };
         assert!(planes.iter().all(|p| p.distance(at(40.0)) > 0.0));
         assert!(planes.iter().any(|p| p.distance(at(59.0)) < 0.0));

@@ -135,7 +135,14 @@ pub fn mesh(args: MeshArgs) -> Result<()> {
         budget: args.budget,
         threshold_px: args.threshold,
     };
-    tess.tessellate(&terrain.heights, &vt, scales(&terrain), &camera, limits, &mut mesh);
+    tess.tessellate(
+        &terrain.heights,
+        &vt,
+        scales(&terrain),
+        &camera,
+        limits,
+        &mut mesh,
+    );
     write_obj(&args.obj, &terrain, &mesh)
         .with_context(|| format!("writing {}", args.obj.display()))?;
     println!(
@@ -218,6 +225,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "culled": tess.stats().culled,
             "popped": tess.stats().popped,
             "split": tess.stats().split,
+            "forcing": tess.stats().forcing,
         },
     });
     if args.json {

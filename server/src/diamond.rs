@@ -83,7 +83,9 @@ impl Triangle {
 pub enum Shape {
     Square,
     /// Hypotenuse along `x` (`horizontal`) or along `z`.
-    Rotated { horizontal: bool },
+    Rotated {
+        horizontal: bool,
+    },
 }
 
 /// A diamond, named by its centre.

@@ -21,7 +21,11 @@ pub enum ShapeError {
     #[error("side {side} is not 2^N + 1 with 1 <= N <= {MAX_LEVELS}")]
     Side { side: u64 },
     #[error("{got} samples for side {side}: expected {expected}")]
-    Length { side: u32, got: usize, expected: u64 },
+    Length {
+        side: u32,
+        got: usize,
+        expected: u64,
+    },
 }
 
 /// `Some(N)` when `side == 2^N + 1` with `1 <= N <= MAX_LEVELS`.

@@ -6,10 +6,12 @@
 pub mod camera;
 pub mod dataset;
 pub mod diamond;
+pub mod flyover;
 pub mod generate;
 pub mod heightfield;
 pub mod map;
 pub mod pnm;
+pub mod queue;
 pub mod tessellate;
 pub mod validate;
 pub mod variance;

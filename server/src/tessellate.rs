@@ -17,10 +17,14 @@
 //! frustum plane is never queued, so it is split only when a split elsewhere forces it. A
 //! diamond whose footprint contains the eye's ground position gets the top priority.
 //!
-//! **Queue**: priority buckets (8 per octave of priority, the float's exponent and top
-//! mantissa bits), each a stack, with a two-level bitmap to find the highest non-empty
-//! bucket: constant-time insert and pop. Removing a diamond that a forced split took is
-//! lazy (constant time): popping skips diamonds already split.
+//! **Queue**: priority buckets ([`crate::queue`]): constant-time insert and pop. Removing a
+//! diamond that a forced split took is lazy (constant time): popping skips diamonds already
+//! split.
+//!
+//! **Speed**: each child's corner heights come from its parent but one; the four plane
+//! tests run as one vector operation; the variance tree is read at a computed slot (no
+//! pointers); the queue is first-in first-out within a bucket, so a pop does not wait on
+//! the priorities just computed.
 //!
 //! **Memory**: one bit per grid vertex for the active set (and a rank table turning it into
 //! vertex indices), plus pools sized by the budget, all reused: no allocation per frame
@@ -29,12 +33,9 @@
 use crate::camera::Camera;
 use crate::diamond::Shape;
 use crate::heightfield::Heightfield;
+use crate::queue::{BucketQueue, TOP, bucket_of};
 use crate::variance::{self, VarianceTree};
 
-/// Number of priority buckets: every positive `f32` maps to one by its top 12 bits.
-const BUCKETS: usize = 2048;
-/// Bucket of diamonds under the eye.
-const TOP: usize = BUCKETS - 1;
 /// The smallest distance used in priorities, world units.
 const MIN_DISTANCE: f32 = 1e-3;
 
@@ -59,7 +60,8 @@ pub struct Scales {
 pub struct Mesh {
     /// Grid vertices `[x, z]`, in row-major order.
     pub vertices: Vec<[u16; 2]>,
-    /// Three indices per triangle, counter-clockwise seen from above, in bintree order.
+    /// Three indices per triangle, counter-clockwise seen from above, in a deterministic
+    /// depth-first order of the bintree.
     pub indices: Vec<u32>,
     /// The largest screen-space error left unsplit, in pixels (0 when nothing was left).
     pub error_bound_px: f32,
@@ -69,28 +71,6 @@ impl Mesh {
     pub fn triangle_count(&self) -> usize {
         self.indices.len() / 3
     }
-}
-
-/// Per-viewer tessellation state. Build one per heightfield size and reuse it.
-pub struct Tessellator {
-    side: u32,
-    size: u32,
-    /// One bit per grid vertex: the diamond centred there is split (corners: set while
-    /// emitting, so they get vertex indices).
-    active: Vec<u64>,
-    /// Words of `active` touched this frame.
-    active_list: Vec<u32>,
-    /// Rank of each `active` word: set bits before it.
-    rank: Vec<u32>,
-    buckets: Vec<Vec<u64>>,
-    /// Bit per non-empty bucket, and a bit per non-zero word of that.
-    nonempty: [u64; BUCKETS / 64],
-    summary: u32,
-    chain: Vec<u32>,
-    stack: Vec<[u32; 6]>,
-    triangles: u32,
-    dropped_max: f32,
-    stats: Stats,
 }
 
 /// Counts from the last frame, for benchmarks and tests.
@@ -104,9 +84,33 @@ pub struct Stats {
     pub popped: u32,
     /// Diamonds split, forced ones included.
     pub split: u32,
+    /// Pops whose parents were not all split (forced splits needed).
+    pub forcing: u32,
 }
 
-/// Everything `evaluate` needs about the frame, precomputed.
+/// Per-viewer tessellation state. Build one per heightfield size and reuse it.
+pub struct Tessellator {
+    side: u32,
+    size: u32,
+    /// One bit per grid vertex: the diamond centred there is split (corners: set while
+    /// emitting, so they get vertex indices).
+    active: Vec<u64>,
+    /// Split diamonds of this frame, in order.
+    active_list: Vec<u32>,
+    /// Rank of each `active` word: set bits before it.
+    rank: Vec<u32>,
+    queue: BucketQueue,
+    chain: Vec<u32>,
+    stack: Vec<Tri>,
+    triangles: u32,
+    dropped_max: f32,
+    stats: Stats,
+}
+
+/// A triangle `[apex, left, right]` and its vertices' indices, while emitting.
+type Tri = ([(u32, u32); 3], [u32; 3]);
+
+/// Everything the evaluation needs about the frame, precomputed.
 struct Frame<'a> {
     heights: &'a [u16],
     codes: &'a [u8],
@@ -126,7 +130,7 @@ struct Frame<'a> {
     ext_square: [f32; 4],
     ext_rotated: [f32; 4],
     eye_grid: [f32; 2],
-    eye: [f32; 3],
+    eye_y: f32,
     hs: f32,
     vs: f32,
     /// `v_scale · pixels_per_radian`: turns sample-unit error over world distance into px.
@@ -140,10 +144,30 @@ impl Frame<'_> {
         self.heights[(z * self.side + x) as usize]
     }
 
-    /// Stored error of a diamond with `m >= 1`, sample units.
+    /// Height at a row-major index.
+    #[inline(always)]
+    fn h(&self, i: u32) -> u16 {
+        self.heights[i as usize]
+    }
+
+    /// Error stored at a variance-tree slot, sample units.
+    #[inline(always)]
+    fn error_at(&self, slot: usize) -> f32 {
+        self.table[self.codes[slot] as usize]
+    }
+
+    /// Stored error of a diamond (not a rotated one of level 0), sample units.
     #[inline(always)]
     fn stored(&self, x: u32, z: u32, m: u32, shape: Shape) -> f32 {
-        let i = variance::slot(&self.square_offset, &self.rotated_offset, self.size, x, z, m, shape);
+        let i = variance::slot(
+            &self.square_offset,
+            &self.rotated_offset,
+            self.size,
+            x,
+            z,
+            m,
+            shape,
+        );
         self.table[self.codes[i] as usize]
     }
 }
@@ -163,6 +187,12 @@ fn max4(a: u16, b: u16, c: u16, d: u16) -> u16 {
     a.max(b).max(c.max(d))
 }
 
+/// `v ± d` (`d` is zero or lands on the map).
+#[inline(always)]
+fn offset(v: u32, d: u32, plus: bool) -> u32 {
+    if plus { v + d } else { v - d }
+}
+
 #[inline(always)]
 fn pack(x: u32, z: u32) -> u32 {
     x | (z << 16)
@@ -180,7 +210,12 @@ fn classify(x: u32, z: u32) -> (u32, Shape) {
     if tx == tz {
         (tx, Shape::Square)
     } else {
-        (tx.min(tz), Shape::Rotated { horizontal: tx < tz })
+        (
+            tx.min(tz),
+            Shape::Rotated {
+                horizontal: tx < tz,
+            },
+        )
     }
 }
 
@@ -194,9 +229,7 @@ impl Tessellator {
             active: vec![0; words],
             active_list: Vec::new(),
             rank: vec![0; words],
-            buckets: (0..BUCKETS).map(|_| Vec::new()).collect(),
-            nonempty: [0; BUCKETS / 64],
-            summary: 0,
+            queue: BucketQueue::default(),
             chain: Vec::new(),
             stack: Vec::new(),
             triangles: 0,
@@ -210,9 +243,9 @@ impl Tessellator {
         self.active.capacity() * 8
             + self.rank.capacity() * 4
             + self.active_list.capacity() * 4
-            + self.buckets.iter().map(|b| b.capacity() * 8).sum::<usize>()
+            + self.queue.heap_bytes()
             + self.chain.capacity() * 4
-            + self.stack.capacity() * 24
+            + self.stack.capacity() * std::mem::size_of::<Tri>()
     }
 
     /// Counts from the last frame.
@@ -228,6 +261,13 @@ impl Tessellator {
     #[inline(always)]
     fn is_active(&self, x: u32, z: u32) -> bool {
         let i = (z * self.side + x) as usize;
+        self.active[i >> 6] >> (i & 63) & 1 != 0
+    }
+
+    /// Whether the diamond centred at row-major index `i` is split.
+    #[inline(always)]
+    fn is_active_at(&self, i: u32) -> bool {
+        let i = i as usize;
         self.active[i >> 6] >> (i & 63) & 1 != 0
     }
 
@@ -253,7 +293,7 @@ impl Tessellator {
         let budget = limits.budget.max(2);
         self.triangles = 2;
         self.evaluate_root(&frame);
-        while let Some(entry) = self.pop() {
+        while let Some(entry) = self.queue.pop() {
             self.stats.popped += 1;
             let (x, z) = unpack(entry as u32);
             if self.is_active(x, z) {
@@ -262,19 +302,19 @@ impl Tessellator {
             if let Some(tris) = self.parents_split(x, z) {
                 // The common case: nothing to force.
                 if self.triangles + tris > budget {
-                    self.push(entry);
+                    self.requeue(entry);
                     break;
                 }
                 self.triangles += tris;
                 self.commit(&frame, x, z);
                 continue;
             }
+            self.stats.forcing += 1;
             let mut delta = 0;
             self.chain.clear();
             self.collect(x, z, &mut delta);
             if self.triangles + delta > budget {
-                // Put it back so the error bound sees it, and stop.
-                self.push(entry);
+                self.requeue(entry);
                 break;
             }
             self.triangles += delta;
@@ -284,6 +324,7 @@ impl Tessellator {
             }
         }
         out.error_bound_px = self.remaining_max().max(self.dropped_max);
+        self.stats.split = self.active_list.len() as u32;
         self.emit(out);
     }
 
@@ -341,7 +382,7 @@ impl Tessellator {
                 (camera.eye[0] / scales.h) as f32,
                 (camera.eye[2] / scales.h) as f32,
             ],
-            eye: camera.eye.map(|v| v as f32),
+            eye_y: camera.eye[1] as f32,
             hs: scales.h as f32,
             vs: scales.v as f32,
             px: (scales.v * camera.pixels_per_radian()) as f32,
@@ -361,16 +402,13 @@ impl Tessellator {
             self.active[i >> 6] = 0;
         }
         self.active_list.clear();
-        while let Some(b) = self.top_bucket() {
-            self.buckets[b].clear();
-            self.clear_bucket_bit(b);
-        }
+        self.queue.clear();
         self.dropped_max = 0.0;
         self.stats = Stats::default();
     }
 
     /// Collects, parents first, the unsplit diamonds that splitting `(x, z)` needs, and the
-    /// triangles their splits add.
+    /// triangles their splits add. Recursion depth is bounded by the tree's depth.
     fn collect(&mut self, x: u32, z: u32, delta: &mut u32) {
         let (m, shape) = classify(x, z);
         let h = 1 << m;
@@ -387,11 +425,17 @@ impl Tessellator {
             }
             Shape::Rotated { horizontal: true } => {
                 tris = u32::from(z >= h) + u32::from(z + h <= s);
-                [(z >= h).then(|| (x, z - h)), (z + h <= s).then(|| (x, z + h))]
+                [
+                    (z >= h).then(|| (x, z - h)),
+                    (z + h <= s).then(|| (x, z + h)),
+                ]
             }
             Shape::Rotated { horizontal: false } => {
                 tris = u32::from(x >= h) + u32::from(x + h <= s);
-                [(x >= h).then(|| (x - h, z)), (x + h <= s).then(|| (x + h, z))]
+                [
+                    (x >= h).then(|| (x - h, z)),
+                    (x + h <= s).then(|| (x + h, z)),
+                ]
             }
         };
         for (px, pz) in parents.into_iter().flatten() {
@@ -423,7 +467,8 @@ impl Tessellator {
                 let (c, ox, oz) = if horizontal { (z, 0, h) } else { (x, h, 0) };
                 let lo = c >= h;
                 let hi = c + h <= s;
-                let ok = (!lo || self.is_active(x - ox, z - oz)) && (!hi || self.is_active(x + ox, z + oz));
+                let ok = (!lo || self.is_active(x - ox, z - oz))
+                    && (!hi || self.is_active(x + ox, z + oz));
                 ok.then_some(u32::from(lo) + u32::from(hi))
             }
         }
@@ -435,71 +480,165 @@ impl Tessellator {
     fn commit(&mut self, f: &Frame, x: u32, z: u32) {
         self.set_active(x, z);
         self.active_list.push(pack(x, z));
-        self.stats.split += 1;
         let (m, shape) = classify(x, z);
-        let h = 1 << m;
-        let s = self.size;
         match shape {
-            Shape::Square => {
-                // Children: rotated diamonds on the cell's edge midpoints, each sharing an
-                // edge and the centre with this cell; the far corner of each is the centre
-                // of its other parent, the next cell over.
-                let (nw, ne, sw, se) = (f.at(x - h, z - h), f.at(x + h, z - h), f.at(x - h, z + h), f.at(x + h, z + h));
-                let c = f.at(x, z);
-                let vertical = Shape::Rotated { horizontal: false };
-                let horizontal = Shape::Rotated { horizontal: true };
-                // (child centre, its hypotenuse ends, far corner, far corner on the map)
-                let kids = [
-                    (x + h, z, ne, se, x + 2 * h, z, x + 2 * h <= s, vertical),
-                    (x - h, z, nw, sw, x.wrapping_sub(2 * h), z, x >= 2 * h, vertical),
-                    (x, z + h, sw, se, x, z + 2 * h, z + 2 * h <= s, horizontal),
-                    (x, z - h, nw, ne, x, z.wrapping_sub(2 * h), z >= 2 * h, horizontal),
-                ];
-                for (cx, cz, p, q, fx, fz, far_on_map, shape) in kids {
-                    if far_on_map && self.is_active(fx, fz) {
-                        continue; // queued when its other parent was split
-                    }
-                    // A missing far corner (map edge) repeats a hypotenuse end.
-                    let far = if far_on_map { f.at(fx, fz) } else { p };
-                    let e = if m == 0 { dev(f.at(cx, cz), p, q) } else { f.stored(cx, cz, m, shape) };
-                    self.evaluate(f, cx, cz, h, false, e, min4(p, q, c, far), max4(p, q, c, far));
-                }
-            }
+            Shape::Square => self.commit_square(f, x, z, m),
             Shape::Rotated { .. } if m == 0 => {}
-            Shape::Rotated { horizontal } => {
-                // Children: squares of half-size h/2 in the four quarter cells around the
-                // centre that lie on the map; each cell's corners are this centre, a
-                // hypotenuse end, an apex, and the far corner: the child's other parent.
-                let c = f.at(x, z);
-                let k = h / 2;
-                let (ux, uz, vx, vz) = if horizontal { (h, 0, 0, h) } else { (0, h, h, 0) };
-                for (su, sv) in [(false, false), (true, false), (false, true), (true, true)] {
-                    // `u` runs along the hypotenuse, `v` towards an apex.
-                    let (ax, az) = if sv { (x.wrapping_sub(vx), z.wrapping_sub(vz)) } else { (x + vx, z + vz) };
-                    if ax > s || az > s {
-                        continue; // no apex: the child is off the map
-                    }
-                    let (ex, ez) = if su { (x.wrapping_sub(ux), z.wrapping_sub(uz)) } else { (x + ux, z + uz) };
-                    let (fx, fz) = (ex + ax - x, ez + az - z);
-                    if self.is_active(fx, fz) {
-                        continue; // queued when its other parent was split
-                    }
-                    let (cx, cz) = ((x + fx) / 2, (z + fz) / 2);
-                    let (end, apex, far) = (f.at(ex, ez), f.at(ax, az), f.at(fx, fz));
-                    let e = if m == 1 {
-                        // Finest square: exact, from its centre and edge midpoints. Its
-                        // hypotenuse joins `end` and `apex`.
-                        let mid = |ax: u32, az: u32, bx: u32, bz: u32| f.at((ax + bx) / 2, (az + bz) / 2);
-                        dev(f.at(cx, cz), end, apex)
-                            .max(dev(mid(x, z, ex, ez), c, end))
-                            .max(dev(mid(ex, ez, fx, fz), end, far))
-                            .max(dev(mid(fx, fz, ax, az), far, apex))
-                            .max(dev(mid(ax, az, x, z), apex, c))
-                    } else {
-                        f.stored(cx, cz, m - 1, Shape::Square)
-                    };
-                    self.evaluate(f, cx, cz, k, true, e, min4(c, end, apex, far), max4(c, end, apex, far));
+            Shape::Rotated { horizontal } => self.commit_rotated(f, x, z, m, horizontal),
+        }
+    }
+
+    /// Children of a square: rotated diamonds on the cell's edge midpoints, each sharing an
+    /// edge and the centre with this cell; the far corner of each is the centre of its other
+    /// parent, the next cell over. A missing far corner (map edge) repeats a hypotenuse end.
+    #[inline(always)]
+    fn commit_square(&mut self, f: &Frame, x: u32, z: u32, m: u32) {
+        let h = 1 << m;
+        let (s, side) = (self.size, self.side);
+        let row = z * side;
+        let (up, down) = (row - h * side, row + h * side);
+        let (nw, ne) = (f.h(up + x - h), f.h(up + x + h));
+        let (sw, se) = (f.h(down + x - h), f.h(down + x + h));
+        let c = f.h(row + x);
+        // Slots of the four children in the variance tree: vertical ones (east, west) share
+        // a row, horizontal ones (north, south) a column.
+        let n = (s >> (m + 1)) as usize;
+        let vbase = f.rotated_offset[m as usize] + n * (n + 1) + (z >> (m + 1)) as usize * (n + 1);
+        let (ha, hb) = ((x >> (m + 1)) as usize, (z >> (m + 1)) as usize);
+        let hbase = f.rotated_offset[m as usize] + ha;
+        let error = |slot: usize, centre: u32, p: u16, q: u16| {
+            if m == 0 {
+                dev(f.h(centre), p, q)
+            } else {
+                f.error_at(slot)
+            }
+        };
+        if x + 2 * h > s || !self.is_active_at(row + x + 2 * h) {
+            let far = if x + 2 * h <= s {
+                f.h(row + x + 2 * h)
+            } else {
+                ne
+            };
+            let e = error(vbase + ha + 1, row + x + h, ne, se);
+            self.evaluate(
+                f,
+                x + h,
+                z,
+                h,
+                false,
+                e,
+                min4(ne, se, c, far),
+                max4(ne, se, c, far),
+            );
+        }
+        if x < 2 * h || !self.is_active_at(row + x - 2 * h) {
+            let far = if x >= 2 * h { f.h(row + x - 2 * h) } else { nw };
+            let e = error(vbase + ha, row + x - h, nw, sw);
+            self.evaluate(
+                f,
+                x - h,
+                z,
+                h,
+                false,
+                e,
+                min4(nw, sw, c, far),
+                max4(nw, sw, c, far),
+            );
+        }
+        if z + 2 * h > s || !self.is_active_at(row + 2 * h * side + x) {
+            let far = if z + 2 * h <= s {
+                f.h(row + 2 * h * side + x)
+            } else {
+                sw
+            };
+            let e = error(hbase + (hb + 1) * n, down + x, sw, se);
+            self.evaluate(
+                f,
+                x,
+                z + h,
+                h,
+                false,
+                e,
+                min4(sw, se, c, far),
+                max4(sw, se, c, far),
+            );
+        }
+        if z < 2 * h || !self.is_active_at(row - 2 * h * side + x) {
+            let far = if z >= 2 * h {
+                f.h(row - 2 * h * side + x)
+            } else {
+                nw
+            };
+            let e = error(hbase + hb * n, up + x, nw, ne);
+            self.evaluate(
+                f,
+                x,
+                z - h,
+                h,
+                false,
+                e,
+                min4(nw, ne, c, far),
+                max4(nw, ne, c, far),
+            );
+        }
+    }
+
+    /// Children of a rotated diamond: squares of half-size h/2 in the four quarter cells
+    /// around the centre that lie on the map; each cell's corners are this centre, a
+    /// hypotenuse end, an apex, and the far corner: the child's other parent.
+    #[inline(always)]
+    fn commit_rotated(&mut self, f: &Frame, x: u32, z: u32, m: u32, horizontal: bool) {
+        let h = 1 << m;
+        let (s, side) = (self.size, self.side);
+        let k = h / 2;
+        let row = z * side;
+        let c = f.h(row + x);
+        // `u` runs along the hypotenuse, `v` towards the apices, as index offsets.
+        let (du, dv) = if horizontal {
+            (h, h * side)
+        } else {
+            (h * side, h)
+        };
+        let (e0, e1) = (f.h(row + x - du), f.h(row + x + du));
+        let (has_lo, has_hi) = if horizontal {
+            (z >= h, z + h <= s)
+        } else {
+            (x >= h, x + h <= s)
+        };
+        let n = (s >> m) as usize; // squares of level m - 1 per row
+        let slot = |cx: u32, cz: u32| {
+            f.square_offset[m as usize - 1] + (cz >> m) as usize * n + (cx >> m) as usize
+        };
+        let (ku, kv) = if horizontal {
+            ((k, 0), (0, k))
+        } else {
+            ((0, k), (k, 0))
+        };
+        for (apex_ok, sign_v) in [(has_lo, false), (has_hi, true)] {
+            if !apex_ok {
+                continue; // no apex: the children on that side are off the map
+            }
+            let apex_i = if sign_v { row + x + dv } else { row + x - dv };
+            let apex = f.h(apex_i);
+            for (end, sign_u) in [(e0, false), (e1, true)] {
+                let far_i = if sign_u { apex_i + du } else { apex_i - du };
+                if self.is_active_at(far_i) {
+                    continue; // queued when its other parent was split
                 }
+                let far = f.h(far_i);
+                let cx = offset(offset(x, ku.0, sign_u), kv.0, sign_v);
+                let cz = offset(offset(z, ku.1, sign_u), kv.1, sign_v);
+                let e = f.error_at(slot(cx, cz));
+                self.evaluate(
+                    f,
+                    cx,
+                    cz,
+                    k,
+                    true,
+                    e,
+                    min4(c, end, apex, far),
+                    max4(c, end, apex, far),
+                );
             }
         }
     }
@@ -509,18 +648,17 @@ impl Tessellator {
         let r = self.size / 2;
         let s = self.size;
         let (nw, ne, sw, se) = (f.at(0, 0), f.at(s, 0), f.at(0, s), f.at(s, s));
-        let e = if r == 1 {
-            // Side 3: the root is the finest square.
-            let c = f.at(1, 1);
-            dev(c, nw, se)
-                .max(dev(f.at(1, 0), nw, ne))
-                .max(dev(f.at(2, 1), ne, se))
-                .max(dev(f.at(1, 2), sw, se))
-                .max(dev(f.at(0, 1), nw, sw))
-        } else {
-            f.stored(r, r, r.trailing_zeros(), Shape::Square)
-        };
-        self.evaluate(f, r, r, r, true, e, min4(nw, ne, sw, se), max4(nw, ne, sw, se));
+        let e = f.stored(r, r, r.trailing_zeros(), Shape::Square);
+        self.evaluate(
+            f,
+            r,
+            r,
+            r,
+            true,
+            e,
+            min4(nw, ne, sw, se),
+            max4(nw, ne, sw, se),
+        );
     }
 
     /// Computes the priority of diamond `(x, z)` (half-size `h`, error `e` in sample units,
@@ -528,24 +666,43 @@ impl Tessellator {
     /// frustum (never queued) or below the threshold (remembered for the error bound).
     #[inline(always)]
     #[allow(clippy::too_many_arguments)]
-    fn evaluate(&mut self, f: &Frame, x: u32, z: u32, h: u32, square: bool, e: f32, lo: u16, hi: u16) {
+    fn evaluate(
+        &mut self,
+        f: &Frame,
+        x: u32,
+        z: u32,
+        h: u32,
+        square: bool,
+        e: f32,
+        lo: u16,
+        hi: u16,
+    ) {
         self.stats.evaluated += 1;
         if e <= 0.0 {
             return; // exact already: splitting adds nothing
         }
-        let lo = f32::from(lo) - e;
-        let hi = f32::from(hi) + e;
+        let (lo, hi) = (f32::from(lo) - e, f32::from(hi) + e);
         let (yc, hy) = (0.5 * (lo + hi), 0.5 * (hi - lo));
         let (xf, zf, hf) = (x as f32, z as f32, h as f32);
-        let ext = if square { &f.ext_square } else { &f.ext_rotated };
+        let ext = if square {
+            &f.ext_square
+        } else {
+            &f.ext_rotated
+        };
+        // The four planes at once (lanes are planes): outside if any distance is negative.
         let mut outside = false;
-        for i in 0..4 {
-            let dist = f.pa[i] * xf + f.pb[i] * yc + f.pc[i] * zf + f.pd[i] + hf * ext[i] + hy * f.abs_b[i];
-            outside |= dist < 0.0;
+        for p in 0..4 {
+            let d = f.pa[p] * xf
+                + f.pb[p] * yc
+                + f.pc[p] * zf
+                + f.pd[p]
+                + hf * ext[p]
+                + hy * f.abs_b[p];
+            outside |= d < 0.0;
         }
         if outside {
             self.stats.culled += 1;
-            return; // wholly outside one plane
+            return;
         }
         let (ex, ez) = (f.eye_grid[0] - xf, f.eye_grid[1] - zf);
         let under = if square {
@@ -553,83 +710,54 @@ impl Tessellator {
         } else {
             ex.abs() + ez.abs() <= hf
         };
-        let (dx, dy, dz) = (ex * f.hs, f.eye[1] - yc * f.vs, ez * f.hs);
-        let reach = f.hs * hf * if square { std::f32::consts::SQRT_2 } else { 1.0 } + f.vs * hy;
+        let (dx, dy, dz) = (ex * f.hs, f.eye_y - yc * f.vs, ez * f.hs);
+        let reach = f.hs
+            * hf
+            * if square {
+                std::f32::consts::SQRT_2
+            } else {
+                1.0
+            }
+            + f.vs * hy;
         let d = ((dx * dx + dy * dy + dz * dz).sqrt() - reach).max(MIN_DISTANCE);
         let prio = e * f.px / d;
         let bucket = if under {
             TOP
         } else if prio >= f.threshold {
-            ((prio.to_bits() >> 20) as usize).min(TOP - 1)
+            bucket_of(prio)
         } else {
             self.dropped_max = self.dropped_max.max(prio);
             return;
         };
-        self.push_to(bucket, (u64::from(prio.to_bits()) << 32) | u64::from(pack(x, z)));
+        self.queue.push(
+            bucket,
+            (u64::from(prio.to_bits()) << 32) | u64::from(pack(x, z)),
+        );
     }
 
-    /// Re-queues a popped entry (by its priority; the under-the-eye mark is not needed
-    /// any more, the frame is over).
-    fn push(&mut self, entry: u64) {
+    /// Re-queues a popped entry that did not fit, by its priority, so the error bound sees
+    /// it.
+    fn requeue(&mut self, entry: u64) {
         let prio = f32::from_bits((entry >> 32) as u32);
-        self.push_to(((prio.to_bits() >> 20) as usize).min(TOP - 1), entry);
-    }
-
-    #[inline(always)]
-    fn push_to(&mut self, bucket: usize, entry: u64) {
-        self.buckets[bucket].push(entry);
-        self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
-        self.summary |= 1 << (bucket >> 6);
-    }
-
-    #[inline(always)]
-    fn top_bucket(&self) -> Option<usize> {
-        if self.summary == 0 {
-            return None;
-        }
-        let w = 31 - self.summary.leading_zeros() as usize;
-        Some(w * 64 + 63 - self.nonempty[w].leading_zeros() as usize)
-    }
-
-    #[inline(always)]
-    fn clear_bucket_bit(&mut self, b: usize) {
-        self.nonempty[b >> 6] &= !(1 << (b & 63));
-        if self.nonempty[b >> 6] == 0 {
-            self.summary &= !(1 << (b >> 6));
-        }
-    }
-
-    #[inline(never)]
-    fn pop(&mut self) -> Option<u64> {
-        let b = self.top_bucket()?;
-        let bucket = &mut self.buckets[b];
-        let entry = bucket.pop().expect("a bucket marked non-empty has entries");
-        if bucket.is_empty() {
-            self.clear_bucket_bit(b);
-        }
-        Some(entry)
+        self.queue.push(bucket_of(prio), entry);
     }
 
     /// The highest priority still queued, skipping diamonds already split. The top bucket
     /// (under the eye) is ranked by position, not priority, so it is read whole and the
     /// search goes on to the first ordinary bucket holding a live entry.
     fn remaining_max(&self) -> f32 {
-        let live_max = |b: usize| {
-            self.buckets[b]
-                .iter()
-                .filter(|&&e| {
+        let mut best = 0f32;
+        for b in self.queue.buckets_desc() {
+            let live = self
+                .queue
+                .entries(b)
+                .filter(|&e| {
                     let (x, z) = unpack(e as u32);
                     !self.is_active(x, z)
                 })
-                .map(|&e| f32::from_bits((e >> 32) as u32))
-                .reduce(f32::max)
-        };
-        let mut best = 0f32;
-        for b in (0..BUCKETS).rev() {
-            if self.nonempty[b >> 6] >> (b & 63) & 1 == 0 {
-                continue;
-            }
-            if let Some(v) = live_max(b) {
+                .map(|e| f32::from_bits((e >> 32) as u32))
+                .reduce(f32::max);
+            if let Some(v) = live {
                 best = best.max(v);
                 if b != TOP {
                     break;
@@ -661,27 +789,48 @@ impl Tessellator {
                 out.vertices.push([(i % side) as u16, (i / side) as u16]);
             }
         }
-        let rank = |t: &Self, x: u32, z: u32| -> u32 {
-            let i = (z * t.side + x) as usize;
-            t.rank[i >> 6] + (t.active[i >> 6] & ((1u64 << (i & 63)) - 1)).count_ones()
-        };
-        self.stack.clear();
-        let (r00, rs0, r0s, rss) = (rank(self, 0, 0), rank(self, s, 0), rank(self, 0, s), rank(self, s, s));
-        self.stack.push([pack(0, s), pack(s, s), pack(0, 0), r0s, rss, r00]);
-        self.stack.push([pack(s, 0), pack(0, 0), pack(s, s), rs0, r00, rss]);
-        while let Some([a, l, r, ra, rl, rr]) = self.stack.pop() {
-            let ((lx, lz), (rx, rz)) = (unpack(l), unpack(r));
-            let (mx, mz) = ((lx + rx) / 2, (lz + rz) / 2);
-            let splittable = (lx + rx) % 2 == 0 && (lz + rz) % 2 == 0;
-            if splittable && self.is_active(mx, mz) {
-                let mv = pack(mx, mz);
-                let rm = rank(self, mx, mz);
-                // Right child pushed first so the left one is emitted first.
-                self.stack.push([mv, r, a, rm, rr, ra]);
-                self.stack.push([mv, a, l, rm, ra, rl]);
-            } else {
-                out.indices.extend_from_slice(&[ra, rl, rr]);
-            }
+        out.indices.reserve(3 * self.triangles as usize);
+        // Depth-first over the split triangles (an explicit stack, bounded by the tree's
+        // depth times two); a child that is not split is emitted on the spot.
+        let mut stack = std::mem::take(&mut self.stack);
+        stack.clear();
+        let (r00, rs0, r0s, rss) = (
+            self.rank_of(0, 0),
+            self.rank_of(s, 0),
+            self.rank_of(0, s),
+            self.rank_of(s, s),
+        );
+        for (t, r) in [
+            ([(s, 0), (0, 0), (s, s)], [rs0, r00, rss]),
+            ([(0, s), (s, s), (0, 0)], [r0s, rss, r00]),
+        ] {
+            self.visit(&mut stack, out, t, r);
         }
+        while let Some(([a, l, r], [ra, rl, rr])) = stack.pop() {
+            // `[a, l, r]` is split at the midpoint of `l r`.
+            let m = ((l.0 + r.0) / 2, (l.1 + r.1) / 2);
+            let rm = self.rank_of(m.0, m.1);
+            self.visit(&mut stack, out, [m, r, a], [rm, rr, ra]);
+            self.visit(&mut stack, out, [m, a, l], [rm, ra, rl]);
+        }
+        self.stack = stack;
+    }
+
+    /// Emits triangle `[apex, left, right]` if it is a leaf, else queues it for splitting.
+    #[inline(always)]
+    fn visit(&self, stack: &mut Vec<Tri>, out: &mut Mesh, t: [(u32, u32); 3], r: [u32; 3]) {
+        let [_, l, rt] = t;
+        let (sx, sz) = (l.0 + rt.0, l.1 + rt.1);
+        if (sx | sz) & 1 == 0 && self.is_active(sx / 2, sz / 2) {
+            stack.push((t, r));
+        } else {
+            out.indices.extend_from_slice(&r);
+        }
+    }
+
+    #[inline(always)]
+    fn rank_of(&self, x: u32, z: u32) -> u32 {
+        let i = (z * self.side + x) as usize;
+        self.rank[i >> 6] + (self.active[i >> 6] & ((1u64 << (i & 63)) - 1)).count_ones()
     }
 }

@@ -12,9 +12,18 @@ pub enum MeshError {
     #[error("index count {0} is not a multiple of 3")]
     Ragged(usize),
     #[error("triangle {tri}: index {index} out of range (only {vertices} vertices)")]
-    Index { tri: usize, index: u32, vertices: usize },
+    Index {
+        tri: usize,
+        index: u32,
+        vertices: usize,
+    },
     #[error("vertex {index} at ({x}, {z}) lies off the {size}x{size} map")]
-    OffMap { index: usize, x: u16, z: u16, size: u32 },
+    OffMap {
+        index: usize,
+        x: u16,
+        z: u16,
+        size: u32,
+    },
     #[error("triangle {tri} is degenerate or clockwise seen from above")]
     Orientation { tri: usize },
     #[error("triangles cover {got} (twice the area) instead of {want}")]
@@ -24,7 +33,11 @@ pub enum MeshError {
     #[error("interior edge ({a:?})-({b:?}) has a triangle on one side only (crack or T-junction)")]
     Crack { a: [u16; 2], b: [u16; 2] },
     #[error("vertex ({v:?}) lies inside edge ({a:?})-({b:?}): a T-junction")]
-    TJunction { v: [u16; 2], a: [u16; 2], b: [u16; 2] },
+    TJunction {
+        v: [u16; 2],
+        a: [u16; 2],
+        b: [u16; 2],
+    },
     #[error("{0} triangles, over the budget of {1}")]
     Budget(usize, u32),
 }
@@ -77,7 +90,10 @@ pub fn check_mesh(vertices: &[[u16; 2]], indices: &[u32], size: u32) -> Result<(
             return Err(MeshError::Crack { a, b });
         }
         // Lattice points strictly inside the edge must not be vertices.
-        let (dx, dz) = (i32::from(b[0]) - i32::from(a[0]), i32::from(b[1]) - i32::from(a[1]));
+        let (dx, dz) = (
+            i32::from(b[0]) - i32::from(a[0]),
+            i32::from(b[1]) - i32::from(a[1]),
+        );
         let g = gcd(dx.unsigned_abs(), dz.unsigned_abs()) as i32;
         for k in 1..g {
             let v = [

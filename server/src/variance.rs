@@ -6,9 +6,9 @@
 //!   of its children, so a bump deep down keeps every ancestor splittable and values never
 //!   grow with depth.
 //! - **Compact.** Values are kept per diamond (one per grid vertex, not two per triangle),
-//!   and only for diamonds of half-size `h >= 2`: the two finest levels (a quarter and a half
-//!   of all vertices) are computed exactly on the fly from at most nine samples. That stores
-//!   `(side / 2)^2` bytes, about **0.25 byte per sample**.
+//!   except for the finest level, the rotated diamonds of half-size 1 (half of all
+//!   vertices), whose error is exactly `|H(centre) - mean(H(ends))|` and is computed on the
+//!   fly from three samples. That stores about `side² / 2` bytes: **0.5 byte per sample**.
 //! - **Quantized up.** A byte is a code into a logarithmic table (about 5 % steps between a
 //!   fraction of a sample unit and the map's largest error); a code's value is never below
 //!   the exact error, so the stored error is still a true bound.
@@ -46,21 +46,29 @@ impl VarianceTree {
         let n_levels = hf.levels();
         let (square_offset, rotated_offset, total) = layout(size);
         let mut exact = vec![0f32; total];
-        let work_total = u64::from(n_levels.saturating_sub(1)) * 2;
+        let work_total = u64::from(n_levels) * 2;
         let mut work_done = 0;
         // Fine to coarse: rotated level m (children: squares of level m - 1), then square
-        // level m (children: rotated level m).
-        for m in 1..n_levels {
+        // level m (children: rotated level m). Level 0 has squares only (its rotated
+        // diamonds are computed on the fly).
+        for m in 0..n_levels {
             let h = 1u32 << m;
             let n = (size >> (m + 1)) as usize;
-            for shape in [
-                Shape::Rotated { horizontal: true },
-                Shape::Rotated { horizontal: false },
-                Shape::Square,
-            ] {
+            let shapes: &[Shape] = if m == 0 {
+                &[Shape::Square]
+            } else {
+                &[
+                    Shape::Rotated { horizontal: true },
+                    Shape::Rotated { horizontal: false },
+                    Shape::Square,
+                ]
+            };
+            for &shape in shapes {
                 let (offset, count, row) = match shape {
                     Shape::Square => (square_offset[m as usize], n * n, n),
-                    Shape::Rotated { horizontal: true } => (rotated_offset[m as usize], n * (n + 1), n),
+                    Shape::Rotated { horizontal: true } => {
+                        (rotated_offset[m as usize], n * (n + 1), n)
+                    }
                     Shape::Rotated { horizontal: false } => {
                         (rotated_offset[m as usize] + n * (n + 1), n * (n + 1), n + 1)
                     }
@@ -86,17 +94,24 @@ impl VarianceTree {
                 parallel_fill(todo, threads, |i| {
                     let (x, z) = centre(i);
                     let d = Diamond { x, z, m, shape };
-                    partial.diamond_value(&d)
+                    if m == 0 {
+                        finest(hf, &d)
+                    } else {
+                        partial.diamond_value(&d)
+                    }
                 });
                 if shape != (Shape::Rotated { horizontal: true }) {
                     work_done += 1;
-                    progress(work_done, work_total);
+                    progress(work_done.min(work_total), work_total);
                 }
             }
         }
         let max = exact.iter().copied().fold(0f32, f32::max) as f64;
         let table = log_table(max);
-        let codes = exact.iter().map(|&e| quantize_up(&table, e as f64)).collect();
+        let codes = exact
+            .iter()
+            .map(|&e| quantize_up(&table, e as f64))
+            .collect();
         VarianceTree {
             size,
             codes,
@@ -110,14 +125,14 @@ impl VarianceTree {
     /// or a point off the map (a caller bug).
     pub fn error(&self, hf: &Heightfield, x: u32, z: u32) -> f32 {
         let d = Diamond::at(x, z, self.size).expect("error() wants a diamond centre");
-        if d.m == 0 {
+        if d.m == 0 && d.shape != Shape::Square {
             finest(hf, &d)
         } else {
             self.table[self.codes[self.slot(&d)] as usize]
         }
     }
 
-    /// Slot of a stored diamond (`m >= 1`).
+    /// Slot of a stored diamond (all but the finest rotated ones).
     #[inline]
     pub(crate) fn slot(&self, d: &Diamond) -> usize {
         slot(
@@ -160,7 +175,8 @@ impl VarianceTree {
     }
 }
 
-/// Slot of the stored diamond at `(x, z)` of level `m >= 1` and the given shape.
+/// Slot of the stored diamond at `(x, z)` of level `m` and the given shape (not a rotated
+/// diamond of level 0).
 #[inline(always)]
 pub(crate) fn slot(
     square_offset: &[usize],
@@ -176,21 +192,25 @@ pub(crate) fn slot(
     match shape {
         Shape::Square => square_offset[m as usize] + b * n + a,
         Shape::Rotated { horizontal: true } => rotated_offset[m as usize] + b * n + a,
-        Shape::Rotated { horizontal: false } => rotated_offset[m as usize] + n * (n + 1) + b * (n + 1) + a,
+        Shape::Rotated { horizontal: false } => {
+            rotated_offset[m as usize] + n * (n + 1) + b * (n + 1) + a
+        }
     }
 }
 
-/// Level blocks: for each `m` in `1..N`, `n²` squares then `2·n·(n+1)` rotated diamonds,
-/// `n = size / 2^(m+1)`. Returns the offsets and the total count.
+/// Level blocks: for each `m` in `0..N`, `2·n·(n+1)` rotated diamonds (none for `m = 0`)
+/// then `n²` squares, `n = size / 2^(m+1)`. Returns the offsets and the total count.
 fn layout(size: u32) -> (Vec<usize>, Vec<usize>, usize) {
     let n_levels = size.trailing_zeros();
-    let mut square = vec![0; n_levels.max(1) as usize];
-    let mut rotated = vec![0; n_levels.max(1) as usize];
+    let mut square = vec![0; n_levels as usize];
+    let mut rotated = vec![0; n_levels as usize];
     let mut total = 0;
-    for m in 1..n_levels {
+    for m in 0..n_levels {
         let n = (size >> (m + 1)) as usize;
         rotated[m as usize] = total;
-        total += 2 * n * (n + 1);
+        if m > 0 {
+            total += 2 * n * (n + 1);
+        }
         square[m as usize] = total;
         total += n * n;
     }
@@ -215,7 +235,7 @@ impl Partial<'_> {
         let mut e = e as f32;
         for (cx, cz) in d.children(self.size) {
             let c = Diamond::at(cx, cz, self.size).expect("children are diamonds");
-            let v = if c.m == 0 {
+            let v = if c.m == 0 && c.shape != Shape::Square {
                 finest(self.hf, &c)
             } else {
                 let s = slot(
@@ -236,11 +256,14 @@ impl Partial<'_> {
 }
 
 /// Exact error of a diamond with `h = 1` (the two finest levels), in sample units.
+/// Rotated ones are never stored; squares are stored, and built from this.
 #[inline]
 pub(crate) fn finest(hf: &Heightfield, d: &Diamond) -> f32 {
     let (x, z) = (d.x, d.z);
     let hs = |x: u32, z: u32| f32::from(hf.get(x, z));
-    let dev = |c: Vertex, p: Vertex, q: Vertex| (hs(c.0, c.1) - 0.5 * (hs(p.0, p.1) + hs(q.0, q.1))).abs();
+    let dev = |c: Vertex, p: Vertex, q: Vertex| {
+        (hs(c.0, c.1) - 0.5 * (hs(p.0, p.1) + hs(q.0, q.1))).abs()
+    };
     match d.shape {
         Shape::Rotated { horizontal: true } => dev((x, z), (x - 1, z), (x + 1, z)),
         Shape::Rotated { horizontal: false } => dev((x, z), (x, z - 1), (x, z + 1)),
@@ -321,7 +344,9 @@ pub fn row_span(t: &Triangle, z: u32) -> Option<(u32, u32)> {
         let a = qz - pz;
         let b = -(qx - px) * (z - pz) - a * px;
         match a.cmp(&0) {
-            std::cmp::Ordering::Greater => lo = lo.max((-b).div_euclid(a) + i64::from((-b).rem_euclid(a) != 0)),
+            std::cmp::Ordering::Greater => {
+                lo = lo.max((-b).div_euclid(a) + i64::from((-b).rem_euclid(a) != 0))
+            }
             std::cmp::Ordering::Less => hi = hi.min(b.div_euclid(-a)),
             std::cmp::Ordering::Equal if b < 0 => return None,
             std::cmp::Ordering::Equal => {}
@@ -345,7 +370,11 @@ fn log_table(max: f64) -> [f32; 256] {
 
 fn next_up(v: f64) -> f32 {
     let f = v as f32;
-    if f64::from(f) >= v { f } else { f32::from_bits(f.to_bits() + 1) }
+    if f64::from(f) >= v {
+        f
+    } else {
+        f32::from_bits(f.to_bits() + 1)
+    }
 }
 
 /// The smallest code whose value is at least `e`.

@@ -1,12 +1,12 @@
 //! Property and data-driven tests of the variance tree and the tessellator.
 
 use proptest::prelude::*;
+use roam_server::Heightfield;
 use roam_server::camera::Camera;
 use roam_server::diamond::{Diamond, Triangle};
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
 use roam_server::validate::check_mesh;
 use roam_server::variance::{VarianceTree, triangle_error};
-use roam_server::Heightfield;
 
 /// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
 fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
@@ -20,7 +20,14 @@ fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
         ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
     };
     let bumps: Vec<[f64; 4]> = (0..4)
-        .map(|_| [rnd() * side as f64, rnd() * side as f64, 2.0 + rnd() * side as f64 / 3.0, rnd() * 20000.0])
+        .map(|_| {
+            [
+                rnd() * side as f64,
+                rnd() * side as f64,
+                2.0 + rnd() * side as f64 / 3.0,
+                rnd() * 20000.0,
+            ]
+        })
         .collect();
     let floor = rnd() * 8000.0;
     let mut samples = Vec::with_capacity((side * side) as usize);
@@ -42,9 +49,20 @@ fn scales() -> Scales {
 }
 
 /// Camera at grid position (gx, gz), `above` world units over the ground.
-fn camera(hf: &Heightfield, gx: f64, gz: f64, above: f64, yaw: f64, pitch: f64, fov: f64) -> Camera {
+fn camera(
+    hf: &Heightfield,
+    gx: f64,
+    gz: f64,
+    above: f64,
+    yaw: f64,
+    pitch: f64,
+    fov: f64,
+) -> Camera {
     let s = scales();
-    let (cx, cz) = (gx.clamp(0.0, hf.size() as f64) as u32, gz.clamp(0.0, hf.size() as f64) as u32);
+    let (cx, cz) = (
+        gx.clamp(0.0, hf.size() as f64) as u32,
+        gz.clamp(0.0, hf.size() as f64) as u32,
+    );
     let ground = f64::from(hf.get(cx, cz)) * s.v;
     Camera {
         eye: [gx * s.h, ground + above, gz * s.h],
@@ -65,13 +83,22 @@ fn run(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, limits: Limits) -> (Me
 
 /// Every diamond split without being forced (no split child needs it) must not lie wholly
 /// outside the frustum, unless it holds the eye's ground position.
-fn check_frustum(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, t: &Tessellator) -> Result<(), String> {
+fn check_frustum(
+    hf: &Heightfield,
+    vt: &VarianceTree,
+    cam: &Camera,
+    t: &Tessellator,
+) -> Result<(), String> {
     let size = hf.size();
     let s = scales();
     let split: std::collections::HashSet<(u32, u32)> = t.split_diamonds().collect();
     let forced: std::collections::HashSet<(u32, u32)> = split
         .iter()
-        .flat_map(|&(x, z)| Diamond::at(x, z, size).expect("split diamonds exist").parents(size))
+        .flat_map(|&(x, z)| {
+            Diamond::at(x, z, size)
+                .expect("split diamonds exist")
+                .parents(size)
+        })
         .flatten()
         .collect();
     // The view pyramid: the near plane adds nothing to culling (the apex is the eye).
@@ -95,7 +122,10 @@ fn check_frustum(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, t: &Tessella
             roam_server::diamond::Shape::Square => vec![(-h, -h), (h, -h), (-h, h), (h, h)],
             _ => vec![(-h, 0.0), (h, 0.0), (0.0, -h), (0.0, h)],
         };
-        let (ex, ez) = (cam.eye[0] / s.h - f64::from(x), cam.eye[2] / s.h - f64::from(z));
+        let (ex, ez) = (
+            cam.eye[0] / s.h - f64::from(x),
+            cam.eye[2] / s.h - f64::from(z),
+        );
         let under = match d.shape {
             roam_server::diamond::Shape::Square => ex.abs() <= h && ez.abs() <= h,
             _ => ex.abs() + ez.abs() <= h,
@@ -110,7 +140,9 @@ fn check_frustum(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, t: &Tessella
                 })
             });
             if outside {
-                return Err(format!("diamond ({x}, {z}) h {h} is outside the frustum but split"));
+                return Err(format!(
+                    "diamond ({x}, {z}) h {h} is outside the frustum but split"
+                ));
             }
         }
     }
@@ -185,7 +217,15 @@ fn flat_ground_needs_two_triangles() {
     let hf = Heightfield::new(65, vec![1000; 65 * 65]).expect("valid");
     let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
     let cam = camera(&hf, 32.0, 32.0, 2.0, 0.0, -10.0, 60.0);
-    let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 1000, threshold_px: 0.0 });
+    let (mesh, _) = run(
+        &hf,
+        &vt,
+        &cam,
+        Limits {
+            budget: 1000,
+            threshold_px: 0.0,
+        },
+    );
     assert_eq!(mesh.triangle_count(), 2);
     assert_eq!(mesh.error_bound_px, 0.0);
     assert_eq!(mesh.vertices.len(), 4);
@@ -199,7 +239,15 @@ fn one_spike_is_refined_down_to_full_resolution() {
     let hf = Heightfield::new(65, samples).expect("valid");
     let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
     let cam = camera(&hf, 32.0, 80.0, 100.0, 180.0, -30.0, 60.0);
-    let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 10_000, threshold_px: 0.0 });
+    let (mesh, _) = run(
+        &hf,
+        &vt,
+        &cam,
+        Limits {
+            budget: 10_000,
+            threshold_px: 0.0,
+        },
+    );
     check_mesh(&mesh.vertices, &mesh.indices, hf.size()).expect("conforming");
     assert!(mesh.vertices.contains(&[21, 37]), "the spike is a vertex");
     assert_eq!(mesh.error_bound_px, 0.0, "every error is resolved");
@@ -215,7 +263,15 @@ fn the_ground_under_the_eye_is_exact() {
         // Looking up and away: the ground below is outside the frustum, yet exact.
         let (gx, gz) = (10.3 + seed as f64, 50.7 - seed as f64);
         let cam = camera(&hf, gx, gz, 3.0, 45.0, 40.0, 40.0);
-        let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 2000, threshold_px: 1e9 });
+        let (mesh, _) = run(
+            &hf,
+            &vt,
+            &cam,
+            Limits {
+                budget: 2000,
+                threshold_px: 1e9,
+            },
+        );
         let under = mesh
             .indices
             .chunks_exact(3)
@@ -224,7 +280,11 @@ fn the_ground_under_the_eye_is_exact() {
                     let [x, z] = mesh.vertices[i as usize];
                     (u32::from(x), u32::from(z))
                 };
-                Triangle { apex: v(t[0]), left: v(t[1]), right: v(t[2]) }
+                Triangle {
+                    apex: v(t[0]),
+                    left: v(t[1]),
+                    right: v(t[2]),
+                }
             })
             .find(|t| contains(t, gx, gz))
             .expect("the mesh covers the map");
@@ -247,11 +307,22 @@ fn the_budget_is_reached_on_rough_ground_and_never_passed() {
     // High above the centre looking down: the whole map is in view.
     let cam = camera(&hf, 64.0, 64.0, 5000.0, 0.0, -90.0, 60.0);
     for budget in [2, 3, 10, 100, 1000, 4096, 20_000] {
-        let (mesh, _) = run(&hf, &vt, &cam, Limits { budget, threshold_px: 0.0 });
+        let (mesh, _) = run(
+            &hf,
+            &vt,
+            &cam,
+            Limits {
+                budget,
+                threshold_px: 0.0,
+            },
+        );
         let n = mesh.triangle_count() as u32;
         assert!(n <= budget, "budget {budget}: {n}");
         // A split adds at most a short chain of forced splits: the frame stops close to it.
-        assert!(n + 64 >= budget.min(2 * 128 * 128), "budget {budget}: only {n}");
+        assert!(
+            n + 64 >= budget.min(2 * 128 * 128),
+            "budget {budget}: only {n}"
+        );
     }
 }
 
@@ -262,8 +333,20 @@ fn a_higher_threshold_gives_fewer_triangles_and_a_bound_below_it() {
     let cam = camera(&hf, 10.0, 10.0, 30.0, 45.0, -15.0, 60.0);
     let mut last = usize::MAX;
     for threshold in [0.5f32, 1.0, 2.0, 4.0, 8.0] {
-        let (mesh, _) = run(&hf, &vt, &cam, Limits { budget: 1 << 20, threshold_px: threshold });
-        assert!(mesh.error_bound_px < threshold, "{threshold}: {}", mesh.error_bound_px);
+        let (mesh, _) = run(
+            &hf,
+            &vt,
+            &cam,
+            Limits {
+                budget: 1 << 20,
+                threshold_px: threshold,
+            },
+        );
+        assert!(
+            mesh.error_bound_px < threshold,
+            "{threshold}: {}",
+            mesh.error_bound_px
+        );
         assert!(mesh.triangle_count() <= last);
         last = mesh.triangle_count();
     }

@@ -1,0 +1,263 @@
+//! A terrain data set on disk: a directory holding `map` (TOML parameters, see
+//! [`crate::map`]), `hf.pgm` (16-bit heightfield, side `2^N + 1`) and `color.ppm` (8-bit RGB,
+//! one pixel per grid cell, `(side − 1)²`).
+//!
+//! [`load`] validates everything and reports problems as a [`DataError`] naming the file, the
+//! field and what was expected, e.g.
+//! `data/x/hf.pgm: width: expected 2^N + 1 (3, 5, 9, …, 32769), got 1000`.
+
+use std::fs;
+use std::io;
+use std::path::{Path, PathBuf};
+
+use crate::heightfield::Heightfield;
+use crate::map::{MapError, MapParams};
+use crate::pnm::{self, PnmError};
+
+/// File name of the parameters inside a data-set directory.
+pub const MAP_FILE: &str = "map";
+/// File name of the heightfield.
+pub const HEIGHTS_FILE: &str = "hf.pgm";
+/// File name of the colour map.
+pub const COLOR_FILE: &str = "color.ppm";
+/// Largest accepted `map` file: it holds a dozen keys.
+pub const MAX_MAP_BYTES: u64 = 1 << 20;
+
+/// One RGB colour per grid cell: `cells × cells` pixels, row-major (row 0 is north). The
+/// colour of cell `(x, z)` belongs to both triangles of the square between samples
+/// `(x, z)` and `(x + 1, z + 1)`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ColorMap {
+    cells: u32,
+    rgb: Vec<[u8; 3]>,
+}
+
+impl ColorMap {
+    /// A colour map of `cells × cells` pixels; `None` when `rgb` has another length.
+    pub fn new(cells: u32, rgb: Vec<[u8; 3]>) -> Option<ColorMap> {
+        (rgb.len() as u64 == u64::from(cells) * u64::from(cells)).then_some(ColorMap { cells, rgb })
+    }
+
+    /// Cells per row (and rows): the heightfield's `side − 1`.
+    pub fn cells(&self) -> u32 {
+        self.cells
+    }
+
+    /// All pixels, row-major.
+    pub fn rgb(&self) -> &[[u8; 3]] {
+        &self.rgb
+    }
+
+    /// Colour of cell column `x`, row `z`. Panics when out of range (a caller bug).
+    #[inline]
+    pub fn get(&self, x: u32, z: u32) -> [u8; 3] {
+        self.rgb[z as usize * self.cells as usize + x as usize]
+    }
+
+    /// Bytes held by the pixels.
+    pub fn heap_bytes(&self) -> usize {
+        self.rgb.capacity() * 3
+    }
+}
+
+/// A loaded data set.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Terrain {
+    /// Scales, sun, fog, water, start.
+    pub map: MapParams,
+    /// Heights (samples; world height is `map.v_scale · sample`).
+    pub heights: Heightfield,
+    /// One colour per cell.
+    pub color: ColorMap,
+}
+
+impl Terrain {
+    /// World height of sample `(x, z)`.
+    pub fn world_height(&self, x: u32, z: u32) -> f64 {
+        self.map.v_scale * f64::from(self.heights.get(x, z))
+    }
+
+    /// World extent along X and Z.
+    pub fn world_size(&self) -> f64 {
+        self.map.world_size(self.heights.side())
+    }
+
+    /// Check that the parts fit together: colour map `(side − 1)²`, map values valid and the
+    /// start on the map.
+    pub fn validate(&self) -> Result<(), MapError> {
+        if self.color.cells() != self.heights.size() {
+            return Err(MapError {
+                field: "color".into(),
+                line: None,
+                message: format!(
+                    "expected a {0} × {0} colour map, got {1} × {1}",
+                    self.heights.size(),
+                    self.color.cells()
+                ),
+            });
+        }
+        self.map.validate_for_side(self.heights.side())
+    }
+}
+
+/// Why a data set could not be loaded. The message always starts with the file's path.
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    /// The content of a file is wrong: `field` is a header field (`magic`, `width`, `height`,
+    /// `maxval`, `data`), a `map` key (`hScale`, `start.x`, …) or `syntax`.
+    #[error("{}{}: {field}: {message}", file.display(), line.map(|l| format!(":{l}")).unwrap_or_default())]
+    Invalid {
+        /// The file, as given (directory joined with the file name).
+        file: PathBuf,
+        /// 1-based line, for the `map` file.
+        line: Option<usize>,
+        /// The field or key.
+        field: String,
+        /// What was expected and what was found.
+        message: String,
+    },
+    /// A file could not be opened or read.
+    #[error("{}: cannot {action}: {error}", file.display())]
+    Io {
+        /// The file.
+        file: PathBuf,
+        /// `open`, `read`, `stat`.
+        action: &'static str,
+        /// The operating system's error.
+        error: io::Error,
+    },
+}
+
+impl DataError {
+    fn from_pnm(file: &Path, e: PnmError) -> DataError {
+        match e {
+            PnmError::Format { field, message } => DataError::Invalid {
+                file: file.to_path_buf(),
+                line: None,
+                field: field.into(),
+                message,
+            },
+            PnmError::Io { action, error } => DataError::Io {
+                file: file.to_path_buf(),
+                action,
+                error,
+            },
+        }
+    }
+
+    fn from_map(file: &Path, e: MapError) -> DataError {
+        DataError::Invalid {
+            file: file.to_path_buf(),
+            line: e.line,
+            field: e.field,
+            message: e.message,
+        }
+    }
+
+    /// The file the error is about.
+    pub fn file(&self) -> &Path {
+        match self {
+            DataError::Invalid { file, .. } | DataError::Io { file, .. } => file,
+        }
+    }
+}
+
+fn file_len(path: &Path) -> u64 {
+    fs::metadata(path).map(|m| m.len()).unwrap_or(0)
+}
+
+/// Read the `map` file's text, refusing anything large or not UTF-8.
+fn read_map_text(path: &Path) -> Result<String, DataError> {
+    let io_err = |action| {
+        move |error| DataError::Io {
+            file: path.to_path_buf(),
+            action,
+            error,
+        }
+    };
+    let meta = fs::metadata(path).map_err(io_err("open"))?;
+    let invalid = |message: String| DataError::Invalid {
+        file: path.to_path_buf(),
+        line: None,
+        field: "file".into(),
+        message,
+    };
+    if !meta.is_file() {
+        return Err(invalid("expected a regular file".into()));
+    }
+    if meta.len() > MAX_MAP_BYTES {
+        return Err(invalid(format!(
+            "expected a small TOML text (at most {MAX_MAP_BYTES} bytes), got {} bytes",
+            meta.len()
+        )));
+    }
+    let bytes = fs::read(path).map_err(io_err("read"))?;
+    String::from_utf8(bytes).map_err(|e| {
+        invalid(format!(
+            "expected UTF-8 text, got an invalid byte at offset {}",
+            e.utf8_error().valid_up_to()
+        ))
+    })
+}
+
+/// Load and validate the data set in `dir`. `progress(done, total)` gets the bytes read so
+/// far out of the total size of the three files, every few MB.
+///
+/// Order: the heightfield header (for the side), the `map` file, the heightfield's samples,
+/// then the colour map; the first problem found is returned.
+pub fn load(dir: &Path, progress: &mut dyn FnMut(u64, u64)) -> Result<Terrain, DataError> {
+    let map_path = dir.join(MAP_FILE);
+    let hf_path = dir.join(HEIGHTS_FILE);
+    let color_path = dir.join(COLOR_FILE);
+    let total = file_len(&map_path) + file_len(&hf_path) + file_len(&color_path);
+
+    let header = pnm::read_pgm_header(&hf_path).map_err(|e| DataError::from_pnm(&hf_path, e))?;
+    let side = header.width;
+    let text = read_map_text(&map_path)?;
+    let map = MapParams::parse(&text, side).map_err(|e| DataError::from_map(&map_path, e))?;
+    let mut done = text.len() as u64;
+    progress(done, total);
+
+    let heights = pnm::read_pgm(&hf_path, &mut |n| progress(done + n, total))
+        .map_err(|e| DataError::from_pnm(&hf_path, e))?;
+    done += file_len(&hf_path);
+    if heights.side() != side {
+        return Err(DataError::Invalid {
+            file: hf_path,
+            line: None,
+            field: "width".into(),
+            message: format!(
+                "expected {side} (the file changed while loading), got {}",
+                heights.side()
+            ),
+        });
+    }
+    let cells = heights.size();
+    let rgb = pnm::read_ppm(&color_path, cells, &mut |n| progress(done + n, total))
+        .map_err(|e| DataError::from_pnm(&color_path, e))?;
+    let color = ColorMap::new(cells, rgb).ok_or_else(|| DataError::Invalid {
+        file: color_path.clone(),
+        line: None,
+        field: "data".into(),
+        message: format!("expected {cells} × {cells} pixels"),
+    })?;
+    progress(total, total);
+    Ok(Terrain {
+        map,
+        heights,
+        color,
+    })
+}
+
+/// Write `terrain` into `dir` (created if missing) as `map`, `hf.pgm` and `color.ppm`.
+/// Refuses (with `InvalidInput`) a terrain whose parts do not fit together.
+pub fn save(dir: &Path, terrain: &Terrain) -> io::Result<()> {
+    terrain
+        .validate()
+        .map_err(|e| io::Error::new(io::ErrorKind::InvalidInput, e.to_string()))?;
+    fs::create_dir_all(dir)?;
+    pnm::write_pgm(&dir.join(HEIGHTS_FILE), &terrain.heights)?;
+    let cells = terrain.color.cells();
+    pnm::write_ppm(&dir.join(COLOR_FILE), cells, cells, terrain.color.rgb())?;
+    fs::write(dir.join(MAP_FILE), terrain.map.to_toml())
+}

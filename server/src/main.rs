@@ -1,0 +1,53 @@
+//! `roam-server`: the command-line front end. Owns the clock and the terminal; everything it
+//! runs is library code from `roam_server`.
+
+mod cmd_data;
+mod cmd_tess;
+mod progress;
+
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(
+    name = "roam-server",
+    version,
+    about = "Stream split-only ROAM terrain to viewers"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Validate a data set and print its shape, scales, height range and variance-tree size.
+    Check(cmd_data::CheckArgs),
+    /// Write a synthetic data set (seeded fBm) of any 2^N + 1 side.
+    Generate(cmd_data::GenerateArgs),
+    /// Build a data set from a PGM heightfield: copy it, derive a colour map, write a map file.
+    Import(cmd_data::ImportArgs),
+    /// Tessellate once for a camera and write the mesh as a Wavefront OBJ.
+    Mesh(cmd_tess::MeshArgs),
+    /// Time the tessellator along a fly-over path (or one fixed camera).
+    Bench(cmd_tess::BenchArgs),
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Check(args) => cmd_data::check(args),
+        Command::Generate(args) => cmd_data::generate(args),
+        Command::Import(args) => cmd_data::import(args),
+        Command::Mesh(args) => cmd_tess::mesh(args),
+        Command::Bench(args) => cmd_tess::bench(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
