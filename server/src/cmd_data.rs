@@ -1,12 +1,14 @@
 //! `check`, `generate` and `import`: data-set commands.
 
 use std::path::PathBuf;
+use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use roam_server::dataset::{self, Terrain};
 use roam_server::heightfield::levels_of_side;
 use roam_server::map::{MapParams, Start, normalize};
+use roam_server::variance::VarianceTree;
 use roam_server::{generate as gen_terrain, pnm};
 
 use crate::progress::Progress;
@@ -84,7 +86,58 @@ pub fn check(args: CheckArgs) -> Result<()> {
     for line in describe(&terrain) {
         println!("{line}");
     }
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let started = Instant::now();
+    let vt = {
+        let mut p = Progress::new("variance");
+        VarianceTree::build(&terrain.heights, threads, &mut p.callback())
+    };
+    let build_ms = started.elapsed().as_secs_f64() * 1e3;
+    let samples = f64::from(terrain.heights.side()).powi(2);
+    println!(
+        "variance tree: {:.2} bytes/sample ({} bytes), built in {build_ms:.0} ms",
+        vt.bytes_per_sample(),
+        thousands(vt.heap_bytes() as u64)
+    );
+    let resident = terrain.heights.heap_bytes() + vt.heap_bytes();
+    println!(
+        "resident: {:.2} bytes/sample ({} bytes: heights + variance tree; colour map {:.2} \
+         bytes/cell aside)",
+        resident as f64 / samples,
+        thousands(resident as u64),
+        terrain.color.heap_bytes() as f64 / f64::from(terrain.color.cells()).powi(2).max(1.0)
+    );
+    if let Some(peak) = peak_rss_bytes() {
+        println!(
+            "peak RSS: {:.2} bytes/sample ({} bytes, whole process)",
+            peak as f64 / samples,
+            thousands(peak)
+        );
+    }
     Ok(())
+}
+
+/// The process's peak resident set size (`VmHWM` in `/proc/self/status`), where the
+/// system reports it (Linux).
+fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let mut words = line["VmHWM:".len()..].split_whitespace();
+    let kb: u64 = words.next()?.parse().ok()?;
+    (words.next() == Some("kB")).then_some(kb * 1024)
+}
+
+/// `1234567` as `1,234,567`.
+fn thousands(n: u64) -> String {
+    let digits = n.to_string();
+    let mut out = String::with_capacity(digits.len() + digits.len() / 3);
+    for (i, c) in digits.chars().enumerate() {
+        if i > 0 && (digits.len() - i).is_multiple_of(3) {
+            out.push(',');
+        }
+        out.push(c);
+    }
+    out
 }
 
 /// Human-readable summary lines of a loaded data set.
@@ -272,4 +325,23 @@ fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
             .map_err(|_| format!("expected an integer 0..=255, got {t:?}"))
     };
     Ok([byte(r)?, byte(g)?, byte(b)?])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::thousands;
+
+    #[test]
+    fn thousands_groups_digits() {
+        for (n, want) in [
+            (0, "0"),
+            (999, "999"),
+            (1000, "1,000"),
+            (524_800, "524,800"),
+            (1_234_567, "1,234,567"),
+            (u64::MAX, "18,446,744,073,709,551,615"),
+        ] {
+            assert_eq!(thousands(n), want);
+        }
+    }
 }

@@ -102,7 +102,7 @@ impl Diamond {
     /// The diamond centred at `(x, z)` on a `size × size` map; `None` for corners and
     /// points outside the map.
     pub fn at(x: u32, z: u32, size: u32) -> Option<Diamond> {
-        if x > size || z > size || (x % size == 0 && z % size == 0) {
+        if x > size || z > size || (x.is_multiple_of(size) && z.is_multiple_of(size)) {
             return None;
         }
         let (tx, tz) = (x.trailing_zeros(), z.trailing_zeros());
@@ -268,7 +268,7 @@ mod tests {
         for z in 0..=size {
             for x in 0..=size {
                 match Diamond::at(x, z, size) {
-                    None => assert!(x % size == 0 && z % size == 0),
+                    None => assert!(x.is_multiple_of(size) && z.is_multiple_of(size)),
                     Some(d) => {
                         count += 1;
                         // Its triangles are children of its parents' triangles and split at

@@ -2,8 +2,9 @@
 //!
 //! A priority (a positive `f32`, pixels) falls in bucket `bits >> 20`: its exponent and top
 //! three mantissa bits, eight buckets per octave, monotone in the priority. The last bucket
-//! is reserved for diamonds under the eye. Each bucket is a first-in first-out array, and a two-level bitmap finds the highest non-empty bucket with two
-//! leading-zero counts. Nothing is allocated once the pool has grown to a frame's size.
+//! is reserved for diamonds under the eye. Each bucket is a first-in first-out chain of
+//! chunks from one pool, and a two-level bitmap finds the highest non-empty bucket with two
+//! leading-zero counts. Nothing is allocated during a frame once the pool is reserved.
 
 /// Number of buckets: every non-negative `f32` maps to one of the first `BUCKETS - 1`.
 pub const BUCKETS: usize = 2048;
@@ -16,11 +17,40 @@ pub fn bucket_of(prio: f32) -> usize {
     ((prio.to_bits() >> 20) as usize).min(TOP - 1)
 }
 
-/// First-in first-out lists of `u64` entries, one per bucket.
+/// Entries per chunk: a bucket is a chain of chunks, read and written in order.
+const CHUNK: usize = 64;
+const NIL: u32 = u32::MAX;
+
+/// One bucket: a first-in first-out chain of chunks.
+#[derive(Clone, Copy)]
+struct Bucket {
+    /// Chunk and position of the oldest entry.
+    head: u32,
+    read: u32,
+    /// Chunk and position one past the newest entry.
+    tail: u32,
+    write: u32,
+}
+
+const EMPTY: Bucket = Bucket {
+    head: NIL,
+    read: 0,
+    tail: NIL,
+    write: 0,
+};
+
+/// First-in first-out lists of `u64` entries, one per bucket, in chunks taken from one
+/// pool. Within a chunk, entries are read and written in order: the next pop neither
+/// chases a pointer nor waits on the entry just computed. Chunks are handed out afresh
+/// each frame; [`BucketQueue::reserve`] sizes the pool for a frame's worst case so that
+/// nothing is allocated during a frame.
 pub struct BucketQueue {
-    /// Each bucket's entries; `read[b]` of them have been popped.
-    lists: Vec<Vec<u64>>,
-    read: Vec<u32>,
+    buckets: Box<[Bucket; BUCKETS]>,
+    /// Chunk `c` is `entries[c * CHUNK..][..CHUNK]`, followed by chunk `next[c]`.
+    entries: Vec<u64>,
+    next: Vec<u32>,
+    /// Chunks handed out this frame.
+    used: usize,
     nonempty: [u64; BUCKETS / 64],
     summary: u32,
 }
@@ -28,8 +58,10 @@ pub struct BucketQueue {
 impl Default for BucketQueue {
     fn default() -> Self {
         BucketQueue {
-            lists: (0..BUCKETS).map(|_| Vec::new()).collect(),
-            read: vec![0; BUCKETS],
+            buckets: Box::new([EMPTY; BUCKETS]),
+            entries: Vec::new(),
+            next: Vec::new(),
+            used: 0,
             nonempty: [0; BUCKETS / 64],
             summary: 0,
         }
@@ -37,23 +69,57 @@ impl Default for BucketQueue {
 }
 
 impl BucketQueue {
-    /// Empties the queue, keeping its memory. Buckets emptied by `pop` were cleared then.
-    pub fn clear(&mut self) {
-        while let Some(b) = self.top_bucket() {
-            self.lists[b].clear();
-            self.read[b] = 0;
-            self.clear_bit(b);
-        }
+    /// Makes room for `pushes` entries in a frame, whatever buckets they fall in.
+    /// (Address space only: pages are touched as chunks are first used.)
+    pub fn reserve(&mut self, pushes: usize) {
+        let chunks = pushes.div_ceil(CHUNK) + BUCKETS;
+        self.next.reserve(chunks.saturating_sub(self.next.len()));
+        self.entries
+            .reserve((chunks * CHUNK).saturating_sub(self.entries.len()));
     }
 
-    /// Appends `entry` to `bucket`. Within a bucket the oldest entry pops first, read from
-    /// a contiguous array: the next pop neither chases a pointer nor waits on the entry
-    /// just computed, so successive splits overlap in the CPU.
+    /// Empties the queue, keeping its memory.
+    pub fn clear(&mut self) {
+        while let Some(b) = self.top_bucket() {
+            self.buckets[b] = EMPTY;
+            self.clear_bit(b);
+        }
+        self.used = 0;
+    }
+
+    /// Appends `entry` to `bucket`.
     #[inline(always)]
     pub fn push(&mut self, bucket: usize, entry: u64) {
-        self.lists[bucket].push(entry);
-        self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
-        self.summary |= 1 << (bucket >> 6);
+        let mut bk = self.buckets[bucket];
+        if bk.tail == NIL || bk.write as usize == CHUNK {
+            let c = self.new_chunk();
+            if bk.tail == NIL {
+                bk.head = c;
+                bk.read = 0;
+                self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
+                self.summary |= 1 << (bucket >> 6);
+            } else {
+                self.next[bk.tail as usize] = c;
+            }
+            bk.tail = c;
+            bk.write = 0;
+        }
+        self.entries[bk.tail as usize * CHUNK + bk.write as usize] = entry;
+        bk.write += 1;
+        self.buckets[bucket] = bk;
+    }
+
+    fn new_chunk(&mut self) -> u32 {
+        if self.used == self.next.len() {
+            // First use of this chunk (within the reserved capacity, unless a caller
+            // under-reserved: then it grows rather than fails).
+            self.next.push(NIL);
+            self.entries.resize(self.entries.len() + CHUNK, 0);
+        }
+        let c = self.used;
+        self.used += 1;
+        self.next[c] = NIL;
+        c as u32
     }
 
     /// The highest non-empty bucket.
@@ -70,16 +136,17 @@ impl BucketQueue {
     #[inline(always)]
     pub fn pop(&mut self) -> Option<u64> {
         let b = self.top_bucket()?;
-        let list = &mut self.lists[b];
-        let r = self.read[b] as usize;
-        let entry = list[r];
-        if r + 1 == list.len() {
-            list.clear();
-            self.read[b] = 0;
+        let mut bk = self.buckets[b];
+        let entry = self.entries[bk.head as usize * CHUNK + bk.read as usize];
+        bk.read += 1;
+        if bk.head == bk.tail && bk.read == bk.write {
+            bk = EMPTY;
             self.clear_bit(b);
-        } else {
-            self.read[b] = r as u32 + 1;
+        } else if bk.read as usize == CHUNK {
+            bk.head = self.next[bk.head as usize];
+            bk.read = 0;
         }
+        self.buckets[b] = bk;
         Some(entry)
     }
 
@@ -100,17 +167,26 @@ impl BucketQueue {
 
     /// The entries of one bucket still queued, oldest first.
     pub fn entries(&self, bucket: usize) -> impl Iterator<Item = u64> + '_ {
-        self.lists[bucket][self.read[bucket] as usize..]
-            .iter()
-            .copied()
+        let bk = self.buckets[bucket];
+        let (mut c, mut i) = (bk.head, bk.read as usize);
+        std::iter::from_fn(move || {
+            if c == NIL || (c == bk.tail && i == bk.write as usize) {
+                return None;
+            }
+            let e = self.entries[c as usize * CHUNK + i];
+            i += 1;
+            if i == CHUNK && c != bk.tail {
+                c = self.next[c as usize];
+                i = 0;
+            }
+            Some(e)
+        })
     }
 
     pub fn heap_bytes(&self) -> usize {
-        self.lists
-            .iter()
-            .map(|l| l.capacity() * 8 + 24)
-            .sum::<usize>()
-            + self.read.capacity() * 4
+        std::mem::size_of::<[Bucket; BUCKETS]>()
+            + self.entries.capacity() * 8
+            + self.next.capacity() * 4
     }
 }
 
@@ -160,5 +236,24 @@ mod tests {
         q.push(3, 8);
         assert_eq!(q.entries(3).collect::<Vec<_>>(), [8]);
         assert_eq!(q.buckets_desc().collect::<Vec<_>>(), [3]);
+    }
+
+    #[test]
+    fn long_buckets_span_chunks_in_order() {
+        let mut q = BucketQueue::default();
+        q.reserve(1000);
+        let before = q.heap_bytes();
+        for e in 0..300u64 {
+            q.push(7 + (e as usize % 2) * 100, e);
+        }
+        let odd: Vec<u64> = q.entries(107).collect();
+        assert_eq!(odd, (0..300).filter(|e| e % 2 == 1).collect::<Vec<_>>());
+        let order: Vec<u64> = std::iter::from_fn(|| q.pop()).collect();
+        let mut want: Vec<u64> = (0..300).filter(|e| e % 2 == 1).collect();
+        want.extend((0..300).filter(|e| e % 2 == 0));
+        assert_eq!(order, want);
+        assert_eq!(q.heap_bytes(), before, "reserved: nothing grew");
+        q.clear();
+        assert_eq!(q.pop(), None);
     }
 }

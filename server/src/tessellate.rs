@@ -61,7 +61,7 @@ pub struct Mesh {
     /// Grid vertices `[x, z]`, in row-major order.
     pub vertices: Vec<[u16; 2]>,
     /// Three indices per triangle, counter-clockwise seen from above, in a deterministic
-    /// depth-first order of the bintree.
+    /// order (by split diamond).
     pub indices: Vec<u32>,
     /// The largest screen-space error left unsplit, in pixels (0 when nothing was left).
     pub error_bound_px: f32,
@@ -101,14 +101,10 @@ pub struct Tessellator {
     rank: Vec<u32>,
     queue: BucketQueue,
     chain: Vec<u32>,
-    stack: Vec<Tri>,
     triangles: u32,
     dropped_max: f32,
     stats: Stats,
 }
-
-/// A triangle `[apex, left, right]` and its vertices' indices, while emitting.
-type Tri = ([(u32, u32); 3], [u32; 3]);
 
 /// Everything the evaluation needs about the frame, precomputed.
 struct Frame<'a> {
@@ -231,7 +227,6 @@ impl Tessellator {
             rank: vec![0; words],
             queue: BucketQueue::default(),
             chain: Vec::new(),
-            stack: Vec::new(),
             triangles: 0,
             dropped_max: 0.0,
             stats: Stats::default(),
@@ -245,7 +240,6 @@ impl Tessellator {
             + self.active_list.capacity() * 4
             + self.queue.heap_bytes()
             + self.chain.capacity() * 4
-            + self.stack.capacity() * std::mem::size_of::<Tri>()
     }
 
     /// Counts from the last frame.
@@ -291,6 +285,16 @@ impl Tessellator {
         self.reset();
         let frame = self.frame(hf, variance, scales, camera, limits);
         let budget = limits.budget.max(2);
+        // Worst cases, so the frame allocates nothing once these have grown: a split adds
+        // at least one triangle and queues at most four children.
+        let most_splits = budget as usize;
+        self.queue.reserve(4 * most_splits + 8);
+        self.active_list
+            .reserve(most_splits.saturating_sub(self.active_list.len()));
+        out.vertices
+            .reserve((most_splits + 4).saturating_sub(out.vertices.len()));
+        out.indices
+            .reserve((3 * budget as usize + 3).saturating_sub(out.indices.len()));
         self.triangles = 2;
         self.evaluate_root(&frame);
         while let Some(entry) = self.queue.pop() {
@@ -417,7 +421,7 @@ impl Tessellator {
         let parents: [Option<(u32, u32)>; 2] = match shape {
             Shape::Square if 2 * h == s => [None, None],
             Shape::Square => {
-                if ((x + h) >> (m + 1)) + ((z + h) >> (m + 1)) & 1 == 1 {
+                if (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 1 {
                     [Some((x + h, z + h)), Some((x - h, z - h))]
                 } else {
                     [Some((x + h, z - h)), Some((x - h, z + h))]
@@ -456,7 +460,7 @@ impl Tessellator {
         match shape {
             Shape::Square if 2 * h == s => Some(2),
             Shape::Square => {
-                let ok = if ((x + h) >> (m + 1)) + ((z + h) >> (m + 1)) & 1 == 1 {
+                let ok = if (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 1 {
                     self.is_active(x + h, z + h) && self.is_active(x - h, z - h)
                 } else {
                     self.is_active(x + h, z - h) && self.is_active(x - h, z + h)
@@ -691,6 +695,7 @@ impl Tessellator {
         };
         // The four planes at once (lanes are planes): outside if any distance is negative.
         let mut outside = false;
+        #[allow(clippy::needless_range_loop)] // four planes, four parallel arrays
         for p in 0..4 {
             let d = f.pa[p] * xf
                 + f.pb[p] * yc
@@ -769,16 +774,15 @@ impl Tessellator {
 
     /// Writes the mesh: vertices are the corners and the split diamonds' centres, indexed by
     /// rank in the active bitset; triangles in bintree order.
-    #[inline(never)]
     fn emit(&mut self, out: &mut Mesh) {
         let s = self.size;
         for (x, z) in [(0, 0), (s, 0), (0, s), (s, s)] {
             self.set_active(x, z);
         }
         out.vertices.clear();
-        out.indices.clear();
         let mut total = 0u32;
         let side = self.side as usize;
+        let (mut z, mut row_start) = (0usize, 0usize);
         for (w, (&word, rank)) in self.active.iter().zip(self.rank.iter_mut()).enumerate() {
             *rank = total;
             total += word.count_ones();
@@ -786,51 +790,86 @@ impl Tessellator {
             while bits != 0 {
                 let i = w * 64 + bits.trailing_zeros() as usize;
                 bits &= bits - 1;
-                out.vertices.push([(i % side) as u16, (i / side) as u16]);
+                while i >= row_start + side {
+                    z += 1;
+                    row_start += side;
+                }
+                out.vertices.push([(i - row_start) as u16, z as u16]);
             }
         }
-        out.indices.reserve(3 * self.triangles as usize);
-        // Depth-first over the split triangles (an explicit stack, bounded by the tree's
-        // depth times two); a child that is not split is emitted on the spot.
-        let mut stack = std::mem::take(&mut self.stack);
-        stack.clear();
-        let (r00, rs0, r0s, rss) = (
-            self.rank_of(0, 0),
-            self.rank_of(s, 0),
-            self.rank_of(0, s),
-            self.rank_of(s, s),
+        // Depth-first over the bintree with an explicit stack. Vertices are row-major
+        // indices: a split triangle's hypotenuse has even coordinate sums, so its midpoint
+        // is the mean of the ends' indices. Each child is written both to the stack and to
+        // the output, and the one that applies advances: no unpredictable branch.
+        let n = 3 * self.triangles as usize;
+        out.indices.clear();
+        out.indices.resize(n + 3, 0);
+        let leaf_depth = 2 * s.trailing_zeros();
+        let mut stack = [[0u32; 7]; 2 * 16 + 4];
+        let (mut sp, mut k) = (0usize, 0usize);
+        let sd = self.side;
+        let (nw, ne, sw, se) = (0, s, s * sd, s * sd + s);
+        let (rnw, rne, rsw, rse) = (
+            self.rank_at(nw),
+            self.rank_at(ne),
+            self.rank_at(sw),
+            self.rank_at(se),
         );
-        for (t, r) in [
-            ([(s, 0), (0, 0), (s, s)], [rs0, r00, rss]),
-            ([(0, s), (s, s), (0, 0)], [r0s, rss, r00]),
+        for t in [
+            [ne, nw, se, rne, rnw, rse, 0],
+            [sw, se, nw, rsw, rse, rnw, 0],
         ] {
-            self.visit(&mut stack, out, t, r);
+            self.visit(&mut stack, &mut sp, &mut out.indices, &mut k, t, leaf_depth);
         }
-        while let Some(([a, l, r], [ra, rl, rr])) = stack.pop() {
-            // `[a, l, r]` is split at the midpoint of `l r`.
-            let m = ((l.0 + r.0) / 2, (l.1 + r.1) / 2);
-            let rm = self.rank_of(m.0, m.1);
-            self.visit(&mut stack, out, [m, r, a], [rm, rr, ra]);
-            self.visit(&mut stack, out, [m, a, l], [rm, ra, rl]);
+        while sp > 0 {
+            sp -= 1;
+            let [a, l, r, ra, rl, rr, d] = stack[sp];
+            let m = (l + r) / 2;
+            let rm = self.rank_at(m);
+            self.visit(
+                &mut stack,
+                &mut sp,
+                &mut out.indices,
+                &mut k,
+                [m, r, a, rm, rr, ra, d + 1],
+                leaf_depth,
+            );
+            self.visit(
+                &mut stack,
+                &mut sp,
+                &mut out.indices,
+                &mut k,
+                [m, a, l, rm, ra, rl, d + 1],
+                leaf_depth,
+            );
         }
-        self.stack = stack;
+        debug_assert_eq!(k, n, "every triangle counted is emitted");
+        out.indices.truncate(k);
     }
 
-    /// Emits triangle `[apex, left, right]` if it is a leaf, else queues it for splitting.
+    /// Pushes triangle `t = [apex, left, right, ranks…, depth]` if it is split, else emits
+    /// it; both slots are written, only one cursor moves.
     #[inline(always)]
-    fn visit(&self, stack: &mut Vec<Tri>, out: &mut Mesh, t: [(u32, u32); 3], r: [u32; 3]) {
-        let [_, l, rt] = t;
-        let (sx, sz) = (l.0 + rt.0, l.1 + rt.1);
-        if (sx | sz) & 1 == 0 && self.is_active(sx / 2, sz / 2) {
-            stack.push((t, r));
-        } else {
-            out.indices.extend_from_slice(&r);
-        }
+    fn visit(
+        &self,
+        stack: &mut [[u32; 7]],
+        sp: &mut usize,
+        out: &mut [u32],
+        k: &mut usize,
+        t: [u32; 7],
+        leaf_depth: u32,
+    ) {
+        let m = ((t[1] + t[2]) / 2) as usize;
+        let split = (t[6] < leaf_depth) & (self.active[m >> 6] >> (m & 63) & 1 != 0);
+        stack[*sp] = t;
+        *sp += usize::from(split);
+        out[*k..*k + 3].copy_from_slice(&t[3..6]);
+        *k += 3 * usize::from(!split);
     }
 
     #[inline(always)]
-    fn rank_of(&self, x: u32, z: u32) -> u32 {
-        let i = (z * self.side + x) as usize;
+    fn rank_at(&self, i: u32) -> u32 {
+        let i = i as usize;
         self.rank[i >> 6] + (self.active[i >> 6] & ((1u64 << (i & 63)) - 1)).count_ones()
     }
 }

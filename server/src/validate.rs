@@ -44,7 +44,7 @@ pub enum MeshError {
 
 /// Checks the mesh structure described in the module docs.
 pub fn check_mesh(vertices: &[[u16; 2]], indices: &[u32], size: u32) -> Result<(), MeshError> {
-    if indices.len() % 3 != 0 {
+    if !indices.len().is_multiple_of(3) {
         return Err(MeshError::Ragged(indices.len()));
     }
     for (index, &[x, z]) in vertices.iter().enumerate() {

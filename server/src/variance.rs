@@ -352,7 +352,7 @@ pub fn row_span(t: &Triangle, z: u32) -> Option<(u32, u32)> {
             std::cmp::Ordering::Equal => {}
         }
     }
-    (lo <= hi).then(|| (lo as u32, hi as u32))
+    (lo <= hi).then_some((lo as u32, hi as u32))
 }
 
 /// The code table: 0, then `SMALLEST · r^(q-1)` with `r` chosen so code 255 reaches `max`.
