@@ -705,16 +705,17 @@ impl Tessellator {
                 + hy * f.abs_b[p];
             outside |= d < 0.0;
         }
-        if outside {
-            self.stats.culled += 1;
-            return;
-        }
+        // The ground under the eye is refined first, in view or not.
         let (ex, ez) = (f.eye_grid[0] - xf, f.eye_grid[1] - zf);
         let under = if square {
             ex.abs() <= hf && ez.abs() <= hf
         } else {
             ex.abs() + ez.abs() <= hf
         };
+        if outside && !under {
+            self.stats.culled += 1;
+            return;
+        }
         let (dx, dy, dz) = (ex * f.hs, f.eye_y - yc * f.vs, ez * f.hs);
         let reach = f.hs
             * hf
