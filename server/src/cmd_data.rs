@@ -84,7 +84,7 @@ pub fn check(args: CheckArgs) -> Result<()> {
         dataset::load(&args.dir, &mut p.callback())?
     };
     for line in describe(&terrain) {
-        println!("{line}");
+        say!("{line}");
     }
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let started = Instant::now();
@@ -94,13 +94,13 @@ pub fn check(args: CheckArgs) -> Result<()> {
     };
     let build_ms = started.elapsed().as_secs_f64() * 1e3;
     let samples = f64::from(terrain.heights.side()).powi(2);
-    println!(
+    say!(
         "variance tree: {:.2} bytes/sample ({} bytes), built in {build_ms:.0} ms",
         vt.bytes_per_sample(),
         thousands(vt.heap_bytes() as u64)
     );
     let resident = terrain.heights.heap_bytes() + vt.heap_bytes();
-    println!(
+    say!(
         "resident: {:.2} bytes/sample ({} bytes: heights + variance tree; colour map {:.2} \
          bytes/cell aside)",
         resident as f64 / samples,
@@ -108,7 +108,7 @@ pub fn check(args: CheckArgs) -> Result<()> {
         terrain.color.heap_bytes() as f64 / f64::from(terrain.color.cells()).powi(2).max(1.0)
     );
     if let Some(peak) = peak_rss_bytes() {
-        println!(
+        say!(
             "peak RSS: {:.2} bytes/sample ({} bytes, whole process)",
             peak as f64 / samples,
             thousands(peak)
@@ -227,9 +227,9 @@ pub fn generate(args: GenerateArgs) -> Result<()> {
     let terrain = gen_terrain::synthetic(args.side, args.seed);
     dataset::save(&args.out, &terrain)
         .with_context(|| format!("writing {}", args.out.display()))?;
-    println!("wrote {}", args.out.display());
+    say!("wrote {}", args.out.display());
     for line in describe(&terrain) {
-        println!("{line}");
+        say!("{line}");
     }
     Ok(())
 }
@@ -281,9 +281,9 @@ pub fn import(args: ImportArgs) -> Result<()> {
     };
     dataset::save(&args.out, &terrain)
         .with_context(|| format!("writing {}", args.out.display()))?;
-    println!("wrote {}", args.out.display());
+    say!("wrote {}", args.out.display());
     for line in describe(&terrain) {
-        println!("{line}");
+        say!("{line}");
     }
     Ok(())
 }

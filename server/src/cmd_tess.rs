@@ -145,7 +145,7 @@ pub fn mesh(args: MeshArgs) -> Result<()> {
     );
     write_obj(&args.obj, &terrain, &mesh)
         .with_context(|| format!("writing {}", args.obj.display()))?;
-    println!(
+    say!(
         "{} triangles, error bound {:.2} px",
         mesh.triangle_count(),
         mesh.error_bound_px
@@ -229,11 +229,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         },
     });
     if args.json {
-        println!("{report}");
+        say!("{report}");
     } else {
         let obj = report.as_object().expect("built as an object above");
         for (k, v) in obj {
-            println!("{k:>36}  {v}");
+            say!("{k:>36}  {v}");
         }
     }
     Ok(())

@@ -1,6 +1,14 @@
 //! `roam-server`: the command-line front end. Owns the clock and the terminal; everything it
 //! runs is library code from `roam_server`.
 
+/// `println!` for command output: a reader that went away (`| head`) ends the program
+/// quietly instead of panicking.
+macro_rules! say {
+    ($($arg:tt)*) => {
+        $crate::say_line(format_args!($($arg)*))
+    };
+}
+
 mod cmd_data;
 mod cmd_tess;
 mod progress;
@@ -49,5 +57,17 @@ fn main() -> ExitCode {
             eprintln!("error: {err:#}");
             ExitCode::FAILURE
         }
+    }
+}
+
+/// Writes one line to stdout for `say!`.
+fn say_line(args: std::fmt::Arguments) {
+    use std::io::Write;
+    if let Err(err) = writeln!(std::io::stdout().lock(), "{args}") {
+        if err.kind() == std::io::ErrorKind::BrokenPipe {
+            std::process::exit(0);
+        }
+        eprintln!("error: writing to stdout: {err}");
+        std::process::exit(1);
     }
 }

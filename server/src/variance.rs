@@ -9,9 +9,11 @@
 //!   except for the finest level, the rotated diamonds of half-size 1 (half of all
 //!   vertices), whose error is exactly `|H(centre) - mean(H(ends))|` and is computed on the
 //!   fly from three samples. That stores about `side² / 2` bytes: **0.5 byte per sample**.
-//! - **Quantized up.** A byte is a code into a logarithmic table (about 5 % steps between a
-//!   fraction of a sample unit and the map's largest error); a code's value is never below
-//!   the exact error, so the stored error is still a true bound.
+//! - **Quantized up.** A byte is a code into a fixed logarithmic table (about 5 % steps from
+//!   a quarter of a sample unit up to the full 16-bit range); a code's value is never below
+//!   the exact error, so the stored error is still a true bound. Parents are built from
+//!   their children's codes, so the build keeps no exact values: it needs the heights and
+//!   the codes, nothing more.
 //! - **Implicit.** No pointers: a diamond's slot is computed from its centre and level, with
 //!   each level's diamonds packed together so coarse levels stay dense in cache.
 //!
@@ -45,7 +47,10 @@ impl VarianceTree {
         let size = hf.size();
         let n_levels = hf.levels();
         let (square_offset, rotated_offset, total) = layout(size);
-        let mut exact = vec![0f32; total];
+        // Codes are written level by level, fine to coarse; a parent reads its children's
+        // codes (whose values bound their errors from above), so no exact values are kept.
+        let table = log_table();
+        let mut codes = vec![0u8; total];
         let work_total = u64::from(n_levels) * 2;
         let mut work_done = 0;
         // Fine to coarse: rotated level m (children: squares of level m - 1), then square
@@ -73,7 +78,7 @@ impl VarianceTree {
                         (rotated_offset[m as usize] + n * (n + 1), n * (n + 1), n + 1)
                     }
                 };
-                let (done, todo) = exact.split_at_mut(offset);
+                let (done, todo) = codes.split_at_mut(offset);
                 let todo = &mut todo[..count];
                 let done = &*done;
                 let centre = |i: usize| -> Vertex {
@@ -88,17 +93,19 @@ impl VarianceTree {
                     hf,
                     size,
                     done,
+                    table: &table,
                     square_offset: &square_offset,
                     rotated_offset: &rotated_offset,
                 };
                 parallel_fill(todo, threads, |i| {
                     let (x, z) = centre(i);
                     let d = Diamond { x, z, m, shape };
-                    if m == 0 {
-                        finest(hf, &d)
+                    let e = if m == 0 {
+                        f64::from(finest(hf, &d))
                     } else {
                         partial.diamond_value(&d)
-                    }
+                    };
+                    quantize_up(&table, e)
                 });
                 if shape != (Shape::Rotated { horizontal: true }) {
                     work_done += 1;
@@ -106,12 +113,6 @@ impl VarianceTree {
                 }
             }
         }
-        let max = exact.iter().copied().fold(0f32, f32::max) as f64;
-        let table = log_table(max);
-        let codes = exact
-            .iter()
-            .map(|&e| quantize_up(&table, e as f64))
-            .collect();
         VarianceTree {
             size,
             codes,
@@ -221,18 +222,19 @@ fn layout(size: u32) -> (Vec<usize>, Vec<usize>, usize) {
 struct Partial<'a> {
     hf: &'a Heightfield,
     size: u32,
-    done: &'a [f32],
+    done: &'a [u8],
+    table: &'a [f32; 256],
     square_offset: &'a [usize],
     rotated_offset: &'a [usize],
 }
 
 impl Partial<'_> {
-    fn diamond_value(&self, d: &Diamond) -> f32 {
+    /// The exact error of the diamond's triangles, raised to its children's bounds.
+    fn diamond_value(&self, d: &Diamond) -> f64 {
         let mut e = 0f64;
         for t in d.triangles(self.size) {
             e = e.max(triangle_error(self.hf, &t));
         }
-        let mut e = e as f32;
         for (cx, cz) in d.children(self.size) {
             let c = Diamond::at(cx, cz, self.size).expect("children are diamonds");
             let v = if c.m == 0 && c.shape != Shape::Square {
@@ -247,9 +249,9 @@ impl Partial<'_> {
                     c.m,
                     c.shape,
                 );
-                self.done[s]
+                self.table[self.done[s] as usize]
             };
-            e = e.max(v);
+            e = e.max(f64::from(v));
         }
         e
     }
@@ -355,16 +357,18 @@ pub fn row_span(t: &Triangle, z: u32) -> Option<(u32, u32)> {
     (lo <= hi).then_some((lo as u32, hi as u32))
 }
 
-/// The code table: 0, then `SMALLEST · r^(q-1)` with `r` chosen so code 255 reaches `max`.
-fn log_table(max: f64) -> [f32; 256] {
-    let ratio = (max / SMALLEST).max(1.0);
-    let r = ratio.powf(1.0 / 254.0).max(1.0 + 1e-6);
+/// The code table: 0, then `SMALLEST · r^(q-1)`, with `r` (about 1.05) chosen so that code
+/// 255 reaches the largest possible error, a full 16-bit sample range. Fixed, so a code
+/// can be written as soon as its diamond is computed.
+fn log_table() -> [f32; 256] {
+    const LARGEST: f64 = 65535.0;
+    let r = (LARGEST / SMALLEST).powf(1.0 / 254.0);
     let mut table = [0f32; 256];
     for (q, v) in table.iter_mut().enumerate().skip(1) {
         *v = (SMALLEST * r.powi(q as i32 - 1)) as f32;
     }
     // Make sure the top code covers the largest error despite rounding.
-    table[255] = table[255].max(max as f32).max(next_up(max));
+    table[255] = table[255].max(next_up(LARGEST));
     table
 }
 
@@ -386,7 +390,7 @@ fn quantize_up(table: &[f32; 256], e: f64) -> u8 {
 }
 
 /// Fills `out[i] = f(i)` using up to `threads` scoped threads.
-fn parallel_fill<F: Fn(usize) -> f32 + Sync>(out: &mut [f32], threads: usize, f: F) {
+fn parallel_fill<T: Send, F: Fn(usize) -> T + Sync>(out: &mut [T], threads: usize, f: F) {
     let threads = threads.max(1);
     if threads == 1 || out.len() < 1024 {
         for (i, v) in out.iter_mut().enumerate() {
