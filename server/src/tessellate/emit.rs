@@ -34,8 +34,13 @@ impl Tessellator {
         // is the mean of the ends' indices. Each child is written both to the stack and to
         // the output, and the one that applies advances: no unpredictable branch.
         let n = 3 * self.triangles as usize;
-        out.indices.clear();
-        out.indices.resize(n + 3, 0);
+        // Room for one speculative write past the last triangle. Every slot up to `n` is
+        // overwritten, so only growth since the last frame needs initialising.
+        if out.indices.len() < n + 3 {
+            out.indices.resize(n + 3, 0);
+        } else {
+            out.indices.truncate(n + 3);
+        }
         let leaf_depth = 2 * s.trailing_zeros();
         let mut stack = [[0u32; 7]; 2 * 16 + 4];
         let (mut sp, mut k) = (0usize, 0usize);
