@@ -1,14 +1,12 @@
 //! `check`, `generate` and `import`: data-set commands.
 
 use std::path::PathBuf;
-use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use roam_server::dataset::{self, Terrain};
 use roam_server::heightfield::levels_of_side;
 use roam_server::map::{MapParams, Start, normalize};
-use roam_server::variance::VarianceTree;
 use roam_server::{generate as gen_terrain, pnm};
 
 use crate::progress::Progress;
@@ -79,20 +77,10 @@ pub struct ImportArgs {
 
 /// `check DIR`: load and validate a data set, then describe it.
 pub fn check(args: CheckArgs) -> Result<()> {
-    let terrain = {
-        let mut p = Progress::new("loading");
-        dataset::load(&args.dir, &mut p.callback())?
-    };
+    let (terrain, vt, build_ms) = crate::cmd_tess::load(&args.dir)?;
     for line in describe(&terrain) {
         say!("{line}");
     }
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let started = Instant::now();
-    let vt = {
-        let mut p = Progress::new("variance");
-        VarianceTree::build(&terrain.heights, threads, &mut p.callback())
-    };
-    let build_ms = started.elapsed().as_secs_f64() * 1e3;
     let samples = f64::from(terrain.heights.side()).powi(2);
     say!(
         "variance tree: {:.2} bytes/sample ({} bytes), built in {build_ms:.0} ms",
@@ -225,10 +213,14 @@ pub fn generate(args: GenerateArgs) -> Result<()> {
         );
     }
     let terrain = gen_terrain::synthetic(args.side, args.seed);
-    dataset::save(&args.out, &terrain)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    say!("wrote {}", args.out.display());
-    for line in describe(&terrain) {
+    save_and_describe(&args.out, &terrain)
+}
+
+/// Writes a data set and prints what was written.
+fn save_and_describe(out: &std::path::Path, terrain: &Terrain) -> Result<()> {
+    dataset::save(out, terrain).with_context(|| format!("writing {}", out.display()))?;
+    say!("wrote {}", out.display());
+    for line in describe(terrain) {
         say!("{line}");
     }
     Ok(())
@@ -279,13 +271,7 @@ pub fn import(args: ImportArgs) -> Result<()> {
         heights,
         color,
     };
-    dataset::save(&args.out, &terrain)
-        .with_context(|| format!("writing {}", args.out.display()))?;
-    say!("wrote {}", args.out.display());
-    for line in describe(&terrain) {
-        say!("{line}");
-    }
-    Ok(())
+    save_and_describe(&args.out, &terrain)
 }
 
 /// Unit vector towards a sun at compass `azimuth` (0 north = −Z, 90 east = +X) and
