@@ -5,7 +5,7 @@ use super::{Mesh, Tessellator};
 
 impl Tessellator {
     /// Writes the mesh: vertices are the corners and the split diamonds' centres, indexed by
-    /// rank in the active bitset; triangles in bintree order.
+    /// rank in the active bitset; triangles in depth-first order of the bintree.
     pub(super) fn emit(&mut self, out: &mut Mesh) {
         let s = self.size;
         for (x, z) in [(0, 0), (s, 0), (0, s), (s, s)] {

@@ -62,8 +62,8 @@ pub struct Scales {
 pub struct Mesh {
     /// Grid vertices `[x, z]`, in row-major order.
     pub vertices: Vec<[u16; 2]>,
-    /// Three indices per triangle, counter-clockwise seen from above, in a deterministic
-    /// order (by split diamond).
+    /// Three indices per triangle, counter-clockwise seen from above, in depth-first order
+    /// of the bintree (deterministic).
     pub indices: Vec<u32>,
     /// The largest screen-space error left unsplit, in pixels (0 when nothing was left).
     pub error_bound_px: f32,
@@ -514,6 +514,8 @@ impl Tessellator {
         let hbase = f.rotated_offset[m as usize] + ha;
         let error = |slot: usize, centre: u32, p: u16, q: u16| {
             if m == 0 {
+                // `variance::finest` for a finest rotated diamond, with the hypotenuse ends
+                // this parent has already read.
                 dev(f.h(centre), p, q)
             } else {
                 f.error_at(slot)
