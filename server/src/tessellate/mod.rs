@@ -99,8 +99,9 @@ pub struct Tessellator {
     active: Vec<u64>,
     /// Split diamonds of this frame, in order.
     active_list: Vec<u32>,
-    /// Rank of each `active` word: set bits before it.
-    rank: Vec<u32>,
+    /// For emission: each `active` word beside its rank (set bits before it), padded to a
+    /// power of two so that masked indices need no bounds checks.
+    ranked: Vec<[u64; 2]>,
     queue: BucketQueue,
     chain: Vec<u32>,
     triangles: u32,
@@ -201,6 +202,15 @@ fn unpack(v: u32) -> (u32, u32) {
     (v & 0xffff, v >> 16)
 }
 
+/// Whether the CPU offers x86-64-v3 (AVX2, BMI1/2, FMA, LZCNT, POPCNT): the hot loops are
+/// compiled twice, for it and for the x86-64 baseline, and chosen at run time.
+#[cfg(target_arch = "x86_64")]
+#[inline]
+fn has_v3() -> bool {
+    use std::arch::is_x86_feature_detected as has;
+    has!("avx2") && has!("bmi1") && has!("bmi2") && has!("fma") && has!("lzcnt") && has!("popcnt")
+}
+
 /// Shape and `m` of the diamond centred at `(x, z)` (not a corner).
 #[inline(always)]
 fn classify(x: u32, z: u32) -> (u32, Shape) {
@@ -226,7 +236,7 @@ impl Tessellator {
             size: side - 1,
             active: vec![0; words],
             active_list: Vec::new(),
-            rank: vec![0; words],
+            ranked: vec![[0; 2]; words.next_power_of_two()],
             queue: BucketQueue::default(),
             chain: Vec::new(),
             triangles: 0,
@@ -238,7 +248,7 @@ impl Tessellator {
     /// Bytes of per-viewer state (bitsets and pools) currently reserved.
     pub fn heap_bytes(&self) -> usize {
         self.active.capacity() * 8
-            + self.rank.capacity() * 4
+            + self.ranked.capacity() * 16
             + self.active_list.capacity() * 4
             + self.queue.heap_bytes()
             + self.chain.capacity() * 4
@@ -296,9 +306,36 @@ impl Tessellator {
         out.vertices
             .reserve((most_splits + 4).saturating_sub(out.vertices.len()));
         out.indices
-            .reserve((3 * budget as usize + 3).saturating_sub(out.indices.len()));
+            .reserve((3 * budget as usize + 12).saturating_sub(out.indices.len()));
         self.triangles = 2;
         self.evaluate_root(&frame);
+        self.split_loop(&frame, budget);
+        out.error_bound_px = self.remaining_max().max(self.dropped_max);
+        self.stats.split = self.active_list.len() as u32;
+        self.emit(out);
+    }
+
+    /// Pops and splits until the budget or the queue runs out, on the best instruction set
+    /// the CPU offers.
+    fn split_loop(&mut self, frame: &Frame, budget: u32) {
+        #[cfg(target_arch = "x86_64")]
+        if has_v3() {
+            // SAFETY: the CPU has just been checked to support these features.
+            unsafe { self.split_loop_v3(frame, budget) };
+            return;
+        }
+        self.split_loop_body(frame, budget);
+    }
+
+    /// [`Self::split_loop_body`] compiled for x86-64-v3 (AVX2, BMI, FMA, LZCNT, POPCNT).
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2,bmi1,bmi2,fma,lzcnt,popcnt")]
+    fn split_loop_v3(&mut self, frame: &Frame, budget: u32) {
+        self.split_loop_body(frame, budget);
+    }
+
+    #[inline(always)]
+    fn split_loop_body(&mut self, frame: &Frame, budget: u32) {
         while let Some(entry) = self.queue.pop() {
             self.stats.popped += 1;
             let (x, z) = unpack(entry as u32);
@@ -312,7 +349,7 @@ impl Tessellator {
                     break;
                 }
                 self.triangles += tris;
-                self.commit(&frame, x, z);
+                self.commit(frame, x, z);
                 continue;
             }
             self.stats.forcing += 1;
@@ -326,12 +363,9 @@ impl Tessellator {
             self.triangles += delta;
             for i in 0..self.chain.len() {
                 let (cx, cz) = unpack(self.chain[i]);
-                self.commit(&frame, cx, cz);
+                self.commit(frame, cx, cz);
             }
         }
-        out.error_bound_px = self.remaining_max().max(self.dropped_max);
-        self.stats.split = self.active_list.len() as u32;
-        self.emit(out);
     }
 
     fn frame<'a>(
