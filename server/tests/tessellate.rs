@@ -185,6 +185,11 @@ proptest! {
         t.tessellate(&hf, &vt, scales(), &other, limits, &mut scratch);
         t.tessellate(&hf, &vt, scales(), &cam, limits, &mut scratch);
         prop_assert_eq!(&scratch, &mesh);
+        // The baseline build of the hot loops (for CPUs without x86-64-v3) agrees bit for bit.
+        t.set_portable(true);
+        t.tessellate(&hf, &vt, scales(), &cam, limits, &mut scratch);
+        prop_assert_eq!(&scratch, &mesh);
+        prop_assert_eq!(t.stats(), run(&hf, &vt, &cam, limits).1.stats());
     }
 
     #[test]

@@ -16,7 +16,7 @@ impl Tessellator {
     /// rank in the active bitset (row-major); triangles by their diamond, row-major.
     pub(super) fn emit(&mut self, out: &mut Mesh) {
         #[cfg(target_arch = "x86_64")]
-        if super::has_v3() {
+        if self.use_v3() {
             // SAFETY: the CPU has just been checked to support these features.
             unsafe { self.emit_v3(out) };
             return;
@@ -43,7 +43,7 @@ impl Tessellator {
             total += u64::from(word.count_ones());
         }
         let ranked = Ranked {
-            mask: self.ranked.len() - 1,
+            last: self.ranked.len() - 1,
             words: &self.ranked,
         };
         // Every slot is overwritten, so only growth since the last frame is initialised.
@@ -90,17 +90,17 @@ impl Tessellator {
     }
 }
 
-/// The active bitset beside each word's rank, indexed through a mask (a power of two less
-/// one): no bounds checks.
+/// The active bitset beside each word's rank. Indices are clamped to the last word (a
+/// conditional move the compiler can see is in bounds): no bounds-check branches.
 struct Ranked<'a> {
-    mask: usize,
+    last: usize,
     words: &'a [[u64; 2]],
 }
 
 impl Ranked<'_> {
     #[inline(always)]
     fn word(&self, i: u32) -> [u64; 2] {
-        self.words[(i as usize >> 6) & self.mask]
+        self.words[(i as usize >> 6).min(self.last)]
     }
 
     /// Vertex index of grid vertex `i` (set in the bitset): set bits before it.

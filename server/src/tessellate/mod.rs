@@ -62,8 +62,8 @@ pub struct Scales {
 pub struct Mesh {
     /// Grid vertices `[x, z]`, in row-major order.
     pub vertices: Vec<[u16; 2]>,
-    /// Three indices per triangle, counter-clockwise seen from above, in depth-first order
-    /// of the bintree (deterministic).
+    /// Three indices per triangle, counter-clockwise seen from above, grouped by the split
+    /// diamond they belong to, diamonds in row-major order (deterministic).
     pub indices: Vec<u32>,
     /// The largest screen-space error left unsplit, in pixels (0 when nothing was left).
     pub error_bound_px: f32,
@@ -99,14 +99,15 @@ pub struct Tessellator {
     active: Vec<u64>,
     /// Split diamonds of this frame, in order.
     active_list: Vec<u32>,
-    /// For emission: each `active` word beside its rank (set bits before it), padded to a
-    /// power of two so that masked indices need no bounds checks.
+    /// For emission: each `active` word beside its rank (set bits before it).
     ranked: Vec<[u64; 2]>,
     queue: BucketQueue,
     chain: Vec<u32>,
     triangles: u32,
     dropped_max: f32,
     stats: Stats,
+    /// Run the x86-64 baseline build of the hot loops even where x86-64-v3 is available.
+    portable: bool,
 }
 
 /// Everything the evaluation needs about the frame, precomputed.
@@ -236,12 +237,13 @@ impl Tessellator {
             size: side - 1,
             active: vec![0; words],
             active_list: Vec::new(),
-            ranked: vec![[0; 2]; words.next_power_of_two()],
+            ranked: vec![[0; 2]; words],
             queue: BucketQueue::default(),
             chain: Vec::new(),
             triangles: 0,
             dropped_max: 0.0,
             stats: Stats::default(),
+            portable: false,
         }
     }
 
@@ -252,6 +254,19 @@ impl Tessellator {
             + self.active_list.capacity() * 4
             + self.queue.heap_bytes()
             + self.chain.capacity() * 4
+    }
+
+    /// Runs the x86-64 baseline build of the hot loops even on a CPU with x86-64-v3, so
+    /// tests can check that both builds give the same mesh.
+    pub fn set_portable(&mut self, portable: bool) {
+        self.portable = portable;
+    }
+
+    /// Whether to run the x86-64-v3 build of the hot loops.
+    #[cfg(target_arch = "x86_64")]
+    #[inline]
+    fn use_v3(&self) -> bool {
+        !self.portable && has_v3()
     }
 
     /// Counts from the last frame.
@@ -319,7 +334,7 @@ impl Tessellator {
     /// the CPU offers.
     fn split_loop(&mut self, frame: &Frame, budget: u32) {
         #[cfg(target_arch = "x86_64")]
-        if has_v3() {
+        if self.use_v3() {
             // SAFETY: the CPU has just been checked to support these features.
             unsafe { self.split_loop_v3(frame, budget) };
             return;
