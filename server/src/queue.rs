@@ -90,23 +90,34 @@ impl BucketQueue {
     /// Appends `entry` to `bucket`.
     #[inline(always)]
     pub fn push(&mut self, bucket: usize, entry: u64) {
-        let mut bk = self.buckets[bucket];
-        if bk.tail == NIL || bk.write as usize == CHUNK {
-            let c = self.new_chunk();
-            if bk.tail == NIL {
-                bk.head = c;
-                bk.read = 0;
-                self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
-                self.summary |= 1 << (bucket >> 6);
-            } else {
-                self.next[bk.tail as usize] = c;
-            }
-            bk.tail = c;
-            bk.write = 0;
+        // Fields are read and written one by one (no whole-struct copies), so a load is
+        // always served by the store of the same field just before it: a wide load over
+        // narrower stores would stall store forwarding on every push after a pop.
+        let (tail, write) = (self.buckets[bucket].tail, self.buckets[bucket].write);
+        if tail == NIL || write as usize == CHUNK {
+            self.push_new_chunk(bucket, entry);
+            return;
         }
-        self.entries[bk.tail as usize * CHUNK + bk.write as usize] = entry;
-        bk.write += 1;
-        self.buckets[bucket] = bk;
+        self.entries[tail as usize * CHUNK + write as usize] = entry;
+        self.buckets[bucket].write = write + 1;
+    }
+
+    /// `push` when the bucket's last chunk is full or it has none.
+    #[cold]
+    fn push_new_chunk(&mut self, bucket: usize, entry: u64) {
+        let c = self.new_chunk();
+        let bk = self.buckets[bucket];
+        if bk.tail == NIL {
+            self.buckets[bucket].head = c;
+            self.buckets[bucket].read = 0;
+            self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
+            self.summary |= 1 << (bucket >> 6);
+        } else {
+            self.next[bk.tail as usize] = c;
+        }
+        self.buckets[bucket].tail = c;
+        self.entries[c as usize * CHUNK] = entry;
+        self.buckets[bucket].write = 1;
     }
 
     fn new_chunk(&mut self) -> u32 {
@@ -136,17 +147,18 @@ impl BucketQueue {
     #[inline(always)]
     pub fn pop(&mut self) -> Option<u64> {
         let b = self.top_bucket()?;
-        let mut bk = self.buckets[b];
-        let entry = self.entries[bk.head as usize * CHUNK + bk.read as usize];
-        bk.read += 1;
-        if bk.head == bk.tail && bk.read == bk.write {
-            bk = EMPTY;
+        let (head, read) = (self.buckets[b].head, self.buckets[b].read);
+        let entry = self.entries[head as usize * CHUNK + read as usize];
+        let read = read + 1;
+        if head == self.buckets[b].tail && read == self.buckets[b].write {
+            self.buckets[b] = EMPTY;
             self.clear_bit(b);
-        } else if bk.read as usize == CHUNK {
-            bk.head = self.next[bk.head as usize];
-            bk.read = 0;
+        } else if read as usize == CHUNK {
+            self.buckets[b].head = self.next[head as usize];
+            self.buckets[b].read = 0;
+        } else {
+            self.buckets[b].read = read;
         }
-        self.buckets[b] = bk;
         Some(entry)
     }
 
