@@ -16,8 +16,8 @@ impl Tessellator {
     /// rank in the active bitset (row-major); triangles by their diamond, row-major.
     pub(super) fn emit(&mut self, out: &mut Mesh) {
         #[cfg(target_arch = "x86_64")]
-        if self.use_v3() {
-            // SAFETY: the CPU has just been checked to support these features.
+        if self.v3 {
+            // SAFETY: `v3` is set only when the CPU supports these features.
             unsafe { self.emit_v3(out) };
             return;
         }

@@ -107,8 +107,10 @@ pub struct Tessellator {
     triangles: u32,
     dropped_max: f32,
     stats: Stats,
-    /// Run the x86-64 baseline build of the hot loops even where x86-64-v3 is available.
-    portable: bool,
+    /// Run the x86-64-v3 build of the hot loops: decided once, in `new` (the CPU has it)
+    /// and `set_portable`.
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
+    v3: bool,
 }
 
 /// Everything the evaluation needs about the frame, precomputed.
@@ -206,11 +208,19 @@ fn unpack(v: u32) -> (u32, u32) {
 
 /// Whether the CPU offers x86-64-v3 (AVX2, BMI1/2, FMA, LZCNT, POPCNT): the hot loops are
 /// compiled twice, for it and for the x86-64 baseline, and chosen at run time.
-#[cfg(target_arch = "x86_64")]
-#[inline]
 fn has_v3() -> bool {
-    use std::arch::is_x86_feature_detected as has;
-    has!("avx2") && has!("bmi1") && has!("bmi2") && has!("fma") && has!("lzcnt") && has!("popcnt")
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::is_x86_feature_detected as has;
+        has!("avx2")
+            && has!("bmi1")
+            && has!("bmi2")
+            && has!("fma")
+            && has!("lzcnt")
+            && has!("popcnt")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    false
 }
 
 /// Shape and `m` of the diamond centred at `(x, z)` (not a corner).
@@ -244,7 +254,7 @@ impl Tessellator {
             triangles: 0,
             dropped_max: 0.0,
             stats: Stats::default(),
-            portable: false,
+            v3: has_v3(),
         }
     }
 
@@ -260,14 +270,7 @@ impl Tessellator {
     /// Runs the x86-64 baseline build of the hot loops even on a CPU with x86-64-v3, so
     /// tests can check that both builds give the same mesh.
     pub fn set_portable(&mut self, portable: bool) {
-        self.portable = portable;
-    }
-
-    /// Whether to run the x86-64-v3 build of the hot loops.
-    #[cfg(target_arch = "x86_64")]
-    #[inline]
-    fn use_v3(&self) -> bool {
-        !self.portable && has_v3()
+        self.v3 = !portable && has_v3();
     }
 
     /// Counts from the last frame.
@@ -335,8 +338,8 @@ impl Tessellator {
     /// the CPU offers.
     fn split_loop(&mut self, frame: &Frame, budget: u32) {
         #[cfg(target_arch = "x86_64")]
-        if self.use_v3() {
-            // SAFETY: the CPU has just been checked to support these features.
+        if self.v3 {
+            // SAFETY: `v3` is set only when the CPU supports these features.
             unsafe { self.split_loop_v3(frame, budget) };
             return;
         }
