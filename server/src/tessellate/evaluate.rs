@@ -1,259 +1,274 @@
 //! Queuing the children of a split diamond: their corner heights and stored errors, the
-//! frustum test and the priority.
+//! frustum test and the priority, for all of a split's children at once (one per lane).
 
-use super::{Frame, MIN_DISTANCE, Tessellator, dev, max4, min4, offset, pack};
+use super::lanes::F4;
+use super::{Frame, MIN_DISTANCE, Tessellator, pack};
 use crate::diamond::Shape;
 use crate::queue::{TOP, bucket_of};
 
+/// Up to four diamonds of one shape and half-size, one per lane.
+struct Batch {
+    x: [u32; 4],
+    z: [u32; 4],
+    /// Stored errors, sample units.
+    e: F4,
+    /// Smallest and largest corner heights.
+    lo: F4,
+    hi: F4,
+    /// Bit `i`: lane `i` holds a diamond to evaluate (the others hold safe stand-ins).
+    valid: u32,
+}
+
+/// The smallest and largest of four corner heights, per lane.
+#[inline(always)]
+fn bounds(a: F4, b: F4, c: F4, d: F4) -> (F4, F4) {
+    (a.min(b).min(c.min(d)), a.max(b).max(c.max(d)))
+}
+
+#[inline(always)]
+fn heights(v: [u16; 4]) -> F4 {
+    F4::new(v.map(f32::from))
+}
+
 impl Tessellator {
-    /// Children of a square: rotated diamonds on the cell's edge midpoints, each sharing an
-    /// edge and the centre with this cell; the far corner of each is the centre of its other
-    /// parent, the next cell over. A missing far corner (map edge) repeats a hypotenuse end.
+    /// Children of a square: rotated diamonds on the cell's edge midpoints (east, west,
+    /// south, north), each sharing an edge and the centre with this cell; the far corner of
+    /// each is the centre of its other parent, the next cell over. A child is queued by
+    /// whichever of its parents is split first; a missing far corner (map edge) repeats a
+    /// hypotenuse end.
     #[inline(always)]
     pub(super) fn commit_square(&mut self, f: &Frame, x: u32, z: u32, m: u32) {
         let h = 1 << m;
         let (s, side) = (self.size, self.side);
         let row = z * side;
         let (up, down) = (row - h * side, row + h * side);
+        let inside = [x + 2 * h <= s, x >= 2 * h, z + 2 * h <= s, z >= 2 * h];
+        // Index of each far corner where it is on the map (else the centre, unused).
+        let far_i = [
+            if inside[0] { row + x + 2 * h } else { row + x },
+            if inside[1] { row + x - 2 * h } else { row + x },
+            if inside[2] {
+                row + 2 * h * side + x
+            } else {
+                row + x
+            },
+            if inside[3] {
+                row - 2 * h * side + x
+            } else {
+                row + x
+            },
+        ];
+        let mut valid = 0;
+        for i in 0..4 {
+            valid |= u32::from(!inside[i] || !self.is_active_at(far_i[i])) << i;
+        }
+        if valid == 0 {
+            return; // every child was queued by its other parent
+        }
         let (nw, ne) = (f.h(up + x - h), f.h(up + x + h));
         let (sw, se) = (f.h(down + x - h), f.h(down + x + h));
-        let c = f.h(row + x);
-        // Slots of the four children in the variance tree: vertical ones (east, west) share
-        // a row, horizontal ones (north, south) a column.
-        let n = (s >> (m + 1)) as usize;
-        let vbase = f.rotated_offset[m as usize] + n * (n + 1) + (z >> (m + 1)) as usize * (n + 1);
-        let (ha, hb) = ((x >> (m + 1)) as usize, (z >> (m + 1)) as usize);
-        let hbase = f.rotated_offset[m as usize] + ha;
-        let error = |slot: usize, centre: u32, p: u16, q: u16| {
-            if m == 0 {
-                // `variance::finest` for a finest rotated diamond, with the hypotenuse ends
-                // this parent has already read.
-                dev(f.h(centre), p, q)
-            } else {
-                f.error_at(slot)
-            }
+        let far: [u16; 4] = std::array::from_fn(|i| f.h(far_i[i]));
+        let stand_in = [ne, nw, sw, nw];
+        let far = heights(std::array::from_fn(|i| {
+            if inside[i] { far[i] } else { stand_in[i] }
+        }));
+        // Hypotenuse ends of each child.
+        let (p, q) = (heights([ne, nw, sw, nw]), heights([se, sw, se, ne]));
+        let e = if m == 0 {
+            // `variance::finest` for finest rotated diamonds, with the hypotenuse ends
+            // already read.
+            let centre = heights([
+                f.h(row + x + h),
+                f.h(row + x - h),
+                f.h(down + x),
+                f.h(up + x),
+            ]);
+            centre.sub(F4::splat(0.5).mul(p.add(q))).abs()
+        } else {
+            // Slots in the variance tree: vertical children (east, west) share a row,
+            // horizontal ones (north, south) a column.
+            let n = (s >> (m + 1)) as usize;
+            let base = f.rotated_offset[m as usize];
+            let (ha, hb) = ((x >> (m + 1)) as usize, (z >> (m + 1)) as usize);
+            let vbase = base + n * (n + 1) + hb * (n + 1);
+            F4::new([
+                f.error_at(vbase + ha + 1),
+                f.error_at(vbase + ha),
+                f.error_at(base + ha + (hb + 1) * n),
+                f.error_at(base + ha + hb * n),
+            ])
         };
-        if x + 2 * h > s || !self.is_active_at(row + x + 2 * h) {
-            let far = if x + 2 * h <= s {
-                f.h(row + x + 2 * h)
-            } else {
-                ne
-            };
-            let e = error(vbase + ha + 1, row + x + h, ne, se);
-            self.evaluate(
-                f,
-                x + h,
-                z,
-                h,
-                false,
-                e,
-                min4(ne, se, c, far),
-                max4(ne, se, c, far),
-            );
-        }
-        if x < 2 * h || !self.is_active_at(row + x - 2 * h) {
-            let far = if x >= 2 * h { f.h(row + x - 2 * h) } else { nw };
-            let e = error(vbase + ha, row + x - h, nw, sw);
-            self.evaluate(
-                f,
-                x - h,
-                z,
-                h,
-                false,
-                e,
-                min4(nw, sw, c, far),
-                max4(nw, sw, c, far),
-            );
-        }
-        if z + 2 * h > s || !self.is_active_at(row + 2 * h * side + x) {
-            let far = if z + 2 * h <= s {
-                f.h(row + 2 * h * side + x)
-            } else {
-                sw
-            };
-            let e = error(hbase + (hb + 1) * n, down + x, sw, se);
-            self.evaluate(
-                f,
-                x,
-                z + h,
-                h,
-                false,
-                e,
-                min4(sw, se, c, far),
-                max4(sw, se, c, far),
-            );
-        }
-        if z < 2 * h || !self.is_active_at(row - 2 * h * side + x) {
-            let far = if z >= 2 * h {
-                f.h(row - 2 * h * side + x)
-            } else {
-                nw
-            };
-            let e = error(hbase + hb * n, up + x, nw, ne);
-            self.evaluate(
-                f,
-                x,
-                z - h,
-                h,
-                false,
-                e,
-                min4(nw, ne, c, far),
-                max4(nw, ne, c, far),
-            );
-        }
+        let (lo, hi) = bounds(p, q, F4::splat(f32::from(f.h(row + x))), far);
+        let batch = Batch {
+            x: [x + h, x - h, x, x],
+            z: [z, z, z + h, z - h],
+            e,
+            lo,
+            hi,
+            valid,
+        };
+        self.evaluate(f, &batch, h, false);
     }
 
     /// Children of a rotated diamond: squares of half-size h/2 in the four quarter cells
     /// around the centre that lie on the map; each cell's corners are this centre, a
-    /// hypotenuse end, an apex, and the far corner: the child's other parent.
+    /// hypotenuse end, an apex, and the far corner: the child's other parent. Lanes: (first
+    /// apex, first end), (first apex, second end), (second apex, first end), (second apex,
+    /// second end).
     #[inline(always)]
     pub(super) fn commit_rotated(&mut self, f: &Frame, x: u32, z: u32, m: u32, horizontal: bool) {
         let h = 1 << m;
         let (s, side) = (self.size, self.side);
         let k = h / 2;
-        let row = z * side;
-        let c = f.h(row + x);
-        // `u` runs along the hypotenuse, `v` towards the apices, as index offsets.
-        let (du, dv) = if horizontal {
-            (h, h * side)
+        let centre = z * side + x;
+        // `u` runs along the hypotenuse, `v` towards the apices, as coordinates and as index
+        // offsets.
+        let (u, v, du, dv) = if horizontal {
+            (x, z, h, h * side)
         } else {
-            (h * side, h)
+            (z, x, h * side, h)
         };
-        let (e0, e1) = (f.h(row + x - du), f.h(row + x + du));
-        let (has_lo, has_hi) = if horizontal {
-            (z >= h, z + h <= s)
-        } else {
-            (x >= h, x + h <= s)
-        };
-        let n = (s >> m) as usize; // squares of level m - 1 per row
-        let slot = |cx: u32, cz: u32| {
-            f.square_offset[m as usize - 1] + (cz >> m) as usize * n + (cx >> m) as usize
-        };
-        let (ku, kv) = if horizontal {
-            ((k, 0), (0, k))
-        } else {
-            ((0, k), (k, 0))
-        };
-        for (apex_ok, sign_v) in [(has_lo, false), (has_hi, true)] {
-            if !apex_ok {
-                continue; // no apex: the children on that side are off the map
-            }
-            let apex_i = if sign_v { row + x + dv } else { row + x - dv };
-            let apex = f.h(apex_i);
-            for (end, sign_u) in [(e0, false), (e1, true)] {
-                let far_i = if sign_u { apex_i + du } else { apex_i - du };
-                if self.is_active_at(far_i) {
-                    continue; // queued when its other parent was split
-                }
-                let far = f.h(far_i);
-                let cx = offset(offset(x, ku.0, sign_u), kv.0, sign_v);
-                let cz = offset(offset(z, ku.1, sign_u), kv.1, sign_v);
-                let e = f.error_at(slot(cx, cz));
-                self.evaluate(
-                    f,
-                    cx,
-                    cz,
-                    k,
-                    true,
-                    e,
-                    min4(c, end, apex, far),
-                    max4(c, end, apex, far),
-                );
-            }
+        let (has_lo, has_hi) = (v >= h, v + h <= s);
+        // A missing apex (map edge) is stood in for by the centre: its lanes are not valid.
+        let apex_lo = if has_lo { centre - dv } else { centre };
+        let apex_hi = if has_hi { centre + dv } else { centre };
+        let far_i = [apex_lo - du, apex_lo + du, apex_hi - du, apex_hi + du];
+        let has = [has_lo, has_lo, has_hi, has_hi];
+        let mut valid = 0;
+        for i in 0..4 {
+            valid |= u32::from(has[i] && !self.is_active_at(far_i[i])) << i;
         }
+        if valid == 0 {
+            return;
+        }
+        let (e0, e1) = (f.h(centre - du), f.h(centre + du));
+        let (alo, ahi) = (f.h(apex_lo), f.h(apex_hi));
+        let far = heights(std::array::from_fn(|i| f.h(far_i[i])));
+        let (cu, cv) = (
+            [u - k, u + k, u - k, u + k],
+            [
+                if has_lo { v - k } else { v + k },
+                if has_lo { v - k } else { v + k },
+                if has_hi { v + k } else { v - k },
+                if has_hi { v + k } else { v - k },
+            ],
+        );
+        let (cx, cz) = if horizontal { (cu, cv) } else { (cv, cu) };
+        let n = (s >> m) as usize; // squares of level m - 1 per row
+        let base = f.square_offset[m as usize - 1];
+        let e = F4::new(std::array::from_fn(|i| {
+            f.error_at(base + (cz[i] >> m) as usize * n + (cx[i] >> m) as usize)
+        }));
+        let (lo, hi) = bounds(
+            F4::splat(f32::from(f.h(centre))),
+            heights([e0, e1, e0, e1]),
+            heights([alo, alo, ahi, ahi]),
+            far,
+        );
+        let batch = Batch {
+            x: cx,
+            z: cz,
+            e,
+            lo,
+            hi,
+            valid,
+        };
+        self.evaluate(f, &batch, k, true);
     }
 
     /// Queues the root diamond.
     pub(super) fn evaluate_root(&mut self, f: &Frame) {
         let r = self.size / 2;
         let s = self.size;
-        let (nw, ne, sw, se) = (f.at(0, 0), f.at(s, 0), f.at(0, s), f.at(s, s));
-        let e = f.stored(r, r, r.trailing_zeros(), Shape::Square);
-        self.evaluate(
-            f,
-            r,
-            r,
-            r,
-            true,
-            e,
-            min4(nw, ne, sw, se),
-            max4(nw, ne, sw, se),
+        let corners = heights([f.at(0, 0), f.at(s, 0), f.at(0, s), f.at(s, s)]).to_array();
+        let (lo, hi) = (
+            corners.into_iter().fold(f32::INFINITY, f32::min),
+            corners.into_iter().fold(0.0, f32::max),
         );
+        let batch = Batch {
+            x: [r; 4],
+            z: [r; 4],
+            e: F4::splat(f.stored(r, r, r.trailing_zeros(), Shape::Square)),
+            lo: F4::splat(lo),
+            hi: F4::splat(hi),
+            valid: 1,
+        };
+        self.evaluate(f, &batch, r, true);
     }
 
-    /// Computes the priority of diamond `(x, z)` (half-size `h`, error `e` in sample units,
-    /// corner heights within `lo..=hi`) and queues it, unless it is wholly outside the
-    /// frustum (never queued) or below the threshold (remembered for the error bound).
+    /// Computes the priorities of a batch's diamonds (half-size `h`) and queues each, lanes
+    /// in order, unless it is exact already, wholly outside the frustum (never queued) or
+    /// below the threshold (remembered for the error bound).
     #[inline(always)]
-    #[allow(clippy::too_many_arguments)]
-    fn evaluate(
-        &mut self,
-        f: &Frame,
-        x: u32,
-        z: u32,
-        h: u32,
-        square: bool,
-        e: f32,
-        lo: u16,
-        hi: u16,
-    ) {
-        self.stats.evaluated += 1;
-        if e <= 0.0 {
-            return; // exact already: splitting adds nothing
+    fn evaluate(&mut self, f: &Frame, b: &Batch, h: u32, square: bool) {
+        self.stats.evaluated += b.valid.count_ones();
+        // A diamond with no error is exact already: splitting adds nothing.
+        let live = b.valid & F4::splat(0.0).lt(b.e);
+        if live == 0 {
+            return;
         }
-        let (lo, hi) = (f32::from(lo) - e, f32::from(hi) + e);
-        let (yc, hy) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-        let (xf, zf, hf) = (x as f32, z as f32, h as f32);
-        let ext = if square {
-            &f.ext_square
-        } else {
-            &f.ext_rotated
-        };
-        // The four planes at once (lanes are planes): outside if any distance is negative.
-        let mut outside = false;
-        #[allow(clippy::needless_range_loop)] // four planes, four parallel arrays
-        for p in 0..4 {
-            let d = f.pa[p] * xf
-                + f.pb[p] * yc
-                + f.pc[p] * zf
-                + f.pd[p]
-                + hf * ext[p]
-                + hy * f.abs_b[p];
-            outside |= d < 0.0;
+        let (lo, hi) = (b.lo.sub(b.e), b.hi.add(b.e));
+        let half = F4::splat(0.5);
+        let (yc, hy) = (half.mul(lo.add(hi)), half.mul(hi.sub(lo)));
+        let (xf, zf) = (F4::from_u32(b.x), F4::from_u32(b.z));
+        let hf = F4::splat(h as f32);
+        // Outside if any of the four planes puts the bounding prism wholly behind it.
+        let mut outside = 0;
+        for p in &f.planes {
+            let ext = if square { p.ext_square } else { p.ext_rotated };
+            let d =
+                p.a.mul(xf)
+                    .add(p.b.mul(yc))
+                    .add(p.c.mul(zf))
+                    .add(p.d)
+                    .add(hf.mul(ext))
+                    .add(hy.mul(p.abs_b));
+            outside |= d.lt(F4::splat(0.0));
         }
         // The ground under the eye is refined first, in view or not.
-        let (ex, ez) = (f.eye_grid[0] - xf, f.eye_grid[1] - zf);
+        let (ex, ez) = (f.eye_x.sub(xf), f.eye_z.sub(zf));
         let under = if square {
-            ex.abs() <= hf && ez.abs() <= hf
+            ex.abs().le(hf) & ez.abs().le(hf)
         } else {
-            ex.abs() + ez.abs() <= hf
+            ex.abs().add(ez.abs()).le(hf)
         };
-        if outside && !under {
-            self.stats.culled += 1;
-            return;
+        let shown = live & (!outside | under);
+        self.stats.culled += (live & !shown).count_ones();
+        let (dx, dy, dz) = (ex.mul(f.hs), f.eye_y.sub(yc.mul(f.vs)), ez.mul(f.hs));
+        let k = if square {
+            std::f32::consts::SQRT_2
+        } else {
+            1.0
+        };
+        let reach = F4::splat(f.hs_scalar * h as f32 * k).add(f.vs.mul(hy));
+        let d = dx
+            .mul(dx)
+            .add(dy.mul(dy))
+            .add(dz.mul(dz))
+            .sqrt()
+            .sub(reach)
+            .max(F4::splat(MIN_DISTANCE));
+        let prio = b.e.mul(f.px).div(d);
+        let above = f.threshold.le(prio);
+        let dropped = shown & !under & !above;
+        if dropped != 0 {
+            // `max` with the old value second, so a NaN priority would be ignored.
+            self.dropped = prio.keep(dropped).max(self.dropped);
         }
-        let (dx, dy, dz) = (ex * f.hs, f.eye_y - yc * f.vs, ez * f.hs);
-        let reach = f.hs
-            * hf
-            * if square {
-                std::f32::consts::SQRT_2
+        let prio = prio.to_array();
+        let mut queued = shown & (under | above);
+        while queued != 0 {
+            let i = queued.trailing_zeros() as usize;
+            queued &= queued - 1;
+            let bucket = if under >> i & 1 != 0 {
+                TOP
             } else {
-                1.0
-            }
-            + f.vs * hy;
-        let d = ((dx * dx + dy * dy + dz * dz).sqrt() - reach).max(MIN_DISTANCE);
-        let prio = e * f.px / d;
-        let bucket = if under {
-            TOP
-        } else if prio >= f.threshold {
-            bucket_of(prio)
-        } else {
-            self.dropped_max = self.dropped_max.max(prio);
-            return;
-        };
-        self.queue.push(
-            bucket,
-            (u64::from(prio.to_bits()) << 32) | u64::from(pack(x, z)),
-        );
+                bucket_of(prio[i])
+            };
+            self.queue.push(
+                bucket,
+                (u64::from(prio[i].to_bits()) << 32) | u64::from(pack(b.x[i], b.z[i])),
+            );
+        }
     }
 }

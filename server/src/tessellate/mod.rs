@@ -38,6 +38,9 @@ use crate::variance::{self, VarianceTree};
 
 mod emit;
 mod evaluate;
+mod lanes;
+
+use lanes::F4;
 
 /// The smallest distance used in priorities, world units.
 const MIN_DISTANCE: f32 = 1e-3;
@@ -105,7 +108,8 @@ pub struct Tessellator {
     queue: BucketQueue,
     chain: Vec<u32>,
     triangles: u32,
-    dropped_max: f32,
+    /// Largest priority left below the threshold, per lane.
+    dropped: F4,
     stats: Stats,
     /// Run the x86-64-v3 build of the hot loops: decided once, in `new` (the CPU has it)
     /// and `set_portable`.
@@ -123,22 +127,29 @@ struct Frame<'a> {
     side: u32,
     size: u32,
     /// The four side planes of the view pyramid (its apex, the eye, makes a near plane
-    /// unnecessary), as columns: `a·x_grid + b·sample + c·z_grid + d >= 0` inside; `|b|`,
-    /// and the footprint extents `|a| + |c|` (square) and `max(|a|, |c|)` (rotated).
-    pa: [f32; 4],
-    pb: [f32; 4],
-    pc: [f32; 4],
-    pd: [f32; 4],
-    abs_b: [f32; 4],
-    ext_square: [f32; 4],
-    ext_rotated: [f32; 4],
-    eye_grid: [f32; 2],
-    eye_y: f32,
-    hs: f32,
-    vs: f32,
+    /// unnecessary), each coefficient in all four lanes.
+    planes: [Plane; 4],
+    eye_x: F4,
+    eye_z: F4,
+    eye_y: F4,
+    hs: F4,
+    hs_scalar: f32,
+    vs: F4,
     /// `v_scale · pixels_per_radian`: turns sample-unit error over world distance into px.
-    px: f32,
-    threshold: f32,
+    px: F4,
+    threshold: F4,
+}
+
+/// A frustum plane in grid units: `a·x_grid + b·sample + c·z_grid + d >= 0` inside; `|b|`,
+/// and the footprint extents `|a| + |c|` (square) and `max(|a|, |c|)` (rotated).
+struct Plane {
+    a: F4,
+    b: F4,
+    c: F4,
+    d: F4,
+    abs_b: F4,
+    ext_square: F4,
+    ext_rotated: F4,
 }
 
 impl Frame<'_> {
@@ -173,27 +184,6 @@ impl Frame<'_> {
         );
         self.table[self.codes[i] as usize]
     }
-}
-
-#[inline(always)]
-fn dev(c: u16, p: u16, q: u16) -> f32 {
-    (f32::from(c) - 0.5 * (f32::from(p) + f32::from(q))).abs()
-}
-
-#[inline(always)]
-fn min4(a: u16, b: u16, c: u16, d: u16) -> u16 {
-    a.min(b).min(c.min(d))
-}
-
-#[inline(always)]
-fn max4(a: u16, b: u16, c: u16, d: u16) -> u16 {
-    a.max(b).max(c.max(d))
-}
-
-/// `v ± d` (`d` is zero or lands on the map).
-#[inline(always)]
-fn offset(v: u32, d: u32, plus: bool) -> u32 {
-    if plus { v + d } else { v - d }
 }
 
 #[inline(always)]
@@ -252,7 +242,7 @@ impl Tessellator {
             queue: BucketQueue::default(),
             chain: Vec::new(),
             triangles: 0,
-            dropped_max: 0.0,
+            dropped: F4::splat(0.0),
             stats: Stats::default(),
             v3: has_v3(),
         }
@@ -329,7 +319,7 @@ impl Tessellator {
         self.triangles = 2;
         self.evaluate_root(&frame);
         self.split_loop(&frame, budget);
-        out.error_bound_px = self.remaining_max().max(self.dropped_max);
+        out.error_bound_px = self.remaining_max().max(self.dropped.max_lane());
         self.stats.split = self.active_list.len() as u32;
         self.emit(out);
     }
@@ -396,20 +386,19 @@ impl Tessellator {
         limits: Limits,
     ) -> Frame<'a> {
         let planes = camera.frustum();
-        let col = |k: usize| -> [f32; 4] {
-            std::array::from_fn(|i| {
-                let p = &planes[i + 1];
-                let (a, b, c) = (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h);
-                (match k {
-                    0 => a,
-                    1 => b,
-                    2 => c,
-                    3 => p.d,
-                    4 => b.abs(),
-                    5 => a.abs() + c.abs(),
-                    _ => a.abs().max(c.abs()),
-                }) as f32
-            })
+        let plane = |i: usize| {
+            let p = &planes[i + 1];
+            let (a, b, c) = (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h);
+            let l = |v: f64| F4::splat(v as f32);
+            Plane {
+                a: l(a),
+                b: l(b),
+                c: l(c),
+                d: l(p.d),
+                abs_b: l(b.abs()),
+                ext_square: l(a.abs() + c.abs()),
+                ext_rotated: l(a.abs().max(c.abs())),
+            }
         };
         let mut square_offset = [0; 16];
         let mut rotated_offset = [0; 16];
@@ -430,22 +419,15 @@ impl Tessellator {
             rotated_offset,
             side: self.side,
             size: self.size,
-            pa: col(0),
-            pb: col(1),
-            pc: col(2),
-            pd: col(3),
-            abs_b: col(4),
-            ext_square: col(5),
-            ext_rotated: col(6),
-            eye_grid: [
-                (camera.eye[0] / scales.h) as f32,
-                (camera.eye[2] / scales.h) as f32,
-            ],
-            eye_y: camera.eye[1] as f32,
-            hs: scales.h as f32,
-            vs: scales.v as f32,
-            px: (scales.v * camera.pixels_per_radian()) as f32,
-            threshold: limits.threshold_px,
+            planes: std::array::from_fn(plane),
+            eye_x: F4::splat((camera.eye[0] / scales.h) as f32),
+            eye_z: F4::splat((camera.eye[2] / scales.h) as f32),
+            eye_y: F4::splat(camera.eye[1] as f32),
+            hs: F4::splat(scales.h as f32),
+            hs_scalar: scales.h as f32,
+            vs: F4::splat(scales.v as f32),
+            px: F4::splat((scales.v * camera.pixels_per_radian()) as f32),
+            threshold: F4::splat(limits.threshold_px),
         }
     }
 
@@ -462,7 +444,7 @@ impl Tessellator {
         }
         self.active_list.clear();
         self.queue.clear();
-        self.dropped_max = 0.0;
+        self.dropped = F4::splat(0.0);
         self.stats = Stats::default();
     }
 
