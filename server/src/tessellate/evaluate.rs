@@ -8,8 +8,11 @@ use crate::queue::{TOP, bucket_of};
 
 /// Up to four diamonds of one shape and half-size, one per lane.
 struct Batch {
-    x: [u32; 4],
-    z: [u32; 4],
+    /// Centres, grid units.
+    x: F4,
+    z: F4,
+    /// Centres, packed as queue entries carry them.
+    pos: [u32; 4],
     /// Stored errors, sample units.
     e: F4,
     /// Smallest and largest corner heights.
@@ -22,7 +25,7 @@ struct Batch {
 /// The smallest and largest of four corner heights, per lane.
 #[inline(always)]
 fn bounds(a: F4, b: F4, c: F4, d: F4) -> (F4, F4) {
-    (a.min(b).min(c.min(d)), a.max(b).max(c.max(d)))
+    (a.min(b).min(c).min(d), a.max(b).max(c).max(d))
 }
 
 #[inline(always)]
@@ -68,12 +71,11 @@ impl Tessellator {
         let (nw, ne) = (f.h(up + x - h), f.h(up + x + h));
         let (sw, se) = (f.h(down + x - h), f.h(down + x + h));
         let far: [u16; 4] = std::array::from_fn(|i| f.h(far_i[i]));
-        let stand_in = [ne, nw, sw, nw];
-        let far = heights(std::array::from_fn(|i| {
-            if inside[i] { far[i] } else { stand_in[i] }
-        }));
         // Hypotenuse ends of each child.
-        let (p, q) = (heights([ne, nw, sw, nw]), heights([se, sw, se, ne]));
+        let (p, q) = ([ne, nw, sw, nw], [se, sw, se, ne]);
+        let far = std::array::from_fn(|i| if inside[i] { far[i] } else { p[i] });
+        let (p, q, far) = (heights(p), heights(q), heights(far));
+        let (lo, hi) = bounds(p, q, F4::splat(f32::from(f.h(row + x))), far);
         let e = if m == 0 {
             // `variance::finest` for finest rotated diamonds, with the hypotenuse ends
             // already read.
@@ -98,10 +100,11 @@ impl Tessellator {
                 f.error_at(base + ha + hb * n),
             ])
         };
-        let (lo, hi) = bounds(p, q, F4::splat(f32::from(f.h(row + x))), far);
+        let (cx, cz) = ([x + h, x - h, x, x], [z, z, z + h, z - h]);
         let batch = Batch {
-            x: [x + h, x - h, x, x],
-            z: [z, z, z + h, z - h],
+            x: F4::from_u32(cx),
+            z: F4::from_u32(cz),
+            pos: std::array::from_fn(|i| pack(cx[i], cz[i])),
             e,
             lo,
             hi,
@@ -143,7 +146,7 @@ impl Tessellator {
         }
         let (e0, e1) = (f.h(centre - du), f.h(centre + du));
         let (alo, ahi) = (f.h(apex_lo), f.h(apex_hi));
-        let far = heights(std::array::from_fn(|i| f.h(far_i[i])));
+        let far = std::array::from_fn(|i| f.h(far_i[i]));
         let (cu, cv) = (
             [u - k, u + k, u - k, u + k],
             [
@@ -163,11 +166,12 @@ impl Tessellator {
             F4::splat(f32::from(f.h(centre))),
             heights([e0, e1, e0, e1]),
             heights([alo, alo, ahi, ahi]),
-            far,
+            heights(far),
         );
         let batch = Batch {
-            x: cx,
-            z: cz,
+            x: F4::from_u32(cx),
+            z: F4::from_u32(cz),
+            pos: std::array::from_fn(|i| pack(cx[i], cz[i])),
             e,
             lo,
             hi,
@@ -186,8 +190,9 @@ impl Tessellator {
             corners.into_iter().fold(0.0, f32::max),
         );
         let batch = Batch {
-            x: [r; 4],
-            z: [r; 4],
+            x: F4::splat(r as f32),
+            z: F4::splat(r as f32),
+            pos: [pack(r, r); 4],
             e: F4::splat(f.stored(r, r, r.trailing_zeros(), Shape::Square)),
             lo: F4::splat(lo),
             hi: F4::splat(hi),
@@ -210,7 +215,7 @@ impl Tessellator {
         let (lo, hi) = (b.lo.sub(b.e), b.hi.add(b.e));
         let half = F4::splat(0.5);
         let (yc, hy) = (half.mul(lo.add(hi)), half.mul(hi.sub(lo)));
-        let (xf, zf) = (F4::from_u32(b.x), F4::from_u32(b.z));
+        let (xf, zf) = (b.x, b.z);
         let hf = F4::splat(h as f32);
         // Outside if any of the four planes puts the bounding prism wholly behind it.
         let mut outside = 0;
@@ -267,7 +272,7 @@ impl Tessellator {
             };
             self.queue.push(
                 bucket,
-                (u64::from(prio[i].to_bits()) << 32) | u64::from(pack(b.x[i], b.z[i])),
+                (u64::from(prio[i].to_bits()) << 32) | u64::from(b.pos[i]),
             );
         }
     }
