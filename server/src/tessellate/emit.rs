@@ -8,8 +8,7 @@
 //! count), and each split diamond writes those of its children that are leaves. No tree
 //! walk, no stack.
 
-use super::{Mesh, Tessellator, classify};
-use crate::diamond::Shape;
+use super::{Mesh, Tessellator};
 
 impl Tessellator {
     /// Writes the mesh: vertices are the corners and the split diamonds' centres, indexed by
@@ -34,52 +33,45 @@ impl Tessellator {
     #[inline(always)]
     fn emit_body(&mut self, out: &mut Mesh) {
         let s = self.size;
-        for (x, z) in [(0, 0), (s, 0), (0, s), (s, s)] {
-            self.set_active(x, z);
+        let corners = [(0, 0), (s, 0), (0, s), (s, s)].map(|(x, z)| (z * self.side + x) as usize);
+        // The corners are vertices but not split diamonds: set for the ranks and the vertex
+        // pass, cleared for the triangle pass.
+        for c in corners {
+            self.active[c >> 6] |= 1 << (c & 63);
         }
         let mut total = 0u64;
         for (slot, &word) in self.ranked.iter_mut().zip(&self.active) {
             *slot = [word, total];
             total += u64::from(word.count_ones());
         }
+        let side = self.side as usize;
+        // Every slot is overwritten, so only growth since the last frame is initialised.
+        out.vertices.resize(total as usize, [0; 2]);
+        for (v, (_, x, z)) in out
+            .vertices
+            .iter_mut()
+            .zip(SetBits::new(&self.active, side))
+        {
+            *v = [x as u16, z as u16];
+        }
+        for c in corners {
+            self.active[c >> 6] &= !(1 << (c & 63));
+        }
         let ranked = Ranked {
             last: self.ranked.len() - 1,
             words: &self.ranked,
         };
-        // Every slot is overwritten, so only growth since the last frame is initialised.
-        out.vertices.resize(total as usize, [0; 2]);
         // Room for the speculative writes of one diamond past the last triangle.
         let n = 3 * self.triangles as usize;
         out.indices.resize(n + 12, 0);
-        let side = self.side as usize;
-        let (mut z, mut row_start) = (0usize, 0usize);
         let mut k = 0usize;
-        let mut r = 0usize;
-        for (w, &word) in self.active.iter().enumerate() {
-            let mut bits = word;
-            while bits != 0 {
-                let i = w * 64 + bits.trailing_zeros() as usize;
-                bits &= bits - 1;
-                while i >= row_start + side {
-                    z += 1;
-                    row_start += side;
-                }
-                let x = i - row_start;
-                out.vertices[r] = [x as u16, z as u16];
-                let corner = (x == 0 || x == s as usize) && (z == 0 || z == s as usize);
-                if !corner {
-                    let window: &mut [u32; 12] = (&mut out.indices[k..k + 12])
-                        .try_into()
-                        .expect("a slice of 12 is an array of 12");
-                    let rc = r as u32;
-                    k += diamond(
-                        &ranked, window, s, self.side, x as u32, z as u32, i as u32, rc,
-                    );
-                }
-                r += 1;
-            }
+        for (i, x, z) in SetBits::new(&self.active, side) {
+            let window: &mut [u32; 12] = (&mut out.indices[k..k + 12])
+                .try_into()
+                .expect("a slice of 12 is an array of 12");
+            k += diamond(&ranked, window, s, self.side, x as u32, z as u32, i as u32);
         }
-        if !self.is_active(s / 2, s / 2) {
+        if self.active_list.is_empty() {
             // Nothing split: the two roots, whose corners are ranks 0 to 3 (row-major).
             let (nw, ne, sw, se) = (0, 1, 2, 3);
             out.indices[..6].copy_from_slice(&[ne, nw, se, sw, se, nw]);
@@ -87,6 +79,49 @@ impl Tessellator {
         }
         debug_assert_eq!(k, n, "every triangle counted is emitted");
         out.indices.truncate(k);
+    }
+}
+
+/// The set bits of a row-major bitset over rows of `side`, as `(i, x, z)`.
+struct SetBits<'a> {
+    words: &'a [u64],
+    side: usize,
+    /// Index of the current word; its bits not yet visited.
+    w: usize,
+    bits: u64,
+    z: usize,
+    row_start: usize,
+}
+
+impl<'a> SetBits<'a> {
+    fn new(words: &'a [u64], side: usize) -> Self {
+        SetBits {
+            words,
+            side,
+            w: 0,
+            bits: words.first().copied().unwrap_or(0),
+            z: 0,
+            row_start: 0,
+        }
+    }
+}
+
+impl Iterator for SetBits<'_> {
+    type Item = (usize, usize, usize);
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<(usize, usize, usize)> {
+        while self.bits == 0 {
+            self.w += 1;
+            self.bits = *self.words.get(self.w)?;
+        }
+        let i = self.w * 64 + self.bits.trailing_zeros() as usize;
+        self.bits &= self.bits - 1;
+        while i >= self.row_start + self.side {
+            self.z += 1;
+            self.row_start += self.side;
+        }
+        Some((i, i - self.row_start, self.z))
     }
 }
 
@@ -116,11 +151,16 @@ impl Ranked<'_> {
     }
 }
 
-/// Writes the leaf children of the split diamond centred at `(x, z)` (row-major index `i`,
-/// rank `rc`) into `out`, counter-clockwise seen from above, and returns how many slots they
-/// took. Each child is written in place; the cursor moves only past leaves.
+/// Writes the leaf children of the split diamond centred at `(x, z)` (row-major index `i`)
+/// into `out`, counter-clockwise seen from above, and returns how many slots they took.
+/// Each child is written in place; the cursor moves only past leaves.
+///
+/// Both shapes are one computation: a diamond's children fan around its centre between
+/// consecutive corners `c0..c3` (square: NE, NW, SW, SE at distance `h` diagonally; rotated:
+/// E, N, W, S at distance `h`), and child `k` is a leaf when the diamond at the midpoint of
+/// `c_k c_(k+1)` is not split (at the finest level a rotated diamond's children are always
+/// leaves). Only rotated diamonds on the map's edge, which lack corners, take another path.
 #[inline(always)]
-#[allow(clippy::too_many_arguments)]
 fn diamond(
     ranked: &Ranked,
     out: &mut [u32; 12],
@@ -129,63 +169,83 @@ fn diamond(
     x: u32,
     z: u32,
     i: u32,
-    rc: u32,
 ) -> usize {
-    let (m, shape) = classify(x, z);
+    let (tx, tz) = (x.trailing_zeros(), z.trailing_zeros());
+    let square = tx == tz;
+    if !square && (x == 0 || x == size || z == 0 || z == size) {
+        return edge(ranked, out, size, side, x, z, i);
+    }
+    let m = tx.min(tz);
     let h = 1u32 << m;
     let dz = h * side;
-    // The four children in turn, each given its hypotenuse ends' ranks and whether it is a
-    // leaf. (Computed for off-map children too, hence wrapping; those are never leaves.)
-    let (t, leaf) = match shape {
-        Shape::Square => {
-            let (nw, ne) = (i.wrapping_sub(dz + h), i - dz + h);
-            let (sw, se) = (i + dz - h, i + dz + h);
-            let (rnw, rne, rsw, rse) = (
-                ranked.rank(nw),
-                ranked.rank(ne),
-                ranked.rank(sw),
-                ranked.rank(se),
-            );
-            (
-                [[rne, rnw], [rnw, rsw], [rsw, rse], [rse, rne]],
-                [
-                    !ranked.active(i - dz),
-                    !ranked.active(i - h),
-                    !ranked.active(i + dz),
-                    !ranked.active(i + h),
-                ],
-            )
-        }
-        Shape::Rotated { .. } => {
-            // Off the map (a diamond on the map's edge) a corner stands in for itself.
-            let (hn, hs, hw, he) = (z >= h, z + h <= size, x >= h, x + h <= size);
-            let n = if hn { i - dz } else { i };
-            let so = if hs { i + dz } else { i };
-            let w = if hw { i - h } else { i };
-            let e = if he { i + h } else { i };
-            let (rn, rs, rw, re) = (
-                ranked.rank(n),
-                ranked.rank(so),
-                ranked.rank(w),
-                ranked.rank(e),
-            );
-            // Children's hypotenuse midpoints: squares of half-size h / 2 (none at the
-            // finest level, where every child is a leaf).
-            let (kx, kz) = (h / 2, (h / 2) * side);
-            let leaf = |on: bool, mid: u32| on && (m == 0 || !ranked.active(mid));
-            (
-                [[re, rn], [rn, rw], [rw, rs], [rs, re]],
-                [
-                    leaf(he && hn, (i + kx).wrapping_sub(kz)),
-                    leaf(hn && hw, i.wrapping_sub(kx + kz)),
-                    leaf(hw && hs, (i + kz).wrapping_sub(kx)),
-                    leaf(hs && he, i + kx + kz),
-                ],
-            )
-        }
+    let (k, kz) = (h / 2, (h / 2) * side);
+    // Corners: i + h - u, i - dz - v, i - h + u, i + dz + v.
+    let (u, v) = if square { (dz, h) } else { (0, 0) };
+    let c = [i + h - u, i - dz - v, i - h + u, i + dz + v];
+    // Midpoints: i + a - b, i - c - d, i - a + b, i + c + d.
+    let (ma, mb, mc, md) = if square {
+        (0, dz, h, 0)
+    } else {
+        (k, kz, k, kz)
     };
+    let mid = [i + ma - mb, i - mc - md, i - ma + mb, i + mc + md];
+    let finest_rotated = !square && m == 0;
+    let rc = ranked.rank(i);
+    let rank = [
+        ranked.rank(c[0]),
+        ranked.rank(c[1]),
+        ranked.rank(c[2]),
+        ranked.rank(c[3]),
+    ];
+    let mut n = 0;
+    for j in 0..4 {
+        out[n..n + 3].copy_from_slice(&[rc, rank[j], rank[(j + 1) & 3]]);
+        let leaf = finest_rotated || !ranked.active(mid[j]);
+        n += 3 * usize::from(leaf);
+    }
+    n
+}
+
+/// [`diamond`] for a rotated diamond centred on the map's edge: the corner off the map
+/// stands in for itself, and the two children off the map are never leaves.
+#[cold]
+fn edge(
+    ranked: &Ranked,
+    out: &mut [u32; 12],
+    size: u32,
+    side: u32,
+    x: u32,
+    z: u32,
+    i: u32,
+) -> usize {
+    let m = x.trailing_zeros().min(z.trailing_zeros());
+    let h = 1u32 << m;
+    let dz = h * side;
+    let (hn, hs, hw, he) = (z >= h, z + h <= size, x >= h, x + h <= size);
+    let n = if hn { i - dz } else { i };
+    let so = if hs { i + dz } else { i };
+    let w = if hw { i - h } else { i };
+    let e = if he { i + h } else { i };
+    let rc = ranked.rank(i);
+    let (rn, rs, rw, re) = (
+        ranked.rank(n),
+        ranked.rank(so),
+        ranked.rank(w),
+        ranked.rank(e),
+    );
+    // Children's hypotenuse midpoints: squares of half-size h / 2 (none at the finest
+    // level, where every child is a leaf).
+    let (kx, kz) = (h / 2, (h / 2) * side);
+    let leaf = |on: bool, mid: u32| on && (m == 0 || !ranked.active(mid));
+    let t = [[re, rn], [rn, rw], [rw, rs], [rs, re]];
+    let leaves = [
+        leaf(he && hn, (i + kx).wrapping_sub(kz)),
+        leaf(hn && hw, i.wrapping_sub(kx + kz)),
+        leaf(hw && hs, (i + kz).wrapping_sub(kx)),
+        leaf(hs && he, i + kx + kz),
+    ];
     let mut k = 0;
-    for (&[a, b], &is_leaf) in t.iter().zip(&leaf) {
+    for (&[a, b], &is_leaf) in t.iter().zip(&leaves) {
         out[k..k + 3].copy_from_slice(&[rc, a, b]);
         k += 3 * usize::from(is_leaf);
     }
