@@ -3,8 +3,11 @@
 //! A priority (a positive `f32`, pixels) falls in bucket `bits >> 20`: its exponent and top
 //! three mantissa bits, eight buckets per octave, monotone in the priority. The last bucket
 //! is reserved for diamonds under the eye. Each bucket is a first-in first-out chain of
-//! chunks from one pool, and a two-level bitmap finds the highest non-empty bucket with two
-//! leading-zero counts. Nothing is allocated during a frame once the pool is reserved.
+//! chunks from one pool, kept as a read and a write position, and a two-level bitmap finds
+//! the highest non-empty bucket with two leading-zero counts. [`BucketQueue::push_if`]
+//! sends an entry that is not wanted to a trash bucket, so a caller pushes a fixed number
+//! of candidates with no branch on which are kept. Nothing is allocated during a frame
+//! once the pool is reserved.
 
 /// Number of buckets: every non-negative `f32` maps to one of the first `BUCKETS - 1`.
 pub const BUCKETS: usize = 2048;
@@ -19,25 +22,23 @@ pub fn bucket_of(prio: f32) -> usize {
 
 /// Entries per chunk: a bucket is a chain of chunks, read and written in order.
 const CHUNK: usize = 64;
-const NIL: u32 = u32::MAX;
 
-/// One bucket: a first-in first-out chain of chunks.
+/// One bucket: a first-in first-out chain of chunks, as two positions in the entry pool.
+/// `write == 0` is an empty bucket (a written position is past an entry, so at least 1); a
+/// `write` at a chunk boundary means the chunk it ends is full.
 #[derive(Clone, Copy)]
 struct Bucket {
-    /// Chunk and position of the oldest entry.
-    head: u32,
+    /// Position of the oldest entry.
     read: u32,
-    /// Chunk and position one past the newest entry.
-    tail: u32,
+    /// Position one past the newest entry.
     write: u32,
 }
 
-const EMPTY: Bucket = Bucket {
-    head: NIL,
-    read: 0,
-    tail: NIL,
-    write: 0,
-};
+const EMPTY: Bucket = Bucket { read: 0, write: 0 };
+
+/// Index of the trash bucket, and its state: its writes go to slot 1 of chunk 0.
+const TRASH: usize = BUCKETS;
+const TRASH_BUCKET: Bucket = Bucket { read: 1, write: 1 };
 
 /// First-in first-out lists of `u64` entries, one per bucket, in chunks taken from one
 /// pool. Within a chunk, entries are read and written in order: the next pop neither
@@ -45,7 +46,9 @@ const EMPTY: Bucket = Bucket {
 /// each frame; [`BucketQueue::reserve`] sizes the pool for a frame's worst case so that
 /// nothing is allocated during a frame.
 pub struct BucketQueue {
-    buckets: Box<[Bucket; BUCKETS]>,
+    /// The buckets, then the trash: a bucket that is never read, whose writes land in
+    /// chunk 0 (reserved) and never advance.
+    buckets: Box<[Bucket; BUCKETS + 1]>,
     /// Chunk `c` is `entries[c * CHUNK..][..CHUNK]`, followed by chunk `next[c]`.
     entries: Vec<u64>,
     next: Vec<u32>,
@@ -58,10 +61,12 @@ pub struct BucketQueue {
 impl Default for BucketQueue {
     fn default() -> Self {
         BucketQueue {
-            buckets: Box::new([EMPTY; BUCKETS]),
-            entries: Vec::new(),
-            next: Vec::new(),
-            used: 0,
+            buckets: Box::new(std::array::from_fn(|b| {
+                if b == TRASH { TRASH_BUCKET } else { EMPTY }
+            })),
+            entries: vec![0; CHUNK],
+            next: vec![0],
+            used: 1,
             nonempty: [0; BUCKETS / 64],
             summary: 0,
         }
@@ -72,7 +77,7 @@ impl BucketQueue {
     /// Makes room for `pushes` entries in a frame, whatever buckets they fall in.
     /// (Address space only: pages are touched as chunks are first used.)
     pub fn reserve(&mut self, pushes: usize) {
-        let chunks = pushes.div_ceil(CHUNK) + BUCKETS;
+        let chunks = pushes.div_ceil(CHUNK) + BUCKETS + 1;
         self.next.reserve(chunks.saturating_sub(self.next.len()));
         self.entries
             .reserve((chunks * CHUNK).saturating_sub(self.entries.len()));
@@ -84,53 +89,61 @@ impl BucketQueue {
             self.buckets[b] = EMPTY;
             self.clear_bit(b);
         }
-        self.used = 0;
+        self.used = 1; // chunk 0 is the trash's
     }
 
     /// Appends `entry` to `bucket`.
     #[inline(always)]
     pub fn push(&mut self, bucket: usize, entry: u64) {
-        // Fields are read and written one by one (no whole-struct copies), so a load is
-        // always served by the store of the same field just before it: a wide load over
-        // narrower stores would stall store forwarding on every push after a pop.
-        let (tail, write) = (self.buckets[bucket].tail, self.buckets[bucket].write);
-        if tail == NIL || write as usize == CHUNK {
+        let write = self.buckets[bucket].write as usize;
+        if write.is_multiple_of(CHUNK) {
             self.push_new_chunk(bucket, entry);
             return;
         }
-        self.entries[tail as usize * CHUNK + write as usize] = entry;
-        self.buckets[bucket].write = write + 1;
+        self.entries[write] = entry;
+        self.buckets[bucket].write = write as u32 + 1;
+    }
+
+    /// Appends `entry` to `bucket` when `keep`; otherwise writes it to the trash. Either
+    /// way the same instructions run: no branch on `keep` to mispredict.
+    #[inline(always)]
+    pub fn push_if(&mut self, keep: bool, bucket: usize, entry: u64) {
+        let b = if keep { bucket } else { TRASH };
+        let write = self.buckets[b].write as usize;
+        if write.is_multiple_of(CHUNK) {
+            // Never the trash's: its write position stays at 1.
+            self.push_new_chunk(b, entry);
+            return;
+        }
+        self.entries[write] = entry;
+        self.buckets[b].write = (write + usize::from(keep)) as u32;
     }
 
     /// `push` when the bucket's last chunk is full or it has none.
     #[cold]
     fn push_new_chunk(&mut self, bucket: usize, entry: u64) {
-        let c = self.new_chunk();
-        let bk = self.buckets[bucket];
-        if bk.tail == NIL {
-            self.buckets[bucket].head = c;
-            self.buckets[bucket].read = 0;
+        let start = self.new_chunk() * CHUNK;
+        let write = self.buckets[bucket].write as usize;
+        if write == 0 {
+            self.buckets[bucket].read = start as u32;
             self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
             self.summary |= 1 << (bucket >> 6);
         } else {
-            self.next[bk.tail as usize] = c;
+            self.next[write / CHUNK - 1] = (start / CHUNK) as u32;
         }
-        self.buckets[bucket].tail = c;
-        self.entries[c as usize * CHUNK] = entry;
-        self.buckets[bucket].write = 1;
+        self.entries[start] = entry;
+        self.buckets[bucket].write = start as u32 + 1;
     }
 
-    fn new_chunk(&mut self) -> u32 {
+    fn new_chunk(&mut self) -> usize {
         if self.used == self.next.len() {
             // First use of this chunk (within the reserved capacity, unless a caller
             // under-reserved: then it grows rather than fails).
-            self.next.push(NIL);
+            self.next.push(0);
             self.entries.resize(self.entries.len() + CHUNK, 0);
         }
-        let c = self.used;
         self.used += 1;
-        self.next[c] = NIL;
-        c as u32
+        self.used - 1
     }
 
     /// The highest non-empty bucket.
@@ -147,17 +160,16 @@ impl BucketQueue {
     #[inline(always)]
     pub fn pop(&mut self) -> Option<u64> {
         let b = self.top_bucket()?;
-        let (head, read) = (self.buckets[b].head, self.buckets[b].read);
-        let entry = self.entries[head as usize * CHUNK + read as usize];
+        let read = self.buckets[b].read as usize;
+        let entry = self.entries[read];
         let read = read + 1;
-        if head == self.buckets[b].tail && read == self.buckets[b].write {
+        if read == self.buckets[b].write as usize {
             self.buckets[b] = EMPTY;
             self.clear_bit(b);
-        } else if read as usize == CHUNK {
-            self.buckets[b].head = self.next[head as usize];
-            self.buckets[b].read = 0;
+        } else if read.is_multiple_of(CHUNK) {
+            self.buckets[b].read = self.next[read / CHUNK - 1] * CHUNK as u32;
         } else {
-            self.buckets[b].read = read;
+            self.buckets[b].read = read as u32;
         }
         Some(entry)
     }
@@ -179,17 +191,16 @@ impl BucketQueue {
 
     /// The entries of one bucket still queued, oldest first.
     pub fn entries(&self, bucket: usize) -> impl Iterator<Item = u64> + '_ {
-        let bk = self.buckets[bucket];
-        let (mut c, mut i) = (bk.head, bk.read as usize);
+        let Bucket { read, write } = self.buckets[bucket];
+        let (mut i, end) = (read as usize, write as usize);
         std::iter::from_fn(move || {
-            if c == NIL || (c == bk.tail && i == bk.write as usize) {
+            if i == end {
                 return None;
             }
-            let e = self.entries[c as usize * CHUNK + i];
+            let e = self.entries[i];
             i += 1;
-            if i == CHUNK && c != bk.tail {
-                c = self.next[c as usize];
-                i = 0;
+            if i.is_multiple_of(CHUNK) && i != end {
+                i = self.next[i / CHUNK - 1] as usize * CHUNK;
             }
             Some(e)
         })
@@ -248,6 +259,20 @@ mod tests {
         q.push(3, 8);
         assert_eq!(q.entries(3).collect::<Vec<_>>(), [8]);
         assert_eq!(q.buckets_desc().collect::<Vec<_>>(), [3]);
+    }
+
+    #[test]
+    fn push_if_keeps_only_what_it_is_told() {
+        let mut q = BucketQueue::default();
+        q.reserve(500);
+        for e in 0..200u64 {
+            q.push_if(e % 3 == 0, 4 + (e % 2) as usize, e);
+        }
+        let order: Vec<u64> = std::iter::from_fn(|| q.pop()).collect();
+        let mut want: Vec<u64> = (0..200).filter(|e| e % 3 == 0 && e % 2 == 1).collect();
+        want.extend((0..200).filter(|e| e % 3 == 0 && e % 2 == 0));
+        assert_eq!(order, want);
+        assert_eq!(q.top_bucket(), None, "the trash is never popped");
     }
 
     #[test]

@@ -163,6 +163,11 @@ impl VarianceTree {
         &self.table
     }
 
+    /// `side - 1` of the heightfield the tree was built for.
+    pub fn size(&self) -> u32 {
+        self.size
+    }
+
     pub(crate) fn codes(&self) -> &[u8] {
         &self.codes
     }

@@ -261,16 +261,15 @@ impl Tessellator {
             self.dropped = prio.keep(dropped).max(self.dropped);
         }
         let prio = prio.to_array();
-        let mut queued = shown & (under | above);
-        while queued != 0 {
-            let i = queued.trailing_zeros() as usize;
-            queued &= queued - 1;
+        let queued = shown & (under | above);
+        for i in 0..4 {
             let bucket = if under >> i & 1 != 0 {
                 TOP
             } else {
                 bucket_of(prio[i])
             };
-            self.queue.push(
+            self.queue.push_if(
+                queued >> i & 1 != 0,
                 bucket,
                 (u64::from(prio[i].to_bits()) << 32) | u64::from(b.pos[i]),
             );

@@ -161,13 +161,20 @@ impl Frame<'_> {
     /// Height at a row-major index.
     #[inline(always)]
     fn h(&self, i: u32) -> u16 {
-        self.heights[i as usize]
+        debug_assert!((i as usize) < self.heights.len());
+        // SAFETY: every index the tessellator reads is a grid vertex of a diamond on the
+        // map (a corner, centre or stand-in), so below `side²`; `tessellate` checks that
+        // the heightfield has this side.
+        unsafe { *self.heights.get_unchecked(i as usize) }
     }
 
     /// Error stored at a variance-tree slot, sample units.
     #[inline(always)]
     fn error_at(&self, slot: usize) -> f32 {
-        self.table[self.codes[slot] as usize]
+        debug_assert!(slot < self.codes.len());
+        // SAFETY: slots are computed for diamonds on the map by the tree's own layout, and
+        // `tessellate` checks that the tree was built for a map of this size.
+        unsafe { self.table[*self.codes.get_unchecked(slot) as usize] }
     }
 
     /// Stored error of a diamond (not a rotated one of level 0), sample units.
@@ -275,15 +282,17 @@ impl Tessellator {
 
     #[inline(always)]
     fn is_active(&self, x: u32, z: u32) -> bool {
-        let i = (z * self.side + x) as usize;
-        self.active[i >> 6] >> (i & 63) & 1 != 0
+        self.is_active_at(z * self.side + x)
     }
 
     /// Whether the diamond centred at row-major index `i` is split.
     #[inline(always)]
     fn is_active_at(&self, i: u32) -> bool {
         let i = i as usize;
-        self.active[i >> 6] >> (i & 63) & 1 != 0
+        debug_assert!(i >> 6 < self.active.len());
+        // SAFETY: callers pass grid vertices of diamonds on the map, below `side²`, and
+        // `active` has a bit for each.
+        unsafe { *self.active.get_unchecked(i >> 6) >> (i & 63) & 1 != 0 }
     }
 
     #[inline(always)]
@@ -303,6 +312,11 @@ impl Tessellator {
         out: &mut Mesh,
     ) {
         assert_eq!(hf.side(), self.side, "a tessellator serves one map size");
+        assert_eq!(
+            variance.size(),
+            self.size,
+            "the variance tree is of another map size"
+        );
         self.reset();
         let frame = self.frame(hf, variance, scales, camera, limits);
         let budget = limits.budget.max(2);
