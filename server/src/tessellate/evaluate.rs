@@ -262,17 +262,16 @@ impl Tessellator {
         }
         let prio = prio.to_array();
         let queued = shown & (under | above);
-        for i in 0..4 {
+        // All four lanes, in order: the ones not queued go to the trash, so no branch
+        // depends on how many are.
+        for (i, (p, pos)) in prio.into_iter().zip(b.pos).enumerate() {
             let bucket = if under >> i & 1 != 0 {
                 TOP
             } else {
-                bucket_of(prio[i])
+                bucket_of(p)
             };
-            self.queue.push_if(
-                queued >> i & 1 != 0,
-                bucket,
-                (u64::from(prio[i].to_bits()) << 32) | u64::from(b.pos[i]),
-            );
+            let entry = (u64::from(p.to_bits()) << 32) | u64::from(pos);
+            self.queue.push_if(queued >> i & 1 != 0, bucket, entry);
         }
     }
 }
