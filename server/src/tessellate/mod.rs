@@ -503,30 +503,39 @@ impl Tessellator {
     }
 
     /// `Some(triangles the split adds)` when every parent of `(x, z)` is split already.
+    ///
+    /// Both shapes are one computation, without branches on the shape: the parents are
+    /// `i ± d` (a square's one diagonal pair, a rotated diamond's two apices), either of
+    /// which may be off the map (a rotated diamond on its edge, or the root).
     #[inline(always)]
     fn parents_split(&self, x: u32, z: u32) -> Option<u32> {
-        let (m, shape) = classify(x, z);
+        let (tx, tz) = (x.trailing_zeros(), z.trailing_zeros());
+        let m = tx.min(tz);
         let h = 1 << m;
-        let s = self.size;
-        match shape {
-            Shape::Square if 2 * h == s => Some(2),
-            Shape::Square => {
-                let ok = if (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 1 {
-                    self.is_active(x + h, z + h) && self.is_active(x - h, z - h)
-                } else {
-                    self.is_active(x + h, z - h) && self.is_active(x - h, z + h)
-                };
-                ok.then_some(2)
-            }
-            Shape::Rotated { horizontal } => {
-                let (c, ox, oz) = if horizontal { (z, 0, h) } else { (x, h, 0) };
-                let lo = c >= h;
-                let hi = c + h <= s;
-                let ok = (!lo || self.is_active(x - ox, z - oz))
-                    && (!hi || self.is_active(x + ox, z + oz));
-                ok.then_some(u32::from(lo) + u32::from(hi))
-            }
-        }
+        let (s, side) = (self.size, self.side);
+        let square = tx == tz;
+        // A square's parents are on the diagonal through the coarser cell's centre.
+        let anti = (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 0;
+        let horizontal = tx < tz;
+        let (dx, dz_plus, dz_minus) = if square {
+            (h, !anti, anti)
+        } else if horizontal {
+            (0, true, false)
+        } else {
+            (h, false, false)
+        };
+        // d = dx + dz·side, where dz is +h, −h or 0.
+        let row = h * side;
+        let d_plus = if dz_plus { dx + row } else { dx };
+        let d = if dz_minus { d_plus.wrapping_sub(row) } else { d_plus };
+        let (c, root) = (if horizontal { z } else { x }, 2 * h == s);
+        let has_lo = (square && !root) || (!square && c >= h);
+        let has_hi = (square && !root) || (!square && c + h <= s);
+        let i = z * side + x;
+        let lo_ok = !has_lo | self.is_active_at(if has_lo { i.wrapping_sub(d) } else { i });
+        let hi_ok = !has_hi | self.is_active_at(if has_hi { i.wrapping_add(d) } else { i });
+        let tris = if square { 2 } else { u32::from(has_lo) + u32::from(has_hi) };
+        (lo_ok & hi_ok).then_some(tris)
     }
 
     /// Splits `(x, z)` (its parents are split) and queues the children it uncovers. A
