@@ -125,8 +125,8 @@ impl Iterator for SetBits<'_> {
     }
 }
 
-/// The active bitset beside each word's rank. Indices are clamped to the last word (a
-/// conditional move the compiler can see is in bounds): no bounds-check branches.
+/// The active bitset beside each word's rank, read without bounds checks: every index
+/// looked up is on the map (debug builds check).
 struct Ranked<'a> {
     last: usize,
     words: &'a [[u64; 2]],
@@ -135,7 +135,11 @@ struct Ranked<'a> {
 impl Ranked<'_> {
     #[inline(always)]
     fn word(&self, i: u32) -> [u64; 2] {
-        self.words[(i as usize >> 6).min(self.last)]
+        debug_assert!(i as usize >> 6 <= self.last);
+        // SAFETY: every index looked up is a grid vertex on the map (a split diamond's
+        // centre, corner or child centre; off-map ones are never looked up), below
+        // `side²`, and the words cover `side²` bits.
+        unsafe { *self.words.get_unchecked(i as usize >> 6) }
     }
 
     /// Vertex index of grid vertex `i` (set in the bitset): set bits before it.
