@@ -110,7 +110,7 @@ impl Tessellator {
             hi,
             valid,
         };
-        self.evaluate(f, &batch, h, false);
+        self.evaluate(f, &batch, m, false);
     }
 
     /// Children of a rotated diamond: squares of half-size h/2 in the four quarter cells
@@ -177,7 +177,7 @@ impl Tessellator {
             hi,
             valid,
         };
-        self.evaluate(f, &batch, k, true);
+        self.evaluate(f, &batch, m - 1, true);
     }
 
     /// Queues the root diamond.
@@ -198,14 +198,15 @@ impl Tessellator {
             hi: F4::splat(hi),
             valid: 1,
         };
-        self.evaluate(f, &batch, r, true);
+        self.evaluate(f, &batch, r.trailing_zeros(), true);
     }
 
-    /// Computes the priorities of a batch's diamonds (half-size `h`) and queues each, lanes
+    /// Computes the priorities of a batch's diamonds (half-size `2^m`) and queues each, lanes
     /// in order, unless it is exact already, wholly outside the frustum (never queued) or
     /// below the threshold (remembered for the error bound).
     #[inline(always)]
-    fn evaluate(&mut self, f: &Frame, b: &Batch, h: u32, square: bool) {
+    fn evaluate(&mut self, f: &Frame, b: &Batch, m: u32, square: bool) {
+        let h = 1u32 << m;
         self.stats.evaluated += b.valid.count_ones();
         // A diamond with no error is exact already: splitting adds nothing.
         let live = b.valid & F4::splat(0.0).lt(b.e);
@@ -219,15 +220,15 @@ impl Tessellator {
         let hf = F4::splat(h as f32);
         // Outside if any of the four planes puts the bounding prism wholly behind it.
         let mut outside = 0;
-        for p in &f.planes {
-            let ext = if square { p.ext_square } else { p.ext_rotated };
-            let d =
-                p.a.mul(xf)
-                    .add(p.b.mul(yc))
-                    .add(p.c.mul(zf))
-                    .add(p.d)
-                    .add(hf.mul(ext))
-                    .add(hy.mul(p.abs_b));
+        let offsets = &f.plane_offsets[usize::from(square) << 4 | m as usize];
+        for (p, offset) in f.planes.iter().zip(offsets) {
+            let d = p
+                .a
+                .mul(xf)
+                .add(p.b.mul(yc))
+                .add(p.c.mul(zf))
+                .add(*offset)
+                .add(hy.mul(p.abs_b));
             outside |= d.lt(F4::splat(0.0));
         }
         // The ground under the eye is refined first, in view or not.

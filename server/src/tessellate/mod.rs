@@ -129,6 +129,9 @@ struct Frame<'a> {
     /// The four side planes of the view pyramid (its apex, the eye, makes a near plane
     /// unnecessary), each coefficient in all four lanes.
     planes: [Plane; 4],
+    /// Per plane, `d` plus the footprint's reach across it, `2^m · extent`, for squares
+    /// (index `16 + m`) and rotated diamonds (`m`).
+    plane_offsets: [[F4; 4]; 32],
     eye_x: F4,
     eye_z: F4,
     eye_y: F4,
@@ -146,10 +149,7 @@ struct Plane {
     a: F4,
     b: F4,
     c: F4,
-    d: F4,
     abs_b: F4,
-    ext_square: F4,
-    ext_rotated: F4,
 }
 
 impl Frame<'_> {
@@ -400,20 +400,34 @@ impl Tessellator {
         limits: Limits,
     ) -> Frame<'a> {
         let planes = camera.frustum();
-        let plane = |i: usize| {
+        let grid = |i: usize| {
             let p = &planes[i + 1];
-            let (a, b, c) = (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h);
+            (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h, p.d)
+        };
+        let plane = |i: usize| {
+            let (a, b, c, _) = grid(i);
             let l = |v: f64| F4::splat(v as f32);
             Plane {
                 a: l(a),
                 b: l(b),
                 c: l(c),
-                d: l(p.d),
                 abs_b: l(b.abs()),
-                ext_square: l(a.abs() + c.abs()),
-                ext_rotated: l(a.abs().max(c.abs())),
             }
         };
+        // A square of half-size h reaches h·(|a| + |c|) across a plane, a rotated diamond
+        // h·max(|a|, |c|).
+        let plane_offsets = std::array::from_fn(|k| {
+            let (square, h) = (k >= 16, f64::from(1u32 << (k % 16)));
+            std::array::from_fn(|i| {
+                let (a, _, c, d) = grid(i);
+                let extent = if square {
+                    a.abs() + c.abs()
+                } else {
+                    a.abs().max(c.abs())
+                };
+                F4::splat((d + h * extent) as f32)
+            })
+        });
         let mut square_offset = [0; 16];
         let mut rotated_offset = [0; 16];
         for (m, (so, ro)) in variance
@@ -434,6 +448,7 @@ impl Tessellator {
             side: self.side,
             size: self.size,
             planes: std::array::from_fn(plane),
+            plane_offsets,
             eye_x: F4::splat((camera.eye[0] / scales.h) as f32),
             eye_z: F4::splat((camera.eye[2] / scales.h) as f32),
             eye_y: F4::splat(camera.eye[1] as f32),
