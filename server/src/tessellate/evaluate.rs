@@ -222,13 +222,12 @@ impl Tessellator {
         let mut outside = 0;
         let offsets = &f.plane_offsets[usize::from(square) << 4 | m as usize];
         for (p, offset) in f.planes.iter().zip(offsets) {
-            let d = p
-                .a
-                .mul(xf)
-                .add(p.b.mul(yc))
-                .add(p.c.mul(zf))
-                .add(*offset)
-                .add(hy.mul(p.abs_b));
+            let d =
+                p.a.mul(xf)
+                    .add(p.b.mul(yc))
+                    .add(p.c.mul(zf))
+                    .add(*offset)
+                    .add(hy.mul(p.abs_b));
             outside |= d.lt(F4::splat(0.0));
         }
         // The ground under the eye is refined first, in view or not.

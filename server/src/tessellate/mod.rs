@@ -542,14 +542,22 @@ impl Tessellator {
         // d = dx + dz·side, where dz is +h, −h or 0.
         let row = h * side;
         let d_plus = if dz_plus { dx + row } else { dx };
-        let d = if dz_minus { d_plus.wrapping_sub(row) } else { d_plus };
+        let d = if dz_minus {
+            d_plus.wrapping_sub(row)
+        } else {
+            d_plus
+        };
         let (c, root) = (if horizontal { z } else { x }, 2 * h == s);
         let has_lo = (square && !root) || (!square && c >= h);
         let has_hi = (square && !root) || (!square && c + h <= s);
         let i = z * side + x;
         let lo_ok = !has_lo | self.is_active_at(if has_lo { i.wrapping_sub(d) } else { i });
         let hi_ok = !has_hi | self.is_active_at(if has_hi { i.wrapping_add(d) } else { i });
-        let tris = if square { 2 } else { u32::from(has_lo) + u32::from(has_hi) };
+        let tris = if square {
+            2
+        } else {
+            u32::from(has_lo) + u32::from(has_hi)
+        };
         (lo_ok & hi_ok).then_some(tris)
     }
 
