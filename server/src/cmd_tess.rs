@@ -203,6 +203,8 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         tris.push(n);
         err.push(f64::from(mesh.error_bound_px));
     }
+    let terrain = std::sync::Arc::new(terrain);
+    let vehicle_steps_per_second = crate::cmd_sim::bench_physics(&terrain);
     let samples = f64::from(terrain.heights.side()).powi(2);
     let resident = (terrain.heights.heap_bytes() + vt.heap_bytes()) as f64 / samples;
     let report = serde_json::json!({
@@ -220,6 +222,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "screen_error_px_p99": quantile(&err, 0.99),
         "resident_bytes_per_sample": resident,
         "tessellator_bytes": tess.heap_bytes(),
+        "vehicle_steps_per_second": vehicle_steps_per_second,
         "last_frame": {
             "evaluated": tess.stats().evaluated,
             "culled": tess.stats().culled,

@@ -77,6 +77,22 @@ impl Terrain {
         self.map.v_scale * f64::from(self.heights.get(x, z))
     }
 
+    /// A hash of everything in the data set (heights, colours, map parameters), so a
+    /// recording can tell whether it is replayed on the terrain it was made on.
+    pub fn content_hash(&self) -> [u8; 32] {
+        let mut h = blake3::Hasher::new();
+        h.update(b"roam data set v1");
+        h.update(&self.heights.side().to_le_bytes());
+        for s in self.heights.samples() {
+            h.update(&s.to_le_bytes());
+        }
+        for c in self.color.rgb() {
+            h.update(c);
+        }
+        h.update(self.map.to_toml().as_bytes());
+        *h.finalize().as_bytes()
+    }
+
     /// World extent along X and Z.
     pub fn world_size(&self) -> f64 {
         self.map.world_size(self.heights.side())

@@ -10,11 +10,16 @@ pub mod flyover;
 pub mod generate;
 pub mod heightfield;
 pub mod map;
+pub mod physics;
 pub mod pnm;
 pub mod queue;
+pub mod recording;
+pub mod replay;
+pub mod script;
 pub mod tessellate;
 pub mod validate;
 pub mod variance;
+pub mod world;
 
 pub use dataset::{ColorMap, DataError, Terrain};
 pub use heightfield::{Heightfield, ShapeError};

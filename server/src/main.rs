@@ -10,6 +10,7 @@ macro_rules! say {
 }
 
 mod cmd_data;
+mod cmd_sim;
 mod cmd_tess;
 mod progress;
 
@@ -38,8 +39,13 @@ enum Command {
     Import(cmd_data::ImportArgs),
     /// Tessellate once for a camera and write the mesh as a Wavefront OBJ.
     Mesh(cmd_tess::MeshArgs),
-    /// Time the tessellator along a fly-over path (or one fixed camera).
+    /// Time the tessellator along a fly-over path (or one fixed camera), and the physics.
     Bench(cmd_tess::BenchArgs),
+    /// Drive one vehicle from the map's start by an input script, without a network; print
+    /// its state at every tick as CSV.
+    Simulate(cmd_sim::SimulateArgs),
+    /// Re-simulate a recording, checking every checkpoint; print the final states.
+    Replay(cmd_sim::ReplayArgs),
 }
 
 fn main() -> ExitCode {
@@ -50,6 +56,8 @@ fn main() -> ExitCode {
         Command::Import(args) => cmd_data::import(args),
         Command::Mesh(args) => cmd_tess::mesh(args),
         Command::Bench(args) => cmd_tess::bench(args),
+        Command::Simulate(args) => cmd_sim::simulate(args),
+        Command::Replay(args) => cmd_sim::replay(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

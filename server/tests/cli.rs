@@ -3,76 +3,11 @@
 
 use std::collections::HashMap;
 use std::fs;
-use std::path::{Path, PathBuf};
-use std::process::Command;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::path::Path;
 
-/// The workspace root: commands run there, so `data/…` paths work as in the README.
-fn root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("the crate lives in the workspace")
-        .to_path_buf()
-}
+mod common;
 
-/// Runs `roam-server args…` from the workspace root; asserts the exit code and that each of
-/// `expected` occurs in stdout or stderr. Returns stdout.
-fn check(args: &[&str], expected_exit: i32, expected: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_roam-server"))
-        .args(args)
-        .current_dir(root())
-        .output()
-        .expect("run roam-server");
-    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
-    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
-    assert_eq!(
-        out.status.code(),
-        Some(expected_exit),
-        "roam-server {args:?}\n--- stdout:\n{stdout}\n--- stderr:\n{stderr}"
-    );
-    for want in expected {
-        assert!(
-            stdout.contains(want) || stderr.contains(want),
-            "roam-server {args:?}: {want:?} missing\n--- stdout:\n{stdout}\n--- stderr:\n{stderr}"
-        );
-    }
-    if expected_exit != 0 {
-        assert!(
-            stderr.contains("error"),
-            "roam-server {args:?}: a failure should say why on stderr, got {stderr:?}"
-        );
-    }
-    stdout
-}
-
-/// A fresh directory under the system temp dir, removed on drop.
-struct TempDir(PathBuf);
-
-impl TempDir {
-    fn new(name: &str) -> TempDir {
-        static COUNTER: AtomicU32 = AtomicU32::new(0);
-        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
-        let dir =
-            std::env::temp_dir().join(format!("roam-cli-test-{}-{n}-{name}", std::process::id()));
-        let _ = fs::remove_dir_all(&dir);
-        fs::create_dir_all(&dir).expect("create temp dir");
-        TempDir(dir)
-    }
-
-    fn path(&self, file: &str) -> PathBuf {
-        self.0.join(file)
-    }
-
-    fn str(&self) -> &str {
-        self.0.to_str().expect("temp paths are UTF-8 here")
-    }
-}
-
-impl Drop for TempDir {
-    fn drop(&mut self) {
-        let _ = fs::remove_dir_all(&self.0);
-    }
-}
+use common::{TempDir, check, root};
 
 /// A copy of `data/synth-65` in a temp dir, to break.
 fn copy_synth65(name: &str) -> TempDir {
@@ -88,7 +23,9 @@ fn help_on_everything() {
     check(
         &["--help"],
         0,
-        &["check", "generate", "import", "mesh", "bench"],
+        &[
+            "check", "generate", "import", "mesh", "bench", "simulate", "replay",
+        ],
     );
     for (cmd, flag) in [
         ("check", "DIR"),
@@ -96,6 +33,8 @@ fn help_on_everything() {
         ("import", "--h-scale"),
         ("mesh", "--eye"),
         ("bench", "--frames"),
+        ("simulate", "--inputs"),
+        ("replay", "--data"),
     ] {
         check(&[cmd, "--help"], 0, &[flag]);
     }
@@ -446,6 +385,7 @@ fn bench_json() {
         "screen_error_px_median",
         "screen_error_px_p99",
         "resident_bytes_per_sample",
+        "vehicle_steps_per_second",
     ];
     for (args, frames, budget) in [
         (

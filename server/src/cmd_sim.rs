@@ -1,0 +1,253 @@
+//! `simulate` and `replay`: the vehicle physics without a network, and recordings.
+
+use std::fs::File;
+use std::io::{self, BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use roam_server::Terrain;
+use roam_server::dataset;
+use roam_server::physics::{Keys, STEPS_PER_SECOND};
+use roam_server::recording::{self, RecordedWorld};
+use roam_server::replay;
+use roam_server::script;
+use roam_server::world::{self, Inputs, World};
+
+use crate::progress::Progress;
+
+#[derive(Args)]
+pub struct SimulateArgs {
+    /// Data set directory.
+    pub dir: PathBuf,
+    /// Input script: one `<ticks> <keys>` segment per line, keys from U D L R or `-`.
+    #[arg(long)]
+    pub inputs: PathBuf,
+    /// Record the session to this file (replay it with `roam-server replay`).
+    #[arg(long)]
+    pub record: Option<PathBuf>,
+    /// Write the CSV (`tick,x,z,y,speed,heading`) here instead of to stdout.
+    #[arg(long)]
+    pub csv: Option<PathBuf>,
+}
+
+#[derive(Args)]
+pub struct ReplayArgs {
+    /// A recording, from `simulate --record` or the server.
+    pub file: PathBuf,
+    /// The data set it was recorded on.
+    #[arg(long)]
+    pub data: PathBuf,
+}
+
+/// Recordings larger than this are refused rather than read (days of driving take a few
+/// megabytes).
+const MAX_RECORDING_BYTES: u64 = 1 << 30;
+
+fn load(dir: &Path) -> Result<Arc<Terrain>> {
+    let mut p = Progress::new("loading");
+    Ok(Arc::new(dataset::load(dir, &mut p.callback())?))
+}
+
+/// Writes CSV rows; a reader that went away (`| head`) ends the program quietly.
+struct Csv {
+    out: Box<dyn Write>,
+    target: String,
+}
+
+impl Csv {
+    fn row(&mut self, tick: u64, w: &World, v: &world::Vehicle) -> Result<()> {
+        let s = &v.state;
+        let y = w.altitude(s);
+        let r = writeln!(
+            self.out,
+            "{tick},{},{},{y},{},{}",
+            s.x, s.z, s.speed, s.heading
+        );
+        self.check(r)
+    }
+
+    fn check(&self, r: io::Result<()>) -> Result<()> {
+        match r {
+            Err(e) if e.kind() == io::ErrorKind::BrokenPipe => std::process::exit(0),
+            r => r.with_context(|| format!("writing {}", self.target)),
+        }
+    }
+}
+
+pub fn simulate(args: SimulateArgs) -> Result<()> {
+    let text = std::fs::read_to_string(&args.inputs)
+        .with_context(|| format!("reading {}", args.inputs.display()))?;
+    let script = script::parse(&text).with_context(|| format!("{}", args.inputs.display()))?;
+    let terrain = load(&args.dir)?;
+    let mut world = World::new(terrain.clone());
+    world.add(0, world::start_state(&terrain, 0))?;
+    let mut csv = match &args.csv {
+        Some(path) => Csv {
+            out: Box::new(BufWriter::new(
+                File::create(path).with_context(|| format!("creating {}", path.display()))?,
+            )),
+            target: path.display().to_string(),
+        },
+        None => Csv {
+            out: Box::new(BufWriter::new(io::stdout().lock())),
+            target: "stdout".into(),
+        },
+    };
+    let r = writeln!(csv.out, "tick,x,z,y,speed,heading");
+    csv.check(r)?;
+    csv.row(0, &world, &world.vehicles()[0])?;
+    let mut driver = match &args.record {
+        Some(path) => {
+            let file =
+                File::create(path).with_context(|| format!("creating {}", path.display()))?;
+            let (hash, interval) = (terrain.content_hash(), recording::MAX_CHECKPOINT_INTERVAL);
+            Driver::Recorded(
+                RecordedWorld::start(world, BufWriter::new(file), hash, interval)
+                    .with_context(|| format!("writing {}", path.display()))?,
+            )
+        }
+        None => Driver::Plain(world),
+    };
+    let mut inputs = Inputs::new();
+    for keys in script.keys() {
+        inputs.set(0, keys);
+        driver.step(&inputs).context("writing the recording")?;
+        let w = driver.world();
+        csv.row(w.tick(), w, &w.vehicles()[0])?;
+    }
+    let r = csv.out.flush();
+    csv.check(r)?;
+    let world = driver.finish().context("writing the recording")?;
+    let v = &world.vehicles()[0].state;
+    let summary = format!(
+        "{} ticks ({:.2} s): x {} z {} speed {} heading {}; digest {}",
+        world.tick(),
+        world.tick() as f64 / f64::from(STEPS_PER_SECOND),
+        v.x,
+        v.z,
+        v.speed,
+        v.heading,
+        world.digest()
+    );
+    if args.csv.is_some() {
+        say!("{summary}");
+    } else {
+        eprintln!("{summary}");
+    }
+    Ok(())
+}
+
+/// A world stepped as it is, or recorded.
+enum Driver {
+    Plain(World),
+    Recorded(RecordedWorld<Arc<Terrain>, BufWriter<File>>),
+}
+
+impl Driver {
+    fn step(&mut self, inputs: &Inputs) -> io::Result<()> {
+        match self {
+            Driver::Plain(w) => {
+                world::step(w, inputs);
+                Ok(())
+            }
+            Driver::Recorded(r) => r.step(inputs),
+        }
+    }
+
+    fn world(&self) -> &World {
+        match self {
+            Driver::Plain(w) => w,
+            Driver::Recorded(r) => r.world(),
+        }
+    }
+
+    fn finish(self) -> io::Result<World> {
+        match self {
+            Driver::Plain(w) => Ok(w),
+            Driver::Recorded(r) => Ok(r.finish()?.0),
+        }
+    }
+}
+
+pub fn replay(args: ReplayArgs) -> Result<()> {
+    let name = args.file.display();
+    let len = std::fs::metadata(&args.file)
+        .with_context(|| format!("reading {name}"))?
+        .len();
+    if len > MAX_RECORDING_BYTES {
+        bail!("{name}: {len} bytes, more than the {MAX_RECORDING_BYTES} a recording may have");
+    }
+    let bytes = std::fs::read(&args.file).with_context(|| format!("reading {name}"))?;
+    let rec = recording::parse(&bytes).with_context(|| format!("{name}"))?;
+    if let Some(at) = rec.truncated_at {
+        eprintln!(
+            "warning: {name} is cut inside the record at byte {at} (the server stopped \
+             without closing it); replaying the {} whole records before it",
+            rec.events.len()
+        );
+    }
+    let terrain = load(&args.data)?;
+    let outcome = replay::replay(&rec, terrain.clone(), &terrain.content_hash())
+        .with_context(|| format!("replaying {name} on {}", args.data.display()))?;
+    say!(
+        "replayed {} ticks ({:.2} s) of {name}: {} checkpoints matched, {}",
+        outcome.tick,
+        outcome.tick as f64 / f64::from(STEPS_PER_SECOND),
+        outcome.checkpoints,
+        if outcome.ended {
+            "closed cleanly"
+        } else {
+            "no end record"
+        }
+    );
+    let world = World::new(terrain);
+    for v in &outcome.vehicles {
+        let s = &v.state;
+        say!(
+            "vehicle {}: x {} z {} y {} speed {} heading {}",
+            v.id,
+            s.x,
+            s.z,
+            world.altitude(s),
+            s.speed,
+            s.heading
+        );
+    }
+    say!("digest {}", outcome.digest);
+    Ok(())
+}
+
+/// Vehicle steps per second on one core: 64 vehicles driving varied key patterns.
+pub fn bench_physics(terrain: &Arc<Terrain>) -> f64 {
+    const VEHICLES: u16 = 64;
+    const TICKS: u32 = 20_000;
+    let mut world = World::new(terrain.clone());
+    for id in 0..VEHICLES {
+        world
+            .add(id, world::start_state(terrain, u32::from(id)))
+            .expect("start states are on the map");
+    }
+    let patterns = [
+        Keys::UP,
+        Keys::UP.union(Keys::LEFT),
+        Keys::NONE,
+        Keys::UP.union(Keys::RIGHT),
+        Keys::DOWN,
+        Keys::LEFT,
+    ];
+    let mut inputs = Inputs::new();
+    let started = Instant::now();
+    for tick in 0..TICKS {
+        for id in 0..VEHICLES {
+            let k = (tick / 150 + u32::from(id)) as usize % patterns.len();
+            inputs.set(id, patterns[k]);
+        }
+        world::step(&mut world, &inputs);
+    }
+    let secs = started.elapsed().as_secs_f64();
+    std::hint::black_box(world.digest());
+    f64::from(TICKS) * f64::from(VEHICLES) / secs
+}

@@ -1,0 +1,561 @@
+//! Session recordings: what entered the world, tick by tick, so a replay rebuilds it.
+//!
+//! # Format (version 1)
+//!
+//! All integers little-endian; `f64`s as their IEEE bits.
+//!
+//! ```text
+//! magic    8 bytes  "roamrec\n"
+//! version  u32      1
+//! records  …        the first is the header; then events, ticks never decreasing
+//! ```
+//!
+//! A record is `kind: u8`, `len: u32` (≤ 1 MiB), `len` bytes of payload, then 8 bytes of
+//! check: the start of BLAKE3 over kind, len and payload. Kinds and payloads:
+//!
+//! | kind | record | payload |
+//! | --- | --- | --- |
+//! | 1 | header | data-set hash `[u8; 32]`, steps per second `u32`, checkpoint interval `u32`, vehicle count `u32`, then per vehicle: id `u16`, state (x, z, speed, heading: 4 × `f64`) |
+//! | 2 | input | tick `u64`, vehicle `u16`, keys `u8` (bits: Up, Down, Left, Right) |
+//! | 3 | join | tick `u64`, vehicle `u16`, state (4 × `f64`) |
+//! | 4 | leave | tick `u64`, vehicle `u16` |
+//! | 5 | checkpoint | tick `u64`, world digest `[u8; 32]` |
+//! | 6 | end | tick `u64`, world digest `[u8; 32]` |
+//!
+//! An event "at tick T" happens when the world has taken T steps, before the next step: an
+//! input record gives the keys a vehicle holds from step T + 1 on (inputs are recorded only
+//! when they change); a checkpoint or end gives the digest after T steps. Checkpoints come
+//! at least every 100 ticks, and the writer flushes at each, so a killed server loses at most
+//! the last second. The file is append-only: a cut anywhere leaves a prefix of whole records
+//! followed by a partial one, which [`parse`] reports and skips; a whole record that is
+//! wrong (its check, kind, length or content) is an error naming its byte offset.
+
+use std::io::{self, Write};
+
+use crate::physics::{Keys, VehicleState};
+use crate::world::{Digest, VehicleId};
+
+/// The file's first bytes.
+pub const MAGIC: [u8; 8] = *b"roamrec\n";
+/// The format version this code writes and reads.
+pub const VERSION: u32 = 1;
+/// Largest payload of a record.
+pub const MAX_RECORD: usize = 1 << 20;
+/// Longest interval between checkpoints, ticks.
+pub const MAX_CHECKPOINT_INTERVAL: u32 = 100;
+const CHECK: usize = 8;
+/// Bytes of a header vehicle and of a state.
+const STATE: usize = 32;
+
+/// The header: what a replay needs before the first event.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// [`crate::Terrain::content_hash`] of the data set.
+    pub data_hash: [u8; 32],
+    pub steps_per_second: u32,
+    /// Ticks between checkpoints (1 ..= 100).
+    pub checkpoint_interval: u32,
+    /// The vehicles at tick 0.
+    pub vehicles: Vec<(VehicleId, VehicleState)>,
+}
+
+/// What happened at a tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Event {
+    Input {
+        tick: u64,
+        vehicle: VehicleId,
+        keys: Keys,
+    },
+    Join {
+        tick: u64,
+        vehicle: VehicleId,
+        state: VehicleState,
+    },
+    Leave {
+        tick: u64,
+        vehicle: VehicleId,
+    },
+    Checkpoint {
+        tick: u64,
+        digest: Digest,
+    },
+    End {
+        tick: u64,
+        digest: Digest,
+    },
+}
+
+impl Event {
+    pub fn tick(&self) -> u64 {
+        match *self {
+            Event::Input { tick, .. }
+            | Event::Join { tick, .. }
+            | Event::Leave { tick, .. }
+            | Event::Checkpoint { tick, .. }
+            | Event::End { tick, .. } => tick,
+        }
+    }
+}
+
+/// A parsed recording.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Recording {
+    pub header: Header,
+    /// Every whole event record, in order (an end record, if any, is last).
+    pub events: Vec<Event>,
+    /// Where a partial record starts, when the file was cut inside one.
+    pub truncated_at: Option<u64>,
+}
+
+/// Why bytes are not a recording.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum FormatError {
+    #[error("not a roam recording: the first 8 bytes should be \"roamrec\\n\"")]
+    Magic,
+    #[error("recording format version {found}; this build reads version {VERSION}")]
+    Version { found: u32 },
+    #[error("the file ends at byte {len}, inside the header (a recording that never started)")]
+    TruncatedHeader { len: u64 },
+    #[error("record at byte {offset}: {what}")]
+    Corrupt { offset: u64, what: String },
+}
+
+fn corrupt(offset: usize, what: impl Into<String>) -> FormatError {
+    FormatError::Corrupt {
+        offset: offset as u64,
+        what: what.into(),
+    }
+}
+
+const HEADER: u8 = 1;
+const INPUT: u8 = 2;
+const JOIN: u8 = 3;
+const LEAVE: u8 = 4;
+const CHECKPOINT: u8 = 5;
+const END: u8 = 6;
+
+fn check(kind: u8, payload: &[u8]) -> [u8; CHECK] {
+    let mut h = blake3::Hasher::new();
+    h.update(&[kind]);
+    h.update(&(payload.len() as u32).to_le_bytes());
+    h.update(payload);
+    let mut out = [0; CHECK];
+    out.copy_from_slice(&h.finalize().as_bytes()[..CHECK]);
+    out
+}
+
+fn put_state(out: &mut Vec<u8>, s: &VehicleState) {
+    for bits in s.to_bits() {
+        out.extend_from_slice(&bits.to_le_bytes());
+    }
+}
+
+/// Writes a recording to any `Write` (a file in the server; memory in tests): records as
+/// they happen, flushing at every checkpoint.
+pub struct Recorder<W: Write> {
+    out: W,
+    /// The keys last recorded per vehicle, by id.
+    keys: Vec<(VehicleId, Keys)>,
+    interval: u32,
+    buf: Vec<u8>,
+}
+
+impl<W: Write> Recorder<W> {
+    /// Starts a recording: writes the magic, the version and the header, and flushes.
+    pub fn new(mut out: W, header: &Header) -> io::Result<Recorder<W>> {
+        if !(1..=MAX_CHECKPOINT_INTERVAL).contains(&header.checkpoint_interval) {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                format!(
+                    "checkpoint interval {} is not in 1 ..= {MAX_CHECKPOINT_INTERVAL}",
+                    header.checkpoint_interval
+                ),
+            ));
+        }
+        out.write_all(&MAGIC)?;
+        out.write_all(&VERSION.to_le_bytes())?;
+        let mut p = Vec::new();
+        p.extend_from_slice(&header.data_hash);
+        p.extend_from_slice(&header.steps_per_second.to_le_bytes());
+        p.extend_from_slice(&header.checkpoint_interval.to_le_bytes());
+        p.extend_from_slice(&(header.vehicles.len() as u32).to_le_bytes());
+        for (id, state) in &header.vehicles {
+            p.extend_from_slice(&id.to_le_bytes());
+            put_state(&mut p, state);
+        }
+        if p.len() > MAX_RECORD {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                "too many vehicles for one header record",
+            ));
+        }
+        let mut rec = Recorder {
+            out,
+            keys: Vec::new(),
+            interval: header.checkpoint_interval,
+            buf: Vec::new(),
+        };
+        rec.write(HEADER, &p)?;
+        rec.out.flush()?;
+        Ok(rec)
+    }
+
+    /// Ticks between checkpoints.
+    pub fn checkpoint_interval(&self) -> u32 {
+        self.interval
+    }
+
+    fn write(&mut self, kind: u8, payload: &[u8]) -> io::Result<()> {
+        self.buf.clear();
+        self.buf.push(kind);
+        self.buf
+            .extend_from_slice(&(payload.len() as u32).to_le_bytes());
+        self.buf.extend_from_slice(payload);
+        self.buf.extend_from_slice(&check(kind, payload));
+        self.out.write_all(&self.buf)
+    }
+
+    /// Records `keys` for `vehicle` from the step after `tick`, if they differ from the
+    /// last keys recorded for it.
+    pub fn input(&mut self, tick: u64, vehicle: VehicleId, keys: Keys) -> io::Result<()> {
+        let last = match self.keys.binary_search_by_key(&vehicle, |&(v, _)| v) {
+            Ok(at) => &mut self.keys[at].1,
+            Err(at) => {
+                self.keys.insert(at, (vehicle, Keys::NONE));
+                &mut self.keys[at].1
+            }
+        };
+        if *last == keys {
+            return Ok(());
+        }
+        *last = keys;
+        let mut p = [0u8; 11];
+        p[..8].copy_from_slice(&tick.to_le_bytes());
+        p[8..10].copy_from_slice(&vehicle.to_le_bytes());
+        p[10] = keys.bits();
+        self.write(INPUT, &p)
+    }
+
+    pub fn join(&mut self, tick: u64, vehicle: VehicleId, state: &VehicleState) -> io::Result<()> {
+        let mut p = Vec::with_capacity(10 + STATE);
+        p.extend_from_slice(&tick.to_le_bytes());
+        p.extend_from_slice(&vehicle.to_le_bytes());
+        put_state(&mut p, state);
+        self.write(JOIN, &p)
+    }
+
+    pub fn leave(&mut self, tick: u64, vehicle: VehicleId) -> io::Result<()> {
+        if let Ok(at) = self.keys.binary_search_by_key(&vehicle, |&(v, _)| v) {
+            self.keys.remove(at);
+        }
+        let mut p = [0u8; 10];
+        p[..8].copy_from_slice(&tick.to_le_bytes());
+        p[8..].copy_from_slice(&vehicle.to_le_bytes());
+        self.write(LEAVE, &p)
+    }
+
+    /// Records the world's digest after `tick` steps and flushes.
+    pub fn checkpoint(&mut self, tick: u64, digest: &Digest) -> io::Result<()> {
+        self.write(CHECKPOINT, &tick_digest(tick, digest))?;
+        self.out.flush()
+    }
+
+    /// Ends the recording with the final tick and digest, flushes, and returns the writer.
+    pub fn finish(mut self, tick: u64, digest: &Digest) -> io::Result<W> {
+        self.write(END, &tick_digest(tick, digest))?;
+        self.out.flush()?;
+        Ok(self.out)
+    }
+}
+
+fn tick_digest(tick: u64, digest: &Digest) -> [u8; 40] {
+    let mut p = [0u8; 40];
+    p[..8].copy_from_slice(&tick.to_le_bytes());
+    p[8..].copy_from_slice(&digest.0);
+    p
+}
+
+/// Reads fixed-size fields from a payload whose length was checked first.
+struct Fields<'a> {
+    bytes: &'a [u8],
+}
+
+impl Fields<'_> {
+    fn take<const N: usize>(&mut self) -> [u8; N] {
+        let (head, rest) = self.bytes.split_at(N);
+        self.bytes = rest;
+        head.try_into().expect("split_at(N) gives N bytes")
+    }
+    fn u16(&mut self) -> u16 {
+        u16::from_le_bytes(self.take())
+    }
+    fn u32(&mut self) -> u32 {
+        u32::from_le_bytes(self.take())
+    }
+    fn u64(&mut self) -> u64 {
+        u64::from_le_bytes(self.take())
+    }
+    fn state(&mut self) -> VehicleState {
+        VehicleState::from_bits([self.u64(), self.u64(), self.u64(), self.u64()])
+    }
+}
+
+/// A framed record: its kind, its payload, and where the next record starts.
+type Framed<'a> = (u8, &'a [u8], usize);
+
+/// One framed record: `Ok(None)` when the bytes end inside it.
+fn next_record(bytes: &[u8], at: usize) -> Result<Option<Framed<'_>>, FormatError> {
+    let Some(head) = bytes.get(at..at + 5) else {
+        return Ok(None);
+    };
+    let kind = head[0];
+    let len = u32::from_le_bytes([head[1], head[2], head[3], head[4]]) as usize;
+    if len > MAX_RECORD {
+        return Err(corrupt(
+            at,
+            format!("length {len} is over the limit of {MAX_RECORD} bytes"),
+        ));
+    }
+    let end = at + 5 + len + CHECK;
+    let Some(whole) = bytes.get(at..end) else {
+        return Ok(None);
+    };
+    let payload = &whole[5..5 + len];
+    if whole[5 + len..] != check(kind, payload) {
+        return Err(corrupt(at, "check bytes do not match the record"));
+    }
+    Ok(Some((kind, payload, end)))
+}
+
+/// A payload of exactly `n` bytes, or an error naming the record.
+fn sized<'a>(
+    payload: &'a [u8],
+    n: usize,
+    at: usize,
+    what: &str,
+) -> Result<Fields<'a>, FormatError> {
+    if payload.len() != n {
+        return Err(corrupt(
+            at,
+            format!("{what} record of {} bytes, expected {n}", payload.len()),
+        ));
+    }
+    Ok(Fields { bytes: payload })
+}
+
+fn parse_header(payload: &[u8], at: usize) -> Result<Header, FormatError> {
+    if payload.len() < 44 {
+        return Err(corrupt(
+            at,
+            format!("header of {} bytes, expected at least 44", payload.len()),
+        ));
+    }
+    let mut f = Fields { bytes: payload };
+    let data_hash = f.take::<32>();
+    let steps_per_second = f.u32();
+    let checkpoint_interval = f.u32();
+    let count = f.u32() as usize;
+    if f.bytes.len() != count * (2 + STATE) {
+        return Err(corrupt(
+            at,
+            format!(
+                "header lists {count} vehicles in {} bytes, expected {}",
+                f.bytes.len(),
+                count * (2 + STATE)
+            ),
+        ));
+    }
+    if !(1..=MAX_CHECKPOINT_INTERVAL).contains(&checkpoint_interval) {
+        return Err(corrupt(
+            at,
+            format!(
+                "checkpoint interval {checkpoint_interval}, expected 1 ..= {MAX_CHECKPOINT_INTERVAL}"
+            ),
+        ));
+    }
+    let vehicles = (0..count).map(|_| (f.u16(), f.state())).collect();
+    Ok(Header {
+        data_hash,
+        steps_per_second,
+        checkpoint_interval,
+        vehicles,
+    })
+}
+
+fn parse_event(kind: u8, payload: &[u8], at: usize) -> Result<Event, FormatError> {
+    Ok(match kind {
+        INPUT => {
+            let mut f = sized(payload, 11, at, "input")?;
+            let (tick, vehicle, bits) = (f.u64(), f.u16(), f.take::<1>()[0]);
+            let keys = Keys::from_bits(bits)
+                .ok_or_else(|| corrupt(at, format!("input keys {bits:#04x} have unknown bits")))?;
+            Event::Input {
+                tick,
+                vehicle,
+                keys,
+            }
+        }
+        JOIN => {
+            let mut f = sized(payload, 10 + STATE, at, "join")?;
+            Event::Join {
+                tick: f.u64(),
+                vehicle: f.u16(),
+                state: f.state(),
+            }
+        }
+        LEAVE => {
+            let mut f = sized(payload, 10, at, "leave")?;
+            Event::Leave {
+                tick: f.u64(),
+                vehicle: f.u16(),
+            }
+        }
+        CHECKPOINT | END => {
+            let mut f = sized(payload, 40, at, "checkpoint")?;
+            let (tick, digest) = (f.u64(), Digest(f.take()));
+            if kind == END {
+                Event::End { tick, digest }
+            } else {
+                Event::Checkpoint { tick, digest }
+            }
+        }
+        HEADER => return Err(corrupt(at, "a second header")),
+        other => return Err(corrupt(at, format!("unknown record kind {other}"))),
+    })
+}
+
+/// Parses a recording. A file cut inside a record gives the whole records before it (and
+/// says where the cut is); everything else wrong is an error with its byte offset.
+pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
+    let too_short = || FormatError::TruncatedHeader {
+        len: bytes.len() as u64,
+    };
+    match bytes.get(..8) {
+        Some(m) if m == MAGIC => {}
+        Some(_) => return Err(FormatError::Magic),
+        None if MAGIC.starts_with(bytes) => return Err(too_short()),
+        None => return Err(FormatError::Magic),
+    }
+    let version = bytes
+        .get(8..12)
+        .map(|v| u32::from_le_bytes([v[0], v[1], v[2], v[3]]))
+        .ok_or_else(too_short)?;
+    if version != VERSION {
+        return Err(FormatError::Version { found: version });
+    }
+    let (kind, payload, mut at) = next_record(bytes, 12)?.ok_or_else(too_short)?;
+    if kind != HEADER {
+        return Err(corrupt(
+            12,
+            format!("the first record is of kind {kind}, not a header"),
+        ));
+    }
+    let header = parse_header(payload, 12)?;
+    let mut events: Vec<Event> = Vec::new();
+    let mut truncated_at = None;
+    while at < bytes.len() {
+        let Some((kind, payload, end)) = next_record(bytes, at)? else {
+            truncated_at = Some(at as u64);
+            break;
+        };
+        let event = parse_event(kind, payload, at)?;
+        if let Some(last) = events.last() {
+            if matches!(last, Event::End { .. }) {
+                return Err(corrupt(at, "a record after the end record"));
+            }
+            if event.tick() < last.tick() {
+                return Err(corrupt(
+                    at,
+                    format!("tick {} comes after tick {}", event.tick(), last.tick()),
+                ));
+            }
+        }
+        events.push(event);
+        at = end;
+    }
+    Ok(Recording {
+        header,
+        events,
+        truncated_at,
+    })
+}
+
+/// Why a recorded world refused a change.
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error(transparent)]
+    World(#[from] crate::world::WorldError),
+    #[error("writing the recording: {0}")]
+    Io(#[from] io::Error),
+}
+
+/// A world that records everything that enters it: the same `world::step`, with the inputs,
+/// joins and leaves written down on the tick they apply, and a checkpoint every interval.
+pub struct RecordedWorld<G, W: Write> {
+    world: crate::world::World<G>,
+    recorder: Recorder<W>,
+}
+
+impl<G: crate::physics::Ground, W: Write> RecordedWorld<G, W> {
+    /// Starts recording `world` (at tick 0) into `out`.
+    pub fn start(
+        world: crate::world::World<G>,
+        out: W,
+        data_hash: [u8; 32],
+        checkpoint_interval: u32,
+    ) -> io::Result<Self> {
+        if world.tick() != 0 {
+            return Err(io::Error::new(
+                io::ErrorKind::InvalidInput,
+                "a recording starts at tick 0",
+            ));
+        }
+        let header = Header {
+            data_hash,
+            steps_per_second: crate::physics::STEPS_PER_SECOND,
+            checkpoint_interval,
+            vehicles: world.vehicles().iter().map(|v| (v.id, v.state)).collect(),
+        };
+        let recorder = Recorder::new(out, &header)?;
+        Ok(RecordedWorld { world, recorder })
+    }
+
+    pub fn world(&self) -> &crate::world::World<G> {
+        &self.world
+    }
+
+    /// Records the vehicles' keys, steps, and checkpoints when the interval comes round.
+    pub fn step(&mut self, inputs: &crate::world::Inputs) -> io::Result<()> {
+        let tick = self.world.tick();
+        for v in self.world.vehicles() {
+            self.recorder.input(tick, v.id, inputs.get(v.id))?;
+        }
+        crate::world::step(&mut self.world, inputs);
+        let tick = self.world.tick();
+        if tick.is_multiple_of(u64::from(self.recorder.checkpoint_interval())) {
+            self.recorder.checkpoint(tick, &self.world.digest())?;
+        }
+        Ok(())
+    }
+
+    pub fn join(&mut self, id: VehicleId, state: VehicleState) -> Result<(), RecordError> {
+        self.world.add(id, state)?;
+        self.recorder.join(self.world.tick(), id, &state)?;
+        Ok(())
+    }
+
+    pub fn leave(&mut self, id: VehicleId) -> Result<(), RecordError> {
+        self.world.remove(id)?;
+        self.recorder.leave(self.world.tick(), id)?;
+        Ok(())
+    }
+
+    /// Writes the end record and returns the world and the writer.
+    pub fn finish(self) -> io::Result<(crate::world::World<G>, W)> {
+        let out = self
+            .recorder
+            .finish(self.world.tick(), &self.world.digest())?;
+        Ok((self.world, out))
+    }
+}

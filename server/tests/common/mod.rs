@@ -1,0 +1,114 @@
+//! Helpers shared by the tests that run the `roam-server` binary.
+#![allow(dead_code)] // each test file uses its own subset
+
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::atomic::{AtomicU32, Ordering};
+
+/// The workspace root: commands run there, so `data/…` paths work as in the README.
+pub fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("the crate lives in the workspace")
+        .to_path_buf()
+}
+
+/// Runs `roam-server args…` from the workspace root; asserts the exit code and that each of
+/// `expected` occurs in stdout or stderr. Returns stdout.
+pub fn check(args: &[&str], expected_exit: i32, expected: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_roam-server"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("run roam-server");
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(
+        out.status.code(),
+        Some(expected_exit),
+        "roam-server {args:?}\n--- stdout:\n{stdout}\n--- stderr:\n{stderr}"
+    );
+    for want in expected {
+        assert!(
+            stdout.contains(want) || stderr.contains(want),
+            "roam-server {args:?}: {want:?} missing\n--- stdout:\n{stdout}\n--- stderr:\n{stderr}"
+        );
+    }
+    if expected_exit != 0 {
+        assert!(
+            stderr.contains("error"),
+            "roam-server {args:?}: a failure should say why on stderr, got {stderr:?}"
+        );
+    }
+    stdout
+}
+
+/// A fresh directory under the system temp dir, removed on drop.
+pub struct TempDir(PathBuf);
+
+impl TempDir {
+    pub fn new(name: &str) -> TempDir {
+        static COUNTER: AtomicU32 = AtomicU32::new(0);
+        let n = COUNTER.fetch_add(1, Ordering::Relaxed);
+        let dir =
+            std::env::temp_dir().join(format!("roam-cli-test-{}-{n}-{name}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        fs::create_dir_all(&dir).expect("create temp dir");
+        TempDir(dir)
+    }
+
+    pub fn path(&self, file: &str) -> PathBuf {
+        self.0.join(file)
+    }
+
+    pub fn str(&self) -> &str {
+        self.0.to_str().expect("temp paths are UTF-8 here")
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = fs::remove_dir_all(&self.0);
+    }
+}
+
+/// A recording of one vehicle holding Up on `terrain` for `ticks` ticks, with a checkpoint
+/// every `interval` ticks whose digest is wrong from tick `bad_from` on: what a build with
+/// other physics would have recorded.
+pub fn diverged_recording(
+    terrain: &std::sync::Arc<roam_server::Terrain>,
+    ticks: u64,
+    interval: u32,
+    bad_from: u64,
+) -> Vec<u8> {
+    use roam_server::physics::Keys;
+    use roam_server::recording::{Header, Recorder};
+    use roam_server::world::{self, Inputs, World};
+    let mut world = World::new(terrain.clone());
+    world
+        .add(0, world::start_state(terrain, 0))
+        .expect("the start is on the map");
+    let header = Header {
+        data_hash: terrain.content_hash(),
+        steps_per_second: 100,
+        checkpoint_interval: interval,
+        vehicles: vec![(0, world.vehicles()[0].state)],
+    };
+    let mut rec = Recorder::new(Vec::new(), &header).expect("memory does not fail");
+    let mut inputs = Inputs::new();
+    inputs.set(0, Keys::UP);
+    rec.input(0, 0, Keys::UP).expect("memory does not fail");
+    for tick in 1..=ticks {
+        world::step(&mut world, &inputs);
+        if tick.is_multiple_of(u64::from(interval)) {
+            let mut digest = world.digest();
+            if tick >= bad_from {
+                digest.0[31] ^= 1;
+            }
+            rec.checkpoint(tick, &digest).expect("memory does not fail");
+        }
+    }
+    rec.finish(ticks, &world.digest())
+        .expect("memory does not fail")
+}
