@@ -42,23 +42,28 @@ pub struct ReplayArgs {
     pub data: PathBuf,
 }
 
-/// Recordings larger than this are refused rather than read (days of driving take a few
+/// Recordings larger than this are refused rather than read (a day of driving takes a few
 /// megabytes).
-const MAX_RECORDING_BYTES: u64 = 1 << 30;
+const MAX_RECORDING_BYTES: u64 = 256 << 20;
 
 fn load(dir: &Path) -> Result<Arc<Terrain>> {
     let mut p = Progress::new("loading");
     Ok(Arc::new(dataset::load(dir, &mut p.callback())?))
 }
 
-/// Writes CSV rows; a reader that went away (`| head`) ends the program quietly.
+/// Writes CSV rows. A reader that went away (`| head`) stops the rows, not the run: the
+/// simulation and its recording go on to the end.
 struct Csv {
     out: Box<dyn Write>,
     target: String,
+    closed: bool,
 }
 
 impl Csv {
     fn row(&mut self, tick: u64, w: &World, v: &world::Vehicle) -> Result<()> {
+        if self.closed {
+            return Ok(());
+        }
         let s = &v.state;
         let y = w.altitude(s);
         let r = writeln!(
@@ -69,18 +74,23 @@ impl Csv {
         self.check(r)
     }
 
-    fn check(&self, r: io::Result<()>) -> Result<()> {
+    fn check(&mut self, r: io::Result<()>) -> Result<()> {
         match r {
-            Err(e) if e.kind() == io::ErrorKind::BrokenPipe => std::process::exit(0),
+            _ if self.closed => Ok(()),
+            Err(e) if e.kind() == io::ErrorKind::BrokenPipe => {
+                self.closed = true;
+                Ok(())
+            }
             r => r.with_context(|| format!("writing {}", self.target)),
         }
     }
 }
 
 pub fn simulate(args: SimulateArgs) -> Result<()> {
-    let text = std::fs::read_to_string(&args.inputs)
+    let text = std::fs::read(&args.inputs)
         .with_context(|| format!("reading {}", args.inputs.display()))?;
-    let script = script::parse(&text).with_context(|| format!("{}", args.inputs.display()))?;
+    let script =
+        script::parse_bytes(&text).with_context(|| format!("{}", args.inputs.display()))?;
     let terrain = load(&args.dir)?;
     let mut world = World::new(terrain.clone());
     world.add(0, world::start_state(&terrain, 0))?;
@@ -90,10 +100,12 @@ pub fn simulate(args: SimulateArgs) -> Result<()> {
                 File::create(path).with_context(|| format!("creating {}", path.display()))?,
             )),
             target: path.display().to_string(),
+            closed: false,
         },
         None => Csv {
             out: Box::new(BufWriter::new(io::stdout().lock())),
             target: "stdout".into(),
+            closed: false,
         },
     };
     let r = writeln!(csv.out, "tick,x,z,y,speed,heading");

@@ -304,19 +304,53 @@ impl Fields<'_> {
 /// A framed record: its kind, its payload, and where the next record starts.
 type Framed<'a> = (u8, &'a [u8], usize);
 
-/// One framed record: `Ok(None)` when the bytes end inside it.
+/// The payload length a record of `kind` must have (a header: 44 bytes plus 34 per
+/// vehicle), or why it cannot.
+fn length_ok(kind: u8, len: usize) -> Result<(), String> {
+    let fixed = match kind {
+        HEADER => {
+            return if len >= 44 && (len - 44).is_multiple_of(2 + STATE) && len <= MAX_RECORD {
+                Ok(())
+            } else {
+                Err(format!(
+                    "a header of {len} bytes (expected 44 plus 34 per vehicle, at most {MAX_RECORD})"
+                ))
+            };
+        }
+        INPUT => 11,
+        JOIN => 10 + STATE,
+        LEAVE => 10,
+        CHECKPOINT | END => 40,
+        other => return Err(format!("unknown record kind {other}")),
+    };
+    if len == fixed {
+        Ok(())
+    } else {
+        Err(format!(
+            "a record of kind {kind} with {len} bytes, expected {fixed}"
+        ))
+    }
+}
+
+/// One framed record: `Ok(None)` when the bytes end inside it. The kind and length are
+/// checked before the end of the bytes is, so a damaged length is an error, not a cut.
 fn next_record(bytes: &[u8], at: usize) -> Result<Option<Framed<'_>>, FormatError> {
     let Some(head) = bytes.get(at..at + 5) else {
+        if let Some(&kind) = bytes.get(at) {
+            // At least the kind is there: it must be one we know.
+            length_ok(kind, 0).or_else(|e| {
+                if e.starts_with("unknown") {
+                    Err(corrupt(at, e))
+                } else {
+                    Ok(())
+                }
+            })?;
+        }
         return Ok(None);
     };
     let kind = head[0];
     let len = u32::from_le_bytes([head[1], head[2], head[3], head[4]]) as usize;
-    if len > MAX_RECORD {
-        return Err(corrupt(
-            at,
-            format!("length {len} is over the limit of {MAX_RECORD} bytes"),
-        ));
-    }
+    length_ok(kind, len).map_err(|e| corrupt(at, e))?;
     let end = at + 5 + len + CHECK;
     let Some(whole) = bytes.get(at..end) else {
         return Ok(None);
@@ -356,13 +390,13 @@ fn parse_header(payload: &[u8], at: usize) -> Result<Header, FormatError> {
     let steps_per_second = f.u32();
     let checkpoint_interval = f.u32();
     let count = f.u32() as usize;
-    if f.bytes.len() != count * (2 + STATE) {
+    if f.bytes.len() as u64 != count as u64 * (2 + STATE) as u64 {
         return Err(corrupt(
             at,
             format!(
                 "header lists {count} vehicles in {} bytes, expected {}",
                 f.bytes.len(),
-                count * (2 + STATE)
+                count as u64 * (2 + STATE) as u64
             ),
         ));
     }
@@ -452,24 +486,49 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
         ));
     }
     let header = parse_header(payload, 12)?;
+    let interval = u64::from(header.checkpoint_interval);
     let mut events: Vec<Event> = Vec::new();
     let mut truncated_at = None;
+    // The writer checkpoints every `interval` ticks: no event lies further than that past
+    // the last checkpoint, which also bounds how far a replay steps per record.
+    let mut checkpointed = 0u64;
     while at < bytes.len() {
+        if let Some(Event::End { .. }) = events.last() {
+            return Err(corrupt(at, "bytes after the end record"));
+        }
         let Some((kind, payload, end)) = next_record(bytes, at)? else {
             truncated_at = Some(at as u64);
             break;
         };
         let event = parse_event(kind, payload, at)?;
-        if let Some(last) = events.last() {
-            if matches!(last, Event::End { .. }) {
-                return Err(corrupt(at, "a record after the end record"));
-            }
-            if event.tick() < last.tick() {
+        let tick = event.tick();
+        if let Some(last) = events.last()
+            && tick < last.tick()
+        {
+            return Err(corrupt(
+                at,
+                format!("tick {tick} comes after tick {}", last.tick()),
+            ));
+        }
+        if tick > checkpointed + interval {
+            return Err(corrupt(
+                at,
+                format!(
+                    "tick {tick} is more than {interval} ticks past the last checkpoint (tick {checkpointed})"
+                ),
+            ));
+        }
+        if let Event::Checkpoint { .. } = event {
+            if tick != checkpointed + interval {
                 return Err(corrupt(
                     at,
-                    format!("tick {} comes after tick {}", event.tick(), last.tick()),
+                    format!(
+                        "a checkpoint at tick {tick}, expected tick {}",
+                        checkpointed + interval
+                    ),
                 ));
             }
+            checkpointed = tick;
         }
         events.push(event);
         at = end;

@@ -31,7 +31,7 @@ pub enum ReplayError {
     )]
     Rate { found: u32 },
     #[error(
-        "diverged at tick {tick}: recorded digest {recorded}, replayed {replayed} (last agreement at tick {agreed})"
+        "diverged: the first checkpoint that differs is at tick {tick} (recorded digest {recorded}, replayed {replayed}); the last that agreed was at tick {agreed}"
     )]
     Diverged {
         tick: u64,
@@ -84,7 +84,12 @@ pub fn replay<G: Ground>(
         let tick = world.tick();
         let fail = |error| ReplayError::World { tick, error };
         match *event {
-            Event::Input { vehicle, keys, .. } => inputs.set(vehicle, keys),
+            Event::Input { vehicle, keys, .. } => {
+                if world.vehicle(vehicle).is_none() {
+                    return Err(fail(WorldError::Missing(vehicle)));
+                }
+                inputs.set(vehicle, keys)
+            }
             Event::Join { vehicle, state, .. } => world.add(vehicle, state).map_err(fail)?,
             Event::Leave { vehicle, .. } => {
                 world.remove(vehicle).map_err(fail)?;

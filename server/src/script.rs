@@ -61,6 +61,23 @@ fn parse_keys(word: &str) -> Option<Keys> {
     })
 }
 
+/// Parses a script given as bytes: text that is not UTF-8 is an error at its line.
+pub fn parse_bytes(bytes: &[u8]) -> Result<Script, ScriptError> {
+    match std::str::from_utf8(bytes) {
+        Ok(text) => parse(text),
+        Err(e) => {
+            let line = 1 + bytes[..e.valid_up_to()]
+                .iter()
+                .filter(|&&b| b == b'\n')
+                .count();
+            Err(ScriptError {
+                line,
+                message: "not UTF-8 text".into(),
+            })
+        }
+    }
+}
+
 /// Parses a script.
 pub fn parse(text: &str) -> Result<Script, ScriptError> {
     let mut segments = Vec::new();
@@ -78,8 +95,9 @@ pub fn parse(text: &str) -> Result<Script, ScriptError> {
                 "expected `<ticks> <keys>` (e.g. `100 UL`), got {content:?}"
             )));
         };
+        let digits = count.bytes().all(|b| b.is_ascii_digit());
         let ticks: u64 = match count.parse() {
-            Ok(t) if t >= 1 => t,
+            Ok(t) if t >= 1 && digits => t,
             _ => {
                 return Err(err(format!(
                     "ticks: expected a whole number ≥ 1, got {count:?}"

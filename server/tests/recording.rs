@@ -29,14 +29,14 @@ fn load(name: &str) -> Arc<Terrain> {
 }
 
 const DRIVE: &str = "\
-# a drive that uses every key, and reaches the map's edge
+# a drive that uses every key, and bounces off the map's edge
 300 U
 200 UL
 100 U
 150 URD   # brake wins over Up; right turn
 400 UR
 50 -
-1200 U
+4000 U
 80 D
 ";
 
@@ -44,6 +44,22 @@ const DRIVE: &str = "\
 struct Run {
     bytes: Vec<u8>,
     digests: Vec<Digest>,
+    /// The closest any vehicle came to the map's edge.
+    edge: f64,
+}
+
+fn edge_distance<G: roam_server::physics::Ground>(w: &World<G>) -> f64 {
+    let size = w.ground().size();
+    w.vehicles()
+        .iter()
+        .map(|v| {
+            v.state
+                .x
+                .min(v.state.z)
+                .min(size - v.state.x)
+                .min(size - v.state.z)
+        })
+        .fold(f64::INFINITY, f64::min)
 }
 
 /// One vehicle driving `script` from the map's start, recorded.
@@ -55,14 +71,20 @@ fn record_drive(terrain: &Arc<Terrain>, script: &Script) -> Run {
     let mut rec = RecordedWorld::start(world, Vec::new(), terrain.content_hash(), 100)
         .expect("memory does not fail");
     let mut digests = vec![rec.world().digest()];
+    let mut edge = f64::INFINITY;
     let mut inputs = Inputs::new();
     for keys in script.keys() {
         inputs.set(0, keys);
         rec.step(&inputs).expect("memory does not fail");
         digests.push(rec.world().digest());
+        edge = edge.min(edge_distance(rec.world()));
     }
     let (_, bytes) = rec.finish().expect("memory does not fail");
-    Run { bytes, digests }
+    Run {
+        bytes,
+        digests,
+        edge,
+    }
 }
 
 /// Several vehicles joining and leaving, each with its own keys, with a checkpoint every
@@ -96,8 +118,13 @@ fn record_convoy(terrain: &Arc<Terrain>) -> Run {
         rec.step(&inputs).expect("memory does not fail");
         digests.push(rec.world().digest());
     }
+    let edge = edge_distance(rec.world());
     let (_, bytes) = rec.finish().expect("memory does not fail");
-    Run { bytes, digests }
+    Run {
+        bytes,
+        digests,
+        edge,
+    }
 }
 
 fn drive_script() -> Script {
@@ -144,7 +171,11 @@ fn golden(name: &str, data: &str, run: impl Fn(&Arc<Terrain>) -> Run) {
 
 #[test]
 fn golden_drive_replays_to_its_digest() {
-    golden("drive", "synth-257", |t| record_drive(t, &drive_script()));
+    golden("drive", "synth-65", |t| {
+        let run = record_drive(t, &drive_script());
+        assert!(run.edge < 0.2, "the drive reaches the edge: {}", run.edge);
+        run
+    });
 }
 
 #[test]
@@ -251,6 +282,139 @@ fn a_corrupt_record_is_reported_at_its_offset() {
     assert!(matches!(
         recording::parse(&bad),
         Err(FormatError::Corrupt { offset, .. }) if offset == run.bytes.len() as u64
+    ));
+}
+
+/// A well-formed recording (every record's framing valid) whose content is whatever
+/// `header` and `write` make it, without an end record.
+fn with_records(
+    terrain: &Arc<Terrain>,
+    header: impl FnOnce(&mut recording::Header),
+    write: impl FnOnce(&mut recording::Recorder<Vec<u8>>),
+) -> Vec<u8> {
+    let mut h = recording::Header {
+        data_hash: terrain.content_hash(),
+        steps_per_second: 100,
+        checkpoint_interval: 100,
+        vehicles: vec![(0, world::start_state(terrain, 0))],
+    };
+    header(&mut h);
+    let mut rec = recording::Recorder::new(Vec::new(), &h).expect("memory");
+    write(&mut rec);
+    rec.finish(0, &Digest([0; 32]))
+        .map(|mut b| {
+            // Drop the end record: the cases below are about what comes before it.
+            b.truncate(b.len() - 53);
+            b
+        })
+        .expect("memory")
+}
+
+#[test]
+fn framing_damage_and_broken_discipline_are_corrupt() {
+    let terrain = load("synth-65");
+    let script = script::parse("150 U\n120 UL\n").expect("valid");
+    let run = record_drive(&terrain, &script);
+    let starts = record_starts(&run.bytes);
+    let corrupt_at = |bytes: &[u8]| match recording::parse(bytes) {
+        Err(FormatError::Corrupt { offset, what }) => (offset, what),
+        other => panic!("{other:?}"),
+    };
+    for &at in &starts {
+        // The kind, then the length's low byte: both checked before the end of the file.
+        for (flip, value) in [(at, 0x7e), (at + 1, 0xff), (at + 3, 0x01)] {
+            let mut bad = run.bytes.clone();
+            bad[flip] = value;
+            assert_eq!(corrupt_at(&bad).0, at as u64, "byte {flip} set to {value}");
+        }
+    }
+    // Bytes after the end record.
+    let mut bad = run.bytes.clone();
+    bad.extend_from_slice(&[2, 11, 0]);
+    let (offset, what) = corrupt_at(&bad);
+    assert_eq!(
+        (offset, what.as_str()),
+        (run.bytes.len() as u64, "bytes after the end record")
+    );
+    // Inputs past the next checkpoint, and a checkpoint off the interval.
+    let late = with_records(
+        &terrain,
+        |_| {},
+        |r| {
+            r.input(150, 0, Keys::UP).expect("memory");
+        },
+    );
+    assert!(
+        corrupt_at(&late)
+            .1
+            .contains("more than 100 ticks past the last checkpoint")
+    );
+    let off = with_records(
+        &terrain,
+        |_| {},
+        |r| {
+            r.checkpoint(60, &Digest([0; 32])).expect("memory");
+        },
+    );
+    assert!(
+        corrupt_at(&off)
+            .1
+            .contains("a checkpoint at tick 60, expected tick 100")
+    );
+}
+
+#[test]
+fn replay_refuses_what_the_world_cannot_take() {
+    let terrain = load("synth-65");
+    let hash = terrain.content_hash();
+    let replay_of = |bytes: Vec<u8>| {
+        let rec = recording::parse(&bytes).expect("well-formed");
+        replay::replay(&rec, terrain.clone(), &hash)
+    };
+    let slow = with_records(&terrain, |h| h.steps_per_second = 50, |_| {});
+    assert_eq!(replay_of(slow), Err(ReplayError::Rate { found: 50 }));
+    let twice = with_records(
+        &terrain,
+        |_| {},
+        |r| {
+            r.join(5, 0, &world::start_state(&terrain, 1))
+                .expect("memory");
+        },
+    );
+    assert!(matches!(
+        replay_of(twice),
+        Err(ReplayError::World {
+            tick: 5,
+            error: world::WorldError::Duplicate(0)
+        })
+    ));
+    let ghost = with_records(
+        &terrain,
+        |_| {},
+        |r| {
+            r.input(3, 9, Keys::UP).expect("memory");
+        },
+    );
+    assert!(matches!(
+        replay_of(ghost),
+        Err(ReplayError::World {
+            tick: 3,
+            error: world::WorldError::Missing(9)
+        })
+    ));
+    let gone = with_records(
+        &terrain,
+        |_| {},
+        |r| {
+            r.leave(7, 4).expect("memory");
+        },
+    );
+    assert!(matches!(
+        replay_of(gone),
+        Err(ReplayError::World {
+            tick: 7,
+            error: world::WorldError::Missing(4)
+        })
     ));
 }
 

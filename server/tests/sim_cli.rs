@@ -69,6 +69,8 @@ fn simulate_writes_one_csv_row_per_tick() {
         assert_eq!(r.len(), 6);
         assert_eq!(r[0], i as f64);
         assert!(r[4] >= 0.0, "speed never negative");
+        let ground = roam_server::physics::Ground::height(&terrain, r[1], r[2]);
+        assert_eq!(r[3], ground + 2.0, "altitude is the ground plus 2");
     }
     assert!(rows[120][4] > rows[1][4], "accelerated");
     // The same drive coasting instead of braking for its last 20 ticks ends faster.
@@ -194,7 +196,7 @@ fn replay_the_golden_recording() {
             "replay",
             "server/tests/golden/drive.rec",
             "--data",
-            "data/synth-257",
+            "data/synth-65",
         ],
         0,
         &["checkpoints matched", "closed cleanly"],
@@ -216,7 +218,10 @@ fn replay_names_the_tick_where_it_diverged() {
         &path,
         "data/synth-65",
         1,
-        &["diverged at tick 150", "last agreement at tick 100"],
+        &[
+            "the first checkpoint that differs is at tick 150",
+            "the last that agreed was at tick 100",
+        ],
     );
 }
 
