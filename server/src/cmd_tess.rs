@@ -205,6 +205,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     }
     let terrain = std::sync::Arc::new(terrain);
     let vehicle_steps_per_second = crate::cmd_sim::bench_physics(&terrain);
+    let codec = codec_bench(&terrain, &vt, limits)?;
     let samples = f64::from(terrain.heights.side()).powi(2);
     let resident = (terrain.heights.heap_bytes() + vt.heap_bytes()) as f64 / samples;
     let report = serde_json::json!({
@@ -223,6 +224,11 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "resident_bytes_per_sample": resident,
         "tessellator_bytes": tess.heap_bytes(),
         "vehicle_steps_per_second": vehicle_steps_per_second,
+        "wire_bytes_per_triangle_first": codec.first,
+        "wire_bytes_per_triangle_steady": codec.steady,
+        "encode_ns_per_triangle": codec.encode_ns,
+        "decode_ns_per_triangle": codec.decode_ns,
+        "codec_frames": codec.frames,
         "last_frame": {
             "evaluated": tess.stats().evaluated,
             "culled": tess.stats().culled,
@@ -240,4 +246,74 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// The mesh codec over a drive: the first frame's size, then each frame coded against the
+/// one before (as a viewer acknowledging every frame sees it).
+struct CodecFigures {
+    frames: usize,
+    /// Bytes per triangle of the key frame, and the median of the delta frames.
+    first: f64,
+    steady: f64,
+    /// Median time per triangle to encode, and to decode and build the mesh.
+    encode_ns: f64,
+    decode_ns: f64,
+}
+
+fn codec_bench(
+    terrain: &std::sync::Arc<Terrain>,
+    vt: &VarianceTree,
+    limits: Limits,
+) -> Result<CodecFigures> {
+    use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder, mesh};
+    let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
+    let cameras = flyover::drive(terrain, &script, 60);
+    let grid = Grid::new(terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
+    let (mut enc, mut dec) = (MeshEncoder::new(grid), MeshDecoder::new(grid));
+    let mut tess = Tessellator::new(terrain.heights.side());
+    let (mut server_mesh, mut viewer_mesh) = (Mesh::default(), mesh::Mesh::default());
+    let (mut split, mut decoded) = (BitSet::default(), BitSet::default());
+    let mut base: Option<BitSet> = None;
+    let (mut bytes, mut encode_ns, mut decode_ns) = (vec![], vec![], vec![]);
+    let mut payload = Vec::new();
+    for cam in &cameras {
+        tess.tessellate(
+            &terrain.heights,
+            vt,
+            scales(terrain),
+            cam,
+            limits,
+            &mut server_mesh,
+        );
+        let tris = server_mesh.triangle_count().max(1) as f64;
+        split.reset(grid.vertices());
+        for (x, z) in tess.split_diamonds() {
+            split.insert(grid.index(x, z));
+        }
+        payload.clear();
+        let started = Instant::now();
+        enc.encode(
+            &split,
+            terrain.heights.samples(),
+            base.as_ref(),
+            &mut payload,
+        )?;
+        encode_ns.push(started.elapsed().as_nanos() as f64 / tris);
+        let started = Instant::now();
+        dec.decode(&payload, base.as_ref(), u32::MAX, &mut decoded)?;
+        mesh::emit(&grid, &decoded, dec.heights(), &mut viewer_mesh);
+        decode_ns.push(started.elapsed().as_nanos() as f64 / tris);
+        if decoded != split || viewer_mesh.indices != server_mesh.indices {
+            bail!("the decoded mesh differs from the server's: a codec bug");
+        }
+        bytes.push(payload.len() as f64 / tris);
+        base = Some(split.clone());
+    }
+    Ok(CodecFigures {
+        frames: cameras.len(),
+        first: bytes.first().copied().unwrap_or(0.0),
+        steady: quantile(bytes.get(1..).unwrap_or(&[]), 0.5),
+        encode_ns: quantile(&encode_ns, 0.5),
+        decode_ns: quantile(&decode_ns, 0.5),
+    })
 }

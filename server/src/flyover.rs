@@ -48,6 +48,49 @@ pub fn quantile(values: &[f64], q: f64) -> f64 {
     v[rank - 1]
 }
 
+/// The drive of the codec figures: a vehicle from the map's start, throttle, turns both
+/// ways, a stretch of coasting.
+pub const DRIVE_SCRIPT: &str = "150 U\n120 UL\n100 U\n120 UR\n60 -\n";
+
+/// Cameras at the vehicle of `script` (one driving from the map's start), `fps` frames a
+/// second: the eye at the vehicle's altitude, looking along its heading at
+/// [`PITCH_DEG`]. A frame shows the world at the latest tick it has reached.
+pub fn drive(
+    terrain: &std::sync::Arc<Terrain>,
+    script: &crate::script::Script,
+    fps: u32,
+) -> Vec<Camera> {
+    use crate::physics::STEPS_PER_SECOND;
+    use crate::world::{self, Inputs, World};
+    let mut w = World::new(terrain.clone());
+    w.add(0, world::start_state(terrain, 0))
+        .expect("the map's start is on the map");
+    let mut inputs = Inputs::new();
+    let mut cameras = Vec::new();
+    let camera = |w: &World| {
+        let s = w.vehicles()[0].state;
+        Camera {
+            eye: [s.x, w.altitude(&s), s.z],
+            yaw_deg: s.heading,
+            pitch_deg: PITCH_DEG,
+            fov_y_deg: FOV_Y_DEG,
+            width: WIDTH,
+            height: HEIGHT,
+        }
+    };
+    cameras.push(camera(&w));
+    for keys in script.keys() {
+        inputs.set(0, keys);
+        world::step(&mut w, &inputs);
+        // Frame k is due at tick k · STEPS_PER_SECOND / fps.
+        let frames_due = w.tick() * u64::from(fps) / u64::from(STEPS_PER_SECOND);
+        if frames_due >= cameras.len() as u64 {
+            cameras.push(camera(&w));
+        }
+    }
+    cameras
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

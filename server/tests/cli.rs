@@ -386,6 +386,10 @@ fn bench_json() {
         "screen_error_px_p99",
         "resident_bytes_per_sample",
         "vehicle_steps_per_second",
+        "wire_bytes_per_triangle_first",
+        "wire_bytes_per_triangle_steady",
+        "encode_ns_per_triangle",
+        "decode_ns_per_triangle",
     ];
     for (args, frames, budget) in [
         (

@@ -1,0 +1,157 @@
+//! `cargo bench -p roam-protocol --bench fuzz`: a million inputs at every decoder (random
+//! bytes, and valid encodings with bytes flipped, cut or extended), which must each give a
+//! value or an error: no panic, no allocation beyond the limits. Prints one JSON object.
+
+use std::time::Instant;
+
+use roam_protocol::messages::{
+    self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
+};
+use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder};
+
+/// SplitMix64: a seeded, portable generator.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    fn below(&mut self, n: usize) -> usize {
+        (self.next() % n.max(1) as u64) as usize
+    }
+}
+
+/// Valid encodings to mutate: messages of every kind and a few meshes.
+fn seeds(grid: Grid) -> Vec<Vec<u8>> {
+    let mut out = Vec::new();
+    let mut push = |f: &dyn Fn(&mut Vec<u8>)| {
+        let mut b = Vec::new();
+        f(&mut b);
+        out.push(b);
+    };
+    let hello = ClientMessage::Hello(Hello {
+        version: 1,
+        role: Role::Driver,
+        token: "token".into(),
+        viewport: [1280, 720],
+        fov_y_deg: 60.0,
+        budget: 65_536,
+        frame_rate: 60,
+    });
+    push(&|b| messages::encode(&hello, b).expect("encodes"));
+    push(&|b| messages::encode(&ClientMessage::Ack { frame: 99 }, b).expect("encodes"));
+    push(&|b| {
+        let m = ServerMessage::ColorMap {
+            offset: 0,
+            data: vec![1; 64],
+        };
+        messages::encode(&m, b).expect("encodes")
+    });
+    push(&|b| {
+        let f = Frame {
+            frame: 3,
+            base: Some(2),
+            tick: 77,
+            vehicles: vec![VehicleView {
+                id: 1,
+                x: 1.0,
+                z: 2.0,
+                y: 3.0,
+                speed: 4.0,
+                heading: 5.0,
+            }],
+            mesh: vec![9; 40],
+        };
+        messages::encode(&f, b).expect("encodes")
+    });
+    push(&|b| {
+        let k = KeyDatagram {
+            states: vec![
+                KeyState {
+                    seq: 5,
+                    held: 3,
+                    pressed: 1
+                };
+                4
+            ],
+        };
+        messages::encode(&k, b).expect("encodes")
+    });
+    let heights: Vec<u16> = (0..grid.vertices() as u32)
+        .map(|i| (i * 7919 % 60_000) as u16)
+        .collect();
+    for n in [3u32, 40, 400] {
+        let mut set = BitSet::new(grid.vertices());
+        let mut rng = Rng(u64::from(n));
+        for _ in 0..n {
+            let (x, z) = (
+                rng.below(grid.side() as usize) as u32,
+                rng.below(grid.side() as usize) as u32,
+            );
+            grid.split_closed(&mut set, x, z);
+        }
+        let mut b = Vec::new();
+        MeshEncoder::new(grid)
+            .encode(&set, &heights, None, &mut b)
+            .expect("encodes");
+        out.push(b);
+    }
+    out
+}
+
+fn main() {
+    const INPUTS: usize = 1_000_000;
+    let grid = Grid::new(6).expect("valid");
+    let seeds = seeds(grid);
+    let mut rng = Rng(1);
+    let mut dec = MeshDecoder::new(grid);
+    let base = BitSet::new(grid.vertices());
+    let mut got = BitSet::default();
+    let (mut ok, mut err) = (0u64, 0u64);
+    let mut input = Vec::new();
+    let started = Instant::now();
+    for n in 0..INPUTS {
+        input.clear();
+        if n % 2 == 0 {
+            let len = rng.below(300);
+            input.extend((0..len).map(|_| rng.next() as u8));
+        } else {
+            input.extend_from_slice(&seeds[rng.below(seeds.len())]);
+            for _ in 0..1 + rng.below(4) {
+                match rng.below(3) {
+                    0 if !input.is_empty() => {
+                        let i = rng.below(input.len());
+                        input[i] ^= 1 << rng.below(8);
+                    }
+                    1 => input.truncate(rng.below(input.len() + 1)),
+                    _ => input.push(rng.next() as u8),
+                }
+            }
+        }
+        let results = [
+            messages::decode::<ClientMessage>(&input).is_ok(),
+            messages::decode::<ServerMessage>(&input).is_ok(),
+            messages::decode::<Frame>(&input).is_ok(),
+            messages::decode::<KeyDatagram>(&input).is_ok(),
+            dec.decode(&input, None, 100_000, &mut got).is_ok(),
+            dec.decode(&input, Some(&base), 100_000, &mut got).is_ok(),
+        ];
+        for r in results {
+            if r {
+                ok += 1;
+            } else {
+                err += 1;
+            }
+        }
+    }
+    let secs = started.elapsed().as_secs_f64();
+    println!(
+        "{{\"inputs\":{INPUTS},\"decodes\":{},\"values\":{ok},\"errors\":{err},\"seconds\":{secs:.2},\"panics\":0}}",
+        ok + err
+    );
+}

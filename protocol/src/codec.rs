@@ -1,0 +1,441 @@
+//! The mesh codec: a split-only mesh as a cut of the bintree, with heights predicted and
+//! only residuals sent.
+//!
+//! A mesh is its set of split diamonds (see [`crate::bintree`]); vertex positions are
+//! implicit in the grid. The coder walks the bintree depth by depth from the root. At each
+//! depth the *candidates* are the diamonds all of whose parents are split (only they may
+//! be split); each costs one adaptively coded bit, split or not, whose context is its depth
+//! and whether the base frame had it split. A split diamond's centre is a new vertex: its
+//! height is predicted as the mean of its hypotenuse ends (coarser vertices, already
+//! known) and the residual is coded, unless the base frame had that diamond split, in which
+//! case the viewer already holds the height. The next depth's candidates are the children of
+//! this depth's split diamonds, each listed by its first parent (lowest index) once all its
+//! parents are split: both ends derive the same order with no sorting and no side
+//! information.
+//!
+//! A **key frame** codes against nothing (and carries the four corner heights); a **delta
+//! frame** codes against a base split set the viewer has decoded and acknowledged. Heights
+//! are terrain, so they never change: a viewer keeps every height it decoded, and a frame
+//! that fails (lost, abandoned, corrupt) is simply not a base for later ones. Every frame
+//! carries a check over its split diamonds and heights, so a frame decoded against the wrong
+//! base is detected rather than shown.
+//!
+//! # Payload
+//!
+//! ```text
+//! format    u8   1
+//! levels    u8   N (side 2^N + 1)
+//! flags     u8   bit 0: a delta frame
+//! reserved  u8   0
+//! triangles u32
+//! splits    u32
+//! check     u64  (BLAKE3 over the corners' heights and every split diamond's index and
+//!                height, in coding order)
+//! corners   4 × u16, key frames only
+//! body      range-coded bits (see `range`)
+//! ```
+
+use crate::bintree::{BitSet, Grid};
+use crate::range::{self, Prob};
+
+/// The payload format this code writes and reads.
+pub const FORMAT: u8 = 1;
+const HEADER: usize = 20;
+const DEPTHS: usize = 2 * crate::bintree::MAX_LEVELS as usize;
+/// Height residual contexts: one per depth.
+const CONTEXTS: usize = DEPTHS;
+
+/// Why a mesh could not be encoded (a caller bug: the input is not a mesh of this grid).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum EncodeError {
+    #[error("{got} heights for a grid of {expected} vertices")]
+    Heights { got: usize, expected: usize },
+    #[error(
+        "the split set is not closed under parent: {unreached} split diamonds have an unsplit parent"
+    )]
+    NotConforming { unreached: usize },
+}
+
+/// Why a payload could not be decoded. The frame is to be dropped (and a key frame asked
+/// for); nothing of it is shown.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum DecodeError {
+    #[error("mesh payload of {0} bytes: shorter than its header")]
+    Short(usize),
+    #[error("mesh format {0}; this build reads format {FORMAT}")]
+    Format(u8),
+    #[error("mesh for a grid of 2^{got} + 1, expected 2^{expected} + 1")]
+    Grid { got: u8, expected: u32 },
+    #[error("a delta frame without its base, or a key frame given one")]
+    Base,
+    #[error("{declared} triangles declared, more than the {limit} allowed")]
+    TooBig { declared: u32, limit: u32 },
+    #[error("the coded mesh is corrupt: {0}")]
+    Corrupt(&'static str),
+    #[error("the decoded mesh does not match its check (coded against another base?)")]
+    Check,
+}
+
+/// Adaptive probabilities of one frame.
+struct Models {
+    split: [[Prob; 2]; DEPTHS],
+    zero: [Prob; CONTEXTS],
+    sign: [Prob; CONTEXTS],
+    /// Bit length of the residual's magnitude, minus one (0 ..= 16): a 5-bit tree.
+    class: [[Prob; 32]; CONTEXTS],
+    /// The bit below the leading one, per context and class.
+    second: [[Prob; 18]; CONTEXTS],
+}
+
+impl Models {
+    fn new() -> Box<Models> {
+        Box::new(Models {
+            split: [[Prob::default(); 2]; DEPTHS],
+            zero: [Prob::default(); CONTEXTS],
+            sign: [Prob::default(); CONTEXTS],
+            class: [[Prob::default(); 32]; CONTEXTS],
+            second: [[Prob::default(); 18]; CONTEXTS],
+        })
+    }
+
+    fn reset(&mut self) {
+        *self = *Models::new();
+    }
+}
+
+/// The predicted height of a new vertex: the mean of its hypotenuse ends, rounded up.
+#[inline]
+fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32) -> i32 {
+    let [(ax, az), (bx, bz)] = grid.hypotenuse(x, z);
+    let h = |x, z| i32::from(heights[grid.index(x, z) as usize]);
+    (h(ax, az) + h(bx, bz) + 1) >> 1
+}
+
+/// The candidates of depth 0: the root alone.
+fn start_at_root(grid: &Grid, list: &mut Vec<u32>) {
+    let (x, z) = grid.root();
+    list.clear();
+    list.push(grid.index(x, z));
+}
+
+/// The candidates of the next depth: children of this depth's split diamonds, each listed
+/// by its lowest-index parent once all its parents are split.
+fn next_candidates(grid: &Grid, list: &[u32], split: &BitSet, next: &mut Vec<u32>) {
+    next.clear();
+    for &i in list {
+        if !split.contains(i) {
+            continue;
+        }
+        let (x, z) = grid.coords(i);
+        for (cx, cz) in grid.children(x, z).into_iter().flatten() {
+            let mut owner = u32::MAX;
+            let mut all = true;
+            for (px, pz) in grid.parents(cx, cz).into_iter().flatten() {
+                let p = grid.index(px, pz);
+                owner = owner.min(p);
+                all &= split.contains(p);
+            }
+            if all && owner == i {
+                next.push(grid.index(cx, cz));
+            }
+        }
+    }
+}
+
+fn check_hasher(grid: &Grid, heights: &[u16]) -> blake3::Hasher {
+    let mut h = blake3::Hasher::new();
+    for (x, z) in grid.corners() {
+        h.update(&heights[grid.index(x, z) as usize].to_le_bytes());
+    }
+    h
+}
+
+fn check_value(h: &blake3::Hasher) -> u64 {
+    let mut b = [0u8; 8];
+    b.copy_from_slice(&h.finalize().as_bytes()[..8]);
+    u64::from_le_bytes(b)
+}
+
+/// Triangles a split adds: two, or one for a rotated diamond on the map's edge (one
+/// triangle, one parent).
+fn added(grid: &Grid, x: u32, z: u32) -> u32 {
+    if grid.classify(x, z).1 {
+        2
+    } else {
+        grid.parents(x, z).iter().flatten().count() as u32
+    }
+}
+
+/// Encodes meshes of one grid, reusing its buffers.
+pub struct MeshEncoder {
+    grid: Grid,
+    models: Box<Models>,
+    list: Vec<u32>,
+    next: Vec<u32>,
+}
+
+impl MeshEncoder {
+    pub fn new(grid: Grid) -> MeshEncoder {
+        MeshEncoder {
+            grid,
+            models: Models::new(),
+            list: Vec::new(),
+            next: Vec::new(),
+        }
+    }
+
+    /// Appends to `out` the mesh whose split diamonds are `split`, with heights from the
+    /// full row-major heightfield `heights`; against `base` (a split set the viewer holds)
+    /// when given, else as a key frame.
+    pub fn encode(
+        &mut self,
+        split: &BitSet,
+        heights: &[u16],
+        base: Option<&BitSet>,
+        out: &mut Vec<u8>,
+    ) -> Result<(), EncodeError> {
+        let grid = self.grid;
+        if heights.len() != grid.vertices() {
+            return Err(EncodeError::Heights {
+                got: heights.len(),
+                expected: grid.vertices(),
+            });
+        }
+        self.models.reset();
+        let m = &mut *self.models;
+        let start = out.len();
+        out.resize(start + HEADER, 0);
+        if base.is_none() {
+            for (x, z) in grid.corners() {
+                out.extend_from_slice(&heights[grid.index(x, z) as usize].to_le_bytes());
+            }
+        }
+        let mut check = check_hasher(&grid, heights);
+        let mut rc = range::Encoder::new(std::mem::take(out));
+        let (mut splits, mut triangles) = (0u32, 2u32);
+        start_at_root(&grid, &mut self.list);
+        for depth in 0..grid.depths() as usize {
+            for &i in &self.list {
+                let is_split = split.contains(i);
+                let in_base = base.is_some_and(|b| b.contains(i));
+                rc.bit(&mut m.split[depth][usize::from(in_base)], is_split);
+                if !is_split {
+                    continue;
+                }
+                let (x, z) = grid.coords(i);
+                splits += 1;
+                triangles += added(&grid, x, z);
+                let h = heights[i as usize];
+                check.update(&i.to_le_bytes());
+                check.update(&h.to_le_bytes());
+                if !in_base {
+                    let r = i32::from(h) - predict(&grid, heights, x, z);
+                    encode_residual(&mut rc, m, depth, r);
+                }
+            }
+            next_candidates(&grid, &self.list, split, &mut self.next);
+            std::mem::swap(&mut self.list, &mut self.next);
+        }
+        let total = split.len();
+        if total != splits as usize {
+            *out = rc.finish();
+            out.truncate(start);
+            return Err(EncodeError::NotConforming {
+                unreached: total - splits as usize,
+            });
+        }
+        *out = rc.finish();
+        let head = &mut out[start..start + HEADER];
+        head[0] = FORMAT;
+        head[1] = grid.levels() as u8;
+        head[2] = u8::from(base.is_some());
+        head[4..8].copy_from_slice(&triangles.to_le_bytes());
+        head[8..12].copy_from_slice(&splits.to_le_bytes());
+        head[12..20].copy_from_slice(&check_value(&check).to_le_bytes());
+        Ok(())
+    }
+}
+
+fn encode_residual(rc: &mut range::Encoder, m: &mut Models, ctx: usize, r: i32) {
+    rc.bit(&mut m.zero[ctx], r == 0);
+    if r == 0 {
+        return;
+    }
+    rc.bit(&mut m.sign[ctx], r < 0);
+    let mag = r.unsigned_abs();
+    let class = 31 - mag.leading_zeros(); // bit length − 1, 0 ..= 16
+    rc.tree(&mut m.class[ctx], class, 5);
+    if class >= 1 {
+        rc.bit(
+            &mut m.second[ctx][class as usize],
+            mag >> (class - 1) & 1 != 0,
+        );
+        rc.direct(mag, class - 1);
+    }
+}
+
+fn decode_residual(rc: &mut range::Decoder, m: &mut Models, ctx: usize) -> Option<i32> {
+    if rc.bit(&mut m.zero[ctx]) {
+        return Some(0);
+    }
+    let negative = rc.bit(&mut m.sign[ctx]);
+    let class = rc.tree(&mut m.class[ctx], 5);
+    if class > 16 {
+        return None;
+    }
+    let mut mag = 1u32 << class;
+    if class >= 1 {
+        let second = rc.bit(&mut m.second[ctx][class as usize]);
+        mag |= u32::from(second) << (class - 1);
+        mag |= rc.direct(class - 1) & ((1 << (class - 1)) - 1);
+    }
+    let r = mag as i32;
+    Some(if negative { -r } else { r })
+}
+
+/// What a decoded frame holds besides its split set.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Decoded {
+    pub triangles: u32,
+    pub splits: u32,
+    /// A key frame (no base).
+    pub key: bool,
+}
+
+/// Decodes meshes of one grid, keeping every height it has decoded.
+pub struct MeshDecoder {
+    grid: Grid,
+    models: Box<Models>,
+    list: Vec<u32>,
+    next: Vec<u32>,
+    heights: Vec<u16>,
+}
+
+impl MeshDecoder {
+    pub fn new(grid: Grid) -> MeshDecoder {
+        MeshDecoder {
+            grid,
+            models: Models::new(),
+            list: Vec::new(),
+            next: Vec::new(),
+            heights: vec![0; grid.vertices()],
+        }
+    }
+
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    /// Heights of every vertex decoded so far (row-major; others are 0).
+    pub fn heights(&self) -> &[u16] {
+        &self.heights
+    }
+
+    /// Decodes `payload` into `split` (a key frame, or a delta against `base`). Refuses
+    /// meshes of more than `max_triangles`. On error, `split` holds nothing usable and the
+    /// frame is to be dropped.
+    pub fn decode(
+        &mut self,
+        payload: &[u8],
+        base: Option<&BitSet>,
+        max_triangles: u32,
+        split: &mut BitSet,
+    ) -> Result<Decoded, DecodeError> {
+        let grid = self.grid;
+        if payload.len() < HEADER {
+            return Err(DecodeError::Short(payload.len()));
+        }
+        let u32_at = |at: usize| {
+            u32::from_le_bytes([
+                payload[at],
+                payload[at + 1],
+                payload[at + 2],
+                payload[at + 3],
+            ])
+        };
+        if payload[0] != FORMAT {
+            return Err(DecodeError::Format(payload[0]));
+        }
+        if u32::from(payload[1]) != grid.levels() {
+            return Err(DecodeError::Grid {
+                got: payload[1],
+                expected: grid.levels(),
+            });
+        }
+        let delta = payload[2] & 1 != 0;
+        if payload[2] > 1 || payload[3] != 0 {
+            return Err(DecodeError::Corrupt("unknown flags"));
+        }
+        if delta != base.is_some() {
+            return Err(DecodeError::Base);
+        }
+        let (declared_triangles, declared_splits) = (u32_at(4), u32_at(8));
+        let declared_check = u64::from_le_bytes(payload[12..20].try_into().expect("8 bytes"));
+        if declared_triangles > max_triangles {
+            return Err(DecodeError::TooBig {
+                declared: declared_triangles,
+                limit: max_triangles,
+            });
+        }
+        let mut body = &payload[HEADER..];
+        if !delta {
+            let Some((corners, rest)) = body.split_at_checked(8) else {
+                return Err(DecodeError::Short(payload.len()));
+            };
+            for (k, (x, z)) in grid.corners().into_iter().enumerate() {
+                self.heights[grid.index(x, z) as usize] =
+                    u16::from_le_bytes([corners[2 * k], corners[2 * k + 1]]);
+            }
+            body = rest;
+        }
+        let mut check = check_hasher(&grid, &self.heights);
+        self.models.reset();
+        let m = &mut *self.models;
+        let mut rc = range::Decoder::new(body);
+        split.reset(grid.vertices());
+        let (mut splits, mut triangles) = (0u32, 2u32);
+        start_at_root(&grid, &mut self.list);
+        for depth in 0..grid.depths() as usize {
+            for &i in &self.list {
+                let in_base = base.is_some_and(|b| b.contains(i));
+                if !rc.bit(&mut m.split[depth][usize::from(in_base)]) {
+                    continue;
+                }
+                let (x, z) = grid.coords(i);
+                splits += 1;
+                triangles += added(&grid, x, z);
+                if splits > declared_splits || triangles > declared_triangles {
+                    return Err(DecodeError::Corrupt("more splits than declared"));
+                }
+                split.insert(i);
+                if !in_base {
+                    let r = decode_residual(&mut rc, m, depth)
+                        .ok_or(DecodeError::Corrupt("a residual out of range"))?;
+                    let h = predict(&grid, &self.heights, x, z) + r;
+                    self.heights[i as usize] = u16::try_from(h)
+                        .map_err(|_| DecodeError::Corrupt("a height out of range"))?;
+                }
+                check.update(&i.to_le_bytes());
+                check.update(&self.heights[i as usize].to_le_bytes());
+            }
+            if rc.failed() {
+                return Err(DecodeError::Corrupt(
+                    "the coded bits end early or are not ours",
+                ));
+            }
+            next_candidates(&grid, &self.list, split, &mut self.next);
+            std::mem::swap(&mut self.list, &mut self.next);
+        }
+        if splits != declared_splits || triangles != declared_triangles {
+            return Err(DecodeError::Corrupt("fewer splits than declared"));
+        }
+        if check_value(&check) != declared_check {
+            return Err(DecodeError::Check);
+        }
+        Ok(Decoded {
+            triangles,
+            splits,
+            key: !delta,
+        })
+    }
+}

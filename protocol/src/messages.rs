@@ -1,0 +1,250 @@
+//! The messages between a roam server and its viewers, and their byte encoding (bincode 2
+//! over serde, standard configuration: little-endian varints).
+//!
+//! Where they travel (see `DESIGN.md`):
+//!
+//! - the **control stream** (reliable, ordered, one per connection): [`ClientMessage`]s one
+//!   way, [`ServerMessage`]s the other, each preceded by its length as a `u32`;
+//! - **key-state datagrams** ([`KeyDatagram`]): the latest key states, repeated, so a lost
+//!   datagram costs nothing and a transient press survives;
+//! - **one unidirectional stream per frame** ([`Frame`]), abandoned (reset) when a newer
+//!   frame is ready first.
+//!
+//! Every decode has a byte limit: a length or count that claims more than the limit is an
+//! error before anything is allocated, and bytes left over after a message are an error.
+
+use serde::de::DeserializeOwned;
+use serde::{Deserialize, Serialize};
+
+/// The protocol version this code speaks.
+pub const VERSION: u16 = 1;
+/// The largest message (a frame with its mesh, or a colour-map chunk).
+pub const MAX_MESSAGE: usize = 16 << 20;
+/// The largest key datagram.
+pub const MAX_DATAGRAM: usize = 256;
+/// Longest join token, bytes.
+pub const MAX_TOKEN: usize = 128;
+/// Key states a datagram repeats.
+pub const KEY_HISTORY: usize = 8;
+
+/// What a viewer does.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Role {
+    /// Drives a vehicle of its own.
+    Driver,
+    /// Watches: follows vehicle `follow`, or the first one when `None`.
+    Spectator { follow: Option<u16> },
+}
+
+/// The viewer's first message.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Hello {
+    pub version: u16,
+    pub role: Role,
+    /// The join token the server printed.
+    pub token: String,
+    /// Viewport in pixels, width and height.
+    pub viewport: [u32; 2],
+    /// Vertical field of view, degrees.
+    pub fov_y_deg: f32,
+    /// Most triangles per frame.
+    pub budget: u32,
+    /// Frames per second wanted.
+    pub frame_rate: u16,
+}
+
+/// The server's answer to a welcome viewer: the terrain's shape and look, and its vehicle.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Welcome {
+    pub version: u16,
+    /// The grid is `2^levels + 1` samples on a side.
+    pub levels: u8,
+    /// World units between samples, and per sample step.
+    pub h_scale: f64,
+    pub v_scale: f64,
+    /// Towards the sun (unit), and its colour.
+    pub sun_dir: [f32; 3],
+    pub sun_color: [u8; 3],
+    pub fog_density: f32,
+    pub fog_color: [u8; 3],
+    pub water_level: Option<f32>,
+    /// The vehicle this viewer drives or follows.
+    pub vehicle: u16,
+    /// The colour map, sent next as [`ServerMessage::ColorMap`] chunks: `cells × cells`
+    /// RGB texels, `bytes` compressed bytes in all.
+    pub color_cells: u32,
+    pub color_bytes: u32,
+    /// The world's tick when the viewer joined.
+    pub tick: u64,
+}
+
+/// Why a connection ends or is refused.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Reason {
+    WrongToken,
+    /// The other side speaks another protocol version.
+    Version {
+        server: u16,
+    },
+    /// The server is shutting down.
+    Shutdown,
+    /// The viewer quit.
+    Quit,
+    /// The viewer sent something that is not the protocol.
+    Protocol(String),
+    /// No vehicle to follow, or no room.
+    Unavailable(String),
+}
+
+/// Viewer to server, on the control stream.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ClientMessage {
+    Hello(Hello),
+    /// A new triangle budget (`+` / `−`).
+    Budget(u32),
+    /// Frame `frame` decoded: the server may code later frames against it.
+    Ack {
+        frame: u64,
+    },
+    /// A frame failed to decode: send a key frame.
+    KeyFrame,
+    Bye(Reason),
+}
+
+/// Server to viewer, on the control stream.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum ServerMessage {
+    Welcome(Welcome),
+    /// Part of the compressed colour map, at byte `offset`.
+    ColorMap {
+        offset: u32,
+        data: Vec<u8>,
+    },
+    Refused(Reason),
+    Bye(Reason),
+}
+
+/// A vehicle as the viewer sees it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct VehicleView {
+    pub id: u16,
+    pub x: f64,
+    pub z: f64,
+    /// Altitude (ground plus 2).
+    pub y: f64,
+    pub speed: f64,
+    pub heading: f64,
+}
+
+/// One frame, on a stream of its own.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Frame {
+    /// Rises by one per frame sent to this viewer.
+    pub frame: u64,
+    /// The acknowledged frame the mesh is coded against; `None` for a key frame.
+    pub base: Option<u64>,
+    /// The world tick the frame shows.
+    pub tick: u64,
+    pub vehicles: Vec<VehicleView>,
+    /// The mesh, in the codec's format ([`crate::codec`]).
+    pub mesh: Vec<u8>,
+}
+
+/// One key state: the keys held, and those pressed since the previous state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct KeyState {
+    /// Rises by one per state the viewer samples.
+    pub seq: u32,
+    /// Bits: Up, Down, Left, Right.
+    pub held: u8,
+    pub pressed: u8,
+}
+
+/// The viewer's latest key states, newest first, at most [`KEY_HISTORY`].
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct KeyDatagram {
+    pub states: Vec<KeyState>,
+}
+
+/// Why bytes are not a message.
+#[derive(Debug, thiserror::Error)]
+pub enum DecodeError {
+    #[error("{0}")]
+    Bincode(#[from] bincode::error::DecodeError),
+    #[error("{extra} bytes after the message")]
+    Trailing { extra: usize },
+    #[error("{what}: {got}, at most {limit}")]
+    TooLong {
+        what: &'static str,
+        got: usize,
+        limit: usize,
+    },
+}
+
+/// Why a message could not be encoded.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct EncodeError(#[from] bincode::error::EncodeError);
+
+fn config() -> impl bincode::config::Config {
+    bincode::config::standard().with_limit::<MAX_MESSAGE>()
+}
+
+/// Appends `msg` to `out`.
+pub fn encode<T: Serialize>(msg: &T, out: &mut Vec<u8>) -> Result<(), EncodeError> {
+    bincode::serde::encode_into_std_write(msg, out, config())?;
+    Ok(())
+}
+
+/// Decodes a whole message from `bytes` (nothing may follow it).
+pub fn decode<T: DeserializeOwned + Checked>(bytes: &[u8]) -> Result<T, DecodeError> {
+    at_most("message bytes", bytes.len(), T::MAX_BYTES)?;
+    let (msg, used): (T, usize) = bincode::serde::decode_from_slice(bytes, config())?;
+    if used != bytes.len() {
+        return Err(DecodeError::Trailing {
+            extra: bytes.len() - used,
+        });
+    }
+    msg.check()?;
+    Ok(msg)
+}
+
+/// Limits a decoded message must also meet.
+pub trait Checked {
+    /// The longest encoding accepted.
+    const MAX_BYTES: usize = MAX_MESSAGE;
+
+    fn check(&self) -> Result<(), DecodeError> {
+        Ok(())
+    }
+}
+
+fn at_most(what: &'static str, got: usize, limit: usize) -> Result<(), DecodeError> {
+    if got > limit {
+        return Err(DecodeError::TooLong { what, got, limit });
+    }
+    Ok(())
+}
+
+impl Checked for ClientMessage {
+    fn check(&self) -> Result<(), DecodeError> {
+        match self {
+            ClientMessage::Hello(h) => at_most("join token bytes", h.token.len(), MAX_TOKEN),
+            ClientMessage::Bye(Reason::Protocol(s) | Reason::Unavailable(s)) => {
+                at_most("reason bytes", s.len(), 1024)
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
+impl Checked for ServerMessage {}
+impl Checked for Frame {}
+
+impl Checked for KeyDatagram {
+    const MAX_BYTES: usize = MAX_DATAGRAM;
+
+    fn check(&self) -> Result<(), DecodeError> {
+        at_most("key states", self.states.len(), KEY_HISTORY)
+    }
+}
