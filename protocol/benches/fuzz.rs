@@ -65,6 +65,7 @@ fn seeds(grid: Grid) -> Vec<Vec<u8>> {
                 speed: 4.0,
                 heading: 5.0,
             }],
+            input_seq: None,
             mesh: vec![9; 40],
         };
         messages::encode(&f, b).expect("encodes")

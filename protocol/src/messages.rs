@@ -146,6 +146,8 @@ pub struct Frame {
     /// The world tick the frame shows.
     pub tick: u64,
     pub vehicles: Vec<VehicleView>,
+    /// The newest key state of this viewer the world had applied by `tick` (drivers).
+    pub input_seq: Option<u32>,
     /// The mesh, in the codec's format ([`crate::codec`]).
     pub mesh: Vec<u8>,
 }

@@ -104,6 +104,7 @@ fn every_message_round_trips() {
             speed: 9.5,
             heading: 53.0,
         }],
+        input_seq: Some(41),
         mesh: (0..=255).collect(),
     });
     round_trip(&Frame {
@@ -111,6 +112,7 @@ fn every_message_round_trips() {
         base: None,
         tick: 0,
         vehicles: vec![],
+        input_seq: None,
         mesh: vec![],
     });
     round_trip(&KeyDatagram {

@@ -10,6 +10,7 @@ pub mod flyover;
 pub mod generate;
 pub mod heightfield;
 pub mod map;
+pub mod net;
 pub mod physics;
 pub mod pnm;
 pub mod queue;

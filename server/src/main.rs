@@ -10,6 +10,7 @@ macro_rules! say {
 }
 
 mod cmd_data;
+mod cmd_net;
 mod cmd_sim;
 mod cmd_tess;
 mod progress;
@@ -46,6 +47,8 @@ enum Command {
     Simulate(cmd_sim::SimulateArgs),
     /// Re-simulate a recording, checking every checkpoint; print the final states.
     Replay(cmd_sim::ReplayArgs),
+    /// Serve the terrain to viewers over QUIC, the world at 100 Hz; stop with Ctrl-C.
+    Serve(cmd_net::ServeArgs),
 }
 
 fn main() -> ExitCode {
@@ -58,6 +61,7 @@ fn main() -> ExitCode {
         Command::Bench(args) => cmd_tess::bench(args),
         Command::Simulate(args) => cmd_sim::simulate(args),
         Command::Replay(args) => cmd_sim::replay(args),
+        Command::Serve(args) => cmd_net::serve(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

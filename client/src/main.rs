@@ -1,0 +1,151 @@
+//! `roam-client`: the viewer's command line. Only the headless mode exists so far.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::{Context, Result, bail};
+use clap::Parser;
+use roam_client::headless::{self, ViewerOptions};
+use roam_protocol::messages::Role;
+use roam_server::net::{self, Options, Server, tls};
+
+#[derive(Parser)]
+#[command(
+    name = "roam-client",
+    version,
+    about = "View a roam server's terrain stream"
+)]
+struct Cli {
+    /// The server's address, `HOST:PORT`.
+    #[arg(long, required_unless_present = "local", conflicts_with = "local")]
+    connect: Option<SocketAddr>,
+    /// The join token the server printed.
+    #[arg(long, required_unless_present = "local")]
+    token: Option<String>,
+    /// The SHA-256 fingerprint of the server's certificate, as it printed it.
+    #[arg(long, required_unless_present = "local")]
+    fingerprint: Option<String>,
+    /// Start a server for this data set in this process, on loopback, instead of --connect.
+    #[arg(long)]
+    local: Option<PathBuf>,
+    /// Run without a window: decode and check every frame, then write stats.
+    #[arg(long)]
+    headless: bool,
+    /// Input script to drive with (the format of `roam-server simulate`).
+    #[arg(long)]
+    inputs: Option<PathBuf>,
+    /// Frames to receive per viewer.
+    #[arg(long, default_value_t = 300)]
+    frames: u64,
+    /// Triangle budget.
+    #[arg(long, default_value_t = 65_536)]
+    budget: u32,
+    /// Headless viewers to run in this process (a load generator), each driving its own
+    /// vehicle (all with the same script).
+    #[arg(long, default_value_t = 1)]
+    viewers: u32,
+    /// Watch instead of drive.
+    #[arg(long)]
+    spectate: bool,
+    /// Write the stats as JSON here (else to stdout).
+    #[arg(long)]
+    stats: Option<PathBuf>,
+}
+
+fn main() -> std::process::ExitCode {
+    match run(Cli::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(cli: Cli) -> Result<()> {
+    if !cli.headless {
+        bail!("the windowed viewer does not exist yet: add --headless");
+    }
+    let script = match &cli.inputs {
+        Some(path) => {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            Some(
+                roam_server::script::parse_bytes(&bytes)
+                    .with_context(|| path.display().to_string())?,
+            )
+        }
+        None => None,
+    };
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(async {
+        // An in-process server, or the one given.
+        let (server, addr, token, fingerprint) = match &cli.local {
+            Some(dir) => {
+                let terrain = roam_server::dataset::load(dir, &mut |_, _| {})?;
+                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                let vt = roam_server::variance::VarianceTree::build(
+                    &terrain.heights,
+                    threads,
+                    &mut |_, _| {},
+                );
+                let identity = tls::generate()?;
+                let token = net::random_token();
+                let server = Server::start(
+                    Arc::new(terrain),
+                    Arc::new(vt),
+                    &identity,
+                    Options {
+                        listen: "127.0.0.1:0".parse().expect("a valid address"),
+                        token: token.clone(),
+                        record: None,
+                    },
+                )?;
+                let fp = tls::parse_fingerprint(&identity.fingerprint())?;
+                let addr = server.addr;
+                (Some(server), addr, token, fp)
+            }
+            None => {
+                let fp = tls::parse_fingerprint(cli.fingerprint.as_deref().unwrap_or_default())?;
+                (
+                    None,
+                    cli.connect
+                        .expect("clap requires --connect without --local"),
+                    cli.token.clone().unwrap_or_default(),
+                    fp,
+                )
+            }
+        };
+        let mut tasks = Vec::new();
+        for _ in 0..cli.viewers.max(1) {
+            let opts = ViewerOptions {
+                token: token.clone(),
+                role: if cli.spectate {
+                    Role::Spectator { follow: None }
+                } else {
+                    Role::Driver
+                },
+                budget: cli.budget,
+                frames: cli.frames,
+                inputs: script.clone(),
+                ..ViewerOptions::default()
+            };
+            tasks.push(tokio::spawn(headless::run(addr, fingerprint, opts)));
+        }
+        let mut all = Vec::new();
+        for t in tasks {
+            all.push(t.await.context("a viewer task")??);
+        }
+        if let Some(server) = server {
+            server.shutdown().await?;
+        }
+        let report = roam_client::stats::report(&all);
+        match &cli.stats {
+            Some(path) => std::fs::write(path, format!("{report:#}\n"))
+                .with_context(|| format!("writing {}", path.display()))?,
+            None => println!("{report:#}"),
+        }
+        Ok(())
+    })
+}

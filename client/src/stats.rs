@@ -1,0 +1,37 @@
+//! The stats a headless run writes (`--stats OUT.json`).
+
+use crate::headless::ViewerStats;
+
+fn quantile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return 0.0;
+    }
+    let mut v = v.to_vec();
+    v.sort_by(f64::total_cmp);
+    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
+    v[rank - 1]
+}
+
+/// The JSON report over every viewer of a run.
+pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
+    let all =
+        |f: &dyn Fn(&ViewerStats) -> Vec<f64>| -> Vec<f64> { viewers.iter().flat_map(f).collect() };
+    let frames: u64 = viewers.iter().map(|s| s.frames).sum();
+    let fps: Vec<f64> = viewers
+        .iter()
+        .map(|s| s.frames as f64 / s.seconds.max(1e-9))
+        .collect();
+    let latencies = all(&|s| s.latencies_ms.clone());
+    serde_json::json!({
+        "viewers": viewers.len(),
+        "frames": frames,
+        "frames_per_second": fps.iter().sum::<f64>() / fps.len().max(1) as f64,
+        "frames_per_second_min": fps.iter().copied().fold(f64::INFINITY, f64::min),
+        "wire_bytes_per_triangle_first": quantile(&all(&|s| s.first.into_iter().collect()), 0.5),
+        "wire_bytes_per_triangle_steady": quantile(&all(&|s| s.steady.clone()), 0.5),
+        "input_to_frame_ms_median": quantile(&latencies, 0.5),
+        "input_to_frame_ms_p99": quantile(&latencies, 0.99),
+        "decode_errors": viewers.iter().map(|s| s.decode_errors).sum::<u64>(),
+        "max_triangles": viewers.iter().map(|s| s.max_triangles).max().unwrap_or(0),
+    })
+}

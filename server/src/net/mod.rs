@@ -1,0 +1,175 @@
+//! The network shell: the only module that touches QUIC (quinn), an async runtime (tokio) or
+//! a clock for pacing. It turns traffic into the world thread's closed set of events
+//! ([`world_loop::Event`]), and snapshots of the world into frames for each viewer.
+//!
+//! ```text
+//! viewer ──hello/acks/budget (control stream)──► viewer task ──frames (a uni stream each)──► viewer
+//!        ──key datagrams──────────────────────► world thread (100 Hz) ──snapshot (latest)──┘
+//! ```
+
+pub mod tls;
+pub mod viewer;
+pub mod wire;
+pub mod world_loop;
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use tokio::sync::watch;
+
+use crate::Terrain;
+use crate::variance::VarianceTree;
+use world_loop::{Event, Snapshot};
+
+/// How to run a server.
+pub struct Options {
+    pub listen: SocketAddr,
+    /// The join token viewers must present.
+    pub token: String,
+    /// Where to record the session, if anywhere.
+    pub record: Option<PathBuf>,
+}
+
+/// What every connection task shares.
+pub struct Shared {
+    pub terrain: Arc<Terrain>,
+    pub variance: Arc<VarianceTree>,
+    pub token: String,
+    events: std::sync::mpsc::Sender<Event>,
+    snapshots: watch::Receiver<Arc<Snapshot>>,
+    shutdown: watch::Receiver<bool>,
+}
+
+impl Shared {
+    async fn shutting_down(&self) {
+        let mut rx = self.shutdown.clone();
+        let _ = rx.wait_for(|&s| s).await;
+    }
+}
+
+/// A running server.
+pub struct Server {
+    pub addr: SocketAddr,
+    snapshots: watch::Receiver<Arc<Snapshot>>,
+    endpoint: quinn::Endpoint,
+    stop: watch::Sender<bool>,
+    accept: tokio::task::JoinHandle<()>,
+    world: std::thread::JoinHandle<std::io::Result<crate::world::World>>,
+    events: Option<std::sync::mpsc::Sender<Event>>,
+}
+
+/// Why the server could not start or stop cleanly.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error("listening on {addr}: {error}")]
+    Listen {
+        addr: SocketAddr,
+        error: std::io::Error,
+    },
+    #[error(transparent)]
+    Tls(#[from] tls::TlsError),
+    #[error("the world thread: {0}")]
+    World(std::io::Error),
+    #[error("the world thread panicked")]
+    WorldPanicked,
+}
+
+impl Server {
+    /// Starts serving (on the current tokio runtime) and returns once it listens.
+    pub fn start(
+        terrain: Arc<Terrain>,
+        variance: Arc<VarianceTree>,
+        identity: &tls::Identity,
+        options: Options,
+    ) -> Result<Server, ServeError> {
+        let config = tls::server_config(identity)?;
+        let endpoint = quinn::Endpoint::server(config, options.listen).map_err(|error| {
+            ServeError::Listen {
+                addr: options.listen,
+                error,
+            }
+        })?;
+        let addr = endpoint.local_addr().map_err(|error| ServeError::Listen {
+            addr: options.listen,
+            error,
+        })?;
+        let (events, event_rx) = std::sync::mpsc::channel();
+        let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
+        let world = {
+            let terrain = terrain.clone();
+            let record = options.record.clone();
+            std::thread::Builder::new()
+                .name("roam-world".into())
+                .spawn(move || world_loop::run(terrain, record.as_deref(), event_rx, snap_tx))
+                .map_err(ServeError::World)?
+        };
+        let (stop, shutdown) = watch::channel(false);
+        let shared = Arc::new(Shared {
+            terrain,
+            variance,
+            token: options.token,
+            events: events.clone(),
+            snapshots: snapshots.clone(),
+            shutdown,
+        });
+        let accept = tokio::spawn(accept_loop(endpoint.clone(), shared));
+        Ok(Server {
+            addr,
+            snapshots,
+            endpoint,
+            stop,
+            accept,
+            world,
+            events: Some(events),
+        })
+    }
+
+    /// The world after its latest tick.
+    pub fn snapshot(&self) -> Arc<Snapshot> {
+        self.snapshots.borrow().clone()
+    }
+
+    /// Stops: viewers are told why, the world stops and its recording is closed. Returns
+    /// the final world.
+    pub async fn shutdown(mut self) -> Result<crate::world::World, ServeError> {
+        let _ = self.stop.send(true);
+        // Give viewer tasks a moment to say goodbye, then close what is left.
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        self.endpoint.close(
+            viewer::close::SHUTDOWN.into(),
+            b"the server is shutting down",
+        );
+        self.accept.abort();
+        let _ = self.accept.await;
+        self.endpoint.wait_idle().await;
+        // Every connection task has ended, so every other sender is gone with this one.
+        drop(self.events.take());
+        let world = tokio::task::spawn_blocking(move || self.world.join())
+            .await
+            .map_err(|_| ServeError::WorldPanicked)?
+            .map_err(|_| ServeError::WorldPanicked)?;
+        world.map_err(ServeError::World)
+    }
+}
+
+async fn accept_loop(endpoint: quinn::Endpoint, shared: Arc<Shared>) {
+    while let Some(incoming) = endpoint.accept().await {
+        let shared = shared.clone();
+        tokio::spawn(async move {
+            if let Ok(conn) = incoming.await {
+                viewer::serve(conn, shared).await;
+            }
+        });
+    }
+}
+
+/// A fresh random join token (16 hex digits).
+pub fn random_token() -> String {
+    use ring::rand::SecureRandom;
+    let mut bytes = [0u8; 8];
+    ring::rand::SystemRandom::new()
+        .fill(&mut bytes)
+        .expect("the system's random source works");
+    bytes.iter().map(|b| format!("{b:02x}")).collect()
+}

@@ -1,0 +1,399 @@
+//! One viewer's connection: the handshake, its key datagrams and control messages, and its
+//! frames, each tessellated for its own camera and sent on a stream of its own; a frame not
+//! yet delivered when the next is ready is abandoned (latest frame wins).
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use roam_protocol::messages::{
+    ClientMessage, Frame, KeyDatagram, Reason, Role, ServerMessage, VERSION, VehicleView, Welcome,
+};
+use roam_protocol::{BitSet, Grid, MeshEncoder};
+use tokio::sync::oneshot;
+
+use super::world_loop::{Event, Snapshot};
+use super::{Shared, wire};
+use crate::camera::Camera;
+use crate::tessellate::{Limits, Mesh, Scales, Tessellator};
+use crate::world::VehicleId;
+
+/// The most triangles a viewer may ask for.
+pub const MAX_BUDGET: u32 = 1 << 20;
+/// Frames kept as possible bases, per viewer.
+const BASES: usize = 16;
+/// Colour-map bytes per chunk.
+const CHUNK: usize = 64 << 10;
+
+/// What the viewer's control messages change.
+#[derive(Default)]
+struct Control {
+    budget: u32,
+    /// The newest frame the viewer decoded.
+    acked: Option<u64>,
+}
+
+/// The close codes a connection ends with.
+pub mod close {
+    pub const SHUTDOWN: u32 = 1;
+    pub const REFUSED: u32 = 2;
+    pub const PROTOCOL: u32 = 3;
+    pub const BYE: u32 = 4;
+}
+
+fn refuse(conn: &quinn::Connection, code: u32, why: &str) {
+    conn.close(code.into(), why.as_bytes());
+}
+
+/// Serves one connection to its end.
+pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
+    let accepted = tokio::time::timeout(Duration::from_secs(5), conn.accept_bi()).await;
+    let Ok(Ok((mut send, mut recv))) = accepted else {
+        refuse(&conn, close::PROTOCOL, "no control stream within 5 s");
+        return;
+    };
+    let hello = match tokio::time::timeout(
+        Duration::from_secs(5),
+        wire::read::<ClientMessage>(&mut recv, 4096),
+    )
+    .await
+    {
+        Ok(Ok(ClientMessage::Hello(h))) => h,
+        _ => {
+            refuse(&conn, close::PROTOCOL, "expected a hello");
+            return;
+        }
+    };
+    let reply = |reason: Reason| ServerMessage::Refused(reason);
+    if hello.version != VERSION {
+        let _ = wire::write(&mut send, &reply(Reason::Version { server: VERSION })).await;
+        refuse(&conn, close::REFUSED, "protocol version");
+        return;
+    }
+    if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
+        let _ = wire::write(&mut send, &reply(Reason::WrongToken)).await;
+        refuse(&conn, close::REFUSED, "wrong token");
+        return;
+    }
+    // A driver gets a vehicle; a spectator follows one.
+    let (vehicle, driver) = match hello.role {
+        Role::Driver => {
+            let (tx, rx) = oneshot::channel();
+            if shared.events.send(Event::Join { reply: tx }).is_err() {
+                refuse(&conn, close::SHUTDOWN, "shutting down");
+                return;
+            }
+            match rx.await {
+                Ok(id) => (id, true),
+                Err(_) => {
+                    refuse(&conn, close::SHUTDOWN, "shutting down");
+                    return;
+                }
+            }
+        }
+        Role::Spectator { follow } => {
+            let snap = shared.snapshots.borrow().clone();
+            let target = match follow {
+                Some(id) => snap.vehicles.iter().find(|v| v.id == id),
+                None => snap.vehicles.first(),
+            };
+            match target {
+                Some(v) => (v.id, false),
+                None => {
+                    let why = Reason::Unavailable("no vehicle to follow".into());
+                    let _ = wire::write(&mut send, &reply(why)).await;
+                    refuse(&conn, close::REFUSED, "no vehicle to follow");
+                    return;
+                }
+            }
+        }
+    };
+    let leave = Leave {
+        events: shared.events.clone(),
+        vehicle: driver.then_some(vehicle),
+    };
+    if welcome(&mut send, &shared, vehicle).await.is_err() {
+        return;
+    }
+    let control = Arc::new(Mutex::new(Control {
+        budget: hello.budget.clamp(2, MAX_BUDGET),
+        acked: None,
+    }));
+    let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
+    let ctl = tokio::spawn(read_control(recv, control.clone()));
+    let camera = Camera {
+        eye: [0.0; 3],
+        yaw_deg: 0.0,
+        pitch_deg: crate::flyover::PITCH_DEG,
+        fov_y_deg: f64::from(hello.fov_y_deg).clamp(1.0, 179.0),
+        width: hello.viewport[0].clamp(1, 16_384),
+        height: hello.viewport[1].clamp(1, 16_384),
+    };
+    let rate = hello.frame_rate.clamp(1, 240);
+    tokio::select! {
+        _ = frames(&conn, &shared, control, camera, rate, vehicle, driver) => {
+            let why = Reason::Unavailable("the vehicle followed has left".into());
+            let _ = wire::write(&mut send, &ServerMessage::Bye(why)).await;
+            conn.close(close::BYE.into(), b"the vehicle followed has left");
+        }
+        _ = ctl => conn.close(close::BYE.into(), b"bye"),
+        _ = conn.closed() => {}
+        _ = shared.shutting_down() => {
+            let _ = wire::write(&mut send, &ServerMessage::Bye(Reason::Shutdown)).await;
+            conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
+        }
+    }
+    keys.abort();
+    drop(leave);
+}
+
+/// Tells the world a driver left, however the connection ended.
+struct Leave {
+    events: std::sync::mpsc::Sender<Event>,
+    vehicle: Option<VehicleId>,
+}
+
+impl Drop for Leave {
+    fn drop(&mut self) {
+        if let Some(vehicle) = self.vehicle {
+            let _ = self.events.send(Event::Leave { vehicle });
+        }
+    }
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+async fn welcome(
+    send: &mut quinn::SendStream,
+    shared: &Shared,
+    vehicle: VehicleId,
+) -> Result<(), wire::WireError> {
+    let t = &shared.terrain;
+    let m = &t.map;
+    let rgb: Vec<u8> = t.color.rgb().iter().flatten().copied().collect();
+    let snap = shared.snapshots.borrow().clone();
+    let w = Welcome {
+        version: VERSION,
+        levels: t.heights.levels() as u8,
+        h_scale: m.h_scale,
+        v_scale: m.v_scale,
+        sun_dir: m.sun_dir.map(|v| v as f32),
+        sun_color: m.sun_color,
+        fog_density: m.fog_density as f32,
+        fog_color: m.fog_color,
+        water_level: m.water_level.map(|v| v as f32),
+        vehicle,
+        color_cells: t.color.cells(),
+        color_bytes: rgb.len() as u32,
+        tick: snap.tick,
+    };
+    wire::write(send, &ServerMessage::Welcome(w)).await?;
+    for (k, chunk) in rgb.chunks(CHUNK).enumerate() {
+        let msg = ServerMessage::ColorMap {
+            offset: (k * CHUNK) as u32,
+            data: chunk.to_vec(),
+        };
+        wire::write(send, &msg).await?;
+    }
+    Ok(())
+}
+
+/// Key datagrams to the world; anything that is not one is ignored.
+async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: VehicleId, driver: bool) {
+    while let Ok(bytes) = conn.read_datagram().await {
+        let Ok(d) = roam_protocol::messages::decode::<KeyDatagram>(&bytes) else {
+            continue;
+        };
+        if driver {
+            let _ = shared.events.send(Event::Keys {
+                vehicle,
+                states: d.states,
+            });
+        }
+    }
+}
+
+/// Control messages until the viewer says goodbye or sends something that is not one.
+async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Control>>) {
+    while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, 4096).await {
+        let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
+        match msg {
+            ClientMessage::Budget(b) => c.budget = b.clamp(2, MAX_BUDGET),
+            ClientMessage::Ack { frame } => c.acked = Some(c.acked.map_or(frame, |a| a.max(frame))),
+            ClientMessage::KeyFrame => c.acked = None,
+            ClientMessage::Bye(_) | ClientMessage::Hello(_) => return,
+        }
+    }
+}
+
+/// The viewer's tessellation state, moved to a blocking thread for each frame.
+struct Maker {
+    tess: Tessellator,
+    mesh: Mesh,
+    encoder: MeshEncoder,
+    grid: Grid,
+    bases: VecDeque<(u64, BitSet)>,
+}
+
+impl Maker {
+    /// Tessellates for `camera` and codes the mesh against the newest acknowledged base.
+    fn make(
+        &mut self,
+        shared: &Shared,
+        camera: &Camera,
+        budget: u32,
+        acked: Option<u64>,
+        frame: u64,
+    ) -> (Option<u64>, Vec<u8>) {
+        let t = &shared.terrain;
+        let scales = Scales {
+            h: t.map.h_scale,
+            v: t.map.v_scale,
+        };
+        let limits = Limits {
+            budget,
+            threshold_px: 0.0,
+        };
+        self.tess.tessellate(
+            &t.heights,
+            &shared.variance,
+            scales,
+            camera,
+            limits,
+            &mut self.mesh,
+        );
+        let mut split = BitSet::new(self.grid.vertices());
+        for (x, z) in self.tess.split_diamonds() {
+            split.insert(self.grid.index(x, z));
+        }
+        let base = acked.and_then(|a| self.bases.iter().find(|(f, _)| *f == a));
+        let mut payload = Vec::new();
+        self.encoder
+            .encode(
+                &split,
+                t.heights.samples(),
+                base.map(|(_, b)| b),
+                &mut payload,
+            )
+            .expect("the tessellator's meshes are conforming");
+        let base = base.map(|(f, _)| *f);
+        self.bases.push_back((frame, split));
+        if self.bases.len() > BASES {
+            self.bases.pop_front();
+        }
+        (base, payload)
+    }
+}
+
+async fn frames(
+    conn: &quinn::Connection,
+    shared: &Arc<Shared>,
+    control: Arc<Mutex<Control>>,
+    mut camera: Camera,
+    rate: u16,
+    vehicle: VehicleId,
+    driver: bool,
+) {
+    let grid = Grid::new(shared.terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
+    let mut maker = Some(Maker {
+        tess: Tessellator::new(shared.terrain.heights.side()),
+        mesh: Mesh::default(),
+        encoder: MeshEncoder::new(grid),
+        grid,
+        bases: VecDeque::new(),
+    });
+    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
+    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
+    let mut in_flight: Option<(oneshot::Sender<()>, tokio::task::JoinHandle<()>)> = None;
+    let mut seen = false;
+    let mut frame = 0u64;
+    loop {
+        interval.tick().await;
+        let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
+        let Some(v) = snap.vehicles.iter().find(|v| v.id == vehicle) else {
+            if seen {
+                return; // the followed vehicle left
+            }
+            continue; // a new driver's vehicle appears with the next tick
+        };
+        seen = true;
+        let w = crate::world::World::new(shared.terrain.clone());
+        camera.eye = [v.state.x, w.altitude(&v.state), v.state.z];
+        camera.yaw_deg = v.state.heading;
+        let (budget, acked) = {
+            let c = control.lock().unwrap_or_else(|e| e.into_inner());
+            (c.budget, c.acked)
+        };
+        let (mut m, shared2, cam) = (
+            maker.take().expect("put back below"),
+            shared.clone(),
+            camera,
+        );
+        let Ok((m, base, mesh)) = tokio::task::spawn_blocking(move || {
+            let (base, mesh) = m.make(&shared2, &cam, budget, acked, frame);
+            (m, base, mesh)
+        })
+        .await
+        else {
+            return;
+        };
+        maker = Some(m);
+        let msg = Frame {
+            frame,
+            base,
+            tick: snap.tick,
+            vehicles: snap
+                .vehicles
+                .iter()
+                .map(|v| VehicleView {
+                    id: v.id,
+                    x: v.state.x,
+                    z: v.state.z,
+                    y: w.altitude(&v.state),
+                    speed: v.state.speed,
+                    heading: v.state.heading,
+                })
+                .collect(),
+            input_seq: driver
+                .then(|| {
+                    snap.applied
+                        .iter()
+                        .find(|(id, _)| *id == vehicle)
+                        .map(|&(_, s)| s)
+                })
+                .flatten(),
+            mesh,
+        };
+        let mut bytes = Vec::new();
+        if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
+            return;
+        }
+        // Latest frame wins: abandon the previous one if it is still going.
+        if let Some((cancel, task)) = in_flight.take()
+            && !task.is_finished()
+        {
+            let _ = cancel.send(());
+        }
+        let Ok(mut stream) = conn.open_uni().await else {
+            return;
+        };
+        let _ = stream.set_priority(frame as i32);
+        let (cancel, cancelled) = oneshot::channel::<()>();
+        let task = tokio::spawn(async move {
+            tokio::select! {
+                r = stream.write_all(&bytes) => {
+                    if r.is_ok() {
+                        let _ = stream.finish();
+                    }
+                }
+                _ = cancelled => {
+                    let _ = stream.reset(0u32.into());
+                }
+            }
+        });
+        in_flight = Some((cancel, task));
+        frame += 1;
+    }
+}

@@ -1,0 +1,208 @@
+//! The world thread: the one place the world lives, stepped at 100 Hz by its own clock. The
+//! network hands it a closed set of [`Event`]s; it publishes a [`Snapshot`] after every
+//! tick (latest value wins: nobody queues behind a slow reader).
+
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::Path;
+use std::sync::Arc;
+use std::sync::mpsc::{Receiver, RecvTimeoutError};
+use std::time::{Duration, Instant};
+
+use roam_protocol::messages::KeyState;
+use tokio::sync::{oneshot, watch};
+
+use crate::Terrain;
+use crate::physics::Keys;
+use crate::recording::{self, RecordedWorld};
+use crate::world::{self, InputLatch, Inputs, Vehicle, VehicleId, World};
+
+/// What the network tells the world.
+pub enum Event {
+    /// A driver joins: it gets a vehicle of its own (the reply), at the next start slot.
+    Join { reply: oneshot::Sender<VehicleId> },
+    /// Key states from a driver's datagram (any order, repeats allowed).
+    Keys {
+        vehicle: VehicleId,
+        states: Vec<KeyState>,
+    },
+    /// A driver left: its vehicle goes.
+    Leave { vehicle: VehicleId },
+}
+
+/// The world after a tick.
+#[derive(Clone, Debug, Default)]
+pub struct Snapshot {
+    pub tick: u64,
+    pub vehicles: Vec<Vehicle>,
+    /// Per vehicle, the newest key state applied by this tick.
+    pub applied: Vec<(VehicleId, u32)>,
+}
+
+/// A driver's keys: new states queue up and the world takes one per tick, in order, so a
+/// viewer sampling its keys every 10 ms drives exactly as `simulate` would, whatever the
+/// network's jitter. A queue longer than [`MAX_QUEUED`] (a viewer's clock running fast)
+/// is folded into the latch at once.
+struct Driver {
+    latch: InputLatch,
+    /// The newest state received.
+    seq: Option<u32>,
+    queue: std::collections::VecDeque<(u32, Keys, Keys)>,
+    /// The newest state applied.
+    applied: Option<u32>,
+}
+
+/// Key states a driver may have waiting.
+const MAX_QUEUED: usize = 8;
+
+impl Driver {
+    fn new() -> Driver {
+        Driver {
+            latch: InputLatch::default(),
+            seq: None,
+            queue: std::collections::VecDeque::new(),
+            applied: None,
+        }
+    }
+
+    fn apply(&mut self, (seq, held, pressed): (u32, Keys, Keys)) {
+        self.latch.press(pressed);
+        self.latch.set_held(held);
+        self.applied = Some(seq);
+    }
+
+    /// The keys for the next tick.
+    fn take(&mut self) -> Keys {
+        while self.queue.len() > MAX_QUEUED {
+            let s = self.queue.pop_front().expect("longer than MAX_QUEUED");
+            self.apply(s);
+        }
+        if let Some(s) = self.queue.pop_front() {
+            self.apply(s);
+        }
+        self.latch.take()
+    }
+}
+
+enum Stepper {
+    Plain(World),
+    Recorded(RecordedWorld<Arc<Terrain>, BufWriter<File>>),
+}
+
+/// Runs the world until `events` closes, then closes the recording. Returns the final
+/// world.
+pub fn run(
+    terrain: Arc<Terrain>,
+    record: Option<&Path>,
+    events: Receiver<Event>,
+    snapshots: watch::Sender<Arc<Snapshot>>,
+) -> std::io::Result<World> {
+    let world = World::new(terrain.clone());
+    let mut stepper = match record {
+        Some(path) => Stepper::Recorded(RecordedWorld::start(
+            world,
+            BufWriter::new(File::create(path)?),
+            terrain.content_hash(),
+            recording::MAX_CHECKPOINT_INTERVAL,
+        )?),
+        None => Stepper::Plain(world),
+    };
+    let mut drivers: Vec<(VehicleId, Driver)> = Vec::new();
+    let (mut next_id, mut slot) = (0u16, 0u32);
+    let mut inputs = Inputs::new();
+    let tick = Duration::from_millis(10);
+    let mut due = Instant::now() + tick;
+    loop {
+        // Events until the tick is due.
+        loop {
+            let wait = due.saturating_duration_since(Instant::now());
+            let event = match events.recv_timeout(wait) {
+                Ok(e) => e,
+                Err(RecvTimeoutError::Timeout) => break,
+                Err(RecvTimeoutError::Disconnected) => return finish(stepper),
+            };
+            match event {
+                Event::Join { reply } => {
+                    let id = next_id;
+                    next_id = next_id.wrapping_add(1);
+                    let state = world::start_state(&terrain, slot);
+                    slot += 1;
+                    let joined = match &mut stepper {
+                        Stepper::Plain(w) => w.add(id, state).is_ok(),
+                        Stepper::Recorded(r) => r.join(id, state).is_ok(),
+                    };
+                    if joined {
+                        drivers.push((id, Driver::new()));
+                        let _ = reply.send(id);
+                    }
+                }
+                Event::Keys {
+                    vehicle,
+                    mut states,
+                } => {
+                    let Some((_, d)) = drivers.iter_mut().find(|(v, _)| *v == vehicle) else {
+                        continue;
+                    };
+                    states.sort_by_key(|s| s.seq);
+                    for s in states {
+                        if d.seq.is_some_and(|seq| s.seq <= seq) {
+                            continue; // seen already
+                        }
+                        let (Some(held), Some(pressed)) =
+                            (Keys::from_bits(s.held), Keys::from_bits(s.pressed))
+                        else {
+                            continue; // not keys: ignore the state
+                        };
+                        d.queue.push_back((s.seq, held, pressed));
+                        d.seq = Some(s.seq);
+                    }
+                }
+                Event::Leave { vehicle } => {
+                    drivers.retain(|(v, _)| *v != vehicle);
+                    // A vehicle that is not there (a repeated leave) changes nothing.
+                    let _gone = match &mut stepper {
+                        Stepper::Plain(w) => w.remove(vehicle).is_ok(),
+                        Stepper::Recorded(r) => r.leave(vehicle).is_ok(),
+                    };
+                }
+            }
+        }
+        // The tick: every driver's keys since the last one, then one step.
+        inputs.clear();
+        for (id, d) in &mut drivers {
+            inputs.set(*id, d.take());
+        }
+        let w = match &mut stepper {
+            Stepper::Plain(w) => {
+                world::step(w, &inputs);
+                &*w
+            }
+            Stepper::Recorded(r) => {
+                r.step(&inputs)?;
+                r.world()
+            }
+        };
+        let snapshot = Snapshot {
+            tick: w.tick(),
+            vehicles: w.vehicles().to_vec(),
+            applied: drivers
+                .iter()
+                .filter_map(|(id, d)| d.applied.map(|s| (*id, s)))
+                .collect(),
+        };
+        snapshots.send_replace(Arc::new(snapshot));
+        due += tick;
+        let now = Instant::now();
+        if now > due + Duration::from_millis(250) {
+            // Far behind (the machine stalled): skip the backlog rather than race.
+            due = now + tick;
+        }
+    }
+}
+
+fn finish(stepper: Stepper) -> std::io::Result<World> {
+    match stepper {
+        Stepper::Plain(w) => Ok(w),
+        Stepper::Recorded(r) => Ok(r.finish()?.0),
+    }
+}

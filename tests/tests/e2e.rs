@@ -1,0 +1,240 @@
+//! End to end: a real server and headless viewers over QUIC on `127.0.0.1:0`.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use roam_client::headless::{self, ViewerOptions, ViewerStats};
+use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION};
+use roam_server::net::{Options, Server, tls, wire};
+use roam_server::variance::VarianceTree;
+use roam_server::world::{self, Inputs, World};
+use roam_server::{ColorMap, Heightfield, MapParams, Terrain, recording, replay, script};
+
+/// A 129² terrain, flat around the start and rough beyond: a vehicle at rest stays put
+/// until keys arrive (so a drive over the network can be compared with the same script
+/// simulated), and there is detail to stream.
+fn flat() -> Arc<Terrain> {
+    let side = 129u32;
+    let heights = (0..side * side)
+        .map(|i| {
+            let (x, z) = (i % side, i / side);
+            let (dx, dz) = (x.abs_diff(64), z.abs_diff(64));
+            let rough = (x * 7_919 + z * 104_729) % 3_000;
+            20_000 + if dx.max(dz) > 16 { rough as u16 } else { 0 }
+        })
+        .collect();
+    let mut map = MapParams::default_for_side(side);
+    map.h_scale = 4.0;
+    map.start.x = 256.0;
+    map.start.z = 256.0;
+    Arc::new(Terrain {
+        map,
+        heights: Heightfield::new(side, heights).expect("valid"),
+        color: ColorMap::new(128, vec![[90, 120, 60]; 128 * 128]).expect("cells²"),
+    })
+}
+
+struct Running {
+    server: Server,
+    token: String,
+    fingerprint: [u8; 32],
+}
+
+fn start(terrain: Arc<Terrain>, record: Option<std::path::PathBuf>) -> Running {
+    let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
+    let identity = tls::generate().expect("a certificate");
+    let token = "test-token".to_owned();
+    let server = Server::start(
+        terrain,
+        Arc::new(vt),
+        &identity,
+        Options {
+            listen: "127.0.0.1:0".parse().expect("valid"),
+            token: token.clone(),
+            record,
+        },
+    )
+    .expect("listens");
+    let fingerprint = tls::parse_fingerprint(&identity.fingerprint()).expect("valid");
+    Running {
+        server,
+        token,
+        fingerprint,
+    }
+}
+
+fn opts(r: &Running, role: Role, frames: u64) -> ViewerOptions {
+    ViewerOptions {
+        token: r.token.clone(),
+        role,
+        budget: 8_000,
+        frames,
+        ..ViewerOptions::default()
+    }
+}
+
+/// Accelerate, turn, then brake to a stop: the end state is still, whatever the timing.
+const DRIVE: &str = "10 U\n5 UL\n8 U\n400 D\n";
+
+fn simulated(terrain: &Arc<Terrain>) -> world::Vehicle {
+    let s = script::parse(DRIVE).expect("valid");
+    let mut w = World::new(terrain.clone());
+    w.add(0, world::start_state(terrain, 0))
+        .expect("on the map");
+    let mut inputs = Inputs::new();
+    for k in s.keys() {
+        inputs.set(0, k);
+        world::step(&mut w, &inputs);
+    }
+    w.vehicles()[0]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_viewers_one_driving_and_the_session_replays() {
+    let dir = std::env::temp_dir().join(format!("roam-e2e-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let rec_path = dir.join("session.rec");
+    let terrain = flat();
+    let r = start(terrain.clone(), Some(rec_path.clone()));
+    let addr = r.server.addr;
+    let driver = ViewerOptions {
+        inputs: Some(script::parse(DRIVE).expect("valid")),
+        ..opts(&r, Role::Driver, 330)
+    };
+    let d = tokio::spawn(headless::run(addr, r.fingerprint, driver));
+    // The spectator joins once the driver's vehicle exists.
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let s = tokio::spawn(headless::run(
+        addr,
+        r.fingerprint,
+        opts(&r, Role::Spectator { follow: None }, 120),
+    ));
+    let (d, s): (ViewerStats, ViewerStats) = (
+        d.await.expect("joins").expect("the driver runs"),
+        s.await.expect("joins").expect("the spectator runs"),
+    );
+    for v in [&d, &s] {
+        assert_eq!(v.decode_errors, 0);
+        assert!(v.max_triangles > 2 && v.max_triangles <= 8_000);
+        assert!(v.first.expect("a first frame") < 2.0);
+    }
+    assert_eq!(s.vehicle, d.vehicle, "the spectator follows the driver");
+    // The drive over the network ends exactly where the script, simulated, ends.
+    let want = simulated(&terrain);
+    let got = d.last.expect("a vehicle in the frames");
+    assert_eq!(
+        (got.x, got.z, got.speed, got.heading),
+        (
+            want.state.x,
+            want.state.z,
+            want.state.speed,
+            want.state.heading
+        ),
+        "at tick {}",
+        d.last_tick
+    );
+    assert!(!d.latencies_ms.is_empty(), "key changes were seen applied");
+    // The server's recording replays bit for bit.
+    let final_world = r.server.shutdown().await.expect("stops cleanly");
+    let bytes = std::fs::read(&rec_path).expect("the recording");
+    let rec = recording::parse(&bytes).expect("parses");
+    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
+    assert!(out.ended, "closed cleanly");
+    assert_eq!(out.tick, final_world.tick());
+    assert_eq!(out.digest, final_world.digest());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_token_or_fingerprint_is_refused() {
+    let r = start(flat(), None);
+    let bad = ViewerOptions {
+        token: "nope".into(),
+        ..opts(&r, Role::Driver, 5)
+    };
+    let err = headless::run(r.server.addr, r.fingerprint, bad)
+        .await
+        .expect_err("refused");
+    assert!(format!("{err:#}").contains("wrong token"), "{err:#}");
+    let mut wrong = r.fingerprint;
+    wrong[0] ^= 1;
+    let err = headless::run(r.server.addr, wrong, opts(&r, Role::Driver, 5))
+        .await
+        .expect_err("the client refuses the server");
+    assert!(format!("{err:#}").contains("fingerprint"), "{err:#}");
+    assert!(
+        r.server.snapshot().vehicles.is_empty(),
+        "no vehicle for refused viewers"
+    );
+    r.server.shutdown().await.expect("stops");
+}
+
+/// A connection that says hello as a driver and then never reads a frame.
+async fn stalled_driver(r: &Running) -> (quinn::Endpoint, quinn::Connection) {
+    let (endpoint, conn) = headless::connect(r.server.addr, r.fingerprint)
+        .await
+        .expect("connects");
+    let (mut send, _recv) = conn.open_bi().await.expect("a stream");
+    let hello = Hello {
+        version: VERSION,
+        role: Role::Driver,
+        token: r.token.clone(),
+        viewport: [1920, 1080],
+        fov_y_deg: 60.0,
+        budget: 8_000,
+        frame_rate: 60,
+    };
+    wire::write(&mut send, &ClientMessage::Hello(hello))
+        .await
+        .expect("sends");
+    (endpoint, conn)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
+    let r = start(flat(), None);
+    let (_e1, stalled) = stalled_driver(&r).await;
+    // Someone sending garbage: datagrams, and streams of junk.
+    let (_e2, junk) = headless::connect(r.server.addr, r.fingerprint)
+        .await
+        .expect("connects");
+    let noise = tokio::spawn(async move {
+        for i in 0..200u32 {
+            let _ = junk.send_datagram(vec![i as u8; (i % 50) as usize + 1].into());
+            if let Ok((mut s, _)) = junk.open_bi().await {
+                let _ = s.write_all(&[0xff; 64]).await;
+            }
+            if let Ok(mut s) = junk.open_uni().await {
+                let _ = s.write_all(&i.to_le_bytes()).await;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+    });
+    let v = headless::run(r.server.addr, r.fingerprint, opts(&r, Role::Driver, 120))
+        .await
+        .expect("runs");
+    assert_eq!(v.decode_errors, 0);
+    let fps = v.frames as f64 / v.seconds;
+    assert!(
+        fps > 40.0,
+        "{fps} frames per second next to a stalled viewer"
+    );
+    noise.abort();
+    // A viewer killed mid-stream frees its vehicle.
+    assert!(
+        !r.server.snapshot().vehicles.is_empty(),
+        "the stalled driver has a vehicle"
+    );
+    stalled.close(0u32.into(), b"killed");
+    drop(stalled);
+    let mut freed = false;
+    for _ in 0..100 {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        if r.server.snapshot().vehicles.is_empty() {
+            freed = true;
+            break;
+        }
+    }
+    assert!(freed, "the vehicles of closed connections are gone");
+    r.server.shutdown().await.expect("stops");
+}
