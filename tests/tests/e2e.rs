@@ -34,6 +34,10 @@ fn flat() -> Arc<Terrain> {
     })
 }
 
+/// The tests here each run a server with a 100 Hz world thread and 60 Hz viewers: one at a
+/// time, so that on a 2-core machine none starves another of the CPU.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 struct Running {
     server: Server,
     token: String,
@@ -91,6 +95,7 @@ fn simulated(terrain: &Arc<Terrain>) -> world::Vehicle {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_viewers_one_driving_and_the_session_replays() {
+    let _turn = ONE_AT_A_TIME.lock().await;
     let dir = std::env::temp_dir().join(format!("roam-e2e-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
     let rec_path = dir.join("session.rec");
@@ -147,6 +152,7 @@ async fn two_viewers_one_driving_and_the_session_replays() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_wrong_token_or_fingerprint_is_refused() {
+    let _turn = ONE_AT_A_TIME.lock().await;
     let r = start(flat(), None);
     let bad = ViewerOptions {
         token: "nope".into(),
@@ -192,6 +198,7 @@ async fn stalled_driver(r: &Running) -> (quinn::Endpoint, quinn::Connection) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
+    let _turn = ONE_AT_A_TIME.lock().await;
     let r = start(flat(), None);
     let (_e1, stalled) = stalled_driver(&r).await;
     // Someone sending garbage: datagrams, and streams of junk.

@@ -50,10 +50,17 @@ struct Driver {
     queue: std::collections::VecDeque<(u32, Keys, Keys)>,
     /// The newest state applied.
     applied: Option<u32>,
+    /// States are taken once [`PRIME`] have queued: a tick's worth of slack, so a state
+    /// arriving a little late (jitter) is still there when its tick comes.
+    primed: bool,
 }
 
-/// Key states a driver may have waiting.
-const MAX_QUEUED: usize = 8;
+/// Key states queued before the world starts taking them.
+const PRIME: usize = 2;
+
+/// Key states a driver may have waiting (a third of a second): more than a stalled moment's
+/// backlog, which the world catches up by stepping faster, keeps every state exact.
+const MAX_QUEUED: usize = 32;
 
 impl Driver {
     fn new() -> Driver {
@@ -62,6 +69,7 @@ impl Driver {
             seq: None,
             queue: std::collections::VecDeque::new(),
             applied: None,
+            primed: false,
         }
     }
 
@@ -73,6 +81,10 @@ impl Driver {
 
     /// The keys for the next tick.
     fn take(&mut self) -> Keys {
+        self.primed |= self.queue.len() >= PRIME;
+        if !self.primed {
+            return self.latch.take();
+        }
         while self.queue.len() > MAX_QUEUED {
             let s = self.queue.pop_front().expect("longer than MAX_QUEUED");
             self.apply(s);
