@@ -56,9 +56,13 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         say!("fingerprint {}", identity.fingerprint());
         say!("token {token}");
         say!("recording to {}", record.display());
+        let host = if server.addr.ip().is_unspecified() {
+            format!("<this machine's address>:{}", server.addr.port())
+        } else {
+            server.addr.to_string()
+        };
         say!(
-            "connect with: roam-client --connect {} --token {token} --fingerprint {}",
-            server.addr,
+            "connect with: roam-client --connect {host} --token {token} --fingerprint {} --headless",
             identity.fingerprint()
         );
         tokio::signal::ctrl_c()

@@ -24,7 +24,7 @@ fn help_on_everything() {
         &["--help"],
         0,
         &[
-            "check", "generate", "import", "mesh", "bench", "simulate", "replay",
+            "check", "generate", "import", "mesh", "bench", "simulate", "replay", "serve",
         ],
     );
     for (cmd, flag) in [
@@ -35,6 +35,7 @@ fn help_on_everything() {
         ("bench", "--frames"),
         ("simulate", "--inputs"),
         ("replay", "--data"),
+        ("serve", "--state-dir"),
     ] {
         check(&[cmd, "--help"], 0, &[flag]);
     }

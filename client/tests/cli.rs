@@ -1,0 +1,110 @@
+//! The `roam-client` command line, run as a user would.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn root() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("the crate lives in the workspace")
+        .to_path_buf()
+}
+
+fn run(args: &[&str]) -> (Option<i32>, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_roam-client"))
+        .args(args)
+        .current_dir(root())
+        .output()
+        .expect("run roam-client");
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn help_and_usage_errors() {
+    let (code, out, _) = run(&["--help"]);
+    assert_eq!(code, Some(0));
+    for flag in [
+        "--connect",
+        "--token",
+        "--fingerprint",
+        "--local",
+        "--headless",
+        "--inputs",
+        "--frames",
+        "--budget",
+        "--viewers",
+        "--stats",
+    ] {
+        assert!(out.contains(flag), "{flag} in --help");
+    }
+    let (code, _, err) = run(&["--headless"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--connect"), "{err}");
+    let (code, _, err) = run(&["--local", "data/synth-65"]);
+    assert_eq!(code, Some(1));
+    assert!(err.contains("add --headless"), "{err}");
+    let (code, _, err) = run(&[
+        "--connect",
+        "127.0.0.1:9",
+        "--token",
+        "t",
+        "--fingerprint",
+        "12ab",
+        "--headless",
+    ]);
+    assert_eq!(code, Some(1));
+    assert!(err.contains("expected 64 hex digits"), "{err}");
+}
+
+#[test]
+fn local_headless_run_writes_stats() {
+    let stats = std::env::temp_dir().join(format!("roam-client-stats-{}.json", std::process::id()));
+    let inputs =
+        std::env::temp_dir().join(format!("roam-client-inputs-{}.txt", std::process::id()));
+    std::fs::write(&inputs, "30 U\n20 UL\n").expect("write");
+    let (code, out, err) = run(&[
+        "--local",
+        "data/synth-65",
+        "--headless",
+        "--frames",
+        "30",
+        "--budget",
+        "3000",
+        "--inputs",
+        inputs.to_str().expect("UTF-8"),
+        "--stats",
+        stats.to_str().expect("UTF-8"),
+    ]);
+    assert_eq!(code, Some(0), "{out}\n{err}");
+    assert!(
+        !out.contains("token") && !err.contains("token"),
+        "nothing secret is printed"
+    );
+    let report: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stats).expect("stats")).expect("JSON");
+    for key in [
+        "frames",
+        "frames_per_second",
+        "wire_bytes_per_triangle_first",
+        "wire_bytes_per_triangle_steady",
+        "input_to_frame_ms_median",
+        "input_to_frame_ms_p99",
+        "decode_errors",
+    ] {
+        assert!(
+            report
+                .get(key)
+                .and_then(serde_json::Value::as_f64)
+                .is_some(),
+            "{key}: {report}"
+        );
+    }
+    assert_eq!(report["frames"], 30);
+    assert_eq!(report["decode_errors"], 0);
+    let _ = std::fs::remove_file(stats);
+    let _ = std::fs::remove_file(inputs);
+}
