@@ -27,6 +27,9 @@ pub struct ViewerOptions {
     pub viewport: [u32; 2],
     pub fov_y_deg: f32,
     pub frame_rate: u16,
+    /// Acknowledge frames without decoding them (a load generator measuring the server,
+    /// not itself).
+    pub skip_decode: bool,
 }
 
 impl Default for ViewerOptions {
@@ -40,6 +43,7 @@ impl Default for ViewerOptions {
             viewport: [1280, 720],
             fov_y_deg: 60.0,
             frame_rate: 60,
+            skip_decode: false,
         }
     }
 }
@@ -162,6 +166,13 @@ pub async fn run(
         };
         if newest.is_some_and(|n| frame.frame <= n) {
             continue; // older than what is shown: latest frame wins here too
+        }
+        if opts.skip_decode {
+            wire::write(&mut send, &ClientMessage::Ack { frame: frame.frame }).await?;
+            newest = Some(frame.frame);
+            stats.frames += 1;
+            stats.last_tick = frame.tick;
+            continue;
         }
         let base = match frame.base {
             Some(b) => match decoded.iter().find(|(f, _)| *f == b) {

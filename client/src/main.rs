@@ -48,6 +48,10 @@ struct Cli {
     /// Watch instead of drive.
     #[arg(long)]
     spectate: bool,
+    /// Acknowledge frames without decoding them: a load generator that measures the
+    /// server, not its own decoding (the wire and decode figures are then empty).
+    #[arg(long)]
+    skip_decode: bool,
     /// Write the stats as JSON here (else to stdout).
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -129,6 +133,7 @@ fn run(cli: Cli) -> Result<()> {
                 budget: cli.budget,
                 frames: cli.frames,
                 inputs: script.clone(),
+                skip_decode: cli.skip_decode,
                 ..ViewerOptions::default()
             };
             tasks.push(tokio::spawn(headless::run(addr, fingerprint, opts)));

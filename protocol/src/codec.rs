@@ -29,8 +29,8 @@
 //! reserved  u8   0
 //! triangles u32
 //! splits    u32
-//! check     u64  (BLAKE3 over the corners' heights and every split diamond's index and
-//!                height, in coding order)
+//! check     u64  (a 64-bit hash over the corners' heights and every split diamond's index
+//!                and height, in coding order)
 //! corners   4 × u16, key frames only
 //! body      range-coded bits (see `range`)
 //! ```
@@ -142,18 +142,32 @@ fn next_candidates(grid: &Grid, list: &[u32], split: &BitSet, next: &mut Vec<u32
     }
 }
 
-fn check_hasher(grid: &Grid, heights: &[u16]) -> blake3::Hasher {
-    let mut h = blake3::Hasher::new();
-    for (x, z) in grid.corners() {
-        h.update(&heights[grid.index(x, z) as usize].to_le_bytes());
-    }
-    h
-}
+/// The frame check: a 64-bit multiply-rotate hash over the corners' heights, then each
+/// split diamond's index and height in coding order. It is there to catch a frame decoded
+/// against the wrong base, or damage the range coder let through, not to resist forgery
+/// (QUIC's encryption does that), so it is cheap: a few cycles a vertex.
+struct Check(u64);
 
-fn check_value(h: &blake3::Hasher) -> u64 {
-    let mut b = [0u8; 8];
-    b.copy_from_slice(&h.finalize().as_bytes()[..8]);
-    u64::from_le_bytes(b)
+impl Check {
+    fn new(grid: &Grid, heights: &[u16]) -> Check {
+        let mut c = Check(0x243f_6a88_85a3_08d3);
+        for (x, z) in grid.corners() {
+            c.add(u64::from(heights[grid.index(x, z) as usize]));
+        }
+        c
+    }
+
+    #[inline]
+    fn add(&mut self, v: u64) {
+        self.0 = (self.0.rotate_left(23) ^ v).wrapping_mul(0x9e37_79b9_7f4a_7c15);
+    }
+
+    fn value(&self) -> u64 {
+        let mut h = self.0;
+        h ^= h >> 33;
+        h = h.wrapping_mul(0xff51_afd7_ed55_8ccd);
+        h ^ (h >> 33)
+    }
 }
 
 /// Triangles a split adds: two, or one for a rotated diamond on the map's edge (one
@@ -210,7 +224,7 @@ impl MeshEncoder {
                 out.extend_from_slice(&heights[grid.index(x, z) as usize].to_le_bytes());
             }
         }
-        let mut check = check_hasher(&grid, heights);
+        let mut check = Check::new(&grid, heights);
         let mut rc = range::Encoder::new(std::mem::take(out));
         let (mut splits, mut triangles) = (0u32, 2u32);
         start_at_root(&grid, &mut self.list);
@@ -226,8 +240,7 @@ impl MeshEncoder {
                 splits += 1;
                 triangles += added(&grid, x, z);
                 let h = heights[i as usize];
-                check.update(&i.to_le_bytes());
-                check.update(&h.to_le_bytes());
+                check.add(u64::from(i) << 16 | u64::from(h));
                 if !in_base {
                     let r = i32::from(h) - predict(&grid, heights, x, z);
                     encode_residual(&mut rc, m, depth, r);
@@ -251,7 +264,7 @@ impl MeshEncoder {
         head[2] = u8::from(base.is_some());
         head[4..8].copy_from_slice(&triangles.to_le_bytes());
         head[8..12].copy_from_slice(&splits.to_le_bytes());
-        head[12..20].copy_from_slice(&check_value(&check).to_le_bytes());
+        head[12..20].copy_from_slice(&check.value().to_le_bytes());
         Ok(())
     }
 }
@@ -388,7 +401,7 @@ impl MeshDecoder {
             }
             body = rest;
         }
-        let mut check = check_hasher(&grid, &self.heights);
+        let mut check = Check::new(&grid, &self.heights);
         self.models.reset();
         let m = &mut *self.models;
         let mut rc = range::Decoder::new(body);
@@ -415,8 +428,7 @@ impl MeshDecoder {
                     self.heights[i as usize] = u16::try_from(h)
                         .map_err(|_| DecodeError::Corrupt("a height out of range"))?;
                 }
-                check.update(&i.to_le_bytes());
-                check.update(&self.heights[i as usize].to_le_bytes());
+                check.add(u64::from(i) << 16 | u64::from(self.heights[i as usize]));
             }
             if rc.failed() {
                 return Err(DecodeError::Corrupt(
@@ -429,7 +441,7 @@ impl MeshDecoder {
         if splits != declared_splits || triangles != declared_triangles {
             return Err(DecodeError::Corrupt("fewer splits than declared"));
         }
-        if check_value(&check) != declared_check {
+        if check.value() != declared_check {
             return Err(DecodeError::Check);
         }
         Ok(Decoded {
