@@ -30,6 +30,8 @@ pub struct ViewerOptions {
     /// Acknowledge frames without decoding them (a load generator measuring the server,
     /// not itself).
     pub skip_decode: bool,
+    /// Keep the scene and the last mesh (for a screenshot).
+    pub keep_last: bool,
 }
 
 impl Default for ViewerOptions {
@@ -44,6 +46,7 @@ impl Default for ViewerOptions {
             fov_y_deg: 60.0,
             frame_rate: 60,
             skip_decode: false,
+            keep_last: false,
         }
     }
 }
@@ -65,6 +68,9 @@ pub struct ViewerStats {
     pub last_tick: u64,
     /// The largest mesh received, triangles.
     pub max_triangles: usize,
+    /// With `keep_last`: the scene, and the last mesh decoded.
+    pub scene: Option<crate::render::Scene>,
+    pub last_mesh: Option<mesh::Mesh>,
 }
 
 /// Connects to `addr`, accepting only the certificate with SHA-256 `fingerprint`.
@@ -146,6 +152,19 @@ pub async fn run(
         vehicle: welcome.vehicle,
         ..ViewerStats::default()
     };
+    if opts.keep_last {
+        stats.scene = Some(crate::render::Scene {
+            levels: u32::from(welcome.levels),
+            h_scale: welcome.h_scale,
+            v_scale: welcome.v_scale,
+            sun_dir: welcome.sun_dir,
+            sun_color: welcome.sun_color,
+            fog_density: welcome.fog_density,
+            fog_color: welcome.fog_color,
+            cells: welcome.color_cells,
+            colors: color.clone(),
+        });
+    }
     let mut decoder = MeshDecoder::new(grid);
     let mut decoded: VecDeque<(u64, BitSet)> = VecDeque::new();
     let mut newest: Option<u64> = None;
@@ -238,6 +257,9 @@ pub async fn run(
             .find(|v| v.id == welcome.vehicle)
             .copied();
         stats.last_tick = frame.tick;
+        if opts.keep_last {
+            stats.last_mesh = Some(viewer_mesh.clone());
+        }
         stats.frames += 1;
     }
     stats.seconds = started.elapsed().as_secs_f64();

@@ -2,4 +2,5 @@
 //! to a roam server, plays an input script, decodes and checks every frame, and measures.
 
 pub mod headless;
+pub mod render;
 pub mod stats;

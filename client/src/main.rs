@@ -55,6 +55,32 @@ struct Cli {
     /// Write the stats as JSON here (else to stdout).
     #[arg(long)]
     stats: Option<PathBuf>,
+    /// After the last frame, render it offscreen (any adapter, a software one included)
+    /// and write it as a PNG.
+    #[arg(long)]
+    screenshot: Option<PathBuf>,
+    /// Screenshot size, `WIDTHxHEIGHT`.
+    #[arg(long, default_value = "1280x720", value_parser = parse_size)]
+    size: (u32, u32),
+    /// Screenshot without fog.
+    #[arg(long)]
+    no_fog: bool,
+    /// Screenshot without lighting (flat colours).
+    #[arg(long)]
+    no_lighting: bool,
+    /// Screenshot with the wireframe drawn over.
+    #[arg(long)]
+    wireframe: bool,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32), String> {
+    let err = || format!("expected WIDTHxHEIGHT (e.g. 1280x720), got {s:?}");
+    let (w, h) = s.split_once('x').ok_or_else(err)?;
+    let (w, h): (u32, u32) = (w.parse().map_err(|_| err())?, h.parse().map_err(|_| err())?);
+    if !(1..=8192).contains(&w) || !(1..=8192).contains(&h) {
+        return Err(err());
+    }
+    Ok((w, h))
 }
 
 fn main() -> std::process::ExitCode {
@@ -134,6 +160,7 @@ fn run(cli: Cli) -> Result<()> {
                 frames: cli.frames,
                 inputs: script.clone(),
                 skip_decode: cli.skip_decode,
+                keep_last: cli.screenshot.is_some(),
                 ..ViewerOptions::default()
             };
             tasks.push(tokio::spawn(headless::run(addr, fingerprint, opts)));
@@ -145,6 +172,9 @@ fn run(cli: Cli) -> Result<()> {
         if let Some(server) = server {
             server.shutdown().await?;
         }
+        if let Some(path) = &cli.screenshot {
+            screenshot(path, &all[0], &cli)?;
+        }
         let report = roam_client::stats::report(&all);
         match &cli.stats {
             Some(path) => std::fs::write(path, format!("{report:#}\n"))
@@ -153,4 +183,35 @@ fn run(cli: Cli) -> Result<()> {
         }
         Ok(())
     })
+}
+
+/// Renders the first viewer's last frame offscreen, from its vehicle, into a PNG.
+fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> Result<()> {
+    use roam_client::render::{self, Gpu, Renderer, Toggles, View};
+    let (Some(scene), Some(mesh), Some(vehicle)) = (&v.scene, &v.last_mesh, &v.last) else {
+        bail!("no frame was decoded: nothing to render");
+    };
+    let gpu = Gpu::headless()?;
+    let mut renderer = Renderer::new(&gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene.clone());
+    renderer.set_mesh(&gpu, mesh);
+    let view = View {
+        eye: [vehicle.x as f32, vehicle.y as f32, vehicle.z as f32],
+        yaw_deg: vehicle.heading as f32,
+        pitch_deg: roam_server::flyover::PITCH_DEG as f32,
+        fov_y_deg: 60.0,
+    };
+    let toggles = Toggles {
+        fog: !cli.no_fog,
+        lighting: !cli.no_lighting,
+        wireframe: cli.wireframe,
+    };
+    let rgba = render::render_offscreen(&gpu, &mut renderer, cli.size, &view, toggles)?;
+    render::write_png(path, cli.size, &rgba)?;
+    eprintln!(
+        "wrote {} ({}, {})",
+        path.display(),
+        gpu.adapter.name,
+        gpu.adapter.backend
+    );
+    Ok(())
 }

@@ -1,0 +1,240 @@
+//! The renderer on a software adapter (lavapipe where there is no GPU): fog, lighting,
+//! wireframe, the sky, and a reference image.
+
+use std::sync::Arc;
+
+use roam_client::render::{self, Gpu, Renderer, Scene, Toggles, View};
+use roam_server::camera::Camera;
+use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
+use roam_server::variance::VarianceTree;
+use roam_server::{Terrain, dataset};
+
+const SIZE: (u32, u32) = (192, 108);
+
+fn load(name: &str) -> Arc<Terrain> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../data")
+        .join(name);
+    Arc::new(dataset::load(&dir, &mut |_, _| {}).expect("bundled"))
+}
+
+fn scene(t: &Terrain, uniform_color: bool) -> Scene {
+    let m = &t.map;
+    Scene {
+        levels: t.heights.levels(),
+        h_scale: m.h_scale,
+        v_scale: m.v_scale,
+        sun_dir: m.sun_dir.map(|v| v as f32),
+        sun_color: m.sun_color,
+        // Thick fog, so a small test image shows it.
+        fog_density: 4.0 / t.world_size() as f32,
+        fog_color: m.fog_color,
+        cells: t.color.cells(),
+        colors: if uniform_color {
+            vec![120; t.color.rgb().len() * 3]
+        } else {
+            t.color.rgb().iter().flatten().copied().collect()
+        },
+    }
+}
+
+/// The view from a point over the map's west edge, level, looking east across it, and the
+/// tessellation for it.
+fn view_and_mesh(t: &Terrain) -> (View, roam_protocol::Mesh) {
+    let size = t.world_size();
+    let ground = t.world_height(0, t.heights.size() / 2);
+    let eye = [size * 0.02, ground + size * 0.03, size * 0.5];
+    let cam = Camera {
+        eye,
+        yaw_deg: 90.0,
+        pitch_deg: 0.0,
+        fov_y_deg: 60.0,
+        width: SIZE.0,
+        height: SIZE.1,
+    };
+    let vt = VarianceTree::build(&t.heights, 1, &mut |_, _| {});
+    let mut tess = Tessellator::new(t.heights.side());
+    let mut mesh = Mesh::default();
+    let scales = Scales {
+        h: t.map.h_scale,
+        v: t.map.v_scale,
+    };
+    tess.tessellate(
+        &t.heights,
+        &vt,
+        scales,
+        &cam,
+        Limits {
+            budget: 20_000,
+            threshold_px: 0.0,
+        },
+        &mut mesh,
+    );
+    let heights = mesh
+        .vertices
+        .iter()
+        .map(|v| t.heights.get(u32::from(v[0]), u32::from(v[1])))
+        .collect();
+    let view = View {
+        eye: eye.map(|v| v as f32),
+        yaw_deg: 90.0,
+        pitch_deg: 0.0,
+        fov_y_deg: 60.0,
+    };
+    (
+        view,
+        roam_protocol::Mesh {
+            vertices: mesh.vertices,
+            heights,
+            indices: mesh.indices,
+        },
+    )
+}
+
+fn gpu() -> Gpu {
+    Gpu::headless().unwrap_or_else(|e| panic!("{e:#}"))
+}
+
+fn draw(gpu: &Gpu, t: &Terrain, uniform: bool, toggles: Toggles) -> Vec<[u8; 3]> {
+    let (view, mesh) = view_and_mesh(t);
+    let mut r = Renderer::new(gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene(t, uniform));
+    r.set_mesh(gpu, &mesh);
+    let rgba = render::render_offscreen(gpu, &mut r, SIZE, &view, toggles).expect("renders");
+    rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect()
+}
+
+fn row(img: &[[u8; 3]], y: u32) -> &[[u8; 3]] {
+    &img[(y * SIZE.0) as usize..((y + 1) * SIZE.0) as usize]
+}
+
+fn dist(a: [u8; 3], b: [u8; 3]) -> f64 {
+    (0..3)
+        .map(|k| (f64::from(a[k]) - f64::from(b[k])).abs())
+        .sum()
+}
+
+fn mean_dist(px: &[[u8; 3]], c: [u8; 3]) -> f64 {
+    px.iter().map(|&p| dist(p, c)).sum::<f64>() / px.len() as f64
+}
+
+#[test]
+fn sky_above_the_horizon_at_level_pitch() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let img = draw(&gpu, &t, false, Toggles::default());
+    for y in 0..5 {
+        for p in row(&img, y) {
+            assert!(p[2] > p[0], "row {y}: sky is blue, got {p:?}");
+        }
+    }
+    // The sky is brighter and bluer towards the top.
+    let (top, high) = (row(&img, 0)[0], row(&img, 40)[0]);
+    assert!(
+        top[2] >= high[2] && dist(top, high) > 3.0,
+        "{top:?} {high:?}"
+    );
+}
+
+#[test]
+fn fog_moves_distant_ground_towards_the_fog_colour() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let fog = t.map.fog_color;
+    let on = draw(&gpu, &t, false, Toggles::default());
+    let off = draw(
+        &gpu,
+        &t,
+        false,
+        Toggles {
+            fog: false,
+            ..Toggles::default()
+        },
+    );
+    // The rows just below the horizon are the farthest ground.
+    let band =
+        |img: &[[u8; 3]]| -> Vec<[u8; 3]> { (56..64).flat_map(|y| row(img, y).to_vec()).collect() };
+    let (d_on, d_off) = (mean_dist(&band(&on), fog), mean_dist(&band(&off), fog));
+    assert!(d_on + 10.0 < d_off, "fog on {d_on}, off {d_off}");
+}
+
+#[test]
+fn lighting_off_shades_flat_and_wireframe_shows_lines() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let flat = Toggles {
+        fog: false,
+        lighting: false,
+        wireframe: false,
+    };
+    let lit = Toggles {
+        lighting: true,
+        ..flat
+    };
+    let ground = |img: &[[u8; 3]]| -> Vec<[u8; 3]> {
+        (80..108).flat_map(|y| row(img, y).to_vec()).collect()
+    };
+    let distinct = |px: &[[u8; 3]]| {
+        let mut v = px.to_vec();
+        v.sort();
+        v.dedup();
+        v.len()
+    };
+    let unlit = ground(&draw(&gpu, &t, true, flat));
+    assert!(
+        distinct(&unlit) <= 2,
+        "one colour without lighting: {}",
+        distinct(&unlit)
+    );
+    assert!(
+        distinct(&ground(&draw(&gpu, &t, true, lit))) > 20,
+        "lighting shades"
+    );
+    let dark = |px: &[[u8; 3]]| px.iter().filter(|p| p.iter().all(|&c| c < 40)).count();
+    let wire = ground(&draw(
+        &gpu,
+        &t,
+        true,
+        Toggles {
+            wireframe: true,
+            ..flat
+        },
+    ));
+    assert!(
+        dark(&wire) > dark(&unlit) + 100,
+        "wireframe lines: {} dark pixels",
+        dark(&wire)
+    );
+}
+
+#[test]
+fn a_fixed_scene_matches_its_reference_image() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let img = draw(&gpu, &t, false, Toggles::default());
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/reference/synth-257.png");
+    let rgba: Vec<u8> = img.iter().flat_map(|p| [p[0], p[1], p[2], 255]).collect();
+    if std::env::var_os("UPDATE_EXPECT").is_some() {
+        std::fs::create_dir_all(path.parent().expect("a directory")).expect("create");
+        render::write_png(&path, SIZE, &rgba).expect("writes");
+    }
+    let file = std::fs::File::open(&path)
+        .unwrap_or_else(|e| panic!("{}: {e} (UPDATE_EXPECT=1 makes it)", path.display()));
+    let mut dec = png::Decoder::new(std::io::BufReader::new(file))
+        .read_info()
+        .expect("a PNG");
+    let mut want = vec![0; dec.output_buffer_size().expect("sized")];
+    dec.next_frame(&mut want).expect("pixels");
+    assert_eq!(want.len(), rgba.len());
+    let diff = want
+        .iter()
+        .zip(&rgba)
+        .map(|(&a, &b)| f64::from(a.abs_diff(b)))
+        .sum::<f64>()
+        / rgba.len() as f64;
+    // Adapters round differently: a small mean difference is allowed.
+    assert!(
+        diff < 2.0,
+        "mean difference {diff} per channel from the reference"
+    );
+}
