@@ -31,6 +31,7 @@
 //! splits    u32
 //! check     u64  (a 64-bit hash over the corners' heights and every split diamond's index
 //!                and height, in coding order)
+//! step      u16  every height is a multiple of it; residuals are coded in steps
 //! corners   4 × u16, key frames only
 //! body      range-coded bits (see `range`)
 //! ```
@@ -40,7 +41,7 @@ use crate::range::{self, Prob};
 
 /// The payload format this code writes and reads.
 pub const FORMAT: u8 = 1;
-const HEADER: usize = 20;
+const HEADER: usize = 22;
 const DEPTHS: usize = 2 * crate::bintree::MAX_LEVELS as usize;
 /// Height residual contexts: one per depth.
 const CONTEXTS: usize = DEPTHS;
@@ -54,6 +55,8 @@ pub enum EncodeError {
         "the split set is not closed under parent: {unreached} split diamonds have an unsplit parent"
     )]
     NotConforming { unreached: usize },
+    #[error("height {height} is not a multiple of the step {step}")]
+    Step { height: u16, step: u16 },
 }
 
 /// Why a payload could not be decoded. The frame is to be dropped (and a key frame asked
@@ -103,12 +106,30 @@ impl Models {
     }
 }
 
-/// The predicted height of a new vertex: the mean of its hypotenuse ends, rounded up.
+/// The predicted height of a new vertex: the mean of its hypotenuse ends, rounded to the
+/// nearest multiple of the heightfield's `step` (so the residual is a whole number of
+/// steps).
 #[inline]
-fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32) -> i32 {
+fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32, step: i32) -> i32 {
     let [(ax, az), (bx, bz)] = grid.hypotenuse(x, z);
     let h = |x, z| i32::from(heights[grid.index(x, z) as usize]);
-    (h(ax, az) + h(bx, bz) + 1) >> 1
+    let sum = h(ax, az) + h(bx, bz);
+    // round(sum / 2 / step) · step, in integers
+    (sum + step) / (2 * step) * step
+}
+
+/// The largest step every height is a multiple of (1 when there is none): the
+/// heightfield's quantization, which the coder divides out of every residual. Real data
+/// often has one: SRTM heights are whole metres, 100 samples apart in `kossou`.
+pub fn height_step(heights: &[u16]) -> u16 {
+    let gcd = heights.iter().fold(0u16, |g, &h| {
+        let (mut a, mut b) = (g, h);
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a
+    });
+    gcd.max(1)
 }
 
 /// The candidates of depth 0: the root alone.
@@ -186,15 +207,23 @@ pub struct MeshEncoder {
     models: Box<Models>,
     list: Vec<u32>,
     next: Vec<u32>,
+    step: u16,
 }
 
 impl MeshEncoder {
+    /// An encoder for heights of any value.
     pub fn new(grid: Grid) -> MeshEncoder {
+        MeshEncoder::with_step(grid, 1)
+    }
+
+    /// An encoder for heights that are all multiples of `step` (see [`height_step`]).
+    pub fn with_step(grid: Grid, step: u16) -> MeshEncoder {
         MeshEncoder {
             grid,
             models: Models::new(),
             list: Vec::new(),
             next: Vec::new(),
+            step: step.max(1),
         }
     }
 
@@ -242,8 +271,15 @@ impl MeshEncoder {
                 let h = heights[i as usize];
                 check.add(u64::from(i) << 16 | u64::from(h));
                 if !in_base {
-                    let r = i32::from(h) - predict(&grid, heights, x, z);
-                    encode_residual(&mut rc, m, depth, r);
+                    let step = i32::from(self.step);
+                    let r = i32::from(h) - predict(&grid, heights, x, z, step);
+                    if r % step != 0 {
+                        return Err(EncodeError::Step {
+                            height: h,
+                            step: self.step,
+                        });
+                    }
+                    encode_residual(&mut rc, m, depth, r / step);
                 }
             }
             next_candidates(&grid, &self.list, split, &mut self.next);
@@ -265,6 +301,7 @@ impl MeshEncoder {
         head[4..8].copy_from_slice(&triangles.to_le_bytes());
         head[8..12].copy_from_slice(&splits.to_le_bytes());
         head[12..20].copy_from_slice(&check.value().to_le_bytes());
+        head[20..22].copy_from_slice(&self.step.to_le_bytes());
         Ok(())
     }
 }
@@ -384,6 +421,10 @@ impl MeshDecoder {
         }
         let (declared_triangles, declared_splits) = (u32_at(4), u32_at(8));
         let declared_check = u64::from_le_bytes(payload[12..20].try_into().expect("8 bytes"));
+        let step = i32::from(u16::from_le_bytes([payload[20], payload[21]]));
+        if step == 0 {
+            return Err(DecodeError::Corrupt("a height step of 0"));
+        }
         if declared_triangles > max_triangles {
             return Err(DecodeError::TooBig {
                 declared: declared_triangles,
@@ -424,7 +465,7 @@ impl MeshDecoder {
                 if !in_base {
                     let r = decode_residual(&mut rc, m, depth)
                         .ok_or(DecodeError::Corrupt("a residual out of range"))?;
-                    let h = predict(&grid, &self.heights, x, z) + r;
+                    let h = predict(&grid, &self.heights, x, z, step) + r * step;
                     self.heights[i as usize] = u16::try_from(h)
                         .map_err(|_| DecodeError::Corrupt("a height out of range"))?;
                 }

@@ -9,5 +9,5 @@ pub mod messages;
 mod range;
 
 pub use bintree::{BitSet, Grid};
-pub use codec::{DecodeError, Decoded, EncodeError, MeshDecoder, MeshEncoder};
+pub use codec::{DecodeError, Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
 pub use mesh::Mesh;

@@ -213,3 +213,43 @@ fn limits_and_header_errors() {
         Err(DecodeError::Format(2))
     );
 }
+
+#[test]
+fn heights_on_a_step_are_coded_in_steps() {
+    let grid = Grid::new(6).expect("valid");
+    let h: Vec<u16> = heights(&grid, 3).iter().map(|&v| v / 100 * 100).collect();
+    assert_eq!(roam_protocol::height_step(&h), 100);
+    assert_eq!(roam_protocol::height_step(&[0, 0]), 1, "no step: 1");
+    assert_eq!(roam_protocol::height_step(&[6, 9, 15]), 3);
+    let set = split_set(&grid, &[(5, 9), (40, 33), (60, 2), (17, 50)]);
+    let (mut plain, mut stepped) = (Vec::new(), Vec::new());
+    MeshEncoder::new(grid)
+        .encode(&set, &h, None, &mut plain)
+        .expect("encodes");
+    MeshEncoder::with_step(grid, 100)
+        .encode(&set, &h, None, &mut stepped)
+        .expect("encodes");
+    assert!(
+        stepped.len() < plain.len(),
+        "{} vs {}",
+        stepped.len(),
+        plain.len()
+    );
+    for bytes in [&plain, &stepped] {
+        let mut dec = MeshDecoder::new(grid);
+        let mut got = BitSet::default();
+        dec.decode(bytes, None, u32::MAX, &mut got)
+            .expect("decodes");
+        assert_eq!(got, set);
+        for i in set.iter() {
+            assert_eq!(dec.heights()[i as usize], h[i as usize]);
+        }
+    }
+    let err = MeshEncoder::with_step(grid, 7)
+        .encode(&set, &h, None, &mut Vec::new())
+        .expect_err("heights off the step");
+    assert!(
+        err.to_string().contains("not a multiple of the step 7"),
+        "{err}"
+    );
+}

@@ -269,7 +269,8 @@ fn codec_bench(
     let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
     let grid = Grid::new(terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
-    let (mut enc, mut dec) = (MeshEncoder::new(grid), MeshDecoder::new(grid));
+    let step = roam_protocol::height_step(terrain.heights.samples());
+    let (mut enc, mut dec) = (MeshEncoder::with_step(grid, step), MeshDecoder::new(grid));
     let mut tess = Tessellator::new(terrain.heights.side());
     let (mut server_mesh, mut viewer_mesh) = (Mesh::default(), mesh::Mesh::default());
     let (mut split, mut decoded) = (BitSet::default(), BitSet::default());

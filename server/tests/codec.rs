@@ -24,7 +24,8 @@ fn drive(name: &str, budget: u32, skip: usize) -> Vec<f64> {
     let script = script::parse(flyover::DRIVE_SCRIPT).expect("valid");
     let cameras = flyover::drive(&terrain, &script, 60);
     let grid = Grid::new(terrain.heights.levels()).expect("valid");
-    let (mut enc, mut dec) = (MeshEncoder::new(grid), MeshDecoder::new(grid));
+    let step = roam_protocol::height_step(terrain.heights.samples());
+    let (mut enc, mut dec) = (MeshEncoder::with_step(grid, step), MeshDecoder::new(grid));
     let mut tess = Tessellator::new(terrain.heights.side());
     let scales = Scales {
         h: terrain.map.h_scale,

@@ -36,6 +36,8 @@ pub struct Shared {
     pub terrain: Arc<Terrain>,
     pub variance: Arc<VarianceTree>,
     pub token: String,
+    /// The heights' common step, for the mesh coder (computed once).
+    pub height_step: u16,
     events: std::sync::mpsc::Sender<Event>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     shutdown: watch::Receiver<bool>,
@@ -106,6 +108,7 @@ impl Server {
         };
         let (stop, shutdown) = watch::channel(false);
         let shared = Arc::new(Shared {
+            height_step: roam_protocol::height_step(terrain.heights.samples()),
             terrain,
             variance,
             token: options.token,

@@ -300,7 +300,7 @@ async fn frames(
     let mut maker = Some(Maker {
         tess: Tessellator::new(shared.terrain.heights.side()),
         mesh: Mesh::default(),
-        encoder: MeshEncoder::new(grid),
+        encoder: MeshEncoder::with_step(grid, shared.height_step),
         grid,
         bases: VecDeque::new(),
     });
