@@ -65,11 +65,17 @@ impl Tessellator {
         let n = 3 * self.triangles as usize;
         out.indices.resize(n + 12, 0);
         let mut k = 0usize;
-        for (i, x, z) in SetBits::new(&self.active, side) {
+        // A split diamond's own rank is the count of split diamonds before it, plus the
+        // corners before it: (0, 0) always, (s, 0) after row 0, (0, s) in row s.
+        let (row_end, last_row) = (s as usize, s as usize * side);
+        for (r, (i, x, z)) in SetBits::new(&self.active, side).enumerate() {
+            let rc = (r + 1 + usize::from(i > row_end) + usize::from(i > last_row)) as u32;
             let window: &mut [u32; 12] = (&mut out.indices[k..k + 12])
                 .try_into()
                 .expect("a slice of 12 is an array of 12");
-            k += diamond(&ranked, window, s, self.side, x as u32, z as u32, i as u32);
+            k += diamond(
+                &ranked, window, s, self.side, x as u32, z as u32, i as u32, rc,
+            );
         }
         if self.active_list.is_empty() {
             // Nothing split: the two roots, whose corners are ranks 0 to 3 (row-major).
@@ -155,8 +161,8 @@ impl Ranked<'_> {
     }
 }
 
-/// Writes the leaf children of the split diamond centred at `(x, z)` (row-major index `i`)
-/// into `out`, counter-clockwise seen from above, and returns how many slots they took.
+/// Writes the leaf children of the split diamond centred at `(x, z)` (row-major index `i`,
+/// vertex index `rc`) into `out`, counter-clockwise seen from above, and returns how many slots they took.
 /// Each child is written in place; the cursor moves only past leaves.
 ///
 /// Both shapes are one computation: a diamond's children fan around its centre between
@@ -165,6 +171,7 @@ impl Ranked<'_> {
 /// `c_k c_(k+1)` is not split (at the finest level a rotated diamond's children are always
 /// leaves). Only rotated diamonds on the map's edge, which lack corners, take another path.
 #[inline(always)]
+#[allow(clippy::too_many_arguments)]
 fn diamond(
     ranked: &Ranked,
     out: &mut [u32; 12],
@@ -173,11 +180,12 @@ fn diamond(
     x: u32,
     z: u32,
     i: u32,
+    rc: u32,
 ) -> usize {
     let (tx, tz) = (x.trailing_zeros(), z.trailing_zeros());
     let square = tx == tz;
     if !square && (x == 0 || x == size || z == 0 || z == size) {
-        return edge(ranked, out, size, side, x, z, i);
+        return edge(ranked, out, size, side, x, z, i, rc);
     }
     let m = tx.min(tz);
     let h = 1u32 << m;
@@ -194,7 +202,6 @@ fn diamond(
     };
     let mid = [i + ma - mb, i - mc - md, i - ma + mb, i + mc + md];
     let finest_rotated = !square && m == 0;
-    let rc = ranked.rank(i);
     let rank = [
         ranked.rank(c[0]),
         ranked.rank(c[1]),
@@ -213,6 +220,7 @@ fn diamond(
 /// [`diamond`] for a rotated diamond centred on the map's edge: the corner off the map
 /// stands in for itself, and the two children off the map are never leaves.
 #[cold]
+#[allow(clippy::too_many_arguments)]
 fn edge(
     ranked: &Ranked,
     out: &mut [u32; 12],
@@ -221,6 +229,7 @@ fn edge(
     x: u32,
     z: u32,
     i: u32,
+    rc: u32,
 ) -> usize {
     let m = x.trailing_zeros().min(z.trailing_zeros());
     let h = 1u32 << m;
@@ -230,7 +239,6 @@ fn edge(
     let so = if hs { i + dz } else { i };
     let w = if hw { i - h } else { i };
     let e = if he { i + h } else { i };
-    let rc = ranked.rank(i);
     let (rn, rs, rw, re) = (
         ranked.rank(n),
         ranked.rank(so),
