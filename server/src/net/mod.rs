@@ -39,6 +39,7 @@ pub struct Shared {
     /// The heights' common step, for the mesh coder (computed once).
     pub height_step: u16,
     events: std::sync::mpsc::Sender<Event>,
+    keys: std::sync::mpsc::SyncSender<world_loop::KeyStates>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     shutdown: watch::Receiver<bool>,
 }
@@ -97,13 +98,16 @@ impl Server {
             error,
         })?;
         let (events, event_rx) = std::sync::mpsc::channel();
+        let (keys, key_rx) = std::sync::mpsc::sync_channel(world_loop::KEY_BACKLOG);
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world = {
             let terrain = terrain.clone();
             let record = options.record.clone();
             std::thread::Builder::new()
                 .name("roam-world".into())
-                .spawn(move || world_loop::run(terrain, record.as_deref(), event_rx, snap_tx))
+                .spawn(move || {
+                    world_loop::run(terrain, record.as_deref(), event_rx, key_rx, snap_tx)
+                })
                 .map_err(ServeError::World)?
         };
         let (stop, shutdown) = watch::channel(false);
@@ -113,6 +117,7 @@ impl Server {
             variance,
             token: options.token,
             events: events.clone(),
+            keys,
             snapshots: snapshots.clone(),
             shutdown,
         });

@@ -207,10 +207,8 @@ async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: Vehicl
             continue;
         };
         if driver {
-            let _ = shared.events.send(Event::Keys {
-                vehicle,
-                states: d.states,
-            });
+            // A full backlog drops this datagram; its states come again in later ones.
+            let _ = shared.keys.try_send((vehicle, d.states));
         }
     }
 }

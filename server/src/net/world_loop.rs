@@ -21,11 +21,6 @@ use crate::world::{self, InputLatch, Inputs, Vehicle, VehicleId, World};
 pub enum Event {
     /// A driver joins: it gets a vehicle of its own (the reply), at the next start slot.
     Join { reply: oneshot::Sender<VehicleId> },
-    /// Key states from a driver's datagram (any order, repeats allowed).
-    Keys {
-        vehicle: VehicleId,
-        states: Vec<KeyState>,
-    },
     /// A driver left: its vehicle goes.
     Leave { vehicle: VehicleId },
 }
@@ -103,10 +98,19 @@ enum Stepper {
 
 /// Runs the world until `events` closes, then closes the recording. Returns the final
 /// world.
+/// Key states from a driver's datagram (any order, repeats allowed), on a bounded channel
+/// of their own: when it is full the network drops datagrams (their states come again in
+/// later ones), so a flood cannot grow memory or starve the ticks.
+pub type KeyStates = (VehicleId, Vec<KeyState>);
+
+/// How many key datagrams may wait for the world.
+pub const KEY_BACKLOG: usize = 1024;
+
 pub fn run(
     terrain: Arc<Terrain>,
     record: Option<&Path>,
     events: Receiver<Event>,
+    keys: Receiver<KeyStates>,
     snapshots: watch::Sender<Arc<Snapshot>>,
 ) -> std::io::Result<World> {
     let world = World::new(terrain.clone());
@@ -128,6 +132,9 @@ pub fn run(
         // Events until the tick is due.
         loop {
             let wait = due.saturating_duration_since(Instant::now());
+            if wait.is_zero() {
+                break; // the tick is due: events wait for the next one
+            }
             let event = match events.recv_timeout(wait) {
                 Ok(e) => e,
                 Err(RecvTimeoutError::Timeout) => break,
@@ -148,27 +155,6 @@ pub fn run(
                         let _ = reply.send(id);
                     }
                 }
-                Event::Keys {
-                    vehicle,
-                    mut states,
-                } => {
-                    let Some((_, d)) = drivers.iter_mut().find(|(v, _)| *v == vehicle) else {
-                        continue;
-                    };
-                    states.sort_by_key(|s| s.seq);
-                    for s in states {
-                        if d.seq.is_some_and(|seq| s.seq <= seq) {
-                            continue; // seen already
-                        }
-                        let (Some(held), Some(pressed)) =
-                            (Keys::from_bits(s.held), Keys::from_bits(s.pressed))
-                        else {
-                            continue; // not keys: ignore the state
-                        };
-                        d.queue.push_back((s.seq, held, pressed));
-                        d.seq = Some(s.seq);
-                    }
-                }
                 Event::Leave { vehicle } => {
                     drivers.retain(|(v, _)| *v != vehicle);
                     // A vehicle that is not there (a repeated leave) changes nothing.
@@ -177,6 +163,25 @@ pub fn run(
                         Stepper::Recorded(r) => r.leave(vehicle).is_ok(),
                     };
                 }
+            }
+        }
+        // The key states that arrived, oldest first (bounded by the channel).
+        while let Ok((vehicle, mut states)) = keys.try_recv() {
+            let Some((_, d)) = drivers.iter_mut().find(|(v, _)| *v == vehicle) else {
+                continue;
+            };
+            states.sort_by_key(|s| s.seq);
+            for s in states {
+                if d.seq.is_some_and(|seq| s.seq <= seq) {
+                    continue; // seen already
+                }
+                let (Some(held), Some(pressed)) =
+                    (Keys::from_bits(s.held), Keys::from_bits(s.pressed))
+                else {
+                    continue; // not keys: ignore the state
+                };
+                d.queue.push_back((s.seq, held, pressed));
+                d.seq = Some(s.seq);
             }
         }
         // The tick: every driver's keys since the last one, then one step.
