@@ -120,7 +120,25 @@ pub async fn run(
             conn.close_reason()
         ),
     };
-    // The colour map follows the welcome.
+    // The colour map follows the welcome; its size must be what the grid says, within
+    // reason, before anything is allocated.
+    if welcome.levels > 13 {
+        bail!(
+            "the server's grid is 2^{} + 1: more than this viewer holds (2^13 + 1)",
+            welcome.levels
+        );
+    }
+    let cells = 1u64 << welcome.levels;
+    if u64::from(welcome.color_cells) != cells
+        || u64::from(welcome.color_bytes) != cells * cells * 3
+    {
+        bail!(
+            "the server's colour map is {} bytes of {} cells a side, expected {} of {cells}",
+            welcome.color_bytes,
+            welcome.color_cells,
+            cells * cells * 3
+        );
+    }
     let mut color = vec![0u8; welcome.color_bytes as usize];
     let mut got = 0usize;
     while got < color.len() {
@@ -170,19 +188,23 @@ pub async fn run(
     let mut newest: Option<u64> = None;
     let mut viewer_mesh = mesh::Mesh::default();
     let started = Instant::now();
+    // Frames arrive on streams of their own, read side by side; only the newest waits to
+    // be shown (latest frame wins here too: a slow viewer skips frames, never lags).
+    let slot: Slot = Default::default();
+    let reader = tokio::spawn(read_frames(conn.clone(), slot.clone()));
     while stats.frames < opts.frames {
-        let mut stream = match conn.accept_uni().await {
-            Ok(s) => s,
-            Err(e) => bail!("the connection ended: {e}"),
-        };
-        // A frame abandoned by the server (reset) is simply skipped.
-        let Ok(bytes) = stream.read_to_end(messages::MAX_MESSAGE).await else {
+        let taken = slot.0.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let Some((frame, wire_len)) = taken else {
+            if reader.is_finished() {
+                bail!("the connection ended: {:?}", conn.close_reason());
+            }
+            slot.1.notified().await;
             continue;
         };
-        let Ok(frame) = messages::decode::<Frame>(&bytes) else {
-            stats.decode_errors += 1;
+        if wire_len == 0 {
+            stats.decode_errors += 1; // a stream that was not a frame
             continue;
-        };
+        }
         if newest.is_some_and(|n| frame.frame <= n) {
             continue; // older than what is shown: latest frame wins here too
         }
@@ -233,7 +255,7 @@ pub async fn run(
             decoded.pop_front();
         }
         newest = Some(frame.frame);
-        let per_tri = bytes.len() as f64 / tris.max(1) as f64;
+        let per_tri = wire_len as f64 / tris.max(1) as f64;
         if stats.first.is_none() {
             stats.first = Some(per_tri);
         } else {
@@ -263,6 +285,7 @@ pub async fn run(
         stats.frames += 1;
     }
     stats.seconds = started.elapsed().as_secs_f64();
+    reader.abort();
     if let Some(k) = keys {
         k.abort();
     }
@@ -270,6 +293,51 @@ pub async fn run(
     let _ = send.finish();
     conn.close(0u32.into(), b"done");
     Ok(stats)
+}
+
+type Slot = std::sync::Arc<(
+    std::sync::Mutex<Option<(Frame, usize)>>,
+    tokio::sync::Notify,
+)>;
+
+/// Accepts frame streams and reads each in a task of its own; a frame newer than the one
+/// waiting replaces it. A stream that is not a frame leaves `(_, 0)` to be counted.
+async fn read_frames(conn: quinn::Connection, slot: Slot) {
+    let newest = std::sync::Arc::new(std::sync::atomic::AtomicU64::new(0));
+    while let Ok(mut stream) = conn.accept_uni().await {
+        let (slot, newest) = (slot.clone(), newest.clone());
+        tokio::spawn(async move {
+            // A frame abandoned by the server (reset) is simply skipped.
+            let Ok(bytes) = stream.read_to_end(messages::MAX_MESSAGE).await else {
+                return;
+            };
+            let mut s = slot.0.lock().unwrap_or_else(|e| e.into_inner());
+            match messages::decode::<Frame>(&bytes) {
+                Ok(frame) => {
+                    let n = frame.frame + 1;
+                    if newest.fetch_max(n, std::sync::atomic::Ordering::Relaxed) < n {
+                        *s = Some((frame, bytes.len()));
+                    }
+                }
+                Err(_) => {
+                    let bad = Frame {
+                        frame: 0,
+                        base: None,
+                        tick: 0,
+                        vehicles: Vec::new(),
+                        input_seq: None,
+                        mesh: Vec::new(),
+                    };
+                    if s.is_none() {
+                        *s = Some((bad, 0));
+                    }
+                }
+            }
+            drop(s);
+            slot.1.notify_one();
+        });
+    }
+    slot.1.notify_one();
 }
 
 fn describe(reason: &Reason) -> String {

@@ -465,7 +465,9 @@ impl MeshDecoder {
                 if !in_base {
                     let r = decode_residual(&mut rc, m, depth)
                         .ok_or(DecodeError::Corrupt("a residual out of range"))?;
-                    let h = predict(&grid, &self.heights, x, z, step) + r * step;
+                    // In i64: a hostile step times a large residual overflows i32.
+                    let h = i64::from(predict(&grid, &self.heights, x, z, step))
+                        + i64::from(r) * i64::from(step);
                     self.heights[i as usize] = u16::try_from(h)
                         .map_err(|_| DecodeError::Corrupt("a height out of range"))?;
                 }

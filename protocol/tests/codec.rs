@@ -253,3 +253,25 @@ fn heights_on_a_step_are_coded_in_steps() {
         "{err}"
     );
 }
+
+#[test]
+fn a_hostile_step_is_an_error_not_an_overflow() {
+    let grid = Grid::new(6).expect("valid");
+    let h = heights(&grid, 5);
+    let set = split_set(&grid, &[(9, 9), (50, 21)]);
+    let mut bytes = Vec::new();
+    MeshEncoder::new(grid)
+        .encode(&set, &h, None, &mut bytes)
+        .expect("encodes");
+    for step in [0u16, 2, 0xffff] {
+        let mut bad = bytes.clone();
+        bad[20..22].copy_from_slice(&step.to_le_bytes());
+        let mut got = BitSet::default();
+        assert!(
+            MeshDecoder::new(grid)
+                .decode(&bad, None, u32::MAX, &mut got)
+                .is_err(),
+            "step {step}"
+        );
+    }
+}

@@ -108,7 +108,12 @@ async fn two_viewers_one_driving_and_the_session_replays() {
     };
     let d = tokio::spawn(headless::run(addr, r.fingerprint, driver));
     // The spectator joins once the driver's vehicle exists.
-    tokio::time::sleep(Duration::from_millis(300)).await;
+    for _ in 0..500 {
+        if !r.server.snapshot().vehicles.is_empty() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
     let s = tokio::spawn(headless::run(
         addr,
         r.fingerprint,

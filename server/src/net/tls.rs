@@ -126,7 +126,20 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     let quic = quinn::crypto::rustls::QuicServerConfig::try_from(tls)
         .map_err(|e| TlsError::Quic(e.to_string()))?;
     let mut config = quinn::ServerConfig::with_crypto(Arc::new(quic));
-    config.transport_config(transport(false));
+    // A viewer opens one control stream and sends small messages and key datagrams: a
+    // peer cannot make the server buffer more than that.
+    let mut t = quinn::TransportConfig::default();
+    t.max_idle_timeout(Some(
+        std::time::Duration::from_secs(10)
+            .try_into()
+            .expect("10 s is a valid idle timeout"),
+    ));
+    t.max_concurrent_uni_streams(0u32.into());
+    t.max_concurrent_bidi_streams(1u32.into());
+    t.stream_receive_window((64u32 << 10).into());
+    t.receive_window((128u32 << 10).into());
+    t.datagram_receive_buffer_size(Some(64 << 10));
+    config.transport_config(Arc::new(t));
     Ok(config)
 }
 

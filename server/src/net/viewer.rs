@@ -22,6 +22,10 @@ use crate::world::VehicleId;
 pub const MAX_BUDGET: u32 = 1 << 20;
 /// Frames kept as possible bases, per viewer.
 const BASES: usize = 16;
+/// Key datagrams a driver may send per second, and in a burst (a viewer sends 100 a
+/// second).
+const KEY_RATE: f64 = 250.0;
+const KEY_BURST: f64 = 50.0;
 /// Colour-map bytes per chunk.
 const CHUNK: usize = 64 << 10;
 
@@ -45,6 +49,14 @@ fn refuse(conn: &quinn::Connection, code: u32, why: &str) {
     conn.close(code.into(), why.as_bytes());
 }
 
+/// Sends a last message (a refusal, a goodbye) and gives it a moment to arrive before the
+/// connection closes (closing drops what is unsent).
+async fn last_word(send: &mut quinn::SendStream, msg: &ServerMessage) {
+    if wire::write(send, msg).await.is_ok() && send.finish().is_ok() {
+        let _ = tokio::time::timeout(Duration::from_millis(250), send.stopped()).await;
+    }
+}
+
 /// Serves one connection to its end.
 pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     let accepted = tokio::time::timeout(Duration::from_secs(5), conn.accept_bi()).await;
@@ -66,12 +78,12 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     };
     let reply = |reason: Reason| ServerMessage::Refused(reason);
     if hello.version != VERSION {
-        let _ = wire::write(&mut send, &reply(Reason::Version { server: VERSION })).await;
+        last_word(&mut send, &reply(Reason::Version { server: VERSION })).await;
         refuse(&conn, close::REFUSED, "protocol version");
         return;
     }
     if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
-        let _ = wire::write(&mut send, &reply(Reason::WrongToken)).await;
+        last_word(&mut send, &reply(Reason::WrongToken)).await;
         refuse(&conn, close::REFUSED, "wrong token");
         return;
     }
@@ -101,7 +113,7 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
                 Some(v) => (v.id, false),
                 None => {
                     let why = Reason::Unavailable("no vehicle to follow".into());
-                    let _ = wire::write(&mut send, &reply(why)).await;
+                    last_word(&mut send, &reply(why)).await;
                     refuse(&conn, close::REFUSED, "no vehicle to follow");
                     return;
                 }
@@ -133,13 +145,13 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     tokio::select! {
         _ = frames(&conn, &shared, control, camera, rate, vehicle, driver) => {
             let why = Reason::Unavailable("the vehicle followed has left".into());
-            let _ = wire::write(&mut send, &ServerMessage::Bye(why)).await;
+            last_word(&mut send, &ServerMessage::Bye(why)).await;
             conn.close(close::BYE.into(), b"the vehicle followed has left");
         }
         _ = ctl => conn.close(close::BYE.into(), b"bye"),
         _ = conn.closed() => {}
         _ = shared.shutting_down() => {
-            let _ = wire::write(&mut send, &ServerMessage::Bye(Reason::Shutdown)).await;
+            last_word(&mut send, &ServerMessage::Bye(Reason::Shutdown)).await;
             conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
         }
     }
@@ -200,9 +212,20 @@ async fn welcome(
     Ok(())
 }
 
-/// Key datagrams to the world; anything that is not one is ignored.
+/// Key datagrams to the world; anything that is not one is ignored. A driver may send
+/// [`KEY_RATE`] a second (a burst of [`KEY_BURST`]); more are dropped here, so one flooding
+/// viewer cannot crowd the others out of the world's key backlog.
 async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: VehicleId, driver: bool) {
+    let mut tokens = KEY_BURST;
+    let mut refilled = tokio::time::Instant::now();
     while let Ok(bytes) = conn.read_datagram().await {
+        let now = tokio::time::Instant::now();
+        tokens = (tokens + (now - refilled).as_secs_f64() * KEY_RATE).min(KEY_BURST);
+        refilled = now;
+        if tokens < 1.0 {
+            continue;
+        }
+        tokens -= 1.0;
         let Ok(d) = roam_protocol::messages::decode::<KeyDatagram>(&bytes) else {
             continue;
         };
@@ -304,7 +327,12 @@ async fn frames(
     });
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    let mut in_flight: Option<(oneshot::Sender<()>, tokio::task::JoinHandle<()>)> = None;
+    type InFlight = (
+        oneshot::Sender<()>,
+        tokio::task::JoinHandle<Option<quinn::SendStream>>,
+        u64,
+    );
+    let mut in_flight: Option<InFlight> = None;
     let mut seen = false;
     let mut frame = 0u64;
     loop {
@@ -368,11 +396,19 @@ async fn frames(
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
             return;
         }
-        // Latest frame wins: abandon the previous one if it is still going.
-        if let Some((cancel, task)) = in_flight.take()
-            && !task.is_finished()
-        {
-            let _ = cancel.send(());
+        // Latest frame wins: the previous frame's stream is reset unless the viewer has
+        // acknowledged it, whether it is still being written or already handed to quinn
+        // (a finished stream still waits in the send buffer on a slow link).
+        if let Some((cancel, task, sent)) = in_flight.take() {
+            if task.is_finished() {
+                if let Ok(Some(mut stream)) = task.await
+                    && acked.is_none_or(|a| a < sent)
+                {
+                    let _ = stream.reset(0u32.into());
+                }
+            } else {
+                let _ = cancel.send(());
+            }
         }
         let Ok(mut stream) = conn.open_uni().await else {
             return;
@@ -382,16 +418,18 @@ async fn frames(
         let task = tokio::spawn(async move {
             tokio::select! {
                 r = stream.write_all(&bytes) => {
-                    if r.is_ok() {
-                        let _ = stream.finish();
+                    if r.is_ok() && stream.finish().is_ok() {
+                        return Some(stream);
                     }
+                    None
                 }
                 _ = cancelled => {
                     let _ = stream.reset(0u32.into());
+                    None
                 }
             }
         });
-        in_flight = Some((cancel, task));
+        in_flight = Some((cancel, task, frame));
         frame += 1;
     }
 }
