@@ -151,7 +151,8 @@ impl Server {
         self.accept.abort();
         let _ = self.accept.await;
         self.endpoint.wait_idle().await;
-        // Every connection task has ended, so every other sender is gone with this one.
+        // Connections are closed; viewer tasks (and a tessellation in flight) end shortly
+        // and drop their senders, and then the world thread sees the channel close.
         drop(self.events.take());
         let world = tokio::task::spawn_blocking(move || self.world.join())
             .await

@@ -133,11 +133,17 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     }));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let ctl = tokio::spawn(read_control(recv, control.clone()));
+    let fov = f64::from(hello.fov_y_deg);
     let camera = Camera {
         eye: [0.0; 3],
         yaw_deg: 0.0,
         pitch_deg: crate::flyover::PITCH_DEG,
-        fov_y_deg: f64::from(hello.fov_y_deg).clamp(1.0, 179.0),
+        // A field of view that is not a number is taken as the usual 60°.
+        fov_y_deg: if fov.is_finite() {
+            fov.clamp(1.0, 179.0)
+        } else {
+            60.0
+        },
         width: hello.viewport[0].clamp(1, 16_384),
         height: hello.viewport[1].clamp(1, 16_384),
     };
