@@ -287,10 +287,7 @@ fn codec_bench(
             &mut server_mesh,
         );
         let tris = server_mesh.triangle_count().max(1) as f64;
-        split.reset(grid.vertices());
-        for (x, z) in tess.split_diamonds() {
-            split.insert(grid.index(x, z));
-        }
+        tess.split_set(&grid, &mut split);
         payload.clear();
         let started = Instant::now();
         enc.encode(

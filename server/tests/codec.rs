@@ -40,10 +40,8 @@ fn drive(name: &str, budget: u32, skip: usize) -> Vec<f64> {
     let mut sizes = Vec::new();
     for (k, cam) in cameras.iter().enumerate().step_by(4) {
         tess.tessellate(&terrain.heights, &vt, scales, cam, limits, &mut server);
-        let mut split = BitSet::new(grid.vertices());
-        for (x, z) in tess.split_diamonds() {
-            split.insert(grid.index(x, z));
-        }
+        let mut split = BitSet::default();
+        tess.split_set(&grid, &mut split);
         let mut payload = Vec::new();
         enc.encode(
             &split,

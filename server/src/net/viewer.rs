@@ -291,10 +291,8 @@ impl Maker {
             limits,
             &mut self.mesh,
         );
-        let mut split = BitSet::new(self.grid.vertices());
-        for (x, z) in self.tess.split_diamonds() {
-            split.insert(self.grid.index(x, z));
-        }
+        let mut split = BitSet::default();
+        self.tess.split_set(&self.grid, &mut split);
         let base = acked.and_then(|a| self.bases.iter().find(|(f, _)| *f == a));
         let mut payload = Vec::new();
         self.encoder

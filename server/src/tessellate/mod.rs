@@ -275,6 +275,15 @@ impl Tessellator {
         self.stats
     }
 
+    /// The last frame's split diamonds as the mesh codec's split set (row-major indices on
+    /// `grid`, which must be this map's).
+    pub fn split_set(&self, grid: &roam_protocol::Grid, out: &mut roam_protocol::BitSet) {
+        out.reset(grid.vertices());
+        for (x, z) in self.split_diamonds() {
+            out.insert(grid.index(x, z));
+        }
+    }
+
     /// Centres of the diamonds split in the last frame, in the order they were split.
     pub fn split_diamonds(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
         self.active_list.iter().map(|&v| unpack(v))
