@@ -279,12 +279,13 @@ pub async fn run(
             .find(|v| v.id == welcome.vehicle)
             .copied();
         stats.last_tick = frame.tick;
-        if opts.keep_last {
-            stats.last_mesh = Some(viewer_mesh.clone());
-        }
         stats.frames += 1;
     }
     stats.seconds = started.elapsed().as_secs_f64();
+    if opts.keep_last && stats.max_triangles > 0 {
+        // The mesh of the last frame decoded.
+        stats.last_mesh = Some(viewer_mesh);
+    }
     reader.abort();
     if let Some(k) = keys {
         k.abort();

@@ -215,7 +215,6 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
             "no end record"
         }
     );
-    let world = World::new(terrain);
     for v in &outcome.vehicles {
         let s = &v.state;
         say!(
@@ -223,7 +222,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
             v.id,
             s.x,
             s.z,
-            world.altitude(s),
+            roam_server::physics::altitude(&*terrain, s.x, s.z),
             s.speed,
             s.heading
         );

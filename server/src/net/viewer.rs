@@ -349,8 +349,9 @@ async fn frames(
             continue; // a new driver's vehicle appears with the next tick
         };
         seen = true;
-        let w = crate::world::World::new(shared.terrain.clone());
-        camera.eye = [v.state.x, w.altitude(&v.state), v.state.z];
+        let altitude =
+            |s: &crate::physics::VehicleState| crate::physics::altitude(&*shared.terrain, s.x, s.z);
+        camera.eye = [v.state.x, altitude(&v.state), v.state.z];
         camera.yaw_deg = v.state.heading;
         let (budget, acked) = {
             let c = control.lock().unwrap_or_else(|e| e.into_inner());
@@ -381,7 +382,7 @@ async fn frames(
                     id: v.id,
                     x: v.state.x,
                     z: v.state.z,
-                    y: w.altitude(&v.state),
+                    y: altitude(&v.state),
                     speed: v.state.speed,
                     heading: v.state.heading,
                 })
