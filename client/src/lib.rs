@@ -1,6 +1,13 @@
-//! roam-client: the viewer. For now, the headless viewer (and load generator) that connects
-//! to a roam server, plays an input script, decodes and checks every frame, and measures.
+//! roam-client: the viewer. A [`session::Session`] joins a server and decodes its frame
+//! stream; the window ([`window`]) draws it with the [`render`] module, rides the vehicle
+//! with [`camera`] and shows the [`hud`]; the headless viewer ([`headless`]) measures and
+//! renders offscreen with the same renderer.
 
+pub mod camera;
 pub mod headless;
+pub mod hud;
+pub mod live;
 pub mod render;
+pub mod session;
 pub mod stats;
+pub mod window;

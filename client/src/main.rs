@@ -1,4 +1,5 @@
-//! `roam-client`: the viewer's command line. Only the headless mode exists so far.
+//! `roam-client`: the viewer's command line. With no arguments it opens a window on the
+//! bundled data set, served in-process; `--headless` measures, and renders offscreen.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -7,7 +8,8 @@ use std::sync::Arc;
 use anyhow::{Context, Result, bail};
 use clap::Parser;
 use roam_client::headless::{self, ViewerOptions};
-use roam_protocol::messages::Role;
+use roam_client::session::Session;
+use roam_protocol::messages::{Hello, Role, VERSION};
 use roam_server::net::{self, Options, Server, tls};
 
 #[derive(Parser)]
@@ -18,15 +20,16 @@ use roam_server::net::{self, Options, Server, tls};
 )]
 struct Cli {
     /// The server's address, `HOST:PORT`.
-    #[arg(long, required_unless_present = "local", conflicts_with = "local")]
+    #[arg(long, conflicts_with = "local", requires_all = ["token", "fingerprint"])]
     connect: Option<SocketAddr>,
     /// The join token the server printed.
-    #[arg(long, required_unless_present = "local")]
+    #[arg(long, requires = "connect")]
     token: Option<String>,
     /// The SHA-256 fingerprint of the server's certificate, as it printed it.
-    #[arg(long, required_unless_present = "local")]
+    #[arg(long, requires = "connect")]
     fingerprint: Option<String>,
-    /// Start a server for this data set in this process, on loopback, instead of --connect.
+    /// Start a server for this data set in this process, on loopback, instead of --connect
+    /// (the default: the bundled data/kossou).
     #[arg(long)]
     local: Option<PathBuf>,
     /// Run without a window: decode and check every frame, then write stats.
@@ -59,18 +62,57 @@ struct Cli {
     /// and write it as a PNG.
     #[arg(long)]
     screenshot: Option<PathBuf>,
-    /// Screenshot size, `WIDTHxHEIGHT`.
+    /// Window or screenshot size, `WIDTHxHEIGHT`.
     #[arg(long, default_value = "1280x720", value_parser = parse_size)]
     size: (u32, u32),
-    /// Screenshot without fog.
+    /// Start with fog off.
     #[arg(long)]
     no_fog: bool,
-    /// Screenshot without lighting (flat colours).
+    /// Start with lighting off (flat colours).
     #[arg(long)]
     no_lighting: bool,
-    /// Screenshot with the wireframe drawn over.
+    /// Start with the wireframe drawn over.
     #[arg(long)]
     wireframe: bool,
+    /// Start without the water surface.
+    #[arg(long)]
+    no_water: bool,
+    /// Start without the other vehicles' markers.
+    #[arg(long)]
+    no_vehicles: bool,
+    /// Vertical field of view, degrees.
+    #[arg(long, default_value_t = 60.0)]
+    fov: f32,
+}
+
+impl Cli {
+    fn toggles(&self) -> roam_client::render::Toggles {
+        roam_client::render::Toggles {
+            fog: !self.no_fog,
+            lighting: !self.no_lighting,
+            wireframe: self.wireframe,
+            water: !self.no_water,
+            vehicles: !self.no_vehicles,
+        }
+    }
+
+    fn role(&self) -> Role {
+        if self.spectate {
+            Role::Spectator { follow: None }
+        } else {
+            Role::Driver
+        }
+    }
+}
+
+/// The bundled data set: `data/kossou` from the current directory (the repository root,
+/// as `cargo run` leaves it), else beside the source.
+fn bundled() -> PathBuf {
+    let here = PathBuf::from("data/kossou");
+    if here.is_dir() {
+        return here;
+    }
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../data/kossou")
 }
 
 fn parse_size(s: &str) -> Result<(u32, u32), String> {
@@ -95,7 +137,17 @@ fn main() -> std::process::ExitCode {
 
 fn run(cli: Cli) -> Result<()> {
     if !cli.headless {
-        bail!("the windowed viewer does not exist yet: add --headless");
+        for (flag, given) in [
+            ("--screenshot", cli.screenshot.is_some()),
+            ("--stats", cli.stats.is_some()),
+            ("--inputs", cli.inputs.is_some()),
+            ("--skip-decode", cli.skip_decode),
+            ("--viewers", cli.viewers != 1),
+        ] {
+            if given {
+                bail!("{flag} is for the headless viewer: add --headless");
+            }
+        }
     }
     let script = match &cli.inputs {
         Some(path) => {
@@ -109,53 +161,20 @@ fn run(cli: Cli) -> Result<()> {
         None => None,
     };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    let (server, addr, token, fingerprint) = runtime.block_on(serve(&cli))?;
+    if !cli.headless {
+        let shown = window(&runtime, &cli, addr, &token, fingerprint);
+        if let Some(server) = server {
+            runtime.block_on(server.shutdown())?;
+        }
+        return shown;
+    }
     runtime.block_on(async {
-        // An in-process server, or the one given.
-        let (server, addr, token, fingerprint) = match &cli.local {
-            Some(dir) => {
-                let terrain = roam_server::dataset::load(dir, &mut |_, _| {})?;
-                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-                let vt = roam_server::variance::VarianceTree::build(
-                    &terrain.heights,
-                    threads,
-                    &mut |_, _| {},
-                );
-                let identity = tls::generate()?;
-                let token = net::random_token();
-                let server = Server::start(
-                    Arc::new(terrain),
-                    Arc::new(vt),
-                    &identity,
-                    Options {
-                        listen: "127.0.0.1:0".parse().expect("a valid address"),
-                        token: token.clone(),
-                        record: None,
-                    },
-                )?;
-                let fp = tls::parse_fingerprint(&identity.fingerprint())?;
-                let addr = server.addr;
-                (Some(server), addr, token, fp)
-            }
-            None => {
-                let fp = tls::parse_fingerprint(cli.fingerprint.as_deref().unwrap_or_default())?;
-                (
-                    None,
-                    cli.connect
-                        .expect("clap requires --connect without --local"),
-                    cli.token.clone().unwrap_or_default(),
-                    fp,
-                )
-            }
-        };
         let mut tasks = Vec::new();
         for _ in 0..cli.viewers.max(1) {
             let opts = ViewerOptions {
                 token: token.clone(),
-                role: if cli.spectate {
-                    Role::Spectator { follow: None }
-                } else {
-                    Role::Driver
-                },
+                role: cli.role(),
                 budget: cli.budget,
                 frames: cli.frames,
                 inputs: script.clone(),
@@ -185,9 +204,90 @@ fn run(cli: Cli) -> Result<()> {
     })
 }
 
+/// An in-process server (`--local`, the default) or the one given (`--connect`): its
+/// address, token and certificate fingerprint.
+async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32])> {
+    Ok(match &cli.connect {
+        None => {
+            let dir = cli.local.clone().unwrap_or_else(bundled);
+            let terrain = roam_server::dataset::load(&dir, &mut |_, _| {})
+                .with_context(|| format!("loading {}", dir.display()))?;
+            let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let vt = roam_server::variance::VarianceTree::build(
+                &terrain.heights,
+                threads,
+                &mut |_, _| {},
+            );
+            let identity = tls::generate()?;
+            let token = net::random_token();
+            let server = Server::start(
+                Arc::new(terrain),
+                Arc::new(vt),
+                &identity,
+                Options {
+                    listen: "127.0.0.1:0".parse().expect("a valid address"),
+                    token: token.clone(),
+                    record: None,
+                },
+            )?;
+            let fp = tls::parse_fingerprint(&identity.fingerprint())?;
+            let addr = server.addr;
+            (Some(server), addr, token, fp)
+        }
+        Some(addr) => {
+            let fp = tls::parse_fingerprint(cli.fingerprint.as_deref().unwrap_or_default())?;
+            (None, *addr, cli.token.clone().unwrap_or_default(), fp)
+        }
+    })
+}
+
+/// Joins and opens the window.
+fn window(
+    runtime: &tokio::runtime::Runtime,
+    cli: &Cli,
+    addr: SocketAddr,
+    token: &str,
+    fingerprint: [u8; 32],
+) -> Result<()> {
+    use roam_client::window;
+    // Before connecting: without a display there is nothing to connect for.
+    if std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none() {
+        bail!("{}", window::NO_DISPLAY);
+    }
+    let hello = Hello {
+        version: VERSION,
+        role: cli.role(),
+        token: token.to_string(),
+        viewport: [cli.size.0, cli.size.1],
+        fov_y_deg: cli.fov,
+        budget: cli.budget,
+        frame_rate: 60,
+    };
+    let session = runtime.block_on(Session::join(addr, fingerprint, hello))?;
+    let name = match &cli.connect {
+        Some(a) => a.to_string(),
+        None => format!(
+            "{} (in-process, {addr})",
+            cli.local.clone().unwrap_or_else(bundled).display()
+        ),
+    };
+    window::run(
+        runtime,
+        session,
+        window::Options {
+            title: format!("roam · {name}"),
+            size: cli.size,
+            toggles: cli.toggles(),
+            server: name,
+            driver: !cli.spectate,
+            fov_y_deg: cli.fov,
+        },
+    )
+}
+
 /// Renders the first viewer's last frame offscreen, from its vehicle, into a PNG.
 fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> Result<()> {
-    use roam_client::render::{self, Gpu, Renderer, Toggles, View};
+    use roam_client::render::{self, Gpu, Renderer, View};
     let (Some(scene), Some(mesh), Some(vehicle)) = (&v.scene, &v.last_mesh, &v.last) else {
         bail!("no frame was decoded: nothing to render");
     };
@@ -198,13 +298,10 @@ fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> R
         eye: [vehicle.x as f32, vehicle.y as f32, vehicle.z as f32],
         yaw_deg: vehicle.heading as f32,
         pitch_deg: roam_server::flyover::PITCH_DEG as f32,
-        fov_y_deg: 60.0,
+        fov_y_deg: cli.fov,
+        time_s: 0.0,
     };
-    let toggles = Toggles {
-        fog: !cli.no_fog,
-        lighting: !cli.no_lighting,
-        wireframe: cli.wireframe,
-    };
+    let toggles = cli.toggles();
     let rgba = render::render_offscreen(&gpu, &mut renderer, cli.size, &view, toggles)?;
     render::write_png(path, cli.size, &rgba)?;
     eprintln!(

@@ -14,6 +14,9 @@ fn run(args: &[&str]) -> (Option<i32>, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_roam-client"))
         .args(args)
         .current_dir(root())
+        // No display: the windowed mode must say how to run headless.
+        .env_remove("DISPLAY")
+        .env_remove("WAYLAND_DISPLAY")
         .output()
         .expect("run roam-client");
     (
@@ -38,15 +41,32 @@ fn help_and_usage_errors() {
         "--budget",
         "--viewers",
         "--stats",
+        "--screenshot",
+        "--size",
+        "--no-fog",
+        "--no-lighting",
+        "--wireframe",
+        "--no-water",
+        "--no-vehicles",
     ] {
         assert!(out.contains(flag), "{flag} in --help");
     }
-    let (code, _, err) = run(&["--headless"]);
+    let (code, _, err) = run(&["--headless", "--token", "t"]);
     assert_eq!(code, Some(2), "{err}");
     assert!(err.contains("--connect"), "{err}");
+    let (code, _, err) = run(&["--connect", "127.0.0.1:9", "--headless"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--token") && err.contains("--fingerprint"), "{err}");
+    // The window without a display: how to run headless instead.
     let (code, _, err) = run(&["--local", "data/synth-65"]);
     assert_eq!(code, Some(1));
-    assert!(err.contains("add --headless"), "{err}");
+    assert!(
+        err.contains("no display") && err.contains("--headless --frames"),
+        "{err}"
+    );
+    let (code, _, err) = run(&["--local", "data/synth-65", "--screenshot", "x.png"]);
+    assert_eq!(code, Some(1));
+    assert!(err.contains("--screenshot is for the headless viewer"), "{err}");
     let (code, _, err) = run(&[
         "--connect",
         "127.0.0.1:9",

@@ -29,6 +29,7 @@ fn scene(t: &Terrain, uniform_color: bool) -> Scene {
         // Thick fog, so a small test image shows it.
         fog_density: 4.0 / t.world_size() as f32,
         fog_color: m.fog_color,
+        water_level: m.water_level.map(|w| w as f32),
         cells: t.color.cells(),
         colors: if uniform_color {
             vec![120; t.color.rgb().len() * 3]
@@ -80,6 +81,7 @@ fn view_and_mesh(t: &Terrain) -> (View, roam_protocol::Mesh) {
         yaw_deg: 90.0,
         pitch_deg: 0.0,
         fov_y_deg: 60.0,
+        time_s: 0.0,
     };
     (
         view,
@@ -165,6 +167,8 @@ fn lighting_off_shades_flat_and_wireframe_shows_lines() {
         fog: false,
         lighting: false,
         wireframe: false,
+        water: false,
+        vehicles: false,
     };
     let lit = Toggles {
         lighting: true,
@@ -237,4 +241,114 @@ fn a_fixed_scene_matches_its_reference_image() {
         diff < 2.0,
         "mean difference {diff} per channel from the reference"
     );
+}
+
+/// Draws `mesh` from `view` with `markers`.
+fn draw_view(
+    gpu: &Gpu,
+    t: &Terrain,
+    mesh: &roam_protocol::Mesh,
+    view: &View,
+    markers: &[render::Marker],
+    toggles: Toggles,
+) -> Vec<[u8; 3]> {
+    let mut r = Renderer::new(gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene(t, false));
+    r.set_mesh(gpu, mesh);
+    r.set_markers(markers);
+    let rgba = render::render_offscreen(gpu, &mut r, SIZE, view, toggles).expect("renders");
+    rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect()
+}
+
+#[test]
+fn water_covers_what_lies_below_its_level_and_can_be_switched_off() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let water = t.map.water_level.expect("synth-257 has water") as f32;
+    let (_, mesh) = view_and_mesh(&t);
+    let size = t.world_size() as f32;
+    // High over the middle, looking well down: land and lake both in view.
+    let view = View {
+        eye: [size * 0.5, water + size * 0.4, size * 0.2],
+        yaw_deg: 0.0,
+        pitch_deg: -40.0,
+        fov_y_deg: 60.0,
+        time_s: 0.0,
+    };
+    // Without the test's thick fog, which would hide it.
+    let clear = Toggles {
+        fog: false,
+        ..Toggles::default()
+    };
+    let on = draw_view(&gpu, &t, &mesh, &view, &[], clear);
+    let off = draw_view(
+        &gpu,
+        &t,
+        &mesh,
+        &view,
+        &[],
+        Toggles {
+            water: false,
+            ..clear
+        },
+    );
+    if let Some(dir) = std::env::var_os("ROAM_DUMP") {
+        let png = |img: &[[u8; 3]], name: &str| {
+            let rgba: Vec<u8> = img.iter().flat_map(|p| [p[0], p[1], p[2], 255]).collect();
+            render::write_png(&std::path::Path::new(&dir).join(name), SIZE, &rgba).expect("dump");
+        };
+        png(&on, "water-on.png");
+        png(&off, "water-off.png");
+    }
+    let changed = on
+        .iter()
+        .zip(&off)
+        .filter(|(a, b)| dist(**a, **b) > 6.0)
+        .count();
+    let total = on.len();
+    assert!(
+        changed > total / 40 && changed < total / 2,
+        "water changes part of the picture, not all: {changed} of {total} pixels"
+    );
+    // The same time draws the same waves.
+    assert_eq!(
+        on,
+        draw_view(&gpu, &t, &mesh, &view, &[], clear)
+    );
+}
+
+#[test]
+fn other_vehicles_are_drawn_as_markers() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let (view, mesh) = view_and_mesh(&t);
+    // A red vehicle 40 m straight ahead of the camera (which looks east, level).
+    let red = render::Marker {
+        pos: [view.eye[0] + 40.0, view.eye[1] - 1.0, view.eye[2]],
+        heading_deg: 90.0,
+        color: [255, 0, 0],
+    };
+    let flat = Toggles {
+        lighting: false,
+        fog: false,
+        ..Toggles::default()
+    };
+    let with = draw_view(&gpu, &t, &mesh, &view, &[red], flat);
+    let reddish = |img: &[[u8; 3]]| {
+        img.iter()
+            .filter(|p| p[0] > 200 && p[1] < 60 && p[2] < 60)
+            .count()
+    };
+    assert!(reddish(&with) > 20, "{} red pixels", reddish(&with));
+    let without = draw_view(
+        &gpu,
+        &t,
+        &mesh,
+        &view,
+        &[red],
+        Toggles {
+            vehicles: false,
+            ..flat
+        },
+    );
+    assert_eq!(reddish(&without), 0);
 }

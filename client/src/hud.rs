@@ -1,0 +1,306 @@
+//! The heads-up display (egui): what the viewer sees of the session's numbers, drawn over
+//! the frame; and the rates it shows, measured over a sliding second.
+
+use std::collections::VecDeque;
+
+use crate::render::Toggles;
+
+/// Events per second and amounts per second over the last second.
+#[derive(Clone, Debug, Default)]
+pub struct Rate {
+    events: VecDeque<(f64, f64)>,
+}
+
+impl Rate {
+    /// `amount` happened at `now_s`.
+    pub fn add(&mut self, now_s: f64, amount: f64) {
+        self.events.push_back((now_s, amount));
+        self.trim(now_s);
+    }
+
+    fn trim(&mut self, now_s: f64) {
+        while self.events.front().is_some_and(|&(t, _)| t <= now_s - 1.0) {
+            self.events.pop_front();
+        }
+        // Bounded whatever the caller does.
+        while self.events.len() > 4096 {
+            self.events.pop_front();
+        }
+    }
+
+    /// Events in the last second.
+    pub fn per_second(&mut self, now_s: f64) -> f64 {
+        self.trim(now_s);
+        self.events.len() as f64
+    }
+
+    /// The amounts of the last second, summed.
+    pub fn amount_per_second(&mut self, now_s: f64) -> f64 {
+        self.trim(now_s);
+        self.events.iter().map(|&(_, a)| a).sum()
+    }
+
+    /// The mean amount of the last second's events.
+    pub fn mean(&mut self, now_s: f64) -> Option<f64> {
+        self.trim(now_s);
+        let n = self.events.len();
+        (n > 0).then(|| self.amount_per_second(now_s) / n as f64)
+    }
+}
+
+/// What the HUD shows.
+#[derive(Clone, Debug, Default)]
+pub struct Numbers {
+    pub fps: f64,
+    /// Mean time to draw a frame (CPU side, from acquiring the surface to presenting), ms.
+    pub frame_ms: Option<f64>,
+    pub triangles: usize,
+    pub server_fps: f64,
+    pub kb_per_s: f64,
+    pub latency_ms: Option<f64>,
+    pub decode_ms: Option<f64>,
+    pub upload_ms: Option<f64>,
+    /// m/s.
+    pub speed: f64,
+    /// SPEC heading: 0 faces south, 90 east.
+    pub heading_deg: f64,
+    pub budget: u32,
+    pub toggles: Toggles,
+    pub connection: String,
+    pub connected: bool,
+    pub adapter: String,
+}
+
+/// The compass bearing (clockwise from north) of a SPEC heading, and its point of the
+/// compass.
+pub fn bearing(heading_deg: f64) -> (f64, &'static str) {
+    let b = (180.0 - heading_deg).rem_euclid(360.0);
+    const POINTS: [&str; 8] = ["N", "NE", "E", "SE", "S", "SW", "W", "NW"];
+    let i = ((b + 22.5) / 45.0) as usize % 8;
+    (b, POINTS[i])
+}
+
+/// The HUD's lines.
+pub fn lines(n: &Numbers) -> Vec<String> {
+    let on = |b: bool, name: &str, key: char| {
+        if b {
+            format!("[{key}] {name}")
+        } else {
+            format!("[{key}] ({name} off)")
+        }
+    };
+    let t = n.toggles;
+    let ms = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.1} ms"));
+    let (b, point) = bearing(n.heading_deg);
+    vec![
+        n.connection.clone(),
+        format!(
+            "{:.0} fps  ({} a frame)  {}",
+            n.fps,
+            ms(n.frame_ms),
+            n.adapter
+        ),
+        format!("{} triangles  (budget {}, [+]/[-])", n.triangles, n.budget),
+        format!(
+            "server {:.0} frames/s  {:.1} KB/s in",
+            n.server_fps, n.kb_per_s
+        ),
+        format!(
+            "decode {}  upload {}  input→frame {}",
+            ms(n.decode_ms),
+            ms(n.upload_ms),
+            ms(n.latency_ms)
+        ),
+        format!(
+            "{:.0} km/h  heading {:.0}° ({point}, bearing {b:.0}°)",
+            n.speed * 3.6,
+            n.heading_deg
+        ),
+        [
+            on(t.fog, "fog", 'f'),
+            on(t.lighting, "lighting", 'l'),
+            on(t.wireframe, "wireframe", 'w'),
+            on(t.water, "water", 'r'),
+            on(t.vehicles, "vehicles", 'v'),
+        ]
+        .join("  "),
+        "arrows drive · [h] hides this · [q]/Esc quits".to_string(),
+    ]
+}
+
+/// Lays the HUD out for this egui pass.
+pub fn show(ctx: &egui::Context, n: &Numbers) {
+    egui::Area::new(egui::Id::unique("hud"))
+        .fixed_pos(egui::pos2(8.0, 8.0))
+        .show(ctx, |ui| {
+            egui::Frame::new()
+                .fill(egui::Color32::from_black_alpha(150))
+                .corner_radius(4.0)
+                .inner_margin(8.0)
+                .show(ui, |ui| {
+                    for (i, line) in lines(n).into_iter().enumerate() {
+                        let mut text = egui::RichText::new(line).monospace().size(13.0);
+                        text = if i == 0 && !n.connected {
+                            text.color(egui::Color32::from_rgb(255, 120, 100))
+                        } else {
+                            text.color(egui::Color32::from_gray(230))
+                        };
+                        ui.label(text);
+                    }
+                });
+        });
+}
+
+/// egui's state and renderer for a window.
+pub struct Overlay {
+    pub ctx: egui::Context,
+    pub state: egui_winit::State,
+    renderer: egui_wgpu::Renderer,
+}
+
+impl Overlay {
+    pub fn new(
+        window: &winit::window::Window,
+        device: &wgpu::Device,
+        format: wgpu::TextureFormat,
+    ) -> Overlay {
+        let ctx = egui::Context::default();
+        let state = egui_winit::State::new(
+            ctx.clone(),
+            egui::ViewportId::ROOT,
+            window,
+            Some(window.scale_factor() as f32),
+            None,
+            Some(device.limits().max_texture_dimension_2d as usize),
+        );
+        let renderer = egui_wgpu::Renderer::new(device, format, Default::default());
+        Overlay {
+            ctx,
+            state,
+            renderer,
+        }
+    }
+
+    /// Draws the HUD over `target`, which already holds the frame.
+    pub fn paint(
+        &mut self,
+        gpu: &crate::render::Gpu,
+        window: &winit::window::Window,
+        target: &wgpu::TextureView,
+        size: (u32, u32),
+        numbers: Option<&Numbers>,
+    ) {
+        let input = self.state.take_egui_input(window);
+        let mut out = self.ctx.run_pass(input, |ctx| {
+            if let Some(n) = numbers {
+                show(ctx, n);
+            }
+        });
+        self.state
+            .handle_platform_output(window, out.platform_output);
+        let jobs = self.ctx.tessellate(out.shapes, out.pixels_per_point);
+        // Texture changes are applied every frame (egui's contract), the HUD shown or not.
+        for (id, deltas) in out.textures_delta.set.drain() {
+            for delta in deltas {
+                self.renderer
+                    .update_texture(&gpu.device, &gpu.queue, id, &delta);
+            }
+        }
+        let screen = egui_wgpu::ScreenDescriptor {
+            size_in_pixels: [size.0, size.1],
+            pixels_per_point: out.pixels_per_point,
+        };
+        let mut encoder = gpu.device.create_command_encoder(&Default::default());
+        let extra =
+            self.renderer
+                .update_buffers(&gpu.device, &gpu.queue, &mut encoder, &jobs, &screen);
+        {
+            let mut pass = encoder
+                .begin_render_pass(&wgpu::RenderPassDescriptor {
+                    label: Some("hud"),
+                    color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                        view: target,
+                        depth_slice: None,
+                        resolve_target: None,
+                        ops: wgpu::Operations {
+                            load: wgpu::LoadOp::Load,
+                            store: wgpu::StoreOp::Store,
+                        },
+                    })],
+                    depth_stencil_attachment: None,
+                    timestamp_writes: None,
+                    occlusion_query_set: None,
+                    multiview_mask: None,
+                })
+                .forget_lifetime();
+            self.renderer.render(&mut pass, &jobs, &screen);
+        }
+        gpu.queue
+            .submit(extra.into_iter().chain([encoder.finish()]));
+        for id in out.textures_delta.free.drain() {
+            self.renderer.free_texture(&id);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bearings_follow_the_spec_heading() {
+        let check = |heading: f64, want: (f64, &str)| assert_eq!(bearing(heading), want);
+        check(0.0, (180.0, "S"));
+        check(90.0, (90.0, "E"));
+        check(180.0, (0.0, "N"));
+        check(270.0, (270.0, "W"));
+        check(53.0, (127.0, "SE"));
+    }
+
+    #[test]
+    fn rates_cover_the_last_second() {
+        let mut r = Rate::default();
+        for k in 0..120 {
+            r.add(k as f64 / 60.0, 1000.0);
+        }
+        // At t = 119/60 the last second holds the events after t − 1.
+        let now = 119.0 / 60.0;
+        assert_eq!(r.per_second(now), 60.0);
+        assert_eq!(r.amount_per_second(now), 60_000.0);
+        assert_eq!(r.mean(now), Some(1000.0));
+        assert_eq!(r.per_second(10.0), 0.0);
+        assert_eq!(r.mean(10.0), None);
+    }
+
+    #[test]
+    fn the_hud_names_every_number_and_toggle() {
+        let n = Numbers {
+            fps: 60.0,
+            triangles: 65_536,
+            budget: 65_536,
+            speed: 10.0,
+            toggles: Toggles {
+                fog: false,
+                ..Toggles::default()
+            },
+            connection: "connected".into(),
+            ..Numbers::default()
+        };
+        let text = lines(&n).join("\n");
+        for want in [
+            "60 fps",
+            "65536 triangles",
+            "budget 65536",
+            "frames/s",
+            "KB/s",
+            "input→frame",
+            "36 km/h",
+            "heading",
+            "(fog off)",
+            "[l] lighting",
+            "connected",
+        ] {
+            assert!(text.contains(want), "{want:?} missing from\n{text}");
+        }
+    }
+}

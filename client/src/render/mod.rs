@@ -1,0 +1,567 @@
+//! The renderer: the decoded mesh lit, fogged and coloured, with water and the other
+//! vehicles, over a sky, into any texture view (a window's surface or an offscreen
+//! texture: the same code).
+
+mod math;
+mod pipelines;
+pub mod vertices;
+
+use anyhow::{Context, Result, anyhow};
+use wgpu::util::DeviceExt;
+
+pub use vertices::TerrainVertices;
+
+/// What does not change during a session: the map's scales, sun, fog, water and colours.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub levels: u32,
+    pub h_scale: f64,
+    pub v_scale: f64,
+    pub sun_dir: [f32; 3],
+    pub sun_color: [u8; 3],
+    pub fog_density: f32,
+    pub fog_color: [u8; 3],
+    /// World height of the water surface, if the map has one.
+    pub water_level: Option<f32>,
+    /// `cells × cells` RGB texels, row 0 north.
+    pub cells: u32,
+    pub colors: Vec<u8>,
+}
+
+impl Scene {
+    /// The map's side in world units.
+    pub fn world_size(&self) -> f32 {
+        self.h_scale as f32 * (1u64 << self.levels.min(30)) as f32
+    }
+}
+
+/// Where the camera is and what it sees.
+#[derive(Clone, Copy, Debug)]
+pub struct View {
+    pub eye: [f32; 3],
+    /// Heading convention: 0 faces south (+Z), 90 east (+X).
+    pub yaw_deg: f32,
+    /// Positive looks up.
+    pub pitch_deg: f32,
+    pub fov_y_deg: f32,
+    /// Seconds, for the water's waves (a parameter: the same time draws the same picture).
+    pub time_s: f32,
+}
+
+/// The viewer's switches.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Toggles {
+    pub fog: bool,
+    pub lighting: bool,
+    pub wireframe: bool,
+    /// The water surface, where the map has one.
+    pub water: bool,
+    /// The other vehicles' markers.
+    pub vehicles: bool,
+}
+
+impl Default for Toggles {
+    fn default() -> Self {
+        Toggles {
+            fog: true,
+            lighting: true,
+            wireframe: false,
+            water: true,
+            vehicles: true,
+        }
+    }
+}
+
+/// A vehicle to show.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Marker {
+    /// Where it hovers (world units).
+    pub pos: [f32; 3],
+    pub heading_deg: f32,
+    pub color: [u8; 3],
+}
+
+impl Marker {
+    /// A colour of its own for vehicle `id`: hues spaced by the golden angle.
+    pub fn color_of(id: u16) -> [u8; 3] {
+        let hue = (f32::from(id) * 137.507_77).rem_euclid(360.0) / 60.0;
+        let x = 1.0 - (hue.rem_euclid(2.0) - 1.0).abs();
+        let (r, g, b) = match hue as u32 {
+            0 => (1.0, x, 0.0),
+            1 => (x, 1.0, 0.0),
+            2 => (0.0, 1.0, x),
+            3 => (0.0, x, 1.0),
+            4 => (x, 0.0, 1.0),
+            _ => (1.0, 0.0, x),
+        };
+        let q = |v: f32| (40.0 + v * 215.0) as u8;
+        [q(r), q(g), q(b)]
+    }
+}
+
+/// A device to draw with.
+pub struct Gpu {
+    pub device: wgpu::Device,
+    pub queue: wgpu::Queue,
+    pub adapter: wgpu::AdapterInfo,
+}
+
+/// What to say when no adapter is found.
+pub const NO_ADAPTER: &str = "without a GPU, install a software Vulkan driver: \
+     apt-get install mesa-vulkan-drivers libvulkan1";
+
+impl Gpu {
+    /// Any adapter, a software one (lavapipe) included; no window needed.
+    pub fn headless() -> Result<Gpu> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            compatible_surface: None,
+            force_fallback_adapter: false,
+            ..Default::default()
+        }))
+        .map_err(|e| anyhow!("no GPU adapter ({e}); {NO_ADAPTER}"))?;
+        Gpu::open(&adapter)
+    }
+
+    /// Opens `adapter`'s device.
+    pub fn open(adapter: &wgpu::Adapter) -> Result<Gpu> {
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("roam"),
+            ..Default::default()
+        }))
+        .context("opening the GPU device")?;
+        Ok(Gpu {
+            adapter: adapter.get_info(),
+            device,
+            queue,
+        })
+    }
+}
+
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Uniforms {
+    view_proj: [[f32; 4]; 4],
+    inv_view_proj: [[f32; 4]; 4],
+    eye: [f32; 4],
+    sun_dir: [f32; 4],
+    sun_color: [f32; 4],
+    fog_color: [f32; 4],
+    params: [f32; 4],
+    map: [f32; 4],
+}
+
+/// One marker as the shader takes it.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct Instance {
+    place: [f32; 4],
+    scale: [f32; 4],
+    color: [u8; 4],
+}
+
+/// A vertex buffer that grows as needed and is otherwise reused.
+struct Buffer {
+    label: &'static str,
+    buffer: Option<wgpu::Buffer>,
+    count: u32,
+}
+
+impl Buffer {
+    fn new(label: &'static str) -> Buffer {
+        Buffer {
+            label,
+            buffer: None,
+            count: 0,
+        }
+    }
+
+    fn write(&mut self, gpu: &Gpu, bytes: &[u8], count: usize) {
+        let need = bytes.len() as u64;
+        if self.buffer.as_ref().is_none_or(|b| b.size() < need) {
+            // Room for growth: meshes vary frame to frame.
+            self.buffer = Some(
+                gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                    label: Some(self.label),
+                    size: (need + need / 2)
+                        .max(256)
+                        .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT),
+                    usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
+                    mapped_at_creation: false,
+                }),
+            );
+        }
+        if let Some(b) = &self.buffer {
+            gpu.queue.write_buffer(b, 0, bytes);
+        }
+        self.count = count as u32;
+    }
+
+    fn slice(&self) -> Option<(wgpu::BufferSlice<'_>, u32)> {
+        let b = self.buffer.as_ref().filter(|_| self.count > 0)?;
+        Some((b.slice(..), self.count))
+    }
+}
+
+/// Draws a scene's meshes.
+pub struct Renderer {
+    pipelines: pipelines::Pipelines,
+    uniforms: wgpu::Buffer,
+    bind_group: wgpu::BindGroup,
+    terrain: Buffer,
+    model: wgpu::Buffer,
+    model_count: u32,
+    instances: Buffer,
+    markers: Vec<Marker>,
+    depth: Option<(wgpu::Texture, wgpu::TextureView, (u32, u32))>,
+    scene: Scene,
+    /// Scratch for [`Renderer::set_mesh`].
+    scratch: TerrainVertices,
+}
+
+const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
+/// Near plane, world units.
+const NEAR: f32 = 0.5;
+
+fn srgb_to_linear(c: u8) -> f32 {
+    let c = f32::from(c) / 255.0;
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// The colour map as RGBA, halved until a side fits in `max`; grey if it is malformed.
+fn color_texels(scene: &Scene, max: u32) -> (u32, Vec<u8>) {
+    let (mut cells, mut rgb) = (scene.cells.max(1), scene.colors.clone());
+    if rgb.len() as u64 != u64::from(cells) * u64::from(cells) * 3 {
+        (cells, rgb) = (1, vec![128, 128, 128]);
+    }
+    while cells > max.max(1) {
+        let half = cells / 2;
+        let mut out = Vec::with_capacity((half * half * 3) as usize);
+        for z in 0..half {
+            for x in 0..half {
+                let i = ((2 * z * cells + 2 * x) * 3) as usize;
+                out.extend_from_slice(&rgb[i..i + 3]);
+            }
+        }
+        (cells, rgb) = (half, out);
+    }
+    let rgba = rgb
+        .chunks(3)
+        .flat_map(|c| [c[0], c[1], c[2], 255])
+        .collect();
+    (cells, rgba)
+}
+
+impl Renderer {
+    /// A renderer drawing into textures of `format`.
+    pub fn new(gpu: &Gpu, format: wgpu::TextureFormat, scene: Scene) -> Renderer {
+        let device = &gpu.device;
+        let (cells, rgba) = color_texels(&scene, device.limits().max_texture_dimension_2d);
+        let texture = device.create_texture_with_data(
+            &gpu.queue,
+            &wgpu::TextureDescriptor {
+                label: Some("colour map"),
+                size: wgpu::Extent3d {
+                    width: cells,
+                    height: cells,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: wgpu::TextureFormat::Rgba8UnormSrgb,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            },
+            wgpu::util::TextureDataOrder::LayerMajor,
+            &rgba,
+        );
+        let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("uniforms"),
+            size: std::mem::size_of::<Uniforms>() as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let (pipelines, bind_group) =
+            pipelines::Pipelines::new(device, format, &uniforms, &texture);
+        let model_vertices = vertices::marker_model();
+        let model = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("marker model"),
+            contents: bytemuck::cast_slice(&model_vertices),
+            usage: wgpu::BufferUsages::VERTEX,
+        });
+        Renderer {
+            pipelines,
+            uniforms,
+            bind_group,
+            terrain: Buffer::new("terrain"),
+            model,
+            model_count: model_vertices.len() as u32,
+            instances: Buffer::new("markers"),
+            markers: Vec::new(),
+            depth: None,
+            scene,
+            scratch: TerrainVertices::default(),
+        }
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    /// Triangles of the terrain drawn.
+    pub fn triangles(&self) -> usize {
+        self.terrain.count as usize / 3
+    }
+
+    /// Replaces the terrain drawn with `mesh` from the codec (grid vertices, heights,
+    /// triangles).
+    pub fn set_mesh(&mut self, gpu: &Gpu, mesh: &roam_protocol::Mesh) {
+        let mut scratch = std::mem::take(&mut self.scratch);
+        scratch.build(&self.scene, mesh);
+        self.upload(gpu, &scratch);
+        self.scratch = scratch;
+    }
+
+    /// Replaces the terrain drawn with vertices built elsewhere (on the network thread).
+    pub fn upload(&mut self, gpu: &Gpu, terrain: &TerrainVertices) {
+        self.terrain.write(
+            gpu,
+            bytemuck::cast_slice(&terrain.corners),
+            terrain.corners.len(),
+        );
+    }
+
+    /// The vehicles to show (besides the one the camera rides).
+    pub fn set_markers(&mut self, markers: &[Marker]) {
+        self.markers.clear();
+        self.markers.extend_from_slice(markers);
+    }
+
+    /// Draws the sky, the terrain, the vehicles and the water into `target` (`size` pixels).
+    pub fn render(
+        &mut self,
+        gpu: &Gpu,
+        target: &wgpu::TextureView,
+        size: (u32, u32),
+        view: &View,
+        toggles: Toggles,
+    ) {
+        if self.depth.as_ref().is_none_or(|d| d.2 != size) {
+            let texture = target_texture(gpu, "depth", size, DEPTH, wgpu::TextureUsages::empty());
+            let view = texture.create_view(&Default::default());
+            self.depth = Some((texture, view, size));
+        }
+        let aspect = size.0 as f32 / size.1.max(1) as f32;
+        let fov = view.fov_y_deg.clamp(1.0, 179.0).to_radians();
+        let view_proj = math::mul(
+            math::perspective(fov, aspect, NEAR),
+            math::look(view.eye, view.yaw_deg, view.pitch_deg),
+        );
+        let inv_view_proj = math::mul(
+            math::look_inverse(view.eye, view.yaw_deg, view.pitch_deg),
+            math::perspective_inverse(fov, aspect, NEAR),
+        );
+        let s = &self.scene;
+        let lin = |c: [u8; 3]| {
+            [
+                srgb_to_linear(c[0]),
+                srgb_to_linear(c[1]),
+                srgb_to_linear(c[2]),
+                1.0,
+            ]
+        };
+        let flag = |b: bool| f32::from(u8::from(b));
+        let u = Uniforms {
+            view_proj,
+            inv_view_proj,
+            eye: [view.eye[0], view.eye[1], view.eye[2], 1.0],
+            sun_dir: [s.sun_dir[0], s.sun_dir[1], s.sun_dir[2], 0.0],
+            sun_color: lin(s.sun_color),
+            fog_color: lin(s.fog_color),
+            params: [
+                s.fog_density,
+                flag(toggles.fog),
+                flag(toggles.lighting),
+                flag(toggles.wireframe),
+            ],
+            map: [
+                s.world_size(),
+                s.water_level.unwrap_or(0.0),
+                view.time_s,
+                0.0,
+            ],
+        };
+        gpu.queue
+            .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        let markers = toggles.vehicles && !self.markers.is_empty();
+        if markers {
+            let instances: Vec<Instance> = self
+                .markers
+                .iter()
+                .map(|m| {
+                    // At least about ten pixels long however far: a marker, not a model.
+                    let d = math::sub(m.pos, view.eye);
+                    let dist = math::dot(d, d).sqrt();
+                    let scale = (dist / 250.0).max(1.5);
+                    Instance {
+                        place: [m.pos[0], m.pos[1], m.pos[2], m.heading_deg],
+                        scale: [scale, 0.0, 0.0, 0.0],
+                        color: [m.color[0], m.color[1], m.color[2], 255],
+                    }
+                })
+                .collect();
+            self.instances
+                .write(gpu, bytemuck::cast_slice(&instances), instances.len());
+        }
+        let water = toggles.water && s.water_level.is_some();
+        let mut encoder = gpu.device.create_command_encoder(&Default::default());
+        {
+            let depth = &self.depth.as_ref().expect("made above").1;
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("frame"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: target,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
+                    view: depth,
+                    depth_ops: Some(wgpu::Operations {
+                        // Reversed depth: 0 is infinitely far.
+                        load: wgpu::LoadOp::Clear(0.0),
+                        store: wgpu::StoreOp::Store,
+                    }),
+                    stencil_ops: None,
+                }),
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            let p = &self.pipelines;
+            pass.set_bind_group(0, &self.bind_group, &[]);
+            pass.set_pipeline(&p.sky);
+            pass.draw(0..3, 0..1);
+            if let Some((slice, count)) = self.terrain.slice() {
+                pass.set_pipeline(&p.terrain);
+                pass.set_vertex_buffer(0, slice);
+                pass.draw(0..count, 0..1);
+            }
+            if markers && let Some((slice, count)) = self.instances.slice() {
+                pass.set_pipeline(&p.markers);
+                pass.set_vertex_buffer(0, self.model.slice(..));
+                pass.set_vertex_buffer(1, slice);
+                pass.draw(0..self.model_count, 0..count);
+            }
+            // Last: it is blended over what lies under it.
+            if water {
+                pass.set_pipeline(&p.water);
+                pass.draw(0..6, 0..1);
+            }
+        }
+        gpu.queue.submit([encoder.finish()]);
+    }
+}
+
+/// A 2D texture to render into, of `size` pixels, with `usage` besides that.
+fn target_texture(
+    gpu: &Gpu,
+    label: &str,
+    size: (u32, u32),
+    format: wgpu::TextureFormat,
+    usage: wgpu::TextureUsages,
+) -> wgpu::Texture {
+    gpu.device.create_texture(&wgpu::TextureDescriptor {
+        label: Some(label),
+        size: wgpu::Extent3d {
+            width: size.0,
+            height: size.1,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | usage,
+        view_formats: &[],
+    })
+}
+
+/// Renders offscreen and returns the RGBA pixels, row by row.
+pub fn render_offscreen(
+    gpu: &Gpu,
+    renderer: &mut Renderer,
+    size: (u32, u32),
+    view: &View,
+    toggles: Toggles,
+) -> Result<Vec<u8>> {
+    let format = wgpu::TextureFormat::Rgba8UnormSrgb;
+    let texture = target_texture(
+        gpu,
+        "offscreen",
+        size,
+        format,
+        wgpu::TextureUsages::COPY_SRC,
+    );
+    let target = texture.create_view(&Default::default());
+    renderer.render(gpu, &target, size, view, toggles);
+    let row = (size.0 * 4).div_ceil(256) * 256;
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: Some("readback"),
+        size: u64::from(row * size.1),
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = gpu.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(size.1),
+            },
+        },
+        wgpu::Extent3d {
+            width: size.0,
+            height: size.1,
+            depth_or_array_layers: 1,
+        },
+    );
+    gpu.queue.submit([encoder.finish()]);
+    let slice = buffer.slice(..);
+    slice.map_async(wgpu::MapMode::Read, |_| {});
+    gpu.device
+        .poll(wgpu::PollType::wait_indefinitely())
+        .context("waiting for the GPU")?;
+    let mapped = slice.get_mapped_range().context("reading the frame back")?;
+    let mut pixels = Vec::with_capacity((size.0 * size.1 * 4) as usize);
+    for y in 0..size.1 {
+        let start = (y * row) as usize;
+        pixels.extend_from_slice(&mapped[start..start + (size.0 * 4) as usize]);
+    }
+    Ok(pixels)
+}
+
+/// Writes RGBA pixels as a PNG.
+pub fn write_png(path: &std::path::Path, size: (u32, u32), rgba: &[u8]) -> Result<()> {
+    let file =
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = png::Encoder::new(std::io::BufWriter::new(file), size.0, size.1);
+    enc.set_color(png::ColorType::Rgba);
+    enc.set_depth(png::BitDepth::Eight);
+    let mut w = enc.write_header().context("writing the PNG header")?;
+    w.write_image_data(rgba).context("writing the PNG")?;
+    Ok(())
+}

@@ -1,0 +1,208 @@
+// Terrain, water, vehicle markers and sky. Lighting: the map's sun (direction, colour) over
+// an ambient term; fog: exp(-density * distance) towards the fog colour, which the sky
+// fades into at the horizon; wireframe: edges found from barycentrics (derived from the
+// vertex index, the mesh being drawn unindexed), so it works on every adapter. Depth is
+// reversed (1 near, 0 at infinity).
+
+struct Uniforms {
+    view_proj: mat4x4<f32>,
+    inv_view_proj: mat4x4<f32>,
+    eye: vec4<f32>,
+    sun_dir: vec4<f32>,
+    sun_color: vec4<f32>,
+    fog_color: vec4<f32>,
+    // x: fog density, y: fog on, z: lighting on, w: wireframe on
+    params: vec4<f32>,
+    // x: map size (world units), y: water level, z: time (s), w: unused
+    map: vec4<f32>,
+};
+
+@group(0) @binding(0) var<uniform> u: Uniforms;
+@group(0) @binding(1) var colors: texture_2d<f32>;
+@group(0) @binding(2) var colors_sampler: sampler;
+
+fn fogged(c: vec3<f32>, dist: f32) -> vec3<f32> {
+    if (u.params.y < 0.5) {
+        return c;
+    }
+    let t = exp(-u.params.x * dist);
+    return mix(u.fog_color.rgb, c, t);
+}
+
+fn lit(base: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    if (u.params.z < 0.5) {
+        return base;
+    }
+    let diffuse = max(dot(n, normalize(u.sun_dir.xyz)), 0.0);
+    return base * (vec3<f32>(0.35) + 0.75 * diffuse * u.sun_color.rgb);
+}
+
+// The sky seen along `dir`: the fog colour at the horizon, blue above, and the sun.
+fn sky_color(dir: vec3<f32>) -> vec3<f32> {
+    let zenith = vec3<f32>(0.22, 0.42, 0.78);
+    let up = clamp(dir.y, 0.0, 1.0);
+    let sky = mix(u.fog_color.rgb, zenith, smoothstep(0.0, 0.45, up));
+    let sun = pow(max(dot(dir, normalize(u.sun_dir.xyz)), 0.0), 800.0);
+    return sky + sun * u.sun_color.rgb;
+}
+
+struct TerrainOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) bary: vec3<f32>,
+};
+
+@vertex
+fn terrain_vs(
+    @builtin(vertex_index) index: u32,
+    @location(0) pos: vec3<f32>,
+    @location(1) normal: vec4<f32>,
+) -> TerrainOut {
+    var out: TerrainOut;
+    out.clip = u.view_proj * vec4<f32>(pos, 1.0);
+    out.world = pos;
+    out.normal = normal.xyz;
+    let corner = index % 3u;
+    out.bary = vec3<f32>(f32(corner == 0u), f32(corner == 1u), f32(corner == 2u));
+    return out;
+}
+
+@fragment
+fn terrain_fs(in: TerrainOut) -> @location(0) vec4<f32> {
+    let base = textureSample(colors, colors_sampler, in.world.xz / u.map.x).rgb;
+    var c = lit(base, normalize(in.normal));
+    if (u.params.w > 0.5) {
+        let w = fwidth(in.bary);
+        let e = smoothstep(vec3<f32>(0.0), w * 1.5, in.bary);
+        let edge = min(min(e.x, e.y), e.z);
+        c = mix(vec3<f32>(0.02, 0.02, 0.02), c, edge);
+    }
+    c = fogged(c, length(in.world - u.eye.xyz));
+    return vec4<f32>(c, 1.0);
+}
+
+struct WaterOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+};
+
+// Two triangles covering the map at the water level.
+@vertex
+fn water_vs(@builtin(vertex_index) i: u32) -> WaterOut {
+    var corners = array<vec2<f32>, 6>(
+        vec2<f32>(0.0, 0.0), vec2<f32>(0.0, 1.0), vec2<f32>(1.0, 0.0),
+        vec2<f32>(1.0, 0.0), vec2<f32>(0.0, 1.0), vec2<f32>(1.0, 1.0),
+    );
+    let c = corners[i] * u.map.x;
+    let p = vec3<f32>(c.x, u.map.y, c.y);
+    var out: WaterOut;
+    out.clip = u.view_proj * vec4<f32>(p, 1.0);
+    out.world = p;
+    return out;
+}
+
+// Water: ripples from a few moving waves bend the normal; the sky is reflected by Fresnel's
+// law (Schlick), the sun glints, and what is left lets the lake bed's colour show through.
+@fragment
+fn water_fs(in: WaterOut) -> @location(0) vec4<f32> {
+    let t = u.map.z;
+    let p = in.world.xz;
+    var slope = vec2<f32>(0.0);
+    let waves = array<vec4<f32>, 4>(
+        // direction (x, z), wavelength (m), speed (m/s)
+        vec4<f32>(0.8, 0.6, 23.0, 2.1),
+        vec4<f32>(-0.5, 0.86, 11.0, 1.4),
+        vec4<f32>(0.96, -0.28, 5.3, 0.9),
+        vec4<f32>(-0.2, -0.98, 2.7, 0.6),
+    );
+    // A pixel's footprint on the water: waves shorter than a few of them would alias into
+    // noise, so they fade out as they shrink.
+    let footprint = max(length(fwidth(p)), 1e-4);
+    for (var k = 0; k < 4; k++) {
+        let w = waves[k];
+        let f = 6.2831853 / w.z;
+        let fade = clamp(w.z / (4.0 * footprint) - 1.0, 0.0, 1.0);
+        slope += w.xy * (0.045 * fade * cos(dot(w.xy, p) * f - t * w.w * f));
+    }
+    let dist = length(in.world - u.eye.xyz);
+    let n = normalize(vec3<f32>(-slope.x, 1.0, -slope.y));
+    let view = normalize(u.eye.xyz - in.world);
+    let cos_v = max(dot(n, view), 0.0);
+    let fresnel = 0.02 + 0.98 * pow(1.0 - cos_v, 5.0);
+    let r = reflect(-view, n);
+    let reflected = sky_color(vec3<f32>(r.x, abs(r.y), r.z));
+    let deep = vec3<f32>(0.03, 0.11, 0.14);
+    var c = mix(deep, reflected, fresnel);
+    if (u.params.z > 0.5) {
+        let h = normalize(normalize(u.sun_dir.xyz) + view);
+        c += u.sun_color.rgb * pow(max(dot(n, h), 0.0), 400.0) * 2.0;
+    }
+    let alpha = mix(0.6, 1.0, fresnel);
+    return vec4<f32>(fogged(c, dist), alpha);
+}
+
+struct MarkerOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) world: vec3<f32>,
+    @location(1) normal: vec3<f32>,
+    @location(2) color: vec3<f32>,
+};
+
+// A vehicle: the model turned to its heading, scaled, and placed.
+@vertex
+fn marker_vs(
+    @location(0) pos: vec3<f32>,
+    @location(1) normal: vec4<f32>,
+    // x, y, z, heading (degrees)
+    @location(2) place: vec4<f32>,
+    // scale, then unused
+    @location(3) scale: vec4<f32>,
+    @location(4) color: vec4<f32>,
+) -> MarkerOut {
+    let h = radians(place.w);
+    let s = sin(h);
+    let c = cos(h);
+    let turn = mat3x3<f32>(
+        vec3<f32>(c, 0.0, -s),
+        vec3<f32>(0.0, 1.0, 0.0),
+        vec3<f32>(s, 0.0, c),
+    );
+    let world = place.xyz + turn * (pos * scale.x);
+    var out: MarkerOut;
+    out.clip = u.view_proj * vec4<f32>(world, 1.0);
+    out.world = world;
+    out.normal = turn * normal.xyz;
+    out.color = color.rgb;
+    return out;
+}
+
+@fragment
+fn marker_fs(in: MarkerOut) -> @location(0) vec4<f32> {
+    let c = lit(in.color, normalize(in.normal));
+    // Markers are meant to be seen: fog them half as much as the terrain.
+    return vec4<f32>(fogged(c, 0.5 * length(in.world - u.eye.xyz)), 1.0);
+}
+
+struct SkyOut {
+    @builtin(position) clip: vec4<f32>,
+    @location(0) ndc: vec2<f32>,
+};
+
+@vertex
+fn sky_vs(@builtin(vertex_index) i: u32) -> SkyOut {
+    // One triangle covering the screen, at infinity.
+    let p = vec2<f32>(f32((i << 1u) & 2u) * 2.0 - 1.0, f32(i & 2u) * 2.0 - 1.0);
+    var out: SkyOut;
+    out.clip = vec4<f32>(p, 0.0, 1.0);
+    out.ndc = p;
+    return out;
+}
+
+@fragment
+fn sky_fs(in: SkyOut) -> @location(0) vec4<f32> {
+    // Depth 1 is the near plane: a point on the ray through this pixel.
+    let near = u.inv_view_proj * vec4<f32>(in.ndc, 1.0, 1.0);
+    let dir = normalize(near.xyz / near.w - u.eye.xyz);
+    return vec4<f32>(sky_color(dir), 1.0);
+}

@@ -1,0 +1,425 @@
+//! One viewer's connection: the handshake, the colour map, and the frame stream decoded
+//! newest-first; and key states sent as datagrams. The headless viewer and the window both
+//! drive a [`Session`].
+
+use std::collections::VecDeque;
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow, bail};
+use roam_protocol::messages::{
+    self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Reason, ServerMessage, VehicleView,
+    Welcome,
+};
+use roam_protocol::{BitSet, Grid, MeshDecoder, mesh};
+use roam_server::net::{tls, wire};
+use roam_server::physics::Keys;
+
+use crate::render::Scene;
+
+/// Connects to `addr`, accepting only the certificate with SHA-256 `fingerprint`.
+pub async fn connect(
+    addr: SocketAddr,
+    fingerprint: [u8; 32],
+) -> Result<(quinn::Endpoint, quinn::Connection)> {
+    let bind: SocketAddr = if addr.is_ipv4() {
+        "0.0.0.0:0".parse().expect("a valid address")
+    } else {
+        "[::]:0".parse().expect("a valid address")
+    };
+    let mut endpoint = quinn::Endpoint::client(bind).context("opening a UDP socket")?;
+    endpoint.set_default_client_config(tls::client_config(fingerprint)?);
+    let conn = endpoint
+        .connect(addr, "roam")
+        .with_context(|| format!("connecting to {addr}"))?
+        .await
+        .with_context(|| format!("connecting to {addr}"))?;
+    Ok((endpoint, conn))
+}
+
+/// Why a connection ended or was refused, in words.
+pub fn describe(reason: &Reason) -> String {
+    match reason {
+        Reason::WrongToken => "wrong token".into(),
+        Reason::Version { server } => format!("the server speaks protocol version {server}"),
+        Reason::Shutdown => "the server is shutting down".into(),
+        Reason::Quit => "quit".into(),
+        Reason::Protocol(s) | Reason::Unavailable(s) => s.clone(),
+    }
+}
+
+/// A frame taken from the stream.
+#[derive(Clone, Debug)]
+pub struct Received {
+    pub frame: u64,
+    pub tick: u64,
+    pub vehicles: Vec<VehicleView>,
+    /// The newest key state the world had applied.
+    pub input_seq: Option<u32>,
+    /// Bytes on the wire (the frame message).
+    pub wire_bytes: usize,
+    /// Triangles decoded into [`Session::mesh`] (0 when not decoded).
+    pub triangles: usize,
+    /// Decoding and building the mesh, seconds.
+    pub decode_s: f64,
+}
+
+/// What [`Session::take`] found.
+#[derive(Clone, Debug)]
+pub enum Taken {
+    /// Nothing newer than what was shown.
+    Nothing,
+    /// A frame, decoded (unless asked not to) and acknowledged.
+    Frame(Received),
+    /// A frame that could not be decoded (its base unknown, or the bytes wrong): a key
+    /// frame has been asked for.
+    Dropped,
+}
+
+type Slot = Arc<(Mutex<Option<(Frame, usize)>>, tokio::sync::Notify)>;
+
+/// A joined viewer.
+pub struct Session {
+    _endpoint: quinn::Endpoint,
+    pub conn: quinn::Connection,
+    send: quinn::SendStream,
+    pub welcome: Welcome,
+    pub scene: Scene,
+    grid: Grid,
+    decoder: MeshDecoder,
+    /// Split sets of recent frames: the bases the server may code against.
+    decoded: VecDeque<(u64, BitSet)>,
+    newest: Option<u64>,
+    slot: Slot,
+    reader: tokio::task::JoinHandle<()>,
+    /// The newest decoded mesh.
+    pub mesh: mesh::Mesh,
+    pub budget: u32,
+    /// The largest budget asked for: frames tessellated before a cut may still come.
+    limit: u32,
+    /// Bytes received on frame streams so far (frames skipped included).
+    pub bytes_in: Arc<AtomicU64>,
+}
+
+impl Session {
+    /// Connects, says hello, and receives the welcome and the colour map.
+    pub async fn join(addr: SocketAddr, fingerprint: [u8; 32], hello: Hello) -> Result<Session> {
+        let (endpoint, conn) = connect(addr, fingerprint).await?;
+        let (mut send, mut recv) = conn.open_bi().await.context("opening the control stream")?;
+        let budget = hello.budget;
+        wire::write(&mut send, &ClientMessage::Hello(hello)).await?;
+        let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
+            Ok(ServerMessage::Welcome(w)) => w,
+            Ok(ServerMessage::Refused(reason)) => bail!("refused: {}", describe(&reason)),
+            Ok(other) => bail!("expected a welcome, got {other:?}"),
+            Err(e) => bail!(
+                "the server closed the connection: {e} ({:?})",
+                conn.close_reason()
+            ),
+        };
+        let colors = color_map(&mut recv, &welcome).await?;
+        let grid = Grid::new(u32::from(welcome.levels))
+            .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
+        let scene = Scene {
+            levels: u32::from(welcome.levels),
+            h_scale: welcome.h_scale,
+            v_scale: welcome.v_scale,
+            sun_dir: welcome.sun_dir,
+            sun_color: welcome.sun_color,
+            fog_density: welcome.fog_density,
+            fog_color: welcome.fog_color,
+            water_level: welcome.water_level,
+            cells: welcome.color_cells,
+            colors,
+        };
+        let slot: Slot = Default::default();
+        let bytes_in = Arc::new(AtomicU64::new(0));
+        let reader = tokio::spawn(read_frames(conn.clone(), slot.clone(), bytes_in.clone()));
+        Ok(Session {
+            _endpoint: endpoint,
+            conn,
+            send,
+            welcome,
+            scene,
+            decoder: MeshDecoder::new(grid),
+            grid,
+            decoded: VecDeque::new(),
+            newest: None,
+            slot,
+            reader,
+            mesh: mesh::Mesh::default(),
+            budget,
+            limit: budget,
+            bytes_in,
+        })
+    }
+
+    pub fn grid(&self) -> &Grid {
+        &self.grid
+    }
+
+    /// Waits until a frame is waiting. Cancel-safe (for `select!`). An error when the
+    /// connection has ended.
+    pub async fn wait(&self) -> Result<()> {
+        loop {
+            if self
+                .slot
+                .0
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .is_some()
+            {
+                return Ok(());
+            }
+            if self.reader.is_finished() {
+                bail!("{}", self.ended());
+            }
+            self.slot.1.notified().await;
+        }
+    }
+
+    /// Why the connection ended, in words.
+    pub fn ended(&self) -> String {
+        match self.conn.close_reason() {
+            Some(quinn::ConnectionError::ApplicationClosed(c)) => format!(
+                "the server closed the connection: {}",
+                String::from_utf8_lossy(&c.reason)
+            ),
+            Some(e) => format!("the connection ended: {e}"),
+            None => "the connection ended".into(),
+        }
+    }
+
+    /// Takes the waiting frame, if it is newer than the last shown; decodes it into
+    /// [`Session::mesh`] (unless `decode` is false) and acknowledges it.
+    pub async fn take(&mut self, decode: bool) -> Result<Taken> {
+        let taken = self.slot.0.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let Some((frame, wire_len)) = taken else {
+            return Ok(Taken::Nothing);
+        };
+        if wire_len == 0 {
+            return Ok(Taken::Dropped); // a stream that was not a frame
+        }
+        if self.newest.is_some_and(|n| frame.frame <= n) {
+            return Ok(Taken::Nothing); // latest frame wins here too
+        }
+        let mut received = Received {
+            frame: frame.frame,
+            tick: frame.tick,
+            vehicles: frame.vehicles,
+            input_seq: frame.input_seq,
+            wire_bytes: wire_len,
+            triangles: 0,
+            decode_s: 0.0,
+        };
+        if decode {
+            let started = Instant::now();
+            let base = match frame.base {
+                Some(b) => match self.decoded.iter().find(|(f, _)| *f == b) {
+                    Some((_, set)) => Some(set),
+                    None => {
+                        wire::write(&mut self.send, &ClientMessage::KeyFrame).await?;
+                        return Ok(Taken::Dropped);
+                    }
+                },
+                None => None,
+            };
+            let mut split = BitSet::default();
+            let Ok(info) = self
+                .decoder
+                .decode(&frame.mesh, base, self.limit, &mut split)
+            else {
+                wire::write(&mut self.send, &ClientMessage::KeyFrame).await?;
+                return Ok(Taken::Dropped);
+            };
+            mesh::emit(&self.grid, &split, self.decoder.heights(), &mut self.mesh);
+            let tris = self.mesh.triangle_count();
+            if tris != info.triangles as usize {
+                bail!(
+                    "frame {}: {tris} triangles emitted, the header says {}",
+                    frame.frame,
+                    info.triangles
+                );
+            }
+            self.decoded.push_back((frame.frame, split));
+            if self.decoded.len() > 32 {
+                self.decoded.pop_front();
+            }
+            received.triangles = tris;
+            received.decode_s = started.elapsed().as_secs_f64();
+        }
+        wire::write(&mut self.send, &ClientMessage::Ack { frame: frame.frame }).await?;
+        self.newest = Some(frame.frame);
+        Ok(Taken::Frame(received))
+    }
+
+    /// Asks for `budget` triangles from now on.
+    pub async fn set_budget(&mut self, budget: u32) -> Result<()> {
+        wire::write(&mut self.send, &ClientMessage::Budget(budget)).await?;
+        self.budget = budget;
+        self.limit = self.limit.max(budget);
+        Ok(())
+    }
+
+    /// Says goodbye and closes the connection.
+    pub async fn quit(mut self) {
+        self.reader.abort();
+        let _ = wire::write(&mut self.send, &ClientMessage::Bye(Reason::Quit)).await;
+        let _ = self.send.finish();
+        // Give the goodbye a moment to leave (bounded: a dead peer does not hold us).
+        let _ = tokio::time::timeout(Duration::from_millis(500), self.send.stopped()).await;
+        self.conn.close(0u32.into(), b"quit");
+    }
+}
+
+/// Receives the colour map that follows the welcome, after checking its announced sizes
+/// against the grid (nothing is allocated before).
+async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Vec<u8>> {
+    if welcome.levels > 13 {
+        bail!(
+            "the server's grid is 2^{} + 1: more than this viewer holds (2^13 + 1)",
+            welcome.levels
+        );
+    }
+    let cells = 1u64 << welcome.levels;
+    if u64::from(welcome.color_cells) != cells
+        || u64::from(welcome.color_bytes) != cells * cells * 3
+    {
+        bail!(
+            "the server's colour map is {} bytes of {} cells a side, expected {} of {cells}",
+            welcome.color_bytes,
+            welcome.color_cells,
+            cells * cells * 3
+        );
+    }
+    let mut color = vec![0u8; welcome.color_bytes as usize];
+    let mut got = 0usize;
+    while got < color.len() {
+        match wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await? {
+            ServerMessage::ColorMap { offset, data } => {
+                let at = offset as usize;
+                let end = at
+                    .checked_add(data.len())
+                    .filter(|&e| e <= color.len())
+                    .ok_or_else(|| anyhow!("a colour-map chunk past the end"))?;
+                color[at..end].copy_from_slice(&data);
+                got += data.len();
+            }
+            other => bail!("expected the colour map, got {other:?}"),
+        }
+    }
+    Ok(color)
+}
+
+/// Accepts frame streams and reads each in a task of its own; a frame newer than the one
+/// waiting replaces it. A stream that is not a frame leaves `(_, 0)` to be counted.
+async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU64>) {
+    let newest = Arc::new(AtomicU64::new(0));
+    while let Ok(mut stream) = conn.accept_uni().await {
+        let (slot, newest, bytes_in) = (slot.clone(), newest.clone(), bytes_in.clone());
+        tokio::spawn(async move {
+            // A frame abandoned by the server (reset) is simply skipped.
+            let Ok(bytes) = stream.read_to_end(messages::MAX_MESSAGE).await else {
+                return;
+            };
+            bytes_in.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+            let mut s = slot.0.lock().unwrap_or_else(|e| e.into_inner());
+            match messages::decode::<Frame>(&bytes) {
+                Ok(frame) => {
+                    let n = frame.frame + 1;
+                    if newest.fetch_max(n, Ordering::Relaxed) < n {
+                        *s = Some((frame, bytes.len()));
+                    }
+                }
+                Err(_) => {
+                    let bad = Frame {
+                        frame: 0,
+                        base: None,
+                        tick: 0,
+                        vehicles: Vec::new(),
+                        input_seq: None,
+                        mesh: Vec::new(),
+                    };
+                    if s.is_none() {
+                        *s = Some((bad, 0));
+                    }
+                }
+            }
+            drop(s);
+            slot.1.notify_one();
+        });
+    }
+    slot.1.notify_one();
+}
+
+/// Key changes sent and not yet seen applied: the input→frame latency.
+#[derive(Debug, Default)]
+pub struct Latency {
+    pending: Mutex<VecDeque<(u32, Instant)>>,
+}
+
+impl Latency {
+    /// Key state `seq`, a change, was sent at `at`.
+    pub fn sent(&self, seq: u32, at: Instant) {
+        let mut p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        p.push_back((seq, at));
+        // A server that never applies keys (a spectator's) must not grow this.
+        if p.len() > 1024 {
+            p.pop_front();
+        }
+    }
+
+    /// A frame showing key states up to `seq` arrived at `now`: the latencies of the
+    /// changes it shows, in milliseconds.
+    pub fn applied(&self, seq: u32, now: Instant, out: &mut Vec<f64>) {
+        let mut p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
+        while let Some(&(s, at)) = p.front() {
+            if s > seq {
+                break;
+            }
+            out.push((now - at).as_secs_f64() * 1e3);
+            p.pop_front();
+        }
+    }
+}
+
+/// Sends key states as datagrams, one per 10 ms (the physics' step), each datagram
+/// repeating the last eight states so a lost one costs nothing. `next` gives each step's
+/// held keys and the keys pressed since the last step (latched: a press released before
+/// the step is still sent). Returns when `next` says stop or the connection is gone.
+pub async fn play(
+    conn: quinn::Connection,
+    mut next: impl FnMut() -> Option<(Keys, Keys)> + Send + 'static,
+    latency: Arc<Latency>,
+) {
+    let mut states: VecDeque<KeyState> = VecDeque::new();
+    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut last = Keys::NONE;
+    for seq in 1u32.. {
+        tick.tick().await;
+        let Some((held, pressed)) = next() else {
+            return;
+        };
+        let state = KeyState {
+            seq,
+            held: held.bits(),
+            pressed: pressed.bits(),
+        };
+        if held != last || pressed != Keys::NONE {
+            latency.sent(seq, Instant::now());
+        }
+        last = held;
+        states.push_front(state);
+        states.truncate(messages::KEY_HISTORY);
+        let d = KeyDatagram {
+            states: states.iter().copied().collect(),
+        };
+        let mut bytes = Vec::new();
+        if messages::encode(&d, &mut bytes).is_ok() && conn.send_datagram(bytes.into()).is_err() {
+            return;
+        }
+    }
+}

@@ -1,0 +1,425 @@
+//! The window: winit events in, key states out to the network task, and every display
+//! frame the newest mesh drawn from the interpolated vehicle, with the HUD over it.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, anyhow, bail};
+use roam_server::physics::Keys;
+use tokio::sync::mpsc;
+use winit::application::ApplicationHandler;
+use winit::event::{ElementState, KeyEvent, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, EventLoop};
+use winit::keyboard::{Key, NamedKey};
+use winit::window::{Window, WindowId};
+
+use crate::camera::{Interpolator, LocalGround, Rig};
+use crate::hud::{Numbers, Overlay, Rate};
+use crate::live::{self, Command, Link, Shared};
+use crate::render::{Gpu, Marker, Renderer, Scene, Toggles, View};
+use crate::session::Session;
+
+/// How the window starts.
+#[derive(Clone, Debug)]
+pub struct Options {
+    pub title: String,
+    pub size: (u32, u32),
+    pub toggles: Toggles,
+    /// Where the session is connected, for the HUD.
+    pub server: String,
+    pub driver: bool,
+    pub fov_y_deg: f32,
+}
+
+/// The largest budget the server takes.
+const MAX_BUDGET: u32 = roam_server::net::viewer::MAX_BUDGET;
+
+/// What to tell a person with no display.
+pub const NO_DISPLAY: &str = "no display to open a window on (DISPLAY and WAYLAND_DISPLAY \
+     are unset). Run headless instead, e.g.\n  cargo run --release -p roam-client -- --local \
+     data/kossou --headless --frames 300 --screenshot kossou.png\nor give it a virtual \
+     display: xvfb-run -a cargo run --release -p roam-client";
+
+/// Opens the window on `session` and runs until the person quits or the window closes.
+pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -> Result<()> {
+    if std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none() {
+        bail!("{NO_DISPLAY}");
+    }
+    let event_loop = EventLoop::new().map_err(|e| anyhow!("{e}: {NO_DISPLAY}"))?;
+    let scene = session.scene.clone();
+    let budget = session.budget;
+    let (shared, commands, task) = live::spawn(runtime.handle(), session, opts.driver);
+    let mut app = App {
+        toggles: opts.toggles,
+        opts,
+        scene: Some(scene),
+        shared,
+        commands,
+        gfx: None,
+        hud_shown: true,
+        budget: f64::from(budget),
+        interpolators: HashMap::new(),
+        rig: Rig::default(),
+        ground: LocalGround::default(),
+        clock: Instant::now(),
+        frames: Rate::default(),
+        frame_ms: Rate::default(),
+        server_frames: Rate::default(),
+        bytes: Rate::default(),
+        decode_ms: Rate::default(),
+        upload_ms: Rate::default(),
+        last_bytes: 0,
+        drawn: 0,
+        error: None,
+    };
+    event_loop
+        .run_app(&mut app)
+        .context("running the window's event loop")?;
+    // The goodbye goes out before the process ends (bounded: a dead server does not hold
+    // the viewer).
+    let _ = app.commands.send(Command::Quit);
+    let _ = runtime.block_on(async { tokio::time::timeout(Duration::from_secs(2), task).await });
+    if let Some(e) = app.error {
+        return Err(e);
+    }
+    Ok(())
+}
+
+/// The window and what draws into it.
+struct Gfx {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    gpu: Gpu,
+    renderer: Renderer,
+    overlay: Overlay,
+}
+
+struct App {
+    opts: Options,
+    scene: Option<Scene>,
+    shared: Arc<Shared>,
+    commands: mpsc::UnboundedSender<Command>,
+    gfx: Option<Gfx>,
+    toggles: Toggles,
+    hud_shown: bool,
+    /// Kept unrounded so ×√2 then ÷√2 comes back exactly.
+    budget: f64,
+    /// Every vehicle in view, replayed smoothly.
+    interpolators: HashMap<u16, Interpolator>,
+    rig: Rig,
+    ground: LocalGround,
+    clock: Instant,
+    frames: Rate,
+    frame_ms: Rate,
+    server_frames: Rate,
+    bytes: Rate,
+    decode_ms: Rate,
+    upload_ms: Rate,
+    last_bytes: u64,
+    /// Frames presented with terrain.
+    drawn: u64,
+    error: Option<anyhow::Error>,
+}
+
+impl App {
+    fn open(&mut self, event_loop: &ActiveEventLoop) -> Result<Gfx> {
+        let scene = self.scene.take().context("the scene was already used")?;
+        let attrs = Window::default_attributes()
+            .with_title(self.opts.title.clone())
+            .with_inner_size(winit::dpi::PhysicalSize::new(
+                self.opts.size.0,
+                self.opts.size.1,
+            ));
+        let window = Arc::new(
+            event_loop
+                .create_window(attrs)
+                .context("creating the window")?,
+        );
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_with_display_handle_from_env(
+                Box::new(event_loop.owned_display_handle()),
+            ));
+        let surface = instance
+            .create_surface(window.clone())
+            .context("creating the window's surface")?;
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            compatible_surface: Some(&surface),
+            force_fallback_adapter: false,
+            ..Default::default()
+        }))
+        .map_err(|e| {
+            anyhow!(
+                "no GPU adapter for the window ({e}); {}",
+                crate::render::NO_ADAPTER
+            )
+        })?;
+        let gpu = Gpu::open(&adapter)?;
+        let size = window.inner_size();
+        let mut config = surface
+            .get_default_config(&adapter, size.width.max(1), size.height.max(1))
+            .context("the window's surface does not work with this adapter")?;
+        // An sRGB format, so the shader's linear colours are encoded on write.
+        let caps = surface.get_capabilities(&adapter);
+        if let Some(f) = caps.formats.iter().find(|f| f.is_srgb()) {
+            config.format = *f;
+        }
+        config.present_mode = wgpu::PresentMode::AutoVsync;
+        surface.configure(&gpu.device, &config);
+        let renderer = Renderer::new(&gpu, config.format, scene);
+        let overlay = Overlay::new(&window, &gpu.device, config.format);
+        Ok(Gfx {
+            window,
+            surface,
+            config,
+            gpu,
+            renderer,
+            overlay,
+        })
+    }
+
+    fn key(&mut self, event_loop: &ActiveEventLoop, event: &KeyEvent) {
+        let drive = match &event.logical_key {
+            Key::Named(NamedKey::ArrowUp) => Some(Keys::UP),
+            Key::Named(NamedKey::ArrowDown) => Some(Keys::DOWN),
+            Key::Named(NamedKey::ArrowLeft) => Some(Keys::LEFT),
+            Key::Named(NamedKey::ArrowRight) => Some(Keys::RIGHT),
+            _ => None,
+        };
+        if let Some(k) = drive {
+            match event.state {
+                ElementState::Pressed if !event.repeat => self.shared.key_down(k),
+                ElementState::Released => self.shared.key_up(k),
+                ElementState::Pressed => {}
+            }
+            return;
+        }
+        if event.state != ElementState::Pressed || event.repeat {
+            return;
+        }
+        let t = &mut self.toggles;
+        match &event.logical_key {
+            Key::Named(NamedKey::Escape) => self.quit(event_loop),
+            Key::Character(c) => match c.as_str() {
+                "q" | "Q" => self.quit(event_loop),
+                "f" | "F" => t.fog = !t.fog,
+                "l" | "L" => t.lighting = !t.lighting,
+                "w" | "W" => t.wireframe = !t.wireframe,
+                "r" | "R" => t.water = !t.water,
+                "v" | "V" => t.vehicles = !t.vehicles,
+                "h" | "H" => self.hud_shown = !self.hud_shown,
+                "+" | "=" => self.set_budget(self.budget * std::f64::consts::SQRT_2),
+                "-" | "_" => self.set_budget(self.budget / std::f64::consts::SQRT_2),
+                _ => {}
+            },
+            _ => {}
+        }
+    }
+
+    fn set_budget(&mut self, b: f64) {
+        self.budget = b.clamp(2.0, f64::from(MAX_BUDGET));
+        let _ = self
+            .commands
+            .send(Command::Budget(self.budget.round() as u32));
+    }
+
+    fn quit(&mut self, event_loop: &ActiveEventLoop) {
+        let _ = self.commands.send(Command::Quit);
+        event_loop.exit();
+    }
+
+    /// Takes the newest frame, if any, and draws one display frame.
+    fn redraw(&mut self) -> Result<()> {
+        let now = self.clock.elapsed().as_secs_f64();
+        let Some(gfx) = self.gfx.as_mut() else {
+            return Ok(());
+        };
+        if let Some(a) = self.shared.take_arrived() {
+            let started = Instant::now();
+            gfx.renderer.upload(&gfx.gpu, &a.terrain);
+            self.upload_ms
+                .add(now, started.elapsed().as_secs_f64() * 1e3);
+            self.decode_ms.add(now, a.decode_ms);
+            self.server_frames.add(now, 1.0);
+            let at = now - a.at.elapsed().as_secs_f64();
+            for v in &a.vehicles {
+                self.interpolators
+                    .entry(v.id)
+                    .or_default()
+                    .push(at, a.tick, *v);
+            }
+            self.interpolators
+                .retain(|id, _| a.vehicles.iter().any(|v| v.id == *id));
+            self.ground = a.ground;
+        }
+        let bytes = self
+            .shared
+            .bytes_in
+            .load(std::sync::atomic::Ordering::Relaxed);
+        self.bytes.add(now, (bytes - self.last_bytes) as f64);
+        self.last_bytes = bytes;
+
+        let me = self.shared.vehicle;
+        let followed = self.interpolators.get(&me).and_then(|i| i.sample(now));
+        let markers: Vec<Marker> = self
+            .interpolators
+            .iter()
+            .filter(|(id, _)| **id != me)
+            .filter_map(|(id, i)| {
+                let v = i.sample(now)?;
+                Some(Marker {
+                    pos: [v.x as f32, v.y as f32, v.z as f32],
+                    heading_deg: v.heading as f32,
+                    color: Marker::color_of(*id),
+                })
+            })
+            .collect();
+        gfx.renderer.set_markers(&markers);
+        let ground = &self.ground;
+        let view = match &followed {
+            Some(v) => {
+                let pose = self.rig.update(now, v, |x, z| ground.height(x, z));
+                View {
+                    eye: pose.eye.map(|c| c as f32),
+                    yaw_deg: pose.yaw_deg as f32,
+                    pitch_deg: pose.pitch_deg as f32,
+                    fov_y_deg: self.opts.fov_y_deg,
+                    time_s: now as f32,
+                }
+            }
+            // Before the first frame: above the map's centre, looking across it.
+            None => {
+                let c = gfx.renderer.scene().world_size() / 2.0;
+                View {
+                    eye: [c, 500.0, c],
+                    yaw_deg: 0.0,
+                    pitch_deg: -10.0,
+                    fov_y_deg: self.opts.fov_y_deg,
+                    time_s: now as f32,
+                }
+            }
+        };
+
+        let started = Instant::now();
+        let frame = match gfx.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(f)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                gfx.surface.configure(&gfx.gpu.device, &gfx.config);
+                return Ok(());
+            }
+            // Occluded, timed out, or a validation error already reported: try next frame.
+            _ => return Ok(()),
+        };
+        let target = frame.texture.create_view(&Default::default());
+        let size = (gfx.config.width, gfx.config.height);
+        gfx.renderer
+            .render(&gfx.gpu, &target, size, &view, self.toggles);
+        let numbers = self.hud_shown.then(|| {
+            let link = self.shared.link();
+            let (speed, heading) = followed.map_or((0.0, 0.0), |v| (v.speed, v.heading));
+            Numbers {
+                fps: self.frames.per_second(now),
+                frame_ms: self.frame_ms.mean(now),
+                triangles: gfx.renderer.triangles(),
+                server_fps: self.server_frames.per_second(now),
+                kb_per_s: self.bytes.amount_per_second(now) / 1000.0,
+                latency_ms: self.shared.latency_ms(),
+                decode_ms: self.decode_ms.mean(now),
+                upload_ms: self.upload_ms.mean(now),
+                speed,
+                heading_deg: heading,
+                budget: self.budget.round() as u32,
+                toggles: self.toggles,
+                connected: link == Link::Connected,
+                connection: match link {
+                    Link::Connected => format!(
+                        "connected to {} · vehicle #{me} · {}",
+                        self.opts.server,
+                        if self.opts.driver {
+                            "driving"
+                        } else {
+                            "watching"
+                        }
+                    ),
+                    Link::Ended(why) => format!("disconnected: {why}"),
+                },
+                adapter: format!("{} ({:?})", gfx.gpu.adapter.name, gfx.gpu.adapter.backend),
+            }
+        });
+        gfx.overlay
+            .paint(&gfx.gpu, &gfx.window, &target, size, numbers.as_ref());
+        gfx.window.pre_present_notify();
+        gfx.gpu.queue.present(frame);
+        self.frame_ms
+            .add(now, started.elapsed().as_secs_f64() * 1e3);
+        self.frames.add(now, 1.0);
+        if gfx.renderer.triangles() > 0 {
+            self.drawn += 1;
+            if self.drawn == 1 {
+                // A line for scripts and tests: the window is up and shows the terrain.
+                println!(
+                    "roam-client: window drawn ({} triangles, {})",
+                    gfx.renderer.triangles(),
+                    gfx.gpu.adapter.name
+                );
+            }
+        }
+        Ok(())
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.gfx.is_some() {
+            return;
+        }
+        match self.open(event_loop) {
+            Ok(g) => {
+                g.window.request_redraw();
+                self.gfx = Some(g);
+            }
+            Err(e) => {
+                self.error = Some(e);
+                event_loop.exit();
+            }
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        if let Some(g) = self.gfx.as_mut() {
+            let _ = g.overlay.state.on_window_event(&g.window, &event);
+        }
+        match event {
+            WindowEvent::CloseRequested => self.quit(event_loop),
+            WindowEvent::Focused(false) => self.shared.keys_released(),
+            WindowEvent::KeyboardInput { event, .. } => self.key(event_loop, &event),
+            WindowEvent::Resized(size) => {
+                if let Some(g) = self.gfx.as_mut()
+                    && size.width > 0
+                    && size.height > 0
+                {
+                    g.config.width = size.width;
+                    g.config.height = size.height;
+                    g.surface.configure(&g.gpu.device, &g.config);
+                }
+            }
+            WindowEvent::RedrawRequested => {
+                if let Err(e) = self.redraw() {
+                    self.error = Some(e);
+                    event_loop.exit();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, _: &ActiveEventLoop) {
+        // Draw continuously: the present waits for the display.
+        if let Some(g) = &self.gfx {
+            g.window.request_redraw();
+        }
+    }
+}
