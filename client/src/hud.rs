@@ -122,6 +122,7 @@ pub fn lines(n: &Numbers) -> Vec<String> {
             on(t.wireframe, "wireframe", 'w'),
             on(t.water, "water", 'r'),
             on(t.vehicles, "vehicles", 'v'),
+            on(t.detail, "detail", 'd'),
         ]
         .join("  "),
         "arrows drive · [h] hides this · [q]/Esc quits".to_string(),

@@ -3,6 +3,7 @@
 //! with [`camera`] and shows the [`hud`]; the headless viewer ([`headless`]) measures and
 //! renders offscreen with the same renderer.
 
+pub mod bench;
 pub mod camera;
 pub mod headless;
 pub mod hud;

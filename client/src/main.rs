@@ -51,6 +51,10 @@ struct Cli {
     /// Watch instead of drive.
     #[arg(long)]
     spectate: bool,
+    /// Measure the viewer's own costs per frame (decode, vertex build, upload, drawing at
+    /// --size offscreen) on a drive and print them as JSON (with --headless).
+    #[arg(long)]
+    bench: bool,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
@@ -80,6 +84,9 @@ struct Cli {
     /// Start without the other vehicles' markers.
     #[arg(long)]
     no_vehicles: bool,
+    /// Start without the ground's detail texture.
+    #[arg(long)]
+    no_detail: bool,
     /// Vertical field of view, degrees.
     #[arg(long, default_value_t = 60.0)]
     fov: f32,
@@ -93,6 +100,7 @@ impl Cli {
             wireframe: self.wireframe,
             water: !self.no_water,
             vehicles: !self.no_vehicles,
+            detail: !self.no_detail,
         }
     }
 
@@ -143,6 +151,7 @@ fn run(cli: Cli) -> Result<()> {
             ("--inputs", cli.inputs.is_some()),
             ("--skip-decode", cli.skip_decode),
             ("--viewers", cli.viewers != 1),
+            ("--bench", cli.bench),
         ] {
             if given {
                 bail!("{flag} is for the headless viewer: add --headless");
@@ -170,6 +179,27 @@ fn run(cli: Cli) -> Result<()> {
         return shown;
     }
     runtime.block_on(async {
+        if cli.bench {
+            let inputs = match script.clone() {
+                Some(s) => s,
+                None => roam_server::script::parse(roam_server::flyover::DRIVE_SCRIPT)
+                    .context("the benchmark drive")?,
+            };
+            let opts = roam_client::bench::Options {
+                token: token.clone(),
+                budget: cli.budget,
+                frames: cli.frames,
+                size: cli.size,
+                fov_y_deg: cli.fov,
+                toggles: cli.toggles(),
+                inputs,
+            };
+            let report = roam_client::bench::run(addr, fingerprint, opts).await;
+            if let Some(server) = server {
+                server.shutdown().await?;
+            }
+            return write_report(&cli, &report?);
+        }
         let mut tasks = Vec::new();
         for _ in 0..cli.viewers.max(1) {
             let opts = ViewerOptions {
@@ -194,14 +224,20 @@ fn run(cli: Cli) -> Result<()> {
         if let Some(path) = &cli.screenshot {
             screenshot(path, &all[0], &cli)?;
         }
-        let report = roam_client::stats::report(&all);
-        match &cli.stats {
-            Some(path) => std::fs::write(path, format!("{report:#}\n"))
-                .with_context(|| format!("writing {}", path.display()))?,
-            None => println!("{report:#}"),
-        }
-        Ok(())
+        write_report(&cli, &roam_client::stats::report(&all))
     })
+}
+
+/// Writes a JSON report to `--stats`, or stdout.
+fn write_report(cli: &Cli, report: &serde_json::Value) -> Result<()> {
+    match &cli.stats {
+        Some(path) => std::fs::write(path, format!("{report:#}\n"))
+            .with_context(|| format!("writing {}", path.display())),
+        None => {
+            println!("{report:#}");
+            Ok(())
+        }
+    }
 }
 
 /// An in-process server (`--local`, the default) or the one given (`--connect`): its
@@ -295,9 +331,13 @@ fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> R
     let mut renderer = Renderer::new(&gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene.clone());
     renderer.set_mesh(&gpu, mesh);
     let view = View {
-        eye: [vehicle.x as f32, vehicle.y as f32, vehicle.z as f32],
+        eye: [
+            vehicle.x as f32,
+            (vehicle.y + roam_client::camera::EYE_ABOVE_VEHICLE) as f32,
+            vehicle.z as f32,
+        ],
         yaw_deg: vehicle.heading as f32,
-        pitch_deg: roam_server::flyover::PITCH_DEG as f32,
+        pitch_deg: roam_client::camera::BASE_PITCH_DEG as f32,
         fov_y_deg: cli.fov,
         time_s: 0.0,
     };

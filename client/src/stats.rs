@@ -2,15 +2,7 @@
 
 use crate::headless::ViewerStats;
 
-fn quantile(v: &[f64], q: f64) -> f64 {
-    if v.is_empty() {
-        return 0.0;
-    }
-    let mut v = v.to_vec();
-    v.sort_by(f64::total_cmp);
-    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
-    v[rank - 1]
-}
+use roam_server::flyover::quantile;
 
 /// The JSON report over every viewer of a run.
 pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {

@@ -80,6 +80,13 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
     // the viewer).
     let _ = app.commands.send(Command::Quit);
     let _ = runtime.block_on(async { tokio::time::timeout(Duration::from_secs(2), task).await });
+    match app.shared.link() {
+        Link::Ended(why) if why == "quit" => println!("roam-client: quit; the server was told"),
+        Link::Ended(why) => println!("roam-client: {why}"),
+        Link::Connected => {
+            println!("roam-client: quit without a goodbye (the server did not answer)")
+        }
+    }
     if let Some(e) = app.error {
         return Err(e);
     }
@@ -209,6 +216,7 @@ impl App {
                 "w" | "W" => t.wireframe = !t.wireframe,
                 "r" | "R" => t.water = !t.water,
                 "v" | "V" => t.vehicles = !t.vehicles,
+                "d" | "D" => t.detail = !t.detail,
                 "h" | "H" => self.hud_shown = !self.hud_shown,
                 "+" | "=" => self.set_budget(self.budget * std::f64::consts::SQRT_2),
                 "-" | "_" => self.set_budget(self.budget / std::f64::consts::SQRT_2),

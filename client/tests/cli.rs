@@ -56,7 +56,10 @@ fn help_and_usage_errors() {
     assert!(err.contains("--connect"), "{err}");
     let (code, _, err) = run(&["--connect", "127.0.0.1:9", "--headless"]);
     assert_eq!(code, Some(2), "{err}");
-    assert!(err.contains("--token") && err.contains("--fingerprint"), "{err}");
+    assert!(
+        err.contains("--token") && err.contains("--fingerprint"),
+        "{err}"
+    );
     // The window without a display: how to run headless instead.
     let (code, _, err) = run(&["--local", "data/synth-65"]);
     assert_eq!(code, Some(1));
@@ -66,7 +69,10 @@ fn help_and_usage_errors() {
     );
     let (code, _, err) = run(&["--local", "data/synth-65", "--screenshot", "x.png"]);
     assert_eq!(code, Some(1));
-    assert!(err.contains("--screenshot is for the headless viewer"), "{err}");
+    assert!(
+        err.contains("--screenshot is for the headless viewer"),
+        "{err}"
+    );
     let (code, _, err) = run(&[
         "--connect",
         "127.0.0.1:9",

@@ -169,6 +169,7 @@ fn lighting_off_shades_flat_and_wireframe_shows_lines() {
         wireframe: false,
         water: false,
         vehicles: false,
+        detail: false,
     };
     let lit = Toggles {
         lighting: true,
@@ -310,10 +311,7 @@ fn water_covers_what_lies_below_its_level_and_can_be_switched_off() {
         "water changes part of the picture, not all: {changed} of {total} pixels"
     );
     // The same time draws the same waves.
-    assert_eq!(
-        on,
-        draw_view(&gpu, &t, &mesh, &view, &[], clear)
-    );
+    assert_eq!(on, draw_view(&gpu, &t, &mesh, &view, &[], clear));
 }
 
 #[test]

@@ -58,6 +58,8 @@ pub struct Toggles {
     pub water: bool,
     /// The other vehicles' markers.
     pub vehicles: bool,
+    /// The detail texture on the ground near the camera.
+    pub detail: bool,
 }
 
 impl Default for Toggles {
@@ -68,6 +70,7 @@ impl Default for Toggles {
             wireframe: false,
             water: true,
             vehicles: true,
+            detail: true,
         }
     }
 }
@@ -395,7 +398,7 @@ impl Renderer {
                 s.world_size(),
                 s.water_level.unwrap_or(0.0),
                 view.time_s,
-                0.0,
+                flag(toggles.detail),
             ],
         };
         gpu.queue

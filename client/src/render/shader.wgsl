@@ -13,7 +13,7 @@ struct Uniforms {
     fog_color: vec4<f32>,
     // x: fog density, y: fog on, z: lighting on, w: wireframe on
     params: vec4<f32>,
-    // x: map size (world units), y: water level, z: time (s), w: unused
+    // x: map size (world units), y: water level, z: time (s), w: detail texture on
     map: vec4<f32>,
 };
 
@@ -46,6 +46,42 @@ fn sky_color(dir: vec3<f32>) -> vec3<f32> {
     return sky + sun * u.sun_color.rgb;
 }
 
+// A hash of a lattice point, in [0, 1).
+fn hash2(p: vec2<f32>) -> f32 {
+    var q = fract(p * vec2<f32>(0.1031, 0.1030));
+    q += dot(q, q.yx + 33.33);
+    return fract((q.x + q.y) * q.x);
+}
+
+// Smooth value noise, in [0, 1].
+fn value_noise(p: vec2<f32>) -> f32 {
+    let i = floor(p);
+    let f = fract(p);
+    let s = f * f * (3.0 - 2.0 * f);
+    let a = mix(hash2(i), hash2(i + vec2<f32>(1.0, 0.0)), s.x);
+    let b = mix(hash2(i + vec2<f32>(0.0, 1.0)), hash2(i + vec2<f32>(1.0, 1.0)), s.x);
+    return mix(a, b, s.y);
+}
+
+// The detail texture: the colour map has one texel per grid cell (92 m on the bundled
+// map), so near the camera the ground is modulated by noise at 2.3, 9 and 37 m. An octave
+// fades out where it is smaller than a few pixels (no aliasing), and all of it with
+// distance.
+fn detail(xz: vec2<f32>, dist: f32) -> f32 {
+    let footprint = max(length(fwidth(xz)), 1e-4);
+    var sum = 0.0;
+    var weight = 0.0;
+    let scales = vec3<f32>(2.3, 9.1, 37.0);
+    let amounts = vec3<f32>(0.35, 0.35, 0.3);
+    for (var k = 0; k < 3; k++) {
+        let fade = clamp(scales[k] / (3.0 * footprint) - 1.0, 0.0, 1.0);
+        sum += amounts[k] * fade * (value_noise(xz / scales[k] + f32(k) * 17.0) - 0.5);
+        weight += amounts[k];
+    }
+    let near = clamp(1.0 - dist / 3000.0, 0.0, 1.0);
+    return 1.0 + 0.9 * near * sum / weight;
+}
+
 struct TerrainOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) world: vec3<f32>,
@@ -70,7 +106,11 @@ fn terrain_vs(
 
 @fragment
 fn terrain_fs(in: TerrainOut) -> @location(0) vec4<f32> {
-    let base = textureSample(colors, colors_sampler, in.world.xz / u.map.x).rgb;
+    var base = textureSample(colors, colors_sampler, in.world.xz / u.map.x).rgb;
+    let dist = length(in.world - u.eye.xyz);
+    if (u.map.w > 0.5) {
+        base *= detail(in.world.xz, dist);
+    }
     var c = lit(base, normalize(in.normal));
     if (u.params.w > 0.5) {
         let w = fwidth(in.bary);
@@ -78,7 +118,7 @@ fn terrain_fs(in: TerrainOut) -> @location(0) vec4<f32> {
         let edge = min(min(e.x, e.y), e.z);
         c = mix(vec3<f32>(0.02, 0.02, 0.02), c, edge);
     }
-    c = fogged(c, length(in.world - u.eye.xyz));
+    c = fogged(c, dist);
     return vec4<f32>(c, 1.0);
 }
 
