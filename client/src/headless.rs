@@ -33,6 +33,8 @@ pub struct ViewerOptions {
     pub skip_decode: bool,
     /// Keep the scene and the last mesh (for a screenshot).
     pub keep_last: bool,
+    /// Set to true to stop early (Ctrl-C): the viewer says goodbye and reports.
+    pub stop: Option<tokio::sync::watch::Receiver<bool>>,
 }
 
 impl Default for ViewerOptions {
@@ -48,6 +50,7 @@ impl Default for ViewerOptions {
             frame_rate: 60,
             skip_decode: false,
             keep_last: false,
+            stop: None,
         }
     }
 }
@@ -119,10 +122,14 @@ pub async fn run(
         ..ViewerStats::default()
     };
     let started = Instant::now();
+    let mut stop = opts.stop.clone();
     while stats.frames < opts.frames {
         let r = match session.take(!opts.skip_decode).await? {
             Taken::Nothing => {
-                session.wait().await?;
+                tokio::select! {
+                    w = session.wait() => w?,
+                    () = stopped(&mut stop) => break,
+                }
                 continue;
             }
             Taken::Dropped => {
@@ -175,4 +182,16 @@ pub async fn run(
     }
     session.quit().await;
     Ok(stats)
+}
+
+/// Returns once `stop` is set; never without one.
+async fn stopped(stop: &mut Option<tokio::sync::watch::Receiver<bool>>) {
+    match stop {
+        Some(r) => {
+            if r.wait_for(|s| *s).await.is_err() {
+                std::future::pending::<()>().await;
+            }
+        }
+        None => std::future::pending().await,
+    }
 }

@@ -86,6 +86,8 @@ pub struct Shared {
     pub latencies: Mutex<VecDeque<f64>>,
     /// The vehicle the camera rides.
     pub vehicle: u16,
+    /// Ctrl-C was pressed in the terminal.
+    pub interrupted: std::sync::atomic::AtomicBool,
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -146,8 +148,18 @@ pub fn spawn(
         dropped: AtomicU64::new(0),
         latencies: Mutex::new(VecDeque::new()),
         vehicle: session.welcome.vehicle,
+        interrupted: std::sync::atomic::AtomicBool::new(false),
     });
     let (tx, rx) = mpsc::unbounded_channel();
+    // Ctrl-C in the terminal quits as `q` does: the server is told.
+    let quit = tx.clone();
+    let interrupted = shared.clone();
+    runtime.spawn(async move {
+        if tokio::signal::ctrl_c().await.is_ok() {
+            interrupted.interrupted.store(true, Ordering::Relaxed);
+            let _ = quit.send(Command::Quit);
+        }
+    });
     let task = runtime.spawn(run(session, shared.clone(), rx, driver));
     (shared, tx, task)
 }

@@ -200,6 +200,17 @@ fn run(cli: Cli) -> Result<()> {
             }
             return write_report(&cli, &report?);
         }
+        // Ctrl-C stops the viewers, which say goodbye and report what they measured.
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        tokio::spawn(async move {
+            if tokio::signal::ctrl_c().await.is_ok() {
+                let _ = stop.send(true);
+                // A second Ctrl-C does not wait for goodbyes.
+                if tokio::signal::ctrl_c().await.is_ok() {
+                    std::process::exit(130);
+                }
+            }
+        });
         let mut tasks = Vec::new();
         for _ in 0..cli.viewers.max(1) {
             let opts = ViewerOptions {
@@ -210,6 +221,7 @@ fn run(cli: Cli) -> Result<()> {
                 inputs: script.clone(),
                 skip_decode: cli.skip_decode,
                 keep_last: cli.screenshot.is_some(),
+                stop: Some(stopped.clone()),
                 ..ViewerOptions::default()
             };
             tasks.push(tokio::spawn(headless::run(addr, fingerprint, opts)));

@@ -424,7 +424,17 @@ impl ApplicationHandler for App {
         }
     }
 
-    fn about_to_wait(&mut self, _: &ActiveEventLoop) {
+    fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
+        // Ctrl-C in the terminal: once the goodbye has been said (or the link is gone).
+        if self
+            .shared
+            .interrupted
+            .load(std::sync::atomic::Ordering::Relaxed)
+            && self.shared.link() != Link::Connected
+        {
+            event_loop.exit();
+            return;
+        }
         // Draw continuously: the present waits for the display.
         if let Some(g) = &self.gfx {
             g.window.request_redraw();

@@ -149,10 +149,17 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     };
     let rate = hello.frame_rate.clamp(1, 240);
     tokio::select! {
-        _ = frames(&conn, &shared, control, camera, rate, vehicle, driver) => {
-            let why = Reason::Unavailable("the vehicle followed has left".into());
-            last_word(&mut send, &ServerMessage::Bye(why)).await;
-            conn.close(close::BYE.into(), b"the vehicle followed has left");
+        end = frames(&conn, &shared, control, camera, rate, vehicle, driver) => {
+            let why = match end {
+                FramesEnd::ConnectionLost => None,
+                FramesEnd::VehicleLeft => Some("the vehicle followed has left"),
+                FramesEnd::Failed(why) => Some(why),
+            };
+            if let Some(why) = why {
+                let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
+                last_word(&mut send, &bye).await;
+                conn.close(close::BYE.into(), why.as_bytes());
+            }
         }
         _ = ctl => conn.close(close::BYE.into(), b"bye"),
         _ = conn.closed() => {}
@@ -312,6 +319,17 @@ impl Maker {
     }
 }
 
+/// Why a viewer's frames stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum FramesEnd {
+    /// The vehicle it followed (or drove) is gone.
+    VehicleLeft,
+    /// The connection can take no more streams.
+    ConnectionLost,
+    /// The server could not make a frame: said to the viewer, never a panic.
+    Failed(&'static str),
+}
+
 async fn frames(
     conn: &quinn::Connection,
     shared: &Arc<Shared>,
@@ -320,7 +338,7 @@ async fn frames(
     rate: u16,
     vehicle: VehicleId,
     driver: bool,
-) {
+) -> FramesEnd {
     let grid = Grid::new(shared.terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
     let mut maker = Some(Maker {
         tess: Tessellator::new(shared.terrain.heights.side()),
@@ -344,7 +362,7 @@ async fn frames(
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let Some(v) = snap.vehicles.iter().find(|v| v.id == vehicle) else {
             if seen {
-                return; // the followed vehicle left
+                return FramesEnd::VehicleLeft;
             }
             continue; // a new driver's vehicle appears with the next tick
         };
@@ -368,7 +386,7 @@ async fn frames(
         })
         .await
         else {
-            return;
+            return FramesEnd::Failed("the frame maker failed");
         };
         maker = Some(m);
         let msg = Frame {
@@ -399,7 +417,7 @@ async fn frames(
         };
         let mut bytes = Vec::new();
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
-            return;
+            return FramesEnd::Failed("a frame over the message limit");
         }
         // Latest frame wins: the previous frame's stream is reset unless the viewer has
         // acknowledged it, whether it is still being written or already handed to quinn
@@ -416,7 +434,7 @@ async fn frames(
             }
         }
         let Ok(mut stream) = conn.open_uni().await else {
-            return;
+            return FramesEnd::ConnectionLost;
         };
         let _ = stream.set_priority(frame as i32);
         let (cancel, cancelled) = oneshot::channel::<()>();

@@ -124,7 +124,9 @@ pub fn run(
         None => Stepper::Plain(world),
     };
     let mut drivers: Vec<(VehicleId, Driver)> = Vec::new();
-    let (mut next_id, mut slot) = (0u16, 0u32);
+    let mut next_id = 0u16;
+    // The start slot of each driven vehicle: a leaver's slot is given to the next joiner.
+    let mut slots: Vec<(VehicleId, u32)> = Vec::new();
     let mut inputs = Inputs::new();
     let tick = Duration::from_millis(10);
     let mut due = Instant::now() + tick;
@@ -142,21 +144,38 @@ pub fn run(
             };
             match event {
                 Event::Join { reply } => {
-                    let id = next_id;
-                    next_id = next_id.wrapping_add(1);
+                    // The next id not in use (ids wrap after 65,536 joins; with every id
+                    // taken the join is refused by dropping the reply).
+                    let Some(id) =
+                        free_id(&mut next_id, |id| drivers.iter().any(|(v, _)| *v == id))
+                    else {
+                        continue;
+                    };
+                    let slot = (0u32..)
+                        .find(|s| slots.iter().all(|(_, t)| t != s))
+                        .expect("fewer than 2^32 vehicles");
                     let state = world::start_state(&terrain, slot);
-                    slot += 1;
                     let joined = match &mut stepper {
                         Stepper::Plain(w) => w.add(id, state).is_ok(),
                         Stepper::Recorded(r) => r.join(id, state).is_ok(),
                     };
-                    if joined {
+                    if !joined {
+                        continue;
+                    }
+                    if reply.send(id).is_ok() {
                         drivers.push((id, Driver::new()));
-                        let _ = reply.send(id);
+                        slots.push((id, slot));
+                    } else {
+                        // The viewer went away while joining: no vehicle left behind.
+                        let _gone = match &mut stepper {
+                            Stepper::Plain(w) => w.remove(id).is_ok(),
+                            Stepper::Recorded(r) => r.leave(id).is_ok(),
+                        };
                     }
                 }
                 Event::Leave { vehicle } => {
                     drivers.retain(|(v, _)| *v != vehicle);
+                    slots.retain(|(v, _)| *v != vehicle);
                     // A vehicle that is not there (a repeated leave) changes nothing.
                     let _gone = match &mut stepper {
                         Stepper::Plain(w) => w.remove(vehicle).is_ok(),
@@ -221,5 +240,34 @@ fn finish(stepper: Stepper) -> std::io::Result<World> {
     match stepper {
         Stepper::Plain(w) => Ok(w),
         Stepper::Recorded(r) => Ok(r.finish()?.0),
+    }
+}
+
+/// The first id from `next` on (wrapping) that is not `taken`, and `next` moved past it;
+/// `None` when all 65,536 are taken.
+fn free_id(next: &mut u16, taken: impl Fn(u16) -> bool) -> Option<u16> {
+    for _ in 0..=u16::MAX {
+        let id = *next;
+        *next = next.wrapping_add(1);
+        if !taken(id) {
+            return Some(id);
+        }
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::free_id;
+
+    #[test]
+    fn ids_wrap_and_skip_those_in_use() {
+        let mut next = u16::MAX;
+        assert_eq!(free_id(&mut next, |id| id == u16::MAX), Some(0));
+        assert_eq!(next, 1);
+        let mut next = 65_534;
+        let in_use = [65_534, 65_535, 0, 1];
+        assert_eq!(free_id(&mut next, |id| in_use.contains(&id)), Some(2));
+        assert_eq!(free_id(&mut next, |_| true), None);
     }
 }
