@@ -7,7 +7,7 @@ use std::time::Instant;
 use roam_protocol::messages::{
     self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
 };
-use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder};
+use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder, colormap};
 
 /// SplitMix64: a seeded, portable generator.
 struct Rng(u64);
@@ -26,7 +26,11 @@ impl Rng {
     }
 }
 
-/// Valid encodings to mutate: messages of every kind and a few meshes.
+/// The side of the fuzzed colour maps: small, so that the many inputs that get past the
+/// header (and decode every texel) stay quick.
+const COLOR_CELLS: u32 = 32;
+
+/// Valid encodings to mutate: messages of every kind, a few meshes and colour maps.
 fn seeds(grid: Grid) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     let mut push = |f: &dyn Fn(&mut Vec<u8>)| {
@@ -102,6 +106,18 @@ fn seeds(grid: Grid) -> Vec<Vec<u8>> {
             .expect("encodes");
         out.push(b);
     }
+    let mut rng = Rng(7);
+    let n = COLOR_CELLS * COLOR_CELLS;
+    for amp in [0u64, 8, 256] {
+        // Smooth colour under noise of growing strength (256: pure noise).
+        let rgb: Vec<u8> = (0..n * 3)
+            .map(|i| (i / 3 % COLOR_CELLS * 5 + i / 3 / COLOR_CELLS * 3) as u64)
+            .map(|smooth| (smooth + rng.next() % amp.max(1)) as u8)
+            .collect();
+        let mut b = Vec::new();
+        colormap::encode(COLOR_CELLS, &rgb, &mut b);
+        out.push(b);
+    }
     out
 }
 
@@ -113,6 +129,7 @@ fn main() {
     let mut dec = MeshDecoder::new(grid);
     let base = BitSet::new(grid.vertices());
     let mut got = BitSet::default();
+    let mut texels = Vec::new();
     let (mut ok, mut err) = (0u64, 0u64);
     let mut input = Vec::new();
     let started = Instant::now();
@@ -141,6 +158,7 @@ fn main() {
             messages::decode::<KeyDatagram>(&input).is_ok(),
             dec.decode(&input, None, 100_000, &mut got).is_ok(),
             dec.decode(&input, Some(&base), 100_000, &mut got).is_ok(),
+            colormap::decode(COLOR_CELLS, &input, &mut texels).is_ok(),
         ];
         for r in results {
             if r {

@@ -59,13 +59,17 @@ pub enum EncodeError {
     Step { height: u16, step: u16 },
 }
 
-/// Why a payload could not be decoded. The frame is to be dropped (and a key frame asked
-/// for); nothing of it is shown.
+/// Why a payload could not be decoded. A mesh frame is to be dropped (and a key frame
+/// asked for); nothing of it is shown. The colour map codec ([`crate::colormap`]) reports
+/// its errors with the same type.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
 pub enum DecodeError {
-    #[error("mesh payload of {0} bytes: shorter than its header")]
+    #[error("payload of {0} bytes: shorter than its header")]
     Short(usize),
-    #[error("mesh format {0}; this build reads format {FORMAT}")]
+    #[error(
+        "payload format {0}; this build reads mesh format {FORMAT} and colour map format {cm}",
+        cm = crate::colormap::FORMAT
+    )]
     Format(u8),
     #[error("mesh for a grid of 2^{got} + 1, expected 2^{expected} + 1")]
     Grid { got: u8, expected: u32 },
@@ -73,10 +77,13 @@ pub enum DecodeError {
     Base,
     #[error("{declared} triangles declared, more than the {limit} allowed")]
     TooBig { declared: u32, limit: u32 },
-    #[error("the coded mesh is corrupt: {0}")]
+    #[error("the coded payload is corrupt: {0}")]
     Corrupt(&'static str),
-    #[error("the decoded mesh does not match its check (coded against another base?)")]
+    #[error("the decoded payload does not match its check (a mesh coded against another base?)")]
     Check,
+    /// A colour map payload for another size than the one asked for.
+    #[error("colour map of {got} cells a side, expected {expected}")]
+    Cells { got: u32, expected: u32 },
 }
 
 /// Adaptive probabilities of one frame.
