@@ -10,8 +10,9 @@ use roam_protocol::messages::VehicleView;
 
 /// The world's steps per second (SPEC).
 pub const TICKS_PER_S: f64 = 100.0;
-/// How far behind the newest estimate of the server's tick the camera is drawn, in ticks:
-/// a frame interval at 60 frames/s plus jitter, so there is almost always a frame after.
+/// How far behind the newest estimate of the server's tick the camera is drawn, at least,
+/// in ticks: a frame interval at 60 frames/s plus jitter, so there is almost always a frame
+/// after. Frames further apart (a big budget, a slow viewer) draw it further behind.
 pub const DELAY_TICKS: f64 = 3.0;
 /// How far past the newest frame the vehicle is dead-reckoned before it is held.
 pub const MAX_EXTRAPOLATION_TICKS: f64 = 5.0;
@@ -23,6 +24,8 @@ pub struct Interpolator {
     /// The server's tick at local time `t` is estimated as `t · 100 + offset`.
     offset: Option<f64>,
     last_push: f64,
+    /// The mean gap between frames, ticks (a moving average).
+    gap: Option<f64>,
 }
 
 impl Interpolator {
@@ -43,6 +46,10 @@ impl Interpolator {
             }
         });
         self.last_push = now_s;
+        if let Some(&(last, _)) = self.samples.back() {
+            let g = (tick - last) as f64;
+            self.gap = Some(self.gap.map_or(g, |m| m + (g - m) * 0.1));
+        }
         self.samples.push_back((tick, v));
         if self.samples.len() > 64 {
             self.samples.pop_front();
@@ -59,10 +66,17 @@ impl Interpolator {
         self.samples.back().map(|(_, v)| v)
     }
 
+    /// How far behind the server's estimated tick the vehicle is shown: a gap and a half
+    /// between frames and a tick, at least [`DELAY_TICKS`], at most 30.
+    pub fn delay_ticks(&self) -> f64 {
+        self.gap
+            .map_or(DELAY_TICKS, |g| (1.0 + 1.5 * g).clamp(DELAY_TICKS, 30.0))
+    }
+
     /// The vehicle as it should be shown at local time `now_s`.
     pub fn sample(&self, now_s: f64) -> Option<VehicleView> {
         let offset = self.offset?;
-        let t = now_s * TICKS_PER_S + offset - DELAY_TICKS;
+        let t = now_s * TICKS_PER_S + offset - self.delay_ticks();
         let &(first_tick, first) = self.samples.front()?;
         let &(last_tick, last) = self.samples.back()?;
         if t <= first_tick as f64 {
@@ -256,9 +270,11 @@ mod tests {
         for k in 0..10u64 {
             i.push(k as f64 * 0.02, 2 * k, at(k as f64 * 2.0, 90.0));
         }
-        // At 0.185 s the server is at tick 18.5; drawn 3 ticks behind: 15.5, x = 15.5.
+        // Frames 2 ticks apart: drawn 1 + 1.5 · 2 = 4 ticks behind.
+        assert_eq!(i.delay_ticks(), 4.0);
+        // At 0.185 s the server is at tick 18.5; drawn at 14.5, x = 14.5.
         let v = i.sample(0.185).expect("samples");
-        assert!((v.x - 15.5).abs() < 1e-9, "{}", v.x);
+        assert!((v.x - 14.5).abs() < 1e-9, "{}", v.x);
         // Successive display frames move evenly.
         let xs: Vec<f64> = (0..5)
             .map(|k| i.sample(0.15 + k as f64 / 240.0).expect("samples").x)
@@ -275,9 +291,10 @@ mod tests {
         i.push(0.05, 2, at(2.0, 10.0)); // 30 ms late
         i.push(0.04, 4, at(4.0, 10.0));
         // The offset is the least delayed arrival's.
-        let v = i.sample(0.03 + DELAY_TICKS / TICKS_PER_S).expect("samples");
+        let delay = i.delay_ticks() / TICKS_PER_S;
+        let v = i.sample(0.03 + delay).expect("samples");
         assert!((v.x - 3.0).abs() < 1e-9, "{}", v.x);
-        let v = i.sample(0.01 + DELAY_TICKS / TICKS_PER_S).expect("samples");
+        let v = i.sample(0.01 + delay).expect("samples");
         assert!((v.heading - 0.0).abs() < 1e-9, "{}", v.heading);
         // Older than what is there: ignored.
         i.push(0.06, 3, at(100.0, 0.0));
@@ -285,10 +302,24 @@ mod tests {
     }
 
     #[test]
+    fn frames_far_apart_are_drawn_further_behind() {
+        let mut i = Interpolator::default();
+        for k in 0..50u64 {
+            i.push(k as f64 * 0.1, 10 * k, at(k as f64, 90.0));
+        }
+        assert!((i.delay_ticks() - 16.0).abs() < 0.01, "{}", i.delay_ticks());
+        // Between frames, not held at the newest.
+        let a = i.sample(4.9).expect("samples").x;
+        let b = i.sample(4.95).expect("samples").x;
+        assert!(b > a && b < 49.0, "{a} {b}");
+    }
+
+    #[test]
     fn extrapolates_a_little_then_holds() {
         let mut i = Interpolator::default();
         i.push(0.0, 0, at(0.0, 90.0));
         i.push(0.01, 1, at(0.1, 90.0));
+        assert_eq!(i.delay_ticks(), DELAY_TICKS);
         let v = i
             .sample(0.01 + (DELAY_TICKS + 2.0) / TICKS_PER_S)
             .expect("samples");

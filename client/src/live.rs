@@ -63,6 +63,10 @@ impl KeyLatch {
     }
 }
 
+/// How a session that quit ends: [`Link::Ended`] with this, and more when the goodbye
+/// was not heard.
+pub const QUIT: &str = "quit";
+
 /// The connection's state, in words for the HUD.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum Link {
@@ -158,6 +162,10 @@ pub fn spawn(
         if tokio::signal::ctrl_c().await.is_ok() {
             interrupted.interrupted.store(true, Ordering::Relaxed);
             let _ = quit.send(Command::Quit);
+            // A second Ctrl-C does not wait for anything.
+            if tokio::signal::ctrl_c().await.is_ok() {
+                std::process::exit(130);
+            }
         }
     });
     let task = runtime.spawn(run(session, shared.clone(), rx, driver));
@@ -235,15 +243,19 @@ async fn run(
             terrain,
             ground,
             decode_ms: (r.decode_s + (now - started).as_secs_f64()) * 1e3,
-            at: now,
+            at: r.arrived,
         });
     };
     if let Some(k) = keys {
         k.abort();
     }
     if ended == "quit" {
-        session.quit().await;
-        *lock(&shared.link) = Link::Ended("quit".into());
+        let told = session.quit().await;
+        *lock(&shared.link) = Link::Ended(if told {
+            QUIT.into()
+        } else {
+            format!("{QUIT}, but the server did not acknowledge the goodbye")
+        });
     } else {
         *lock(&shared.link) = Link::Ended(ended);
     }

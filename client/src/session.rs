@@ -64,6 +64,8 @@ pub struct Received {
     pub triangles: usize,
     /// Decoding and building the mesh, seconds.
     pub decode_s: f64,
+    /// When its stream was read to the end.
+    pub arrived: Instant,
 }
 
 /// What [`Session::take`] found.
@@ -78,7 +80,21 @@ pub enum Taken {
     Dropped,
 }
 
-type Slot = Arc<(Mutex<Option<(Frame, usize)>>, tokio::sync::Notify)>;
+/// The newest frame read and not yet taken, and the reader's state.
+#[derive(Default)]
+struct SlotInner {
+    /// The frame, its size on the wire (0: a stream that was not a frame), and when it
+    /// arrived.
+    frame: Mutex<Option<(Frame, usize, Instant)>>,
+    notify: tokio::sync::Notify,
+    /// The reader has stopped: no frame will come.
+    ended: std::sync::atomic::AtomicBool,
+}
+
+type Slot = Arc<SlotInner>;
+
+/// The largest budget a server takes; a viewer asks for no more.
+pub const MAX_BUDGET: u32 = roam_server::net::viewer::MAX_BUDGET;
 
 /// A joined viewer.
 pub struct Session {
@@ -108,6 +124,8 @@ impl Session {
     pub async fn join(addr: SocketAddr, fingerprint: [u8; 32], hello: Hello) -> Result<Session> {
         let (endpoint, conn) = connect(addr, fingerprint).await?;
         let (mut send, mut recv) = conn.open_bi().await.context("opening the control stream")?;
+        let mut hello = hello;
+        hello.budget = hello.budget.clamp(2, MAX_BUDGET);
         let budget = hello.budget;
         wire::write(&mut send, &ClientMessage::Hello(hello)).await?;
         let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
@@ -164,19 +182,13 @@ impl Session {
     /// connection has ended.
     pub async fn wait(&self) -> Result<()> {
         loop {
-            if self
-                .slot
-                .0
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .is_some()
-            {
+            if lock(&self.slot.frame).is_some() {
                 return Ok(());
             }
-            if self.reader.is_finished() {
+            if self.slot.ended.load(Ordering::Acquire) {
                 bail!("{}", self.ended());
             }
-            self.slot.1.notified().await;
+            self.slot.notify.notified().await;
         }
     }
 
@@ -195,8 +207,8 @@ impl Session {
     /// Takes the waiting frame, if it is newer than the last shown; decodes it into
     /// [`Session::mesh`] (unless `decode` is false) and acknowledges it.
     pub async fn take(&mut self, decode: bool) -> Result<Taken> {
-        let taken = self.slot.0.lock().unwrap_or_else(|e| e.into_inner()).take();
-        let Some((frame, wire_len)) = taken else {
+        let taken = lock(&self.slot.frame).take();
+        let Some((frame, wire_len, arrived)) = taken else {
             return Ok(Taken::Nothing);
         };
         if wire_len == 0 {
@@ -213,6 +225,7 @@ impl Session {
             wire_bytes: wire_len,
             triangles: 0,
             decode_s: 0.0,
+            arrived,
         };
         if decode {
             let started = Instant::now();
@@ -257,21 +270,40 @@ impl Session {
 
     /// Asks for `budget` triangles from now on.
     pub async fn set_budget(&mut self, budget: u32) -> Result<()> {
+        let budget = budget.clamp(2, MAX_BUDGET);
         wire::write(&mut self.send, &ClientMessage::Budget(budget)).await?;
         self.budget = budget;
         self.limit = self.limit.max(budget);
         Ok(())
     }
 
-    /// Says goodbye and closes the connection.
-    pub async fn quit(mut self) {
+    /// Says goodbye and closes the connection. True when the server read the goodbye
+    /// (bounded: a dead or slow server does not hold the viewer more than a second).
+    pub async fn quit(mut self) -> bool {
         self.reader.abort();
-        let _ = wire::write(&mut self.send, &ClientMessage::Bye(Reason::Quit)).await;
-        let _ = self.send.finish();
-        // Give the goodbye a moment to leave (bounded: a dead peer does not hold us).
-        let _ = tokio::time::timeout(Duration::from_millis(500), self.send.stopped()).await;
+        let said = tokio::time::timeout(Duration::from_secs(1), async {
+            wire::write(&mut self.send, &ClientMessage::Bye(Reason::Quit)).await?;
+            self.send.finish()?;
+            // The server read the stream to its end, or stopped it after the goodbye.
+            self.send.stopped().await?;
+            anyhow::Ok(())
+        })
+        .await;
         self.conn.close(0u32.into(), b"quit");
+        matches!(said, Ok(Ok(())))
     }
+}
+
+impl Drop for Session {
+    /// However the session ends, the connection closes and the reader stops.
+    fn drop(&mut self) {
+        self.reader.abort();
+        self.conn.close(0u32.into(), b"bye");
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Receives the colour map that follows the welcome, after checking its announced sizes
@@ -284,32 +316,35 @@ async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Ve
         );
     }
     let cells = 1u64 << welcome.levels;
-    if u64::from(welcome.color_cells) != cells
-        || u64::from(welcome.color_bytes) != cells * cells * 3
-    {
+    // Compressed, it is smaller than raw; a coder's tables on a tiny map may add a little.
+    let most = cells * cells * 3 + (64 << 10);
+    if u64::from(welcome.color_cells) != cells || u64::from(welcome.color_bytes) > most {
         bail!(
-            "the server's colour map is {} bytes of {} cells a side, expected {} of {cells}",
+            "the server's colour map is {} bytes of {} cells a side, expected {cells} cells \
+             in at most {most} bytes",
             welcome.color_bytes,
             welcome.color_cells,
-            cells * cells * 3
         );
     }
-    let mut color = vec![0u8; welcome.color_bytes as usize];
+    let mut packed = vec![0u8; welcome.color_bytes as usize];
     let mut got = 0usize;
-    while got < color.len() {
+    while got < packed.len() {
         match wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await? {
             ServerMessage::ColorMap { offset, data } => {
                 let at = offset as usize;
                 let end = at
                     .checked_add(data.len())
-                    .filter(|&e| e <= color.len())
+                    .filter(|&e| e <= packed.len())
                     .ok_or_else(|| anyhow!("a colour-map chunk past the end"))?;
-                color[at..end].copy_from_slice(&data);
+                packed[at..end].copy_from_slice(&data);
                 got += data.len();
             }
             other => bail!("expected the colour map, got {other:?}"),
         }
     }
+    let mut color = Vec::new();
+    roam_protocol::colormap::decode(welcome.color_cells, &packed, &mut color)
+        .map_err(|e| anyhow!("the server's colour map: {e}"))?;
     Ok(color)
 }
 
@@ -324,13 +359,14 @@ async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU6
             let Ok(bytes) = stream.read_to_end(messages::MAX_MESSAGE).await else {
                 return;
             };
+            let arrived = Instant::now();
             bytes_in.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-            let mut s = slot.0.lock().unwrap_or_else(|e| e.into_inner());
+            let mut s = lock(&slot.frame);
             match messages::decode::<Frame>(&bytes) {
                 Ok(frame) => {
-                    let n = frame.frame + 1;
+                    let n = frame.frame.saturating_add(1);
                     if newest.fetch_max(n, Ordering::Relaxed) < n {
-                        *s = Some((frame, bytes.len()));
+                        *s = Some((frame, bytes.len(), arrived));
                     }
                 }
                 Err(_) => {
@@ -343,15 +379,17 @@ async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU6
                         mesh: Vec::new(),
                     };
                     if s.is_none() {
-                        *s = Some((bad, 0));
+                        *s = Some((bad, 0, arrived));
                     }
                 }
             }
             drop(s);
-            slot.1.notify_one();
+            slot.notify.notify_one();
         });
     }
-    slot.1.notify_one();
+    // Set before the last wake-up, so a waiter that wakes sees it.
+    slot.ended.store(true, Ordering::Release);
+    slot.notify.notify_one();
 }
 
 /// Key changes sent and not yet seen applied: the input→frame latency.

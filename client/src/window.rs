@@ -81,7 +81,9 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
     let _ = app.commands.send(Command::Quit);
     let _ = runtime.block_on(async { tokio::time::timeout(Duration::from_secs(2), task).await });
     match app.shared.link() {
-        Link::Ended(why) if why == "quit" => println!("roam-client: quit; the server was told"),
+        Link::Ended(why) if why == live::QUIT => {
+            println!("roam-client: quit; the server heard the goodbye")
+        }
         Link::Ended(why) => println!("roam-client: {why}"),
         Link::Connected => {
             println!("roam-client: quit without a goodbye (the server did not answer)")
@@ -258,8 +260,8 @@ impl App {
                     .or_default()
                     .push(at, a.tick, *v);
             }
-            self.interpolators
-                .retain(|id, _| a.vehicles.iter().any(|v| v.id == *id));
+            let present: std::collections::HashSet<u16> = a.vehicles.iter().map(|v| v.id).collect();
+            self.interpolators.retain(|id, _| present.contains(id));
             self.ground = a.ground;
         }
         let bytes = self
@@ -315,7 +317,14 @@ impl App {
             wgpu::CurrentSurfaceTexture::Success(f)
             | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
             wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                gfx.surface.configure(&gfx.gpu.device, &gfx.config);
+                // The window's size now (it may have changed with no event); none while
+                // minimised.
+                let size = gfx.window.inner_size();
+                if size.width > 0 && size.height > 0 {
+                    gfx.config.width = size.width;
+                    gfx.config.height = size.height;
+                    gfx.surface.configure(&gfx.gpu.device, &gfx.config);
+                }
                 return Ok(());
             }
             // Occluded, timed out, or a validation error already reported: try next frame.

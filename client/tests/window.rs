@@ -126,7 +126,13 @@ fn a_window_opens_draws_and_quits_on_q() {
 
     let bye = expect_line(&out, "roam-client:", Duration::from_secs(60))
         .unwrap_or_else(|e| panic!("{e}\nstderr:\n{}", stderr(&err)));
-    assert!(bye.contains("the server was told"), "{bye}");
+    assert!(bye.contains("the server heard the goodbye"), "{bye}");
+    // It exits, and with success (bounded: the stdout reader ends when the process does).
+    let closed = out.recv_timeout(Duration::from_secs(60));
+    assert!(
+        matches!(closed, Err(mpsc::RecvTimeoutError::Disconnected)),
+        "the client's output ends: {closed:?}"
+    );
     let code = client.0.wait().expect("the client exits");
     assert!(code.success(), "{code}\nstderr:\n{}", stderr(&err));
     drop(xvfb);

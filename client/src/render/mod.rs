@@ -165,6 +165,8 @@ struct Instance {
     color: [u8; 4],
 }
 
+const _: () = assert!(std::mem::size_of::<Instance>().is_multiple_of(4));
+
 /// A vertex buffer that grows as needed and is otherwise reused.
 struct Buffer {
     label: &'static str,
@@ -227,6 +229,12 @@ pub struct Renderer {
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// Near plane, world units.
 const NEAR: f32 = 0.5;
+
+/// An sRGB colour as linear RGBA bytes (the shader works in linear light).
+fn linear_rgba(c: [u8; 3]) -> [u8; 4] {
+    let q = |v: u8| (srgb_to_linear(v) * 255.0).round() as u8;
+    [q(c[0]), q(c[1]), q(c[2]), 255]
+}
 
 fn srgb_to_linear(c: u8) -> f32 {
     let c = f32::from(c) / 255.0;
@@ -416,7 +424,7 @@ impl Renderer {
                     Instance {
                         place: [m.pos[0], m.pos[1], m.pos[2], m.heading_deg],
                         scale: [scale, 0.0, 0.0, 0.0],
-                        color: [m.color[0], m.color[1], m.color[2], 255],
+                        color: linear_rgba(m.color),
                     }
                 })
                 .collect();

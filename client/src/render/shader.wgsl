@@ -241,8 +241,8 @@ fn sky_vs(@builtin(vertex_index) i: u32) -> SkyOut {
 
 @fragment
 fn sky_fs(in: SkyOut) -> @location(0) vec4<f32> {
-    // Depth 1 is the near plane: a point on the ray through this pixel.
-    let near = u.inv_view_proj * vec4<f32>(in.ndc, 1.0, 1.0);
-    let dir = normalize(near.xyz / near.w - u.eye.xyz);
+    // Depth 0 is infinitely far: the inverse gives the ray's direction (w = 0), with no
+    // eye subtracted, so no precision is lost 100 km from the origin.
+    let dir = normalize((u.inv_view_proj * vec4<f32>(in.ndc, 0.0, 1.0)).xyz);
     return vec4<f32>(sky_color(dir), 1.0);
 }

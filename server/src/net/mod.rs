@@ -38,6 +38,8 @@ pub struct Shared {
     pub token: String,
     /// The heights' common step, for the mesh coder (computed once).
     pub height_step: u16,
+    /// The colour map, compressed once (`roam_protocol::colormap`) for every welcome.
+    pub color_map: Vec<u8>,
     events: std::sync::mpsc::Sender<Event>,
     keys: std::sync::mpsc::SyncSender<world_loop::KeyStates>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
@@ -111,8 +113,12 @@ impl Server {
                 .map_err(ServeError::World)?
         };
         let (stop, shutdown) = watch::channel(false);
+        let mut color_map = Vec::new();
+        let rgb: Vec<u8> = terrain.color.rgb().iter().flatten().copied().collect();
+        roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map);
         let shared = Arc::new(Shared {
             height_step: roam_protocol::height_step(terrain.heights.samples()),
+            color_map,
             terrain,
             variance,
             token: options.token,

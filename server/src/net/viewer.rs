@@ -197,7 +197,6 @@ async fn welcome(
 ) -> Result<(), wire::WireError> {
     let t = &shared.terrain;
     let m = &t.map;
-    let rgb: Vec<u8> = t.color.rgb().iter().flatten().copied().collect();
     let snap = shared.snapshots.borrow().clone();
     let w = Welcome {
         version: VERSION,
@@ -211,11 +210,11 @@ async fn welcome(
         water_level: m.water_level.map(|v| v as f32),
         vehicle,
         color_cells: t.color.cells(),
-        color_bytes: rgb.len() as u32,
+        color_bytes: shared.color_map.len() as u32,
         tick: snap.tick,
     };
     wire::write(send, &ServerMessage::Welcome(w)).await?;
-    for (k, chunk) in rgb.chunks(CHUNK).enumerate() {
+    for (k, chunk) in shared.color_map.chunks(CHUNK).enumerate() {
         let msg = ServerMessage::ColorMap {
             offset: (k * CHUNK) as u32,
             data: chunk.to_vec(),
