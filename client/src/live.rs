@@ -16,10 +16,12 @@ use crate::render::TerrainVertices;
 use crate::session::{self, Latency, Session, Taken};
 
 /// What the render thread asks of the network task.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Command {
     /// A new triangle budget.
     Budget(u32),
+    /// The camera the server should tessellate for.
+    View(roam_protocol::messages::ViewChange),
     /// Say goodbye and stop.
     Quit,
 }
@@ -201,6 +203,12 @@ async fn run(
         match event {
             Event::Command(Some(Command::Budget(b))) => {
                 if let Err(e) = session.set_budget(b).await {
+                    break format!("{e:#}");
+                }
+                continue;
+            }
+            Event::Command(Some(Command::View(v))) => {
+                if let Err(e) = session.set_view(v).await {
                     break format!("{e:#}");
                 }
                 continue;

@@ -277,6 +277,12 @@ impl Session {
         Ok(())
     }
 
+    /// Tells the server how the camera differs from the default at the vehicle.
+    pub async fn set_view(&mut self, view: messages::ViewChange) -> Result<()> {
+        wire::write(&mut self.send, &ClientMessage::View(view)).await?;
+        Ok(())
+    }
+
     /// Says goodbye and closes the connection. True when the server read the goodbye
     /// (bounded: a dead or slow server does not hold the viewer more than a second).
     pub async fn quit(mut self) -> bool {

@@ -6,6 +6,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
+use roam_protocol::messages::ViewChange;
 use roam_server::physics::Keys;
 use tokio::sync::mpsc;
 use winit::application::ApplicationHandler;
@@ -71,6 +72,7 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
         upload_ms: Rate::default(),
         last_bytes: 0,
         drawn: 0,
+        told: None,
         error: None,
     };
     event_loop
@@ -129,6 +131,8 @@ struct App {
     last_bytes: u64,
     /// Frames presented with terrain.
     drawn: u64,
+    /// The camera last told to the server, and when.
+    told: Option<(f64, ViewChange)>,
     error: Option<anyhow::Error>,
 }
 
@@ -288,9 +292,26 @@ impl App {
             .collect();
         gfx.renderer.set_markers(&markers);
         let ground = &self.ground;
+        let size = (gfx.config.width, gfx.config.height);
         let view = match &followed {
             Some(v) => {
                 let pose = self.rig.update(now, v, |x, z| ground.height(x, z));
+                // The server tessellates for this camera, told when it has moved enough.
+                let change = ViewChange {
+                    pitch_deg: pose.pitch_deg as f32,
+                    eye_above: (pose.eye[1] - v.y) as f32,
+                    viewport: [size.0, size.1],
+                };
+                let moved = self.told.is_none_or(|(at, t)| {
+                    now - at >= 0.1
+                        && ((t.pitch_deg - change.pitch_deg).abs() > 0.5
+                            || (t.eye_above - change.eye_above).abs() > 0.5
+                            || t.viewport != change.viewport)
+                });
+                if moved {
+                    let _ = self.commands.send(Command::View(change));
+                    self.told = Some((now, change));
+                }
                 View {
                     eye: pose.eye.map(|c| c as f32),
                     yaw_deg: pose.yaw_deg as f32,
@@ -331,7 +352,6 @@ impl App {
             _ => return Ok(()),
         };
         let target = frame.texture.create_view(&Default::default());
-        let size = (gfx.config.width, gfx.config.height);
         gfx.renderer
             .render(&gfx.gpu, &target, size, &view, self.toggles);
         let numbers = self.hud_shown.then(|| {

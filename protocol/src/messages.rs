@@ -110,6 +110,20 @@ pub enum ClientMessage {
     /// A frame failed to decode: send a key frame.
     KeyFrame,
     Bye(Reason),
+    /// The viewer's camera changed (it damps its pitch over rough ground, its window was
+    /// resized): tessellate for this view from now on.
+    View(ViewChange),
+}
+
+/// How the viewer's camera differs from the default one at the followed vehicle.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewChange {
+    /// Degrees, positive looking up.
+    pub pitch_deg: f32,
+    /// The eye's height above the vehicle's hover altitude, world units.
+    pub eye_above: f32,
+    /// Window size, pixels.
+    pub viewport: [u32; 2],
 }
 
 /// Server to viewer, on the control stream.

@@ -55,6 +55,11 @@ fn every_message_round_trips() {
         ClientMessage::Budget(46_341),
         ClientMessage::Ack { frame: u64::MAX },
         ClientMessage::KeyFrame,
+        ClientMessage::View(messages::ViewChange {
+            pitch_deg: -12.5,
+            eye_above: 1.5,
+            viewport: [800, 600],
+        }),
         ClientMessage::Bye(Reason::Quit),
         ClientMessage::Bye(Reason::Protocol("bad".into())),
     ] {

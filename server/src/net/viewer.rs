@@ -7,7 +7,8 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use roam_protocol::messages::{
-    ClientMessage, Frame, KeyDatagram, Reason, Role, ServerMessage, VERSION, VehicleView, Welcome,
+    ClientMessage, Frame, KeyDatagram, Reason, Role, ServerMessage, VERSION, VehicleView,
+    ViewChange, Welcome,
 };
 use roam_protocol::{BitSet, Grid, MeshEncoder};
 use tokio::sync::oneshot;
@@ -35,6 +36,21 @@ struct Control {
     budget: u32,
     /// The newest frame the viewer decoded.
     acked: Option<u64>,
+    /// The viewer's camera, if it said how it differs from the default.
+    view: Option<ViewChange>,
+}
+
+/// `camera` changed as the viewer asked; anything out of range is clamped, anything not a
+/// number ignored.
+fn apply_view(camera: &mut Camera, v: &ViewChange) {
+    if v.pitch_deg.is_finite() {
+        camera.pitch_deg = f64::from(v.pitch_deg).clamp(-89.0, 89.0);
+    }
+    if v.eye_above.is_finite() {
+        camera.eye[1] += f64::from(v.eye_above).clamp(0.0, 1000.0);
+    }
+    camera.width = v.viewport[0].clamp(1, 16_384);
+    camera.height = v.viewport[1].clamp(1, 16_384);
 }
 
 /// The close codes a connection ends with.
@@ -130,6 +146,7 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     let control = Arc::new(Mutex::new(Control {
         budget: hello.budget.clamp(2, MAX_BUDGET),
         acked: None,
+        view: None,
     }));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let ctl = tokio::spawn(read_control(recv, control.clone()));
@@ -256,6 +273,7 @@ async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Control>>)
             ClientMessage::Budget(b) => c.budget = b.clamp(2, MAX_BUDGET),
             ClientMessage::Ack { frame } => c.acked = Some(c.acked.map_or(frame, |a| a.max(frame))),
             ClientMessage::KeyFrame => c.acked = None,
+            ClientMessage::View(v) => c.view = Some(v),
             ClientMessage::Bye(_) | ClientMessage::Hello(_) => return,
         }
     }
@@ -370,15 +388,15 @@ async fn frames(
             |s: &crate::physics::VehicleState| crate::physics::altitude(&*shared.terrain, s.x, s.z);
         camera.eye = [v.state.x, altitude(&v.state), v.state.z];
         camera.yaw_deg = v.state.heading;
-        let (budget, acked) = {
+        let (budget, acked, view) = {
             let c = control.lock().unwrap_or_else(|e| e.into_inner());
-            (c.budget, c.acked)
+            (c.budget, c.acked, c.view)
         };
-        let (mut m, shared2, cam) = (
-            maker.take().expect("put back below"),
-            shared.clone(),
-            camera,
-        );
+        let mut cam = camera;
+        if let Some(v) = &view {
+            apply_view(&mut cam, v);
+        }
+        let (mut m, shared2) = (maker.take().expect("put back below"), shared.clone());
         let Ok((m, base, mesh)) = tokio::task::spawn_blocking(move || {
             let (base, mesh) = m.make(&shared2, &cam, budget, acked, frame);
             (m, base, mesh)
@@ -453,5 +471,43 @@ async fn frames(
         });
         in_flight = Some((cancel, task, frame));
         frame += 1;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_view_change_is_clamped_and_nan_ignored() {
+        let base = Camera {
+            eye: [10.0, 20.0, 30.0],
+            yaw_deg: 0.0,
+            pitch_deg: crate::flyover::PITCH_DEG,
+            fov_y_deg: 60.0,
+            width: 1280,
+            height: 720,
+        };
+        let check = |v: ViewChange, pitch: f64, eye_y: f64, size: (u32, u32)| {
+            let mut c = base;
+            apply_view(&mut c, &v);
+            assert_eq!(
+                (c.pitch_deg, c.eye[1], (c.width, c.height)),
+                (pitch, eye_y, size)
+            );
+        };
+        let v = |pitch_deg, eye_above, viewport| ViewChange {
+            pitch_deg,
+            eye_above,
+            viewport,
+        };
+        check(v(12.0, 1.5, [800, 600]), 12.0, 21.5, (800, 600));
+        check(
+            v(f32::NAN, f32::INFINITY, [0, 99_999]),
+            base.pitch_deg,
+            20.0,
+            (1, 16_384),
+        );
+        check(v(-500.0, -3.0, [640, 480]), -89.0, 20.0, (640, 480));
     }
 }
