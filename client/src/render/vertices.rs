@@ -22,6 +22,7 @@ pub struct TerrainVertices {
     /// Scratch: per-vertex positions and normal sums, kept to avoid reallocating.
     world: Vec<[f32; 3]>,
     normals: Vec<[f32; 3]>,
+    packed: Vec<Vertex>,
 }
 
 impl TerrainVertices {
@@ -30,7 +31,8 @@ impl TerrainVertices {
     }
 
     /// Rebuilds from `mesh` (grid vertices, height samples, triangles) on `scene`'s scales.
-    /// Normals are smooth: each vertex's area-weighted face normals.
+    /// Normals are smooth: each vertex's area-weighted face normals. A triangle with an
+    /// index out of range (a decoder bug, never trusted) is skipped.
     pub fn build(&mut self, scene: &Scene, mesh: &roam_protocol::Mesh) {
         let (h, v) = (scene.h_scale as f32, scene.v_scale as f32);
         self.world.clear();
@@ -40,34 +42,36 @@ impl TerrainVertices {
                 .zip(&mesh.heights)
                 .map(|(p, &y)| [f32::from(p[0]) * h, f32::from(y) * v, f32::from(p[1]) * h]),
         );
+        let n = self.world.len();
+        let ok = |t: &[u32]| t.iter().all(|&i| (i as usize) < n);
         self.normals.clear();
-        self.normals.resize(self.world.len(), [0.0; 3]);
-        self.corners.clear();
-        let vertex = |i: u32| self.world.get(i as usize).copied();
-        let mut faces = Vec::with_capacity(mesh.indices.len() / 3);
-        for t in mesh.indices.chunks_exact(3) {
-            // A mesh from the decoder is consistent; skip, rather than trust, one that is not.
-            let (Some(a), Some(b), Some(c)) = (vertex(t[0]), vertex(t[1]), vertex(t[2])) else {
-                continue;
-            };
+        self.normals.resize(n, [0.0; 3]);
+        for t in mesh.indices.chunks_exact(3).filter(|t| ok(t)) {
+            let [a, b, c] = [t[0], t[1], t[2]].map(|i| self.world[i as usize]);
             // Counter-clockwise seen from above: (b − a) × (c − a) points up.
-            let n = cross(sub(b, a), sub(c, a));
+            let f = cross(sub(b, a), sub(c, a));
             for &i in t {
                 let m = &mut self.normals[i as usize];
-                for k in 0..3 {
-                    m[k] += n[k];
-                }
+                m[0] += f[0];
+                m[1] += f[1];
+                m[2] += f[2];
             }
-            faces.push([t[0], t[1], t[2]]);
         }
-        self.corners.reserve(faces.len() * 3);
-        for f in faces {
-            for i in f {
-                self.corners.push(Vertex {
-                    pos: self.world[i as usize],
-                    normal: pack(normalize(self.normals[i as usize])),
-                });
-            }
+        // Each vertex packed once; corners copy it.
+        self.packed.clear();
+        self.packed.extend(
+            self.world
+                .iter()
+                .zip(&self.normals)
+                .map(|(&pos, &n)| Vertex {
+                    pos,
+                    normal: pack(normalize(n)),
+                }),
+        );
+        self.corners.clear();
+        self.corners.reserve(mesh.indices.len());
+        for t in mesh.indices.chunks_exact(3).filter(|t| ok(t)) {
+            self.corners.extend(t.iter().map(|&i| self.packed[i as usize]));
         }
     }
 }
