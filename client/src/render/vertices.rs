@@ -71,7 +71,8 @@ impl TerrainVertices {
         self.corners.clear();
         self.corners.reserve(mesh.indices.len());
         for t in mesh.indices.chunks_exact(3).filter(|t| ok(t)) {
-            self.corners.extend(t.iter().map(|&i| self.packed[i as usize]));
+            self.corners
+                .extend(t.iter().map(|&i| self.packed[i as usize]));
         }
     }
 }
