@@ -139,6 +139,8 @@ pub fn show(ctx: &egui::Context, n: &Numbers) {
                 .corner_radius(4.0)
                 .inner_margin(8.0)
                 .show(ui, |ui| {
+                    // One line each, however narrow the window.
+                    ui.style_mut().wrap_mode = Some(egui::TextWrapMode::Extend);
                     for (i, line) in lines(n).into_iter().enumerate() {
                         let mut text = egui::RichText::new(line).monospace().size(13.0);
                         text = if i == 0 && !n.connected {

@@ -576,3 +576,51 @@ pub fn write_png(path: &std::path::Path, size: (u32, u32), rgba: &[u8]) -> Resul
     w.write_image_data(rgba).context("writing the PNG")?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(cells: u32, colors: Vec<u8>) -> Scene {
+        Scene {
+            levels: 2,
+            h_scale: 1.0,
+            v_scale: 1.0,
+            sun_dir: [0.0, 1.0, 0.0],
+            sun_color: [255; 3],
+            fog_density: 0.0,
+            fog_color: [0; 3],
+            water_level: None,
+            cells,
+            colors,
+        }
+    }
+
+    #[test]
+    fn a_colour_map_larger_than_the_gpu_allows_is_halved_until_it_fits() {
+        // 4 × 4 texels, each coded by its position.
+        let rgb: Vec<u8> = (0..16u8).flat_map(|i| [i, 100 + i, 200]).collect();
+        let check = |max: u32, cells: u32, first_row: &[u8]| {
+            let (c, rgba) = color_texels(&scene(4, rgb.clone()), max);
+            assert_eq!(c, cells, "max {max}");
+            assert_eq!(rgba.len(), (cells * cells * 4) as usize);
+            let reds: Vec<u8> = rgba.chunks(4).take(cells as usize).map(|p| p[0]).collect();
+            assert_eq!(reds, first_row, "max {max}");
+            assert!(rgba.chunks(4).all(|p| p[3] == 255));
+        };
+        check(8192, 4, &[0, 1, 2, 3]);
+        check(3, 2, &[0, 2]);
+        check(1, 1, &[0]);
+        // A map whose size does not match its cells is drawn grey, not trusted.
+        let (c, rgba) = color_texels(&scene(4, vec![1, 2, 3]), 8192);
+        assert_eq!((c, rgba), (1, vec![128, 128, 128, 255]));
+    }
+
+    #[test]
+    fn marker_colours_are_distinct_and_linear() {
+        let a = Marker::color_of(0);
+        let b = Marker::color_of(1);
+        assert_ne!(a, b);
+        assert_eq!(linear_rgba([255, 0, 128]), [255, 0, 55, 255]);
+    }
+}
