@@ -4,7 +4,8 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use roam_client::headless::{self, ViewerOptions, ViewerStats};
-use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION};
+use roam_client::session::{Session, Taken};
+use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange};
 use roam_server::net::{Options, Server, tls, wire};
 use roam_server::variance::VarianceTree;
 use roam_server::world::{self, Inputs, World};
@@ -248,5 +249,58 @@ async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
         }
     }
     assert!(freed, "the vehicles of closed connections are gone");
+    r.server.shutdown().await.expect("stops");
+}
+
+/// Frames from `s` until one's triangle count satisfies `ok` (within a bound), and that
+/// count.
+async fn until(s: &mut Session, what: &str, ok: impl Fn(usize) -> bool) -> usize {
+    let mut seen = Vec::new();
+    for _ in 0..600 {
+        match s.take(true).await.expect("the stream goes on") {
+            Taken::Frame(f) if ok(f.triangles) => return f.triangles,
+            Taken::Frame(f) => seen.push(f.triangles),
+            Taken::Nothing => s.wait().await.expect("frames keep coming"),
+            Taken::Dropped => panic!("a frame failed to decode"),
+        }
+    }
+    panic!("no frame with {what} in 600 tries; triangle counts seen: {seen:?}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_viewer_steers_the_servers_budget_and_camera() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    // Real terrain (the test terrain's 300 m of noise every 4 m leaves nothing to cull).
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/kossou");
+    let kossou = roam_server::dataset::load(&dir, &mut |_, _| {}).expect("bundled");
+    let r = start(Arc::new(kossou), None);
+    let hello = Hello {
+        version: VERSION,
+        role: Role::Driver,
+        token: r.token.clone(),
+        viewport: [640, 480],
+        fov_y_deg: 60.0,
+        budget: 4_000,
+        frame_rate: 60,
+    };
+    let mut s = Session::join(r.server.addr, r.fingerprint, hello)
+        .await
+        .expect("joins");
+    until(&mut s, "most of the budget", |t| t > 3_000 && t <= 4_000).await;
+    // `-` twice in the window: ÷ 2.
+    s.set_budget(2_000).await.expect("sent");
+    until(&mut s, "the new budget", |t| t > 1_500 && t <= 2_000).await;
+    // Looking straight down from the vehicle, the frustum holds only the ground below it:
+    // the server culls the rest and the mesh shrinks far below the budget.
+    let down = |pitch_deg| ViewChange {
+        pitch_deg,
+        eye_above: 0.0,
+        viewport: [640, 480],
+    };
+    s.set_view(down(-89.0)).await.expect("sent");
+    until(&mut s, "the view straight down", |t| t < 500).await;
+    s.set_view(down(-5.0)).await.expect("sent");
+    until(&mut s, "the view ahead again", |t| t > 1_500).await;
+    assert!(s.quit().await, "the server heard the goodbye");
     r.server.shutdown().await.expect("stops");
 }
