@@ -1,0 +1,244 @@
+//! A viewer against a hostile or broken server: every malformed welcome, colour map or
+//! frame is a clear error or a dropped frame, never a panic or an outsized allocation.
+
+use std::net::SocketAddr;
+
+use roam_client::session::{Session, Taken};
+use roam_protocol::messages::{
+    self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION, Welcome,
+};
+use roam_server::net::{tls, wire};
+
+/// What the fake server sends after reading the hello.
+#[derive(Clone, Debug)]
+enum Say {
+    /// A control-stream message.
+    Msg(ServerMessage),
+    /// Raw bytes on the control stream.
+    Raw(Vec<u8>),
+    /// A frame stream with these bytes.
+    Stream(Vec<u8>),
+}
+
+const CELLS: u32 = 64;
+
+fn packed_colors() -> Vec<u8> {
+    let rgb: Vec<u8> = (0..CELLS * CELLS * 3).map(|i| (i % 251) as u8).collect();
+    let mut out = Vec::new();
+    roam_protocol::colormap::encode(CELLS, &rgb, &mut out);
+    out
+}
+
+fn welcome(color_bytes: usize) -> Welcome {
+    Welcome {
+        version: VERSION,
+        levels: 6,
+        h_scale: 10.0,
+        v_scale: 0.1,
+        sun_dir: [0.0, 1.0, 0.0],
+        sun_color: [255; 3],
+        fog_density: 1e-3,
+        fog_color: [200; 3],
+        water_level: None,
+        vehicle: 0,
+        color_cells: CELLS,
+        color_bytes: color_bytes as u32,
+        tick: 0,
+    }
+}
+
+/// A welcome and a good colour map.
+fn good_join() -> Vec<Say> {
+    let packed = packed_colors();
+    vec![
+        Say::Msg(ServerMessage::Welcome(welcome(packed.len()))),
+        Say::Msg(ServerMessage::ColorMap {
+            offset: 0,
+            data: packed,
+        }),
+    ]
+}
+
+/// A server that answers one viewer with `script`, then closes. Its address and
+/// certificate fingerprint.
+async fn fake(script: Vec<Say>) -> (SocketAddr, [u8; 32], tokio::task::JoinHandle<()>) {
+    let id = tls::generate().expect("a certificate");
+    let config = tls::server_config(&id).expect("a config");
+    let endpoint =
+        quinn::Endpoint::server(config, "127.0.0.1:0".parse().expect("valid")).expect("listens");
+    let addr = endpoint.local_addr().expect("bound");
+    let fingerprint = tls::parse_fingerprint(&id.fingerprint()).expect("valid");
+    let task = tokio::spawn(async move {
+        let Some(incoming) = endpoint.accept().await else {
+            return;
+        };
+        let Ok(conn) = incoming.await else { return };
+        let Ok((mut send, mut recv)) = conn.accept_bi().await else {
+            return;
+        };
+        if wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE)
+            .await
+            .is_err()
+        {
+            return;
+        }
+        for say in script {
+            let sent = match say {
+                Say::Msg(m) => wire::write(&mut send, &m).await.is_ok(),
+                Say::Raw(b) => send.write_all(&b).await.is_ok(),
+                Say::Stream(b) => match conn.open_uni().await {
+                    Ok(mut s) => s.write_all(&b).await.is_ok() && s.finish().is_ok(),
+                    Err(_) => false,
+                },
+            };
+            if !sent {
+                return;
+            }
+        }
+        // Everything said: hang up once the viewer has asked for a key frame (it could not
+        // decode a frame) or gone away.
+        while let Ok(m) = wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await {
+            if m == ClientMessage::KeyFrame {
+                break;
+            }
+        }
+        conn.close(0u32.into(), b"done");
+        endpoint.wait_idle().await;
+    });
+    (addr, fingerprint, task)
+}
+
+fn hello() -> Hello {
+    Hello {
+        version: VERSION,
+        role: Role::Driver,
+        token: "t".into(),
+        viewport: [640, 480],
+        fov_y_deg: 60.0,
+        budget: 4_000,
+        frame_rate: 60,
+    }
+}
+
+/// Joining a server that says `script` fails with an error containing `want`.
+async fn check(script: Vec<Say>, want: &str) {
+    let (addr, fp, task) = fake(script).await;
+    let err = match Session::join(addr, fp, hello()).await {
+        Ok(_) => panic!("joined, expected an error with {want:?}"),
+        Err(e) => format!("{e:#}"),
+    };
+    assert!(err.contains(want), "{want:?} not in {err:?}");
+    task.abort();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_malformed_welcome_or_colour_map_is_a_clear_error() {
+    let packed = packed_colors();
+    let n = packed.len();
+    let with = |w: Welcome, rest: Vec<Say>| {
+        let mut v = vec![Say::Msg(ServerMessage::Welcome(w))];
+        v.extend(rest);
+        v
+    };
+    let chunk = |offset: u32, data: Vec<u8>| Say::Msg(ServerMessage::ColorMap { offset, data });
+    check(
+        vec![Say::Msg(ServerMessage::Refused(Reason::WrongToken))],
+        "refused: wrong token",
+    )
+    .await;
+    check(
+        vec![Say::Msg(ServerMessage::Bye(Reason::Shutdown))],
+        "expected a welcome",
+    )
+    .await;
+    check(vec![Say::Raw(vec![0xff; 64])], "").await;
+    check(
+        with(
+            Welcome {
+                levels: 14,
+                ..welcome(n)
+            },
+            vec![],
+        ),
+        "more than this viewer holds",
+    )
+    .await;
+    check(
+        with(
+            Welcome {
+                color_cells: 32,
+                ..welcome(n)
+            },
+            vec![],
+        ),
+        "colour map is",
+    )
+    .await;
+    // Claims more bytes than any map of its size needs: refused before allocating.
+    check(with(welcome(u32::MAX as usize), vec![]), "colour map is").await;
+    check(
+        with(welcome(n), vec![chunk((n - 1) as u32, vec![0; 10])]),
+        "past the end",
+    )
+    .await;
+    let mut damaged = packed.clone();
+    damaged[n / 2] ^= 0x10;
+    check(
+        with(welcome(n), vec![chunk(0, damaged)]),
+        "the server's colour map",
+    )
+    .await;
+    check(
+        with(welcome(n), vec![Say::Msg(ServerMessage::Bye(Reason::Quit))]),
+        "expected the colour map",
+    )
+    .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn junk_frames_are_dropped_and_the_end_is_noticed() {
+    let frame = |frame: u64, mesh: Vec<u8>| {
+        let mut b = Vec::new();
+        messages::encode(
+            &messages::Frame {
+                frame,
+                base: None,
+                tick: 1,
+                vehicles: Vec::new(),
+                input_seq: None,
+                mesh,
+            },
+            &mut b,
+        )
+        .expect("encodes");
+        b
+    };
+    let mut script = good_join();
+    script.push(Say::Stream(vec![0xab; 100]));
+    script.push(Say::Stream(frame(u64::MAX, vec![1, 2, 3])));
+    let (addr, fp, task) = fake(script).await;
+    let mut s = Session::join(addr, fp, hello()).await.expect("joins");
+    assert_eq!(s.scene.colors.len(), (CELLS * CELLS * 3) as usize);
+    let mut dropped = 0;
+    // Bounded: two streams, then the server hangs up and `wait` must say so.
+    let ended = loop {
+        match s.take(true).await {
+            Ok(Taken::Dropped) => dropped += 1,
+            Ok(Taken::Frame(f)) => panic!("junk decoded as frame {}", f.frame),
+            Ok(Taken::Nothing) => {
+                if let Err(e) = s.wait().await {
+                    break format!("{e:#}");
+                }
+            }
+            // Asking for a key frame from a server that has gone: also an end.
+            Err(e) => break format!("{e:#}"),
+        }
+        assert!(dropped <= 2, "only two streams were sent");
+    };
+    assert!(dropped >= 1, "the junk was seen and dropped");
+    assert!(
+        ended.contains("closed") || ended.contains("ended") || ended.contains("lost"),
+        "{ended}"
+    );
+    task.abort();
+}
