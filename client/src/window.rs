@@ -73,6 +73,7 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
         last_bytes: 0,
         drawn: 0,
         told: None,
+        occluded: false,
         error: None,
     };
     event_loop
@@ -133,6 +134,8 @@ struct App {
     drawn: u64,
     /// The camera last told to the server, and when.
     told: Option<(f64, ViewChange)>,
+    /// The window is hidden (minimised, covered): nothing is drawn.
+    occluded: bool,
     error: Option<anyhow::Error>,
 }
 
@@ -174,15 +177,20 @@ impl App {
         let mut config = surface
             .get_default_config(&adapter, size.width.max(1), size.height.max(1))
             .context("the window's surface does not work with this adapter")?;
-        // An sRGB format, so the shader's linear colours are encoded on write.
+        // Drawn through an sRGB view, so the shader's linear colours are encoded on write:
+        // the surface's own sRGB format, or an sRGB view of the one it has.
         let caps = surface.get_capabilities(&adapter);
         if let Some(f) = caps.formats.iter().find(|f| f.is_srgb()) {
             config.format = *f;
         }
+        let view_format = config.format.add_srgb_suffix();
+        if view_format != config.format {
+            config.view_formats = vec![view_format];
+        }
         config.present_mode = wgpu::PresentMode::AutoVsync;
         surface.configure(&gpu.device, &config);
-        let renderer = Renderer::new(&gpu, config.format, scene);
-        let overlay = Overlay::new(&window, &gpu.device, config.format);
+        let renderer = Renderer::new(&gpu, view_format, scene);
+        let overlay = Overlay::new(&window, &gpu.device, view_format);
         Ok(Gfx {
             window,
             surface,
@@ -351,7 +359,10 @@ impl App {
             // Occluded, timed out, or a validation error already reported: try next frame.
             _ => return Ok(()),
         };
-        let target = frame.texture.create_view(&Default::default());
+        let target = frame.texture.create_view(&wgpu::TextureViewDescriptor {
+            format: Some(gfx.config.format.add_srgb_suffix()),
+            ..Default::default()
+        });
         gfx.renderer
             .render(&gfx.gpu, &target, size, &view, self.toggles);
         let numbers = self.hud_shown.then(|| {
@@ -432,6 +443,7 @@ impl ApplicationHandler for App {
         match event {
             WindowEvent::CloseRequested => self.quit(event_loop),
             WindowEvent::Focused(false) => self.shared.keys_released(),
+            WindowEvent::Occluded(hidden) => self.occluded = hidden,
             WindowEvent::KeyboardInput { event, .. } => self.key(event_loop, &event),
             WindowEvent::Resized(size) => {
                 if let Some(g) = self.gfx.as_mut()
@@ -464,8 +476,14 @@ impl ApplicationHandler for App {
             event_loop.exit();
             return;
         }
-        // Draw continuously: the present waits for the display.
-        if let Some(g) = &self.gfx {
+        // Draw continuously: the present waits for the display. Hidden, wake ten times a
+        // second to notice Ctrl-C, and draw nothing.
+        if self.occluded {
+            event_loop.set_control_flow(winit::event_loop::ControlFlow::WaitUntil(
+                Instant::now() + Duration::from_millis(100),
+            ));
+        } else if let Some(g) = &self.gfx {
+            event_loop.set_control_flow(winit::event_loop::ControlFlow::Wait);
             g.window.request_redraw();
         }
     }
