@@ -169,6 +169,12 @@ fn run(cli: Cli) -> Result<()> {
         }
         None => None,
     };
+    // Without a display there is nothing to serve or connect for.
+    let no_display =
+        std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none();
+    if !cli.headless && no_display {
+        bail!("{}", roam_client::window::NO_DISPLAY);
+    }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     let (server, addr, token, fingerprint) = runtime.block_on(serve(&cli))?;
     if !cli.headless {
@@ -298,10 +304,6 @@ fn window(
     fingerprint: [u8; 32],
 ) -> Result<()> {
     use roam_client::window;
-    // Before connecting: without a display there is nothing to connect for.
-    if std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none() {
-        bail!("{}", window::NO_DISPLAY);
-    }
     let hello = Hello {
         version: VERSION,
         role: cli.role(),
