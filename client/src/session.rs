@@ -39,6 +39,23 @@ pub async fn connect(
     Ok((endpoint, conn))
 }
 
+/// How long a control message may take to leave (a server that stops reading does not
+/// hold the viewer).
+const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
+/// How long the welcome and the colour map may take.
+const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
+/// The largest frame message read: a key frame at the largest budget is under 2 MiB, and
+/// 16 streams of this much bound what a server can make the viewer hold.
+pub const MAX_FRAME: usize = 8 << 20;
+
+/// Writes a control message, within [`CONTROL_TIMEOUT`].
+async fn send_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
+    tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
+        .await
+        .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
+    Ok(())
+}
+
 /// Why a connection ended or was refused, in words.
 pub fn describe(reason: &Reason) -> String {
     match reason {
@@ -127,17 +144,31 @@ impl Session {
         let mut hello = hello;
         hello.budget = hello.budget.clamp(2, MAX_BUDGET);
         let budget = hello.budget;
-        wire::write(&mut send, &ClientMessage::Hello(hello)).await?;
-        let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
-            Ok(ServerMessage::Welcome(w)) => w,
-            Ok(ServerMessage::Refused(reason)) => bail!("refused: {}", describe(&reason)),
-            Ok(other) => bail!("expected a welcome, got {other:?}"),
-            Err(e) => bail!(
-                "the server closed the connection: {e} ({:?})",
-                conn.close_reason()
+        send_control(&mut send, &ClientMessage::Hello(hello)).await?;
+        let joined = tokio::time::timeout(JOIN_TIMEOUT, async {
+            let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await
+            {
+                Ok(ServerMessage::Welcome(w)) => w,
+                Ok(ServerMessage::Refused(reason)) => {
+                    bail!("refused: {}", describe(&reason))
+                }
+                Ok(other) => bail!("expected a welcome, got {other:?}"),
+                Err(e) => bail!(
+                    "the server closed the connection: {e} ({:?})",
+                    conn.close_reason()
+                ),
+            };
+            let colors = color_map(&mut recv, &welcome).await?;
+            anyhow::Ok((welcome, colors))
+        })
+        .await;
+        let (welcome, colors) = match joined {
+            Ok(j) => j?,
+            Err(_) => bail!(
+                "the server sent no welcome and colour map within {} s",
+                JOIN_TIMEOUT.as_secs()
             ),
         };
-        let colors = color_map(&mut recv, &welcome).await?;
         let grid = Grid::new(u32::from(welcome.levels))
             .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
         let scene = Scene {
@@ -233,7 +264,7 @@ impl Session {
                 Some(b) => match self.decoded.iter().find(|(f, _)| *f == b) {
                     Some((_, set)) => Some(set),
                     None => {
-                        wire::write(&mut self.send, &ClientMessage::KeyFrame).await?;
+                        send_control(&mut self.send, &ClientMessage::KeyFrame).await?;
                         return Ok(Taken::Dropped);
                     }
                 },
@@ -244,7 +275,7 @@ impl Session {
                 .decoder
                 .decode(&frame.mesh, base, self.limit, &mut split)
             else {
-                wire::write(&mut self.send, &ClientMessage::KeyFrame).await?;
+                send_control(&mut self.send, &ClientMessage::KeyFrame).await?;
                 return Ok(Taken::Dropped);
             };
             mesh::emit(&self.grid, &split, self.decoder.heights(), &mut self.mesh);
@@ -263,7 +294,7 @@ impl Session {
             received.triangles = tris;
             received.decode_s = started.elapsed().as_secs_f64();
         }
-        wire::write(&mut self.send, &ClientMessage::Ack { frame: frame.frame }).await?;
+        send_control(&mut self.send, &ClientMessage::Ack { frame: frame.frame }).await?;
         self.newest = Some(frame.frame);
         Ok(Taken::Frame(received))
     }
@@ -271,7 +302,7 @@ impl Session {
     /// Asks for `budget` triangles from now on.
     pub async fn set_budget(&mut self, budget: u32) -> Result<()> {
         let budget = budget.clamp(2, MAX_BUDGET);
-        wire::write(&mut self.send, &ClientMessage::Budget(budget)).await?;
+        send_control(&mut self.send, &ClientMessage::Budget(budget)).await?;
         self.budget = budget;
         self.limit = self.limit.max(budget);
         Ok(())
@@ -279,24 +310,30 @@ impl Session {
 
     /// Tells the server how the camera differs from the default at the vehicle.
     pub async fn set_view(&mut self, view: messages::ViewChange) -> Result<()> {
-        wire::write(&mut self.send, &ClientMessage::View(view)).await?;
+        send_control(&mut self.send, &ClientMessage::View(view)).await?;
         Ok(())
     }
 
-    /// Says goodbye and closes the connection. True when the server read the goodbye
-    /// (bounded: a dead or slow server does not hold the viewer more than a second).
+    /// Says goodbye and closes the connection. True when the server heard: it took the
+    /// whole control stream, goodbye included, or closed the connection with the code it
+    /// closes with on a goodbye (bounded: a dead or slow server does not hold the viewer
+    /// more than a second).
     pub async fn quit(mut self) -> bool {
         self.reader.abort();
         let said = tokio::time::timeout(Duration::from_secs(1), async {
             wire::write(&mut self.send, &ClientMessage::Bye(Reason::Quit)).await?;
             self.send.finish()?;
-            // The server read the stream to its end, or stopped it after the goodbye.
-            self.send.stopped().await?;
-            anyhow::Ok(())
+            match self.send.stopped().await {
+                Ok(_) => anyhow::Ok(true),
+                Err(quinn::StoppedError::ConnectionLost(
+                    quinn::ConnectionError::ApplicationClosed(c),
+                )) => Ok(c.error_code == roam_server::net::viewer::close::BYE.into()),
+                Err(e) => Err(e.into()),
+            }
         })
         .await;
         self.conn.close(0u32.into(), b"quit");
-        matches!(said, Ok(Ok(())))
+        matches!(said, Ok(Ok(true)))
     }
 }
 
@@ -322,8 +359,7 @@ async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Ve
         );
     }
     let cells = 1u64 << welcome.levels;
-    // Compressed, it is smaller than raw; a coder's tables on a tiny map may add a little.
-    let most = cells * cells * 3 + (64 << 10);
+    let most = roam_protocol::colormap::max_len(cells as u32) as u64;
     if u64::from(welcome.color_cells) != cells || u64::from(welcome.color_bytes) > most {
         bail!(
             "the server's colour map is {} bytes of {} cells a side, expected {cells} cells \
@@ -332,16 +368,24 @@ async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Ve
             welcome.color_cells,
         );
     }
-    let mut packed = vec![0u8; welcome.color_bytes as usize];
+    // Grown as chunks come, not allocated at the size claimed.
+    let size = welcome.color_bytes as usize;
+    let mut packed = Vec::new();
     let mut got = 0usize;
-    while got < packed.len() {
+    while got < size {
         match wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await? {
             ServerMessage::ColorMap { offset, data } => {
                 let at = offset as usize;
                 let end = at
                     .checked_add(data.len())
-                    .filter(|&e| e <= packed.len())
+                    .filter(|&e| e <= size)
                     .ok_or_else(|| anyhow!("a colour-map chunk past the end"))?;
+                if data.is_empty() {
+                    bail!("an empty colour-map chunk");
+                }
+                if packed.len() < end {
+                    packed.resize(end, 0);
+                }
                 packed[at..end].copy_from_slice(&data);
                 got += data.len();
             }
@@ -362,7 +406,7 @@ async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU6
         let (slot, newest, bytes_in) = (slot.clone(), newest.clone(), bytes_in.clone());
         tokio::spawn(async move {
             // A frame abandoned by the server (reset) is simply skipped.
-            let Ok(bytes) = stream.read_to_end(messages::MAX_MESSAGE).await else {
+            let Ok(bytes) = stream.read_to_end(MAX_FRAME).await else {
                 return;
             };
             let arrived = Instant::now();

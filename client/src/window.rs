@@ -74,6 +74,7 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
         drawn: 0,
         told: None,
         occluded: false,
+        rest_until: 0.0,
         error: None,
     };
     event_loop
@@ -101,7 +102,10 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
 /// The window and what draws into it.
 struct Gfx {
     window: Arc<Window>,
+    instance: wgpu::Instance,
     surface: wgpu::Surface<'static>,
+    /// The format drawn through: the surface's, or an sRGB view of it.
+    view_format: wgpu::TextureFormat,
     config: wgpu::SurfaceConfiguration,
     gpu: Gpu,
     renderer: Renderer,
@@ -136,6 +140,8 @@ struct App {
     told: Option<(f64, ViewChange)>,
     /// The window is hidden (minimised, covered): nothing is drawn.
     occluded: bool,
+    /// No surface texture was to be had: no drawing until then (local seconds).
+    rest_until: f64,
     error: Option<anyhow::Error>,
 }
 
@@ -183,8 +189,14 @@ impl App {
         if let Some(f) = caps.formats.iter().find(|f| f.is_srgb()) {
             config.format = *f;
         }
-        let view_format = config.format.add_srgb_suffix();
-        if view_format != config.format {
+        // Without sRGB views either, the renderer encodes in its shaders.
+        let views = adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::SURFACE_VIEW_FORMATS);
+        let mut view_format = config.format;
+        if views && config.format.add_srgb_suffix() != config.format {
+            view_format = config.format.add_srgb_suffix();
             config.view_formats = vec![view_format];
         }
         config.present_mode = wgpu::PresentMode::AutoVsync;
@@ -193,7 +205,9 @@ impl App {
         let overlay = Overlay::new(&window, &gpu.device, view_format);
         Ok(Gfx {
             window,
+            instance,
             surface,
+            view_format,
             config,
             gpu,
             renderer,
@@ -345,7 +359,13 @@ impl App {
         let frame = match gfx.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(f)
             | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
-            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+            lost @ (wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost) => {
+                if matches!(lost, wgpu::CurrentSurfaceTexture::Lost) {
+                    gfx.surface = gfx
+                        .instance
+                        .create_surface(gfx.window.clone())
+                        .context("recreating the window's lost surface")?;
+                }
                 // The window's size now (it may have changed with no event); none while
                 // minimised.
                 let size = gfx.window.inner_size();
@@ -353,14 +373,20 @@ impl App {
                     gfx.config.width = size.width;
                     gfx.config.height = size.height;
                     gfx.surface.configure(&gfx.gpu.device, &gfx.config);
+                } else {
+                    self.rest_until = now + 0.1;
                 }
                 return Ok(());
             }
-            // Occluded, timed out, or a validation error already reported: try next frame.
-            _ => return Ok(()),
+            // Hidden, timed out, or a validation error already reported: try again a
+            // little later rather than spin.
+            _ => {
+                self.rest_until = now + 0.1;
+                return Ok(());
+            }
         };
         let target = frame.texture.create_view(&wgpu::TextureViewDescriptor {
-            format: Some(gfx.config.format.add_srgb_suffix()),
+            format: Some(gfx.view_format),
             ..Default::default()
         });
         gfx.renderer
@@ -478,7 +504,8 @@ impl ApplicationHandler for App {
         }
         // Draw continuously: the present waits for the display. Hidden, wake ten times a
         // second to notice Ctrl-C, and draw nothing.
-        if self.occluded {
+        let now = self.clock.elapsed().as_secs_f64();
+        if self.occluded || now < self.rest_until {
             event_loop.set_control_flow(winit::event_loop::ControlFlow::WaitUntil(
                 Instant::now() + Duration::from_millis(100),
             ));

@@ -350,3 +350,24 @@ fn other_vehicles_are_drawn_as_markers() {
     );
     assert_eq!(reddish(&without), 0);
 }
+
+#[test]
+fn a_target_that_does_not_encode_srgb_gets_the_same_picture() {
+    let gpu = gpu();
+    let t = load("synth-257");
+    let (view, mesh) = view_and_mesh(&t);
+    let draw_as = |format| {
+        let mut r = Renderer::new(&gpu, format, scene(&t, false));
+        r.set_mesh(&gpu, &mesh);
+        render::render_offscreen(&gpu, &mut r, SIZE, &view, Toggles::default()).expect("renders")
+    };
+    let srgb = draw_as(wgpu::TextureFormat::Rgba8UnormSrgb);
+    let plain = draw_as(wgpu::TextureFormat::Rgba8Unorm);
+    let diff = srgb
+        .iter()
+        .zip(&plain)
+        .map(|(&a, &b)| f64::from(a.abs_diff(b)))
+        .sum::<f64>()
+        / srgb.len() as f64;
+    assert!(diff < 1.5, "mean difference {diff} per channel");
+}

@@ -313,6 +313,13 @@ fn run<C: Coder>(cells: u32, c: &mut C) {
 /// Appends to `out` the colour map of `cells × cells` texels, `rgb` row-major, 3 bytes a
 /// texel. Panics if `rgb` is not `cells² · 3` bytes or `cells` is not in 1 ..= 8192: a
 /// caller bug.
+/// The most bytes a coded map of `cells` a side may take: the raw texels and 64 KiB for
+/// headers and tables. A viewer refuses more; a server never sends more.
+pub fn max_len(cells: u32) -> usize {
+    let c = cells as usize;
+    c * c * 3 + (64 << 10)
+}
+
 pub fn encode(cells: u32, rgb: &[u8], out: &mut Vec<u8>) {
     assert!(
         (1..=MAX_CELLS).contains(&cells),

@@ -256,11 +256,18 @@ async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
 /// count.
 async fn until(s: &mut Session, what: &str, ok: impl Fn(usize) -> bool) -> usize {
     let mut seen = Vec::new();
+    let limit = Duration::from_secs(30);
     for _ in 0..600 {
-        match s.take(true).await.expect("the stream goes on") {
+        let taken = tokio::time::timeout(limit, s.take(true))
+            .await
+            .expect("in time");
+        match taken.expect("the stream goes on") {
             Taken::Frame(f) if ok(f.triangles) => return f.triangles,
             Taken::Frame(f) => seen.push(f.triangles),
-            Taken::Nothing => s.wait().await.expect("frames keep coming"),
+            Taken::Nothing => tokio::time::timeout(limit, s.wait())
+                .await
+                .expect("in time")
+                .expect("frames keep coming"),
             Taken::Dropped => panic!("a frame failed to decode"),
         }
     }

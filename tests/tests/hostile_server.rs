@@ -108,6 +108,13 @@ async fn fake(script: Vec<Say>) -> (SocketAddr, [u8; 32], tokio::task::JoinHandl
     (addr, fingerprint, task)
 }
 
+/// `f`, or a failed test after a minute (a regression fails, never hangs).
+async fn bounded<T>(f: impl std::future::Future<Output = T>) -> T {
+    tokio::time::timeout(std::time::Duration::from_secs(60), f)
+        .await
+        .expect("within a minute")
+}
+
 fn hello() -> Hello {
     Hello {
         version: VERSION,
@@ -123,7 +130,7 @@ fn hello() -> Hello {
 /// Joining a server that says `script` fails with an error containing `want`.
 async fn check(script: Vec<Say>, want: &str) {
     let (addr, fp, task) = fake(script).await;
-    let err = match Session::join(addr, fp, hello()).await {
+    let err = match bounded(Session::join(addr, fp, hello())).await {
         Ok(_) => panic!("joined, expected an error with {want:?}"),
         Err(e) => format!("{e:#}"),
     };
@@ -217,16 +224,18 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
     script.push(Say::Stream(vec![0xab; 100]));
     script.push(Say::Stream(frame(u64::MAX, vec![1, 2, 3])));
     let (addr, fp, task) = fake(script).await;
-    let mut s = Session::join(addr, fp, hello()).await.expect("joins");
+    let mut s = bounded(Session::join(addr, fp, hello()))
+        .await
+        .expect("joins");
     assert_eq!(s.scene.colors.len(), (CELLS * CELLS * 3) as usize);
     let mut dropped = 0;
     // Bounded: two streams, then the server hangs up and `wait` must say so.
     let ended = loop {
-        match s.take(true).await {
+        match bounded(s.take(true)).await {
             Ok(Taken::Dropped) => dropped += 1,
             Ok(Taken::Frame(f)) => panic!("junk decoded as frame {}", f.frame),
             Ok(Taken::Nothing) => {
-                if let Err(e) = s.wait().await {
+                if let Err(e) = bounded(s.wait()).await {
                     break format!("{e:#}");
                 }
             }

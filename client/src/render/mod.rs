@@ -154,6 +154,7 @@ struct Uniforms {
     fog_color: [f32; 4],
     params: [f32; 4],
     map: [f32; 4],
+    output: [f32; 4],
 }
 
 /// One marker as the shader takes it.
@@ -224,6 +225,10 @@ pub struct Renderer {
     scene: Scene,
     /// Scratch for [`Renderer::set_mesh`].
     scratch: TerrainVertices,
+    /// The format drawn into.
+    format: wgpu::TextureFormat,
+    /// The target format does not encode sRGB: the shader does.
+    encode_srgb: bool,
 }
 
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -319,7 +324,14 @@ impl Renderer {
             depth: None,
             scene,
             scratch: TerrainVertices::default(),
+            encode_srgb: !format.is_srgb(),
+            format,
         }
+    }
+
+    /// The format it draws into.
+    pub fn format(&self) -> wgpu::TextureFormat {
+        self.format
     }
 
     pub fn scene(&self) -> &Scene {
@@ -408,6 +420,7 @@ impl Renderer {
                 view.time_s,
                 flag(toggles.detail),
             ],
+            output: [flag(self.encode_srgb), 0.0, 0.0, 0.0],
         };
         gpu.queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
@@ -508,7 +521,8 @@ fn target_texture(
     })
 }
 
-/// Renders offscreen and returns the RGBA pixels, row by row.
+/// Renders offscreen, into a texture of the renderer's format (RGBA8, sRGB-encoding or
+/// not), and returns the RGBA pixels, row by row.
 pub fn render_offscreen(
     gpu: &Gpu,
     renderer: &mut Renderer,
@@ -516,7 +530,7 @@ pub fn render_offscreen(
     view: &View,
     toggles: Toggles,
 ) -> Result<Vec<u8>> {
-    let format = wgpu::TextureFormat::Rgba8UnormSrgb;
+    let format = renderer.format();
     let texture = target_texture(
         gpu,
         "offscreen",

@@ -15,7 +15,19 @@ struct Uniforms {
     params: vec4<f32>,
     // x: map size (world units), y: water level, z: time (s), w: detail texture on
     map: vec4<f32>,
+    // x: the target is not sRGB: encode here
+    output: vec4<f32>,
 };
+
+// The colour to write: linear, or sRGB-encoded for a target that does not encode.
+fn out(c: vec3<f32>) -> vec3<f32> {
+    if (u.output.x < 0.5) {
+        return c;
+    }
+    let lo = c * 12.92;
+    let hi = 1.055 * pow(max(c, vec3<f32>(0.0)), vec3<f32>(1.0 / 2.4)) - 0.055;
+    return select(hi, lo, c <= vec3<f32>(0.0031308));
+}
 
 @group(0) @binding(0) var<uniform> u: Uniforms;
 @group(0) @binding(1) var colors: texture_2d<f32>;
@@ -119,7 +131,7 @@ fn terrain_fs(in: TerrainOut) -> @location(0) vec4<f32> {
         c = mix(vec3<f32>(0.02, 0.02, 0.02), c, edge);
     }
     c = fogged(c, dist);
-    return vec4<f32>(c, 1.0);
+    return vec4<f32>(out(c), 1.0);
 }
 
 struct WaterOut {
@@ -179,7 +191,7 @@ fn water_fs(in: WaterOut) -> @location(0) vec4<f32> {
         c += u.sun_color.rgb * pow(max(dot(n, h), 0.0), 400.0) * 2.0;
     }
     let alpha = mix(0.6, 1.0, fresnel);
-    return vec4<f32>(fogged(c, dist), alpha);
+    return vec4<f32>(out(fogged(c, dist)), alpha);
 }
 
 struct MarkerOut {
@@ -221,7 +233,7 @@ fn marker_vs(
 fn marker_fs(in: MarkerOut) -> @location(0) vec4<f32> {
     let c = lit(in.color, normalize(in.normal));
     // Markers are meant to be seen: fog them half as much as the terrain.
-    return vec4<f32>(fogged(c, 0.5 * length(in.world - u.eye.xyz)), 1.0);
+    return vec4<f32>(out(fogged(c, 0.5 * length(in.world - u.eye.xyz))), 1.0);
 }
 
 struct SkyOut {
@@ -244,5 +256,5 @@ fn sky_fs(in: SkyOut) -> @location(0) vec4<f32> {
     // Depth 0 is infinitely far: the inverse gives the ray's direction (w = 0), with no
     // eye subtracted, so no precision is lost 100 km from the origin.
     let dir = normalize((u.inv_view_proj * vec4<f32>(in.ndc, 0.0, 1.0)).xyz);
-    return vec4<f32>(sky_color(dir), 1.0);
+    return vec4<f32>(out(sky_color(dir)), 1.0);
 }

@@ -78,6 +78,8 @@ pub enum ServeError {
     World(std::io::Error),
     #[error("the world thread panicked")]
     WorldPanicked,
+    #[error("the colour map codes to {0} bytes, more than a viewer takes")]
+    ColorMap(usize),
 }
 
 impl Server {
@@ -116,6 +118,9 @@ impl Server {
         let mut color_map = Vec::new();
         let rgb: Vec<u8> = terrain.color.rgb().iter().flatten().copied().collect();
         roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map);
+        if color_map.len() > roam_protocol::colormap::max_len(terrain.color.cells()) {
+            return Err(ServeError::ColorMap(color_map.len()));
+        }
         let shared = Arc::new(Shared {
             height_step: roam_protocol::height_step(terrain.heights.samples()),
             color_map,

@@ -111,7 +111,8 @@ fn transport(keep_alive: bool) -> Arc<quinn::TransportConfig> {
         t.keep_alive_interval(Some(std::time::Duration::from_secs(2)));
     }
     // A viewer reads frames on uni streams the server opens, a few at a time (a newer frame
-    // resets the older): a server cannot make it buffer more than these windows.
+    // resets the older). At most 16 at once; with the viewer's frame size limit, that bounds
+    // what a server can make it hold.
     t.max_concurrent_uni_streams(16u32.into());
     t.max_concurrent_bidi_streams(0u32.into());
     t.stream_receive_window((16u32 << 20).into());

@@ -46,8 +46,9 @@ fn apply_view(camera: &mut Camera, v: &ViewChange) {
     if v.pitch_deg.is_finite() {
         camera.pitch_deg = f64::from(v.pitch_deg).clamp(-89.0, 89.0);
     }
+    // Slightly below the hover altitude too: the viewer's damped eye lags a climb.
     if v.eye_above.is_finite() {
-        camera.eye[1] += f64::from(v.eye_above).clamp(0.0, 1000.0);
+        camera.eye[1] += f64::from(v.eye_above).clamp(-10.0, 1000.0);
     }
     camera.width = v.viewport[0].clamp(1, 16_384);
     camera.height = v.viewport[1].clamp(1, 16_384);
@@ -508,6 +509,6 @@ mod tests {
             20.0,
             (1, 16_384),
         );
-        check(v(-500.0, -3.0, [640, 480]), -89.0, 20.0, (640, 480));
+        check(v(-500.0, -30.0, [640, 480]), -89.0, 10.0, (640, 480));
     }
 }
