@@ -181,22 +181,26 @@ async fn a_wrong_token_or_fingerprint_is_refused() {
     r.server.shutdown().await.expect("stops");
 }
 
+/// A driver's hello with `budget`.
+fn driver_hello(r: &Running, budget: u32) -> Hello {
+    Hello {
+        version: VERSION,
+        role: Role::Driver,
+        token: r.token.clone(),
+        viewport: [1280, 720],
+        fov_y_deg: 60.0,
+        budget,
+        frame_rate: 60,
+    }
+}
+
 /// A connection that says hello as a driver and then never reads a frame.
 async fn stalled_driver(r: &Running) -> (quinn::Endpoint, quinn::Connection) {
     let (endpoint, conn) = headless::connect(r.server.addr, r.fingerprint)
         .await
         .expect("connects");
     let (mut send, _recv) = conn.open_bi().await.expect("a stream");
-    let hello = Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: r.token.clone(),
-        viewport: [1920, 1080],
-        fov_y_deg: 60.0,
-        budget: 8_000,
-        frame_rate: 60,
-    };
-    wire::write(&mut send, &ClientMessage::Hello(hello))
+    wire::write(&mut send, &ClientMessage::Hello(driver_hello(r, 8_000)))
         .await
         .expect("sends");
     (endpoint, conn)
@@ -281,15 +285,7 @@ async fn the_viewer_steers_the_servers_budget_and_camera() {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/kossou");
     let kossou = roam_server::dataset::load(&dir, &mut |_, _| {}).expect("bundled");
     let r = start(Arc::new(kossou), None);
-    let hello = Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: r.token.clone(),
-        viewport: [640, 480],
-        fov_y_deg: 60.0,
-        budget: 4_000,
-        frame_rate: 60,
-    };
+    let hello = driver_hello(&r, 4_000);
     let mut s = Session::join(r.server.addr, r.fingerprint, hello)
         .await
         .expect("joins");
@@ -302,7 +298,7 @@ async fn the_viewer_steers_the_servers_budget_and_camera() {
     let down = |pitch_deg| ViewChange {
         pitch_deg,
         eye_above: 0.0,
-        viewport: [640, 480],
+        viewport: [1280, 720],
     };
     s.set_view(down(-89.0)).await.expect("sent");
     until(&mut s, "the view straight down", |t| t < 500).await;

@@ -591,23 +591,35 @@ pub fn write_png(path: &std::path::Path, size: (u32, u32), rgba: &[u8]) -> Resul
     Ok(())
 }
 
+/// A plain scene for unit tests: overhead sun, no fog, no water.
+#[cfg(test)]
+pub(crate) fn test_scene(
+    levels: u32,
+    h_scale: f64,
+    v_scale: f64,
+    cells: u32,
+    colors: Vec<u8>,
+) -> Scene {
+    Scene {
+        levels,
+        h_scale,
+        v_scale,
+        sun_dir: [0.0, 1.0, 0.0],
+        sun_color: [255; 3],
+        fog_density: 0.0,
+        fog_color: [0; 3],
+        water_level: None,
+        cells,
+        colors,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn scene(cells: u32, colors: Vec<u8>) -> Scene {
-        Scene {
-            levels: 2,
-            h_scale: 1.0,
-            v_scale: 1.0,
-            sun_dir: [0.0, 1.0, 0.0],
-            sun_color: [255; 3],
-            fog_density: 0.0,
-            fog_color: [0; 3],
-            water_level: None,
-            cells,
-            colors,
-        }
+        test_scene(2, 1.0, 1.0, cells, colors)
     }
 
     #[test]

@@ -130,18 +130,7 @@ mod tests {
     use super::*;
 
     fn scene() -> Scene {
-        Scene {
-            levels: 1,
-            h_scale: 10.0,
-            v_scale: 0.5,
-            sun_dir: [0.0, 1.0, 0.0],
-            sun_color: [255; 3],
-            fog_density: 0.0,
-            fog_color: [0; 3],
-            water_level: None,
-            cells: 1,
-            colors: vec![0; 3],
-        }
+        crate::render::test_scene(1, 10.0, 0.5, 1, vec![0; 3])
     }
 
     #[test]
