@@ -56,11 +56,6 @@ impl Interpolator {
         }
     }
 
-    /// Forgets everything (a new vehicle is followed).
-    pub fn clear(&mut self) {
-        *self = Interpolator::default();
-    }
-
     /// The newest state received.
     pub fn newest(&self) -> Option<&VehicleView> {
         self.samples.back().map(|(_, v)| v)
