@@ -9,7 +9,6 @@ use std::time::Instant;
 use anyhow::Result;
 use roam_protocol::messages::{Hello, Role, VERSION};
 use roam_server::flyover::quantile;
-use roam_server::physics::Keys;
 use roam_server::script::Script;
 
 use crate::render::{Gpu, Renderer, TerrainVertices, Toggles, View};
@@ -67,17 +66,9 @@ pub async fn run(
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
     };
-    let keys: Vec<Keys> = opts.inputs.keys().collect();
-    let mut steps = keys.into_iter().chain(std::iter::repeat(Keys::NONE));
-    let mut last = Keys::NONE;
     let player = tokio::spawn(session::play(
         session.conn.clone(),
-        move || {
-            let k = steps.next()?;
-            let pressed = k.without(last);
-            last = k;
-            Some((k, pressed))
-        },
+        session::script_keys(&opts.inputs),
         Arc::new(Latency::default()),
     ));
     let (mut decode, mut build, mut upload, mut draw, mut tris) =

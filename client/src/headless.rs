@@ -8,7 +8,6 @@ use std::time::Instant;
 use anyhow::{Result, anyhow, bail};
 use roam_protocol::mesh;
 use roam_protocol::messages::{self, Hello, Role, VERSION};
-use roam_server::physics::Keys;
 use roam_server::script::Script;
 
 use crate::session::{self, Latency, Session, Taken};
@@ -95,25 +94,11 @@ pub async fn run(
     let mut session = Session::join(addr, fingerprint, hello).await?;
     let latency = Arc::new(Latency::default());
     let keys = match (&opts.role, &opts.inputs) {
-        (Role::Driver, Some(script)) => {
-            let mut steps = script
-                .keys()
-                .collect::<Vec<_>>()
-                .into_iter()
-                .chain(std::iter::repeat(Keys::NONE));
-            let mut last = Keys::NONE;
-            let next = move || {
-                let k = steps.next()?;
-                let pressed = k.without(last);
-                last = k;
-                Some((k, pressed))
-            };
-            Some(tokio::spawn(session::play(
-                session.conn.clone(),
-                next,
-                latency.clone(),
-            )))
-        }
+        (Role::Driver, Some(script)) => Some(tokio::spawn(session::play(
+            session.conn.clone(),
+            session::script_keys(script),
+            latency.clone(),
+        ))),
         _ => None,
     };
     let mut stats = ViewerStats {

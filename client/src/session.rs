@@ -16,6 +16,7 @@ use roam_protocol::messages::{
 use roam_protocol::{BitSet, Grid, MeshDecoder, mesh};
 use roam_server::net::{tls, wire};
 use roam_server::physics::Keys;
+use roam_server::script::Script;
 
 use crate::render::Scene;
 
@@ -470,6 +471,20 @@ impl Latency {
             out.push((now - at).as_secs_f64() * 1e3);
             p.pop_front();
         }
+    }
+}
+
+/// A script's keys as [`play`] takes them, one step per call: held keys, and those newly
+/// down; then no keys, for ever.
+pub fn script_keys(script: &Script) -> impl FnMut() -> Option<(Keys, Keys)> + Send + 'static {
+    let keys: Vec<Keys> = script.keys().collect();
+    let mut steps = keys.into_iter().chain(std::iter::repeat(Keys::NONE));
+    let mut last = Keys::NONE;
+    move || {
+        let k = steps.next()?;
+        let pressed = k.without(last);
+        last = k;
+        Some((k, pressed))
     }
 }
 
