@@ -170,9 +170,7 @@ fn run(cli: Cli) -> Result<()> {
         None => None,
     };
     // Without a display there is nothing to serve or connect for.
-    let no_display =
-        std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none();
-    if !cli.headless && no_display {
+    if !cli.headless && !roam_client::window::has_display() {
         bail!("{}", roam_client::window::NO_DISPLAY);
     }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;

@@ -42,9 +42,14 @@ pub const NO_DISPLAY: &str = "no display to open a window on (DISPLAY and WAYLAN
      data/kossou --headless --frames 300 --screenshot kossou.png\nor give it a virtual \
      display: xvfb-run -a cargo run --release -p roam-client";
 
+/// Whether there is a display to open a window on (X11 or Wayland).
+pub fn has_display() -> bool {
+    std::env::var_os("DISPLAY").is_some() || std::env::var_os("WAYLAND_DISPLAY").is_some()
+}
+
 /// Opens the window on `session` and runs until the person quits or the window closes.
 pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -> Result<()> {
-    if std::env::var_os("DISPLAY").is_none() && std::env::var_os("WAYLAND_DISPLAY").is_none() {
+    if !has_display() {
         bail!("{NO_DISPLAY}");
     }
     let event_loop = EventLoop::new().map_err(|e| anyhow!("{e}: {NO_DISPLAY}"))?;
