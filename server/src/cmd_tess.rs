@@ -206,6 +206,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let terrain = std::sync::Arc::new(terrain);
     let vehicle_steps_per_second = crate::cmd_sim::bench_physics(&terrain);
     let codec = codec_bench(&terrain, &vt, limits)?;
+    let serve = serve_bench(&terrain, &vt, limits)?;
     let samples = f64::from(terrain.heights.side()).powi(2);
     let resident = (terrain.heights.heap_bytes() + vt.heap_bytes()) as f64 / samples;
     let report = serde_json::json!({
@@ -229,6 +230,13 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "encode_ns_per_triangle": codec.encode_ns,
         "decode_ns_per_triangle": codec.decode_ns,
         "codec_frames": codec.frames,
+        "serve_frame_us_median": serve.frame_us_median,
+        "serve_frame_us_p99": serve.frame_us_p99,
+        "serve_changes_per_frame_median": serve.changes_median,
+        "serve_screen_error_px_p99": serve.error_p99,
+        "scratch_screen_error_px_p99": serve.scratch_error_p99,
+        "serve_rebuilds": serve.rebuilds,
+        "serve_evaluated_per_frame_median": serve.evaluated_median,
         "last_frame": {
             "evaluated": tess.stats().evaluated,
             "culled": tess.stats().culled,
@@ -313,5 +321,60 @@ fn codec_bench(
         steady: quantile(bytes.get(1..).unwrap_or(&[]), 0.5),
         encode_ns: quantile(&encode_ns, 0.5),
         decode_ns: quantile(&decode_ns, 0.5),
+    })
+}
+
+/// The serving path along the codec's drive: one viewer's frames, 1/60 s apart, each the
+/// cut carried from the frame before (split/merge) and its delta.
+struct ServeFigures {
+    frame_us_median: f64,
+    frame_us_p99: f64,
+    changes_median: f64,
+    error_p99: f64,
+    scratch_error_p99: f64,
+    rebuilds: usize,
+    evaluated_median: f64,
+}
+
+fn serve_bench(
+    terrain: &std::sync::Arc<Terrain>,
+    vt: &VarianceTree,
+    limits: Limits,
+) -> Result<ServeFigures> {
+    use roam_server::tessellate::{Coherent, Mode};
+    let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
+    let cameras = flyover::drive(terrain, &script, 60);
+    let sc = scales(terrain);
+    let mut coherent = Coherent::new(terrain.heights.side());
+    let mut scratch = Tessellator::new(terrain.heights.side());
+    let mut mesh = Mesh::default();
+    let (mut us, mut changes, mut err, mut scratch_err) = (vec![], vec![], vec![], vec![]);
+    let mut rebuilds = 0;
+    let mut evaluated = vec![];
+    for (k, cam) in cameras.iter().enumerate() {
+        let started = Instant::now();
+        let mode = coherent.frame(&terrain.heights, vt, sc, cam, limits, false);
+        let elapsed = started.elapsed().as_nanos() as f64 / 1e3;
+        if k > 0 {
+            us.push(elapsed);
+            changes.push(coherent.changes().len() as f64);
+            evaluated.push(f64::from(coherent.stats().evaluated));
+            rebuilds += usize::from(mode == Mode::Rebuild);
+        }
+        scratch.tessellate(&terrain.heights, vt, sc, cam, limits, &mut mesh);
+        err.push(f64::from(coherent.error_bound_px()));
+        scratch_err.push(f64::from(mesh.error_bound_px));
+        if coherent.triangles() > limits.budget.max(2) {
+            bail!("the served cut is over budget at frame {k}: a tessellator bug");
+        }
+    }
+    Ok(ServeFigures {
+        frame_us_median: quantile(&us, 0.5),
+        frame_us_p99: quantile(&us, 0.99),
+        changes_median: quantile(&changes, 0.5),
+        error_p99: quantile(&err, 0.99),
+        scratch_error_p99: quantile(&scratch_err, 0.99),
+        rebuilds,
+        evaluated_median: quantile(&evaluated, 0.5),
     })
 }

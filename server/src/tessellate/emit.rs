@@ -77,7 +77,7 @@ impl Tessellator {
                 &ranked, window, s, self.side, x as u32, z as u32, i as u32, rc,
             );
         }
-        if self.active_list.is_empty() {
+        if self.triangles == 2 {
             // Nothing split: the two roots, whose corners are ranks 0 to 3 (row-major).
             let (nw, ne, sw, se) = (0, 1, 2, 3);
             out.indices[..6].copy_from_slice(&[ne, nw, se, sw, se, nw]);

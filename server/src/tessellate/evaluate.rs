@@ -7,29 +7,84 @@ use crate::diamond::Shape;
 use crate::queue::{TOP, bucket_of};
 
 /// Up to four diamonds of one shape and half-size, one per lane.
-struct Batch {
+pub(super) struct Batch {
     /// Centres, grid units.
-    x: F4,
-    z: F4,
+    pub x: F4,
+    pub z: F4,
     /// Centres, packed as queue entries carry them.
-    pos: [u32; 4],
+    pub pos: [u32; 4],
     /// Stored errors, sample units.
-    e: F4,
+    pub e: F4,
     /// Smallest and largest corner heights.
-    lo: F4,
-    hi: F4,
+    pub lo: F4,
+    pub hi: F4,
     /// Bit `i`: lane `i` holds a diamond to evaluate (the others hold safe stand-ins).
-    valid: u32,
+    pub valid: u32,
+}
+
+/// What the priority needs of each lane's shape and size.
+pub(super) struct Shape4 {
+    /// Half-size, grid units.
+    pub h: F4,
+    /// `h_scale · h · k`: the footprint's reach, world units (`k` = √2 for squares, 1 for
+    /// rotated diamonds).
+    pub reach: F4,
+    /// Bit `i`: lane `i` is a square (0 or 0xf in a batch of one shape).
+    pub square: u32,
+    /// Per plane, `d` plus the footprint's reach across it.
+    pub offsets: [F4; 4],
+}
+
+/// The priority of each lane (screen-space error in pixels), and the masks of lanes wholly
+/// outside one frustum plane and of lanes whose footprint holds the eye's ground position.
+/// One computation for the from-scratch and the frame-coherent tessellators, so both rank
+/// a diamond identically, bit for bit.
+#[inline(always)]
+pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> (F4, u32, u32) {
+    let (lo, hi) = (b.lo.sub(b.e), b.hi.add(b.e));
+    let half = F4::splat(0.5);
+    let (yc, hy) = (half.mul(lo.add(hi)), half.mul(hi.sub(lo)));
+    let (xf, zf) = (b.x, b.z);
+    // Outside if any of the four planes puts the bounding prism wholly behind it.
+    let mut outside = 0;
+    for (p, offset) in f.planes.iter().zip(&s.offsets) {
+        let d =
+            p.a.mul(xf)
+                .add(p.b.mul(yc))
+                .add(p.c.mul(zf))
+                .add(*offset)
+                .add(hy.mul(p.abs_b));
+        outside |= d.lt(F4::splat(0.0));
+    }
+    // The ground under the eye is refined first, in view or not.
+    let (ex, ez) = (f.eye_x.sub(xf), f.eye_z.sub(zf));
+    let boxed = || ex.abs().le(s.h) & ez.abs().le(s.h);
+    let l1 = || ex.abs().add(ez.abs()).le(s.h);
+    let under = match s.square {
+        0xf => boxed(),
+        0 => l1(),
+        sq => (boxed() & sq) | (l1() & !sq & 0xf),
+    };
+    let (dx, dy, dz) = (ex.mul(f.hs), f.eye_y.sub(yc.mul(f.vs)), ez.mul(f.hs));
+    let reach = s.reach.add(f.vs.mul(hy));
+    let d = dx
+        .mul(dx)
+        .add(dy.mul(dy))
+        .add(dz.mul(dz))
+        .sqrt()
+        .sub(reach)
+        .max(F4::splat(MIN_DISTANCE));
+    (b.e.mul(f.px).div(d), outside, under)
 }
 
 /// The smallest and largest of four corner heights, per lane.
 #[inline(always)]
-fn bounds(a: F4, b: F4, c: F4, d: F4) -> (F4, F4) {
+pub(super) fn bounds(a: F4, b: F4, c: F4, d: F4) -> (F4, F4) {
     (a.min(b).min(c).min(d), a.max(b).max(c).max(d))
 }
 
 #[inline(always)]
-fn heights(v: [u16; 4]) -> F4 {
+pub(super) fn heights(v: [u16; 4]) -> F4 {
     F4::new(v.map(f32::from))
 }
 
@@ -213,47 +268,20 @@ impl Tessellator {
         if live == 0 {
             return;
         }
-        let (lo, hi) = (b.lo.sub(b.e), b.hi.add(b.e));
-        let half = F4::splat(0.5);
-        let (yc, hy) = (half.mul(lo.add(hi)), half.mul(hi.sub(lo)));
-        let (xf, zf) = (b.x, b.z);
-        let hf = F4::splat(h as f32);
-        // Outside if any of the four planes puts the bounding prism wholly behind it.
-        let mut outside = 0;
-        let offsets = &f.plane_offsets[usize::from(square) << 4 | m as usize];
-        for (p, offset) in f.planes.iter().zip(offsets) {
-            let d =
-                p.a.mul(xf)
-                    .add(p.b.mul(yc))
-                    .add(p.c.mul(zf))
-                    .add(*offset)
-                    .add(hy.mul(p.abs_b));
-            outside |= d.lt(F4::splat(0.0));
-        }
-        // The ground under the eye is refined first, in view or not.
-        let (ex, ez) = (f.eye_x.sub(xf), f.eye_z.sub(zf));
-        let under = if square {
-            ex.abs().le(hf) & ez.abs().le(hf)
-        } else {
-            ex.abs().add(ez.abs()).le(hf)
-        };
-        let shown = live & (!outside | under);
-        self.stats.culled += (live & !shown).count_ones();
-        let (dx, dy, dz) = (ex.mul(f.hs), f.eye_y.sub(yc.mul(f.vs)), ez.mul(f.hs));
         let k = if square {
             std::f32::consts::SQRT_2
         } else {
             1.0
         };
-        let reach = F4::splat(f.hs_scalar * h as f32 * k).add(f.vs.mul(hy));
-        let d = dx
-            .mul(dx)
-            .add(dy.mul(dy))
-            .add(dz.mul(dz))
-            .sqrt()
-            .sub(reach)
-            .max(F4::splat(MIN_DISTANCE));
-        let prio = b.e.mul(f.px).div(d);
+        let shape = Shape4 {
+            h: F4::splat(h as f32),
+            reach: F4::splat(f.hs_scalar * h as f32 * k),
+            square: if square { 0xf } else { 0 },
+            offsets: f.plane_offsets[usize::from(square) << 4 | m as usize],
+        };
+        let (prio, outside, under) = priority(f, b, &shape);
+        let shown = live & (!outside | under);
+        self.stats.culled += (live & !shown).count_ones();
         let above = f.threshold.le(prio);
         let dropped = shown & !under & !above;
         if dropped != 0 {

@@ -36,9 +36,13 @@ use crate::heightfield::Heightfield;
 use crate::queue::{BucketQueue, TOP, bucket_of};
 use crate::variance::{self, VarianceTree};
 
+mod coherent;
 mod emit;
 mod evaluate;
+mod frontier;
 mod lanes;
+
+pub use coherent::{Coherent, CoherentStats, Mode};
 
 use lanes::F4;
 
@@ -111,6 +115,9 @@ pub struct Tessellator {
     /// Largest priority left below the threshold, per lane.
     dropped: F4,
     stats: Stats,
+    /// `active_list` no longer lists the split set (the frame-coherent tessellator changed
+    /// it): the next reset clears the whole bitset.
+    stale: bool,
     /// Run the x86-64-v3 build of the hot loops: decided once, in `new` (the CPU has it)
     /// and `set_portable`.
     #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
@@ -132,6 +139,8 @@ struct Frame<'a> {
     /// Per plane, `d` plus the footprint's reach across it, `2^m · extent`, for squares
     /// (index `16 + m`) and rotated diamonds (`m`).
     plane_offsets: [[F4; 4]; 32],
+    /// The same, one `f32` each, for lanes of mixed shapes and sizes.
+    offsets_scalar: [[f32; 4]; 32],
     eye_x: F4,
     eye_z: F4,
     eye_y: F4,
@@ -251,6 +260,7 @@ impl Tessellator {
             triangles: 0,
             dropped: F4::splat(0.0),
             stats: Stats::default(),
+            stale: false,
             v3: has_v3(),
         }
     }
@@ -310,6 +320,12 @@ impl Tessellator {
         self.active[i >> 6] |= 1 << (i & 63);
     }
 
+    #[inline(always)]
+    fn clear_active(&mut self, x: u32, z: u32) {
+        let i = (z * self.side + x) as usize;
+        self.active[i >> 6] &= !(1 << (i & 63));
+    }
+
     /// Tessellates the heightfield for `camera` into `out` (its buffers are reused).
     pub fn tessellate(
         &mut self,
@@ -320,6 +336,25 @@ impl Tessellator {
         limits: Limits,
         out: &mut Mesh,
     ) {
+        let budget = limits.budget.max(2) as usize;
+        out.vertices
+            .reserve((budget + 4).saturating_sub(out.vertices.len()));
+        out.indices
+            .reserve((3 * budget + 12).saturating_sub(out.indices.len()));
+        out.error_bound_px = self.cut(hf, variance, scales, camera, limits);
+        self.emit(out);
+    }
+
+    /// The split-only cut for `camera`, from scratch, in `active` and `active_list`;
+    /// returns the largest screen-space error left unsplit.
+    fn cut(
+        &mut self,
+        hf: &Heightfield,
+        variance: &VarianceTree,
+        scales: Scales,
+        camera: &Camera,
+        limits: Limits,
+    ) -> f32 {
         assert_eq!(hf.side(), self.side, "a tessellator serves one map size");
         assert_eq!(
             variance.size(),
@@ -335,16 +370,11 @@ impl Tessellator {
         self.queue.reserve(4 * most_splits + 8);
         self.active_list
             .reserve(most_splits.saturating_sub(self.active_list.len()));
-        out.vertices
-            .reserve((most_splits + 4).saturating_sub(out.vertices.len()));
-        out.indices
-            .reserve((3 * budget as usize + 12).saturating_sub(out.indices.len()));
         self.triangles = 2;
         self.evaluate_root(&frame);
         self.split_loop(&frame, budget);
-        out.error_bound_px = self.remaining_max().max(self.dropped.max_lane());
         self.stats.split = self.active_list.len() as u32;
-        self.emit(out);
+        self.remaining_max().max(self.dropped.max_lane())
     }
 
     /// Pops and splits until the budget or the queue runs out, on the best instruction set
@@ -425,7 +455,7 @@ impl Tessellator {
         };
         // A square of half-size h reaches h·(|a| + |c|) across a plane, a rotated diamond
         // h·max(|a|, |c|).
-        let plane_offsets = std::array::from_fn(|k| {
+        let offsets_scalar: [[f32; 4]; 32] = std::array::from_fn(|k| {
             let (square, h) = (k >= 16, f64::from(1u32 << (k % 16)));
             std::array::from_fn(|i| {
                 let (a, _, c, d) = grid(i);
@@ -434,9 +464,10 @@ impl Tessellator {
                 } else {
                     a.abs().max(c.abs())
                 };
-                F4::splat((d + h * extent) as f32)
+                (d + h * extent) as f32
             })
         });
+        let plane_offsets = offsets_scalar.map(|o| o.map(F4::splat));
         let mut square_offset = [0; 16];
         let mut rotated_offset = [0; 16];
         for (m, (so, ro)) in variance
@@ -458,6 +489,7 @@ impl Tessellator {
             size: self.size,
             planes: std::array::from_fn(plane),
             plane_offsets,
+            offsets_scalar,
             eye_x: F4::splat((camera.eye[0] / scales.h) as f32),
             eye_z: F4::splat((camera.eye[2] / scales.h) as f32),
             eye_y: F4::splat(camera.eye[1] as f32),
@@ -470,7 +502,8 @@ impl Tessellator {
     }
 
     fn reset(&mut self) {
-        if self.active_list.len() > self.active.len() / 2 {
+        if self.stale || self.active_list.len() > self.active.len() / 2 {
+            self.stale = false;
             // Dense: clearing every word (a memset) beats a store per split diamond.
             self.active.fill(0);
         } else {

@@ -1,0 +1,782 @@
+//! Frame-coherent ROAM: a viewer's cut carried from frame to frame with splits and merges
+//! (Duchaineau et al. 1997, §5–7), so the work per frame follows what changed.
+//!
+//! The cut is the split set in the tessellator's `active` bitset. Two frontiers are kept
+//! incrementally as [`PosSet`]s: **split candidates** (unsplit diamonds with at least one
+//! split parent: what from-scratch split-only would have queued) and **merge candidates**
+//! (split diamonds none of whose children are split). Each frame:
+//!
+//! 1. Every frontier diamond's priority is computed for the new camera, with the very
+//!    function the from-scratch tessellator uses ([`super::evaluate::priority`]), four at a
+//!    time, and pushed into two bucket queues: splits highest first, merges lowest first.
+//!    Merge candidates that are exact, wholly outside the view pyramid or below the
+//!    threshold are *unwanted*: from scratch would not have split them, so they are merged
+//!    first, whatever the budget. The diamonds under the eye are never merged.
+//! 2. While over budget, the lowest merge candidate is merged. Otherwise the highest split
+//!    candidate is split (with its forced splits, exactly as from scratch) if it fits the
+//!    budget; if it does not, the lowest merge candidate is merged instead when its
+//!    priority's bucket is strictly below the split's, and the loop stops when it is not.
+//!    Splits and merges update both frontiers and queue the diamonds they uncover.
+//! 3. The frame's changes are logged in order (a diamond may appear twice: split, then
+//!    merged); the codec composes logs into the difference from any base a viewer holds.
+//!
+//! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
+//! the bound, a camera jump (a turn of more than 30°, a move of more than 64 grid cells),
+//! a new field of view or viewport, a budget change of more than ×2, or the caller's say
+//! rebuilds the cut from scratch with split-only ROAM, the spec's algorithm, and logs the
+//! difference from the old cut.
+//!
+//! **Cost**: the frontier evaluation is proportional to the frontier (about the cut's
+//! size, but a few nanoseconds a diamond with no queue walk, forced-split search or mesh
+//! output); the split/merge loop and the log are proportional to the change.
+
+use super::evaluate::{Batch, Shape4, priority};
+use super::frontier::PosSet;
+use super::lanes::F4;
+use super::{Frame, Limits, Mesh, Scales, Tessellator, classify, pack, unpack};
+use crate::camera::Camera;
+use crate::diamond::Shape;
+use crate::heightfield::Heightfield;
+use crate::queue::{BucketQueue, TOP, bucket_of};
+use crate::variance::VarianceTree;
+
+/// How the last frame's cut was made.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Mode {
+    /// From scratch (split-only ROAM), the difference from the old cut logged.
+    Rebuild,
+    /// The old cut, split and merged.
+    Update,
+}
+
+/// Counts from the last frame.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CoherentStats {
+    /// Frontier diamonds whose priority was computed.
+    pub evaluated: u32,
+    /// Diamonds split and merged (forced splits included).
+    pub splits: u32,
+    pub merges: u32,
+}
+
+/// What a diamond's evaluation says, per lane.
+struct Lanes {
+    prio: [f32; 4],
+    /// Lanes worth splitting: error, in view (or under the eye), at or above the threshold.
+    wanted: u32,
+    /// Lanes whose footprint holds the eye's ground position.
+    under: u32,
+    /// Lanes in view with error, but below the threshold (for the error bound).
+    dropped: u32,
+}
+
+/// The camera-independent part of a frontier diamond's priority, kept beside it.
+#[derive(Clone, Copy)]
+struct Fixed {
+    /// Centre, grid units.
+    x: f32,
+    z: f32,
+    /// Stored error, sample units.
+    e: f32,
+    /// Smallest and largest corner heights, samples.
+    lo: f32,
+    hi: f32,
+    /// Half-size, grid units, and the footprint's reach per unit of it (√2 or 1).
+    h: f32,
+    k: f32,
+    /// `square << 4 | m`: the index of its plane offsets.
+    kind: u16,
+}
+
+/// The camera and limits of the last frame, to tell a jump from a step.
+#[derive(Clone, Copy)]
+struct Last {
+    camera: Camera,
+    budget: u32,
+    threshold_px: f32,
+}
+
+/// One viewer's cut, carried from frame to frame.
+pub struct Coherent {
+    tess: Tessellator,
+    split_cands: PosSet<Fixed>,
+    merge_cands: PosSet<Fixed>,
+    split_q: BucketQueue,
+    /// Buckets inverted (lowest priority first); `TOP` holds unwanted splits.
+    merge_q: BucketQueue,
+    /// This frame's changes (packed positions), in order.
+    log: Vec<u32>,
+    /// Scratch for rebuilds: the old split set, row-major.
+    old: Vec<u32>,
+    triangles: u32,
+    split_count: u32,
+    error_bound_px: f32,
+    dropped: f32,
+    last: Option<Last>,
+    mode: Mode,
+    stats: CoherentStats,
+}
+
+/// Rebuild rather than update past these camera changes.
+const JUMP_DEGREES: f64 = 30.0;
+const JUMP_CELLS: f64 = 64.0;
+
+impl Coherent {
+    pub fn new(side: u32) -> Coherent {
+        Coherent {
+            tess: Tessellator::new(side),
+            split_cands: PosSet::default(),
+            merge_cands: PosSet::default(),
+            split_q: BucketQueue::default(),
+            merge_q: BucketQueue::default(),
+            log: Vec::new(),
+            old: Vec::new(),
+            triangles: 2,
+            split_count: 0,
+            error_bound_px: 0.0,
+            dropped: 0.0,
+            last: None,
+            mode: Mode::Rebuild,
+            stats: CoherentStats::default(),
+        }
+    }
+
+    /// Triangles in the cut.
+    pub fn triangles(&self) -> u32 {
+        self.triangles
+    }
+
+    /// Split diamonds in the cut.
+    pub fn split_count(&self) -> u32 {
+        self.split_count
+    }
+
+    /// The largest screen-space error left unsplit at the last frame's camera, pixels.
+    pub fn error_bound_px(&self) -> f32 {
+        self.error_bound_px
+    }
+
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    pub fn stats(&self) -> CoherentStats {
+        self.stats
+    }
+
+    /// The last frame's changes, as packed positions (`x | z << 16`) in the order they
+    /// happened; a diamond split and merged again appears twice.
+    pub fn changes(&self) -> &[u32] {
+        &self.log
+    }
+
+    /// Whether the diamond centred at `(x, z)` is split.
+    pub fn is_split(&self, x: u32, z: u32) -> bool {
+        self.tess.is_active(x, z)
+    }
+
+    /// The split diamonds, row-major (a walk over the map's bitset: for key frames and
+    /// tests, not per frame).
+    pub fn split_diamonds(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
+        let side = self.tess.side;
+        self.tess
+            .active
+            .iter()
+            .enumerate()
+            .flat_map(move |(w, &word)| {
+                let mut bits = word;
+                std::iter::from_fn(move || {
+                    if bits == 0 {
+                        return None;
+                    }
+                    let i = w as u32 * 64 + bits.trailing_zeros();
+                    bits &= bits - 1;
+                    Some((i % side, i / side))
+                })
+            })
+    }
+
+    /// Writes the cut's mesh (the from-scratch tessellator's layout and order).
+    pub fn mesh(&mut self, out: &mut Mesh) {
+        self.tess.triangles = self.triangles;
+        self.tess.emit(out);
+        out.error_bound_px = self.error_bound_px;
+    }
+
+    /// Bytes of per-viewer state currently reserved.
+    pub fn heap_bytes(&self) -> usize {
+        self.tess.heap_bytes()
+            + self.split_cands.heap_bytes()
+            + self.merge_cands.heap_bytes()
+            + self.split_q.heap_bytes()
+            + self.merge_q.heap_bytes()
+            + (self.log.capacity() + self.old.capacity()) * 4
+    }
+
+    /// Brings the cut up to date for `camera`: split and merge, or rebuild from scratch on
+    /// a jump, a bounded update that did not finish, or when `rebuild` says so.
+    pub fn frame(
+        &mut self,
+        hf: &Heightfield,
+        variance: &VarianceTree,
+        scales: Scales,
+        camera: &Camera,
+        limits: Limits,
+        rebuild: bool,
+    ) -> Mode {
+        self.log.clear();
+        self.stats = CoherentStats::default();
+        let jump = rebuild || self.jumped(camera, limits, scales);
+        self.last = Some(Last {
+            camera: *camera,
+            budget: limits.budget,
+            threshold_px: limits.threshold_px,
+        });
+        if !jump && self.update(hf, variance, scales, camera, limits) {
+            self.mode = Mode::Update;
+        } else {
+            self.rebuild(hf, variance, scales, camera, limits);
+            self.mode = Mode::Rebuild;
+        }
+        self.mode
+    }
+
+    fn jumped(&self, camera: &Camera, limits: Limits, scales: Scales) -> bool {
+        let Some(last) = self.last else {
+            return true;
+        };
+        let c = &last.camera;
+        let turn = |a: f64, b: f64| {
+            let d = crate::physics::wrap_degrees(a - b);
+            d.min(360.0 - d)
+        };
+        let moved = (0..3)
+            .map(|i| (camera.eye[i] - c.eye[i]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        turn(camera.yaw_deg, c.yaw_deg) > JUMP_DEGREES
+            || (camera.pitch_deg - c.pitch_deg).abs() > JUMP_DEGREES
+            || moved > JUMP_CELLS * scales.h
+            || camera.fov_y_deg != c.fov_y_deg
+            || (camera.width, camera.height) != (c.width, c.height)
+            || limits.threshold_px != last.threshold_px
+            || limits.budget > 2 * last.budget
+            || 2 * limits.budget < last.budget
+    }
+
+    /// From scratch: split-only ROAM, then the frontiers rebuilt and the difference from
+    /// the old cut logged.
+    fn rebuild(
+        &mut self,
+        hf: &Heightfield,
+        variance: &VarianceTree,
+        scales: Scales,
+        camera: &Camera,
+        limits: Limits,
+    ) {
+        self.log.clear();
+        self.old.clear();
+        let old: Vec<u32> = std::mem::take(&mut self.old);
+        let mut old = old;
+        old.extend(self.split_diamonds().map(|(x, z)| pack(x, z)));
+        self.tess.stale = true;
+        self.error_bound_px = self.tess.cut(hf, variance, scales, camera, limits);
+        self.triangles = self.tess.triangles;
+        self.split_count = self.tess.active_list.len() as u32;
+        // The difference of two row-major lists (packed positions sort row-major).
+        let mut new = std::mem::take(&mut self.tess.active_list);
+        new.sort_unstable();
+        let (mut i, mut j) = (0, 0);
+        while i < old.len() || j < new.len() {
+            match (old.get(i), new.get(j)) {
+                (Some(a), Some(b)) if a == b => (i, j) = (i + 1, j + 1),
+                (Some(&a), Some(&b)) if a < b => {
+                    self.log.push(a);
+                    i += 1;
+                }
+                (Some(&a), None) => {
+                    self.log.push(a);
+                    i += 1;
+                }
+                (_, Some(&b)) => {
+                    self.log.push(b);
+                    j += 1;
+                }
+                (None, None) => break,
+            }
+        }
+        self.tess.active_list = new;
+        self.old = old;
+        self.split_cands.clear();
+        self.merge_cands.clear();
+        let f = self.tess.frame(hf, variance, scales, camera, limits);
+        let root = self.root();
+        if self.split_count == 0 {
+            self.split_cands.insert_with(root, || fixed(&f, root));
+        }
+        for k in 0..self.tess.active_list.len() {
+            let (x, z) = unpack(self.tess.active_list[k]);
+            let mut any = false;
+            for c in self.children(x, z).into_iter().flatten() {
+                let (cx, cz) = unpack(c);
+                if self.tess.is_active(cx, cz) {
+                    any = true;
+                } else {
+                    self.split_cands.insert_with(c, || fixed(&f, c));
+                }
+            }
+            if !any {
+                let pos = pack(x, z);
+                self.merge_cands.insert_with(pos, || fixed(&f, pos));
+            }
+        }
+        self.stats.splits = self.log.len() as u32;
+    }
+
+    fn root(&self) -> u32 {
+        let r = self.tess.size / 2;
+        pack(r, r)
+    }
+
+    /// Children on the map (none for the finest rotated diamonds), packed.
+    fn children(&self, x: u32, z: u32) -> [Option<u32>; 4] {
+        let (m, shape) = classify(x, z);
+        let h = 1 << m;
+        let s = self.tess.size;
+        match shape {
+            Shape::Square => [
+                Some(pack(x + h, z)),
+                Some(pack(x - h, z)),
+                Some(pack(x, z + h)),
+                Some(pack(x, z - h)),
+            ],
+            Shape::Rotated { .. } if m == 0 => [None; 4],
+            Shape::Rotated { .. } => {
+                let k = h / 2;
+                let ok = |dx: i64, dz: i64| {
+                    let (cx, cz) = (i64::from(x) + dx, i64::from(z) + dz);
+                    (cx >= 0 && cz >= 0 && cx <= i64::from(s) && cz <= i64::from(s))
+                        .then(|| pack(cx as u32, cz as u32))
+                };
+                let k = i64::from(k);
+                [ok(k, -k), ok(-k, -k), ok(-k, k), ok(k, k)]
+            }
+        }
+    }
+
+    /// Parents on the map (none for the root, one for a rotated diamond on the edge).
+    fn parents(&self, x: u32, z: u32) -> [Option<u32>; 2] {
+        let (m, shape) = classify(x, z);
+        let h = 1 << m;
+        let s = self.tess.size;
+        match shape {
+            Shape::Square if 2 * h == s => [None, None],
+            Shape::Square => {
+                if (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 1 {
+                    [Some(pack(x + h, z + h)), Some(pack(x - h, z - h))]
+                } else {
+                    [Some(pack(x + h, z - h)), Some(pack(x - h, z + h))]
+                }
+            }
+            Shape::Rotated { horizontal: true } => [
+                (z >= h).then(|| pack(x, z - h)),
+                (z + h <= s).then(|| pack(x, z + h)),
+            ],
+            Shape::Rotated { horizontal: false } => [
+                (x >= h).then(|| pack(x - h, z)),
+                (x + h <= s).then(|| pack(x + h, z)),
+            ],
+        }
+    }
+
+    /// Triangles a split of `(x, z)` adds: a square 2, a rotated diamond one per parent
+    /// on the map (1 on the map's edge).
+    fn added(&self, x: u32, z: u32) -> u32 {
+        match classify(x, z).1 {
+            Shape::Square => 2,
+            Shape::Rotated { .. } => self.parents(x, z).iter().flatten().count() as u32,
+        }
+    }
+
+    fn any_split(&self, list: &[Option<u32>]) -> bool {
+        list.iter().flatten().any(|&p| {
+            let (x, z) = unpack(p);
+            self.tess.is_active(x, z)
+        })
+    }
+
+    /// Priorities of up to four diamonds (lanes past `n` repeat the first).
+    #[inline(always)]
+    fn evaluate(&self, f: &Frame, d: [&Fixed; 4], n: usize) -> Lanes {
+        let lane = |g: fn(&Fixed) -> f32| {
+            F4::new([g(d[0]), g(d[1]), g(d[2]), g(d[3])])
+        };
+        let batch = Batch {
+            x: lane(|d| d.x),
+            z: lane(|d| d.z),
+            pos: [0; 4],
+            e: lane(|d| d.e),
+            lo: lane(|d| d.lo),
+            hi: lane(|d| d.hi),
+            valid: (1 << n) - 1,
+        };
+        let h = lane(|d| d.h);
+        let mut square = 0;
+        let mut offsets = [[0f32; 4]; 4];
+        for (i, d) in d.iter().enumerate() {
+            square |= u32::from(d.kind >> 4) << i;
+            let o = &f.offsets_scalar[usize::from(d.kind)];
+            for (plane, lanes) in offsets.iter_mut().enumerate() {
+                lanes[i] = o[plane];
+            }
+        }
+        let shape = Shape4 {
+            h,
+            reach: F4::splat(f.hs_scalar).mul(h).mul(lane(|d| d.k)),
+            square,
+            offsets: offsets.map(F4::new),
+        };
+        let (prio, outside, under) = priority(f, &batch, &shape);
+        let live = batch.valid & F4::splat(0.0).lt(batch.e);
+        let shown = live & (!outside | under);
+        let above = f.threshold.le(prio);
+        Lanes {
+            prio: prio.to_array(),
+            wanted: shown & (under | above),
+            under: shown & under,
+            dropped: shown & !under & !above,
+        }
+    }
+
+    /// Priorities of up to four diamonds given by position.
+    fn evaluate_at(&self, f: &Frame, pos: &[u32]) -> Lanes {
+        let fixed: [Fixed; 4] = std::array::from_fn(|i| fixed(f, pos[i.min(pos.len() - 1)]));
+        self.evaluate(f, [&fixed[0], &fixed[1], &fixed[2], &fixed[3]], pos.len())
+    }
+
+    /// Evaluates a frontier, four diamonds at a time, and queues each.
+    fn evaluate_all(&mut self, f: &Frame, merges: bool) {
+        let list = if merges {
+            std::mem::take(&mut self.merge_cands)
+        } else {
+            std::mem::take(&mut self.split_cands)
+        };
+        for (pos, fixed) in list.as_slice().chunks(4).zip(list.values().chunks(4)) {
+            let d = [0, 1, 2, 3].map(|i| &fixed[i.min(fixed.len() - 1)]);
+            let lanes = self.evaluate(f, d, fixed.len());
+            for (i, &p) in pos.iter().enumerate() {
+                if merges {
+                    self.queue_merge(&lanes, i, p);
+                } else {
+                    self.queue_split(&lanes, i, p);
+                }
+            }
+        }
+        self.stats.evaluated += list.len() as u32;
+        if merges {
+            self.merge_cands = list;
+        } else {
+            self.split_cands = list;
+        }
+    }
+
+    #[inline]
+    fn queue_split(&mut self, l: &Lanes, i: usize, pos: u32) {
+        let p = l.prio[i];
+        if l.dropped >> i & 1 != 0 {
+            self.dropped = p.max(self.dropped);
+        }
+        let bucket = if l.under >> i & 1 != 0 {
+            TOP
+        } else {
+            bucket_of(p)
+        };
+        let entry = (u64::from(p.to_bits()) << 32) | u64::from(pos);
+        self.split_q.push_if(l.wanted >> i & 1 != 0, bucket, entry);
+    }
+
+    #[inline]
+    fn queue_merge(&mut self, l: &Lanes, i: usize, pos: u32) {
+        let p = l.prio[i];
+        if l.under >> i & 1 != 0 {
+            return; // the ground under the eye stays refined
+        }
+        // Unwanted splits go first (bucket TOP); the others lowest priority first.
+        let (bucket, p) = if l.wanted >> i & 1 == 0 {
+            (TOP, 0.0f32)
+        } else {
+            (TOP - 1 - bucket_of(p), p)
+        };
+        let entry = (u64::from(p.to_bits()) << 32) | u64::from(pos);
+        self.merge_q.push(bucket, entry);
+    }
+
+    /// Splits and merges the old cut towards the new camera; false when the bounded loop
+    /// did not finish (the caller rebuilds).
+    fn update(
+        &mut self,
+        hf: &Heightfield,
+        variance: &VarianceTree,
+        scales: Scales,
+        camera: &Camera,
+        limits: Limits,
+    ) -> bool {
+        let f = self.tess.frame(hf, variance, scales, camera, limits);
+        let budget = limits.budget.max(2);
+        let frontier = self.split_cands.len() + self.merge_cands.len();
+        self.split_q.clear();
+        self.merge_q.clear();
+        self.split_q.reserve(frontier + 1024);
+        self.merge_q.reserve(frontier + 1024);
+        self.dropped = 0.0;
+        self.tess.stale = true;
+        self.evaluate_all(&f, false);
+        self.evaluate_all(&f, true);
+        let most = budget / 4 + 256;
+        let mut changes = 0u32;
+        loop {
+            if changes > most {
+                return false;
+            }
+            // Unwanted splits, and anything while over budget, are merged first.
+            if self.triangles > budget || self.peek_merge() == Some(TOP) {
+                match self.pop_merge() {
+                    Some(pos) => {
+                        self.merge(&f, pos);
+                        changes += 1;
+                        continue;
+                    }
+                    None if self.triangles > budget => return false,
+                    None => {}
+                }
+            }
+            let Some((bucket, entry)) = self.pop_split() else {
+                break;
+            };
+            let (x, z) = unpack(entry as u32);
+            self.tess.chain.clear();
+            let mut cost = 0;
+            self.tess.collect(x, z, &mut cost);
+            if self.triangles + cost <= budget {
+                for k in 0..self.tess.chain.len() {
+                    let c = self.tess.chain[k];
+                    self.split(&f, c);
+                    changes += 1;
+                }
+                continue;
+            }
+            // It does not fit: make room if a merge costs less error than the split gains.
+            match self.peek_merge() {
+                Some(mb) if TOP - 1 - mb < bucket => {
+                    let pos = self.pop_merge().expect("peeked above");
+                    self.merge(&f, pos);
+                    changes += 1;
+                    self.split_q.push(bucket, entry);
+                }
+                _ => {
+                    self.split_q.push(bucket, entry);
+                    break;
+                }
+            }
+        }
+        self.error_bound_px = self.remaining_max().max(self.dropped);
+        true
+    }
+
+    /// The next split candidate still valid (unsplit, a candidate), with its bucket.
+    fn pop_split(&mut self) -> Option<(usize, u64)> {
+        loop {
+            let b = self.split_q.top_bucket()?;
+            let entry = self.split_q.pop()?;
+            let pos = entry as u32;
+            let (x, z) = unpack(pos);
+            if !self.tess.is_active(x, z) && self.split_cands.contains(pos) {
+                return Some((b, entry));
+            }
+        }
+    }
+
+    fn merge_valid(&self, entry: u64) -> bool {
+        let pos = entry as u32;
+        let (x, z) = unpack(pos);
+        self.tess.is_active(x, z) && self.merge_cands.contains(pos)
+    }
+
+    /// The bucket of the next valid merge candidate (stale entries are dropped on the way).
+    fn peek_merge(&mut self) -> Option<usize> {
+        loop {
+            let b = self.merge_q.top_bucket()?;
+            let first = self.merge_q.entries(b).next()?;
+            if self.merge_valid(first) {
+                return Some(b);
+            }
+            self.merge_q.pop();
+        }
+    }
+
+    /// The next valid merge candidate's position.
+    fn pop_merge(&mut self) -> Option<u32> {
+        loop {
+            let entry = self.merge_q.pop()?;
+            if self.merge_valid(entry) {
+                return Some(entry as u32);
+            }
+        }
+    }
+
+    /// Splits `pos`, whose parents are split: the frontiers follow and the children it
+    /// uncovers are queued.
+    fn split(&mut self, f: &Frame, pos: u32) {
+        let (x, z) = unpack(pos);
+        self.tess.set_active(x, z);
+        self.triangles += self.added(x, z);
+        self.split_count += 1;
+        self.stats.splits += 1;
+        self.log.push(pos);
+        self.split_cands.remove(pos);
+        for p in self.parents(x, z).into_iter().flatten() {
+            self.merge_cands.remove(p);
+        }
+        self.merge_cands.insert_with(pos, || fixed(f, pos));
+        let mut fresh = [0u32; 4];
+        let mut n = 0;
+        for c in self.children(x, z).into_iter().flatten() {
+            if self.split_cands.insert_with(c, || fixed(f, c)) {
+                fresh[n] = c;
+                n += 1;
+            }
+        }
+        // The diamond itself rides in the children's batch when there is a lane for it.
+        let mut pos4 = fresh;
+        let lanes = if n < 4 {
+            pos4[n] = pos;
+            self.evaluate_at(f, &pos4[..=n])
+        } else {
+            self.evaluate_at(f, &pos4)
+        };
+        for (i, &c) in fresh.iter().enumerate().take(n) {
+            self.queue_split(&lanes, i, c);
+        }
+        if n < 4 {
+            self.queue_merge(&lanes, n, pos);
+        } else {
+            let lanes = self.evaluate_at(f, &[pos]);
+            self.queue_merge(&lanes, 0, pos);
+        }
+    }
+
+    /// Merges `pos`, split with no split child: the frontiers follow, and it and the
+    /// parents it leaves mergeable are queued.
+    fn merge(&mut self, f: &Frame, pos: u32) {
+        let (x, z) = unpack(pos);
+        self.tess.clear_active(x, z);
+        self.triangles -= self.added(x, z);
+        self.split_count -= 1;
+        self.stats.merges += 1;
+        self.log.push(pos);
+        self.merge_cands.remove(pos);
+        self.split_cands.insert_with(pos, || fixed(f, pos));
+        for c in self.children(x, z).into_iter().flatten() {
+            let (cx, cz) = unpack(c);
+            if !self.any_split(&self.parents(cx, cz)) {
+                self.split_cands.remove(c);
+            }
+        }
+        let mut fresh = [0u32; 4];
+        let mut n = 0;
+        for p in self.parents(x, z).into_iter().flatten() {
+            let (px, pz) = unpack(p);
+            if !self.any_split(&self.children(px, pz))
+                && self.merge_cands.insert_with(p, || fixed(f, p))
+            {
+                fresh[n] = p;
+                n += 1;
+            }
+        }
+        let mut pos4 = [pos; 4];
+        pos4[1..=n].copy_from_slice(&fresh[..n]);
+        let lanes = self.evaluate_at(f, &pos4[..=n]);
+        self.queue_split(&lanes, 0, pos);
+        for i in 0..n {
+            self.queue_merge(&lanes, i + 1, fresh[i]);
+        }
+    }
+
+    /// The highest priority of a split candidate left unsplit: the top bucket (under the
+    /// eye) read whole, then the first ordinary bucket holding a valid entry.
+    fn remaining_max(&self) -> f32 {
+        let mut best = 0f32;
+        for b in self.split_q.buckets_desc() {
+            let live = self
+                .split_q
+                .entries(b)
+                .filter(|&e| {
+                    let pos = e as u32;
+                    let (x, z) = unpack(pos);
+                    !self.tess.is_active(x, z) && self.split_cands.contains(pos)
+                })
+                .map(|e| f32::from_bits((e >> 32) as u32))
+                .reduce(f32::max);
+            if let Some(v) = live {
+                best = best.max(v);
+                if b != TOP {
+                    break;
+                }
+            }
+        }
+        best
+    }
+}
+
+/// What a diamond's priority needs that does not depend on the camera.
+fn fixed(f: &Frame, pos: u32) -> Fixed {
+    let (s, side) = (f.size, f.side);
+    let (x, z) = unpack(pos);
+    let (m, shape) = classify(x, z);
+    let h = 1u32 << m;
+    let at = |x: u32, z: u32| f32::from(f.h(z * side + x));
+    let corners: [f32; 4] = match shape {
+        Shape::Square => [
+            at(x + h, z - h),
+            at(x - h, z - h),
+            at(x - h, z + h),
+            at(x + h, z + h),
+        ],
+        // Hypotenuse ends first, then the apices (one may be off the map: an end
+        // stands in for it).
+        Shape::Rotated { horizontal: true } => {
+            let e0 = at(x - h, z);
+            [
+                e0,
+                at(x + h, z),
+                if z >= h { at(x, z - h) } else { e0 },
+                if z + h <= s { at(x, z + h) } else { e0 },
+            ]
+        }
+        Shape::Rotated { horizontal: false } => {
+            let e0 = at(x, z - h);
+            [
+                e0,
+                at(x, z + h),
+                if x >= h { at(x - h, z) } else { e0 },
+                if x + h <= s { at(x + h, z) } else { e0 },
+            ]
+        }
+    };
+    let e = match shape {
+        // `variance::finest`, as the from-scratch evaluation computes it.
+        Shape::Rotated { .. } if m == 0 => (at(x, z) - 0.5 * (corners[0] + corners[1])).abs(),
+        _ => f.stored(x, z, m, shape),
+    };
+    let square = shape == Shape::Square;
+    Fixed {
+        x: x as f32,
+        z: z as f32,
+        e,
+        lo: corners.into_iter().fold(f32::INFINITY, f32::min),
+        hi: corners.into_iter().fold(0.0, f32::max),
+        h: h as f32,
+        k: if square { std::f32::consts::SQRT_2 } else { 1.0 },
+        kind: (u16::from(square) << 4) | m as u16,
+    }
+}
