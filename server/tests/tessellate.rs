@@ -4,7 +4,7 @@ use proptest::prelude::*;
 use roam_server::Heightfield;
 use roam_server::camera::Camera;
 use roam_server::diamond::{Diamond, Triangle};
-use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
+use roam_server::tessellate::{Coherent, Limits, Mesh, Mode, Scales, Tessellator};
 use roam_server::validate::check_mesh;
 use roam_server::variance::{VarianceTree, triangle_error};
 
@@ -87,11 +87,11 @@ fn check_frustum(
     hf: &Heightfield,
     vt: &VarianceTree,
     cam: &Camera,
-    t: &Tessellator,
+    split: impl Iterator<Item = (u32, u32)>,
 ) -> Result<(), String> {
     let size = hf.size();
     let s = scales();
-    let split: std::collections::HashSet<(u32, u32)> = t.split_diamonds().collect();
+    let split: std::collections::HashSet<(u32, u32)> = split.collect();
     let forced: std::collections::HashSet<(u32, u32)> = split
         .iter()
         .flat_map(|&(x, z)| {
@@ -149,6 +149,30 @@ fn check_frustum(
     Ok(())
 }
 
+/// One step of a camera path.
+#[derive(Clone, Debug)]
+enum Step {
+    /// Grid cells along the heading.
+    Forward(f64),
+    /// Degrees of yaw, and of pitch.
+    Turn(f64),
+    Pitch(f64),
+    /// To a fraction of the map.
+    Jump(f64, f64),
+    /// The budget times this.
+    Budget(f64),
+}
+
+fn step() -> impl Strategy<Value = Step> {
+    prop_oneof![
+        6 => (0.0f64..3.0).prop_map(Step::Forward),
+        4 => (-4.0f64..4.0).prop_map(Step::Turn),
+        1 => (-3.0f64..3.0).prop_map(Step::Pitch),
+        1 => (0.0f64..1.0, 0.0f64..1.0).prop_map(|(x, z)| Step::Jump(x, z)),
+        1 => prop_oneof![0.4f64..0.9, 1.1f64..2.5].prop_map(Step::Budget),
+    ]
+}
+
 proptest! {
     #![proptest_config(ProptestConfig { cases: 256, .. ProptestConfig::default() })]
 
@@ -175,7 +199,7 @@ proptest! {
         check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| TestCaseError::fail(e.to_string()))?;
         prop_assert!(mesh.triangle_count() <= budget as usize);
         prop_assert!(mesh.error_bound_px >= 0.0);
-        check_frustum(&hf, &vt, &cam, &t).map_err(TestCaseError::fail)?;
+        check_frustum(&hf, &vt, &cam, t.split_diamonds()).map_err(TestCaseError::fail)?;
         // Same inputs, same mesh: from a fresh tessellator and from this warm one after a
         // different frame.
         let (again, _) = run(&hf, &vt, &cam, limits);
@@ -190,6 +214,62 @@ proptest! {
         t.tessellate(&hf, &vt, scales(), &cam, limits, &mut scratch);
         prop_assert_eq!(&scratch, &mesh);
         prop_assert_eq!(t.stats(), run(&hf, &vt, &cam, limits).1.stats());
+    }
+
+    /// The split/merge tessellator along random camera paths (small steps, turns, pitch,
+    /// jumps, budget changes): after every frame the cut is conforming, within budget,
+    /// splits nothing outside the view pyramid unless forced, keeps its frontiers exactly,
+    /// and its error bound is within 1.1x of split-only from scratch at the same camera;
+    /// the same path gives the same cuts and change logs.
+    #[test]
+    fn split_merge_cuts_track_from_scratch(
+        levels in 4u32..=7,
+        seed in any::<u64>(),
+        rough in 0.0f64..1.0,
+        start in (0.1f64..0.9, 0.1f64..0.9, 2.0f64..200.0, 0.0f64..360.0),
+        budget in 16u32..3000,
+        path in prop::collection::vec(step(), 1..40),
+    ) {
+        let hf = terrain(levels, seed, rough);
+        let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+        let size = f64::from(hf.size());
+        let (mut gx, mut gz, above, mut yaw) = (start.0 * size, start.1 * size, start.2, start.3);
+        let (mut pitch, mut budget) = (-10.0, budget);
+        let (mut a, mut b) = (Coherent::new(hf.side()), Coherent::new(hf.side()));
+        let (mut mesh, mut scratch) = (Mesh::default(), Mesh::default());
+        let mut t = Tessellator::new(hf.side());
+        let (mut ratios, mut updates) = (Vec::new(), 0);
+        for (k, st) in path.iter().enumerate() {
+            match *st {
+                Step::Forward(d) => {
+                    let h = yaw.to_radians();
+                    gx = (gx + d * h.sin()).clamp(0.0, size);
+                    gz = (gz + d * h.cos()).clamp(0.0, size);
+                }
+                Step::Turn(d) => yaw += d,
+                Step::Pitch(d) => pitch = (pitch + d).clamp(-80.0, 40.0),
+                Step::Jump(x, z) => (gx, gz) = (x * size, z * size),
+                Step::Budget(f) => budget = ((f64::from(budget) * f) as u32).clamp(2, 8000),
+            }
+            let cam = camera(&hf, gx, gz, above, yaw, pitch, 60.0);
+            let limits = Limits { budget, threshold_px: 0.0 };
+            let mode = a.frame(&hf, &vt, scales(), &cam, limits, false);
+            updates += usize::from(mode == Mode::Update);
+            prop_assert_eq!(b.frame(&hf, &vt, scales(), &cam, limits, false), mode);
+            prop_assert_eq!(a.changes(), b.changes(), "frame {}: the same path, the same changes", k);
+            a.audit(&hf, &vt, scales(), &cam, limits).map_err(|e| TestCaseError::fail(format!("frame {k} ({st:?}): {e}")))?;
+            a.mesh(&mut mesh);
+            check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| TestCaseError::fail(e.to_string()))?;
+            prop_assert_eq!(mesh.triangle_count(), a.triangles() as usize);
+            prop_assert!(a.triangles() <= budget.max(2));
+            check_frustum(&hf, &vt, &cam, a.split_diamonds()).map_err(TestCaseError::fail)?;
+            t.tessellate(&hf, &vt, scales(), &cam, limits, &mut scratch);
+            let (served, best) = (a.error_bound_px(), scratch.error_bound_px);
+            ratios.push(if served <= best { 1.0 } else { served / best.max(1e-6) });
+        }
+        ratios.sort_by(f32::total_cmp);
+        let p99 = ratios[((ratios.len() * 99).div_ceil(100)).max(1) - 1];
+        prop_assert!(p99 <= 1.1, "served/scratch error p99 {p99} (ratios {ratios:?}), {updates} updates");
     }
 
     #[test]

@@ -15,7 +15,7 @@
 //! 2. While over budget, the lowest merge candidate is merged. Otherwise the highest split
 //!    candidate is split (with its forced splits, exactly as from scratch) if it fits the
 //!    budget; if it does not, the lowest merge candidate is merged instead when its
-//!    priority's bucket is strictly below the split's, and the loop stops when it is not.
+//!    priority is strictly below the split's, and the loop stops when it is not.
 //!    Splits and merges update both frontiers and queue the diamonds they uncover.
 //! 3. The frame's changes are logged in order (a diamond may appear twice: split, then
 //!    merged); the codec composes logs into the difference from any base a viewer holds.
@@ -30,9 +30,11 @@
 //! size, but a few nanoseconds a diamond with no queue walk, forced-split search or mesh
 //! output); the split/merge loop and the log are proportional to the change.
 
-use super::evaluate::{Batch, Shape4, priority};
+mod audit;
+mod eval;
+
+use self::eval::{Fixed, Lanes, fixed};
 use super::frontier::PosSet;
-use super::lanes::F4;
 use super::{Frame, Limits, Mesh, Scales, Tessellator, classify, pack, unpack};
 use crate::camera::Camera;
 use crate::diamond::Shape;
@@ -57,35 +59,6 @@ pub struct CoherentStats {
     /// Diamonds split and merged (forced splits included).
     pub splits: u32,
     pub merges: u32,
-}
-
-/// What a diamond's evaluation says, per lane.
-struct Lanes {
-    prio: [f32; 4],
-    /// Lanes worth splitting: error, in view (or under the eye), at or above the threshold.
-    wanted: u32,
-    /// Lanes whose footprint holds the eye's ground position.
-    under: u32,
-    /// Lanes in view with error, but below the threshold (for the error bound).
-    dropped: u32,
-}
-
-/// The camera-independent part of a frontier diamond's priority, kept beside it.
-#[derive(Clone, Copy)]
-struct Fixed {
-    /// Centre, grid units.
-    x: f32,
-    z: f32,
-    /// Stored error, sample units.
-    e: f32,
-    /// Smallest and largest corner heights, samples.
-    lo: f32,
-    hi: f32,
-    /// Half-size, grid units, and the footprint's reach per unit of it (√2 or 1).
-    h: f32,
-    k: f32,
-    /// `square << 4 | m`: the index of its plane offsets.
-    kind: u16,
 }
 
 /// The camera and limits of the last frame, to tell a jump from a step.
@@ -405,55 +378,6 @@ impl Coherent {
         })
     }
 
-    /// Priorities of up to four diamonds (lanes past `n` repeat the first).
-    #[inline(always)]
-    fn evaluate(&self, f: &Frame, d: [&Fixed; 4], n: usize) -> Lanes {
-        let lane = |g: fn(&Fixed) -> f32| {
-            F4::new([g(d[0]), g(d[1]), g(d[2]), g(d[3])])
-        };
-        let batch = Batch {
-            x: lane(|d| d.x),
-            z: lane(|d| d.z),
-            pos: [0; 4],
-            e: lane(|d| d.e),
-            lo: lane(|d| d.lo),
-            hi: lane(|d| d.hi),
-            valid: (1 << n) - 1,
-        };
-        let h = lane(|d| d.h);
-        let mut square = 0;
-        let mut offsets = [[0f32; 4]; 4];
-        for (i, d) in d.iter().enumerate() {
-            square |= u32::from(d.kind >> 4) << i;
-            let o = &f.offsets_scalar[usize::from(d.kind)];
-            for (plane, lanes) in offsets.iter_mut().enumerate() {
-                lanes[i] = o[plane];
-            }
-        }
-        let shape = Shape4 {
-            h,
-            reach: F4::splat(f.hs_scalar).mul(h).mul(lane(|d| d.k)),
-            square,
-            offsets: offsets.map(F4::new),
-        };
-        let (prio, outside, under) = priority(f, &batch, &shape);
-        let live = batch.valid & F4::splat(0.0).lt(batch.e);
-        let shown = live & (!outside | under);
-        let above = f.threshold.le(prio);
-        Lanes {
-            prio: prio.to_array(),
-            wanted: shown & (under | above),
-            under: shown & under,
-            dropped: shown & !under & !above,
-        }
-    }
-
-    /// Priorities of up to four diamonds given by position.
-    fn evaluate_at(&self, f: &Frame, pos: &[u32]) -> Lanes {
-        let fixed: [Fixed; 4] = std::array::from_fn(|i| fixed(f, pos[i.min(pos.len() - 1)]));
-        self.evaluate(f, [&fixed[0], &fixed[1], &fixed[2], &fixed[3]], pos.len())
-    }
-
     /// Evaluates a frontier, four diamonds at a time, and queues each.
     fn evaluate_all(&mut self, f: &Frame, merges: bool) {
         let list = if merges {
@@ -539,7 +463,7 @@ impl Coherent {
                 return false;
             }
             // Unwanted splits, and anything while over budget, are merged first.
-            if self.triangles > budget || self.peek_merge() == Some(TOP) {
+            if self.triangles > budget || self.peek_merge().is_some_and(|(b, _)| b == TOP) {
                 match self.pop_merge() {
                     Some(pos) => {
                         self.merge(&f, pos);
@@ -566,8 +490,13 @@ impl Coherent {
                 continue;
             }
             // It does not fit: make room if a merge costs less error than the split gains.
+            let gain = if bucket == TOP {
+                f32::INFINITY
+            } else {
+                f32::from_bits((entry >> 32) as u32)
+            };
             match self.peek_merge() {
-                Some(mb) if TOP - 1 - mb < bucket => {
+                Some((_, loss)) if loss < gain => {
                     let pos = self.pop_merge().expect("peeked above");
                     self.merge(&f, pos);
                     changes += 1;
@@ -602,13 +531,14 @@ impl Coherent {
         self.tess.is_active(x, z) && self.merge_cands.contains(pos)
     }
 
-    /// The bucket of the next valid merge candidate (stale entries are dropped on the way).
-    fn peek_merge(&mut self) -> Option<usize> {
+    /// The bucket and priority of the next valid merge candidate (stale entries are dropped
+    /// on the way).
+    fn peek_merge(&mut self) -> Option<(usize, f32)> {
         loop {
             let b = self.merge_q.top_bucket()?;
             let first = self.merge_q.entries(b).next()?;
             if self.merge_valid(first) {
-                return Some(b);
+                return Some((b, f32::from_bits((first >> 32) as u32)));
             }
             self.merge_q.pop();
         }
@@ -725,58 +655,5 @@ impl Coherent {
             }
         }
         best
-    }
-}
-
-/// What a diamond's priority needs that does not depend on the camera.
-fn fixed(f: &Frame, pos: u32) -> Fixed {
-    let (s, side) = (f.size, f.side);
-    let (x, z) = unpack(pos);
-    let (m, shape) = classify(x, z);
-    let h = 1u32 << m;
-    let at = |x: u32, z: u32| f32::from(f.h(z * side + x));
-    let corners: [f32; 4] = match shape {
-        Shape::Square => [
-            at(x + h, z - h),
-            at(x - h, z - h),
-            at(x - h, z + h),
-            at(x + h, z + h),
-        ],
-        // Hypotenuse ends first, then the apices (one may be off the map: an end
-        // stands in for it).
-        Shape::Rotated { horizontal: true } => {
-            let e0 = at(x - h, z);
-            [
-                e0,
-                at(x + h, z),
-                if z >= h { at(x, z - h) } else { e0 },
-                if z + h <= s { at(x, z + h) } else { e0 },
-            ]
-        }
-        Shape::Rotated { horizontal: false } => {
-            let e0 = at(x, z - h);
-            [
-                e0,
-                at(x, z + h),
-                if x >= h { at(x - h, z) } else { e0 },
-                if x + h <= s { at(x + h, z) } else { e0 },
-            ]
-        }
-    };
-    let e = match shape {
-        // `variance::finest`, as the from-scratch evaluation computes it.
-        Shape::Rotated { .. } if m == 0 => (at(x, z) - 0.5 * (corners[0] + corners[1])).abs(),
-        _ => f.stored(x, z, m, shape),
-    };
-    let square = shape == Shape::Square;
-    Fixed {
-        x: x as f32,
-        z: z as f32,
-        e,
-        lo: corners.into_iter().fold(f32::INFINITY, f32::min),
-        hi: corners.into_iter().fold(0.0, f32::max),
-        h: h as f32,
-        k: if square { std::f32::consts::SQRT_2 } else { 1.0 },
-        kind: (u16::from(square) << 4) | m as u16,
     }
 }

@@ -1,0 +1,97 @@
+//! A check of the carried cut against what it must be, recomputed from the split set
+//! alone: for tests (it walks the whole map).
+
+use super::eval::fixed;
+use super::{Coherent, pack, unpack};
+use crate::camera::Camera;
+use crate::heightfield::Heightfield;
+use crate::tessellate::{Limits, Scales};
+use crate::variance::VarianceTree;
+
+impl Coherent {
+    /// Checks the cut after a frame at `camera`: the triangle and split counts, both
+    /// frontiers and the values kept beside their members equal a recomputation from the
+    /// split set; the cut is closed under parent; and every split diamond that nothing
+    /// forces (a merge candidate) is worth splitting at this camera: in view (or under the
+    /// eye), with error, at or above the threshold.
+    pub fn audit(
+        &self,
+        hf: &Heightfield,
+        variance: &VarianceTree,
+        scales: Scales,
+        camera: &Camera,
+        limits: Limits,
+    ) -> Result<(), String> {
+        let split: Vec<u32> = self.split_diamonds().map(|(x, z)| pack(x, z)).collect();
+        let is_split = |p: u32| {
+            let (x, z) = unpack(p);
+            self.tess.is_active(x, z)
+        };
+        let mut triangles = 2;
+        let (mut splits, mut merges) = (Vec::new(), Vec::new());
+        for &p in &split {
+            let (x, z) = unpack(p);
+            if let Some(q) = self.parents(x, z).into_iter().flatten().find(|&q| !is_split(q)) {
+                return Err(format!("split {:?} has the unsplit parent {:?}", unpack(p), unpack(q)));
+            }
+            triangles += self.added(x, z);
+            let children: Vec<u32> = self.children(x, z).into_iter().flatten().collect();
+            splits.extend(children.iter().filter(|&&c| !is_split(c)));
+            if !children.iter().any(|&c| is_split(c)) {
+                merges.push(p);
+            }
+        }
+        if split.is_empty() {
+            splits.push(self.root());
+        }
+        if (triangles, split.len() as u32) != (self.triangles, self.split_count) {
+            return Err(format!(
+                "{} triangles and {} splits counted, {triangles} and {} in the cut",
+                self.triangles,
+                self.split_count,
+                split.len()
+            ));
+        }
+        let sorted = |v: &[u32]| {
+            let mut v = v.to_vec();
+            v.sort_unstable();
+            v.dedup();
+            v
+        };
+        for (name, kept, want) in [
+            ("split", self.split_cands.as_slice(), &splits),
+            ("merge", self.merge_cands.as_slice(), &merges),
+        ] {
+            let (kept, want) = (sorted(kept), sorted(want));
+            if kept != want {
+                let missing = want.iter().filter(|p| kept.binary_search(p).is_err()).count();
+                let extra = kept.iter().filter(|p| want.binary_search(p).is_err()).count();
+                return Err(format!(
+                    "{name} candidates: {missing} missing, {extra} that should not be there"
+                ));
+            }
+        }
+        let f = self.tess.frame(hf, variance, scales, camera, limits);
+        for set in [&self.split_cands, &self.merge_cands] {
+            for (&p, v) in set.as_slice().iter().zip(set.values()) {
+                if fixed(&f, p) != *v {
+                    return Err(format!("stale values kept beside {:?}", unpack(p)));
+                }
+            }
+        }
+        for chunk in merges.chunks(4) {
+            let lanes = self.evaluate_at(&f, chunk);
+            for (i, &p) in chunk.iter().enumerate() {
+                if lanes.wanted >> i & 1 == 0 {
+                    return Err(format!(
+                        "{:?} is split, forced by nothing, but not worth splitting here \
+                         (priority {} px)",
+                        unpack(p),
+                        lanes.prio[i]
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,145 @@
+//! Priorities of frontier diamonds of any shapes and sizes, four at a time, with the same
+//! arithmetic as the from-scratch tessellator ([`crate::tessellate::evaluate::priority`]).
+//! What does not depend on the camera (centre, error, height bounds, size) is computed once
+//! when a diamond joins a frontier and kept beside it ([`Fixed`]), so a frame's evaluation
+//! reads one small record per diamond and gathers nothing from the map.
+
+use super::super::evaluate::{Batch, Shape4, priority};
+use super::super::lanes::F4;
+use super::super::{Frame, classify, unpack};
+use super::Coherent;
+use crate::diamond::Shape;
+
+/// The camera-independent part of a frontier diamond's priority, kept beside it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct Fixed {
+    /// Centre, grid units.
+    x: f32,
+    z: f32,
+    /// Stored error, sample units.
+    e: f32,
+    /// Smallest and largest corner heights, samples.
+    lo: f32,
+    hi: f32,
+    /// Half-size, grid units, and the footprint's reach per unit of it (√2 or 1).
+    h: f32,
+    k: f32,
+    /// `square << 4 | m`: the index of its plane offsets.
+    kind: u16,
+}
+
+/// What a diamond's evaluation says, per lane.
+pub(super) struct Lanes {
+    pub prio: [f32; 4],
+    /// Lanes worth splitting: error, in view (or under the eye), at or above the threshold.
+    pub wanted: u32,
+    /// Lanes whose footprint holds the eye's ground position.
+    pub under: u32,
+    /// Lanes in view with error, but below the threshold (for the error bound).
+    pub dropped: u32,
+}
+
+impl Coherent {
+    /// Priorities of up to four diamonds (lanes past `n` repeat the first).
+    #[inline(always)]
+    pub(super) fn evaluate(&self, f: &Frame, d: [&Fixed; 4], n: usize) -> Lanes {
+        let lane = |g: fn(&Fixed) -> f32| {
+            F4::new([g(d[0]), g(d[1]), g(d[2]), g(d[3])])
+        };
+        let batch = Batch {
+            x: lane(|d| d.x),
+            z: lane(|d| d.z),
+            pos: [0; 4],
+            e: lane(|d| d.e),
+            lo: lane(|d| d.lo),
+            hi: lane(|d| d.hi),
+            valid: (1 << n) - 1,
+        };
+        let h = lane(|d| d.h);
+        let mut square = 0;
+        let mut offsets = [[0f32; 4]; 4];
+        for (i, d) in d.iter().enumerate() {
+            square |= u32::from(d.kind >> 4) << i;
+            let o = &f.offsets_scalar[usize::from(d.kind)];
+            for (plane, lanes) in offsets.iter_mut().enumerate() {
+                lanes[i] = o[plane];
+            }
+        }
+        let shape = Shape4 {
+            h,
+            reach: F4::splat(f.hs_scalar).mul(h).mul(lane(|d| d.k)),
+            square,
+            offsets: offsets.map(F4::new),
+        };
+        let (prio, outside, under) = priority(f, &batch, &shape);
+        let live = batch.valid & F4::splat(0.0).lt(batch.e);
+        let shown = live & (!outside | under);
+        let above = f.threshold.le(prio);
+        Lanes {
+            prio: prio.to_array(),
+            wanted: shown & (under | above),
+            under: shown & under,
+            dropped: shown & !under & !above,
+        }
+    }
+
+    /// Priorities of up to four diamonds given by position.
+    pub(super) fn evaluate_at(&self, f: &Frame, pos: &[u32]) -> Lanes {
+        let fixed: [Fixed; 4] = std::array::from_fn(|i| fixed(f, pos[i.min(pos.len() - 1)]));
+        self.evaluate(f, [&fixed[0], &fixed[1], &fixed[2], &fixed[3]], pos.len())
+    }
+
+}
+
+/// What a diamond's priority needs that does not depend on the camera.
+pub(super) fn fixed(f: &Frame, pos: u32) -> Fixed {
+    let (s, side) = (f.size, f.side);
+    let (x, z) = unpack(pos);
+    let (m, shape) = classify(x, z);
+    let h = 1u32 << m;
+    let at = |x: u32, z: u32| f32::from(f.h(z * side + x));
+    let corners: [f32; 4] = match shape {
+        Shape::Square => [
+            at(x + h, z - h),
+            at(x - h, z - h),
+            at(x - h, z + h),
+            at(x + h, z + h),
+        ],
+        // Hypotenuse ends first, then the apices (one may be off the map: an end
+        // stands in for it).
+        Shape::Rotated { horizontal: true } => {
+            let e0 = at(x - h, z);
+            [
+                e0,
+                at(x + h, z),
+                if z >= h { at(x, z - h) } else { e0 },
+                if z + h <= s { at(x, z + h) } else { e0 },
+            ]
+        }
+        Shape::Rotated { horizontal: false } => {
+            let e0 = at(x, z - h);
+            [
+                e0,
+                at(x, z + h),
+                if x >= h { at(x - h, z) } else { e0 },
+                if x + h <= s { at(x + h, z) } else { e0 },
+            ]
+        }
+    };
+    let e = match shape {
+        // `variance::finest`, as the from-scratch evaluation computes it.
+        Shape::Rotated { .. } if m == 0 => (at(x, z) - 0.5 * (corners[0] + corners[1])).abs(),
+        _ => f.stored(x, z, m, shape),
+    };
+    let square = shape == Shape::Square;
+    Fixed {
+        x: x as f32,
+        z: z as f32,
+        e,
+        lo: corners.into_iter().fold(f32::INFINITY, f32::min),
+        hi: corners.into_iter().fold(0.0, f32::max),
+        h: h as f32,
+        k: if square { std::f32::consts::SQRT_2 } else { 1.0 },
+        kind: (u16::from(square) << 4) | m as u16,
+    }
+}
