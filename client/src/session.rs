@@ -13,7 +13,7 @@ use roam_protocol::messages::{
     self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Reason, ServerMessage, VehicleView,
     Welcome,
 };
-use roam_protocol::{BitSet, Grid, MeshDecoder, mesh};
+use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
 use roam_server::net::{tls, wire};
 use roam_server::physics::Keys;
 use roam_server::script::Script;
@@ -123,8 +123,8 @@ pub struct Session {
     pub scene: Scene,
     grid: Grid,
     decoder: MeshDecoder,
-    /// Split sets of recent frames: the bases the server may code against.
-    decoded: VecDeque<(u64, BitSet)>,
+    /// Cuts of recent frames: the bases the server may code against.
+    decoded: VecDeque<(u64, Cut)>,
     newest: Option<u64>,
     slot: Slot,
     reader: tokio::task::JoinHandle<()>,
@@ -263,7 +263,7 @@ impl Session {
             let started = Instant::now();
             let base = match frame.base {
                 Some(b) => match self.decoded.iter().find(|(f, _)| *f == b) {
-                    Some((_, set)) => Some(set),
+                    Some((_, cut)) => Some(cut),
                     None => {
                         send_control(&mut self.send, &ClientMessage::KeyFrame).await?;
                         return Ok(Taken::Dropped);
@@ -271,15 +271,20 @@ impl Session {
                 },
                 None => None,
             };
-            let mut split = BitSet::default();
+            let mut cut = Cut::default();
             let Ok(info) = self
                 .decoder
-                .decode(&frame.mesh, base, self.limit, &mut split)
+                .decode_cut(&frame.mesh, base, self.limit, &mut cut)
             else {
                 send_control(&mut self.send, &ClientMessage::KeyFrame).await?;
                 return Ok(Taken::Dropped);
             };
-            mesh::emit(&self.grid, &split, self.decoder.heights(), &mut self.mesh);
+            mesh::emit(
+                &self.grid,
+                &cut.split,
+                self.decoder.heights(),
+                &mut self.mesh,
+            );
             let tris = self.mesh.triangle_count();
             if tris != info.triangles as usize {
                 bail!(
@@ -288,7 +293,7 @@ impl Session {
                     info.triangles
                 );
             }
-            self.decoded.push_back((frame.frame, split));
+            self.decoded.push_back((frame.frame, cut));
             if self.decoded.len() > 32 {
                 self.decoded.pop_front();
             }
@@ -399,10 +404,20 @@ async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Ve
     Ok(color)
 }
 
-/// Accepts frame streams and reads each in a task of its own; a frame newer than the one
-/// waiting replaces it. A stream that is not a frame leaves `(_, 0)` to be counted.
+/// Accepts frame streams and reads each in a task of its own, and reads frames that come
+/// as datagrams (small ones do); a frame newer than the one waiting replaces it. Anything
+/// that is not a frame leaves `(_, 0)` to be counted.
 async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU64>) {
     let newest = Arc::new(AtomicU64::new(0));
+    let datagrams = {
+        let (conn, slot, newest, bytes_in) =
+            (conn.clone(), slot.clone(), newest.clone(), bytes_in.clone());
+        tokio::spawn(async move {
+            while let Ok(bytes) = conn.read_datagram().await {
+                offer(&slot, &newest, &bytes_in, &bytes, Instant::now());
+            }
+        })
+    };
     while let Ok(mut stream) = conn.accept_uni().await {
         let (slot, newest, bytes_in) = (slot.clone(), newest.clone(), bytes_in.clone());
         tokio::spawn(async move {
@@ -410,36 +425,41 @@ async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU6
             let Ok(bytes) = stream.read_to_end(MAX_FRAME).await else {
                 return;
             };
-            let arrived = Instant::now();
-            bytes_in.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-            let mut s = lock(&slot.frame);
-            match messages::decode::<Frame>(&bytes) {
-                Ok(frame) => {
-                    let n = frame.frame.saturating_add(1);
-                    if newest.fetch_max(n, Ordering::Relaxed) < n {
-                        *s = Some((frame, bytes.len(), arrived));
-                    }
-                }
-                Err(_) => {
-                    let bad = Frame {
-                        frame: 0,
-                        base: None,
-                        tick: 0,
-                        vehicles: Vec::new(),
-                        input_seq: None,
-                        mesh: Vec::new(),
-                    };
-                    if s.is_none() {
-                        *s = Some((bad, 0, arrived));
-                    }
-                }
-            }
-            drop(s);
-            slot.notify.notify_one();
+            offer(&slot, &newest, &bytes_in, &bytes, Instant::now());
         });
     }
+    datagrams.abort();
     // Set before the last wake-up, so a waiter that wakes sees it.
     slot.ended.store(true, Ordering::Release);
+    slot.notify.notify_one();
+}
+
+/// A frame's bytes, arrived at `arrived`: it waits in the slot if it is the newest yet.
+fn offer(slot: &Slot, newest: &AtomicU64, bytes_in: &AtomicU64, bytes: &[u8], arrived: Instant) {
+    bytes_in.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+    let mut s = lock(&slot.frame);
+    match messages::decode::<Frame>(bytes) {
+        Ok(frame) => {
+            let n = frame.frame.saturating_add(1);
+            if newest.fetch_max(n, Ordering::Relaxed) < n {
+                *s = Some((frame, bytes.len(), arrived));
+            }
+        }
+        Err(_) => {
+            let bad = Frame {
+                frame: 0,
+                base: None,
+                tick: 0,
+                vehicles: Vec::new(),
+                input_seq: None,
+                mesh: Vec::new(),
+            };
+            if s.is_none() {
+                *s = Some((bad, 0, arrived));
+            }
+        }
+    }
+    drop(s);
     slot.notify.notify_one();
 }
 

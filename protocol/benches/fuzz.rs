@@ -7,7 +7,9 @@ use std::time::Instant;
 use roam_protocol::messages::{
     self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
 };
-use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder, colormap};
+use roam_protocol::{
+    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Grid, MeshDecoder, MeshEncoder, colormap,
+};
 
 /// SplitMix64: a seeded, portable generator.
 struct Rng(u64);
@@ -30,7 +32,41 @@ impl Rng {
 /// header (and decode every texel) stay quick.
 const COLOR_CELLS: u32 = 32;
 
-/// Valid encodings to mutate: messages of every kind, a few meshes and colour maps.
+/// The base the change frames are coded against (as a viewer holds it), its heights,
+/// and the split sets the fuzzed change frames lead to.
+fn change_base(grid: Grid, heights: &[u16]) -> (Cut, Vec<BitSet>) {
+    let mut rng = Rng(11);
+    let mut base = BitSet::new(grid.vertices());
+    for _ in 0..30 {
+        let (x, z) = (
+            rng.below(grid.side() as usize) as u32,
+            rng.below(grid.side() as usize) as u32,
+        );
+        grid.split_closed(&mut base, x, z);
+    }
+    let mut nows = Vec::new();
+    for n in [2u32, 10, 40] {
+        let mut now = base.clone();
+        for _ in 0..n {
+            let (x, z) = (
+                rng.below(grid.side() as usize) as u32,
+                rng.below(grid.side() as usize) as u32,
+            );
+            grid.split_closed(&mut now, x, z);
+        }
+        nows.push(now);
+    }
+    (Cut::of(&grid, base, heights), nows)
+}
+
+fn heights(grid: Grid) -> Vec<u16> {
+    (0..grid.vertices() as u32)
+        .map(|i| (i * 7919 % 60_000) as u16)
+        .collect()
+}
+
+/// Valid encodings to mutate: messages of every kind, a few meshes (key frames and change
+/// frames) and colour maps.
 fn seeds(grid: Grid) -> Vec<Vec<u8>> {
     let mut out = Vec::new();
     let mut push = |f: &dyn Fn(&mut Vec<u8>)| {
@@ -87,9 +123,30 @@ fn seeds(grid: Grid) -> Vec<Vec<u8>> {
         };
         messages::encode(&k, b).expect("encodes")
     });
-    let heights: Vec<u16> = (0..grid.vertices() as u32)
-        .map(|i| (i * 7919 % 60_000) as u16)
-        .collect();
+    let heights = heights(grid);
+    let (base, nows) = change_base(grid, &heights);
+    let mut enc = ChangeEncoder::new(grid, 1);
+    for now in &nows {
+        for (from, to) in [(&base.split, now), (now, &base.split)] {
+            let changes: Vec<u32> = (0..grid.vertices() as u32)
+                .filter(|&i| from.contains(i) != to.contains(i))
+                .collect();
+            let cut = Cut::of(&grid, to.clone(), &heights);
+            let mut b = Vec::new();
+            enc.encode(
+                &changes,
+                |i| to.contains(i),
+                &heights,
+                cut.triangles,
+                to.len() as u32,
+                cut.hash,
+                &mut b,
+            )
+            .expect("encodes");
+            // Those back to the base are coded against `now`: wrong-base frames here.
+            out.push(b);
+        }
+    }
     for n in [3u32, 40, 400] {
         let mut set = BitSet::new(grid.vertices());
         let mut rng = Rng(u64::from(n));
@@ -129,9 +186,22 @@ fn main() {
     let mut dec = MeshDecoder::new(grid);
     let base = BitSet::new(grid.vertices());
     let mut got = BitSet::default();
+    // The change frames' base, as a viewer would hold it: decoded from a key frame.
+    let (cut_base, _) = change_base(grid, &heights(grid));
+    let mut key = Vec::new();
+    MeshEncoder::new(grid)
+        .encode(&cut_base.split, &heights(grid), None, &mut key)
+        .expect("encodes");
+    let mut change_dec = MeshDecoder::new(grid);
+    let mut cut = Cut::default();
+    change_dec
+        .decode_cut(&key, None, u32::MAX, &mut cut)
+        .expect("decodes");
+    assert_eq!(cut, cut_base);
     let mut texels = Vec::new();
     let (mut ok, mut err) = (0u64, 0u64);
     let mut input = Vec::new();
+    let mut forced = Vec::new();
     let started = Instant::now();
     for n in 0..INPUTS {
         input.clear();
@@ -151,6 +221,15 @@ fn main() {
                 }
             }
         }
+        // Random bytes reach the change frame decoder behind a change frame's header.
+        let change_input: &[u8] = if n % 2 == 0 && input.len() >= 4 {
+            forced.clear();
+            forced.extend_from_slice(&input);
+            forced[..4].copy_from_slice(&[CHANGES_FORMAT, 6, 0, 0]);
+            &forced
+        } else {
+            &input
+        };
         let results = [
             messages::decode::<ClientMessage>(&input).is_ok(),
             messages::decode::<ServerMessage>(&input).is_ok(),
@@ -158,6 +237,9 @@ fn main() {
             messages::decode::<KeyDatagram>(&input).is_ok(),
             dec.decode(&input, None, 100_000, &mut got).is_ok(),
             dec.decode(&input, Some(&base), 100_000, &mut got).is_ok(),
+            change_dec
+                .decode_cut(change_input, Some(&cut_base), 100_000, &mut cut)
+                .is_ok(),
             colormap::decode(COLOR_CELLS, &input, &mut texels).is_ok(),
         ];
         for r in results {

@@ -121,6 +121,18 @@ impl Grid {
         }
     }
 
+    /// Triangles splitting the diamond centred at `(x, z)` adds to a mesh: two (its two
+    /// triangles become four), or one for a rotated diamond on the map's edge (one
+    /// triangle, one parent).
+    #[inline]
+    pub fn added(&self, x: u32, z: u32) -> u32 {
+        if self.classify(x, z).1 {
+            2
+        } else {
+            self.parents(x, z).iter().flatten().count() as u32
+        }
+    }
+
     /// The diamond's hypotenuse ends: the corners that are not its parents.
     #[inline]
     pub fn hypotenuse(&self, x: u32, z: u32) -> [(u32, u32); 2] {
@@ -189,9 +201,22 @@ impl Grid {
 }
 
 /// A set of grid vertices (split diamonds, or vertices a viewer holds), one bit each.
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[derive(Debug, Default, PartialEq, Eq)]
 pub struct BitSet {
     words: Vec<u64>,
+}
+
+impl Clone for BitSet {
+    fn clone(&self) -> BitSet {
+        BitSet {
+            words: self.words.clone(),
+        }
+    }
+
+    /// Copies `source` into this set's memory (no allocation when it is large enough).
+    fn clone_from(&mut self, source: &BitSet) {
+        self.words.clone_from(&source.words);
+    }
 }
 
 impl BitSet {
@@ -218,6 +243,13 @@ impl BitSet {
     pub fn insert(&mut self, i: u32) {
         if let Some(w) = self.words.get_mut(i as usize >> 6) {
             *w |= 1 << (i & 63);
+        }
+    }
+
+    #[inline]
+    pub fn remove(&mut self, i: u32) {
+        if let Some(w) = self.words.get_mut(i as usize >> 6) {
+            *w &= !(1 << (i & 63));
         }
     }
 

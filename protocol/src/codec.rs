@@ -20,6 +20,11 @@
 //! carries a check over its split diamonds and heights, so a frame decoded against the wrong
 //! base is detected rather than shown.
 //!
+//! A delta can also come as a **change frame** (format 2, [`crate::changes`]): coded from
+//! the list of diamonds that changed since the base, in O(changes) on the server, rather
+//! than by walking the cut. Key frames are always format 1.
+//! [`MeshDecoder::decode_cut`] reads both formats; [`MeshDecoder::decode`] reads format 1.
+//!
 //! # Payload
 //!
 //! ```text
@@ -37,6 +42,7 @@
 //! ```
 
 use crate::bintree::{BitSet, Grid};
+use crate::changes::CutHash;
 use crate::range::{self, Prob};
 
 /// The payload format this code writes and reads.
@@ -57,6 +63,9 @@ pub enum EncodeError {
     NotConforming { unreached: usize },
     #[error("height {height} is not a multiple of the step {step}")]
     Step { height: u16, step: u16 },
+    /// A change frame's change list names something that is not one diamond of the grid.
+    #[error("change at index {index}: {why}")]
+    Change { index: u32, why: &'static str },
 }
 
 /// Why a payload could not be decoded. A mesh frame is to be dropped (and a key frame
@@ -67,7 +76,9 @@ pub enum DecodeError {
     #[error("payload of {0} bytes: shorter than its header")]
     Short(usize),
     #[error(
-        "payload format {0}; this build reads mesh format {FORMAT} and colour map format {cm}",
+        "payload format {0}; this build reads mesh formats {FORMAT} and {changes} and colour \
+         map format {cm}",
+        changes = crate::changes::CHANGES_FORMAT,
         cm = crate::colormap::FORMAT
     )]
     Format(u8),
@@ -87,7 +98,7 @@ pub enum DecodeError {
 }
 
 /// Adaptive probabilities of one frame.
-struct Models {
+pub(crate) struct Models {
     split: [[Prob; 2]; DEPTHS],
     zero: [Prob; CONTEXTS],
     sign: [Prob; CONTEXTS],
@@ -98,18 +109,23 @@ struct Models {
 }
 
 impl Models {
-    fn new() -> Box<Models> {
-        Box::new(Models {
+    pub(crate) fn fresh() -> Models {
+        Models {
             split: [[Prob::default(); 2]; DEPTHS],
             zero: [Prob::default(); CONTEXTS],
             sign: [Prob::default(); CONTEXTS],
             class: [[Prob::default(); 32]; CONTEXTS],
             second: [[Prob::default(); 18]; CONTEXTS],
-        })
+        }
     }
 
-    fn reset(&mut self) {
-        *self = *Models::new();
+    fn new() -> Box<Models> {
+        Box::new(Models::fresh())
+    }
+
+    /// Back to the initial probabilities, in place (no allocation).
+    pub(crate) fn reset(&mut self) {
+        *self = Models::fresh();
     }
 }
 
@@ -117,7 +133,7 @@ impl Models {
 /// nearest multiple of the heightfield's `step` (so the residual is a whole number of
 /// steps).
 #[inline]
-fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32, step: i32) -> i32 {
+pub(crate) fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32, step: i32) -> i32 {
     let [(ax, az), (bx, bz)] = grid.hypotenuse(x, z);
     let h = |x, z| i32::from(heights[grid.index(x, z) as usize]);
     let sum = h(ax, az) + h(bx, bz);
@@ -198,16 +214,6 @@ impl Check {
     }
 }
 
-/// Triangles a split adds: two, or one for a rotated diamond on the map's edge (one
-/// triangle, one parent).
-fn added(grid: &Grid, x: u32, z: u32) -> u32 {
-    if grid.classify(x, z).1 {
-        2
-    } else {
-        grid.parents(x, z).iter().flatten().count() as u32
-    }
-}
-
 /// Encodes meshes of one grid, reusing its buffers.
 pub struct MeshEncoder {
     grid: Grid,
@@ -274,7 +280,7 @@ impl MeshEncoder {
                 }
                 let (x, z) = grid.coords(i);
                 splits += 1;
-                triangles += added(&grid, x, z);
+                triangles += grid.added(x, z);
                 let h = heights[i as usize];
                 check.add(u64::from(i) << 16 | u64::from(h));
                 if !in_base {
@@ -313,7 +319,10 @@ impl MeshEncoder {
     }
 }
 
-fn encode_residual(rc: &mut range::Encoder, m: &mut Models, ctx: usize, r: i32) {
+/// A height residual `r` (in steps) in context `ctx` (the diamond's depth): zero or not,
+/// sign, bit length through a 5-bit tree, the bit below the leading one, then the rest
+/// with probability ½.
+pub(crate) fn encode_residual(rc: &mut range::Encoder, m: &mut Models, ctx: usize, r: i32) {
     rc.bit(&mut m.zero[ctx], r == 0);
     if r == 0 {
         return;
@@ -331,7 +340,7 @@ fn encode_residual(rc: &mut range::Encoder, m: &mut Models, ctx: usize, r: i32) 
     }
 }
 
-fn decode_residual(rc: &mut range::Decoder, m: &mut Models, ctx: usize) -> Option<i32> {
+pub(crate) fn decode_residual(rc: &mut range::Decoder, m: &mut Models, ctx: usize) -> Option<i32> {
     if rc.bit(&mut m.zero[ctx]) {
         return Some(0);
     }
@@ -361,11 +370,13 @@ pub struct Decoded {
 
 /// Decodes meshes of one grid, keeping every height it has decoded.
 pub struct MeshDecoder {
-    grid: Grid,
+    pub(crate) grid: Grid,
     models: Box<Models>,
     list: Vec<u32>,
     next: Vec<u32>,
-    heights: Vec<u16>,
+    pub(crate) heights: Vec<u16>,
+    /// The change frame decoder's models and buffers ([`crate::changes`]).
+    pub(crate) changes: crate::changes::Scratch,
 }
 
 impl MeshDecoder {
@@ -376,6 +387,7 @@ impl MeshDecoder {
             list: Vec::new(),
             next: Vec::new(),
             heights: vec![0; grid.vertices()],
+            changes: crate::changes::Scratch::new(),
         }
     }
 
@@ -388,15 +400,28 @@ impl MeshDecoder {
         &self.heights
     }
 
-    /// Decodes `payload` into `split` (a key frame, or a delta against `base`). Refuses
-    /// meshes of more than `max_triangles`. On error, `split` holds nothing usable and the
-    /// frame is to be dropped.
+    /// Decodes a format-1 `payload` into `split` (a key frame, or a delta against `base`).
+    /// Refuses meshes of more than `max_triangles`. On error, `split` holds nothing usable
+    /// and the frame is to be dropped. Change frames (format 2) need a base with its
+    /// triangle count and hash: see [`MeshDecoder::decode_cut`], which reads both formats.
     pub fn decode(
         &mut self,
         payload: &[u8],
         base: Option<&BitSet>,
         max_triangles: u32,
         split: &mut BitSet,
+    ) -> Result<Decoded, DecodeError> {
+        self.decode_tree(payload, base, max_triangles, split, &mut CutHash::new())
+    }
+
+    /// [`MeshDecoder::decode`], also adding every split diamond to `hash`.
+    pub(crate) fn decode_tree(
+        &mut self,
+        payload: &[u8],
+        base: Option<&BitSet>,
+        max_triangles: u32,
+        split: &mut BitSet,
+        hash: &mut CutHash,
     ) -> Result<Decoded, DecodeError> {
         let grid = self.grid;
         if payload.len() < HEADER {
@@ -464,7 +489,7 @@ impl MeshDecoder {
                 }
                 let (x, z) = grid.coords(i);
                 splits += 1;
-                triangles += added(&grid, x, z);
+                triangles += grid.added(x, z);
                 if splits > declared_splits || triangles > declared_triangles {
                     return Err(DecodeError::Corrupt("more splits than declared"));
                 }
@@ -479,6 +504,7 @@ impl MeshDecoder {
                         .map_err(|_| DecodeError::Corrupt("a height out of range"))?;
                 }
                 check.add(u64::from(i) << 16 | u64::from(self.heights[i as usize]));
+                hash.add(i, self.heights[i as usize]);
             }
             if rc.failed() {
                 return Err(DecodeError::Corrupt(

@@ -4,6 +4,7 @@
 //! beyond the decode's limit.
 
 pub mod bintree;
+pub mod changes;
 pub mod codec;
 pub mod colormap;
 pub mod mesh;
@@ -12,5 +13,6 @@ mod range;
 mod rans;
 
 pub use bintree::{BitSet, Grid};
+pub use changes::{CHANGES_FORMAT, ChangeEncoder, Cut, CutHash};
 pub use codec::{DecodeError, Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
 pub use mesh::Mesh;

@@ -17,8 +17,9 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 /// The protocol version this code speaks. 2: the colour map is sent compressed
-/// ([`crate::colormap`]).
-pub const VERSION: u16 = 2;
+/// ([`crate::colormap`]). 3: a frame's mesh may be a change frame (mesh format 2,
+/// [`crate::changes`]).
+pub const VERSION: u16 = 3;
 /// The largest message (a frame with its mesh, or a colour-map chunk).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.

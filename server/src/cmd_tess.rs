@@ -235,7 +235,10 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "serve_changes_per_frame_median": serve.changes_median,
         "serve_screen_error_px_p99": serve.error_p99,
         "scratch_screen_error_px_p99": serve.scratch_error_p99,
+        "serve_wire_bytes_per_triangle_first": serve.bytes_per_triangle_first,
+        "serve_wire_bytes_per_triangle_steady": serve.bytes_per_triangle_steady,
         "serve_rebuilds": serve.rebuilds,
+        "serve_viewer_heap_bytes": serve.viewer_bytes,
         "serve_evaluated_per_frame_median": serve.evaluated_median,
         "last_frame": {
             "evaluated": tess.stats().evaluated,
@@ -324,16 +327,21 @@ fn codec_bench(
     })
 }
 
-/// The serving path along the codec's drive: one viewer's frames, 1/60 s apart, each the
-/// cut carried from the frame before (split/merge) and its delta.
+/// The serving path along the codec's drive: one viewer's frames, 1/60 s apart, made by
+/// the per-viewer core (the cut carried by split/merge, coded as changes against the frame
+/// before, which the viewer acknowledges at once), each decoded as the viewer would and
+/// checked against the server's cut (not timed).
 struct ServeFigures {
     frame_us_median: f64,
     frame_us_p99: f64,
     changes_median: f64,
     error_p99: f64,
     scratch_error_p99: f64,
+    bytes_per_triangle_first: f64,
+    bytes_per_triangle_steady: f64,
     rebuilds: usize,
     evaluated_median: f64,
+    viewer_bytes: usize,
 }
 
 fn serve_bench(
@@ -341,32 +349,71 @@ fn serve_bench(
     vt: &VarianceTree,
     limits: Limits,
 ) -> Result<ServeFigures> {
-    use roam_server::tessellate::{Coherent, Mode};
+    use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
+    use roam_server::tessellate::Mode;
+    use roam_server::viewer::{Event, Scene, ViewerCore};
     let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
     let sc = scales(terrain);
-    let mut coherent = Coherent::new(terrain.heights.side());
+    let levels = terrain.heights.levels();
+    let step = roam_protocol::height_step(terrain.heights.samples());
+    let mut core = ViewerCore::new(
+        levels,
+        step,
+        flyover::FOV_Y_DEG as f32,
+        [flyover::WIDTH, flyover::HEIGHT],
+        limits.budget,
+    );
+    let scene = Scene {
+        terrain,
+        variance: vt,
+    };
+    let grid = Grid::new(levels).expect("data sets have 1 ..= 15 levels");
+    let mut decoder = MeshDecoder::new(grid);
+    let (mut base, mut cut) = (Cut::default(), Cut::default());
     let mut scratch = Tessellator::new(terrain.heights.side());
-    let mut mesh = Mesh::default();
+    let (mut served, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let (mut us, mut changes, mut err, mut scratch_err) = (vec![], vec![], vec![], vec![]);
-    let mut rebuilds = 0;
-    let mut evaluated = vec![];
+    let (mut bytes, mut evaluated, mut rebuilds) = (vec![], vec![], 0);
     for (k, cam) in cameras.iter().enumerate() {
         let started = Instant::now();
-        let mode = coherent.frame(&terrain.heights, vt, sc, cam, limits, false);
+        let made = core.make_frame_at(&scene, cam);
         let elapsed = started.elapsed().as_nanos() as f64 / 1e3;
+        let tris = f64::from(made.triangles.max(1));
+        bytes.push(made.payload.len() as f64 / tris);
         if k > 0 {
             us.push(elapsed);
-            changes.push(coherent.changes().len() as f64);
-            evaluated.push(f64::from(coherent.stats().evaluated));
-            rebuilds += usize::from(mode == Mode::Rebuild);
+            changes.push(f64::from(made.changes));
+            evaluated.push(f64::from(core.cut().stats().evaluated));
+            rebuilds += usize::from(made.mode == Mode::Rebuild);
         }
-        scratch.tessellate(&terrain.heights, vt, sc, cam, limits, &mut mesh);
-        err.push(f64::from(coherent.error_bound_px()));
-        scratch_err.push(f64::from(mesh.error_bound_px));
-        if coherent.triangles() > limits.budget.max(2) {
+        let b = made.base.map(|_| &base);
+        decoder.decode_cut(&made.payload, b, u32::MAX, &mut cut)?;
+        mesh::emit(&grid, &cut.split, decoder.heights(), &mut viewer);
+        core.mesh(&mut served);
+        if viewer.indices != served.indices {
+            let server: Vec<u32> = core
+                .cut()
+                .split_diamonds()
+                .map(|(x, z)| grid.index(x, z))
+                .collect();
+            bail!(
+                "frame {k}: the viewer's mesh differs from the server's: a codec bug \
+                 ({} vs {} triangles, base {:?}, {:?})",
+                viewer.triangle_count(),
+                served.triangle_count(),
+                made.base,
+                made.mode,
+            );
+        }
+        std::mem::swap(&mut base, &mut cut);
+        core.handle(Event::Acked(made.frame));
+        if made.triangles > limits.budget.max(2) {
             bail!("the served cut is over budget at frame {k}: a tessellator bug");
         }
+        scratch.tessellate(&terrain.heights, vt, sc, cam, limits, &mut served);
+        err.push(f64::from(core.cut().error_bound_px()));
+        scratch_err.push(f64::from(served.error_bound_px));
     }
     Ok(ServeFigures {
         frame_us_median: quantile(&us, 0.5),
@@ -374,7 +421,10 @@ fn serve_bench(
         changes_median: quantile(&changes, 0.5),
         error_p99: quantile(&err, 0.99),
         scratch_error_p99: quantile(&scratch_err, 0.99),
+        bytes_per_triangle_first: bytes.first().copied().unwrap_or(0.0),
+        bytes_per_triangle_steady: quantile(bytes.get(1..).unwrap_or(&[]), 0.5),
         rebuilds,
         evaluated_median: quantile(&evaluated, 0.5),
+        viewer_bytes: core.heap_bytes(),
     })
 }

@@ -20,6 +20,7 @@ pub mod script;
 pub mod tessellate;
 pub mod validate;
 pub mod variance;
+pub mod viewer;
 pub mod world;
 
 pub use dataset::{ColorMap, DataError, Terrain};

@@ -117,6 +117,8 @@ fn transport(keep_alive: bool) -> Arc<quinn::TransportConfig> {
     t.max_concurrent_bidi_streams(0u32.into());
     t.stream_receive_window((16u32 << 20).into());
     t.receive_window((48u32 << 20).into());
+    // Small frames come as datagrams; a viewer reads them as they arrive.
+    t.datagram_receive_buffer_size(Some(1 << 20));
     Arc::new(t)
 }
 
@@ -146,6 +148,9 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     t.stream_receive_window((64u32 << 10).into());
     t.receive_window((128u32 << 10).into());
     t.datagram_receive_buffer_size(Some(64 << 10));
+    // Small frames go as datagrams: when a viewer's link cannot keep up, quinn drops the
+    // oldest queued ones, so a slow viewer holds at most this much (latest frame wins).
+    t.datagram_send_buffer_size(64 << 10);
     config.transport_config(Arc::new(t));
     Ok(config)
 }

@@ -1,8 +1,8 @@
 //! One viewer's connection: the handshake, its key datagrams and control messages, and its
-//! frames, each tessellated for its own camera and sent on a stream of its own; a frame not
-//! yet delivered when the next is ready is abandoned (latest frame wins).
+//! frames, paced by the clock and made by the viewer's sans-IO core
+//! ([`crate::viewer::ViewerCore`]), each sent on a stream of its own; a frame not yet
+//! delivered when the next is ready is abandoned (latest frame wins).
 
-use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
@@ -10,19 +10,14 @@ use roam_protocol::messages::{
     ClientMessage, Frame, KeyDatagram, Reason, Role, ServerMessage, VERSION, VehicleView,
     ViewChange, Welcome,
 };
-use roam_protocol::{BitSet, Grid, MeshEncoder};
 use tokio::sync::oneshot;
 
 use super::world_loop::{Event, Snapshot};
 use super::{Shared, wire};
-use crate::camera::Camera;
-use crate::tessellate::{Limits, Mesh, Scales, Tessellator};
+use crate::viewer::{Event as ViewerEvent, Scene, ViewerCore};
 use crate::world::VehicleId;
 
-/// The most triangles a viewer may ask for.
-pub const MAX_BUDGET: u32 = 1 << 20;
-/// Frames kept as possible bases, per viewer.
-const BASES: usize = 16;
+pub use crate::viewer::MAX_BUDGET;
 /// Key datagrams a driver may send per second, and in a burst (a viewer sends 100 a
 /// second).
 const KEY_RATE: f64 = 250.0;
@@ -30,28 +25,30 @@ const KEY_BURST: f64 = 50.0;
 /// Colour-map bytes per chunk.
 const CHUNK: usize = 64 << 10;
 
-/// What the viewer's control messages change.
+/// The viewer's control messages since the last frame, coalesced (the newest budget and
+/// view, the highest acknowledgement, whether a key frame was asked for), so a viewer
+/// sending faster than its frames grows nothing.
 #[derive(Default)]
-struct Control {
-    budget: u32,
-    /// The newest frame the viewer decoded.
+struct Mailbox {
+    budget: Option<u32>,
     acked: Option<u64>,
-    /// The viewer's camera, if it said how it differs from the default.
+    key_frame: bool,
     view: Option<ViewChange>,
 }
 
-/// `camera` changed as the viewer asked; anything out of range is clamped, anything not a
-/// number ignored.
-fn apply_view(camera: &mut Camera, v: &ViewChange) {
-    if v.pitch_deg.is_finite() {
-        camera.pitch_deg = f64::from(v.pitch_deg).clamp(-89.0, 89.0);
+impl Mailbox {
+    /// The events for the core, emptying the mailbox.
+    fn drain(&mut self) -> impl Iterator<Item = ViewerEvent> {
+        let m = std::mem::take(self);
+        [
+            m.budget.map(ViewerEvent::Budget),
+            m.view.map(ViewerEvent::View),
+            m.key_frame.then_some(ViewerEvent::KeyFrame),
+            m.acked.map(ViewerEvent::Acked),
+        ]
+        .into_iter()
+        .flatten()
     }
-    // Slightly below the hover altitude too: the viewer's damped eye lags a climb.
-    if v.eye_above.is_finite() {
-        camera.eye[1] += f64::from(v.eye_above).clamp(-10.0, 1000.0);
-    }
-    camera.width = v.viewport[0].clamp(1, 16_384);
-    camera.height = v.viewport[1].clamp(1, 16_384);
 }
 
 /// The close codes a connection ends with.
@@ -144,30 +141,19 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     if welcome(&mut send, &shared, vehicle).await.is_err() {
         return;
     }
-    let control = Arc::new(Mutex::new(Control {
-        budget: hello.budget.clamp(2, MAX_BUDGET),
-        acked: None,
-        view: None,
-    }));
+    let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let ctl = tokio::spawn(read_control(recv, control.clone()));
-    let fov = f64::from(hello.fov_y_deg);
-    let camera = Camera {
-        eye: [0.0; 3],
-        yaw_deg: 0.0,
-        pitch_deg: crate::flyover::PITCH_DEG,
-        // A field of view that is not a number is taken as the usual 60°.
-        fov_y_deg: if fov.is_finite() {
-            fov.clamp(1.0, 179.0)
-        } else {
-            60.0
-        },
-        width: hello.viewport[0].clamp(1, 16_384),
-        height: hello.viewport[1].clamp(1, 16_384),
-    };
+    let core = ViewerCore::new(
+        shared.terrain.heights.levels(),
+        shared.height_step,
+        hello.fov_y_deg,
+        hello.viewport,
+        hello.budget,
+    );
     let rate = hello.frame_rate.clamp(1, 240);
     tokio::select! {
-        end = frames(&conn, &shared, control, camera, rate, vehicle, driver) => {
+        end = frames(&conn, &shared, control, core, rate, vehicle, driver) => {
             let why = match end {
                 FramesEnd::ConnectionLost => None,
                 FramesEnd::VehicleLeft => Some("the vehicle followed has left"),
@@ -267,73 +253,19 @@ async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: Vehicl
 }
 
 /// Control messages until the viewer says goodbye or sends something that is not one.
-async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Control>>) {
+async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) {
     while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, 4096).await {
         let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
         match msg {
-            ClientMessage::Budget(b) => c.budget = b.clamp(2, MAX_BUDGET),
+            ClientMessage::Budget(b) => c.budget = Some(b),
             ClientMessage::Ack { frame } => c.acked = Some(c.acked.map_or(frame, |a| a.max(frame))),
-            ClientMessage::KeyFrame => c.acked = None,
+            ClientMessage::KeyFrame => {
+                c.key_frame = true;
+                c.acked = None;
+            }
             ClientMessage::View(v) => c.view = Some(v),
             ClientMessage::Bye(_) | ClientMessage::Hello(_) => return,
         }
-    }
-}
-
-/// The viewer's tessellation state, moved to a blocking thread for each frame.
-struct Maker {
-    tess: Tessellator,
-    mesh: Mesh,
-    encoder: MeshEncoder,
-    grid: Grid,
-    bases: VecDeque<(u64, BitSet)>,
-}
-
-impl Maker {
-    /// Tessellates for `camera` and codes the mesh against the newest acknowledged base.
-    fn make(
-        &mut self,
-        shared: &Shared,
-        camera: &Camera,
-        budget: u32,
-        acked: Option<u64>,
-        frame: u64,
-    ) -> (Option<u64>, Vec<u8>) {
-        let t = &shared.terrain;
-        let scales = Scales {
-            h: t.map.h_scale,
-            v: t.map.v_scale,
-        };
-        let limits = Limits {
-            budget,
-            threshold_px: 0.0,
-        };
-        self.tess.tessellate(
-            &t.heights,
-            &shared.variance,
-            scales,
-            camera,
-            limits,
-            &mut self.mesh,
-        );
-        let mut split = BitSet::default();
-        self.tess.split_set(&self.grid, &mut split);
-        let base = acked.and_then(|a| self.bases.iter().find(|(f, _)| *f == a));
-        let mut payload = Vec::new();
-        self.encoder
-            .encode(
-                &split,
-                t.heights.samples(),
-                base.map(|(_, b)| b),
-                &mut payload,
-            )
-            .expect("the tessellator's meshes are conforming");
-        let base = base.map(|(f, _)| *f);
-        self.bases.push_back((frame, split));
-        if self.bases.len() > BASES {
-            self.bases.pop_front();
-        }
-        (base, payload)
     }
 }
 
@@ -351,20 +283,13 @@ enum FramesEnd {
 async fn frames(
     conn: &quinn::Connection,
     shared: &Arc<Shared>,
-    control: Arc<Mutex<Control>>,
-    mut camera: Camera,
+    control: Arc<Mutex<Mailbox>>,
+    core: ViewerCore,
     rate: u16,
     vehicle: VehicleId,
     driver: bool,
 ) -> FramesEnd {
-    let grid = Grid::new(shared.terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
-    let mut maker = Some(Maker {
-        tess: Tessellator::new(shared.terrain.heights.side()),
-        mesh: Mesh::default(),
-        encoder: MeshEncoder::with_step(grid, shared.height_step),
-        grid,
-        bases: VecDeque::new(),
-    });
+    let mut core = Some(core);
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     type InFlight = (
@@ -374,7 +299,6 @@ async fn frames(
     );
     let mut in_flight: Option<InFlight> = None;
     let mut seen = false;
-    let mut frame = 0u64;
     loop {
         interval.tick().await;
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
@@ -387,29 +311,29 @@ async fn frames(
         seen = true;
         let altitude =
             |s: &crate::physics::VehicleState| crate::physics::altitude(&*shared.terrain, s.x, s.z);
-        camera.eye = [v.state.x, altitude(&v.state), v.state.z];
-        camera.yaw_deg = v.state.heading;
-        let (budget, acked, view) = {
-            let c = control.lock().unwrap_or_else(|e| e.into_inner());
-            (c.budget, c.acked, c.view)
-        };
-        let mut cam = camera;
-        if let Some(v) = &view {
-            apply_view(&mut cam, v);
+        let mut c = core.take().expect("put back below");
+        for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
+            c.handle(event);
         }
-        let (mut m, shared2) = (maker.take().expect("put back below"), shared.clone());
-        let Ok((m, base, mesh)) = tokio::task::spawn_blocking(move || {
-            let (base, mesh) = m.make(&shared2, &cam, budget, acked, frame);
-            (m, base, mesh)
+        let (shared2, state) = (shared.clone(), v.state);
+        let Ok((c, made)) = tokio::task::spawn_blocking(move || {
+            let scene = Scene {
+                terrain: &shared2.terrain,
+                variance: &shared2.variance,
+            };
+            let made = c.make_frame(&scene, &state);
+            (c, made)
         })
         .await
         else {
             return FramesEnd::Failed("the frame maker failed");
         };
-        maker = Some(m);
+        let acked = c.acked();
+        core = Some(c);
+        let frame = made.frame;
         let msg = Frame {
             frame,
-            base,
+            base: made.base,
             tick: snap.tick,
             vehicles: snap
                 .vehicles
@@ -431,7 +355,7 @@ async fn frames(
                         .map(|&(_, s)| s)
                 })
                 .flatten(),
-            mesh,
+            mesh: made.payload,
         };
         let mut bytes = Vec::new();
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
@@ -449,6 +373,21 @@ async fn frames(
                 }
             } else {
                 let _ = cancel.send(());
+            }
+        }
+        // A frame that fits in one datagram goes as one: no stream to open, finish or
+        // reset, one packet. A lost one is simply never a base; the viewer keeps the newest.
+        if conn
+            .max_datagram_size()
+            .is_some_and(|max| bytes.len() <= max)
+        {
+            match conn.send_datagram(bytes.clone().into()) {
+                Ok(()) => continue,
+                Err(quinn::SendDatagramError::ConnectionLost(_)) => {
+                    return FramesEnd::ConnectionLost;
+                }
+                // Not allowed or too large after all: the stream takes it.
+                Err(_) => {}
             }
         }
         let Ok(mut stream) = conn.open_uni().await else {
@@ -471,44 +410,5 @@ async fn frames(
             }
         });
         in_flight = Some((cancel, task, frame));
-        frame += 1;
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_view_change_is_clamped_and_nan_ignored() {
-        let base = Camera {
-            eye: [10.0, 20.0, 30.0],
-            yaw_deg: 0.0,
-            pitch_deg: crate::flyover::PITCH_DEG,
-            fov_y_deg: 60.0,
-            width: 1280,
-            height: 720,
-        };
-        let check = |v: ViewChange, pitch: f64, eye_y: f64, size: (u32, u32)| {
-            let mut c = base;
-            apply_view(&mut c, &v);
-            assert_eq!(
-                (c.pitch_deg, c.eye[1], (c.width, c.height)),
-                (pitch, eye_y, size)
-            );
-        };
-        let v = |pitch_deg, eye_above, viewport| ViewChange {
-            pitch_deg,
-            eye_above,
-            viewport,
-        };
-        check(v(12.0, 1.5, [800, 600]), 12.0, 21.5, (800, 600));
-        check(
-            v(f32::NAN, f32::INFINITY, [0, 99_999]),
-            base.pitch_deg,
-            20.0,
-            (1, 16_384),
-        );
-        check(v(-500.0, -30.0, [640, 480]), -89.0, 10.0, (640, 480));
     }
 }

@@ -111,7 +111,10 @@ impl<T: Copy> PosSet<T> {
         }
         // The last member takes the removed one's place in the list.
         let at = self.table[i].1 as usize;
-        let last = self.list.pop().expect("a member was found, so the list is not empty");
+        let last = self
+            .list
+            .pop()
+            .expect("a member was found, so the list is not empty");
         let value = self.data.pop().expect("values are beside members");
         if last != pos {
             self.list[at] = last;
@@ -156,7 +159,6 @@ impl<T: Copy> PosSet<T> {
             self.table[i] = (pos, n as u32);
         }
     }
-
 }
 
 #[cfg(test)]
@@ -171,7 +173,9 @@ mod tests {
         let mut reference = std::collections::BTreeSet::new();
         let mut seed = 12345u64;
         for _ in 0..20_000 {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let pos = 1 + ((seed >> 33) % 700) as u32 * 97;
             if seed >> 63 == 0 {
                 assert_eq!(set.insert_with(pos, || pos * 3), reference.insert(pos));

@@ -42,7 +42,7 @@ mod evaluate;
 mod frontier;
 mod lanes;
 
-pub use coherent::{Coherent, CoherentStats, Mode};
+pub use coherent::{Coherent, CoherentStats, Mode, measured_error};
 
 use lanes::F4;
 

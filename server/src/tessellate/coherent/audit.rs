@@ -31,8 +31,17 @@ impl Coherent {
         let (mut splits, mut merges) = (Vec::new(), Vec::new());
         for &p in &split {
             let (x, z) = unpack(p);
-            if let Some(q) = self.parents(x, z).into_iter().flatten().find(|&q| !is_split(q)) {
-                return Err(format!("split {:?} has the unsplit parent {:?}", unpack(p), unpack(q)));
+            if let Some(q) = self
+                .parents(x, z)
+                .into_iter()
+                .flatten()
+                .find(|&q| !is_split(q))
+            {
+                return Err(format!(
+                    "split {:?} has the unsplit parent {:?}",
+                    unpack(p),
+                    unpack(q)
+                ));
             }
             triangles += self.added(x, z);
             let children: Vec<u32> = self.children(x, z).into_iter().flatten().collect();
@@ -64,8 +73,14 @@ impl Coherent {
         ] {
             let (kept, want) = (sorted(kept), sorted(want));
             if kept != want {
-                let missing = want.iter().filter(|p| kept.binary_search(p).is_err()).count();
-                let extra = kept.iter().filter(|p| want.binary_search(p).is_err()).count();
+                let missing = want
+                    .iter()
+                    .filter(|p| kept.binary_search(p).is_err())
+                    .count();
+                let extra = kept
+                    .iter()
+                    .filter(|p| want.binary_search(p).is_err())
+                    .count();
                 return Err(format!(
                     "{name} candidates: {missing} missing, {extra} that should not be there"
                 ));
@@ -94,4 +109,53 @@ impl Coherent {
         }
         Ok(())
     }
+}
+
+/// The screen-space error a cut leaves at `camera`, in pixels, measured the same way for
+/// any cut: the highest priority among the diamonds that could be split next (unsplit,
+/// with a split parent) and are worth splitting (in view or under the eye, with error).
+/// Split-only from scratch reports only what its queue reached, which misses a diamond
+/// poking into the view below a parent wholly outside it; this measure does not, so the
+/// served cut and the from-scratch one are compared fairly. Slow (a fresh tessellator's
+/// bitset and a walk of the cut): for tests and benchmarks.
+pub fn measured_error(
+    hf: &Heightfield,
+    variance: &VarianceTree,
+    scales: Scales,
+    camera: &Camera,
+    limits: Limits,
+    split: impl IntoIterator<Item = (u32, u32)>,
+) -> f32 {
+    let mut c = Coherent::new(hf.side());
+    let split: Vec<u32> = split.into_iter().map(|(x, z)| pack(x, z)).collect();
+    for &p in &split {
+        let (x, z) = unpack(p);
+        c.tess.set_active(x, z);
+    }
+    let mut candidates: Vec<u32> = Vec::new();
+    for &p in &split {
+        let (x, z) = unpack(p);
+        for ch in c.children(x, z).into_iter().flatten() {
+            let (cx, cz) = unpack(ch);
+            if !c.tess.is_active(cx, cz) {
+                candidates.push(ch);
+            }
+        }
+    }
+    if split.is_empty() {
+        candidates.push(c.root());
+    }
+    candidates.sort_unstable();
+    candidates.dedup();
+    let f = c.tess.frame(hf, variance, scales, camera, limits);
+    let mut worst = 0f32;
+    for chunk in candidates.chunks(4) {
+        let lanes = c.evaluate_at(&f, chunk);
+        for (i, p) in lanes.prio.iter().enumerate().take(chunk.len()) {
+            if (lanes.wanted | lanes.dropped) >> i & 1 != 0 {
+                worst = worst.max(*p);
+            }
+        }
+    }
+    worst
 }

@@ -43,9 +43,7 @@ impl Coherent {
     /// Priorities of up to four diamonds (lanes past `n` repeat the first).
     #[inline(always)]
     pub(super) fn evaluate(&self, f: &Frame, d: [&Fixed; 4], n: usize) -> Lanes {
-        let lane = |g: fn(&Fixed) -> f32| {
-            F4::new([g(d[0]), g(d[1]), g(d[2]), g(d[3])])
-        };
+        let lane = |g: fn(&Fixed) -> f32| F4::new([g(d[0]), g(d[1]), g(d[2]), g(d[3])]);
         let batch = Batch {
             x: lane(|d| d.x),
             z: lane(|d| d.z),
@@ -88,7 +86,6 @@ impl Coherent {
         let fixed: [Fixed; 4] = std::array::from_fn(|i| fixed(f, pos[i.min(pos.len() - 1)]));
         self.evaluate(f, [&fixed[0], &fixed[1], &fixed[2], &fixed[3]], pos.len())
     }
-
 }
 
 /// What a diamond's priority needs that does not depend on the camera.
@@ -139,7 +136,11 @@ pub(super) fn fixed(f: &Frame, pos: u32) -> Fixed {
         lo: corners.into_iter().fold(f32::INFINITY, f32::min),
         hi: corners.into_iter().fold(0.0, f32::max),
         h: h as f32,
-        k: if square { std::f32::consts::SQRT_2 } else { 1.0 },
+        k: if square {
+            std::f32::consts::SQRT_2
+        } else {
+            1.0
+        },
         kind: (u16::from(square) << 4) | m as u16,
     }
 }

@@ -33,6 +33,8 @@
 mod audit;
 mod eval;
 
+pub use audit::measured_error;
+
 use self::eval::{Fixed, Lanes, fixed};
 use super::frontier::PosSet;
 use super::{Frame, Limits, Mesh, Scales, Tessellator, classify, pack, unpack};
@@ -247,10 +249,11 @@ impl Coherent {
         camera: &Camera,
         limits: Limits,
     ) {
-        self.log.clear();
-        self.old.clear();
-        let old: Vec<u32> = std::mem::take(&mut self.old);
-        let mut old = old;
+        // The log keeps what an unfinished update did before: the difference logged here is
+        // from the cut as that update left it.
+        let logged = self.log.len();
+        let mut old = std::mem::take(&mut self.old);
+        old.clear();
         old.extend(self.split_diamonds().map(|(x, z)| pack(x, z)));
         self.tess.stale = true;
         self.error_bound_px = self.tess.cut(hf, variance, scales, camera, limits);
@@ -303,7 +306,7 @@ impl Coherent {
                 self.merge_cands.insert_with(pos, || fixed(&f, pos));
             }
         }
-        self.stats.splits = self.log.len() as u32;
+        self.stats.splits += (self.log.len() - logged) as u32;
     }
 
     fn root(&self) -> u32 {
@@ -627,8 +630,8 @@ impl Coherent {
         pos4[1..=n].copy_from_slice(&fresh[..n]);
         let lanes = self.evaluate_at(f, &pos4[..=n]);
         self.queue_split(&lanes, 0, pos);
-        for i in 0..n {
-            self.queue_merge(&lanes, i + 1, fresh[i]);
+        for (i, &p) in fresh.iter().enumerate().take(n) {
+            self.queue_merge(&lanes, i + 1, p);
         }
     }
 

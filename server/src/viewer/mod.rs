@@ -1,0 +1,367 @@
+//! The per-viewer core: what one viewer's frame loop decides, with no socket, task or
+//! clock (as `quinn-proto` is to `quinn`). The `net` shell paces frames, feeds it the
+//! viewer's control messages as [`Event`]s and the world's newest vehicle state, and sends
+//! the bytes it returns.
+//!
+//! Each frame: the camera at the followed vehicle (the viewer's [`ViewChange`] applied),
+//! the cut carried from the last frame by the split/merge tessellator ([`Coherent`]: it
+//! rebuilds from scratch on a jump), and the frame's mesh payload:
+//!
+//! - a **change frame** (protocol format 2) against the newest frame the viewer
+//!   acknowledged, coded from the change logs of the frames since: their composition (a
+//!   diamond toggled an even number of times has not changed) is exactly the difference
+//!   between the viewer's base and the cut now, so coding it costs what changed, not the
+//!   cut;
+//! - a **key frame** (format 1, the whole cut) for the first frame, when the viewer asks
+//!   for one, when its acknowledged base is older than the logs kept ([`LOGS`] frames), or
+//!   when the change list would cost more than the whole cut.
+//!
+//! A lost or abandoned frame is never a base (only acknowledged frames are), so it cannot
+//! corrupt a later one; the viewer checks every frame against the cut's hash.
+//!
+//! **Memory** follows the cut and the frames in flight: the tessellator's state (a bit
+//! per grid vertex, the frontiers and queues sized by the cut), and the logs of the last
+//! [`LOGS`] frames; no split set of any base is stored. The one map-sized buffer beyond the
+//! tessellator's bitset is the key frame's split set, allocated for a key frame and freed
+//! after it.
+
+use std::collections::VecDeque;
+
+use roam_protocol::messages::ViewChange;
+use roam_protocol::{BitSet, ChangeEncoder, CutHash, Grid, MeshEncoder};
+
+use crate::Terrain;
+use crate::camera::Camera;
+use crate::heightfield::Heightfield;
+use crate::physics::{VehicleState, altitude};
+use crate::tessellate::{Coherent, Limits, Mode, Scales};
+use crate::variance::VarianceTree;
+
+mod camera;
+
+pub use camera::{MAX_BUDGET, apply_view};
+
+/// Frames whose change logs are kept: an acknowledgement older than this gets a key frame.
+pub const LOGS: usize = 16;
+
+/// What the viewer's control messages tell the core.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Event {
+    /// The triangle budget the viewer asks for (clamped to `2..=MAX_BUDGET`).
+    Budget(u32),
+    /// The viewer decoded this frame: it may be a base.
+    Acked(u64),
+    /// The viewer lost its bases: the next frame is a key frame.
+    KeyFrame,
+    /// How the viewer's camera differs from the default one.
+    View(ViewChange),
+}
+
+/// What the core needs of the world: the terrain it tessellates, shared by every viewer.
+#[derive(Clone, Copy)]
+pub struct Scene<'a> {
+    pub terrain: &'a Terrain,
+    pub variance: &'a VarianceTree,
+}
+
+impl Scene<'_> {
+    fn heights(&self) -> &Heightfield {
+        &self.terrain.heights
+    }
+
+    fn scales(&self) -> Scales {
+        Scales {
+            h: self.terrain.map.h_scale,
+            v: self.terrain.map.v_scale,
+        }
+    }
+}
+
+/// One frame to send.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Made {
+    /// Rises by one per frame made.
+    pub frame: u64,
+    /// The acknowledged frame the payload is coded against; `None` for a key frame.
+    pub base: Option<u64>,
+    /// The mesh payload (format 1 or 2 of `roam_protocol`).
+    pub payload: Vec<u8>,
+    /// How the cut was made, and what changed in it this frame.
+    pub mode: Mode,
+    pub changes: u32,
+    pub triangles: u32,
+}
+
+/// One viewer's state: its camera settings, budget, acknowledgements and cut.
+pub struct ViewerCore {
+    grid: Grid,
+    coherent: Coherent,
+    key_encoder: MeshEncoder,
+    change_encoder: ChangeEncoder,
+    /// `(frame, the diamonds it toggled, row-major, each once)`, oldest first.
+    logs: VecDeque<(u64, Vec<u32>)>,
+    /// The [`CutHash`] of the cut now.
+    hash: CutHash,
+    /// The default camera (field of view, viewport), before the viewer's view change.
+    camera: Camera,
+    view: Option<ViewChange>,
+    budget: u32,
+    acked: Option<u64>,
+    key_requested: bool,
+    next: u64,
+    /// Scratch: the composed change list.
+    changes: Vec<u32>,
+}
+
+impl ViewerCore {
+    /// A core for a map of `levels` (side `2^levels + 1`) whose heights are multiples of
+    /// `height_step` ([`roam_protocol::height_step`]), for a viewer that said hello with
+    /// this field of view (degrees, vertical), viewport and budget.
+    pub fn new(
+        levels: u32,
+        height_step: u16,
+        fov_y_deg: f32,
+        viewport: [u32; 2],
+        budget: u32,
+    ) -> ViewerCore {
+        let grid = Grid::new(levels).expect("data sets have 1 ..= 15 levels");
+        ViewerCore {
+            grid,
+            coherent: Coherent::new(grid.side()),
+            key_encoder: MeshEncoder::with_step(grid, height_step),
+            change_encoder: ChangeEncoder::new(grid, height_step),
+            logs: VecDeque::new(),
+            hash: CutHash::new(),
+            camera: camera::default_camera(fov_y_deg, viewport),
+            view: None,
+            budget: budget.clamp(2, MAX_BUDGET),
+            acked: None,
+            key_requested: false,
+            next: 0,
+            changes: Vec::new(),
+        }
+    }
+
+    pub fn handle(&mut self, event: Event) {
+        match event {
+            Event::Budget(b) => self.budget = b.clamp(2, MAX_BUDGET),
+            // Only frames made can be acknowledged; a later ack wins.
+            Event::Acked(f) if f < self.next => {
+                self.acked = Some(self.acked.map_or(f, |a| a.max(f)));
+            }
+            Event::Acked(_) => {}
+            Event::KeyFrame => {
+                self.key_requested = true;
+                self.acked = None;
+            }
+            Event::View(v) => self.view = Some(v),
+        }
+    }
+
+    pub fn budget(&self) -> u32 {
+        self.budget
+    }
+
+    /// The newest frame the viewer acknowledged (since its last key-frame request).
+    pub fn acked(&self) -> Option<u64> {
+        self.acked
+    }
+
+    /// The camera of a frame at `vehicle`.
+    pub fn camera_at(&self, scene: &Scene, vehicle: &VehicleState) -> Camera {
+        let mut cam = self.camera;
+        cam.eye = [
+            vehicle.x,
+            altitude(scene.terrain, vehicle.x, vehicle.z),
+            vehicle.z,
+        ];
+        cam.yaw_deg = vehicle.heading;
+        if let Some(v) = &self.view {
+            apply_view(&mut cam, v);
+        }
+        cam
+    }
+
+    /// The cut carried from the last frame (for tests and benchmarks).
+    pub fn cut(&self) -> &Coherent {
+        &self.coherent
+    }
+
+    /// The mesh of the cut now, as the viewer rebuilds it from the frames.
+    pub fn mesh(&mut self, out: &mut crate::tessellate::Mesh) {
+        self.coherent.mesh(out);
+    }
+
+    /// Bytes of per-viewer state currently reserved.
+    pub fn heap_bytes(&self) -> usize {
+        self.coherent.heap_bytes()
+            + self
+                .logs
+                .iter()
+                .map(|(_, l)| l.capacity() * 4)
+                .sum::<usize>()
+            + self.changes.capacity() * 4
+    }
+
+    /// Makes the next frame for a camera at `vehicle`.
+    pub fn make_frame(&mut self, scene: &Scene, vehicle: &VehicleState) -> Made {
+        let camera = self.camera_at(scene, vehicle);
+        self.make_frame_at(scene, &camera)
+    }
+
+    /// Makes the next frame for `camera` (the view change is the caller's to apply).
+    pub fn make_frame_at(&mut self, scene: &Scene, camera: &Camera) -> Made {
+        let limits = Limits {
+            budget: self.budget,
+            threshold_px: 0.0,
+        };
+        let mode = self.coherent.frame(
+            scene.heights(),
+            scene.variance,
+            scene.scales(),
+            camera,
+            limits,
+            false,
+        );
+        let frame = self.next;
+        self.next += 1;
+        let log = self.log_changes(scene.heights());
+        let changes = log.len() as u32;
+        self.logs.push_back((frame, log));
+        while self.logs.len() > LOGS {
+            self.logs.pop_front();
+        }
+        let mut payload = Vec::new();
+        let base = self.delta_base().filter(|_| !self.key_requested);
+        let coded = base.is_some_and(|b| self.encode_changes(scene, b, &mut payload));
+        let base = if coded {
+            base
+        } else {
+            payload.clear();
+            self.encode_key(scene, &mut payload);
+            self.key_requested = false;
+            None
+        };
+        Made {
+            frame,
+            base,
+            payload,
+            mode,
+            changes,
+            triangles: self.coherent.triangles(),
+        }
+    }
+
+    /// This frame's toggles, each once (a diamond split and merged again in one frame has
+    /// not changed), as row-major indices; the cut's hash follows them.
+    fn log_changes(&mut self, heights: &Heightfield) -> Vec<u32> {
+        let side = self.grid.side();
+        let mut log: Vec<u32> = self
+            .coherent
+            .changes()
+            .iter()
+            .map(|&p| (p >> 16) * side + (p & 0xffff))
+            .collect();
+        odd_ones(&mut log);
+        let samples = heights.samples();
+        for &i in &log {
+            let (x, z) = self.grid.coords(i);
+            let h = samples[i as usize];
+            if self.coherent.is_split(x, z) {
+                self.hash.add(i, h);
+            } else {
+                self.hash.remove(i, h);
+            }
+        }
+        log
+    }
+
+    /// The acknowledged frame whose changes since are all logged.
+    fn delta_base(&self) -> Option<u64> {
+        let acked = self.acked?;
+        let oldest = self.logs.front()?.0;
+        // The logs of every frame after the base are needed.
+        (acked + 1 >= oldest).then_some(acked)
+    }
+
+    /// Codes the difference from `base` as a change frame; false when a key frame would be
+    /// smaller (or the change list is not to be had).
+    fn encode_changes(&mut self, scene: &Scene, base: u64, out: &mut Vec<u8>) -> bool {
+        self.changes.clear();
+        for (f, log) in &self.logs {
+            if *f > base {
+                self.changes.extend_from_slice(log);
+            }
+        }
+        odd_ones(&mut self.changes);
+        // About 2–3 bytes a change against a third of a byte a triangle for the key frame.
+        if self.changes.len() as u64 * 8 > u64::from(self.coherent.triangles()) {
+            return false;
+        }
+        let grid = self.grid;
+        let coherent = &self.coherent;
+        self.change_encoder
+            .encode(
+                &self.changes,
+                |i| {
+                    let (x, z) = grid.coords(i);
+                    coherent.is_split(x, z)
+                },
+                scene.heights().samples(),
+                coherent.triangles(),
+                coherent.split_count(),
+                self.hash.value(),
+                out,
+            )
+            .is_ok()
+    }
+
+    /// Codes the whole cut as a key frame.
+    fn encode_key(&mut self, scene: &Scene, out: &mut Vec<u8>) {
+        let mut split = BitSet::new(self.grid.vertices());
+        for (x, z) in self.coherent.split_diamonds() {
+            split.insert(self.grid.index(x, z));
+        }
+        self.key_encoder
+            .encode(&split, scene.heights().samples(), None, out)
+            .expect("the tessellator's cuts are closed under parent");
+    }
+}
+
+/// Sorts `v` and keeps the values that occur an odd number of times, once each.
+fn odd_ones(v: &mut Vec<u32>) {
+    v.sort_unstable();
+    let mut out = 0;
+    let mut i = 0;
+    while i < v.len() {
+        let mut j = i + 1;
+        while j < v.len() && v[j] == v[i] {
+            j += 1;
+        }
+        if (j - i) % 2 == 1 {
+            v[out] = v[i];
+            out += 1;
+        }
+        i = j;
+    }
+    v.truncate(out);
+}
+
+#[cfg(test)]
+mod tests {
+    use super::odd_ones;
+
+    #[test]
+    fn odd_ones_cancel_pairs() {
+        let check = |input: &[u32], want: &[u32]| {
+            let mut v = input.to_vec();
+            odd_ones(&mut v);
+            assert_eq!(v, want, "{input:?}");
+        };
+        check(&[], &[]);
+        check(&[5], &[5]);
+        check(&[5, 5], &[]);
+        check(&[3, 5, 3, 5, 5], &[5]);
+        check(&[9, 1, 1, 1, 2, 9, 7], &[1, 2, 7]);
+    }
+}

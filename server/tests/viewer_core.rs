@@ -1,0 +1,297 @@
+//! The per-viewer core driven without sockets: frames made for a vehicle's drive go to a
+//! simulated viewer that loses, reorders and acknowledges them late; every frame it
+//! decodes must equal the server's cut for that frame, index for index.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+
+use roam_protocol::{Cut, DecodeError, Grid, MeshDecoder, mesh};
+use roam_server::physics::{Keys, VehicleState};
+use roam_server::tessellate::{Mesh, Mode};
+use roam_server::variance::VarianceTree;
+use roam_server::viewer::{Event, LOGS, Made, Scene, ViewerCore};
+use roam_server::world::{self, Inputs, World};
+use roam_server::{Terrain, generate};
+
+struct Fixture {
+    terrain: Arc<Terrain>,
+    variance: VarianceTree,
+}
+
+impl Fixture {
+    fn new(side: u32, seed: u64) -> Fixture {
+        let terrain = Arc::new(generate::synthetic(side, seed));
+        let variance = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
+        Fixture { terrain, variance }
+    }
+
+    fn scene(&self) -> Scene<'_> {
+        Scene {
+            terrain: &self.terrain,
+            variance: &self.variance,
+        }
+    }
+
+    fn core(&self, budget: u32) -> ViewerCore {
+        let step = roam_protocol::height_step(self.terrain.heights.samples());
+        ViewerCore::new(
+            self.terrain.heights.levels(),
+            step,
+            60.0,
+            [640, 480],
+            budget,
+        )
+    }
+
+    fn grid(&self) -> Grid {
+        Grid::new(self.terrain.heights.levels()).expect("a valid size")
+    }
+
+    /// Vehicle states of a drive: throttle and turns both ways, `frames` of them two ticks
+    /// apart (50 frames a second).
+    fn drive(&self, frames: usize) -> Vec<VehicleState> {
+        let mut w = World::new(self.terrain.clone());
+        w.add(0, world::start_state(&self.terrain, 0))
+            .expect("the start is on the map");
+        let mut inputs = Inputs::new();
+        let mut out = Vec::new();
+        for k in 0..frames * 2 {
+            let keys = match (k / 150) % 4 {
+                0 => Keys::UP,
+                1 => Keys::UP.union(Keys::LEFT),
+                2 => Keys::UP,
+                _ => Keys::UP.union(Keys::RIGHT),
+            };
+            inputs.set(0, keys);
+            world::step(&mut w, &inputs);
+            if k % 2 == 1 {
+                out.push(w.vehicles()[0].state);
+            }
+        }
+        out
+    }
+}
+
+/// A viewer as the client keeps one: a decoder and its decoded frames (possible bases).
+struct Viewer {
+    grid: Grid,
+    decoder: MeshDecoder,
+    bases: VecDeque<(u64, Cut)>,
+}
+
+impl Viewer {
+    fn new(grid: Grid) -> Viewer {
+        Viewer {
+            grid,
+            decoder: MeshDecoder::new(grid),
+            bases: VecDeque::new(),
+        }
+    }
+
+    /// Decodes a frame against the base it names; keeps it as a base.
+    fn receive(&mut self, made: &Made) -> Result<mesh::Mesh, DecodeError> {
+        let base = match made.base {
+            Some(b) => Some(
+                &self
+                    .bases
+                    .iter()
+                    .find(|(f, _)| *f == b)
+                    .ok_or(DecodeError::Base)?
+                    .1,
+            ),
+            None => None,
+        };
+        let mut cut = Cut::default();
+        self.decoder
+            .decode_cut(&made.payload, base, u32::MAX, &mut cut)?;
+        let mut out = mesh::Mesh::default();
+        mesh::emit(&self.grid, &cut.split, self.decoder.heights(), &mut out);
+        self.bases.push_back((made.frame, cut));
+        if self.bases.len() > 32 {
+            self.bases.pop_front();
+        }
+        Ok(out)
+    }
+}
+
+/// The server's mesh for the core's cut now.
+fn server_mesh(core: &mut ViewerCore) -> Mesh {
+    let mut m = Mesh::default();
+    core.mesh(&mut m);
+    m
+}
+
+/// A small deterministic generator for the network's whims.
+struct Rng(u64);
+
+impl Rng {
+    fn next(&mut self) -> u64 {
+        self.0 = self
+            .0
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        self.0 >> 33
+    }
+
+    fn chance(&mut self, percent: u64) -> bool {
+        self.next() % 100 < percent
+    }
+}
+
+#[test]
+fn a_lossy_drive_decodes_exactly_frame_for_frame() {
+    let fx = Fixture::new(257, 7);
+    let scene = fx.scene();
+    for (seed, loss, budget) in [(1, 0, 3000), (2, 20, 3000), (3, 50, 1500), (4, 10, 40_000)] {
+        let mut rng = Rng(seed);
+        let mut core = fx.core(budget);
+        let mut viewer = Viewer::new(fx.grid());
+        // Frames in flight (delivered in a random order), acknowledgements in flight.
+        let mut wire: Vec<(Made, Mesh)> = Vec::new();
+        let mut acks: VecDeque<(usize, u64)> = VecDeque::new();
+        let (mut decoded, mut keys, mut changes) = (0, 0, 0);
+        for (k, state) in fx.drive(300).iter().enumerate() {
+            while acks.front().is_some_and(|&(due, _)| due <= k) {
+                let (_, f) = acks.pop_front().expect("checked above");
+                core.handle(Event::Acked(f));
+            }
+            let made = core.make_frame(&scene, state);
+            assert!(made.triangles <= budget, "over budget at frame {k}");
+            keys += usize::from(made.base.is_none());
+            changes += made.changes;
+            let expected = server_mesh(&mut core);
+            if !rng.chance(loss) {
+                wire.push((made, expected));
+            }
+            // Deliver some of what is in flight, in any order.
+            while !wire.is_empty() && rng.chance(60) {
+                let i = rng.next() as usize % wire.len();
+                let (made, expected) = wire.swap_remove(i);
+                match viewer.receive(&made) {
+                    Ok(got) => {
+                        assert_eq!(
+                            got.indices, expected.indices,
+                            "frame {} differs",
+                            made.frame
+                        );
+                        assert_eq!(got.vertices.len(), expected.vertices.len());
+                        decoded += 1;
+                        if !rng.chance(loss) {
+                            acks.push_back((k + 1 + rng.next() as usize % 3, made.frame));
+                        }
+                    }
+                    // Its base was dropped by the viewer (only when frames come very late).
+                    Err(DecodeError::Base) => {}
+                    Err(e) => panic!("frame {}: {e}", made.frame),
+                }
+            }
+        }
+        assert!(
+            decoded > 100 * (100 - loss as usize) / 100,
+            "{decoded} decoded at {loss}% loss"
+        );
+        assert!(changes > 0, "the cut changed along the drive");
+        if loss == 0 {
+            assert_eq!(keys, 1, "a lossless drive needs one key frame");
+        } else {
+            assert!(keys < 300 / 4, "{keys} key frames at {loss}% loss");
+        }
+    }
+}
+
+#[test]
+fn a_delta_against_a_base_the_viewer_lacks_is_refused_and_a_key_frame_follows() {
+    let fx = Fixture::new(129, 3);
+    let scene = fx.scene();
+    let drive = fx.drive(40);
+    let mut core = fx.core(2000);
+    let mut viewer = Viewer::new(fx.grid());
+    let first = core.make_frame(&scene, &drive[0]);
+    viewer.receive(&first).expect("a key frame decodes alone");
+    core.handle(Event::Acked(first.frame));
+    let mut last = first.clone();
+    for state in &drive[1..10] {
+        last = core.make_frame(&scene, state);
+    }
+    assert_eq!(last.base, Some(first.frame));
+    // Decoded against another cut than its base, the frame is refused, never shown.
+    let mut wrong = viewer.bases[0].1.clone();
+    let grid = fx.grid();
+    let (x, z) = grid.root();
+    wrong.split.insert(grid.index(x, z) + 1);
+    let mut out = Cut::default();
+    let err = viewer
+        .decoder
+        .decode_cut(&last.payload, Some(&wrong), u32::MAX, &mut out)
+        .expect_err("a frame against the wrong base");
+    assert!(
+        matches!(err, DecodeError::Check | DecodeError::Corrupt(_)),
+        "{err}"
+    );
+    core.handle(Event::KeyFrame);
+    let key = core.make_frame(&scene, &drive[30]);
+    assert_eq!(key.base, None, "a key frame follows the request");
+    let next = core.make_frame(&scene, &drive[31]);
+    assert_eq!(next.base, None, "no base acknowledged since");
+}
+
+#[test]
+fn acks_beyond_the_logs_or_from_the_future_give_key_frames() {
+    let fx = Fixture::new(129, 5);
+    let scene = fx.scene();
+    let drive = fx.drive(LOGS + 10);
+    let mut core = fx.core(2000);
+    core.handle(Event::Acked(5)); // not made yet: ignored
+    let first = core.make_frame(&scene, &drive[0]);
+    assert_eq!((first.frame, first.base), (0, None));
+    core.handle(Event::Acked(0));
+    let second = core.make_frame(&scene, &drive[1]);
+    assert_eq!(second.base, Some(0));
+    for state in &drive[2..LOGS + 3] {
+        let made = core.make_frame(&scene, state);
+        assert_ne!(made.base, Some(0).filter(|_| made.frame > LOGS as u64));
+    }
+    let late = core.make_frame(&scene, &drive[LOGS + 3]);
+    assert_eq!(
+        late.base, None,
+        "frame 0's changes since are no longer logged"
+    );
+}
+
+#[test]
+fn budget_view_and_jumps_steer_the_cut() {
+    let fx = Fixture::new(257, 9);
+    let scene = fx.scene();
+    let drive = fx.drive(20);
+    let mut core = fx.core(4000);
+    assert_eq!(core.make_frame(&scene, &drive[0]).mode, Mode::Rebuild);
+    let step = core.make_frame(&scene, &drive[1]);
+    assert_eq!(step.mode, Mode::Update, "a frame's step is an update");
+    assert!(step.triangles > 3000);
+    core.handle(Event::Budget(500));
+    let small = core.make_frame(&scene, &drive[2]);
+    assert!(small.triangles <= 500, "{}", small.triangles);
+    core.handle(Event::Budget(1));
+    assert!(core.make_frame(&scene, &drive[3]).triangles <= 2);
+    core.handle(Event::Budget(4000));
+    core.make_frame(&scene, &drive[4]);
+    // A spectator switching to a vehicle far away, and the bounce at the map's edge (the
+    // heading turned around), rebuild.
+    let mut far = drive[5];
+    far.x = fx.terrain.map.h_scale * 10.0;
+    far.z = fx.terrain.map.h_scale * 240.0;
+    assert_eq!(core.make_frame(&scene, &far).mode, Mode::Rebuild);
+    let mut bounced = far;
+    bounced.heading = (far.heading + 180.0) % 360.0;
+    assert_eq!(core.make_frame(&scene, &bounced).mode, Mode::Rebuild);
+    assert_eq!(core.make_frame(&scene, &bounced).mode, Mode::Update);
+    // Looking straight down sees little: the budget is spent under the eye.
+    let before = core.make_frame(&scene, &bounced).triangles;
+    core.handle(Event::View(roam_protocol::messages::ViewChange {
+        pitch_deg: -89.0,
+        eye_above: 0.0,
+        viewport: [640, 480],
+    }));
+    let down = core.make_frame(&scene, &bounced);
+    assert!(down.triangles < before, "{} !< {before}", down.triangles);
+}
