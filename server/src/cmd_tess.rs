@@ -350,7 +350,7 @@ fn serve_bench(
     limits: Limits,
 ) -> Result<ServeFigures> {
     use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
-    use roam_server::tessellate::Mode;
+    use roam_server::tessellate::{Mode, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
     let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
@@ -392,11 +392,6 @@ fn serve_bench(
         mesh::emit(&grid, &cut.split, decoder.heights(), &mut viewer);
         core.mesh(&mut served);
         if viewer.indices != served.indices {
-            let server: Vec<u32> = core
-                .cut()
-                .split_diamonds()
-                .map(|(x, z)| grid.index(x, z))
-                .collect();
             bail!(
                 "frame {k}: the viewer's mesh differs from the server's: a codec bug \
                  ({} vs {} triangles, base {:?}, {:?})",
@@ -412,8 +407,17 @@ fn serve_bench(
             bail!("the served cut is over budget at frame {k}: a tessellator bug");
         }
         scratch.tessellate(&terrain.heights, vt, sc, cam, limits, &mut served);
+        // Both cuts measured the same way (from scratch reports only what its queue reached).
         err.push(f64::from(core.cut().error_bound_px()));
-        scratch_err.push(f64::from(served.error_bound_px));
+        let h = &terrain.heights;
+        scratch_err.push(f64::from(measured_error(
+            h,
+            vt,
+            sc,
+            cam,
+            limits,
+            scratch.split_diamonds(),
+        )));
     }
     Ok(ServeFigures {
         frame_us_median: quantile(&us, 0.5),
