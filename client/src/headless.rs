@@ -58,6 +58,11 @@ impl Default for ViewerOptions {
 #[derive(Clone, Debug, Default)]
 pub struct ViewerStats {
     pub frames: u64,
+    /// Numbers of the first and the last frame taken: the server made every frame between
+    /// them, so their span over [`Self::seconds`] is the rate it sent at, and the frames not
+    /// taken were lost or superseded before the viewer got to them.
+    pub first_frame: Option<u64>,
+    pub last_frame: u64,
     pub seconds: f64,
     /// Wire bytes per triangle of the first frame, and of each later one.
     pub first: Option<f64>,
@@ -124,6 +129,8 @@ pub async fn run(
             Taken::Frame(r) => r,
         };
         stats.frames += 1;
+        stats.first_frame.get_or_insert(r.frame);
+        stats.last_frame = r.frame;
         stats.last_tick = r.tick;
         if opts.skip_decode {
             continue;

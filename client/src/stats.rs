@@ -13,12 +13,22 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         .iter()
         .map(|s| s.frames as f64 / s.seconds.max(1e-9))
         .collect();
+    let made: Vec<f64> = viewers
+        .iter()
+        .map(|s| {
+            let span = s
+                .first_frame
+                .map_or(0, |f| s.last_frame.saturating_sub(f) + 1);
+            span as f64 / s.seconds.max(1e-9)
+        })
+        .collect();
     let latencies = all(&|s| s.latencies_ms.clone());
     serde_json::json!({
         "viewers": viewers.len(),
         "frames": frames,
         "frames_per_second": fps.iter().sum::<f64>() / fps.len().max(1) as f64,
         "frames_per_second_min": fps.iter().copied().fold(f64::INFINITY, f64::min),
+        "frames_sent_per_second_min": made.iter().copied().fold(f64::INFINITY, f64::min),
         "wire_bytes_per_triangle_first": quantile(&all(&|s| s.first.into_iter().collect()), 0.5),
         "wire_bytes_per_triangle_steady": quantile(&all(&|s| s.steady.clone()), 0.5),
         "input_to_frame_ms_median": quantile(&latencies, 0.5),

@@ -226,6 +226,17 @@ impl BitSet {
         }
     }
 
+    /// The set whose members are the set bits of `words` (bit `i % 64` of word `i / 64`),
+    /// taking them without a copy.
+    pub fn from_words(words: Vec<u64>) -> BitSet {
+        BitSet { words }
+    }
+
+    /// The words back, without a copy.
+    pub fn into_words(self) -> Vec<u64> {
+        self.words
+    }
+
     /// Empties the set and sizes it for `bits`, keeping its memory.
     pub fn reset(&mut self, bits: usize) {
         self.words.clear();

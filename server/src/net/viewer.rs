@@ -316,17 +316,24 @@ async fn frames(
             c.handle(event);
         }
         let (shared2, state) = (shared.clone(), v.state);
-        let Ok((c, made)) = tokio::task::spawn_blocking(move || {
+        let make = move |mut c: ViewerCore| {
             let scene = Scene {
                 terrain: &shared2.terrain,
                 variance: &shared2.variance,
             };
             let made = c.make_frame(&scene, &state);
             (c, made)
-        })
-        .await
-        else {
-            return FramesEnd::Failed("the frame maker failed");
+        };
+        // An update is a fraction of a millisecond: made in line. A rebuild or a key frame
+        // (milliseconds at large budgets) goes to a blocking thread, so it never holds up
+        // the other viewers' tasks.
+        let (c, made) = if c.next_is_cheap() {
+            make(c)
+        } else {
+            match tokio::task::spawn_blocking(move || make(c)).await {
+                Ok(r) => r,
+                Err(_) => return FramesEnd::Failed("the frame maker failed"),
+            }
         };
         let acked = c.acked();
         core = Some(c);

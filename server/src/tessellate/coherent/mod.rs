@@ -171,6 +171,15 @@ impl Coherent {
             })
     }
 
+    /// Calls `f` with the split set as the codec's row-major bitset over the map (the
+    /// tessellator's own bitset, lent without a copy).
+    pub fn with_split_set<R>(&mut self, f: impl FnOnce(&roam_protocol::BitSet) -> R) -> R {
+        let set = roam_protocol::BitSet::from_words(std::mem::take(&mut self.tess.active));
+        let r = f(&set);
+        self.tess.active = set.into_words();
+        r
+    }
+
     /// Writes the cut's mesh (the from-scratch tessellator's layout and order).
     pub fn mesh(&mut self, out: &mut Mesh) {
         self.tess.triangles = self.triangles;

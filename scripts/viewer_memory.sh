@@ -1,0 +1,50 @@
+#!/usr/bin/env bash
+# Server memory per viewer (README, command I): the server's anonymous RSS while 1 and
+# then 5 viewers drive at 65,536 triangles over a 4097² data set; per viewer is
+# (RSS with 5 − RSS with 1) ÷ 4. Prints one JSON line.
+#
+#   scripts/viewer_memory.sh [DATA]     (default: /tmp/synth-4097, generated if missing)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+DATA=${1:-/tmp/synth-4097}
+BUDGET=${BUDGET:-65536}
+cargo build --release -p roam-server -p roam-client >&2
+[[ -d "$DATA" ]] || target/release/roam-server generate "$DATA" --side 4097 --seed 1 >&2
+
+state=$(mktemp -d)
+log="$state/server.log"
+target/release/roam-server serve "$DATA" --listen 127.0.0.1:0 --state-dir "$state" >"$log" 2>&1 &
+server=$!
+trap 'kill -INT $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$state"' EXIT
+for _ in $(seq 1 1200); do
+    grep -q '^connect with:' "$log" && break
+    kill -0 $server 2>/dev/null || { cat "$log" >&2; exit 1; }
+    sleep 0.1
+done
+read -r addr token fingerprint < <(sed -n 's/^connect with: roam-client --connect \([^ ]*\) --token \([^ ]*\) --fingerprint \([^ ]*\).*/\1 \2 \3/p' "$log")
+# Throttle and turns both ways: the cut keeps changing.
+printf '300 U\n200 UL\n200 U\n200 UR\n300 U\n' >"$state/drive.txt"
+
+rss_anon() { awk '/^RssAnon:/ { print $2 * 1024 }' "/proc/$server/status"; }
+
+# RssAnon of the server 8 s into a run of N driving viewers (20 s of frames).
+measure() {
+    target/release/roam-client --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
+        --headless --viewers "$1" --budget "$BUDGET" --frames 1200 --skip-decode \
+        --inputs "$state/drive.txt" >/dev/null &
+    local client=$!
+    sleep 8
+    rss_anon
+    wait $client
+}
+
+idle=$(rss_anon)
+one=$(measure 1)
+five=$(measure 5)
+python3 -c "
+import json
+idle, one, five = $idle, $one, $five
+print(json.dumps({'data_set': '$DATA', 'budget': $BUDGET, 'rss_anon_idle': idle,
+    'rss_anon_1_viewer': one, 'rss_anon_5_viewers': five,
+    'bytes_per_viewer': (five - one) / 4}))"
