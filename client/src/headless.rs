@@ -64,6 +64,11 @@ pub struct ViewerStats {
     pub first_frame: Option<u64>,
     pub last_frame: u64,
     pub seconds: f64,
+    /// From the join (welcome and colour map received) to the first frame, and from the
+    /// first frame to the last: the frame rate is taken over the latter, so it measures
+    /// frames arriving, not joining.
+    pub first_frame_s: f64,
+    pub streaming_s: f64,
     /// Wire bytes per triangle of the first frame, and of each later one.
     pub first: Option<f64>,
     pub steady: Vec<f64>,
@@ -112,6 +117,7 @@ pub async fn run(
         ..ViewerStats::default()
     };
     let started = Instant::now();
+    let mut first_at: Option<Instant> = None;
     let mut stop = opts.stop.clone();
     while stats.frames < opts.frames {
         let r = match session.take(!opts.skip_decode).await? {
@@ -129,6 +135,10 @@ pub async fn run(
             Taken::Frame(r) => r,
         };
         stats.frames += 1;
+        if stats.first_frame.is_none() {
+            first_at = Some(Instant::now());
+            stats.first_frame_s = started.elapsed().as_secs_f64();
+        }
         stats.first_frame.get_or_insert(r.frame);
         stats.last_frame = r.frame;
         stats.last_tick = r.tick;
@@ -165,6 +175,7 @@ pub async fn run(
             .copied();
     }
     stats.seconds = started.elapsed().as_secs_f64();
+    stats.streaming_s = first_at.map_or(0.0, |t| t.elapsed().as_secs_f64());
     if let Some(k) = keys {
         k.abort();
     }
