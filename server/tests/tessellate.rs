@@ -269,7 +269,8 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
             |split: Vec<(u32, u32)>| measured_error(&hf, &vt, scales(), &cam, limits, split);
         let served = measure(a.split_diamonds().collect());
         let best = measure(t.split_diamonds().collect());
-        if (served - a.error_bound_px()).abs() > 1e-6 * served {
+        // Kept priorities are recomputed before they can drift 2 % from the truth.
+        if (served - a.error_bound_px()).abs() > 0.025 * served {
             return Err(fail(format!(
                 "the served cut reports {} px left, {served} measured",
                 a.error_bound_px()

@@ -35,18 +35,41 @@ pub(super) struct Shape4 {
     pub offsets: [F4; 4],
 }
 
+/// A batch's priorities and what decides how long they stay true.
+pub(super) struct Priority {
+    /// Screen-space error in pixels.
+    pub prio: F4,
+    /// Lanes wholly outside one frustum plane, and lanes whose footprint holds the eye's
+    /// ground position.
+    pub outside: u32,
+    pub under: u32,
+    /// Distance from the eye to the centre less the prism's reach (before the floor), and
+    /// plus it: world units.
+    pub clear: F4,
+    pub far: F4,
+    /// The smallest of the four planes' largest signed distance over the prism (how far it
+    /// is from leaving the view), and the largest distance wholly behind one (how far from
+    /// entering it): world units.
+    pub inside_by: F4,
+    pub outside_by: F4,
+    /// The eye's ground position from the centre, grid units.
+    pub ex: F4,
+    pub ez: F4,
+}
+
 /// The priority of each lane (screen-space error in pixels), and the masks of lanes wholly
 /// outside one frustum plane and of lanes whose footprint holds the eye's ground position.
 /// One computation for the from-scratch and the frame-coherent tessellators, so both rank
-/// a diamond identically, bit for bit.
+/// a diamond identically, bit for bit (what a caller does not read is compiled out).
 #[inline(always)]
-pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> (F4, u32, u32) {
+pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
     let (lo, hi) = (b.lo.sub(b.e), b.hi.add(b.e));
     let half = F4::splat(0.5);
     let (yc, hy) = (half.mul(lo.add(hi)), half.mul(hi.sub(lo)));
     let (xf, zf) = (b.x, b.z);
     // Outside if any of the four planes puts the bounding prism wholly behind it.
     let mut outside = 0;
+    let (mut inside_by, mut outside_by) = (F4::splat(f32::INFINITY), F4::splat(0.0));
     for (p, offset) in f.planes.iter().zip(&s.offsets) {
         let d =
             p.a.mul(xf)
@@ -55,6 +78,8 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> (F4, u32, u32) {
                 .add(*offset)
                 .add(hy.mul(p.abs_b));
         outside |= d.lt(F4::splat(0.0));
+        inside_by = inside_by.min(d);
+        outside_by = F4::splat(0.0).sub(d).max(outside_by);
     }
     // The ground under the eye is refined first, in view or not.
     let (ex, ez) = (f.eye_x.sub(xf), f.eye_z.sub(zf));
@@ -67,14 +92,20 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> (F4, u32, u32) {
     };
     let (dx, dy, dz) = (ex.mul(f.hs), f.eye_y.sub(yc.mul(f.vs)), ez.mul(f.hs));
     let reach = s.reach.add(f.vs.mul(hy));
-    let d = dx
-        .mul(dx)
-        .add(dy.mul(dy))
-        .add(dz.mul(dz))
-        .sqrt()
-        .sub(reach)
-        .max(F4::splat(MIN_DISTANCE));
-    (b.e.mul(f.px).div(d), outside, under)
+    let dist = dx.mul(dx).add(dy.mul(dy)).add(dz.mul(dz)).sqrt();
+    let clear = dist.sub(reach);
+    let d = clear.max(F4::splat(MIN_DISTANCE));
+    Priority {
+        prio: b.e.mul(f.px).div(d),
+        outside,
+        under,
+        clear,
+        far: dist.add(reach),
+        inside_by,
+        outside_by,
+        ex,
+        ez,
+    }
 }
 
 /// The smallest and largest of four corner heights, per lane.
@@ -279,7 +310,12 @@ impl Tessellator {
             square: if square { 0xf } else { 0 },
             offsets: f.plane_offsets[usize::from(square) << 4 | m as usize],
         };
-        let (prio, outside, under) = priority(f, b, &shape);
+        let Priority {
+            prio,
+            outside,
+            under,
+            ..
+        } = priority(f, b, &shape);
         let shown = live & (!outside | under);
         self.stats.culled += (live & !shown).count_ones();
         let above = f.threshold.le(prio);

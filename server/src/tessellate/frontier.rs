@@ -44,6 +44,11 @@ impl<T: Copy> PosSet<T> {
         &self.data
     }
 
+    /// The same, to change.
+    pub fn values_mut(&mut self) -> &mut [T] {
+        &mut self.data
+    }
+
     pub fn len(&self) -> usize {
         self.list.len()
     }

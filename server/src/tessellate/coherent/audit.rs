@@ -89,7 +89,7 @@ impl Coherent {
         let f = self.tess.frame(hf, variance, scales, camera, limits);
         for set in [&self.split_cands, &self.merge_cands] {
             for (&p, v) in set.as_slice().iter().zip(set.values()) {
-                if fixed(&f, p) != *v {
+                if fixed(&f, p) != v.fixed {
                     return Err(format!("stale values kept beside {:?}", unpack(p)));
                 }
             }

@@ -37,6 +37,52 @@ pub(super) struct Lanes {
     pub under: u32,
     /// Lanes in view with error, but below the threshold (for the error bound).
     pub dropped: u32,
+    /// Per lane, how far the eye may move (world units) and turn (radians) before the
+    /// evaluation must be done again.
+    pub slack: [(f32, f32); 4],
+}
+
+/// How far a kept priority may drift from the true one before it is computed again: 2 %
+/// (the split/merge choices and the error bound are that close to exact).
+pub(super) const PRIORITY_TOLERANCE: f32 = 0.02 / 1.02;
+
+/// A frontier diamond's kept evaluation: its fixed part, the priority and verdicts last
+/// computed, and the odometer readings at which they must be computed again.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Entry {
+    pub fixed: Fixed,
+    pub prio: f32,
+    /// Bit 0 wanted, 1 under the eye, 2 dropped (as in [`Lanes`]).
+    pub flags: u8,
+    /// Due when the eye's travel reaches `due_moved` or its turning `due_turned`.
+    pub due_moved: f64,
+    pub due_turned: f64,
+}
+
+impl Entry {
+    /// A diamond that joins a frontier: evaluated at the next frame.
+    pub fn fresh(fixed: Fixed) -> Entry {
+        Entry {
+            fixed,
+            prio: 0.0,
+            flags: 0,
+            due_moved: f64::NEG_INFINITY,
+            due_turned: f64::NEG_INFINITY,
+        }
+    }
+
+    /// Keeps lane `i` of an evaluation made at these odometer readings.
+    pub fn keep(&mut self, l: &Lanes, i: usize, moved: f64, turned: f64) {
+        self.prio = l.prio[i];
+        self.flags = super::lane_flags(l, i);
+        let (m, t) = l.slack[i];
+        self.due_moved = moved + f64::from(m);
+        self.due_turned = turned + f64::from(t);
+    }
+
+    pub fn due(&self, moved: f64, turned: f64) -> bool {
+        moved >= self.due_moved || turned >= self.due_turned
+    }
 }
 
 impl Coherent {
@@ -69,15 +115,61 @@ impl Coherent {
             square,
             offsets: offsets.map(F4::new),
         };
-        let (prio, outside, under) = priority(f, &batch, &shape);
+        let p = priority(f, &batch, &shape);
         let live = batch.valid & F4::splat(0.0).lt(batch.e);
-        let shown = live & (!outside | under);
-        let above = f.threshold.le(prio);
+        let shown = live & (!p.outside | p.under);
+        let above = f.threshold.le(p.prio);
+        // How far the eye may move, and turn, before any of this could change (see the
+        // module docs): the priority by more than `PRIORITY_TOLERANCE`, the frustum's
+        // verdict, or whether the footprint holds the eye's ground position.
+        let zero = F4::splat(0.0);
+        let ground = F4::splat(f.hs_scalar);
+        let (ax, az) = (p.ex.abs().sub(h), p.ez.abs().sub(h));
+        let to_box = ax.max(az);
+        let to_l1 = ax
+            .add(p.ez.abs())
+            .mul(F4::splat(std::f32::consts::FRAC_1_SQRT_2));
+        let footprint = F4::new(std::array::from_fn(|i| {
+            if square >> i & 1 != 0 {
+                to_box.to_array()[i]
+            } else {
+                to_l1.to_array()[i]
+            }
+        }))
+        .max(zero)
+        .mul(ground);
+        let margin = F4::new(std::array::from_fn(|i| {
+            if p.outside >> i & 1 != 0 {
+                p.outside_by.to_array()[i]
+            } else {
+                p.inside_by.to_array()[i]
+            }
+        }))
+        .max(zero);
+        let half = F4::splat(0.5);
+        let by_prio = p.clear.mul(F4::splat(PRIORITY_TOLERANCE)).max(zero);
+        let moved = margin.mul(half).min(footprint);
+        let moved_shown = moved.min(by_prio);
+        let turned = margin.mul(half).div(p.far.max(F4::splat(1e-3)));
+        let (moved, moved_shown, turned) =
+            (moved.to_array(), moved_shown.to_array(), turned.to_array());
         Lanes {
-            prio: prio.to_array(),
-            wanted: shown & (under | above),
-            under: shown & under,
-            dropped: shown & !under & !above,
+            prio: p.prio.to_array(),
+            wanted: shown & (p.under | above),
+            under: shown & p.under,
+            dropped: shown & !p.under & !above,
+            slack: std::array::from_fn(|i| {
+                if live >> i & 1 == 0 {
+                    // Exact: nothing about it will ever change.
+                    (f32::INFINITY, f32::INFINITY)
+                } else if p.under >> i & 1 != 0 {
+                    (0.0, 0.0)
+                } else if shown >> i & 1 != 0 {
+                    (moved_shown[i], turned[i])
+                } else {
+                    (moved[i], turned[i])
+                }
+            }),
         }
     }
 

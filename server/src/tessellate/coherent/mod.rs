@@ -35,7 +35,7 @@ mod eval;
 
 pub use audit::measured_error;
 
-use self::eval::{Fixed, Lanes, fixed};
+use self::eval::{Entry, Lanes, fixed};
 use super::frontier::PosSet;
 use super::{Frame, Limits, Mesh, Scales, Tessellator, classify, pack, unpack};
 use crate::camera::Camera;
@@ -74,8 +74,12 @@ struct Last {
 /// One viewer's cut, carried from frame to frame.
 pub struct Coherent {
     tess: Tessellator,
-    split_cands: PosSet<Fixed>,
-    merge_cands: PosSet<Fixed>,
+    split_cands: PosSet<Entry>,
+    merge_cands: PosSet<Entry>,
+    /// How far the eye has travelled (world units) and turned (radians), summed over the
+    /// frames: the odometers a kept evaluation is due against.
+    moved: f64,
+    turned: f64,
     split_q: BucketQueue,
     /// Buckets inverted (lowest priority first); `TOP` holds unwanted splits.
     merge_q: BucketQueue,
@@ -102,6 +106,8 @@ impl Coherent {
             tess: Tessellator::new(side),
             split_cands: PosSet::default(),
             merge_cands: PosSet::default(),
+            moved: 0.0,
+            turned: 0.0,
             split_q: BucketQueue::default(),
             merge_q: BucketQueue::default(),
             log: Vec::new(),
@@ -211,6 +217,21 @@ impl Coherent {
         self.log.clear();
         self.stats = CoherentStats::default();
         let jump = rebuild || self.jumped(camera, limits, scales);
+        if let Some(last) = &self.last {
+            let c = &last.camera;
+            let turn = |a: f64, b: f64| {
+                let d = crate::physics::wrap_degrees(a - b);
+                d.min(360.0 - d)
+            };
+            self.moved += (0..3)
+                .map(|i| (camera.eye[i] - c.eye[i]).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            // A yaw and a pitch change compose into a rotation of at most their sum.
+            self.turned += (turn(camera.yaw_deg, c.yaw_deg)
+                + (camera.pitch_deg - c.pitch_deg).abs())
+            .to_radians();
+        }
         self.last = Some(Last {
             camera: *camera,
             budget: limits.budget,
@@ -297,7 +318,8 @@ impl Coherent {
         let f = self.tess.frame(hf, variance, scales, camera, limits);
         let root = self.root();
         if self.split_count == 0 {
-            self.split_cands.insert_with(root, || fixed(&f, root));
+            self.split_cands
+                .insert_with(root, || Entry::fresh(fixed(&f, root)));
         }
         for k in 0..self.tess.active_list.len() {
             let (x, z) = unpack(self.tess.active_list[k]);
@@ -307,12 +329,14 @@ impl Coherent {
                 if self.tess.is_active(cx, cz) {
                     any = true;
                 } else {
-                    self.split_cands.insert_with(c, || fixed(&f, c));
+                    self.split_cands
+                        .insert_with(c, || Entry::fresh(fixed(&f, c)));
                 }
             }
             if !any {
                 let pos = pack(x, z);
-                self.merge_cands.insert_with(pos, || fixed(&f, pos));
+                self.merge_cands
+                    .insert_with(pos, || Entry::fresh(fixed(&f, pos)));
             }
         }
         self.stats.splits += (self.log.len() - logged) as u32;
@@ -390,25 +414,46 @@ impl Coherent {
         })
     }
 
-    /// Evaluates a frontier, four diamonds at a time, and queues each.
+    /// Evaluates again the frontier diamonds that are due (four at a time), and queues
+    /// every one by its kept evaluation.
     fn evaluate_all(&mut self, f: &Frame, merges: bool) {
-        let list = if merges {
+        let mut list = if merges {
             std::mem::take(&mut self.merge_cands)
         } else {
             std::mem::take(&mut self.split_cands)
         };
-        for (pos, fixed) in list.as_slice().chunks(4).zip(list.values().chunks(4)) {
-            let d = [0, 1, 2, 3].map(|i| &fixed[i.min(fixed.len() - 1)]);
-            let lanes = self.evaluate(f, d, fixed.len());
-            for (i, &p) in pos.iter().enumerate() {
-                if merges {
-                    self.queue_merge(&lanes, i, p);
-                } else {
-                    self.queue_split(&lanes, i, p);
+        let (moved, turned) = (self.moved, self.turned);
+        let mut due = [0usize; 4];
+        let mut n = 0;
+        let mut evaluated = 0;
+        let len = list.len();
+        for k in 0..=len {
+            if k < len && list.values()[k].due(moved, turned) {
+                due[n] = k;
+                n += 1;
+                if n < 4 {
+                    continue;
                 }
             }
+            if n == 4 || (k == len && n > 0) {
+                let values = list.values();
+                let d = [0, 1, 2, 3].map(|i| &values[due[i.min(n - 1)]].fixed);
+                let lanes = self.evaluate(f, d, n);
+                for (i, &at) in due.iter().enumerate().take(n) {
+                    list.values_mut()[at].keep(&lanes, i, moved, turned);
+                }
+                evaluated += n;
+                n = 0;
+            }
         }
-        self.stats.evaluated += list.len() as u32;
+        for (&pos, e) in list.as_slice().iter().zip(list.values()) {
+            if merges {
+                self.queue_merge(e.prio, e.flags, pos);
+            } else {
+                self.queue_split(e.prio, e.flags, pos);
+            }
+        }
+        self.stats.evaluated += evaluated as u32;
         if merges {
             self.merge_cands = list;
         } else {
@@ -416,29 +461,36 @@ impl Coherent {
         }
     }
 
+    /// Queues lane `i` of an evaluation as a split candidate.
     #[inline]
-    fn queue_split(&mut self, l: &Lanes, i: usize, pos: u32) {
-        let p = l.prio[i];
-        if l.dropped >> i & 1 != 0 {
-            self.dropped = p.max(self.dropped);
-        }
-        let bucket = if l.under >> i & 1 != 0 {
-            TOP
-        } else {
-            bucket_of(p)
-        };
-        let entry = (u64::from(p.to_bits()) << 32) | u64::from(pos);
-        self.split_q.push_if(l.wanted >> i & 1 != 0, bucket, entry);
+    fn queue_split_lane(&mut self, l: &Lanes, i: usize, pos: u32) {
+        self.queue_split(l.prio[i], lane_flags(l, i), pos);
+    }
+
+    /// Queues lane `i` of an evaluation as a merge candidate.
+    #[inline]
+    fn queue_merge_lane(&mut self, l: &Lanes, i: usize, pos: u32) {
+        self.queue_merge(l.prio[i], lane_flags(l, i), pos);
     }
 
     #[inline]
-    fn queue_merge(&mut self, l: &Lanes, i: usize, pos: u32) {
-        let p = l.prio[i];
-        if l.under >> i & 1 != 0 {
+    fn queue_split(&mut self, p: f32, flags: u8, pos: u32) {
+        let (wanted, under, dropped) = (flags & 1 != 0, flags & 2 != 0, flags & 4 != 0);
+        if dropped {
+            self.dropped = p.max(self.dropped);
+        }
+        let bucket = if under { TOP } else { bucket_of(p) };
+        let entry = (u64::from(p.to_bits()) << 32) | u64::from(pos);
+        self.split_q.push_if(wanted, bucket, entry);
+    }
+
+    #[inline]
+    fn queue_merge(&mut self, p: f32, flags: u8, pos: u32) {
+        if flags & 2 != 0 {
             return; // the ground under the eye stays refined
         }
         // Unwanted splits go first (bucket TOP); the others lowest priority first.
-        let (bucket, p) = if l.wanted >> i & 1 == 0 {
+        let (bucket, p) = if flags & 1 == 0 {
             (TOP, 0.0f32)
         } else {
             (TOP - 1 - bucket_of(p), p)
@@ -579,11 +631,15 @@ impl Coherent {
         for p in self.parents(x, z).into_iter().flatten() {
             self.merge_cands.remove(p);
         }
-        self.merge_cands.insert_with(pos, || fixed(f, pos));
+        self.merge_cands
+            .insert_with(pos, || Entry::fresh(fixed(f, pos)));
         let mut fresh = [0u32; 4];
         let mut n = 0;
         for c in self.children(x, z).into_iter().flatten() {
-            if self.split_cands.insert_with(c, || fixed(f, c)) {
+            if self
+                .split_cands
+                .insert_with(c, || Entry::fresh(fixed(f, c)))
+            {
                 fresh[n] = c;
                 n += 1;
             }
@@ -597,13 +653,13 @@ impl Coherent {
             self.evaluate_at(f, &pos4)
         };
         for (i, &c) in fresh.iter().enumerate().take(n) {
-            self.queue_split(&lanes, i, c);
+            self.queue_split_lane(&lanes, i, c);
         }
         if n < 4 {
-            self.queue_merge(&lanes, n, pos);
+            self.queue_merge_lane(&lanes, n, pos);
         } else {
             let lanes = self.evaluate_at(f, &[pos]);
-            self.queue_merge(&lanes, 0, pos);
+            self.queue_merge_lane(&lanes, 0, pos);
         }
     }
 
@@ -617,7 +673,8 @@ impl Coherent {
         self.stats.merges += 1;
         self.log.push(pos);
         self.merge_cands.remove(pos);
-        self.split_cands.insert_with(pos, || fixed(f, pos));
+        self.split_cands
+            .insert_with(pos, || Entry::fresh(fixed(f, pos)));
         for c in self.children(x, z).into_iter().flatten() {
             let (cx, cz) = unpack(c);
             if !self.any_split(&self.parents(cx, cz)) {
@@ -629,7 +686,9 @@ impl Coherent {
         for p in self.parents(x, z).into_iter().flatten() {
             let (px, pz) = unpack(p);
             if !self.any_split(&self.children(px, pz))
-                && self.merge_cands.insert_with(p, || fixed(f, p))
+                && self
+                    .merge_cands
+                    .insert_with(p, || Entry::fresh(fixed(f, p)))
             {
                 fresh[n] = p;
                 n += 1;
@@ -638,9 +697,9 @@ impl Coherent {
         let mut pos4 = [pos; 4];
         pos4[1..=n].copy_from_slice(&fresh[..n]);
         let lanes = self.evaluate_at(f, &pos4[..=n]);
-        self.queue_split(&lanes, 0, pos);
+        self.queue_split_lane(&lanes, 0, pos);
         for (i, &p) in fresh.iter().enumerate().take(n) {
-            self.queue_merge(&lanes, i + 1, p);
+            self.queue_merge_lane(&lanes, i + 1, p);
         }
     }
 
@@ -668,4 +727,9 @@ impl Coherent {
         }
         best
     }
+}
+
+/// Lane `i`'s verdicts as [`Entry`] flags.
+fn lane_flags(l: &Lanes, i: usize) -> u8 {
+    (l.wanted >> i & 1) as u8 | ((l.under >> i & 1) as u8) << 1 | ((l.dropped >> i & 1) as u8) << 2
 }
