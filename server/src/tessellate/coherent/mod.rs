@@ -6,9 +6,17 @@
 //! split parent: what from-scratch split-only would have queued) and **merge candidates**
 //! (split diamonds none of whose children are split). Each frame:
 //!
-//! 1. Every frontier diamond's priority is computed for the new camera, with the very
-//!    function the from-scratch tessellator uses ([`super::evaluate::priority`]), four at a
-//!    time, and pushed into two bucket queues: splits highest first, merges lowest first.
+//! 1. Frontier diamonds are evaluated with the very function the from-scratch tessellator
+//!    uses ([`super::evaluate::priority`]), four at a time, but only when due (ROAM's
+//!    deferred priority recomputation, §7.3): each evaluation also says how far the eye may
+//!    travel, and how far it may turn, before the diamond's priority could drift by 2 %
+//!    (its distance changes by at most the eye's travel), its frustum verdict could flip
+//!    (a plane through the eye moves a point at distance `r` by at most travel + `r` ×
+//!    turn, and the verdict holds while that stays under the prism's margin to the plane),
+//!    or the eye could enter or leave its footprint; two odometers (travel and turn,
+//!    summed over frames) say when. Diamonds under the eye are evaluated every frame,
+//!    exact ones never again. Every frontier diamond is then queued by its kept
+//!    evaluation in two bucket queues: splits highest first, merges lowest first.
 //!    Merge candidates that are exact, wholly outside the view pyramid or below the
 //!    threshold are *unwanted*: from scratch would not have split them, so they are merged
 //!    first, whatever the budget. The diamonds under the eye are never merged.
@@ -26,9 +34,9 @@
 //! rebuilds the cut from scratch with split-only ROAM, the spec's algorithm, and logs the
 //! difference from the old cut.
 //!
-//! **Cost**: the frontier evaluation is proportional to the frontier (about the cut's
-//! size, but a few nanoseconds a diamond with no queue walk, forced-split search or mesh
-//! output); the split/merge loop and the log are proportional to the change.
+//! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates about 14 of
+//! some 26,000 frontier diamonds, and queuing every frontier diamond (a push each) is most
+//! of what is left; the split/merge loop and the log are proportional to the change.
 
 mod audit;
 mod eval;
