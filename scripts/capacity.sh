@@ -23,19 +23,9 @@ if (($(nproc) < 2)); then
 fi
 
 cargo build --release -p roam-server -p roam-client >&2
-state=$(mktemp -d)
-log="$state/server.log"
-taskset -c 0 target/release/roam-server serve "$DATA" --listen 127.0.0.1:0 \
-    --state-dir "$state" >"$log" 2>&1 &
-server=$!
-trap 'kill -INT $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$state"' EXIT
-for _ in $(seq 1 600); do
-    grep -q '^connect with:' "$log" && break
-    kill -0 $server 2>/dev/null || { cat "$log" >&2; exit 1; }
-    sleep 0.1
-done
-read -r addr token fingerprint < <(sed -n 's/^connect with: roam-client --connect \([^ ]*\) --token \([^ ]*\) --fingerprint \([^ ]*\).*/\1 \2 \3/p' "$log")
-[[ -n "${fingerprint:-}" ]] || { echo "error: the server did not say how to connect" >&2; cat "$log" >&2; exit 1; }
+# shellcheck source=scripts/lib.sh
+source scripts/lib.sh
+start_server "$DATA" taskset -c 0
 
 # CPU seconds (user + system) a process has used so far.
 cpu() { awk -v hz="$(getconf CLK_TCK)" '{ print ($14 + $15) / hz }' "/proc/$1/stat"; }

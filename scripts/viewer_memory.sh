@@ -12,17 +12,9 @@ BUDGET=${BUDGET:-65536}
 cargo build --release -p roam-server -p roam-client >&2
 [[ -d "$DATA" ]] || target/release/roam-server generate "$DATA" --side 4097 --seed 1 >&2
 
-state=$(mktemp -d)
-log="$state/server.log"
-target/release/roam-server serve "$DATA" --listen 127.0.0.1:0 --state-dir "$state" >"$log" 2>&1 &
-server=$!
-trap 'kill -INT $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$state"' EXIT
-for _ in $(seq 1 1200); do
-    grep -q '^connect with:' "$log" && break
-    kill -0 $server 2>/dev/null || { cat "$log" >&2; exit 1; }
-    sleep 0.1
-done
-read -r addr token fingerprint < <(sed -n 's/^connect with: roam-client --connect \([^ ]*\) --token \([^ ]*\) --fingerprint \([^ ]*\).*/\1 \2 \3/p' "$log")
+# shellcheck source=scripts/lib.sh
+source scripts/lib.sh
+start_server "$DATA"
 # Throttle and turns both ways: the cut keeps changing.
 printf '300 U\n200 UL\n200 U\n200 UR\n300 U\n' >"$state/drive.txt"
 

@@ -206,6 +206,28 @@ impl BucketQueue {
         })
     }
 
+    /// The highest priority (an entry's upper 32 bits, as `f32`) among the entries `live`
+    /// accepts. The top bucket (under the eye) is ranked by position, not priority, so it
+    /// is read whole and the search goes on to the first ordinary bucket holding a live
+    /// entry.
+    pub fn remaining_max(&self, live: impl Fn(u64) -> bool) -> f32 {
+        let mut best = 0f32;
+        for b in self.buckets_desc() {
+            let most = self
+                .entries(b)
+                .filter(|&e| live(e))
+                .map(|e| f32::from_bits((e >> 32) as u32))
+                .reduce(f32::max);
+            if let Some(v) = most {
+                best = best.max(v);
+                if b != TOP {
+                    break;
+                }
+            }
+        }
+        best
+    }
+
     pub fn heap_bytes(&self) -> usize {
         std::mem::size_of::<[Bucket; BUCKETS]>()
             + self.entries.capacity() * 8

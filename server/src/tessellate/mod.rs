@@ -33,7 +33,7 @@
 use crate::camera::Camera;
 use crate::diamond::Shape;
 use crate::heightfield::Heightfield;
-use crate::queue::{BucketQueue, TOP, bucket_of};
+use crate::queue::{BucketQueue, bucket_of};
 use crate::variance::{self, VarianceTree};
 
 mod coherent;
@@ -629,28 +629,11 @@ impl Tessellator {
         self.queue.push(bucket_of(prio), entry);
     }
 
-    /// The highest priority still queued, skipping diamonds already split. The top bucket
-    /// (under the eye) is ranked by position, not priority, so it is read whole and the
-    /// search goes on to the first ordinary bucket holding a live entry.
+    /// The highest priority still queued, skipping diamonds already split.
     fn remaining_max(&self) -> f32 {
-        let mut best = 0f32;
-        for b in self.queue.buckets_desc() {
-            let live = self
-                .queue
-                .entries(b)
-                .filter(|&e| {
-                    let (x, z) = unpack(e as u32);
-                    !self.is_active(x, z)
-                })
-                .map(|e| f32::from_bits((e >> 32) as u32))
-                .reduce(f32::max);
-            if let Some(v) = live {
-                best = best.max(v);
-                if b != TOP {
-                    break;
-                }
-            }
-        }
-        best
+        self.queue.remaining_max(|e| {
+            let (x, z) = unpack(e as u32);
+            !self.is_active(x, z)
+        })
     }
 }

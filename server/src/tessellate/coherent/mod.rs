@@ -226,19 +226,10 @@ impl Coherent {
         self.stats = CoherentStats::default();
         let jump = rebuild || self.jumped(camera, limits, scales);
         if let Some(last) = &self.last {
-            let c = &last.camera;
-            let turn = |a: f64, b: f64| {
-                let d = crate::physics::wrap_degrees(a - b);
-                d.min(360.0 - d)
-            };
-            self.moved += (0..3)
-                .map(|i| (camera.eye[i] - c.eye[i]).powi(2))
-                .sum::<f64>()
-                .sqrt();
+            let (moved, yaw, pitch) = motion(&last.camera, camera);
+            self.moved += moved;
             // A yaw and a pitch change compose into a rotation of at most their sum.
-            self.turned += (turn(camera.yaw_deg, c.yaw_deg)
-                + (camera.pitch_deg - c.pitch_deg).abs())
-            .to_radians();
+            self.turned += (yaw + pitch).to_radians();
         }
         self.last = Some(Last {
             camera: *camera,
@@ -259,16 +250,9 @@ impl Coherent {
             return true;
         };
         let c = &last.camera;
-        let turn = |a: f64, b: f64| {
-            let d = crate::physics::wrap_degrees(a - b);
-            d.min(360.0 - d)
-        };
-        let moved = (0..3)
-            .map(|i| (camera.eye[i] - c.eye[i]).powi(2))
-            .sum::<f64>()
-            .sqrt();
-        turn(camera.yaw_deg, c.yaw_deg) > JUMP_DEGREES
-            || (camera.pitch_deg - c.pitch_deg).abs() > JUMP_DEGREES
+        let (moved, yaw, pitch) = motion(c, camera);
+        yaw > JUMP_DEGREES
+            || pitch > JUMP_DEGREES
             || moved > JUMP_CELLS * scales.h
             || camera.fov_y_deg != c.fov_y_deg
             || (camera.width, camera.height) != (c.width, c.height)
@@ -711,33 +695,32 @@ impl Coherent {
         }
     }
 
-    /// The highest priority of a split candidate left unsplit: the top bucket (under the
-    /// eye) read whole, then the first ordinary bucket holding a valid entry.
+    /// The highest priority of a split candidate left unsplit.
     fn remaining_max(&self) -> f32 {
-        let mut best = 0f32;
-        for b in self.split_q.buckets_desc() {
-            let live = self
-                .split_q
-                .entries(b)
-                .filter(|&e| {
-                    let pos = e as u32;
-                    let (x, z) = unpack(pos);
-                    !self.tess.is_active(x, z) && self.split_cands.contains(pos)
-                })
-                .map(|e| f32::from_bits((e >> 32) as u32))
-                .reduce(f32::max);
-            if let Some(v) = live {
-                best = best.max(v);
-                if b != TOP {
-                    break;
-                }
-            }
-        }
-        best
+        self.split_q.remaining_max(|e| {
+            let pos = e as u32;
+            let (x, z) = unpack(pos);
+            !self.tess.is_active(x, z) && self.split_cands.contains(pos)
+        })
     }
 }
 
 /// Lane `i`'s verdicts as [`Entry`] flags.
 fn lane_flags(l: &Lanes, i: usize) -> u8 {
     (l.wanted >> i & 1) as u8 | ((l.under >> i & 1) as u8) << 1 | ((l.dropped >> i & 1) as u8) << 2
+}
+
+/// How far the eye moved between two cameras (world units), and how far the view turned
+/// in yaw and in pitch (degrees, the short way round).
+fn motion(a: &Camera, b: &Camera) -> (f64, f64, f64) {
+    let moved = (0..3)
+        .map(|i| (b.eye[i] - a.eye[i]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    let yaw = crate::physics::wrap_degrees(b.yaw_deg - a.yaw_deg);
+    (
+        moved,
+        yaw.min(360.0 - yaw),
+        (b.pitch_deg - a.pitch_deg).abs(),
+    )
 }

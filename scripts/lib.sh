@@ -1,0 +1,21 @@
+# Shared by the measuring scripts: start_server DATA [PREFIX...] starts `roam-server serve`
+# on an ephemeral loopback port (PREFIX, e.g. `taskset -c 0`, runs before it), waits until
+# it says how to connect, and sets $server (its pid), $state (a temporary directory removed
+# on exit), $addr, $token and $fingerprint.
+start_server() {
+    local data=$1
+    shift
+    state=$(mktemp -d)
+    local log="$state/server.log"
+    "$@" target/release/roam-server serve "$data" --listen 127.0.0.1:0 --state-dir "$state" \
+        >"$log" 2>&1 &
+    server=$!
+    trap 'kill -INT $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$state"' EXIT
+    for _ in $(seq 1 1200); do
+        grep -q '^connect with:' "$log" && break
+        kill -0 $server 2>/dev/null || { cat "$log" >&2; exit 1; }
+        sleep 0.1
+    done
+    read -r addr token fingerprint < <(sed -n 's/^connect with: roam-client --connect \([^ ]*\) --token \([^ ]*\) --fingerprint \([^ ]*\).*/\1 \2 \3/p' "$log")
+    [[ -n "${fingerprint:-}" ]] || { echo "error: the server did not say how to connect" >&2; cat "$log" >&2; exit 1; }
+}
