@@ -182,6 +182,7 @@ struct PathCase {
     /// Grid fractions, height above the ground, yaw.
     start: (f64, f64, f64, f64),
     budget: u32,
+    threshold: f32,
     path: Vec<Step>,
 }
 
@@ -192,16 +193,20 @@ fn path_case() -> impl Strategy<Value = PathCase> {
         0.0f64..1.0,
         (0.1f64..0.9, 0.1f64..0.9, 2.0f64..200.0, 0.0f64..360.0),
         16u32..3000,
+        prop_oneof![3 => Just(0.0f32), 1 => 0.2f32..4.0],
         prop::collection::vec(step(), 1..40),
     )
-        .prop_map(|(levels, seed, rough, start, budget, path)| PathCase {
-            levels,
-            seed,
-            rough,
-            start,
-            budget,
-            path,
-        })
+        .prop_map(
+            |(levels, seed, rough, start, budget, threshold, path)| PathCase {
+                levels,
+                seed,
+                rough,
+                start,
+                budget,
+                threshold,
+                path,
+            },
+        )
 }
 
 /// Runs the split/merge tessellator (twice, for determinism) and from-scratch split-only
@@ -236,7 +241,7 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
         let cam = camera(&hf, gx, gz, above, yaw, pitch, 60.0);
         let limits = Limits {
             budget,
-            threshold_px: 0.0,
+            threshold_px: case.threshold,
         };
         let mode = a.frame(&hf, &vt, scales(), &cam, limits, false);
         if b.frame(&hf, &vt, scales(), &cam, limits, false) != mode || a.changes() != b.changes() {

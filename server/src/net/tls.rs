@@ -148,9 +148,10 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     t.stream_receive_window((64u32 << 10).into());
     t.receive_window((128u32 << 10).into());
     t.datagram_receive_buffer_size(Some(64 << 10));
-    // Small frames go as datagrams: when a viewer's link cannot keep up, quinn drops the
-    // oldest queued ones, so a slow viewer holds at most this much (latest frame wins).
-    t.datagram_send_buffer_size(64 << 10);
+    // Small frames go as datagrams, which quinn sends first in, first out and drops oldest
+    // first when this buffer is full: room for a few frames only, so on a link that
+    // cannot keep up the newest frame waits behind at most a few stale ones.
+    t.datagram_send_buffer_size(4 << 10);
     // What a connection may have sent and not yet had acknowledged: it bounds what the
     // server buffers per viewer (the colour map at connect would otherwise sit whole in
     // the send buffer: tens of MB for a 4097² map), and is still 50 MB/s at a 40 ms RTT.

@@ -324,10 +324,14 @@ async fn frames(
             let made = c.make_frame(&scene, &state);
             (c, made)
         };
+        let scene = Scene {
+            terrain: &shared.terrain,
+            variance: &shared.variance,
+        };
         // An update is a fraction of a millisecond: made in line. A rebuild or a key frame
         // (milliseconds at large budgets) goes to a blocking thread, so it never holds up
         // the other viewers' tasks.
-        let (c, made) = if c.next_is_cheap() {
+        let (c, made) = if c.next_is_cheap(&scene, &state) {
             make(c)
         } else {
             match tokio::task::spawn_blocking(move || make(c)).await {

@@ -84,6 +84,15 @@ impl<T: Copy> PosSet<T> {
         }
     }
 
+    /// The value beside `pos`, if it is a member.
+    pub fn get_mut(&mut self, pos: u32) -> Option<&mut T> {
+        if self.table.is_empty() {
+            return None;
+        }
+        let (k, at) = self.table[self.find(pos)];
+        (k == pos).then(|| &mut self.data[at as usize])
+    }
+
     pub fn contains(&self, pos: u32) -> bool {
         !self.table.is_empty() && self.table[self.find(pos)].0 == pos
     }

@@ -170,16 +170,23 @@ impl ViewerCore {
         }
     }
 
-    /// Whether the next frame should be cheap: the last one updated the cut, nothing asks
-    /// for a key frame or may move the camera by more than a step, a base is at hand and
-    /// the budget is moderate. The shell may then make it in line rather than hand it to a
+    /// Whether the next frame, at `vehicle`, should be cheap: the last one updated the cut,
+    /// the camera has not jumped, nothing asks for a key frame or may move the camera by more
+    /// than a step, a base is at hand and the budget is moderate. The shell may then make it in line rather than hand it to a
     /// blocking thread (two context switches and a wait for the scheduler per frame).
-    pub fn next_is_cheap(&self) -> bool {
+    pub fn next_is_cheap(&self, scene: &Scene, vehicle: &VehicleState) -> bool {
+        let limits = Limits {
+            budget: self.budget,
+            threshold_px: 0.0,
+        };
         self.coherent.mode() == Mode::Update
             && !self.key_requested
             && !self.steered
             && self.budget <= CHEAP_BUDGET
             && self.delta_base().is_some()
+            && !self
+                .coherent
+                .jumped(&self.camera_at(scene, vehicle), limits, scene.scales())
     }
 
     pub fn budget(&self) -> u32 {

@@ -44,7 +44,7 @@ pub(super) struct Lanes {
 
 /// How far a kept priority may drift from the true one before it is computed again: 2 %
 /// (the split/merge choices and the error bound are that close to exact).
-pub(super) const PRIORITY_TOLERANCE: f32 = 0.02 / 1.02;
+pub(super) const PRIORITY_TOLERANCE: f32 = 0.02;
 
 /// A frontier diamond's kept evaluation: its fixed part, the priority and verdicts last
 /// computed, and the odometer readings at which they must be computed again.
@@ -147,7 +147,16 @@ impl Coherent {
         }))
         .max(zero);
         let half = F4::splat(0.5);
-        let by_prio = p.clear.mul(F4::splat(PRIORITY_TOLERANCE)).max(zero);
+        // The priority may drift by the tolerance, and by less when it is that close to the
+        // threshold (so it cannot cross it unseen): `clear · r / (1 + r)` keeps the drift
+        // under a relative `r`.
+        let gap = p
+            .prio
+            .sub(f.threshold)
+            .abs()
+            .div(p.prio.max(f.threshold).max(F4::splat(1e-30)));
+        let r = gap.min(F4::splat(PRIORITY_TOLERANCE));
+        let by_prio = p.clear.mul(r).div(F4::splat(1.0).add(r)).max(zero);
         let moved = margin.mul(half).min(footprint);
         let moved_shown = moved.min(by_prio);
         let turned = margin.mul(half).div(p.far.max(F4::splat(1e-3)));

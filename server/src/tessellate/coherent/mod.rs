@@ -245,7 +245,8 @@ impl Coherent {
         self.mode
     }
 
-    fn jumped(&self, camera: &Camera, limits: Limits, scales: Scales) -> bool {
+    /// Whether a frame at `camera` would rebuild the cut rather than update it (a jump).
+    pub fn jumped(&self, camera: &Camera, limits: Limits, scales: Scales) -> bool {
         let Some(last) = self.last else {
             return true;
         };
@@ -453,24 +454,27 @@ impl Coherent {
         }
     }
 
-    /// Queues lane `i` of an evaluation as a split candidate.
+    /// Keeps lane `i` of an evaluation beside split candidate `pos`, and queues it.
     #[inline]
     fn queue_split_lane(&mut self, l: &Lanes, i: usize, pos: u32) {
+        if let Some(e) = self.split_cands.get_mut(pos) {
+            e.keep(l, i, self.moved, self.turned);
+        }
         self.queue_split(l.prio[i], lane_flags(l, i), pos);
     }
 
-    /// Queues lane `i` of an evaluation as a merge candidate.
+    /// Keeps lane `i` of an evaluation beside merge candidate `pos`, and queues it.
     #[inline]
     fn queue_merge_lane(&mut self, l: &Lanes, i: usize, pos: u32) {
+        if let Some(e) = self.merge_cands.get_mut(pos) {
+            e.keep(l, i, self.moved, self.turned);
+        }
         self.queue_merge(l.prio[i], lane_flags(l, i), pos);
     }
 
     #[inline]
     fn queue_split(&mut self, p: f32, flags: u8, pos: u32) {
-        let (wanted, under, dropped) = (flags & 1 != 0, flags & 2 != 0, flags & 4 != 0);
-        if dropped {
-            self.dropped = p.max(self.dropped);
-        }
+        let (wanted, under) = (flags & 1 != 0, flags & 2 != 0);
         let bucket = if under { TOP } else { bucket_of(p) };
         let entry = (u64::from(p.to_bits()) << 32) | u64::from(pos);
         self.split_q.push_if(wanted, bucket, entry);
@@ -563,6 +567,17 @@ impl Coherent {
                     break;
                 }
             }
+        }
+        // What is below the threshold counts in the bound: the split candidates left now
+        // (a walk of the frontier, and only when there is a threshold).
+        if limits.threshold_px > 0.0 {
+            self.dropped = self
+                .split_cands
+                .values()
+                .iter()
+                .filter(|e| e.flags & 4 != 0)
+                .map(|e| e.prio)
+                .fold(0.0, f32::max);
         }
         self.error_bound_px = self.remaining_max().max(self.dropped);
         true
