@@ -34,7 +34,7 @@
 //! rebuilds the cut from scratch with split-only ROAM, the spec's algorithm, and logs the
 //! difference from the old cut.
 //!
-//! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates about 14 of
+//! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates 10 to 14 of
 //! some 26,000 frontier diamonds, and queuing every frontier diamond (a push each) is most
 //! of what is left; the split/merge loop and the log are proportional to the change.
 
