@@ -279,7 +279,7 @@ impl Coherent {
         old.clear();
         old.extend(self.split_diamonds().map(|(x, z)| pack(x, z)));
         self.tess.stale = true;
-        self.error_bound_px = self.tess.cut(hf, variance, scales, camera, limits);
+        self.tess.cut(hf, variance, scales, camera, limits);
         self.triangles = self.tess.triangles;
         self.split_count = self.tess.active_list.len() as u32;
         // The difference of two row-major lists (packed positions sort row-major).
@@ -333,6 +333,11 @@ impl Coherent {
             }
         }
         self.stats.splits += (self.log.len() - logged) as u32;
+        // Every frontier diamond evaluated now (kept for the next frames), so the bound is
+        // measured as an update's is; from scratch's own bound remembers below-threshold
+        // priorities of diamonds a forced split took later.
+        self.queue_frontiers(&f);
+        self.error_bound_px = self.bound(limits);
     }
 
     fn root(&self) -> u32 {
@@ -507,15 +512,8 @@ impl Coherent {
     ) -> bool {
         let f = self.tess.frame(hf, variance, scales, camera, limits);
         let budget = limits.budget.max(2);
-        let frontier = self.split_cands.len() + self.merge_cands.len();
-        self.split_q.clear();
-        self.merge_q.clear();
-        self.split_q.reserve(frontier + 1024);
-        self.merge_q.reserve(frontier + 1024);
-        self.dropped = 0.0;
         self.tess.stale = true;
-        self.evaluate_all(&f, false);
-        self.evaluate_all(&f, true);
+        self.queue_frontiers(&f);
         let most = budget / 4 + 256;
         let mut changes = 0u32;
         loop {
@@ -568,8 +566,13 @@ impl Coherent {
                 }
             }
         }
-        // What is below the threshold counts in the bound: the split candidates left now
-        // (a walk of the frontier, and only when there is a threshold).
+        self.error_bound_px = self.bound(limits);
+        true
+    }
+
+    /// The error the cut leaves: the highest split candidate still queued, and with a
+    /// threshold the highest of those below it (a walk of the frontier, only then).
+    fn bound(&mut self, limits: Limits) -> f32 {
         if limits.threshold_px > 0.0 {
             self.dropped = self
                 .split_cands
@@ -579,8 +582,19 @@ impl Coherent {
                 .map(|e| e.prio)
                 .fold(0.0, f32::max);
         }
-        self.error_bound_px = self.remaining_max().max(self.dropped);
-        true
+        self.remaining_max().max(self.dropped)
+    }
+
+    /// Empties the queues and evaluates the frontiers' due diamonds into them.
+    fn queue_frontiers(&mut self, f: &Frame) {
+        let frontier = self.split_cands.len() + self.merge_cands.len();
+        self.split_q.clear();
+        self.merge_q.clear();
+        self.split_q.reserve(frontier + 1024);
+        self.merge_q.reserve(frontier + 1024);
+        self.dropped = 0.0;
+        self.evaluate_all(f, false);
+        self.evaluate_all(f, true);
     }
 
     /// The next split candidate still valid (unsplit, a candidate), with its bucket.
