@@ -279,16 +279,22 @@ impl BitSet {
 
     /// Set bits in increasing order.
     pub fn iter(&self) -> impl Iterator<Item = u32> + '_ {
-        self.words.iter().enumerate().flat_map(|(w, &word)| {
-            let mut bits = word;
-            std::iter::from_fn(move || {
-                if bits == 0 {
-                    return None;
-                }
-                let i = w as u32 * 64 + bits.trailing_zeros();
-                bits &= bits - 1;
-                Some(i)
-            })
-        })
+        set_bits(&self.words)
     }
+}
+
+/// The set bits of a row of words (bit `i % 64` of word `i / 64`), in increasing order: a
+/// [`BitSet`]'s members, or any bitset laid out the same way.
+pub fn set_bits(words: &[u64]) -> impl Iterator<Item = u32> + '_ {
+    words.iter().enumerate().flat_map(|(w, &word)| {
+        let mut bits = word;
+        std::iter::from_fn(move || {
+            if bits == 0 {
+                return None;
+            }
+            let i = w as u32 * 64 + bits.trailing_zeros();
+            bits &= bits - 1;
+            Some(i)
+        })
+    })
 }

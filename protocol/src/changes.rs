@@ -64,6 +64,7 @@
 //! format 1 at 0.33 bytes a triangle.
 
 use crate::bintree::{BitSet, Grid};
+use crate::codec::u32_le;
 use crate::codec::{self, DecodeError, Decoded, EncodeError, MeshDecoder, Models};
 use crate::range::{self, Prob};
 
@@ -433,14 +434,7 @@ impl MeshDecoder {
         if payload.len() < HEADER {
             return Err(DecodeError::Short(payload.len()));
         }
-        let u32_at = |at: usize| {
-            u32::from_le_bytes([
-                payload[at],
-                payload[at + 1],
-                payload[at + 2],
-                payload[at + 3],
-            ])
-        };
+        let u32_at = |at: usize| u32_le(payload, at);
         if u32::from(payload[1]) != grid.levels() {
             return Err(DecodeError::Grid {
                 got: payload[1],

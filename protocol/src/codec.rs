@@ -129,6 +129,11 @@ impl Models {
     }
 }
 
+/// The little-endian `u32` at `at` (the caller has checked the length).
+pub(crate) fn u32_le(bytes: &[u8], at: usize) -> u32 {
+    u32::from_le_bytes([bytes[at], bytes[at + 1], bytes[at + 2], bytes[at + 3]])
+}
+
 /// The predicted height of a new vertex: the mean of its hypotenuse ends, rounded to the
 /// nearest multiple of the heightfield's `step` (so the residual is a whole number of
 /// steps).
@@ -427,14 +432,7 @@ impl MeshDecoder {
         if payload.len() < HEADER {
             return Err(DecodeError::Short(payload.len()));
         }
-        let u32_at = |at: usize| {
-            u32::from_le_bytes([
-                payload[at],
-                payload[at + 1],
-                payload[at + 2],
-                payload[at + 3],
-            ])
-        };
+        let u32_at = |at: usize| u32_le(payload, at);
         if payload[0] != FORMAT {
             return Err(DecodeError::Format(payload[0]));
         }

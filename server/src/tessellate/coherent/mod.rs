@@ -168,21 +168,7 @@ impl Coherent {
     /// tests, not per frame).
     pub fn split_diamonds(&self) -> impl Iterator<Item = (u32, u32)> + '_ {
         let side = self.tess.side;
-        self.tess
-            .active
-            .iter()
-            .enumerate()
-            .flat_map(move |(w, &word)| {
-                let mut bits = word;
-                std::iter::from_fn(move || {
-                    if bits == 0 {
-                        return None;
-                    }
-                    let i = w as u32 * 64 + bits.trailing_zeros();
-                    bits &= bits - 1;
-                    Some((i % side, i / side))
-                })
-            })
+        roam_protocol::bintree::set_bits(&self.tess.active).map(move |i| (i % side, i / side))
     }
 
     /// Calls `f` with the split set as the codec's row-major bitset over the map (the
