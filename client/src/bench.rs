@@ -8,8 +8,8 @@ use std::time::Instant;
 
 use anyhow::Result;
 use roam_protocol::messages::{Hello, Role, VERSION};
-use roam_server::flyover::quantile;
-use roam_server::script::Script;
+use roam_server::sim::flyover::quantile;
+use roam_server::sim::script::Script;
 
 use crate::render::{Gpu, Renderer, TerrainVertices, Toggles, View};
 use crate::session::{self, Latency, Session, Taken};
@@ -99,7 +99,7 @@ pub async fn run(
         let view = View {
             eye: [v.x as f32, v.y as f32 + 1.5, v.z as f32],
             yaw_deg: v.heading as f32,
-            pitch_deg: roam_server::flyover::PITCH_DEG as f32,
+            pitch_deg: roam_server::sim::flyover::PITCH_DEG as f32,
             fov_y_deg: opts.fov_y_deg,
             time_s: frames as f32 / 60.0,
         };

@@ -8,7 +8,7 @@ use std::time::Instant;
 use anyhow::{Result, anyhow, bail};
 use roam_protocol::mesh;
 use roam_protocol::messages::{self, Hello, Role, VERSION};
-use roam_server::script::Script;
+use roam_server::sim::script::Script;
 
 use crate::session::{self, Latency, Session, Taken};
 
@@ -155,8 +155,12 @@ pub async fn run(
         }
         if stats.frames % 60 == 1 {
             let m = &session.mesh;
-            roam_server::validate::check_mesh(&m.vertices, &m.indices, session.grid().size())
-                .map_err(|e| anyhow!("frame {}: not a conforming mesh: {e}", r.frame))?;
+            roam_server::tessellate::validate::check_mesh(
+                &m.vertices,
+                &m.indices,
+                session.grid().size(),
+            )
+            .map_err(|e| anyhow!("frame {}: not a conforming mesh: {e}", r.frame))?;
         }
         let per_tri = r.wire_bytes as f64 / tris.max(1) as f64;
         if stats.first.is_none() {

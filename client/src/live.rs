@@ -8,7 +8,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
 use roam_protocol::messages::VehicleView;
-use roam_server::physics::Keys;
+use roam_server::sim::physics::Keys;
 use tokio::sync::mpsc;
 
 use crate::camera::LocalGround;

@@ -163,7 +163,7 @@ fn run(cli: Cli) -> Result<()> {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             Some(
-                roam_server::script::parse_bytes(&bytes)
+                roam_server::sim::script::parse_bytes(&bytes)
                     .with_context(|| path.display().to_string())?,
             )
         }
@@ -186,7 +186,7 @@ fn run(cli: Cli) -> Result<()> {
         if cli.bench {
             let inputs = match script.clone() {
                 Some(s) => s,
-                None => roam_server::script::parse(roam_server::flyover::DRIVE_SCRIPT)
+                None => roam_server::sim::script::parse(roam_server::sim::flyover::DRIVE_SCRIPT)
                     .context("the benchmark drive")?,
             };
             let opts = roam_client::bench::Options {
@@ -262,10 +262,10 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
     Ok(match &cli.connect {
         None => {
             let dir = cli.local.clone().unwrap_or_else(bundled);
-            let terrain = roam_server::dataset::load(&dir, &mut |_, _| {})
+            let terrain = roam_server::terrain::dataset::load(&dir, &mut |_, _| {})
                 .with_context(|| format!("loading {}", dir.display()))?;
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let vt = roam_server::variance::VarianceTree::build(
+            let vt = roam_server::terrain::variance::VarianceTree::build(
                 &terrain.heights,
                 threads,
                 &mut |_, _| {},

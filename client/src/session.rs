@@ -15,8 +15,8 @@ use roam_protocol::messages::{
 };
 use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
 use roam_server::net::{tls, wire};
-use roam_server::physics::Keys;
-use roam_server::script::Script;
+use roam_server::sim::physics::Keys;
+use roam_server::sim::script::Script;
 
 use crate::render::Scene;
 

@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use roam_protocol::messages::ViewChange;
-use roam_server::physics::Keys;
+use roam_server::sim::physics::Keys;
 use tokio::sync::mpsc;
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, KeyEvent, WindowEvent};

@@ -4,10 +4,11 @@
 use std::sync::Arc;
 
 use roam_client::render::{self, Gpu, Renderer, Scene, Toggles, View};
-use roam_server::camera::Camera;
+use roam_server::Terrain;
+use roam_server::terrain::dataset;
+use roam_server::terrain::variance::VarianceTree;
+use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
-use roam_server::variance::VarianceTree;
-use roam_server::{Terrain, dataset};
 
 const SIZE: (u32, u32) = (192, 108);
 

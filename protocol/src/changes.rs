@@ -65,11 +65,12 @@
 
 use crate::bintree::{BitSet, Grid};
 use crate::codec::u32_le;
-use crate::codec::{self, DecodeError, Decoded, EncodeError, MeshDecoder, Models};
+use crate::codec::{self, Decoded, EncodeError, MeshDecoder, Models};
+use crate::format::{self, DecodeError};
 use crate::range::{self, Prob};
 
 /// The payload format of a change frame.
-pub const CHANGES_FORMAT: u8 = 2;
+pub const CHANGES_FORMAT: u8 = format::CHANGES;
 const HEADER: usize = 26;
 
 /// An order-independent 64-bit hash of a split set with heights: the wrapping sum over the

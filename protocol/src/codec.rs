@@ -43,10 +43,11 @@
 
 use crate::bintree::{BitSet, Grid};
 use crate::changes::CutHash;
+use crate::format::{self, DecodeError};
 use crate::range::{self, Prob};
 
 /// The payload format this code writes and reads.
-pub const FORMAT: u8 = 1;
+pub const FORMAT: u8 = format::MESH;
 const HEADER: usize = 22;
 const DEPTHS: usize = 2 * crate::bintree::MAX_LEVELS as usize;
 /// Height residual contexts: one per depth.
@@ -66,35 +67,6 @@ pub enum EncodeError {
     /// A change frame's change list names something that is not one diamond of the grid.
     #[error("change at index {index}: {why}")]
     Change { index: u32, why: &'static str },
-}
-
-/// Why a payload could not be decoded. A mesh frame is to be dropped (and a key frame
-/// asked for); nothing of it is shown. The colour map codec ([`crate::colormap`]) reports
-/// its errors with the same type.
-#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-pub enum DecodeError {
-    #[error("payload of {0} bytes: shorter than its header")]
-    Short(usize),
-    #[error(
-        "payload format {0}; this build reads mesh formats {FORMAT} and {changes} and colour \
-         map format {cm}",
-        changes = crate::changes::CHANGES_FORMAT,
-        cm = crate::colormap::FORMAT
-    )]
-    Format(u8),
-    #[error("mesh for a grid of 2^{got} + 1, expected 2^{expected} + 1")]
-    Grid { got: u8, expected: u32 },
-    #[error("a delta frame without its base, or a key frame given one")]
-    Base,
-    #[error("{declared} triangles declared, more than the {limit} allowed")]
-    TooBig { declared: u32, limit: u32 },
-    #[error("the coded payload is corrupt: {0}")]
-    Corrupt(&'static str),
-    #[error("the decoded payload does not match its check (a mesh coded against another base?)")]
-    Check,
-    /// A colour map payload for another size than the one asked for.
-    #[error("colour map of {got} cells a side, expected {expected}")]
-    Cells { got: u32, expected: u32 },
 }
 
 /// Adaptive probabilities of one frame.

@@ -39,11 +39,11 @@
 //! or damaged is an error: every stream must end exactly where the texels do, and the
 //! texels must match the check.
 
-use crate::codec::DecodeError;
+use crate::format::{self, DecodeError};
 use crate::rans;
 
 /// The payload format this code writes and reads.
-pub const FORMAT: u8 = 1;
+pub const FORMAT: u8 = format::COLORMAP;
 /// The largest colour map side either end accepts: bounds what a decoder allocates.
 pub const MAX_CELLS: u32 = 8192;
 const HEADER: usize = 16;

@@ -7,6 +7,7 @@ pub mod bintree;
 pub mod changes;
 pub mod codec;
 pub mod colormap;
+pub mod format;
 pub mod mesh;
 pub mod messages;
 mod range;
@@ -14,5 +15,6 @@ mod rans;
 
 pub use bintree::{BitSet, Grid};
 pub use changes::{CHANGES_FORMAT, ChangeEncoder, Cut, CutHash};
-pub use codec::{DecodeError, Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
+pub use codec::{Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
+pub use format::DecodeError;
 pub use mesh::Mesh;

@@ -9,11 +9,7 @@ macro_rules! say {
     };
 }
 
-mod cmd_data;
-mod cmd_net;
-mod cmd_sim;
-mod cmd_tess;
-mod progress;
+mod cli;
 
 use std::process::ExitCode;
 
@@ -33,35 +29,35 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Validate a data set and print its shape, scales, height range and variance-tree size.
-    Check(cmd_data::CheckArgs),
+    Check(cli::data::CheckArgs),
     /// Write a synthetic data set (seeded fBm) of any 2^N + 1 side.
-    Generate(cmd_data::GenerateArgs),
+    Generate(cli::data::GenerateArgs),
     /// Build a data set from a PGM heightfield: copy it, derive a colour map, write a map file.
-    Import(cmd_data::ImportArgs),
+    Import(cli::data::ImportArgs),
     /// Tessellate once for a camera and write the mesh as a Wavefront OBJ.
-    Mesh(cmd_tess::MeshArgs),
+    Mesh(cli::tess::MeshArgs),
     /// Time the tessellator along a fly-over path (or one fixed camera), and the physics.
-    Bench(cmd_tess::BenchArgs),
+    Bench(cli::tess::BenchArgs),
     /// Drive one vehicle from the map's start by an input script, without a network; print
     /// its state at every tick as CSV.
-    Simulate(cmd_sim::SimulateArgs),
+    Simulate(cli::sim::SimulateArgs),
     /// Re-simulate a recording, checking every checkpoint; print the final states.
-    Replay(cmd_sim::ReplayArgs),
+    Replay(cli::sim::ReplayArgs),
     /// Serve the terrain to viewers over QUIC, the world at 100 Hz; stop with Ctrl-C.
-    Serve(cmd_net::ServeArgs),
+    Serve(cli::net::ServeArgs),
 }
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Check(args) => cmd_data::check(args),
-        Command::Generate(args) => cmd_data::generate(args),
-        Command::Import(args) => cmd_data::import(args),
-        Command::Mesh(args) => cmd_tess::mesh(args),
-        Command::Bench(args) => cmd_tess::bench(args),
-        Command::Simulate(args) => cmd_sim::simulate(args),
-        Command::Replay(args) => cmd_sim::replay(args),
-        Command::Serve(args) => cmd_net::serve(args),
+        Command::Check(args) => cli::data::check(args),
+        Command::Generate(args) => cli::data::generate(args),
+        Command::Import(args) => cli::data::import(args),
+        Command::Mesh(args) => cli::tess::mesh(args),
+        Command::Bench(args) => cli::tess::bench(args),
+        Command::Simulate(args) => cli::sim::simulate(args),
+        Command::Replay(args) => cli::sim::replay(args),
+        Command::Serve(args) => cli::net::serve(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -5,9 +5,11 @@ use std::sync::Arc;
 
 use roam_protocol::mesh;
 use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder};
+use roam_server::Terrain;
+use roam_server::sim::{flyover, script};
+use roam_server::terrain::dataset;
+use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
-use roam_server::variance::VarianceTree;
-use roam_server::{Terrain, dataset, flyover, script};
 
 fn load(name: &str) -> Arc<Terrain> {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU32, Ordering};
 
 use proptest::prelude::*;
-use roam_server::dataset::{self, ColorMap, Terrain};
-use roam_server::generate;
-use roam_server::map::MapParams;
-use roam_server::pnm;
+use roam_server::terrain::dataset::{self, ColorMap, Terrain};
+use roam_server::terrain::generate;
+use roam_server::terrain::map::MapParams;
+use roam_server::terrain::pnm;
 
 /// A fresh directory under the system temp dir, removed on drop.
 struct TempDir(PathBuf);
@@ -452,7 +452,7 @@ fn map_defaults_and_integers() {
 fn save_load_round_trip() {
     let dir = TempDir::new("round-trip");
     let mut t = generate::synthetic(33, 3);
-    t.map.sun_dir = roam_server::map::normalize([-1.0, 2.0, 0.3]).unwrap();
+    t.map.sun_dir = roam_server::terrain::map::normalize([-1.0, 2.0, 0.3]).unwrap();
     t.map.fog_density = 1.0 / 3.0;
     dataset::save(&dir.0, &t).unwrap();
     let mut calls = Vec::new();

@@ -4,8 +4,8 @@
 use std::sync::Arc;
 
 use proptest::prelude::*;
-use roam_server::physics::{self, Ground, Keys, VehicleState};
-use roam_server::world::{self, InputLatch, Inputs, World};
+use roam_server::sim::physics::{self, Ground, Keys, VehicleState};
+use roam_server::sim::world::{self, InputLatch, Inputs, World};
 use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 
 /// A terrain of `side` whose sample at `(x, z)` is `f(x, z)`, one world unit per cell,
@@ -252,7 +252,7 @@ proptest! {
         start in (0.0f64..1.0, 0.0f64..1.0, 0.0f64..360.0, 0.0f64..30.0),
         drive in prop::collection::vec((1u32..200, keys()), 1..12),
     ) {
-        let t = roam_server::generate::synthetic(17, seed);
+        let t = roam_server::terrain::generate::synthetic(17, seed);
         let size = t.world_size();
         let mut s = VehicleState { x: start.0 * size, z: start.1 * size, speed: start.3, heading: start.2 };
         for (ticks, k) in drive {
@@ -279,7 +279,7 @@ proptest! {
     /// The same state and keys give the same bits.
     #[test]
     fn steps_are_pure(x in 0.0f64..64.0, z in 0.0f64..64.0, v in 0.0f64..20.0, h in 0.0f64..360.0, k in keys()) {
-        let t = roam_server::generate::synthetic(65, 3);
+        let t = roam_server::terrain::generate::synthetic(65, 3);
         let s = VehicleState { x, z, speed: v, heading: h };
         let a = physics::step(&t, &s, k);
         let b = physics::step(&t, &s, k);

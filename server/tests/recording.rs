@@ -10,12 +10,12 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use roam_server::Terrain;
-use roam_server::dataset;
-use roam_server::physics::Keys;
-use roam_server::recording::{self, Event, FormatError, RecordedWorld};
-use roam_server::replay::{self, ReplayError};
-use roam_server::script::{self, Script};
-use roam_server::world::{self, Digest, Inputs, World};
+use roam_server::sim::physics::Keys;
+use roam_server::sim::recording::{self, Event, FormatError, RecordedWorld};
+use roam_server::sim::replay::{self, ReplayError};
+use roam_server::sim::script::{self, Script};
+use roam_server::sim::world::{self, Digest, Inputs, World};
+use roam_server::terrain::dataset;
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -48,7 +48,7 @@ struct Run {
     edge: f64,
 }
 
-fn edge_distance<G: roam_server::physics::Ground>(w: &World<G>) -> f64 {
+fn edge_distance<G: roam_server::sim::physics::Ground>(w: &World<G>) -> f64 {
     let size = w.ground().size();
     w.vehicles()
         .iter()

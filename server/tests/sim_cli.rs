@@ -6,7 +6,7 @@ use std::fs;
 use std::path::Path;
 
 use common::{TempDir, check, root};
-use roam_server::world;
+use roam_server::sim::world;
 
 /// Runs `roam-server replay FILE --data DATA`; see [`check`].
 fn replay_file(file: &Path, data: &str, exit: i32, expected: &[&str]) -> String {
@@ -59,7 +59,8 @@ fn simulate_writes_one_csv_row_per_tick() {
         .collect();
     assert_eq!(rows.len(), 201, "tick 0 and one row per tick");
     let terrain =
-        roam_server::dataset::load(&root().join("data/synth-65"), &mut |_, _| {}).expect("bundled");
+        roam_server::terrain::dataset::load(&root().join("data/synth-65"), &mut |_, _| {})
+            .expect("bundled");
     let start = world::start_state(&terrain, 0);
     assert_eq!(
         rows[0],
@@ -69,7 +70,7 @@ fn simulate_writes_one_csv_row_per_tick() {
         assert_eq!(r.len(), 6);
         assert_eq!(r[0], i as f64);
         assert!(r[4] >= 0.0, "speed never negative");
-        let ground = roam_server::physics::Ground::height(&terrain, r[1], r[2]);
+        let ground = roam_server::sim::physics::Ground::height(&terrain, r[1], r[2]);
         assert_eq!(r[3], ground + 2.0, "altitude is the ground plus 2");
     }
     assert!(rows[120][4] > rows[1][4], "accelerated");
@@ -210,7 +211,8 @@ fn replay_the_golden_recording() {
 fn replay_names_the_tick_where_it_diverged() {
     let dir = TempDir::new("diverged");
     let terrain = std::sync::Arc::new(
-        roam_server::dataset::load(&root().join("data/synth-65"), &mut |_, _| {}).expect("bundled"),
+        roam_server::terrain::dataset::load(&root().join("data/synth-65"), &mut |_, _| {})
+            .expect("bundled"),
     );
     let path = dir.path("x.rec");
     fs::write(&path, common::diverged_recording(&terrain, 200, 50, 150)).expect("write");

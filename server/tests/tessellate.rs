@@ -2,11 +2,11 @@
 
 use proptest::prelude::*;
 use roam_server::Heightfield;
-use roam_server::camera::Camera;
-use roam_server::diamond::{Diamond, Triangle};
+use roam_server::terrain::variance::{VarianceTree, triangle_error};
+use roam_server::tessellate::camera::Camera;
+use roam_server::tessellate::diamond::{Diamond, Triangle};
+use roam_server::tessellate::validate::check_mesh;
 use roam_server::tessellate::{Coherent, Limits, Mesh, Scales, Tessellator, measured_error};
-use roam_server::validate::check_mesh;
-use roam_server::variance::{VarianceTree, triangle_error};
 
 /// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
 fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
@@ -119,7 +119,9 @@ fn check_frustum(
         let hi = (hts.iter().copied().fold(f64::NEG_INFINITY, f64::max) + e) * s.v;
         let h = f64::from(d.h());
         let foot: Vec<(f64, f64)> = match d.shape {
-            roam_server::diamond::Shape::Square => vec![(-h, -h), (h, -h), (-h, h), (h, h)],
+            roam_server::tessellate::diamond::Shape::Square => {
+                vec![(-h, -h), (h, -h), (-h, h), (h, h)]
+            }
             _ => vec![(-h, 0.0), (h, 0.0), (0.0, -h), (0.0, h)],
         };
         let (ex, ez) = (
@@ -127,7 +129,7 @@ fn check_frustum(
             cam.eye[2] / s.h - f64::from(z),
         );
         let under = match d.shape {
-            roam_server::diamond::Shape::Square => ex.abs() <= h && ez.abs() <= h,
+            roam_server::tessellate::diamond::Shape::Square => ex.abs() <= h && ez.abs() <= h,
             _ => ex.abs() + ez.abs() <= h,
         };
         if under {

@@ -6,12 +6,13 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 
 use roam_protocol::{Cut, DecodeError, Grid, MeshDecoder, mesh};
-use roam_server::physics::{Keys, VehicleState};
+use roam_server::Terrain;
+use roam_server::sim::physics::{Keys, VehicleState};
+use roam_server::sim::world::{self, Inputs, World};
+use roam_server::terrain::generate;
+use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::{Mesh, Mode};
-use roam_server::variance::VarianceTree;
 use roam_server::viewer::{Event, LOGS, Made, Scene, ViewerCore};
-use roam_server::world::{self, Inputs, World};
-use roam_server::{Terrain, generate};
 
 struct Fixture {
     terrain: Arc<Terrain>,

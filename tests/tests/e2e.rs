@@ -7,9 +7,10 @@ use roam_client::headless::{self, ViewerOptions, ViewerStats};
 use roam_client::session::{Session, Taken};
 use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange};
 use roam_server::net::{Options, Server, tls, wire};
-use roam_server::variance::VarianceTree;
-use roam_server::world::{self, Inputs, World};
-use roam_server::{ColorMap, Heightfield, MapParams, Terrain, recording, replay, script};
+use roam_server::sim::world::{self, Inputs, World};
+use roam_server::sim::{recording, replay, script};
+use roam_server::terrain::variance::VarianceTree;
+use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 
 /// A 129² terrain, flat around the start and rough beyond: a vehicle at rest stays put
 /// until keys arrive (so a drive over the network can be compared with the same script
@@ -283,7 +284,7 @@ async fn the_viewer_steers_the_servers_budget_and_camera() {
     let _turn = ONE_AT_A_TIME.lock().await;
     // Real terrain (the test terrain's 300 m of noise every 4 m leaves nothing to cull).
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/kossou");
-    let kossou = roam_server::dataset::load(&dir, &mut |_, _| {}).expect("bundled");
+    let kossou = roam_server::terrain::dataset::load(&dir, &mut |_, _| {}).expect("bundled");
     let r = start(Arc::new(kossou), None);
     let hello = driver_hello(&r, 4_000);
     let mut s = Session::join(r.server.addr, r.fingerprint, hello)

@@ -19,7 +19,7 @@ use std::sync::Arc;
 use tokio::sync::watch;
 
 use crate::Terrain;
-use crate::variance::VarianceTree;
+use crate::terrain::variance::VarianceTree;
 use world_loop::{Event, Snapshot};
 
 /// How to run a server.
@@ -60,7 +60,7 @@ pub struct Server {
     endpoint: quinn::Endpoint,
     stop: watch::Sender<bool>,
     accept: tokio::task::JoinHandle<()>,
-    world: std::thread::JoinHandle<std::io::Result<crate::world::World>>,
+    world: std::thread::JoinHandle<std::io::Result<crate::sim::world::World>>,
     events: Option<std::sync::mpsc::Sender<Event>>,
 }
 
@@ -151,7 +151,7 @@ impl Server {
 
     /// Stops: viewers are told why, the world stops and its recording is closed. Returns
     /// the final world.
-    pub async fn shutdown(mut self) -> Result<crate::world::World, ServeError> {
+    pub async fn shutdown(mut self) -> Result<crate::sim::world::World, ServeError> {
         let _ = self.stop.send(true);
         // Give viewer tasks a moment to say goodbye, then close what is left.
         tokio::time::sleep(std::time::Duration::from_millis(50)).await;

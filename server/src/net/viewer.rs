@@ -14,8 +14,8 @@ use tokio::sync::oneshot;
 
 use super::world_loop::{Event, Snapshot};
 use super::{Shared, wire};
+use crate::sim::world::VehicleId;
 use crate::viewer::{Event as ViewerEvent, Scene, ViewerCore};
-use crate::world::VehicleId;
 
 pub use crate::viewer::MAX_BUDGET;
 /// Key datagrams a driver may send per second, and in a burst (a viewer sends 100 a
@@ -309,8 +309,9 @@ async fn frames(
             continue; // a new driver's vehicle appears with the next tick
         };
         seen = true;
-        let altitude =
-            |s: &crate::physics::VehicleState| crate::physics::altitude(&*shared.terrain, s.x, s.z);
+        let altitude = |s: &crate::sim::physics::VehicleState| {
+            crate::sim::physics::altitude(&*shared.terrain, s.x, s.z)
+        };
         let mut c = core.take().expect("put back below");
         for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
             c.handle(event);

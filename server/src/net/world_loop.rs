@@ -13,9 +13,9 @@ use roam_protocol::messages::KeyState;
 use tokio::sync::{oneshot, watch};
 
 use crate::Terrain;
-use crate::physics::Keys;
-use crate::recording::{self, RecordedWorld};
-use crate::world::{self, InputLatch, Inputs, Vehicle, VehicleId, World};
+use crate::sim::physics::Keys;
+use crate::sim::recording::{self, RecordedWorld};
+use crate::sim::world::{self, InputLatch, Inputs, Vehicle, VehicleId, World};
 
 /// What the network tells the world.
 pub enum Event {

@@ -3,8 +3,8 @@
 
 use super::lanes::F4;
 use super::{Frame, MIN_DISTANCE, Tessellator, pack};
-use crate::diamond::Shape;
-use crate::queue::{TOP, bucket_of};
+use crate::tessellate::diamond::Shape;
+use crate::tessellate::queue::{TOP, bucket_of};
 
 /// Up to four diamonds of one shape and half-size, one per lane.
 pub(super) struct Batch {

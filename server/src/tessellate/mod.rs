@@ -1,6 +1,6 @@
 //! Split-only ROAM, rebuilt every frame from the two root triangles.
 //!
-//! The mesh is the set of split ("active") diamonds; see [`crate::diamond`]. Each frame:
+//! The mesh is the set of split ("active") diamonds; see [`diamond`]. Each frame:
 //!
 //! 1. Queue the root diamond. Repeatedly pop the diamond of highest priority and split it.
 //!    Splitting first splits, recursively, any parent diamond not yet split (ROAM's forced
@@ -17,7 +17,7 @@
 //! frustum plane is never queued, so it is split only when a split elsewhere forces it. A
 //! diamond whose footprint contains the eye's ground position gets the top priority.
 //!
-//! **Queue**: priority buckets ([`crate::queue`]): constant-time insert and pop. Removing a
+//! **Queue**: priority buckets ([`queue`]): constant-time insert and pop. Removing a
 //! diamond that a forced split took is lazy (constant time): popping skips diamonds already
 //! split.
 //!
@@ -30,17 +30,21 @@
 //! vertex indices), plus pools sized by the budget, all reused: no allocation per frame
 //! once warm.
 
-use crate::camera::Camera;
-use crate::diamond::Shape;
-use crate::heightfield::Heightfield;
-use crate::queue::{BucketQueue, bucket_of};
-use crate::variance::{self, VarianceTree};
+use crate::terrain::heightfield::Heightfield;
+use crate::terrain::variance::{self, VarianceTree};
+use camera::Camera;
+use diamond::Shape;
+use queue::{BucketQueue, bucket_of};
 
+pub mod camera;
 mod coherent;
+pub mod diamond;
 mod emit;
 mod evaluate;
 mod frontier;
 mod lanes;
+pub mod queue;
+pub mod validate;
 
 pub use coherent::{Coherent, CoherentStats, Mode, measured_error};
 

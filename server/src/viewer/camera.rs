@@ -3,7 +3,7 @@
 
 use roam_protocol::messages::ViewChange;
 
-use crate::camera::Camera;
+use crate::tessellate::camera::Camera;
 
 /// The most triangles a viewer may ask for.
 pub const MAX_BUDGET: u32 = 1 << 20;
@@ -16,7 +16,7 @@ pub fn default_camera(fov_y_deg: f32, viewport: [u32; 2]) -> Camera {
     Camera {
         eye: [0.0; 3],
         yaw_deg: 0.0,
-        pitch_deg: crate::flyover::PITCH_DEG,
+        pitch_deg: crate::sim::flyover::PITCH_DEG,
         fov_y_deg: if fov.is_finite() {
             fov.clamp(1.0, 179.0)
         } else {

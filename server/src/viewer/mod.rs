@@ -30,11 +30,11 @@ use roam_protocol::messages::ViewChange;
 use roam_protocol::{ChangeEncoder, CutHash, Grid, MeshEncoder};
 
 use crate::Terrain;
-use crate::camera::Camera;
-use crate::heightfield::Heightfield;
-use crate::physics::{VehicleState, altitude};
+use crate::sim::physics::{VehicleState, altitude};
+use crate::terrain::heightfield::Heightfield;
+use crate::terrain::variance::VarianceTree;
+use crate::tessellate::camera::Camera;
 use crate::tessellate::{Coherent, Limits, Mode, Scales};
-use crate::variance::VarianceTree;
 
 mod camera;
 

@@ -82,9 +82,9 @@ pub fn diverged_recording(
     interval: u32,
     bad_from: u64,
 ) -> Vec<u8> {
-    use roam_server::physics::Keys;
-    use roam_server::recording::{Header, Recorder};
-    use roam_server::world::{self, Inputs, World};
+    use roam_server::sim::physics::Keys;
+    use roam_server::sim::recording::{Header, Recorder};
+    use roam_server::sim::world::{self, Inputs, World};
     let mut world = World::new(terrain.clone());
     world
         .add(0, world::start_state(terrain, 0))

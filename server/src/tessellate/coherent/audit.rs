@@ -3,10 +3,10 @@
 
 use super::eval::fixed;
 use super::{Coherent, pack, unpack};
-use crate::camera::Camera;
-use crate::heightfield::Heightfield;
+use crate::terrain::heightfield::Heightfield;
+use crate::terrain::variance::VarianceTree;
+use crate::tessellate::camera::Camera;
 use crate::tessellate::{Limits, Scales};
-use crate::variance::VarianceTree;
 
 impl Coherent {
     /// Checks the cut after a frame at `camera`: the triangle and split counts, both

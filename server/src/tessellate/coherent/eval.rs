@@ -8,7 +8,7 @@ use super::super::evaluate::{Batch, Shape4, priority};
 use super::super::lanes::F4;
 use super::super::{Frame, classify, unpack};
 use super::Coherent;
-use crate::diamond::Shape;
+use crate::tessellate::diamond::Shape;
 
 /// The camera-independent part of a frontier diamond's priority, kept beside it.
 #[derive(Clone, Copy, Debug, PartialEq)]

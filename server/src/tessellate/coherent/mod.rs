@@ -46,11 +46,11 @@ pub use audit::measured_error;
 use self::eval::{Entry, Lanes, fixed};
 use super::frontier::PosSet;
 use super::{Frame, Limits, Mesh, Scales, Tessellator, classify, pack, unpack};
-use crate::camera::Camera;
-use crate::diamond::Shape;
-use crate::heightfield::Heightfield;
-use crate::queue::{BucketQueue, TOP, bucket_of};
-use crate::variance::VarianceTree;
+use crate::terrain::heightfield::Heightfield;
+use crate::terrain::variance::VarianceTree;
+use crate::tessellate::camera::Camera;
+use crate::tessellate::diamond::Shape;
+use crate::tessellate::queue::{BucketQueue, TOP, bucket_of};
 
 /// How the last frame's cut was made.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -732,7 +732,7 @@ fn motion(a: &Camera, b: &Camera) -> (f64, f64, f64) {
         .map(|i| (b.eye[i] - a.eye[i]).powi(2))
         .sum::<f64>()
         .sqrt();
-    let yaw = crate::physics::wrap_degrees(b.yaw_deg - a.yaw_deg);
+    let yaw = crate::sim::physics::wrap_degrees(b.yaw_deg - a.yaw_deg);
     (
         moved,
         yaw.min(360.0 - yaw),

@@ -9,14 +9,14 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use roam_server::Terrain;
-use roam_server::dataset;
-use roam_server::physics::{Keys, STEPS_PER_SECOND};
-use roam_server::recording::{self, RecordedWorld};
-use roam_server::replay;
-use roam_server::script;
-use roam_server::world::{self, Inputs, World};
+use roam_server::sim::physics::{Keys, STEPS_PER_SECOND};
+use roam_server::sim::recording::{self, RecordedWorld};
+use roam_server::sim::replay;
+use roam_server::sim::script;
+use roam_server::sim::world::{self, Inputs, World};
+use roam_server::terrain::dataset;
 
-use crate::progress::Progress;
+use super::progress::Progress;
 
 #[derive(Args)]
 pub struct SimulateArgs {
@@ -222,7 +222,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
             v.id,
             s.x,
             s.z,
-            roam_server::physics::altitude(&*terrain, s.x, s.z),
+            roam_server::sim::physics::altitude(&*terrain, s.x, s.z),
             s.speed,
             s.heading
         );

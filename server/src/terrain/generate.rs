@@ -5,9 +5,9 @@
 //! colour per cell from height and slope; [`synthetic`] makes a complete data set. Only
 //! integer hashing and `+ − × ÷` touch the samples, so the output depends on the seed alone.
 
-use crate::dataset::{ColorMap, Terrain};
-use crate::heightfield::{Heightfield, ShapeError};
-use crate::map::{MapParams, Start};
+use crate::terrain::dataset::{ColorMap, Terrain};
+use crate::terrain::heightfield::{Heightfield, ShapeError};
+use crate::terrain::map::{MapParams, Start};
 
 /// Largest sample the generator produces (of 65535): leaves head-room for edits.
 pub const MAX_SAMPLE: u16 = 40_000;
@@ -134,7 +134,7 @@ fn ridged(layer: u64, x: f64, z: f64, octaves: u32) -> f64 {
 /// Deterministic fBm terrain of `side = 2^N + 1` samples in `0 ..= MAX_SAMPLE`: rolling hills,
 /// ridged mountain ranges, valleys and flat lowland basins. Same `(side, seed)`, same samples.
 pub fn heights(side: u32, seed: u64) -> Result<Heightfield, ShapeError> {
-    if crate::heightfield::levels_of_side(u64::from(side)).is_none() {
+    if crate::terrain::heightfield::levels_of_side(u64::from(side)).is_none() {
         return Err(ShapeError::Side {
             side: u64::from(side),
         });
@@ -383,7 +383,7 @@ pub fn colorize(heights: &Heightfield, map: &MapParams) -> ColorMap {
 /// (relief up to an eighth of the map's width), a lake level that floods the lowest basins,
 /// fog that leaves 5 % contrast across the whole map, and a start on dry, gentle ground near
 /// the centre facing the highest summit. Panics only for a `side` that is not `2^N + 1`
-/// (a caller bug: check with [`crate::heightfield::levels_of_side`]).
+/// (a caller bug: check with [`crate::terrain::heightfield::levels_of_side`]).
 pub fn synthetic(side: u32, seed: u64) -> Terrain {
     let heights = match heights(side, seed) {
         Ok(h) => h,

@@ -27,7 +27,7 @@ pub struct ServeArgs {
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
-    let (terrain, vt, _) = crate::cmd_tess::load(&args.dir)?;
+    let (terrain, vt, _) = super::tess::load(&args.dir)?;
     let identity = tls::load_or_create(&args.state_dir)
         .with_context(|| format!("the certificate in {}", args.state_dir.display()))?;
     let token = args.token.unwrap_or_else(net::random_token);

@@ -19,8 +19,8 @@
 //!
 //! Errors are in sample units; multiply by the map's `vScale` for world units.
 
-use crate::diamond::{Diamond, Shape, Triangle, Vertex};
-use crate::heightfield::Heightfield;
+use crate::terrain::heightfield::Heightfield;
+use crate::tessellate::diamond::{Diamond, Shape, Triangle, Vertex};
 
 /// Value of code 1: the smallest non-zero error the table can express, in sample units.
 const SMALLEST: f64 = 0.25;

@@ -7,13 +7,13 @@
 //! 1 KB file is an error, not an allocation. Truncated data and trailing bytes are errors.
 //!
 //! Errors name the field (`magic`, `width`, `height`, `maxval`, `data`) and what was expected;
-//! the caller adds the file name (see [`crate::dataset::DataError`]).
+//! the caller adds the file name (see [`crate::terrain::dataset::DataError`]).
 
 use std::fs::File;
 use std::io::{self, BufRead, BufReader, BufWriter, Read, Write};
 use std::path::Path;
 
-use crate::heightfield::{Heightfield, MAX_LEVELS, levels_of_side};
+use crate::terrain::heightfield::{Heightfield, MAX_LEVELS, levels_of_side};
 
 /// Bytes read between two progress reports.
 const PROGRESS_STEP: u64 = 4 << 20;

@@ -4,12 +4,12 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use roam_server::dataset::{self, Terrain};
-use roam_server::heightfield::levels_of_side;
-use roam_server::map::{MapParams, Start, normalize};
-use roam_server::{generate as gen_terrain, pnm};
+use roam_server::terrain::dataset::{self, Terrain};
+use roam_server::terrain::heightfield::levels_of_side;
+use roam_server::terrain::map::{MapParams, Start, normalize};
+use roam_server::terrain::{generate as gen_terrain, pnm};
 
-use crate::progress::Progress;
+use super::progress::Progress;
 
 #[derive(Args)]
 pub struct CheckArgs {
@@ -77,7 +77,7 @@ pub struct ImportArgs {
 
 /// `check DIR`: load and validate a data set, then describe it.
 pub fn check(args: CheckArgs) -> Result<()> {
-    let (terrain, vt, build_ms) = crate::cmd_tess::load(&args.dir)?;
+    let (terrain, vt, build_ms) = super::tess::load(&args.dir)?;
     for line in describe(&terrain) {
         say!("{line}");
     }

@@ -1,8 +1,8 @@
 //! Replaying a recording: the recorded events fed to the same `world::step`.
 
-use crate::physics::{Ground, Keys, STEPS_PER_SECOND};
-use crate::recording::{Event, Recording};
-use crate::world::{self, Digest, Inputs, Vehicle, World, WorldError};
+use crate::sim::physics::{Ground, Keys, STEPS_PER_SECOND};
+use crate::sim::recording::{Event, Recording};
+use crate::sim::world::{self, Digest, Inputs, Vehicle, World, WorldError};
 
 /// How a replay ended.
 #[derive(Clone, Debug, PartialEq)]

@@ -11,7 +11,7 @@
 //! 300 -
 //! ```
 
-use crate::physics::Keys;
+use crate::sim::physics::Keys;
 
 /// The longest script, ticks (about 11.5 days of driving).
 pub const MAX_TICKS: u64 = 100_000_000;

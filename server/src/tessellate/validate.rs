@@ -64,7 +64,7 @@ pub fn check_mesh(vertices: &[[u16; 2]], indices: &[u32], size: u32) -> Result<(
             })?;
         }
         let p = v.map(|[x, z]| (u32::from(x), u32::from(z)));
-        let a2 = crate::diamond::ccw(p[0], p[1], p[2]);
+        let a2 = crate::tessellate::diamond::ccw(p[0], p[1], p[2]);
         if a2 <= 0 {
             return Err(MeshError::Orientation { tri });
         }

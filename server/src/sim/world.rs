@@ -8,7 +8,7 @@
 use std::sync::Arc;
 
 use crate::Terrain;
-use crate::physics::{self, Ground, Keys, VehicleState};
+use crate::sim::physics::{self, Ground, Keys, VehicleState};
 
 /// A vehicle's name in the world, recordings and (later) the wire.
 pub type VehicleId = u16;

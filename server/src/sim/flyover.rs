@@ -1,8 +1,8 @@
 //! The benchmark's camera path and its statistics: pure functions, no clock. The binary
 //! times each frame and hands the durations back here.
 
-use crate::camera::Camera;
-use crate::dataset::Terrain;
+use crate::terrain::dataset::Terrain;
+use crate::tessellate::camera::Camera;
 
 /// Viewport of the benchmark (the 1920×1080 at 60° vertical field of view).
 pub const WIDTH: u32 = 1920;
@@ -57,11 +57,11 @@ pub const DRIVE_SCRIPT: &str = "150 U\n120 UL\n100 U\n120 UR\n60 -\n";
 /// [`PITCH_DEG`]. A frame shows the world at the latest tick it has reached.
 pub fn drive(
     terrain: &std::sync::Arc<Terrain>,
-    script: &crate::script::Script,
+    script: &crate::sim::script::Script,
     fps: u32,
 ) -> Vec<Camera> {
-    use crate::physics::STEPS_PER_SECOND;
-    use crate::world::{self, Inputs, World};
+    use crate::sim::physics::STEPS_PER_SECOND;
+    use crate::sim::world::{self, Inputs, World};
     let mut w = World::new(terrain.clone());
     w.add(0, world::start_state(terrain, 0))
         .expect("the map's start is on the map");

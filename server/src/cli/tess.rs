@@ -7,13 +7,14 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
-use roam_server::camera::Camera;
-use roam_server::flyover::{self, quantile};
+use roam_server::Terrain;
+use roam_server::sim::flyover::{self, quantile};
+use roam_server::terrain::dataset;
+use roam_server::terrain::variance::VarianceTree;
+use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
-use roam_server::variance::VarianceTree;
-use roam_server::{Terrain, dataset};
 
-use crate::progress::Progress;
+use super::progress::Progress;
 
 /// Camera options shared by `mesh` and `bench`.
 #[derive(Args, Clone)]
@@ -204,7 +205,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         err.push(f64::from(mesh.error_bound_px));
     }
     let terrain = std::sync::Arc::new(terrain);
-    let vehicle_steps_per_second = crate::cmd_sim::bench_physics(&terrain);
+    let vehicle_steps_per_second = super::sim::bench_physics(&terrain);
     let codec = codec_bench(&terrain, &vt, limits)?;
     let serve = serve_bench(&terrain, &vt, limits)?;
     let samples = f64::from(terrain.heights.side()).powi(2);
@@ -277,7 +278,7 @@ fn codec_bench(
     limits: Limits,
 ) -> Result<CodecFigures> {
     use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder, mesh};
-    let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
+    let script = roam_server::sim::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
     let grid = Grid::new(terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
     let step = roam_protocol::height_step(terrain.heights.samples());
@@ -352,7 +353,7 @@ fn serve_bench(
     use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
     use roam_server::tessellate::{Mode, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
-    let script = roam_server::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
+    let script = roam_server::sim::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
     let sc = scales(terrain);
     let levels = terrain.heights.levels();

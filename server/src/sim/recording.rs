@@ -32,8 +32,8 @@
 
 use std::io::{self, Write};
 
-use crate::physics::{Keys, VehicleState};
-use crate::world::{Digest, VehicleId};
+use crate::sim::physics::{Keys, VehicleState};
+use crate::sim::world::{Digest, VehicleId};
 
 /// The file's first bytes.
 pub const MAGIC: [u8; 8] = *b"roamrec\n";
@@ -544,7 +544,7 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
 #[derive(Debug, thiserror::Error)]
 pub enum RecordError {
     #[error(transparent)]
-    World(#[from] crate::world::WorldError),
+    World(#[from] crate::sim::world::WorldError),
     #[error("writing the recording: {0}")]
     Io(#[from] io::Error),
 }
@@ -552,14 +552,14 @@ pub enum RecordError {
 /// A world that records everything that enters it: the same `world::step`, with the inputs,
 /// joins and leaves written down on the tick they apply, and a checkpoint every interval.
 pub struct RecordedWorld<G, W: Write> {
-    world: crate::world::World<G>,
+    world: crate::sim::world::World<G>,
     recorder: Recorder<W>,
 }
 
-impl<G: crate::physics::Ground, W: Write> RecordedWorld<G, W> {
+impl<G: crate::sim::physics::Ground, W: Write> RecordedWorld<G, W> {
     /// Starts recording `world` (at tick 0) into `out`.
     pub fn start(
-        world: crate::world::World<G>,
+        world: crate::sim::world::World<G>,
         out: W,
         data_hash: [u8; 32],
         checkpoint_interval: u32,
@@ -572,7 +572,7 @@ impl<G: crate::physics::Ground, W: Write> RecordedWorld<G, W> {
         }
         let header = Header {
             data_hash,
-            steps_per_second: crate::physics::STEPS_PER_SECOND,
+            steps_per_second: crate::sim::physics::STEPS_PER_SECOND,
             checkpoint_interval,
             vehicles: world.vehicles().iter().map(|v| (v.id, v.state)).collect(),
         };
@@ -580,17 +580,17 @@ impl<G: crate::physics::Ground, W: Write> RecordedWorld<G, W> {
         Ok(RecordedWorld { world, recorder })
     }
 
-    pub fn world(&self) -> &crate::world::World<G> {
+    pub fn world(&self) -> &crate::sim::world::World<G> {
         &self.world
     }
 
     /// Records the vehicles' keys, steps, and checkpoints when the interval comes round.
-    pub fn step(&mut self, inputs: &crate::world::Inputs) -> io::Result<()> {
+    pub fn step(&mut self, inputs: &crate::sim::world::Inputs) -> io::Result<()> {
         let tick = self.world.tick();
         for v in self.world.vehicles() {
             self.recorder.input(tick, v.id, inputs.get(v.id))?;
         }
-        crate::world::step(&mut self.world, inputs);
+        crate::sim::world::step(&mut self.world, inputs);
         let tick = self.world.tick();
         if tick.is_multiple_of(u64::from(self.recorder.checkpoint_interval())) {
             self.recorder.checkpoint(tick, &self.world.digest())?;
@@ -611,7 +611,7 @@ impl<G: crate::physics::Ground, W: Write> RecordedWorld<G, W> {
     }
 
     /// Writes the end record and returns the world and the writer.
-    pub fn finish(self) -> io::Result<(crate::world::World<G>, W)> {
+    pub fn finish(self) -> io::Result<(crate::sim::world::World<G>, W)> {
         let out = self
             .recorder
             .finish(self.world.tick(), &self.world.digest())?;

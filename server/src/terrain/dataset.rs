@@ -1,6 +1,6 @@
 //! A terrain data set on disk: a directory holding `map` (TOML parameters, see
-//! [`crate::map`]), `hf.pgm` (16-bit heightfield, side `2^N + 1`) and `color.ppm` (8-bit RGB,
-//! one pixel per grid cell, `(side − 1)²`).
+//! [`crate::terrain::map`]), `hf.pgm` (16-bit heightfield, side `2^N + 1`) and `color.ppm`
+//! (8-bit RGB, one pixel per grid cell, `(side − 1)²`).
 //!
 //! [`load`] validates everything and reports problems as a [`DataError`] naming the file, the
 //! field and what was expected, e.g.
@@ -10,9 +10,9 @@ use std::fs;
 use std::io;
 use std::path::{Path, PathBuf};
 
-use crate::heightfield::Heightfield;
-use crate::map::{MapError, MapParams};
-use crate::pnm::{self, PnmError};
+use crate::terrain::heightfield::Heightfield;
+use crate::terrain::map::{MapError, MapParams};
+use crate::terrain::pnm::{self, PnmError};
 
 /// File name of the parameters inside a data-set directory.
 pub const MAP_FILE: &str = "map";

@@ -1,0 +1,8 @@
+//! The binary's commands, one module per concern (data sets, tessellation, simulation,
+//! serving), and the terminal progress bar they share.
+
+pub mod data;
+pub mod net;
+pub mod progress;
+pub mod sim;
+pub mod tess;

@@ -1,0 +1,14 @@
+//! The terrain: a data set on disk (`map`, `hf.pgm`, `color.ppm`) loaded into a `Terrain`,
+//! the synthetic generator, and the variance tree built once from the heights.
+
+pub mod dataset;
+pub mod generate;
+pub mod heightfield;
+pub mod map;
+pub mod pnm;
+pub mod variance;
+
+pub use dataset::{ColorMap, DataError, Terrain};
+pub use heightfield::{Heightfield, ShapeError};
+pub use map::{MapParams, Start};
+pub use variance::VarianceTree;
