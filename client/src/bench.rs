@@ -3,16 +3,15 @@
 //! drawing a frame offscreen (waiting for the GPU to finish), at the window's size.
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Result;
-use roam_protocol::messages::{Hello, Role, VERSION};
-use roam_server::sim::flyover::quantile;
-use roam_server::sim::script::Script;
+use roam_protocol::messages::{DEFAULT_PITCH_DEG, Hello, Role, VERSION};
+use roam_protocol::script::Script;
+use roam_protocol::stats::quantile;
 
 use crate::render::{Gpu, Renderer, TerrainVertices, Toggles, View};
-use crate::session::{self, Latency, Session, Taken};
+use crate::session::{KeySource, Session, Taken};
 
 /// What to measure.
 #[derive(Clone, Debug)]
@@ -42,7 +41,13 @@ pub async fn run(
         budget: opts.budget,
         frame_rate: 60,
     };
-    let mut session = Session::join(addr, fingerprint, hello).await?;
+    let session = Session::join(
+        addr,
+        fingerprint,
+        hello,
+        KeySource::Script(opts.inputs.clone()),
+    )
+    .await?;
     let gpu = Gpu::headless()?;
     let format = wgpu::TextureFormat::Rgba8UnormSrgb;
     let mut renderer = Renderer::new(&gpu, format, session.scene.clone());
@@ -66,27 +71,18 @@ pub async fn run(
             .poll(wgpu::PollType::wait_indefinitely())
             .map(|_| ())
     };
-    let player = tokio::spawn(session::play(
-        session.conn.clone(),
-        session::script_keys(&opts.inputs),
-        Arc::new(Latency::default()),
-    ));
     let (mut decode, mut build, mut upload, mut draw, mut tris) =
         (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     let mut vertices = TerrainVertices::default();
     let mut frames = 0u64;
     while frames < opts.frames {
-        let r = match session.take(true).await? {
-            Taken::Nothing => {
-                session.wait().await?;
-                continue;
-            }
-            Taken::Dropped => continue,
+        let r = match session.next_frame(true).await? {
+            Taken::Nothing | Taken::Dropped(_) => continue,
             Taken::Frame(r) => r,
         };
         frames += 1;
         let t0 = Instant::now();
-        vertices.build(&session.scene, &session.mesh);
+        vertices.build(&session.scene, session.core().mesh());
         let t1 = Instant::now();
         renderer.upload(&gpu, &vertices);
         gpu.queue.submit([]);
@@ -99,7 +95,7 @@ pub async fn run(
         let view = View {
             eye: [v.x as f32, v.y as f32 + 1.5, v.z as f32],
             yaw_deg: v.heading as f32,
-            pitch_deg: roam_server::sim::flyover::PITCH_DEG as f32,
+            pitch_deg: DEFAULT_PITCH_DEG as f32,
             fov_y_deg: opts.fov_y_deg,
             time_s: frames as f32 / 60.0,
         };
@@ -115,7 +111,6 @@ pub async fn run(
             tris.push(r.triangles as f64);
         }
     }
-    player.abort();
     session.quit().await;
     let per_frame: Vec<f64> = (0..decode.len())
         .map(|i| decode[i] + build[i] + upload[i])

@@ -2,15 +2,14 @@
 //! every frame, acknowledges it, and measures what it got.
 
 use std::net::SocketAddr;
-use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Result, anyhow, bail};
 use roam_protocol::mesh;
 use roam_protocol::messages::{self, Hello, Role, VERSION};
-use roam_server::sim::script::Script;
+use roam_protocol::script::Script;
 
-use crate::session::{self, Latency, Session, Taken};
+use crate::session::{KeySource, Session, Taken};
 
 pub use crate::session::connect;
 
@@ -101,16 +100,11 @@ pub async fn run(
         budget: opts.budget,
         frame_rate: opts.frame_rate,
     };
-    let mut session = Session::join(addr, fingerprint, hello).await?;
-    let latency = Arc::new(Latency::default());
     let keys = match (&opts.role, &opts.inputs) {
-        (Role::Driver, Some(script)) => Some(tokio::spawn(session::play(
-            session.conn.clone(),
-            session::script_keys(script),
-            latency.clone(),
-        ))),
-        _ => None,
+        (Role::Driver, Some(script)) => KeySource::Script(script.clone()),
+        _ => KeySource::None,
     };
+    let session = Session::join(addr, fingerprint, hello, keys).await?;
     let mut stats = ViewerStats {
         vehicle: session.welcome.vehicle,
         scene: opts.keep_last.then(|| session.scene.clone()),
@@ -120,15 +114,13 @@ pub async fn run(
     let mut first_at: Option<Instant> = None;
     let mut stop = opts.stop.clone();
     while stats.frames < opts.frames {
-        let r = match session.take(!opts.skip_decode).await? {
-            Taken::Nothing => {
-                tokio::select! {
-                    w = session.wait() => w?,
-                    () = stopped(&mut stop) => break,
-                }
-                continue;
-            }
-            Taken::Dropped => {
+        let taken = tokio::select! {
+            t = session.next_frame(!opts.skip_decode) => t?,
+            () = stopped(&mut stop) => break,
+        };
+        let r = match taken {
+            Taken::Nothing => continue,
+            Taken::Dropped(_) => {
                 stats.decode_errors += 1;
                 continue;
             }
@@ -154,13 +146,13 @@ pub async fn run(
             );
         }
         if stats.frames % 60 == 1 {
-            let m = &session.mesh;
-            roam_server::tessellate::validate::check_mesh(
-                &m.vertices,
-                &m.indices,
-                session.grid().size(),
-            )
-            .map_err(|e| anyhow!("frame {}: not a conforming mesh: {e}", r.frame))?;
+            // Checked on a copy: the core's lock is not held while checking.
+            let (m, size) = {
+                let core = session.core();
+                (core.mesh().clone(), core.grid().size())
+            };
+            roam_protocol::validate::check_mesh(&m.vertices, &m.indices, size)
+                .map_err(|e| anyhow!("frame {}: not a conforming mesh: {e}", r.frame))?;
         }
         let per_tri = r.wire_bytes as f64 / tris.max(1) as f64;
         if stats.first.is_none() {
@@ -169,9 +161,7 @@ pub async fn run(
             stats.steady.push(per_tri);
         }
         stats.max_triangles = stats.max_triangles.max(tris);
-        if let Some(seq) = r.input_seq {
-            latency.applied(seq, Instant::now(), &mut stats.latencies_ms);
-        }
+        stats.latencies_ms.extend(&r.latencies_ms);
         stats.last = r
             .vehicles
             .iter()
@@ -180,12 +170,9 @@ pub async fn run(
     }
     stats.seconds = started.elapsed().as_secs_f64();
     stats.streaming_s = first_at.map_or(0.0, |t| t.elapsed().as_secs_f64());
-    if let Some(k) = keys {
-        k.abort();
-    }
     if opts.keep_last && stats.max_triangles > 0 {
         // The mesh of the last frame decoded.
-        stats.last_mesh = Some(std::mem::take(&mut session.mesh));
+        stats.last_mesh = Some(session.core().take_mesh());
     }
     session.quit().await;
     Ok(stats)

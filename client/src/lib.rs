@@ -5,6 +5,7 @@
 
 pub mod bench;
 pub mod camera;
+pub mod core;
 pub mod headless;
 pub mod hud;
 pub mod live;

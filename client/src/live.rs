@@ -7,13 +7,13 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 
+use roam_protocol::keys::Keys;
 use roam_protocol::messages::VehicleView;
-use roam_server::sim::physics::Keys;
 use tokio::sync::mpsc;
 
 use crate::camera::LocalGround;
 use crate::render::TerrainVertices;
-use crate::session::{self, Latency, Session, Taken};
+use crate::session::{Session, Taken};
 
 /// What the render thread asks of the network task.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -40,31 +40,6 @@ pub struct Arrived {
     pub at: Instant,
 }
 
-/// Keys as the window saw them: held now, and pressed since the last physics step.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct KeyLatch {
-    pub held: Keys,
-    pub pressed: Keys,
-}
-
-impl KeyLatch {
-    pub fn down(&mut self, k: Keys) {
-        self.held = self.held.union(k);
-        self.pressed = self.pressed.union(k);
-    }
-
-    pub fn up(&mut self, k: Keys) {
-        self.held = self.held.without(k);
-    }
-
-    /// This step's state; a press, however short, is in exactly one step.
-    pub fn take(&mut self) -> (Keys, Keys) {
-        let out = (self.held, self.pressed);
-        self.pressed = Keys::NONE;
-        out
-    }
-}
-
 /// How a session that quit ends: [`Link::Ended`] with this, and more when the goodbye
 /// was not heard.
 pub const QUIT: &str = "quit";
@@ -77,13 +52,11 @@ pub enum Link {
 }
 
 /// What the network task and the render thread share.
-#[derive(Debug)]
 pub struct Shared {
     pub arrived: Mutex<Option<Arrived>>,
-    pub keys: Mutex<KeyLatch>,
+    /// The session: its core latches the window's keys for the key sender.
+    session: Arc<Session>,
     pub link: Mutex<Link>,
-    /// Bytes of frames received.
-    pub bytes_in: Arc<AtomicU64>,
     /// Frames taken from the stream and decoded.
     pub frames: AtomicU64,
     /// Frames that could not be decoded (a key frame was asked for).
@@ -110,17 +83,21 @@ impl Shared {
     }
 
     pub fn key_down(&self, k: Keys) {
-        lock(&self.keys).down(k);
+        self.session.key_down(k);
     }
 
     pub fn key_up(&self, k: Keys) {
-        lock(&self.keys).up(k);
+        self.session.key_up(k);
     }
 
     /// Every key released (the window lost focus: nothing stays held).
     pub fn keys_released(&self) {
-        let mut k = lock(&self.keys);
-        k.held = Keys::NONE;
+        self.session.keys_released();
+    }
+
+    /// Bytes of frames received.
+    pub fn bytes_in(&self) -> u64 {
+        self.session.bytes_in()
     }
 
     /// The median of the recent latencies, milliseconds.
@@ -139,17 +116,16 @@ const GROUND_RADIUS: f32 = 600.0;
 pub fn spawn(
     runtime: &tokio::runtime::Handle,
     session: Session,
-    driver: bool,
 ) -> (
     Arc<Shared>,
     mpsc::UnboundedSender<Command>,
     tokio::task::JoinHandle<()>,
 ) {
+    let session = Arc::new(session);
     let shared = Arc::new(Shared {
         arrived: Mutex::new(None),
-        keys: Mutex::new(KeyLatch::default()),
+        session: session.clone(),
         link: Mutex::new(Link::Connected),
-        bytes_in: session.bytes_in.clone(),
         frames: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
         latencies: Mutex::new(VecDeque::new()),
@@ -161,84 +137,62 @@ pub fn spawn(
     let quit = tx.clone();
     let interrupted = shared.clone();
     runtime.spawn(async move {
-        if tokio::signal::ctrl_c().await.is_ok() {
+        let mut stop = crate::session::ctrl_c();
+        if stop.wait_for(|s| *s).await.is_ok() {
             interrupted.interrupted.store(true, Ordering::Relaxed);
             let _ = quit.send(Command::Quit);
-            // A second Ctrl-C does not wait for anything.
-            if tokio::signal::ctrl_c().await.is_ok() {
-                std::process::exit(130);
-            }
+            // A second Ctrl-C exits at once.
+            std::future::pending::<()>().await;
         }
     });
-    let task = runtime.spawn(run(session, shared.clone(), rx, driver));
+    let task = runtime.spawn(run(session, shared.clone(), rx));
     (shared, tx, task)
 }
 
 enum Event {
     Command(Option<Command>),
-    Waiting(anyhow::Result<()>),
+    Frame(anyhow::Result<Taken>),
 }
 
 async fn run(
-    mut session: Session,
+    session: Arc<Session>,
     shared: Arc<Shared>,
     mut commands: mpsc::UnboundedReceiver<Command>,
-    driver: bool,
 ) {
-    let latency = Arc::new(Latency::default());
-    let keys = driver.then(|| {
-        let shared = shared.clone();
-        tokio::spawn(session::play(
-            session.conn.clone(),
-            move || Some(lock(&shared.keys).take()),
-            latency.clone(),
-        ))
-    });
-    let mut lat = Vec::new();
     let ended = loop {
         let event = tokio::select! {
             c = commands.recv() => Event::Command(c),
-            w = session.wait() => Event::Waiting(w),
+            t = session.next_frame(true) => Event::Frame(t),
         };
-        match event {
+        let r = match event {
             Event::Command(Some(Command::Budget(b))) => {
-                if let Err(e) = session.set_budget(b).await {
-                    break format!("{e:#}");
-                }
+                session.set_budget(b);
                 continue;
             }
             Event::Command(Some(Command::View(v))) => {
-                if let Err(e) = session.set_view(v).await {
-                    break format!("{e:#}");
-                }
+                session.set_view(v);
                 continue;
             }
             Event::Command(Some(Command::Quit) | None) => break "quit".to_string(),
-            Event::Waiting(Err(e)) => break format!("{e:#}"),
-            Event::Waiting(Ok(())) => {}
-        }
-        let r = match session.take(true).await {
-            Ok(Taken::Frame(r)) => r,
-            Ok(Taken::Nothing) => continue,
-            Ok(Taken::Dropped) => {
+            Event::Frame(Err(e)) => break format!("{e:#}"),
+            Event::Frame(Ok(Taken::Nothing)) => continue,
+            Event::Frame(Ok(Taken::Dropped(_))) => {
                 shared.dropped.fetch_add(1, Ordering::Relaxed);
                 continue;
             }
-            Err(e) => break format!("{e:#}"),
+            Event::Frame(Ok(Taken::Frame(r))) => r,
         };
         let started = Instant::now();
         let mut terrain = TerrainVertices::default();
-        terrain.build(&session.scene, &session.mesh);
+        terrain.build(&session.scene, session.core().mesh());
         let ground = match r.vehicles.iter().find(|v| v.id == shared.vehicle) {
             Some(v) => LocalGround::near(&terrain.corners, v.x as f32, v.z as f32, GROUND_RADIUS),
             None => LocalGround::default(),
         };
         let now = Instant::now();
-        if let Some(seq) = r.input_seq {
-            lat.clear();
-            latency.applied(seq, now, &mut lat);
+        if !r.latencies_ms.is_empty() {
             let mut l = lock(&shared.latencies);
-            l.extend(lat.iter().copied());
+            l.extend(r.latencies_ms.iter().copied());
             while l.len() > 64 {
                 l.pop_front();
             }
@@ -254,9 +208,6 @@ async fn run(
             at: r.arrived,
         });
     };
-    if let Some(k) = keys {
-        k.abort();
-    }
     if ended == "quit" {
         let told = session.quit().await;
         *lock(&shared.link) = Link::Ended(if told {
@@ -266,22 +217,5 @@ async fn run(
         });
     } else {
         *lock(&shared.link) = Link::Ended(ended);
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn a_press_released_before_the_step_is_still_sent_once() {
-        let mut k = KeyLatch::default();
-        k.down(Keys::UP);
-        k.up(Keys::UP);
-        assert_eq!(k.take(), (Keys::NONE, Keys::UP));
-        assert_eq!(k.take(), (Keys::NONE, Keys::NONE));
-        k.down(Keys::LEFT);
-        assert_eq!(k.take(), (Keys::LEFT, Keys::LEFT));
-        assert_eq!(k.take(), (Keys::LEFT, Keys::NONE));
     }
 }

@@ -8,9 +8,10 @@ use std::sync::Arc;
 use anyhow::{Context, Result, bail};
 use clap::Parser;
 use roam_client::headless::{self, ViewerOptions};
-use roam_client::session::Session;
+use roam_client::session::{KeySource, Session};
+use roam_link::tls;
 use roam_protocol::messages::{Hello, Role, VERSION};
-use roam_server::net::{self, Options, Server, tls};
+use roam_server::net::{self, Options, Server};
 
 #[derive(Parser)]
 #[command(
@@ -163,7 +164,7 @@ fn run(cli: Cli) -> Result<()> {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             Some(
-                roam_server::sim::script::parse_bytes(&bytes)
+                roam_protocol::script::parse_bytes(&bytes)
                     .with_context(|| path.display().to_string())?,
             )
         }
@@ -186,7 +187,7 @@ fn run(cli: Cli) -> Result<()> {
         if cli.bench {
             let inputs = match script.clone() {
                 Some(s) => s,
-                None => roam_server::sim::script::parse(roam_server::sim::flyover::DRIVE_SCRIPT)
+                None => roam_protocol::script::parse(roam_protocol::script::DRIVE_SCRIPT)
                     .context("the benchmark drive")?,
             };
             let opts = roam_client::bench::Options {
@@ -205,16 +206,7 @@ fn run(cli: Cli) -> Result<()> {
             return write_report(&cli, &report?);
         }
         // Ctrl-C stops the viewers, which say goodbye and report what they measured.
-        let (stop, stopped) = tokio::sync::watch::channel(false);
-        tokio::spawn(async move {
-            if tokio::signal::ctrl_c().await.is_ok() {
-                let _ = stop.send(true);
-                // A second Ctrl-C does not wait for goodbyes.
-                if tokio::signal::ctrl_c().await.is_ok() {
-                    std::process::exit(130);
-                }
-            }
-        });
+        let stopped = roam_client::session::ctrl_c();
         let mut tasks = Vec::new();
         for _ in 0..cli.viewers.max(1) {
             let opts = ViewerOptions {
@@ -311,7 +303,12 @@ fn window(
         budget: cli.budget,
         frame_rate: 60,
     };
-    let session = runtime.block_on(Session::join(addr, fingerprint, hello))?;
+    let keys = if cli.spectate {
+        KeySource::None
+    } else {
+        KeySource::Latch
+    };
+    let session = runtime.block_on(Session::join(addr, fingerprint, hello, keys))?;
     let name = match &cli.connect {
         Some(a) => a.to_string(),
         None => format!(

@@ -1,23 +1,24 @@
-//! One viewer's connection: the handshake, the colour map, and the frame stream decoded
-//! newest-first; and key states sent as datagrams. The headless viewer and the window both
-//! drive a [`Session`].
+//! The viewer's I/O: QUIC, tasks and the clock around the clock-free [`ClientCore`]. It
+//! connects (pinning the server's certificate), joins (hello, welcome, the colour map checked
+//! against the grid before anything is allocated), then runs three tasks beside the
+//! caller: one reads frames (datagrams, and streams read to their end) into the core, one
+//! writes the core's control messages in order, and one sends a key datagram every 10 ms
+//! (the physics' step) from the core's latch or a script. The window, the headless viewer
+//! and `--bench` take frames with [`Session::next_frame`].
 
-use std::collections::VecDeque;
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
-use roam_protocol::messages::{
-    self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Reason, ServerMessage, VehicleView,
-    Welcome,
-};
-use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
-use roam_server::net::{tls, wire};
-use roam_server::sim::physics::Keys;
-use roam_server::sim::script::Script;
+use roam_link::{tls, wire};
+use roam_protocol::keys::{KeyStep, Keys};
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
+use roam_protocol::script::Script;
+use tokio::sync::{Notify, mpsc, oneshot};
 
+pub use crate::core::{ClientCore, Received, Taken};
 use crate::render::Scene;
 
 /// Connects to `addr`, accepting only the certificate with SHA-256 `fingerprint`.
@@ -49,14 +50,6 @@ const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
 /// 16 streams of this much bound what a server can make the viewer hold.
 pub const MAX_FRAME: usize = 8 << 20;
 
-/// Writes a control message, within [`CONTROL_TIMEOUT`].
-async fn send_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
-    tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
-        .await
-        .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
-    Ok(())
-}
-
 /// Why a connection ended or was refused, in words.
 pub fn describe(reason: &Reason) -> String {
     match reason {
@@ -68,84 +61,90 @@ pub fn describe(reason: &Reason) -> String {
     }
 }
 
-/// A frame taken from the stream.
+/// Set once Ctrl-C is pressed in the terminal; a second Ctrl-C exits at once (130), not
+/// waiting for goodbyes. For the headless viewer and the window alike.
+pub fn ctrl_c() -> tokio::sync::watch::Receiver<bool> {
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    tokio::spawn(async move {
+        if tokio::signal::ctrl_c().await.is_ok() {
+            let _ = stop.send(true);
+            if tokio::signal::ctrl_c().await.is_ok() {
+                std::process::exit(130);
+            }
+        }
+    });
+    stopped
+}
+
+/// Where a driver's keys come from.
 #[derive(Clone, Debug)]
-pub struct Received {
-    pub frame: u64,
-    pub tick: u64,
-    pub vehicles: Vec<VehicleView>,
-    /// The newest key state the world had applied.
-    pub input_seq: Option<u32>,
-    /// Bytes on the wire (the frame message).
-    pub wire_bytes: usize,
-    /// Triangles decoded into [`Session::mesh`] (0 when not decoded).
-    pub triangles: usize,
-    /// Decoding and building the mesh, seconds.
-    pub decode_s: f64,
-    /// When its stream was read to the end.
-    pub arrived: Instant,
+pub enum KeySource {
+    /// No keys are sent (a spectator).
+    None,
+    /// The core's latch, fed by [`Session::key_down`] and [`Session::key_up`] (the window).
+    Latch,
+    /// A script, one step per 10 ms, then no keys.
+    Script(Script),
 }
 
-/// What [`Session::take`] found.
-#[derive(Clone, Debug)]
-pub enum Taken {
-    /// Nothing newer than what was shown.
-    Nothing,
-    /// A frame, decoded (unless asked not to) and acknowledged.
-    Frame(Received),
-    /// A frame that could not be decoded (its base unknown, or the bytes wrong): a key
-    /// frame has been asked for.
-    Dropped,
+/// Each physics step's keys, taken from the core's latch or a script.
+type Steps = Box<dyn FnMut(&mut ClientCore) -> KeyStep + Send>;
+
+/// What the control writer is asked to do.
+enum Outgoing {
+    Message(ClientMessage),
+    /// Say goodbye, finish the stream, and tell whether the server heard.
+    Quit(oneshot::Sender<bool>),
 }
 
-/// The newest frame read and not yet taken, and the reader's state.
-#[derive(Default)]
-struct SlotInner {
-    /// The frame, its size on the wire (0: a stream that was not a frame), and when it
-    /// arrived.
-    frame: Mutex<Option<(Frame, usize, Instant)>>,
-    notify: tokio::sync::Notify,
-    /// The reader has stopped: no frame will come.
-    ended: std::sync::atomic::AtomicBool,
+/// What the I/O tasks and the caller share.
+struct Link {
+    core: Mutex<ClientCore>,
+    /// Woken when a frame is offered or the connection ends.
+    notify: Notify,
+    /// Set once no more frames can come: the reason.
+    ended: Mutex<Option<String>>,
+    closed: AtomicBool,
 }
 
-type Slot = Arc<SlotInner>;
+impl Link {
+    fn end(&self, why: String) {
+        lock(&self.ended).get_or_insert(why);
+        self.closed.store(true, Ordering::Release);
+        self.notify.notify_one();
+    }
+}
 
-/// The largest budget a server takes; a viewer asks for no more.
-pub const MAX_BUDGET: u32 = roam_server::net::viewer::MAX_BUDGET;
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
 
 /// A joined viewer.
 pub struct Session {
     _endpoint: quinn::Endpoint,
     pub conn: quinn::Connection,
-    send: quinn::SendStream,
     pub welcome: Welcome,
     pub scene: Scene,
-    grid: Grid,
-    decoder: MeshDecoder,
-    /// Cuts of recent frames: the bases the server may code against.
-    decoded: VecDeque<(u64, Cut)>,
-    newest: Option<u64>,
-    slot: Slot,
-    reader: tokio::task::JoinHandle<()>,
-    /// The newest decoded mesh.
-    pub mesh: mesh::Mesh,
-    pub budget: u32,
-    /// The largest budget asked for: frames tessellated before a cut may still come.
-    limit: u32,
-    /// Bytes received on frame streams so far (frames skipped included).
-    pub bytes_in: Arc<AtomicU64>,
+    link: Arc<Link>,
+    control: mpsc::UnboundedSender<Outgoing>,
+    tasks: Vec<tokio::task::JoinHandle<()>>,
 }
 
 impl Session {
-    /// Connects, says hello, and receives the welcome and the colour map.
-    pub async fn join(addr: SocketAddr, fingerprint: [u8; 32], hello: Hello) -> Result<Session> {
+    /// Connects, says hello, receives the welcome and the colour map, and starts the I/O
+    /// tasks; keys are sent from `keys`.
+    pub async fn join(
+        addr: SocketAddr,
+        fingerprint: [u8; 32],
+        hello: Hello,
+        keys: KeySource,
+    ) -> Result<Session> {
         let (endpoint, conn) = connect(addr, fingerprint).await?;
         let (mut send, mut recv) = conn.open_bi().await.context("opening the control stream")?;
         let mut hello = hello;
-        hello.budget = hello.budget.clamp(2, MAX_BUDGET);
+        hello.budget = messages::clamp_budget(hello.budget);
         let budget = hello.budget;
-        send_control(&mut send, &ClientMessage::Hello(hello)).await?;
+        write_control(&mut send, &ClientMessage::Hello(hello)).await?;
         let joined = tokio::time::timeout(JOIN_TIMEOUT, async {
             let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await
             {
@@ -154,10 +153,10 @@ impl Session {
                     bail!("refused: {}", describe(&reason))
                 }
                 Ok(other) => bail!("expected a welcome, got {other:?}"),
-                Err(e) => bail!(
-                    "the server closed the connection: {e} ({:?})",
-                    conn.close_reason()
-                ),
+                Err(e) => match conn.close_reason() {
+                    Some(why) => bail!("the server closed the connection: {why} ({e})"),
+                    None => bail!("reading the welcome: {e}"),
+                },
             };
             let colors = color_map(&mut recv, &welcome).await?;
             anyhow::Ok((welcome, colors))
@@ -170,7 +169,7 @@ impl Session {
                 JOIN_TIMEOUT.as_secs()
             ),
         };
-        let grid = Grid::new(u32::from(welcome.levels))
+        let core = ClientCore::new(&welcome, budget)
             .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
         let scene = Scene {
             levels: u32::from(welcome.levels),
@@ -184,48 +183,92 @@ impl Session {
             cells: welcome.color_cells,
             colors,
         };
-        let slot: Slot = Default::default();
-        let bytes_in = Arc::new(AtomicU64::new(0));
-        let reader = tokio::spawn(read_frames(conn.clone(), slot.clone(), bytes_in.clone()));
+        let link = Arc::new(Link {
+            core: Mutex::new(core),
+            notify: Notify::new(),
+            ended: Mutex::new(None),
+            closed: AtomicBool::new(false),
+        });
+        let (control, outgoing) = mpsc::unbounded_channel();
+        let mut tasks = vec![
+            tokio::spawn(read_frames(conn.clone(), link.clone())),
+            tokio::spawn(control_writer(send, outgoing, link.clone())),
+        ];
+        let steps: Option<Steps> = match keys {
+            KeySource::None => None,
+            KeySource::Latch => Some(Box::new(ClientCore::take_keys)),
+            KeySource::Script(script) => {
+                let mut steps: Vec<KeyStep> = script.steps().collect();
+                steps.reverse();
+                Some(Box::new(move |_: &mut ClientCore| {
+                    steps.pop().unwrap_or(KeyStep {
+                        held: Keys::NONE,
+                        pressed: Keys::NONE,
+                    })
+                }))
+            }
+        };
+        if let Some(steps) = steps {
+            tasks.push(tokio::spawn(send_keys(conn.clone(), link.clone(), steps)));
+        }
         Ok(Session {
             _endpoint: endpoint,
             conn,
-            send,
             welcome,
             scene,
-            decoder: MeshDecoder::new(grid),
-            grid,
-            decoded: VecDeque::new(),
-            newest: None,
-            slot,
-            reader,
-            mesh: mesh::Mesh::default(),
-            budget,
-            limit: budget,
-            bytes_in,
+            link,
+            control,
+            tasks,
         })
     }
 
-    pub fn grid(&self) -> &Grid {
-        &self.grid
+    /// The core (the newest mesh, the grid, the budget): held briefly, never across an
+    /// await.
+    pub fn core(&self) -> MutexGuard<'_, ClientCore> {
+        lock(&self.link.core)
     }
 
-    /// Waits until a frame is waiting. Cancel-safe (for `select!`). An error when the
-    /// connection has ended.
-    pub async fn wait(&self) -> Result<()> {
+    /// Sends what the core has for the control stream.
+    fn flush(&self, core: &mut ClientCore) {
+        while let Some(m) = core.poll_control() {
+            let _ = self.control.send(Outgoing::Message(m));
+        }
+    }
+
+    /// Waits for the next frame and takes it: decoded into the core's mesh (unless
+    /// `decode` is false) and acknowledged. An error when the connection has ended or the
+    /// server sent a frame inconsistent with itself.
+    pub async fn next_frame(&self, decode: bool) -> Result<Taken> {
         loop {
-            if lock(&self.slot.frame).is_some() {
-                return Ok(());
+            let notified = self.link.notify.notified();
+            tokio::pin!(notified);
+            notified.as_mut().enable();
+            {
+                let mut core = self.core();
+                if core.has_frame() {
+                    let started = Instant::now();
+                    let mut taken = core.take(decode);
+                    if let Ok(Taken::Frame(r)) = &mut taken {
+                        r.decode_s = started.elapsed().as_secs_f64();
+                    }
+                    self.flush(&mut core);
+                    return Ok(taken?);
+                }
             }
-            if self.slot.ended.load(Ordering::Acquire) {
+            if self.link.closed.load(Ordering::Acquire) {
                 bail!("{}", self.ended());
             }
-            self.slot.notify.notified().await;
+            notified.await;
         }
     }
 
     /// Why the connection ended, in words.
     pub fn ended(&self) -> String {
+        if let Some(why) = lock(&self.link.ended).clone()
+            && self.conn.close_reason().is_none()
+        {
+            return why;
+        }
         match self.conn.close_reason() {
             Some(quinn::ConnectionError::ApplicationClosed(c)) => format!(
                 "the server closed the connection: {}",
@@ -236,123 +279,155 @@ impl Session {
         }
     }
 
-    /// Takes the waiting frame, if it is newer than the last shown; decodes it into
-    /// [`Session::mesh`] (unless `decode` is false) and acknowledges it.
-    pub async fn take(&mut self, decode: bool) -> Result<Taken> {
-        let taken = lock(&self.slot.frame).take();
-        let Some((frame, wire_len, arrived)) = taken else {
-            return Ok(Taken::Nothing);
-        };
-        if wire_len == 0 {
-            return Ok(Taken::Dropped); // a stream that was not a frame
-        }
-        if self.newest.is_some_and(|n| frame.frame <= n) {
-            return Ok(Taken::Nothing); // latest frame wins here too
-        }
-        let mut received = Received {
-            frame: frame.frame,
-            tick: frame.tick,
-            vehicles: frame.vehicles,
-            input_seq: frame.input_seq,
-            wire_bytes: wire_len,
-            triangles: 0,
-            decode_s: 0.0,
-            arrived,
-        };
-        if decode {
-            let started = Instant::now();
-            let base = match frame.base {
-                Some(b) => match self.decoded.iter().find(|(f, _)| *f == b) {
-                    Some((_, cut)) => Some(cut),
-                    None => {
-                        send_control(&mut self.send, &ClientMessage::KeyFrame).await?;
-                        return Ok(Taken::Dropped);
-                    }
-                },
-                None => None,
-            };
-            let mut cut = Cut::default();
-            let Ok(info) = self
-                .decoder
-                .decode_cut(&frame.mesh, base, self.limit, &mut cut)
-            else {
-                send_control(&mut self.send, &ClientMessage::KeyFrame).await?;
-                return Ok(Taken::Dropped);
-            };
-            mesh::emit(
-                &self.grid,
-                &cut.split,
-                self.decoder.heights(),
-                &mut self.mesh,
-            );
-            let tris = self.mesh.triangle_count();
-            if tris != info.triangles as usize {
-                bail!(
-                    "frame {}: {tris} triangles emitted, the header says {}",
-                    frame.frame,
-                    info.triangles
-                );
-            }
-            self.decoded.push_back((frame.frame, cut));
-            if self.decoded.len() > 32 {
-                self.decoded.pop_front();
-            }
-            received.triangles = tris;
-            received.decode_s = started.elapsed().as_secs_f64();
-        }
-        send_control(&mut self.send, &ClientMessage::Ack { frame: frame.frame }).await?;
-        self.newest = Some(frame.frame);
-        Ok(Taken::Frame(received))
-    }
-
     /// Asks for `budget` triangles from now on.
-    pub async fn set_budget(&mut self, budget: u32) -> Result<()> {
-        let budget = budget.clamp(2, MAX_BUDGET);
-        send_control(&mut self.send, &ClientMessage::Budget(budget)).await?;
-        self.budget = budget;
-        self.limit = self.limit.max(budget);
-        Ok(())
+    pub fn set_budget(&self, budget: u32) {
+        let mut core = self.core();
+        core.set_budget(budget);
+        self.flush(&mut core);
     }
 
     /// Tells the server how the camera differs from the default at the vehicle.
-    pub async fn set_view(&mut self, view: messages::ViewChange) -> Result<()> {
-        send_control(&mut self.send, &ClientMessage::View(view)).await?;
-        Ok(())
+    pub fn set_view(&self, view: messages::ViewChange) {
+        let mut core = self.core();
+        core.set_view(view);
+        self.flush(&mut core);
+    }
+
+    pub fn key_down(&self, keys: Keys) {
+        self.core().key_down(keys);
+    }
+
+    pub fn key_up(&self, keys: Keys) {
+        self.core().key_up(keys);
+    }
+
+    /// Every key released (the window lost focus: nothing stays held).
+    pub fn keys_released(&self) {
+        self.core().keys_released();
+    }
+
+    /// Frame bytes received so far.
+    pub fn bytes_in(&self) -> u64 {
+        self.core().bytes_in()
     }
 
     /// Says goodbye and closes the connection. True when the server heard: it took the
     /// whole control stream, goodbye included, or closed the connection with the code it
     /// closes with on a goodbye (bounded: a dead or slow server does not hold the viewer
     /// more than a second).
-    pub async fn quit(mut self) -> bool {
-        self.reader.abort();
-        let said = tokio::time::timeout(Duration::from_secs(1), async {
-            wire::write(&mut self.send, &ClientMessage::Bye(Reason::Quit)).await?;
-            self.send.finish()?;
-            match self.send.stopped().await {
-                Ok(_) => anyhow::Ok(true),
-                Err(quinn::StoppedError::ConnectionLost(
-                    quinn::ConnectionError::ApplicationClosed(c),
-                )) => Ok(c.error_code == roam_server::net::viewer::close::BYE.into()),
-                Err(e) => Err(e.into()),
-            }
-        })
-        .await;
+    pub async fn quit(&self) -> bool {
+        let (tx, rx) = oneshot::channel();
+        let heard = if self.control.send(Outgoing::Quit(tx)).is_ok() {
+            tokio::time::timeout(Duration::from_secs(1), rx)
+                .await
+                .is_ok_and(|r| r.unwrap_or(false))
+        } else {
+            false
+        };
         self.conn.close(0u32.into(), b"quit");
-        matches!(said, Ok(Ok(true)))
+        heard
     }
 }
 
 impl Drop for Session {
-    /// However the session ends, the connection closes and the reader stops.
+    /// However the session ends, the connection closes and the tasks stop.
     fn drop(&mut self) {
-        self.reader.abort();
+        for t in &self.tasks {
+            t.abort();
+        }
         self.conn.close(0u32.into(), b"bye");
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
+/// Writes a control message, within [`CONTROL_TIMEOUT`].
+async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
+    tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
+        .await
+        .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
+    Ok(())
+}
+
+/// Writes the control messages in order until the session ends or a write fails (then
+/// the session ends with why).
+async fn control_writer(
+    mut send: quinn::SendStream,
+    mut outgoing: mpsc::UnboundedReceiver<Outgoing>,
+    link: Arc<Link>,
+) {
+    while let Some(o) = outgoing.recv().await {
+        match o {
+            Outgoing::Message(m) => {
+                if let Err(e) = write_control(&mut send, &m).await {
+                    link.end(format!("{e:#}"));
+                    return;
+                }
+            }
+            Outgoing::Quit(heard) => {
+                let said = async {
+                    wire::write(&mut send, &ClientMessage::Bye(Reason::Quit)).await?;
+                    send.finish()?;
+                    match send.stopped().await {
+                        Ok(_) => anyhow::Ok(true),
+                        Err(quinn::StoppedError::ConnectionLost(
+                            quinn::ConnectionError::ApplicationClosed(c),
+                        )) => Ok(c.error_code == close::BYE.into()),
+                        Err(e) => Err(e.into()),
+                    }
+                };
+                let _ = heard.send(matches!(said.await, Ok(true)));
+                return;
+            }
+        }
+    }
+}
+
+/// Sends a key datagram every 10 ms (the physics' step) with the step's keys from
+/// `steps`: the core numbers the state and repeats the last eight, so a lost datagram
+/// costs nothing. Ends when the connection does.
+async fn send_keys(conn: quinn::Connection, link: Arc<Link>, mut steps: Steps) {
+    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        let datagram = {
+            let mut core = lock(&link.core);
+            let step = steps(&mut core);
+            core.key_datagram(step, Instant::now())
+        };
+        let mut bytes = Vec::new();
+        if messages::encode(&datagram, &mut bytes).is_ok()
+            && conn.send_datagram(bytes.into()).is_err()
+        {
+            return;
+        }
+    }
+}
+
+/// Reads frames into the core as they arrive: datagrams (small frames), and streams, each
+/// read to its end in a task of its own (a stream the server abandons is skipped).
+async fn read_frames(conn: quinn::Connection, link: Arc<Link>) {
+    let offer = |link: &Link, bytes: &[u8]| {
+        lock(&link.core).offer(bytes, Instant::now());
+        link.notify.notify_one();
+    };
+    let datagrams = {
+        let (conn, link) = (conn.clone(), link.clone());
+        tokio::spawn(async move {
+            while let Ok(bytes) = conn.read_datagram().await {
+                offer(&link, &bytes);
+            }
+        })
+    };
+    while let Ok(mut stream) = conn.accept_uni().await {
+        let link = link.clone();
+        tokio::spawn(async move {
+            if let Ok(bytes) = stream.read_to_end(MAX_FRAME).await {
+                offer(&link, &bytes);
+            }
+        });
+    }
+    datagrams.abort();
+    link.end("the connection ended".into());
 }
 
 /// Receives the colour map that follows the welcome, after checking its announced sizes
@@ -402,147 +477,4 @@ async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Ve
     roam_protocol::colormap::decode(welcome.color_cells, &packed, &mut color)
         .map_err(|e| anyhow!("the server's colour map: {e}"))?;
     Ok(color)
-}
-
-/// Accepts frame streams and reads each in a task of its own, and reads frames that come
-/// as datagrams (small ones do); a frame newer than the one waiting replaces it. Anything
-/// that is not a frame leaves `(_, 0)` to be counted.
-async fn read_frames(conn: quinn::Connection, slot: Slot, bytes_in: Arc<AtomicU64>) {
-    let newest = Arc::new(AtomicU64::new(0));
-    let datagrams = {
-        let (conn, slot, newest, bytes_in) =
-            (conn.clone(), slot.clone(), newest.clone(), bytes_in.clone());
-        tokio::spawn(async move {
-            while let Ok(bytes) = conn.read_datagram().await {
-                offer(&slot, &newest, &bytes_in, &bytes, Instant::now());
-            }
-        })
-    };
-    while let Ok(mut stream) = conn.accept_uni().await {
-        let (slot, newest, bytes_in) = (slot.clone(), newest.clone(), bytes_in.clone());
-        tokio::spawn(async move {
-            // A frame abandoned by the server (reset) is simply skipped.
-            let Ok(bytes) = stream.read_to_end(MAX_FRAME).await else {
-                return;
-            };
-            offer(&slot, &newest, &bytes_in, &bytes, Instant::now());
-        });
-    }
-    datagrams.abort();
-    // Set before the last wake-up, so a waiter that wakes sees it.
-    slot.ended.store(true, Ordering::Release);
-    slot.notify.notify_one();
-}
-
-/// A frame's bytes, arrived at `arrived`: it waits in the slot if it is the newest yet.
-fn offer(slot: &Slot, newest: &AtomicU64, bytes_in: &AtomicU64, bytes: &[u8], arrived: Instant) {
-    bytes_in.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-    let mut s = lock(&slot.frame);
-    match messages::decode::<Frame>(bytes) {
-        Ok(frame) => {
-            let n = frame.frame.saturating_add(1);
-            if newest.fetch_max(n, Ordering::Relaxed) < n {
-                *s = Some((frame, bytes.len(), arrived));
-            }
-        }
-        Err(_) => {
-            let bad = Frame {
-                frame: 0,
-                base: None,
-                tick: 0,
-                vehicles: Vec::new(),
-                input_seq: None,
-                mesh: Vec::new(),
-            };
-            if s.is_none() {
-                *s = Some((bad, 0, arrived));
-            }
-        }
-    }
-    drop(s);
-    slot.notify.notify_one();
-}
-
-/// Key changes sent and not yet seen applied: the input→frame latency.
-#[derive(Debug, Default)]
-pub struct Latency {
-    pending: Mutex<VecDeque<(u32, Instant)>>,
-}
-
-impl Latency {
-    /// Key state `seq`, a change, was sent at `at`.
-    pub fn sent(&self, seq: u32, at: Instant) {
-        let mut p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
-        p.push_back((seq, at));
-        // A server that never applies keys (a spectator's) must not grow this.
-        if p.len() > 1024 {
-            p.pop_front();
-        }
-    }
-
-    /// A frame showing key states up to `seq` arrived at `now`: the latencies of the
-    /// changes it shows, in milliseconds.
-    pub fn applied(&self, seq: u32, now: Instant, out: &mut Vec<f64>) {
-        let mut p = self.pending.lock().unwrap_or_else(|e| e.into_inner());
-        while let Some(&(s, at)) = p.front() {
-            if s > seq {
-                break;
-            }
-            out.push((now - at).as_secs_f64() * 1e3);
-            p.pop_front();
-        }
-    }
-}
-
-/// A script's keys as [`play`] takes them, one step per call: held keys, and those newly
-/// down; then no keys, for ever.
-pub fn script_keys(script: &Script) -> impl FnMut() -> Option<(Keys, Keys)> + Send + 'static {
-    let keys: Vec<Keys> = script.keys().collect();
-    let mut steps = keys.into_iter().chain(std::iter::repeat(Keys::NONE));
-    let mut last = Keys::NONE;
-    move || {
-        let k = steps.next()?;
-        let pressed = k.without(last);
-        last = k;
-        Some((k, pressed))
-    }
-}
-
-/// Sends key states as datagrams, one per 10 ms (the physics' step), each datagram
-/// repeating the last eight states so a lost one costs nothing. `next` gives each step's
-/// held keys and the keys pressed since the last step (latched: a press released before
-/// the step is still sent). Returns when `next` says stop or the connection is gone.
-pub async fn play(
-    conn: quinn::Connection,
-    mut next: impl FnMut() -> Option<(Keys, Keys)> + Send + 'static,
-    latency: Arc<Latency>,
-) {
-    let mut states: VecDeque<KeyState> = VecDeque::new();
-    let mut tick = tokio::time::interval(Duration::from_millis(10));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let mut last = Keys::NONE;
-    for seq in 1u32.. {
-        tick.tick().await;
-        let Some((held, pressed)) = next() else {
-            return;
-        };
-        let state = KeyState {
-            seq,
-            held: held.bits(),
-            pressed: pressed.bits(),
-        };
-        if held != last || pressed != Keys::NONE {
-            latency.sent(seq, Instant::now());
-        }
-        last = held;
-        states.push_front(state);
-        states.truncate(messages::KEY_HISTORY);
-        let d = KeyDatagram {
-            states: states.iter().copied().collect(),
-        };
-        let mut bytes = Vec::new();
-        if messages::encode(&d, &mut bytes).is_ok() && conn.send_datagram(bytes.into()).is_err() {
-            return;
-        }
-    }
 }

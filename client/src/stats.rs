@@ -2,7 +2,7 @@
 
 use crate::headless::ViewerStats;
 
-use roam_server::sim::flyover::quantile;
+use roam_protocol::stats::quantile;
 
 /// The JSON report over every viewer of a run.
 pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {

@@ -6,8 +6,9 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
+use roam_protocol::keys::Keys;
 use roam_protocol::messages::ViewChange;
-use roam_server::sim::physics::Keys;
+use roam_protocol::messages::{MAX_BUDGET, MIN_BUDGET};
 use tokio::sync::mpsc;
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, KeyEvent, WindowEvent};
@@ -33,9 +34,6 @@ pub struct Options {
     pub fov_y_deg: f32,
 }
 
-/// The largest budget the server takes.
-const MAX_BUDGET: u32 = roam_server::net::viewer::MAX_BUDGET;
-
 /// What to tell a person with no display.
 pub const NO_DISPLAY: &str = "no display to open a window on (DISPLAY and WAYLAND_DISPLAY \
      are unset). Run headless instead, e.g.\n  cargo run --release -p roam-client -- --local \
@@ -54,8 +52,8 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
     }
     let event_loop = EventLoop::new().map_err(|e| anyhow!("{e}: {NO_DISPLAY}"))?;
     let scene = session.scene.clone();
-    let budget = session.budget;
-    let (shared, commands, task) = live::spawn(runtime.handle(), session, opts.driver);
+    let budget = session.core().budget();
+    let (shared, commands, task) = live::spawn(runtime.handle(), session);
     let mut app = App {
         toggles: opts.toggles,
         opts,
@@ -259,8 +257,10 @@ impl App {
         }
     }
 
+    /// The budget is kept unrounded here (so `+` then `-` returns to where it was) and
+    /// sent rounded; the session clamps it with the protocol's limit and owns it.
     fn set_budget(&mut self, b: f64) {
-        self.budget = b.clamp(2.0, f64::from(MAX_BUDGET));
+        self.budget = b.clamp(f64::from(MIN_BUDGET), f64::from(MAX_BUDGET));
         let _ = self
             .commands
             .send(Command::Budget(self.budget.round() as u32));
@@ -295,10 +295,7 @@ impl App {
             self.interpolators.retain(|id, _| present.contains(id));
             self.ground = a.ground;
         }
-        let bytes = self
-            .shared
-            .bytes_in
-            .load(std::sync::atomic::Ordering::Relaxed);
+        let bytes = self.shared.bytes_in();
         self.bytes.add(now, (bytes - self.last_bytes) as f64);
         self.last_bytes = bytes;
 

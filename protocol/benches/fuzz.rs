@@ -172,7 +172,7 @@ fn seeds(grid: Grid) -> Vec<Vec<u8>> {
             .map(|smooth| (smooth + rng.next() % amp.max(1)) as u8)
             .collect();
         let mut b = Vec::new();
-        colormap::encode(COLOR_CELLS, &rgb, &mut b);
+        colormap::encode(COLOR_CELLS, &rgb, &mut b).expect("texels of the right size");
         out.push(b);
     }
     out
@@ -199,7 +199,8 @@ fn main() {
         .expect("decodes");
     assert_eq!(cut, cut_base);
     let mut texels = Vec::new();
-    let (mut ok, mut err) = (0u64, 0u64);
+    let (mut ok, mut err, mut panics) = (0u64, 0u64, 0u64);
+    let mut first_panic: Option<Vec<u8>> = None;
     let mut input = Vec::new();
     let mut forced = Vec::new();
     let started = Instant::now();
@@ -230,29 +231,38 @@ fn main() {
         } else {
             &input
         };
-        let results = [
-            messages::decode::<ClientMessage>(&input).is_ok(),
-            messages::decode::<ServerMessage>(&input).is_ok(),
-            messages::decode::<Frame>(&input).is_ok(),
-            messages::decode::<KeyDatagram>(&input).is_ok(),
-            dec.decode(&input, None, 100_000, &mut got).is_ok(),
-            dec.decode(&input, Some(&base), 100_000, &mut got).is_ok(),
+        // Each decode runs under catch_unwind: a panic is counted (and the input kept),
+        // not fatal, so the report's "panics" is what happened, not what was hoped.
+        let mut run = |f: &mut dyn FnMut() -> bool| match std::panic::catch_unwind(
+            std::panic::AssertUnwindSafe(&mut *f),
+        ) {
+            Ok(true) => ok += 1,
+            Ok(false) => err += 1,
+            Err(_) => {
+                panics += 1;
+                first_panic.get_or_insert_with(|| input.clone());
+            }
+        };
+        run(&mut || messages::decode::<ClientMessage>(&input).is_ok());
+        run(&mut || messages::decode::<ServerMessage>(&input).is_ok());
+        run(&mut || messages::decode::<Frame>(&input).is_ok());
+        run(&mut || messages::decode::<KeyDatagram>(&input).is_ok());
+        run(&mut || dec.decode(&input, None, 100_000, &mut got).is_ok());
+        run(&mut || dec.decode(&input, Some(&base), 100_000, &mut got).is_ok());
+        run(&mut || {
             change_dec
                 .decode_cut(change_input, Some(&cut_base), 100_000, &mut cut)
-                .is_ok(),
-            colormap::decode(COLOR_CELLS, &input, &mut texels).is_ok(),
-        ];
-        for r in results {
-            if r {
-                ok += 1;
-            } else {
-                err += 1;
-            }
-        }
+                .is_ok()
+        });
+        run(&mut || colormap::decode(COLOR_CELLS, &input, &mut texels).is_ok());
     }
     let secs = started.elapsed().as_secs_f64();
     println!(
-        "{{\"inputs\":{INPUTS},\"decodes\":{},\"values\":{ok},\"errors\":{err},\"seconds\":{secs:.2},\"panics\":0}}",
-        ok + err
+        "{{\"inputs\":{INPUTS},\"decodes\":{},\"values\":{ok},\"errors\":{err},\"seconds\":{secs:.2},\"panics\":{panics}}}",
+        ok + err + panics
     );
+    if let Some(input) = first_panic {
+        eprintln!("a decoder panicked, first on input {input:02x?}");
+        std::process::exit(1);
+    }
 }

@@ -310,9 +310,6 @@ fn run<C: Coder>(cells: u32, c: &mut C) {
     }
 }
 
-/// Appends to `out` the colour map of `cells × cells` texels, `rgb` row-major, 3 bytes a
-/// texel. Panics if `rgb` is not `cells² · 3` bytes or `cells` is not in 1 ..= 8192: a
-/// caller bug.
 /// The most bytes a coded map of `cells` a side may take: the raw texels and 64 KiB for
 /// headers and tables. A viewer refuses more; a server never sends more.
 pub fn max_len(cells: u32) -> usize {
@@ -320,18 +317,29 @@ pub fn max_len(cells: u32) -> usize {
     c * c * 3 + (64 << 10)
 }
 
-pub fn encode(cells: u32, rgb: &[u8], out: &mut Vec<u8>) {
-    assert!(
-        (1..=MAX_CELLS).contains(&cells),
-        "colour map of {cells} cells a side: 1 ..= {MAX_CELLS} allowed"
-    );
+/// Texels that do not make a colour map of the size given.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "a colour map of {cells} cells a side (1 ..= {MAX_CELLS} allowed) takes {expected} bytes of texels, got {got}"
+)]
+pub struct SizeError {
+    pub cells: u32,
+    pub expected: usize,
+    pub got: usize,
+}
+
+/// Appends to `out` the colour map of `cells × cells` texels, `rgb` row-major, 3 bytes a
+/// texel; an error (and nothing appended) if `cells` is not in 1 ..= 8192 or `rgb` is not
+/// `cells² · 3` bytes.
+pub fn encode(cells: u32, rgb: &[u8], out: &mut Vec<u8>) -> Result<(), SizeError> {
     let n = cells as usize * cells as usize * 3;
-    assert_eq!(
-        rgb.len(),
-        n,
-        "colour map of {cells}² texels: {} bytes",
-        rgb.len()
-    );
+    if !(1..=MAX_CELLS).contains(&cells) || rgb.len() != n {
+        return Err(SizeError {
+            cells,
+            expected: n,
+            got: rgb.len(),
+        });
+    }
     out.push(FORMAT);
     out.extend_from_slice(&[0; 3]);
     out.extend_from_slice(&cells.to_le_bytes());
@@ -351,6 +359,7 @@ pub fn encode(cells: u32, rgb: &[u8], out: &mut Vec<u8>) {
         s.finish(&tables, out);
     }
     out.extend_from_slice(&enc.bits.finish());
+    Ok(())
 }
 
 /// Decodes a colour map of `cells × cells` texels into `out` (cleared first): `cells² · 3`

@@ -8,13 +8,18 @@ pub mod changes;
 pub mod codec;
 pub mod colormap;
 pub mod format;
+pub mod keys;
 pub mod mesh;
 pub mod messages;
 mod range;
 mod rans;
+pub mod script;
+pub mod stats;
+pub mod validate;
 
 pub use bintree::{BitSet, Grid};
 pub use changes::{CHANGES_FORMAT, ChangeEncoder, Cut, CutHash};
 pub use codec::{Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
 pub use format::DecodeError;
+pub use keys::{KeyLatch, KeyStep, Keys};
 pub use mesh::Mesh;

@@ -28,6 +28,30 @@ pub const MAX_DATAGRAM: usize = 256;
 pub const MAX_TOKEN: usize = 128;
 /// Key states a datagram repeats.
 pub const KEY_HISTORY: usize = 8;
+/// The fewest and the most triangles a viewer may ask for: one limit, kept by both ends
+/// ([`clamp_budget`]).
+pub const MIN_BUDGET: u32 = 2;
+pub const MAX_BUDGET: u32 = 1 << 20;
+/// The pitch of a viewer's camera before its first [`ViewChange`], degrees (slightly
+/// down, as a driver looks); also the benchmarks' camera pitch.
+pub const DEFAULT_PITCH_DEG: f64 = -5.0;
+
+/// A triangle budget within [`MIN_BUDGET`]`..=`[`MAX_BUDGET`].
+pub fn clamp_budget(budget: u32) -> u32 {
+    budget.clamp(MIN_BUDGET, MAX_BUDGET)
+}
+
+/// The codes a connection is closed with (QUIC application close codes).
+pub mod close {
+    /// The server is shutting down.
+    pub const SHUTDOWN: u32 = 1;
+    /// The hello was refused (version, token, nothing to follow).
+    pub const REFUSED: u32 = 2;
+    /// The peer broke the protocol (no hello, a malformed message).
+    pub const PROTOCOL: u32 = 3;
+    /// A goodbye: the server heard the viewer's, or said its own.
+    pub const BYE: u32 = 4;
+}
 
 /// What a viewer does.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]

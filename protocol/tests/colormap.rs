@@ -21,7 +21,7 @@ impl Rng {
 /// Encodes `rgb`, decodes it and checks the texels come back exactly; returns the payload.
 fn check(name: &str, cells: u32, rgb: &[u8]) -> Vec<u8> {
     let mut bytes = vec![0xAA; 3]; // encode appends
-    colormap::encode(cells, rgb, &mut bytes);
+    colormap::encode(cells, rgb, &mut bytes).expect("texels of the right size");
     let bytes = bytes.split_off(3);
     let mut back = vec![1, 2, 3]; // decode clears
     colormap::decode(cells, &bytes, &mut back).unwrap_or_else(|e| panic!("{name}: {e}"));
@@ -246,9 +246,13 @@ fn random_bytes_are_errors() {
 }
 
 #[test]
-#[should_panic(expected = "bytes")]
-fn encoding_texels_of_the_wrong_length_panics() {
-    colormap::encode(4, &[0; 47], &mut Vec::new());
+fn texels_of_the_wrong_size_are_refused_and_nothing_is_written() {
+    for (cells, len) in [(4, 47), (4, 49), (0, 0), (8193, 3)] {
+        let mut out = vec![7];
+        let err = colormap::encode(cells, &vec![0; len], &mut out).expect_err("refused");
+        assert_eq!((err.cells, err.got), (cells, len));
+        assert_eq!(out, [7], "nothing appended");
+    }
 }
 
 proptest! {

@@ -4,9 +4,10 @@
 use std::sync::Arc;
 
 use roam_protocol::mesh;
+use roam_protocol::script::{self, DRIVE_SCRIPT};
 use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder};
 use roam_server::Terrain;
-use roam_server::sim::{flyover, script};
+use roam_server::sim::flyover;
 use roam_server::terrain::dataset;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
@@ -23,7 +24,7 @@ fn load(name: &str) -> Arc<Terrain> {
 fn drive(name: &str, budget: u32, skip: usize) -> Vec<f64> {
     let terrain = load(name);
     let vt = VarianceTree::build(&terrain.heights, 2, &mut |_, _| {});
-    let script = script::parse(flyover::DRIVE_SCRIPT).expect("valid");
+    let script = script::parse(DRIVE_SCRIPT).expect("valid");
     let cameras = flyover::drive(&terrain, &script, 60);
     let grid = Grid::new(terrain.heights.levels()).expect("valid");
     let step = roam_protocol::height_step(terrain.heights.samples());

@@ -8,10 +8,10 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;
 use std::path::Path;
 
+use roam_protocol::validate::check_mesh;
 use roam_server::terrain::dataset;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
-use roam_server::tessellate::validate::check_mesh;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
 use roam_server::{Heightfield, Terrain};
 

@@ -4,8 +4,9 @@
 use std::sync::Arc;
 
 use proptest::prelude::*;
+use roam_protocol::keys::KeyLatch;
 use roam_server::sim::physics::{self, Ground, Keys, VehicleState};
-use roam_server::sim::world::{self, InputLatch, Inputs, World};
+use roam_server::sim::world::{self, Inputs, World};
 use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 
 /// A terrain of `side` whose sample at `(x, z)` is `f(x, z)`, one world unit per cell,
@@ -175,16 +176,16 @@ fn a_transient_press_acts_in_exactly_one_step() {
     let terrain = Arc::new(flat());
     let mut world = World::new(terrain);
     world.add(7, at(0.0, 0.0)).expect("on the map");
-    let mut latch = InputLatch::default();
+    let mut latch = KeyLatch::default();
     let mut inputs = Inputs::new();
     // Pressed and released between two steps.
     latch.press(Keys::UP);
     latch.release(Keys::UP);
-    inputs.set(7, latch.take());
+    inputs.set(7, latch.take().active());
     assert_eq!(inputs.get(7), Keys::UP);
     world::step(&mut world, &inputs);
     close(world.vehicles()[0].state.speed, 0.079994);
-    inputs.set(7, latch.take());
+    inputs.set(7, latch.take().active());
     assert_eq!(
         inputs.get(7),
         Keys::NONE,
@@ -195,12 +196,12 @@ fn a_transient_press_acts_in_exactly_one_step() {
     // A key held across steps acts in each; a new key in a key-state update counts as a
     // press even if a later update drops it before the step.
     latch.set_held(Keys::LEFT);
-    assert_eq!(latch.take(), Keys::LEFT);
-    assert_eq!(latch.take(), Keys::LEFT);
+    assert_eq!(latch.take().active(), Keys::LEFT);
+    assert_eq!(latch.take().active(), Keys::LEFT);
     latch.set_held(Keys::LEFT.union(Keys::UP));
     latch.set_held(Keys::LEFT);
-    assert_eq!(latch.take(), Keys::LEFT.union(Keys::UP));
-    assert_eq!(latch.take(), Keys::LEFT);
+    assert_eq!(latch.take().active(), Keys::LEFT.union(Keys::UP));
+    assert_eq!(latch.take().active(), Keys::LEFT);
 }
 
 #[test]

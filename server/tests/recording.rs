@@ -9,11 +9,11 @@ mod common;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use roam_protocol::script::{self, Script};
 use roam_server::Terrain;
 use roam_server::sim::physics::Keys;
 use roam_server::sim::recording::{self, Event, FormatError, RecordedWorld};
 use roam_server::sim::replay::{self, ReplayError};
-use roam_server::sim::script::{self, Script};
 use roam_server::sim::world::{self, Digest, Inputs, World};
 use roam_server::terrain::dataset;
 

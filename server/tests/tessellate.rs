@@ -1,11 +1,11 @@
 //! Property and data-driven tests of the variance tree and the tessellator.
 
 use proptest::prelude::*;
+use roam_protocol::validate::check_mesh;
 use roam_server::Heightfield;
 use roam_server::terrain::variance::{VarianceTree, triangle_error};
 use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::diamond::{Diamond, Triangle};
-use roam_server::tessellate::validate::check_mesh;
 use roam_server::tessellate::{Coherent, Limits, Mesh, Scales, Tessellator, measured_error};
 
 /// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.

@@ -4,11 +4,13 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use roam_client::headless::{self, ViewerOptions, ViewerStats};
-use roam_client::session::{Session, Taken};
-use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange};
-use roam_server::net::{Options, Server, tls, wire};
+use roam_client::session::{KeySource, Session, Taken};
+use roam_link::{tls, wire};
+use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange, close};
+use roam_protocol::script;
+use roam_server::net::{Options, Server};
 use roam_server::sim::world::{self, Inputs, World};
-use roam_server::sim::{recording, replay, script};
+use roam_server::sim::{recording, replay};
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 
@@ -213,31 +215,48 @@ async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
     let r = start(flat(), None);
     let (_e1, stalled) = stalled_driver(&r).await;
     // Someone sending garbage: datagrams, and streams of junk.
-    let (_e2, junk) = headless::connect(r.server.addr, r.fingerprint)
-        .await
-        .expect("connects");
-    let noise = tokio::spawn(async move {
-        for i in 0..200u32 {
-            let _ = junk.send_datagram(vec![i as u8; (i % 50) as usize + 1].into());
-            if let Ok((mut s, _)) = junk.open_bi().await {
-                let _ = s.write_all(&[0xff; 64]).await;
+    // Garbage, each kind on a connection of its own (the server closes a connection at
+    // its first junk, so one connection would test one junk): each is refused with the
+    // protocol close code, while a good viewer streams beside them.
+    let junk = tokio::spawn({
+        let (addr, fp) = (r.server.addr, r.fingerprint);
+        async move {
+            let mut refused = 0;
+            for i in 0..12u32 {
+                let (_endpoint, conn) = headless::connect(addr, fp).await.expect("connects");
+                let _ = conn.send_datagram(vec![i as u8; (i % 50) as usize + 1].into());
+                let (mut s, _) = conn.open_bi().await.expect("a stream");
+                let bytes: Vec<u8> = match i % 3 {
+                    0 => vec![0xff; 64],                                 // a length past any limit
+                    1 => [&5u32.to_le_bytes()[..], &[0xee; 5]].concat(), // not a message
+                    _ => [&1u32.to_le_bytes()[..], &[1]].concat(),       // a budget, not a hello
+                };
+                let _ = s.write_all(&bytes).await;
+                let closed = tokio::time::timeout(Duration::from_secs(10), conn.closed())
+                    .await
+                    .expect("the server closes a junk connection");
+                match closed {
+                    quinn::ConnectionError::ApplicationClosed(c)
+                        if c.error_code == close::PROTOCOL.into() =>
+                    {
+                        refused += 1
+                    }
+                    other => panic!("junk {i}: closed with {other:?}, expected the protocol code"),
+                }
             }
-            if let Ok(mut s) = junk.open_uni().await {
-                let _ = s.write_all(&i.to_le_bytes()).await;
-            }
-            tokio::time::sleep(Duration::from_millis(5)).await;
+            refused
         }
     });
     let v = headless::run(r.server.addr, r.fingerprint, opts(&r, Role::Driver, 120))
         .await
         .expect("runs");
     assert_eq!(v.decode_errors, 0);
-    let fps = v.frames as f64 / v.seconds;
-    assert!(
-        fps > 40.0,
-        "{fps} frames per second next to a stalled viewer"
+    assert_eq!(v.frames, 120);
+    assert_eq!(
+        junk.await.expect("the junk task"),
+        12,
+        "every junk connection refused"
     );
-    noise.abort();
     // A viewer killed mid-stream frees its vehicle.
     assert!(
         !r.server.snapshot().vehicles.is_empty(),
@@ -245,35 +264,31 @@ async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
     );
     stalled.close(0u32.into(), b"killed");
     drop(stalled);
-    let mut freed = false;
-    for _ in 0..100 {
-        tokio::time::sleep(Duration::from_millis(20)).await;
-        if r.server.snapshot().vehicles.is_empty() {
-            freed = true;
-            break;
-        }
-    }
-    assert!(freed, "the vehicles of closed connections are gone");
+    let mut world = r.server.watch();
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        world.wait_for(|s| s.vehicles.is_empty()),
+    )
+    .await
+    .expect("the vehicles of closed connections are gone")
+    .expect("the world runs");
     r.server.shutdown().await.expect("stops");
 }
 
 /// Frames from `s` until one's triangle count satisfies `ok` (within a bound), and that
 /// count.
-async fn until(s: &mut Session, what: &str, ok: impl Fn(usize) -> bool) -> usize {
+async fn until(s: &Session, what: &str, ok: impl Fn(usize) -> bool) -> usize {
     let mut seen = Vec::new();
     let limit = Duration::from_secs(30);
     for _ in 0..600 {
-        let taken = tokio::time::timeout(limit, s.take(true))
+        let taken = tokio::time::timeout(limit, s.next_frame(true))
             .await
             .expect("in time");
         match taken.expect("the stream goes on") {
             Taken::Frame(f) if ok(f.triangles) => return f.triangles,
             Taken::Frame(f) => seen.push(f.triangles),
-            Taken::Nothing => tokio::time::timeout(limit, s.wait())
-                .await
-                .expect("in time")
-                .expect("frames keep coming"),
-            Taken::Dropped => panic!("a frame failed to decode"),
+            Taken::Nothing => {}
+            Taken::Dropped(why) => panic!("a frame failed to decode: {why}"),
         }
     }
     panic!("no frame with {what} in 600 tries; triangle counts seen: {seen:?}");
@@ -287,13 +302,13 @@ async fn the_viewer_steers_the_servers_budget_and_camera() {
     let kossou = roam_server::terrain::dataset::load(&dir, &mut |_, _| {}).expect("bundled");
     let r = start(Arc::new(kossou), None);
     let hello = driver_hello(&r, 4_000);
-    let mut s = Session::join(r.server.addr, r.fingerprint, hello)
+    let s = Session::join(r.server.addr, r.fingerprint, hello, KeySource::None)
         .await
         .expect("joins");
-    until(&mut s, "most of the budget", |t| t > 3_000 && t <= 4_000).await;
+    until(&s, "most of the budget", |t| t > 3_000 && t <= 4_000).await;
     // `-` twice in the window: ÷ 2.
-    s.set_budget(2_000).await.expect("sent");
-    until(&mut s, "the new budget", |t| t > 1_500 && t <= 2_000).await;
+    s.set_budget(2_000);
+    until(&s, "the new budget", |t| t > 1_500 && t <= 2_000).await;
     // Looking straight down from the vehicle, the frustum holds only the ground below it:
     // the server culls the rest and the mesh shrinks far below the budget.
     let down = |pitch_deg| ViewChange {
@@ -301,10 +316,10 @@ async fn the_viewer_steers_the_servers_budget_and_camera() {
         eye_above: 0.0,
         viewport: [1280, 720],
     };
-    s.set_view(down(-89.0)).await.expect("sent");
-    until(&mut s, "the view straight down", |t| t < 500).await;
-    s.set_view(down(-5.0)).await.expect("sent");
-    until(&mut s, "the view ahead again", |t| t > 1_500).await;
+    s.set_view(down(-89.0));
+    until(&s, "the view straight down", |t| t < 500).await;
+    s.set_view(down(-5.0));
+    until(&s, "the view ahead again", |t| t > 1_500).await;
     assert!(s.quit().await, "the server heard the goodbye");
     r.server.shutdown().await.expect("stops");
 }

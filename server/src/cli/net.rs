@@ -6,7 +6,8 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use roam_server::net::{self, Options, Server, tls};
+use roam_link::tls;
+use roam_server::net::{self, Options, Server};
 
 #[derive(Args)]
 pub struct ServeArgs {

@@ -8,11 +8,11 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use roam_protocol::script;
 use roam_server::Terrain;
 use roam_server::sim::physics::{Keys, STEPS_PER_SECOND};
 use roam_server::sim::recording::{self, RecordedWorld};
 use roam_server::sim::replay;
-use roam_server::sim::script;
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::terrain::dataset;
 

@@ -7,8 +7,9 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use roam_protocol::stats::quantile;
 use roam_server::Terrain;
-use roam_server::sim::flyover::{self, quantile};
+use roam_server::sim::flyover;
 use roam_server::terrain::dataset;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
@@ -278,7 +279,8 @@ fn codec_bench(
     limits: Limits,
 ) -> Result<CodecFigures> {
     use roam_protocol::{BitSet, Grid, MeshDecoder, MeshEncoder, mesh};
-    let script = roam_server::sim::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
+    let script =
+        roam_protocol::script::parse(roam_protocol::script::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
     let grid = Grid::new(terrain.heights.levels()).expect("data sets have 1 ..= 15 levels");
     let step = roam_protocol::height_step(terrain.heights.samples());
@@ -353,7 +355,8 @@ fn serve_bench(
     use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
     use roam_server::tessellate::{Mode, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
-    let script = roam_server::sim::script::parse(flyover::DRIVE_SCRIPT).expect("a valid script");
+    let script =
+        roam_protocol::script::parse(roam_protocol::script::DRIVE_SCRIPT).expect("a valid script");
     let cameras = flyover::drive(terrain, &script, 60);
     let sc = scales(terrain);
     let levels = terrain.heights.levels();

@@ -1,26 +1,26 @@
 //! The network shell: the only module that touches QUIC (quinn), an async runtime (tokio) or
 //! a clock for pacing. It turns traffic into the world thread's closed set of events
-//! ([`world_loop::Event`]), and snapshots of the world into frames for each viewer.
+//! ([`crate::sim::world_core::Event`]), and snapshots of the world into frames for each viewer.
 //!
 //! ```text
 //! viewer ──hello/acks/budget (control stream)──► viewer task ──frames (a uni stream each)──► viewer
 //!        ──key datagrams──────────────────────► world thread (100 Hz) ──snapshot (latest)──┘
 //! ```
 
-pub mod tls;
 pub mod viewer;
-pub mod wire;
 pub mod world_loop;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use roam_link::tls;
 use tokio::sync::watch;
 
 use crate::Terrain;
+use crate::sim::world_core::Snapshot;
 use crate::terrain::variance::VarianceTree;
-use world_loop::{Event, Snapshot};
+use world_loop::Inbound;
 
 /// How to run a server.
 pub struct Options {
@@ -40,8 +40,8 @@ pub struct Shared {
     pub height_step: u16,
     /// The colour map, compressed once (`roam_protocol::colormap`) for every welcome.
     pub color_map: Vec<u8>,
-    events: std::sync::mpsc::Sender<Event>,
-    keys: std::sync::mpsc::SyncSender<world_loop::KeyStates>,
+    /// The world thread's one inbox: joins, leaves and key states.
+    world: std::sync::mpsc::Sender<Inbound>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     shutdown: watch::Receiver<bool>,
 }
@@ -61,7 +61,7 @@ pub struct Server {
     stop: watch::Sender<bool>,
     accept: tokio::task::JoinHandle<()>,
     world: std::thread::JoinHandle<std::io::Result<crate::sim::world::World>>,
-    events: Option<std::sync::mpsc::Sender<Event>>,
+    world_inbox: Option<std::sync::mpsc::Sender<Inbound>>,
 }
 
 /// Why the server could not start or stop cleanly.
@@ -78,6 +78,8 @@ pub enum ServeError {
     World(std::io::Error),
     #[error("the world thread panicked")]
     WorldPanicked,
+    #[error("the colour map: {0}")]
+    ColorMapShape(String),
     #[error("the colour map codes to {0} bytes, more than a viewer takes")]
     ColorMap(usize),
 }
@@ -101,23 +103,21 @@ impl Server {
             addr: options.listen,
             error,
         })?;
-        let (events, event_rx) = std::sync::mpsc::channel();
-        let (keys, key_rx) = std::sync::mpsc::sync_channel(world_loop::KEY_BACKLOG);
+        let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world = {
             let terrain = terrain.clone();
             let record = options.record.clone();
             std::thread::Builder::new()
                 .name("roam-world".into())
-                .spawn(move || {
-                    world_loop::run(terrain, record.as_deref(), event_rx, key_rx, snap_tx)
-                })
+                .spawn(move || world_loop::run(terrain, record.as_deref(), inbox_rx, snap_tx))
                 .map_err(ServeError::World)?
         };
         let (stop, shutdown) = watch::channel(false);
         let mut color_map = Vec::new();
         let rgb: Vec<u8> = terrain.color.rgb().iter().flatten().copied().collect();
-        roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map);
+        roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map)
+            .map_err(|e| ServeError::ColorMapShape(e.to_string()))?;
         if color_map.len() > roam_protocol::colormap::max_len(terrain.color.cells()) {
             return Err(ServeError::ColorMap(color_map.len()));
         }
@@ -127,8 +127,7 @@ impl Server {
             terrain,
             variance,
             token: options.token,
-            events: events.clone(),
-            keys,
+            world: inbox.clone(),
             snapshots: snapshots.clone(),
             shutdown,
         });
@@ -140,13 +139,19 @@ impl Server {
             stop,
             accept,
             world,
-            events: Some(events),
+            world_inbox: Some(inbox),
         })
     }
 
     /// The world after its latest tick.
     pub fn snapshot(&self) -> Arc<Snapshot> {
         self.snapshots.borrow().clone()
+    }
+
+    /// The world's snapshots as they come (latest wins): to wait for a change in the
+    /// world without polling.
+    pub fn watch(&self) -> watch::Receiver<Arc<Snapshot>> {
+        self.snapshots.clone()
     }
 
     /// Stops: viewers are told why, the world stops and its recording is closed. Returns
@@ -156,7 +161,7 @@ impl Server {
         // Give viewer tasks a moment to say goodbye, then close what is left.
         tokio::time::sleep(std::time::Duration::from_millis(50)).await;
         self.endpoint.close(
-            viewer::close::SHUTDOWN.into(),
+            roam_protocol::messages::close::SHUTDOWN.into(),
             b"the server is shutting down",
         );
         self.accept.abort();
@@ -164,7 +169,7 @@ impl Server {
         self.endpoint.wait_idle().await;
         // Connections are closed; viewer tasks (and a tessellation in flight) end shortly
         // and drop their senders, and then the world thread sees the channel close.
-        drop(self.events.take());
+        drop(self.world_inbox.take());
         let world = tokio::task::spawn_blocking(move || self.world.join())
             .await
             .map_err(|_| ServeError::WorldPanicked)?

@@ -6,58 +6,20 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use roam_link::wire;
 use roam_protocol::messages::{
-    ClientMessage, Frame, KeyDatagram, Reason, Role, ServerMessage, VERSION, VehicleView,
-    ViewChange, Welcome,
+    ClientMessage, Reason, Role, ServerMessage, VERSION, Welcome, close,
 };
 use tokio::sync::oneshot;
 
-use super::world_loop::{Event, Snapshot};
-use super::{Shared, wire};
+use super::Shared;
 use crate::sim::world::VehicleId;
-use crate::viewer::{Event as ViewerEvent, Scene, ViewerCore};
+use crate::sim::world_core::{Event, Snapshot};
+use crate::viewer::link::{Control, KeyGate, Mailbox, frame_message};
+use crate::viewer::{Scene, ViewerCore};
 
-pub use crate::viewer::MAX_BUDGET;
-/// Key datagrams a driver may send per second, and in a burst (a viewer sends 100 a
-/// second).
-const KEY_RATE: f64 = 250.0;
-const KEY_BURST: f64 = 50.0;
 /// Colour-map bytes per chunk.
 const CHUNK: usize = 64 << 10;
-
-/// The viewer's control messages since the last frame, coalesced (the newest budget and
-/// view, the highest acknowledgement, whether a key frame was asked for), so a viewer
-/// sending faster than its frames grows nothing.
-#[derive(Default)]
-struct Mailbox {
-    budget: Option<u32>,
-    acked: Option<u64>,
-    key_frame: bool,
-    view: Option<ViewChange>,
-}
-
-impl Mailbox {
-    /// The events for the core, emptying the mailbox.
-    fn drain(&mut self) -> impl Iterator<Item = ViewerEvent> {
-        let m = std::mem::take(self);
-        [
-            m.budget.map(ViewerEvent::Budget),
-            m.view.map(ViewerEvent::View),
-            m.key_frame.then_some(ViewerEvent::KeyFrame),
-            m.acked.map(ViewerEvent::Acked),
-        ]
-        .into_iter()
-        .flatten()
-    }
-}
-
-/// The close codes a connection ends with.
-pub mod close {
-    pub const SHUTDOWN: u32 = 1;
-    pub const REFUSED: u32 = 2;
-    pub const PROTOCOL: u32 = 3;
-    pub const BYE: u32 = 4;
-}
 
 fn refuse(conn: &quinn::Connection, code: u32, why: &str) {
     conn.close(code.into(), why.as_bytes());
@@ -105,7 +67,7 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     let (vehicle, driver) = match hello.role {
         Role::Driver => {
             let (tx, rx) = oneshot::channel();
-            if shared.events.send(Event::Join { reply: tx }).is_err() {
+            if shared.world.send((Event::Join, Some(tx))).is_err() {
                 refuse(&conn, close::SHUTDOWN, "shutting down");
                 return;
             }
@@ -135,7 +97,7 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
         }
     };
     let leave = Leave {
-        events: shared.events.clone(),
+        world: shared.world.clone(),
         vehicle: driver.then_some(vehicle),
     };
     if welcome(&mut send, &shared, vehicle).await.is_err() {
@@ -178,14 +140,14 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
 
 /// Tells the world a driver left, however the connection ended.
 struct Leave {
-    events: std::sync::mpsc::Sender<Event>,
+    world: std::sync::mpsc::Sender<super::world_loop::Inbound>,
     vehicle: Option<VehicleId>,
 }
 
 impl Drop for Leave {
     fn drop(&mut self) {
         if let Some(vehicle) = self.vehicle {
-            let _ = self.events.send(Event::Leave { vehicle });
+            let _ = self.world.send((Event::Leave(vehicle), None));
         }
     }
 }
@@ -228,43 +190,27 @@ async fn welcome(
     Ok(())
 }
 
-/// Key datagrams to the world; anything that is not one is ignored. A driver may send
-/// [`KEY_RATE`] a second (a burst of [`KEY_BURST`]); more are dropped here, so one flooding
-/// viewer cannot crowd the others out of the world's key backlog.
+/// Key datagrams to the world, through the driver's [`KeyGate`] (rate-limited; anything
+/// that is not a key datagram is ignored). A spectator's are read and dropped.
 async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: VehicleId, driver: bool) {
-    let mut tokens = KEY_BURST;
-    let mut refilled = tokio::time::Instant::now();
+    let mut gate = KeyGate::new(vehicle);
     while let Ok(bytes) = conn.read_datagram().await {
-        let now = tokio::time::Instant::now();
-        tokens = (tokens + (now - refilled).as_secs_f64() * KEY_RATE).min(KEY_BURST);
-        refilled = now;
-        if tokens < 1.0 {
-            continue;
-        }
-        tokens -= 1.0;
-        let Ok(d) = roam_protocol::messages::decode::<KeyDatagram>(&bytes) else {
-            continue;
-        };
-        if driver {
-            // A full backlog drops this datagram; its states come again in later ones.
-            let _ = shared.keys.try_send((vehicle, d.states));
+        if let Some(event) = gate.admit(&bytes, std::time::Instant::now())
+            && driver
+            && shared.world.send((event, None)).is_err()
+        {
+            return; // the world has stopped
         }
     }
 }
 
-/// Control messages until the viewer says goodbye or sends something that is not one.
+/// Control messages into the mailbox until the viewer says goodbye or sends something
+/// that is not one.
 async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) {
     while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, 4096).await {
         let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
-        match msg {
-            ClientMessage::Budget(b) => c.budget = Some(b),
-            ClientMessage::Ack { frame } => c.acked = Some(c.acked.map_or(frame, |a| a.max(frame))),
-            ClientMessage::KeyFrame => {
-                c.key_frame = true;
-                c.acked = None;
-            }
-            ClientMessage::View(v) => c.view = Some(v),
-            ClientMessage::Bye(_) | ClientMessage::Hello(_) => return,
+        if c.push(msg) == Control::End {
+            return;
         }
     }
 }
@@ -309,9 +255,6 @@ async fn frames(
             continue; // a new driver's vehicle appears with the next tick
         };
         seen = true;
-        let altitude = |s: &crate::sim::physics::VehicleState| {
-            crate::sim::physics::altitude(&*shared.terrain, s.x, s.z)
-        };
         let mut c = core.take().expect("put back below");
         for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
             c.handle(event);
@@ -343,32 +286,7 @@ async fn frames(
         let acked = c.acked();
         core = Some(c);
         let frame = made.frame;
-        let msg = Frame {
-            frame,
-            base: made.base,
-            tick: snap.tick,
-            vehicles: snap
-                .vehicles
-                .iter()
-                .map(|v| VehicleView {
-                    id: v.id,
-                    x: v.state.x,
-                    z: v.state.z,
-                    y: altitude(&v.state),
-                    speed: v.state.speed,
-                    heading: v.state.heading,
-                })
-                .collect(),
-            input_seq: driver
-                .then(|| {
-                    snap.applied
-                        .iter()
-                        .find(|(id, _)| *id == vehicle)
-                        .map(|&(_, s)| s)
-                })
-                .flatten(),
-            mesh: made.payload,
-        };
+        let msg = frame_message(&shared.terrain, &snap, made, vehicle, driver);
         let mut bytes = Vec::new();
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
             return FramesEnd::Failed("a frame over the message limit");

@@ -11,7 +11,7 @@ pub const FOV_Y_DEG: f64 = 60.0;
 /// Height of the eye above the ground along the path, world units.
 pub const EYE_ABOVE_GROUND: f64 = 10.0;
 /// Pitch along the path, degrees (slightly down, as a driver looks).
-pub const PITCH_DEG: f64 = -5.0;
+pub const PITCH_DEG: f64 = roam_protocol::messages::DEFAULT_PITCH_DEG;
 
 /// `frames` cameras along a closed loop around the map centre (radius a third of the map),
 /// each `EYE_ABOVE_GROUND` over the terrain below it and looking along the loop.
@@ -37,27 +37,12 @@ pub fn flyover(terrain: &Terrain, frames: usize) -> Vec<Camera> {
         .collect()
 }
 
-/// The `q`-quantile (0..=1) of `values` by the nearest-rank method; 0 when empty.
-pub fn quantile(values: &[f64], q: f64) -> f64 {
-    if values.is_empty() {
-        return 0.0;
-    }
-    let mut v = values.to_vec();
-    v.sort_by(f64::total_cmp);
-    let rank = ((q * v.len() as f64).ceil() as usize).clamp(1, v.len());
-    v[rank - 1]
-}
-
-/// The drive of the codec figures: a vehicle from the map's start, throttle, turns both
-/// ways, a stretch of coasting.
-pub const DRIVE_SCRIPT: &str = "150 U\n120 UL\n100 U\n120 UR\n60 -\n";
-
 /// Cameras at the vehicle of `script` (one driving from the map's start), `fps` frames a
 /// second: the eye at the vehicle's altitude, looking along its heading at
 /// [`PITCH_DEG`]. A frame shows the world at the latest tick it has reached.
 pub fn drive(
     terrain: &std::sync::Arc<Terrain>,
-    script: &crate::sim::script::Script,
+    script: &roam_protocol::script::Script,
     fps: u32,
 ) -> Vec<Camera> {
     use crate::sim::physics::STEPS_PER_SECOND;
@@ -89,23 +74,4 @@ pub fn drive(
         }
     }
     cameras
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn quantiles() {
-        for (values, q, want) in [
-            (vec![], 0.5, 0.0),
-            (vec![3.0], 0.5, 3.0),
-            (vec![5.0, 1.0, 3.0], 0.5, 3.0),
-            (vec![4.0, 1.0, 3.0, 2.0], 0.5, 2.0),
-            ((1..=100).map(f64::from).collect(), 0.99, 99.0),
-            ((1..=100).map(f64::from).collect(), 1.0, 100.0),
-        ] {
-            assert_eq!(quantile(&values, q), want, "{values:?} q {q}");
-        }
-    }
 }

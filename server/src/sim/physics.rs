@@ -47,64 +47,8 @@ pub const TURN: f64 = 24.0;
 /// Height of the vehicle above the ground, world units.
 pub const ALTITUDE: f64 = 2.0;
 
-/// A set of arrow keys.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash)]
-pub struct Keys(u8);
-
-impl Keys {
-    pub const NONE: Keys = Keys(0);
-    pub const UP: Keys = Keys(1);
-    pub const DOWN: Keys = Keys(2);
-    pub const LEFT: Keys = Keys(4);
-    pub const RIGHT: Keys = Keys(8);
-    const ALL: u8 = 15;
-
-    /// The keys of a bit pattern (bit 0 Up, 1 Down, 2 Left, 3 Right); `None` if other bits
-    /// are set.
-    pub fn from_bits(bits: u8) -> Option<Keys> {
-        (bits & !Self::ALL == 0).then_some(Keys(bits))
-    }
-
-    pub fn bits(self) -> u8 {
-        self.0
-    }
-
-    pub fn contains(self, other: Keys) -> bool {
-        self.0 & other.0 == other.0
-    }
-
-    pub fn union(self, other: Keys) -> Keys {
-        Keys(self.0 | other.0)
-    }
-
-    pub fn without(self, other: Keys) -> Keys {
-        Keys(self.0 & !other.0)
-    }
-
-    pub fn is_empty(self) -> bool {
-        self.0 == 0
-    }
-}
-
-impl std::fmt::Display for Keys {
-    /// `U`, `D`, `L`, `R` in that order, or `-` for none (the input script's notation).
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        if self.is_empty() {
-            return f.write_str("-");
-        }
-        for (key, c) in [
-            (Keys::UP, 'U'),
-            (Keys::DOWN, 'D'),
-            (Keys::LEFT, 'L'),
-            (Keys::RIGHT, 'R'),
-        ] {
-            if self.contains(key) {
-                write!(f, "{c}")?;
-            }
-        }
-        Ok(())
-    }
-}
+/// The arrow keys (the protocol's: the wire, the scripts and the physics share them).
+pub use roam_protocol::keys::Keys;
 
 /// One vehicle's state.
 #[derive(Clone, Copy, Debug, PartialEq)]

@@ -73,40 +73,6 @@ impl Inputs {
     }
 }
 
-/// One vehicle's keys between two steps: those held now, and those pressed since the last
-/// step. A key pressed and released before the step still acts in it, once.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct InputLatch {
-    held: Keys,
-    pressed: Keys,
-}
-
-impl InputLatch {
-    pub fn press(&mut self, keys: Keys) {
-        self.held = self.held.union(keys);
-        self.pressed = self.pressed.union(keys);
-    }
-
-    pub fn release(&mut self, keys: Keys) {
-        self.held = self.held.without(keys);
-    }
-
-    /// Replaces the held keys with `keys` (a key-state message): keys not held before count
-    /// as pressed.
-    pub fn set_held(&mut self, keys: Keys) {
-        self.pressed = self.pressed.union(keys.without(self.held));
-        self.held = keys;
-    }
-
-    /// The keys for the next step (held or pressed since the last one), and starts a new
-    /// step's latch.
-    pub fn take(&mut self) -> Keys {
-        let keys = self.held.union(self.pressed);
-        self.pressed = Keys::NONE;
-        keys
-    }
-}
-
 /// A digest of the world: its tick and every vehicle's exact state.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub struct Digest(pub [u8; 32]);

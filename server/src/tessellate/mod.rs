@@ -44,7 +44,6 @@ mod evaluate;
 mod frontier;
 mod lanes;
 pub mod queue;
-pub mod validate;
 
 pub use coherent::{Coherent, CoherentStats, Mode, measured_error};
 

@@ -5,9 +5,6 @@ use roam_protocol::messages::ViewChange;
 
 use crate::tessellate::camera::Camera;
 
-/// The most triangles a viewer may ask for.
-pub const MAX_BUDGET: u32 = 1 << 20;
-
 /// The camera a viewer's hello asks for, before it is placed at a vehicle: its field of
 /// view (a value that is not a number is taken as the usual 60°) and viewport, clamped,
 /// looking slightly down.
@@ -16,7 +13,7 @@ pub fn default_camera(fov_y_deg: f32, viewport: [u32; 2]) -> Camera {
     Camera {
         eye: [0.0; 3],
         yaw_deg: 0.0,
-        pitch_deg: crate::sim::flyover::PITCH_DEG,
+        pitch_deg: roam_protocol::messages::DEFAULT_PITCH_DEG,
         fov_y_deg: if fov.is_finite() {
             fov.clamp(1.0, 179.0)
         } else {

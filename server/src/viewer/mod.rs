@@ -26,7 +26,7 @@
 
 use std::collections::VecDeque;
 
-use roam_protocol::messages::ViewChange;
+use roam_protocol::messages::{self, ViewChange};
 use roam_protocol::{ChangeEncoder, CutHash, Grid, MeshEncoder};
 
 use crate::Terrain;
@@ -37,8 +37,9 @@ use crate::tessellate::camera::Camera;
 use crate::tessellate::{Coherent, Limits, Mode, Scales};
 
 mod camera;
+pub mod link;
 
-pub use camera::{MAX_BUDGET, apply_view};
+pub use camera::apply_view;
 
 /// The largest budget whose updates [`ViewerCore::next_is_cheap`] calls cheap: about
 /// half a millisecond a frame at 65,536 triangles on `kossou`.
@@ -50,7 +51,7 @@ pub const LOGS: usize = 16;
 /// What the viewer's control messages tell the core.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Event {
-    /// The triangle budget the viewer asks for (clamped to `2..=MAX_BUDGET`).
+    /// The triangle budget the viewer asks for (clamped by [`messages::clamp_budget`]).
     Budget(u32),
     /// The viewer decoded this frame: it may be a base.
     Acked(u64),
@@ -139,7 +140,7 @@ impl ViewerCore {
             hash: CutHash::new(),
             camera: camera::default_camera(fov_y_deg, viewport),
             view: None,
-            budget: budget.clamp(2, MAX_BUDGET),
+            budget: messages::clamp_budget(budget),
             acked: None,
             key_requested: false,
             steered: false,
@@ -151,7 +152,7 @@ impl ViewerCore {
     pub fn handle(&mut self, event: Event) {
         match event {
             Event::Budget(b) => {
-                self.budget = b.clamp(2, MAX_BUDGET);
+                self.budget = messages::clamp_budget(b);
                 self.steered = true;
             }
             // Only frames made can be acknowledged; a later ack wins.

@@ -1,4 +1,5 @@
-//! Input scripts: a scripted drive for `roam-server simulate` and the tests.
+//! Input scripts: a scripted drive for `roam-server simulate`, the headless viewer and the
+//! tests, and the benchmarks' drive ([`DRIVE_SCRIPT`]).
 //!
 //! One segment per line: `<ticks> <keys>`, holding `keys` for that many ticks (10 ms
 //! each). Keys are any of `U` (accelerate), `D` (brake), `L`, `R` (turn), written together
@@ -11,10 +12,14 @@
 //! 300 -
 //! ```
 
-use crate::sim::physics::Keys;
+use crate::keys::{KeyStep, Keys};
 
 /// The longest script, ticks (about 11.5 days of driving).
 pub const MAX_TICKS: u64 = 100_000_000;
+
+/// The drive of the benchmarks (the server's codec figures, the viewer's `--bench`): from
+/// the map's start, throttle, turns both ways, a stretch of coasting.
+pub const DRIVE_SCRIPT: &str = "150 U\n120 UL\n100 U\n120 UR\n60 -\n";
 
 /// A parsed script.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -42,6 +47,16 @@ impl Script {
         self.segments
             .iter()
             .flat_map(|&(n, keys)| std::iter::repeat_n(keys, n as usize))
+    }
+
+    /// Each tick's state as a viewer sends it: the held keys, and those down at this tick
+    /// and not at the one before as pressed.
+    pub fn steps(&self) -> impl Iterator<Item = KeyStep> + '_ {
+        self.keys().scan(Keys::NONE, |last, held| {
+            let pressed = held.without(*last);
+            *last = held;
+            Some(KeyStep { held, pressed })
+        })
     }
 }
 

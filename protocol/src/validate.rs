@@ -42,6 +42,15 @@ pub enum MeshError {
     Budget(usize, u32),
 }
 
+/// Twice the signed area of `a b c`, positive when counter-clockwise seen from above
+/// (+X east, +Z south).
+fn ccw(a: (u32, u32), b: (u32, u32), c: (u32, u32)) -> i64 {
+    let (ax, az) = (i64::from(a.0), i64::from(a.1));
+    let (bx, bz) = (i64::from(b.0) - ax, i64::from(b.1) - az);
+    let (cx, cz) = (i64::from(c.0) - ax, i64::from(c.1) - az);
+    bz * cx - bx * cz
+}
+
 /// Checks the mesh structure described in the module docs.
 pub fn check_mesh(vertices: &[[u16; 2]], indices: &[u32], size: u32) -> Result<(), MeshError> {
     if !indices.len().is_multiple_of(3) {
@@ -64,7 +73,7 @@ pub fn check_mesh(vertices: &[[u16; 2]], indices: &[u32], size: u32) -> Result<(
             })?;
         }
         let p = v.map(|[x, z]| (u32::from(x), u32::from(z)));
-        let a2 = crate::tessellate::diamond::ccw(p[0], p[1], p[2]);
+        let a2 = ccw(p[0], p[1], p[2]);
         if a2 <= 0 {
             return Err(MeshError::Orientation { tri });
         }

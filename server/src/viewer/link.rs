@@ -1,0 +1,148 @@
+//! What one viewer's connection decides besides its frames, with no socket, task or clock:
+//! the control messages coalesced between frames ([`Mailbox`]), the key datagrams admitted
+//! and turned into world events ([`KeyGate`]), and the frame message for a snapshot
+//! ([`frame_message`]). The `net` shell and the simulated network in the tests both
+//! compose them with the [`ViewerCore`](super::ViewerCore) the same way.
+
+use std::time::Instant;
+
+use roam_protocol::messages::{self, ClientMessage, Frame, KeyDatagram, VehicleView, ViewChange};
+
+use super::{Event, Made};
+use crate::Terrain;
+use crate::sim::physics::altitude;
+use crate::sim::world::VehicleId;
+use crate::sim::world_core::{self, Snapshot};
+
+/// The viewer's control messages since the last frame, coalesced (the newest budget and
+/// view, the highest acknowledgement, whether a key frame was asked for), so a viewer
+/// sending faster than its frames grows nothing.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Mailbox {
+    budget: Option<u32>,
+    acked: Option<u64>,
+    key_frame: bool,
+    view: Option<ViewChange>,
+}
+
+/// What a control message means for the connection.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Control {
+    /// Taken; more may come.
+    Continue,
+    /// The viewer said goodbye, or sent what only starts a connection: it ends.
+    End,
+}
+
+impl Mailbox {
+    /// Takes one control message.
+    pub fn push(&mut self, msg: ClientMessage) -> Control {
+        match msg {
+            ClientMessage::Budget(b) => self.budget = Some(b),
+            ClientMessage::Ack { frame } => self.ack(frame),
+            ClientMessage::KeyFrame => {
+                self.key_frame = true;
+                self.acked = None;
+            }
+            ClientMessage::View(v) => self.view = Some(v),
+            ClientMessage::Bye(_) | ClientMessage::Hello(_) => return Control::End,
+        }
+        Control::Continue
+    }
+
+    /// The viewer decoded `frame` (the highest acknowledgement wins).
+    pub fn ack(&mut self, frame: u64) {
+        self.acked = Some(self.acked.map_or(frame, |a| a.max(frame)));
+    }
+
+    /// The events for the core, emptying the mailbox: the budget and view first (they may
+    /// rebuild the cut), then a key-frame request, then the acknowledgement.
+    pub fn drain(&mut self) -> impl Iterator<Item = Event> + use<> {
+        let m = std::mem::take(self);
+        [
+            m.budget.map(Event::Budget),
+            m.view.map(Event::View),
+            m.key_frame.then_some(Event::KeyFrame),
+            m.acked.map(Event::Acked),
+        ]
+        .into_iter()
+        .flatten()
+    }
+}
+
+/// Key datagrams a driver may send per second, and in a burst (a viewer sends 100 a
+/// second).
+pub const KEY_RATE: f64 = 250.0;
+pub const KEY_BURST: f64 = 50.0;
+
+/// One driver's key datagrams: at most [`KEY_RATE`] a second (a burst of [`KEY_BURST`]) are
+/// taken, so one flooding viewer cannot crowd the others out of the world's ticks;
+/// anything that is not a key datagram is ignored.
+#[derive(Clone, Debug)]
+pub struct KeyGate {
+    vehicle: VehicleId,
+    tokens: f64,
+    refilled: Option<Instant>,
+}
+
+impl KeyGate {
+    pub fn new(vehicle: VehicleId) -> KeyGate {
+        KeyGate {
+            vehicle,
+            tokens: KEY_BURST,
+            refilled: None,
+        }
+    }
+
+    /// A datagram arrived at `now`: the world's event for it, if it is taken.
+    pub fn admit(&mut self, bytes: &[u8], now: Instant) -> Option<world_core::Event> {
+        let since = self
+            .refilled
+            .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64());
+        self.tokens = (self.tokens + since * KEY_RATE).min(KEY_BURST);
+        self.refilled = Some(now);
+        if self.tokens < 1.0 {
+            return None;
+        }
+        self.tokens -= 1.0;
+        let d = messages::decode::<KeyDatagram>(bytes).ok()?;
+        Some(world_core::Event::Keys {
+            vehicle: self.vehicle,
+            states: d.states,
+        })
+    }
+}
+
+/// The frame message for `made`, showing `snapshot`'s world: every vehicle as the viewer
+/// sees it, and (for a driver) the newest key state of its own the world had applied.
+pub fn frame_message(
+    terrain: &Terrain,
+    snapshot: &Snapshot,
+    made: Made,
+    vehicle: VehicleId,
+    driver: bool,
+) -> Frame {
+    Frame {
+        frame: made.frame,
+        base: made.base,
+        tick: snapshot.tick,
+        vehicles: snapshot
+            .vehicles
+            .iter()
+            .map(|v| VehicleView {
+                id: v.id,
+                x: v.state.x,
+                z: v.state.z,
+                y: altitude(terrain, v.state.x, v.state.z),
+                speed: v.state.speed,
+                heading: v.state.heading,
+            })
+            .collect(),
+        input_seq: if driver {
+            snapshot.applied_by(vehicle)
+        } else {
+            None
+        },
+        mesh: made.payload,
+    }
+}
