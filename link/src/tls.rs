@@ -100,8 +100,17 @@ fn provider() -> Arc<CryptoProvider> {
     Arc::new(rustls::crypto::ring::default_provider())
 }
 
+/// Cubic with a floor under its window ([`crate::congestion`]): both ends, so neither the
+/// frames nor the keys and acknowledgements starve on a link that loses packets at random.
+fn floored_congestion(t: &mut quinn::TransportConfig) {
+    t.congestion_controller_factory(Arc::new(crate::congestion::FlooredCubic {
+        floor: crate::congestion::MIN_WINDOW,
+    }));
+}
+
 fn transport(keep_alive: bool) -> Arc<quinn::TransportConfig> {
     let mut t = quinn::TransportConfig::default();
+    floored_congestion(&mut t);
     t.max_idle_timeout(Some(
         std::time::Duration::from_secs(10)
             .try_into()
@@ -138,6 +147,7 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     // A viewer opens one control stream and sends small messages and key datagrams: a
     // peer cannot make the server buffer more than that.
     let mut t = quinn::TransportConfig::default();
+    floored_congestion(&mut t);
     t.max_idle_timeout(Some(
         std::time::Duration::from_secs(10)
             .try_into()
