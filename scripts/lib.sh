@@ -1,13 +1,14 @@
 # Shared by the measuring scripts: start_server DATA [PREFIX...] starts `roam-server serve`
 # on an ephemeral loopback port (PREFIX, e.g. `taskset -c 0`, runs before it), waits until
 # it says how to connect, and sets $server (its pid), $state (a temporary directory removed
-# on exit), $addr, $token and $fingerprint.
+# on exit), $addr, $token and $fingerprint. The binary is taken from $BIN_DIR (default
+# target/release).
 start_server() {
     local data=$1
     shift
     state=$(mktemp -d)
     local log="$state/server.log"
-    "$@" target/release/roam-server serve "$data" --listen 127.0.0.1:0 --state-dir "$state" \
+    "$@" "${BIN_DIR:-target/release}/roam-server" serve "$data" --listen 127.0.0.1:0 --state-dir "$state" \
         >"$log" 2>&1 &
     server=$!
     trap 'kill -INT $server 2>/dev/null; wait $server 2>/dev/null; rm -rf "$state"' EXIT
