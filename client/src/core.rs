@@ -7,8 +7,13 @@
 //! in the tests drives this core directly.
 //!
 //! What leaves the core: control messages ([`ClientCore::poll_control`], for the control
-//! stream, in order) and key datagrams ([`ClientCore::key_datagram`], one per physics
-//! step).
+//! stream, in order) and key datagrams ([`KeyCore::key_datagram`], one per physics step).
+//!
+//! The core has two halves, [`ClientCore`] (frames) and [`KeyCore`] (keys), so the I/O can
+//! lock them apart: a key state must leave every 10 ms even while a frame is being
+//! decoded. With one lock, a decode preempted on a loaded machine held the key sender past
+//! the server's one tick of slack, and the exact drive over the network diverged (seen in
+//! `tests/tests/e2e.rs` with the CPU saturated).
 
 use std::collections::VecDeque;
 use std::time::Instant;
@@ -43,7 +48,7 @@ pub struct Received {
     /// Decoding it (with emitting the mesh), seconds, as the I/O measured it (0 here).
     pub decode_s: f64,
     /// Key change → this frame showing it applied, milliseconds, for each change it is the
-    /// first to show.
+    /// first to show ([`KeyCore::applied`] fills it in).
     pub latencies_ms: Vec<f64>,
 }
 
@@ -87,13 +92,19 @@ pub struct ClientCore {
     /// The largest budget asked for: frames tessellated before a cut may still come.
     limit: u32,
     outbox: VecDeque<ClientMessage>,
-    keys: KeyLatch,
+    bytes_in: u64,
+}
+
+/// The keys: the latch the window's key events go into, the numbered states, the history
+/// each datagram repeats, and the key changes awaiting the frame that shows them.
+#[derive(Debug, Default)]
+pub struct KeyCore {
+    latch: KeyLatch,
     seq: u32,
     history: VecDeque<KeyState>,
     last_held: Keys,
     /// Key changes sent and not yet seen applied, with when they were sent.
     pending: VecDeque<(u32, Instant)>,
-    bytes_in: u64,
 }
 
 impl ClientCore {
@@ -114,11 +125,6 @@ impl ClientCore {
             budget,
             limit: budget,
             outbox: VecDeque::new(),
-            keys: KeyLatch::default(),
-            seq: 0,
-            history: VecDeque::new(),
-            last_held: Keys::NONE,
-            pending: VecDeque::new(),
             bytes_in: 0,
         })
     }
@@ -231,16 +237,6 @@ impl ClientCore {
         self.outbox
             .push_back(ClientMessage::Ack { frame: frame.frame });
         self.newest = Some(frame.frame);
-        let mut latencies_ms = Vec::new();
-        if let Some(seq) = frame.input_seq {
-            while let Some(&(s, at)) = self.pending.front() {
-                if s > seq {
-                    break;
-                }
-                latencies_ms.push(arrived.saturating_duration_since(at).as_secs_f64() * 1e3);
-                self.pending.pop_front();
-            }
-        }
         Ok(Taken::Frame(Received {
             frame: frame.frame,
             tick: frame.tick,
@@ -250,7 +246,7 @@ impl ClientCore {
             triangles,
             arrived,
             decode_s: 0.0,
-            latencies_ms,
+            latencies_ms: Vec::new(),
         }))
     }
 
@@ -281,26 +277,28 @@ impl ClientCore {
     pub fn poll_control(&mut self) -> Option<ClientMessage> {
         self.outbox.pop_front()
     }
+}
 
+impl KeyCore {
     /// Keys go down (the window's key events; read at the next step).
     pub fn key_down(&mut self, keys: Keys) {
-        self.keys.press(keys);
+        self.latch.press(keys);
     }
 
     /// Keys come up.
     pub fn key_up(&mut self, keys: Keys) {
-        self.keys.release(keys);
+        self.latch.release(keys);
     }
 
     /// Every key comes up (the window lost focus: nothing stays held).
     pub fn keys_released(&mut self) {
-        self.keys.set_held(Keys::NONE);
+        self.latch.set_held(Keys::NONE);
     }
 
     /// The latch's state for this step (a press since the last step, however short, is in
     /// it exactly once).
     pub fn take_keys(&mut self) -> KeyStep {
-        self.keys.take()
+        self.latch.take()
     }
 
     /// The datagram for one physics step of keys taken at `now`: the new state, numbered,
@@ -323,5 +321,19 @@ impl ClientCore {
         KeyDatagram {
             states: self.history.iter().copied().collect(),
         }
+    }
+
+    /// A frame showing key states up to `seq` arrived at `arrived`: the latencies of the
+    /// changes it is the first to show, milliseconds.
+    pub fn applied(&mut self, seq: u32, arrived: Instant) -> Vec<f64> {
+        let mut out = Vec::new();
+        while let Some(&(s, at)) = self.pending.front() {
+            if s > seq {
+                break;
+            }
+            out.push(arrived.saturating_duration_since(at).as_secs_f64() * 1e3);
+            self.pending.pop_front();
+        }
+        out
     }
 }

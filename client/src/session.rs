@@ -18,7 +18,7 @@ use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage,
 use roam_protocol::script::Script;
 use tokio::sync::{Notify, mpsc, oneshot};
 
-pub use crate::core::{ClientCore, Received, Taken};
+pub use crate::core::{ClientCore, KeyCore, Received, Taken};
 use crate::render::Scene;
 
 /// Connects to `addr`, accepting only the certificate with SHA-256 `fingerprint`.
@@ -88,7 +88,7 @@ pub enum KeySource {
 }
 
 /// Each physics step's keys, taken from the core's latch or a script.
-type Steps = Box<dyn FnMut(&mut ClientCore) -> KeyStep + Send>;
+type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
 
 /// What the control writer is asked to do.
 enum Outgoing {
@@ -100,6 +100,8 @@ enum Outgoing {
 /// What the I/O tasks and the caller share.
 struct Link {
     core: Mutex<ClientCore>,
+    /// Locked apart from the frames: a key state never waits on a decode.
+    keys: Mutex<KeyCore>,
     /// Woken when a frame is offered or the connection ends.
     notify: Notify,
     /// Set once no more frames can come: the reason.
@@ -185,6 +187,7 @@ impl Session {
         };
         let link = Arc::new(Link {
             core: Mutex::new(core),
+            keys: Mutex::new(KeyCore::default()),
             notify: Notify::new(),
             ended: Mutex::new(None),
             closed: AtomicBool::new(false),
@@ -196,11 +199,11 @@ impl Session {
         ];
         let steps: Option<Steps> = match keys {
             KeySource::None => None,
-            KeySource::Latch => Some(Box::new(ClientCore::take_keys)),
+            KeySource::Latch => Some(Box::new(KeyCore::take_keys)),
             KeySource::Script(script) => {
                 let mut steps: Vec<KeyStep> = script.steps().collect();
                 steps.reverse();
-                Some(Box::new(move |_: &mut ClientCore| {
+                Some(Box::new(move |_: &mut KeyCore| {
                     steps.pop().unwrap_or(KeyStep {
                         held: Keys::NONE,
                         pressed: Keys::NONE,
@@ -248,10 +251,14 @@ impl Session {
                 if core.has_frame() {
                     let started = Instant::now();
                     let mut taken = core.take(decode);
+                    self.flush(&mut core);
+                    drop(core);
                     if let Ok(Taken::Frame(r)) = &mut taken {
                         r.decode_s = started.elapsed().as_secs_f64();
+                        if let Some(seq) = r.input_seq {
+                            r.latencies_ms = lock(&self.link.keys).applied(seq, r.arrived);
+                        }
                     }
-                    self.flush(&mut core);
                     return Ok(taken?);
                 }
             }
@@ -294,16 +301,16 @@ impl Session {
     }
 
     pub fn key_down(&self, keys: Keys) {
-        self.core().key_down(keys);
+        lock(&self.link.keys).key_down(keys);
     }
 
     pub fn key_up(&self, keys: Keys) {
-        self.core().key_up(keys);
+        lock(&self.link.keys).key_up(keys);
     }
 
     /// Every key released (the window lost focus: nothing stays held).
     pub fn keys_released(&self) {
-        self.core().keys_released();
+        lock(&self.link.keys).keys_released();
     }
 
     /// Frame bytes received so far.
@@ -390,9 +397,9 @@ async fn send_keys(conn: quinn::Connection, link: Arc<Link>, mut steps: Steps) {
     loop {
         tick.tick().await;
         let datagram = {
-            let mut core = lock(&link.core);
-            let step = steps(&mut core);
-            core.key_datagram(step, Instant::now())
+            let mut keys = lock(&link.keys);
+            let step = steps(&mut keys);
+            keys.key_datagram(step, Instant::now())
         };
         let mut bytes = Vec::new();
         if messages::encode(&datagram, &mut bytes).is_ok()

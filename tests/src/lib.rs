@@ -1,4 +1,7 @@
 //! Helpers for the end-to-end tests in `tests/` and the measuring scripts: a seeded lossy
-//! UDP relay ([`relay`], and the `roam-relay` binary) to put between a server and viewers.
+//! UDP relay ([`relay`], and the `roam-relay` binary) to put between a server and viewers,
+//! and a simulated network ([`simnet`]) driving the server's and the viewer's sans-IO
+//! cores together with virtual time, no sockets.
 
 pub mod relay;
+pub mod simnet;
