@@ -9,6 +9,18 @@
 //! What leaves the core: control messages ([`ClientCore::poll_control`], for the control
 //! stream, in order) and key datagrams ([`KeyCore::key_datagram`], one per physics step).
 //!
+//! **Frames and bases.** The newest frame offered waits to be taken (an older one is
+//! superseded), and so, apart, does the newest key frame offered: the server sends a key
+//! frame reliably (on a stream it does not abandon while the key frame is pending) and codes
+//! the frames after it against it before this viewer has it, so the key frame may arrive
+//! after them, and a change frame offered meanwhile must not push it out. [`ClientCore::take`]
+//! takes the key frame first when the waiting frame's base is not decoded yet. A frame coded
+//! against a base newer than the newest frame taken (a key frame still on its way) is not an
+//! error: it is passed over ([`Taken::Nothing`]) while the base may still come, up to
+//! [`AWAIT_BASE`] frames in a row, after which a key frame is asked for. A frame coded
+//! against a base this viewer had and no longer has (or never decoded) is dropped and a key
+//! frame asked for at once.
+//!
 //! The core has two halves, [`ClientCore`] (frames) and [`KeyCore`] (keys), so the I/O can
 //! lock them apart: a key state must leave every 10 ms even while a frame is being
 //! decoded. With one lock, a decode preempted on a loaded machine held the key sender past
@@ -24,9 +36,15 @@ use roam_protocol::messages::{
 };
 use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
 
-/// Decoded frames kept as bases: the server codes against the newest one acknowledged,
-/// which is at most a round trip old.
+/// Decoded frames kept as bases: the server codes against the newest one acknowledged, or
+/// its newest key frame while that is on its way, and never against a frame more than its
+/// logs' length (`roam_server::viewer::LOGS`, at most this many) before the frame it makes;
+/// frames are decoded in order, so such a base is never one dropped here.
 pub const BASES: usize = 32;
+
+/// Frames in a row coded against a base newer than the newest frame taken (a key frame on
+/// its way) that the viewer passes over before it asks for a key frame: a second at 60 Hz.
+pub const AWAIT_BASE: u32 = 60;
 
 /// Key changes awaiting the frame that shows them applied (a spectator's never are).
 const MAX_PENDING: usize = 1024;
@@ -55,7 +73,8 @@ pub struct Received {
 /// What [`ClientCore::take`] found.
 #[derive(Clone, Debug)]
 pub enum Taken {
-    /// Nothing newer than the last frame taken.
+    /// Nothing newer than the last frame taken; or a frame coded against a base that has
+    /// not arrived yet (a key frame on its way), passed over.
     Nothing,
     /// A frame, decoded (unless asked not to) and acknowledged.
     Frame(Received),
@@ -73,6 +92,9 @@ pub struct Inconsistent {
     pub header: u32,
 }
 
+/// A frame offered: the frame, its size on the wire and when it arrived.
+type Offered = (Frame, usize, Instant);
+
 /// One joined viewer's state.
 pub struct ClientCore {
     grid: Grid,
@@ -82,7 +104,12 @@ pub struct ClientCore {
     /// The newest frame taken.
     newest: Option<u64>,
     /// The newest frame offered and not yet taken, its size on the wire and arrival.
-    waiting: Option<(Frame, usize, Instant)>,
+    waiting: Option<Offered>,
+    /// The newest key frame offered and not yet taken, kept apart from `waiting`: the
+    /// frames after it are coded against it and may arrive (and be offered) before it.
+    key: Option<Offered>,
+    /// Frames in a row passed over because their base had not arrived yet.
+    awaiting_base: u32,
     /// Bytes offered that were not a frame, not yet reported.
     junk: Option<String>,
     /// The newest frame number offered (frames older than it are superseded).
@@ -119,6 +146,8 @@ impl ClientCore {
             bases: VecDeque::new(),
             newest: None,
             waiting: None,
+            key: None,
+            awaiting_base: 0,
             junk: None,
             offered: None,
             mesh: mesh::Mesh::default(),
@@ -153,16 +182,29 @@ impl ClientCore {
     }
 
     /// A frame's bytes arrived at `now` (a datagram, or a stream read to its end): it
-    /// waits to be taken if it is the newest yet; an older one is superseded.
+    /// waits to be taken if it is the newest yet; an older one is superseded. A key frame
+    /// waits apart, if it is newer than the newest taken and the newest key frame offered,
+    /// even when older than a frame offered already (that frame may be coded against it).
     pub fn offer(&mut self, bytes: &[u8], now: Instant) {
         self.bytes_in += bytes.len() as u64;
         match messages::decode::<Frame>(bytes) {
             Ok(frame) => {
-                if self.offered.is_some_and(|n| frame.frame <= n) {
-                    return; // older than one already offered: superseded
+                let newer = |than: Option<u64>| than.is_none_or(|n| frame.frame > n);
+                let newest_offered = newer(self.offered);
+                if newest_offered {
+                    self.offered = Some(frame.frame);
                 }
-                self.offered = Some(frame.frame);
-                self.waiting = Some((frame, bytes.len(), now));
+                if frame.base.is_none() {
+                    if newer(self.newest) && newer(self.key.as_ref().map(|(k, ..)| k.frame)) {
+                        if newest_offered {
+                            self.waiting = None; // superseded by the key frame
+                        }
+                        self.key = Some((frame, bytes.len(), now));
+                    }
+                } else if newest_offered {
+                    self.waiting = Some((frame, bytes.len(), now));
+                }
+                // Anything else is older than a frame offered already: superseded.
             }
             Err(e) => {
                 self.junk.get_or_insert_with(|| format!("not a frame: {e}"));
@@ -172,18 +214,52 @@ impl ClientCore {
 
     /// Whether [`Self::take`] has something to say.
     pub fn has_frame(&self) -> bool {
-        self.waiting.is_some() || self.junk.is_some()
+        self.waiting.is_some() || self.key.is_some() || self.junk.is_some()
+    }
+
+    /// The frame to take: the waiting frame, or the key frame kept apart when the waiting
+    /// frame's base is not decoded yet (or nothing newer waits). A waiting frame newer than
+    /// the key frame taken stays waiting, for the next take.
+    fn next_offered(&mut self, decode: bool) -> Option<Offered> {
+        let newest = self.newest;
+        let key = self
+            .key
+            .take()
+            .filter(|(k, ..)| newest.is_none_or(|n| k.frame > n));
+        let waiting = self.waiting.take();
+        let Some(key) = key else {
+            return waiting;
+        };
+        match waiting {
+            Some(w) if w.0.frame > key.0.frame => {
+                // Without decoding no base is needed: the newest frame goes.
+                let needs_key = decode
+                    && w.0
+                        .base
+                        .is_some_and(|b| !self.bases.iter().any(|(f, _)| *f == b));
+                if !needs_key {
+                    return Some(w); // the key frame is superseded
+                }
+                self.waiting = Some(w);
+                Some(key)
+            }
+            // The key frame itself, or older than it.
+            _ => Some(key),
+        }
     }
 
     /// Takes the waiting frame; decodes it into [`Self::mesh`] (unless `decode` is false)
-    /// against its base, and acknowledges it. A frame that cannot be decoded asks for a key
-    /// frame. An error only for a frame inconsistent with itself (the server is broken).
+    /// against its base, and acknowledges it. A key frame kept apart goes first when the
+    /// waiting frame's base is not decoded yet. A frame coded against a base newer than the
+    /// newest taken is passed over ([`Taken::Nothing`]: the base is on its way), up to
+    /// [`AWAIT_BASE`] in a row; any other frame that cannot be decoded asks for a key frame.
+    /// An error only for a frame inconsistent with itself (the server is broken).
     pub fn take(&mut self, decode: bool) -> Result<Taken, Inconsistent> {
         if let Some(why) = self.junk.take() {
             self.request_key_frame();
             return Ok(Taken::Dropped(why));
         }
-        let Some((frame, wire_bytes, arrived)) = self.waiting.take() else {
+        let Some((frame, wire_bytes, arrived)) = self.next_offered(decode) else {
             return Ok(Taken::Nothing);
         };
         if self.newest.is_some_and(|n| frame.frame <= n) {
@@ -194,7 +270,16 @@ impl ClientCore {
             let base = match frame.base {
                 Some(b) => match self.bases.iter().find(|(f, _)| *f == b) {
                     Some((_, cut)) => Some(cut),
+                    // Coded against a frame not taken yet (a key frame still on its way):
+                    // not an error, unless it is too long coming.
+                    None if self.newest.is_none_or(|n| b > n)
+                        && self.awaiting_base < AWAIT_BASE =>
+                    {
+                        self.awaiting_base += 1;
+                        return Ok(Taken::Nothing);
+                    }
                     None => {
+                        self.awaiting_base = 0;
                         self.request_key_frame();
                         return Ok(Taken::Dropped(format!(
                             "frame {}: coded against frame {b}, which this viewer does not have",
@@ -211,6 +296,7 @@ impl ClientCore {
             {
                 Ok(info) => info,
                 Err(e) => {
+                    self.awaiting_base = 0;
                     self.request_key_frame();
                     return Ok(Taken::Dropped(format!("frame {}: {e}", frame.frame)));
                 }
@@ -234,6 +320,7 @@ impl ClientCore {
                 self.bases.pop_front();
             }
         }
+        self.awaiting_base = 0;
         self.outbox
             .push_back(ClientMessage::Ack { frame: frame.frame });
         self.newest = Some(frame.frame);
@@ -251,8 +338,8 @@ impl ClientCore {
     }
 
     fn request_key_frame(&mut self) {
-        // One request is enough until the key frame comes: the server sends key frames
-        // until one is acknowledged.
+        // One request waiting to leave is enough. Each request that reaches the server
+        // gets a key frame (superseding the one before, if still pending), sent reliably.
         if !self.outbox.contains(&ClientMessage::KeyFrame) {
             self.outbox.push_back(ClientMessage::KeyFrame);
         }

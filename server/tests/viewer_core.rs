@@ -1,6 +1,9 @@
 //! The per-viewer core driven without sockets: frames made for a vehicle's drive go to a
-//! simulated viewer that loses, reorders and acknowledges them late; every frame it
-//! decodes must equal the server's cut for that frame, index for index.
+//! simulated viewer that loses (all but key frames, which the shell sends reliably),
+//! reorders and acknowledges them late; every frame it decodes must equal the server's cut
+//! for that frame, index for index. And when the core makes key frames: the first, when
+//! asked, and when the pending key frame is superseded (its logs gone), never merely
+//! because no frame has been acknowledged yet.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -73,11 +76,21 @@ impl Fixture {
     }
 }
 
-/// A viewer as the client keeps one: a decoder and its decoded frames (possible bases).
+/// A viewer as the client keeps one: a decoder and its decoded frames (possible bases),
+/// newest last (like the client, it decodes only frames newer than the newest decoded).
 struct Viewer {
     grid: Grid,
     decoder: MeshDecoder,
     bases: VecDeque<(u64, Cut)>,
+}
+
+/// What the viewer did with a frame.
+enum Received {
+    Decoded(mesh::Mesh),
+    /// Not newer than the newest decoded: skipped.
+    Stale,
+    /// Coded against a frame newer than the newest decoded (a key frame on its way).
+    Awaiting,
 }
 
 impl Viewer {
@@ -89,8 +102,16 @@ impl Viewer {
         }
     }
 
-    /// Decodes a frame against the base it names; keeps it as a base.
-    fn receive(&mut self, made: &Made) -> Result<mesh::Mesh, DecodeError> {
+    /// Decodes a frame newer than the newest decoded against the base it names; keeps it
+    /// as a base.
+    fn receive(&mut self, made: &Made) -> Result<Received, DecodeError> {
+        let newest = self.bases.back().map(|(f, _)| *f);
+        if newest.is_some_and(|n| made.frame <= n) {
+            return Ok(Received::Stale);
+        }
+        if made.base.is_some_and(|b| newest.is_none_or(|n| b > n)) {
+            return Ok(Received::Awaiting);
+        }
         let base = match made.base {
             Some(b) => Some(
                 &self
@@ -111,7 +132,17 @@ impl Viewer {
         if self.bases.len() > 32 {
             self.bases.pop_front();
         }
-        Ok(out)
+        Ok(Received::Decoded(out))
+    }
+
+    /// Decodes a frame that must decode.
+    fn decode(&mut self, made: &Made) -> mesh::Mesh {
+        match self.receive(made) {
+            Ok(Received::Decoded(m)) => m,
+            Ok(Received::Stale) => panic!("frame {}: stale", made.frame),
+            Ok(Received::Awaiting) => panic!("frame {}: its base has not come", made.frame),
+            Err(e) => panic!("frame {}: {e}", made.frame),
+        }
     }
 }
 
@@ -164,7 +195,8 @@ fn a_lossy_drive_decodes_exactly_frame_for_frame() {
             keys += usize::from(made.base.is_none());
             changes += made.changes;
             let expected = server_mesh(&mut core);
-            if !rng.chance(loss) {
+            // Key frames are never lost (the shell sends them reliably), only late.
+            if made.base.is_none() || !rng.chance(loss) {
                 wire.push((made, expected));
             }
             // Deliver some of what is in flight, in any order.
@@ -172,7 +204,7 @@ fn a_lossy_drive_decodes_exactly_frame_for_frame() {
                 let i = rng.next() as usize % wire.len();
                 let (made, expected) = wire.swap_remove(i);
                 match viewer.receive(&made) {
-                    Ok(got) => {
+                    Ok(Received::Decoded(got)) => {
                         assert_eq!(
                             got.indices, expected.indices,
                             "frame {} differs",
@@ -184,8 +216,12 @@ fn a_lossy_drive_decodes_exactly_frame_for_frame() {
                             acks.push_back((k + 1 + rng.next() as usize % 3, made.frame));
                         }
                     }
-                    // Only acknowledged frames are bases, and the viewer keeps 32 of them
-                    // while the server codes against the last 16 frames: never missing.
+                    Ok(Received::Stale) => {}
+                    // Came before its key frame: the viewer passes it over.
+                    Ok(Received::Awaiting) => {}
+                    // Only acknowledged frames and the pending key frame are bases, and the
+                    // viewer keeps 32 of them while the server codes against the last
+                    // `LOGS` (<= 32) frames: never missing.
                     Err(DecodeError::Base) => missing += 1,
                     Err(e) => panic!("frame {}: {e}", made.frame),
                 }
@@ -197,14 +233,11 @@ fn a_lossy_drive_decodes_exactly_frame_for_frame() {
         );
         assert!(changes > 0, "the cut changed along the drive");
         assert_eq!(missing, 0, "frames coded against a base the viewer lacks");
+        assert!(waiting >= 1, "frames made before the first ack");
         if loss == 0 {
-            // Until the first acknowledgement comes back (1 to 3 frames late) every frame
-            // is a key frame; after it, none is.
-            assert_eq!(
-                keys, waiting,
-                "a lossless drive needs key frames only until an ack"
-            );
-            assert!(keys <= 12, "{keys} key frames before the first ack");
+            // The first frame is a key frame; the frames after it are coded against it
+            // before it is acknowledged, and against the acknowledged frames after.
+            assert_eq!(keys, 1, "a lossless drive needs one key frame");
         } else {
             assert!(keys < 300 / 4, "{keys} key frames at {loss}% loss");
         }
@@ -243,8 +276,31 @@ fn a_delta_against_a_base_the_viewer_lacks_is_refused_and_a_key_frame_follows() 
     core.handle(Event::KeyFrame);
     let key = core.make_frame(&scene, &drive[30]);
     assert_eq!(key.base, None, "a key frame follows the request");
+    assert_eq!(core.pending_key(), Some(key.frame));
     let next = core.make_frame(&scene, &drive[31]);
-    assert_eq!(next.base, None, "no base acknowledged since");
+    assert_eq!(
+        next.base,
+        Some(key.frame),
+        "coded against the key frame on its way, before it is acknowledged"
+    );
+    core.handle(Event::KeyFrame);
+    assert_eq!(
+        core.pending_key(),
+        None,
+        "a request drops the pending key frame"
+    );
+    let again = core.make_frame(&scene, &drive[32]);
+    assert_eq!(again.base, None, "and a new key frame follows");
+    core.handle(Event::Acked(next.frame));
+    assert_eq!(
+        core.pending_key(),
+        Some(again.frame),
+        "an older ack leaves it pending"
+    );
+    core.handle(Event::Acked(again.frame));
+    assert_eq!(core.pending_key(), None, "acknowledged: no longer pending");
+    let after = core.make_frame(&scene, &drive[33]);
+    assert_eq!(after.base, Some(again.frame));
 }
 
 #[test]
@@ -263,11 +319,112 @@ fn acks_beyond_the_logs_or_from_the_future_give_key_frames() {
         let made = core.make_frame(&scene, state);
         assert_ne!(made.base, Some(0).filter(|_| made.frame > LOGS as u64));
     }
+    assert_eq!(
+        core.pending_key(),
+        Some(LOGS as u64 + 1),
+        "frame 0's changes since are no longer logged: a key frame"
+    );
     let late = core.make_frame(&scene, &drive[LOGS + 3]);
     assert_eq!(
-        late.base, None,
-        "frame 0's changes since are no longer logged"
+        late.base,
+        Some(LOGS as u64 + 1),
+        "the frames after it are coded against it"
     );
+}
+
+/// The frames after a key frame are coded against it before the viewer has it (it comes
+/// late, on a stream, after them): a viewer passes over those that come first, decodes the
+/// key frame when it comes, and then every one of them that is newer, each exactly the
+/// server's cut; once the key frame (or a frame after it) is acknowledged, the newest
+/// acknowledged frame is the base.
+#[test]
+fn frames_coded_against_the_pending_key_frame_decode_once_it_arrives() {
+    let fx = Fixture::new(257, 7);
+    let scene = fx.scene();
+    let drive = fx.drive(20);
+    let mut core = fx.core(3000);
+    let mut made = Vec::new();
+    for state in &drive[..10] {
+        let m = core.make_frame(&scene, state);
+        made.push((m, server_mesh(&mut core)));
+    }
+    let (key, key_mesh) = &made[0];
+    assert_eq!(key.base, None);
+    assert_eq!(core.pending_key(), Some(key.frame));
+    assert!(
+        made[1..].iter().all(|(m, _)| m.base == Some(key.frame)),
+        "no ack yet: every frame after the key frame is coded against it"
+    );
+    assert!(made.iter().any(|(m, _)| m.changes > 0), "the cut changed");
+    let same = |got: &mesh::Mesh, want: &Mesh, frame: u64| {
+        assert_eq!(got.indices, want.indices, "frame {frame} differs");
+        assert_eq!(got.vertices.len(), want.vertices.len(), "frame {frame}");
+    };
+    // Frames 3 and 4 come before the key frame: passed over, not an error.
+    let mut viewer = Viewer::new(fx.grid());
+    for (m, _) in &made[3..5] {
+        assert!(matches!(viewer.receive(m), Ok(Received::Awaiting)));
+    }
+    same(&viewer.decode(key), key_mesh, key.frame);
+    let (m, want) = &made[6];
+    same(&viewer.decode(m), want, m.frame);
+    assert!(
+        matches!(viewer.receive(&made[5].0), Ok(Received::Stale)),
+        "older than the newest decoded"
+    );
+    // Another viewer takes them all, in order: each decodes against the key frame.
+    let mut all = Viewer::new(fx.grid());
+    for (m, want) in &made {
+        same(&all.decode(m), want, m.frame);
+    }
+    // An ack of a frame after the key frame ends its wait: that frame is the base now.
+    core.handle(Event::Acked(6));
+    assert_eq!(core.pending_key(), None);
+    let next = core.make_frame(&scene, &drive[10]);
+    assert_eq!(next.base, Some(6));
+    let want = server_mesh(&mut core);
+    same(&viewer.decode(&next), &want, next.frame);
+}
+
+/// While no frame is acknowledged, the core makes no key frame but the first, until the
+/// viewer asks for one or the key frame pending is superseded (its changes since no longer
+/// logged, [`LOGS`] frames on); a late ack of a frame before the pending key frame does not
+/// end its wait.
+#[test]
+fn a_new_key_frame_only_when_asked_or_superseded() {
+    let fx = Fixture::new(129, 5);
+    let scene = fx.scene();
+    let drive = fx.drive(LOGS + 12);
+    let mut core = fx.core(2000);
+    let mut states = drive.iter();
+    let mut next = |core: &mut ViewerCore| {
+        let made = core.make_frame(&scene, states.next().expect("enough states"));
+        (made.frame, made.base, core.pending_key())
+    };
+    assert_eq!(next(&mut core), (0, None, Some(0)));
+    for f in 1..=LOGS as u64 {
+        assert_eq!(
+            next(&mut core),
+            (f, Some(0), Some(0)),
+            "coded against the pending key frame"
+        );
+    }
+    // Frame 0's changes since are no longer all logged: a new key frame supersedes it.
+    let k = LOGS as u64 + 1;
+    assert_eq!(next(&mut core), (k, None, Some(k)));
+    assert_eq!(next(&mut core), (k + 1, Some(k), Some(k)));
+    // A late ack of a frame before the pending key frame: it stays the base.
+    core.handle(Event::Acked(3));
+    assert_eq!((core.acked(), core.pending_key()), (Some(3), Some(k)));
+    assert_eq!(next(&mut core), (k + 2, Some(k), Some(k)));
+    // Asked for: a new key frame at once, and the frames after it coded against it.
+    core.handle(Event::KeyFrame);
+    assert_eq!((core.acked(), core.pending_key()), (None, None));
+    let asked = k + 3;
+    assert_eq!(next(&mut core), (asked, None, Some(asked)));
+    for f in asked + 1..asked + 8 {
+        assert_eq!(next(&mut core), (f, Some(asked), Some(asked)));
+    }
 }
 
 #[test]

@@ -1,7 +1,20 @@
 //! One viewer's connection: the handshake, its key datagrams and control messages, and its
 //! frames, paced by the clock and made by the viewer's sans-IO core
-//! ([`crate::viewer::ViewerCore`]), each sent on a stream of its own; a frame not yet
-//! delivered when the next is ready is abandoned (latest frame wins).
+//! ([`crate::viewer::ViewerCore`]).
+//!
+//! How a frame goes:
+//!
+//! - a **change frame** that fits in one datagram goes as one (almost every frame); a
+//!   larger one on a stream of its own, abandoned (reset) when the next frame is ready
+//!   unless the viewer has acknowledged it (latest frame wins): a lost or abandoned change
+//!   frame is never a base;
+//! - a **key frame** always goes on a stream of its own, reliably, at the highest
+//!   priority, and is not abandoned while it is pending
+//!   ([`crate::viewer::ViewerCore::pending_key`]): the frames after it are coded against
+//!   it before the viewer has it, so on a link that cannot carry a key frame a frame
+//!   interval it still arrives, and the viewer decodes it and the frames after. It is reset
+//!   only once superseded by a newer key frame (or when the viewer asked for another),
+//!   unless acknowledged.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -238,12 +251,10 @@ async fn frames(
     let mut core = Some(core);
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    type InFlight = (
-        oneshot::Sender<()>,
-        tokio::task::JoinHandle<Option<quinn::SendStream>>,
-        u64,
-    );
-    let mut in_flight: Option<InFlight> = None;
+    // The newest change frame sent on a stream, and the newest key frame (kept apart: it
+    // is never abandoned while it is pending).
+    let mut in_flight: Option<Sending> = None;
+    let mut key_in_flight: Option<Sending> = None;
     let mut seen = false;
     loop {
         interval.tick().await;
@@ -284,32 +295,34 @@ async fn frames(
             }
         };
         let acked = c.acked();
+        let pending_key = c.pending_key();
         core = Some(c);
         let frame = made.frame;
+        let key = made.base.is_none();
         let msg = frame_message(&shared.terrain, &snap, made, vehicle, driver);
         let mut bytes = Vec::new();
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
             return FramesEnd::Failed("a frame over the message limit");
         }
-        // Latest frame wins: the previous frame's stream is reset unless the viewer has
-        // acknowledged it, whether it is still being written or already handed to quinn
-        // (a finished stream still waits in the send buffer on a slow link).
-        if let Some((cancel, task, sent)) = in_flight.take() {
-            if task.is_finished() {
-                if let Ok(Some(mut stream)) = task.await
-                    && acked.is_none_or(|a| a < sent)
-                {
-                    let _ = stream.reset(0u32.into());
-                }
-            } else {
-                let _ = cancel.send(());
-            }
+        // Latest frame wins: the previous change frame's stream is reset unless the viewer
+        // has acknowledged it, whether it is still being written or already handed to quinn
+        // (a finished stream still waits in the send buffer on a slow link). The key frame
+        // is the exception: it goes on until it is no longer pending (acknowledged,
+        // superseded by a newer key frame, or another asked for).
+        if let Some(k) = key_in_flight.take_if(|k| pending_key != Some(k.frame)) {
+            k.abandon_unless(acked).await;
         }
-        // A frame that fits in one datagram goes as one: no stream to open, finish or
-        // reset, one packet. A lost one is simply never a base; the viewer keeps the newest.
-        if conn
-            .max_datagram_size()
-            .is_some_and(|max| bytes.len() <= max)
+        if let Some(previous) = in_flight.take() {
+            previous.abandon_unless(acked).await;
+        }
+        // A change frame that fits in one datagram goes as one: no stream to open, finish
+        // or reset, one packet. A lost one is simply never a base; the viewer keeps the
+        // newest. A key frame goes on a stream, reliably: the frames after it are coded
+        // against it.
+        if !key
+            && conn
+                .max_datagram_size()
+                .is_some_and(|max| bytes.len() <= max)
         {
             match conn.send_datagram(bytes.clone().into()) {
                 Ok(()) => continue,
@@ -323,7 +336,8 @@ async fn frames(
         let Ok(mut stream) = conn.open_uni().await else {
             return FramesEnd::ConnectionLost;
         };
-        let _ = stream.set_priority(frame as i32);
+        // Newer frames first, and a key frame before all: the frames after it need it.
+        let _ = stream.set_priority(if key { i32::MAX } else { frame as i32 });
         let (cancel, cancelled) = oneshot::channel::<()>();
         let task = tokio::spawn(async move {
             tokio::select! {
@@ -339,6 +353,39 @@ async fn frames(
                 }
             }
         });
-        in_flight = Some((cancel, task, frame));
+        let sending = Sending {
+            cancel,
+            task,
+            frame,
+        };
+        if key {
+            key_in_flight = Some(sending);
+        } else {
+            in_flight = Some(sending);
+        }
+    }
+}
+
+/// A frame being sent on a stream of its own.
+struct Sending {
+    /// Resets the stream while it is still being written.
+    cancel: oneshot::Sender<()>,
+    /// Writes the frame; the stream once it is all handed to quinn.
+    task: tokio::task::JoinHandle<Option<quinn::SendStream>>,
+    frame: u64,
+}
+
+impl Sending {
+    /// Abandons the frame (resets its stream: quinn stops sending and retransmitting it)
+    /// unless the viewer has acknowledged it.
+    async fn abandon_unless(self, acked: Option<u64>) {
+        if acked.is_some_and(|a| a >= self.frame) {
+            return; // delivered: the stream is finished, nothing to stop
+        }
+        if !self.task.is_finished() {
+            let _ = self.cancel.send(());
+        } else if let Ok(Some(mut stream)) = self.task.await {
+            let _ = stream.reset(0u32.into());
+        }
     }
 }

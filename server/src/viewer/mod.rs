@@ -7,17 +7,25 @@
 //! the cut carried from the last frame by the split/merge tessellator ([`Coherent`]: it
 //! rebuilds from scratch on a jump), and the frame's mesh payload:
 //!
-//! - a **change frame** (protocol format 2) against the newest frame the viewer
-//!   acknowledged, coded from the change logs of the frames since: their composition (a
-//!   diamond toggled an even number of times has not changed) is exactly the difference
-//!   between the viewer's base and the cut now, so coding it costs what changed, not the
-//!   cut;
+//! - a **change frame** (protocol format 2) against its base: the newer of the newest
+//!   frame the viewer acknowledged and the pending key frame (below). It is coded from
+//!   the change logs of the frames since the base: their composition (a diamond toggled
+//!   an even number of times has not changed) is exactly the difference between the
+//!   viewer's base and the cut now, so coding it costs what changed, not the cut;
 //! - a **key frame** (format 1, the whole cut) for the first frame, when the viewer asks
-//!   for one, when its acknowledged base is older than the logs kept ([`LOGS`] frames), or
-//!   when the change list would cost more than the whole cut.
+//!   for one, when the base is older than the logs kept ([`LOGS`] frames), or when the
+//!   change list would cost more than the whole cut. No other frame is a key frame: not
+//!   the frames made while a key frame is on its way and not yet acknowledged.
 //!
-//! A lost or abandoned frame is never a base (only acknowledged frames are), so it cannot
-//! corrupt a later one; the viewer checks every frame against the cut's hash.
+//! A key frame is the viewer's next base whatever happens to the frames around it: the
+//! shell sends it reliably, never abandoned while it is pending, so until the viewer
+//! acknowledges it (or a newer frame) the frames after it are coded against it
+//! ([`ViewerCore::pending_key`]) rather than made as key frames again (each as large as
+//! the first, on a link that may not carry one a frame interval). It stops being pending
+//! when an acknowledgement reaches it, when the viewer asks for a key frame, or when a
+//! newer key frame supersedes it (the shell then abandons it). Any other lost or abandoned
+//! frame is never a base (only acknowledged frames and the pending key frame are), so it
+//! cannot corrupt a later one; the viewer checks every frame against the cut's hash.
 //!
 //! **Memory** follows the cut and the frames in flight: the tessellator's state (a bit
 //! per grid vertex, the frontiers and queues sized by the cut), and the logs of the last
@@ -45,8 +53,15 @@ pub use camera::apply_view;
 /// half a millisecond a frame at 65,536 triangles on `kossou`.
 const CHEAP_BUDGET: u32 = 1 << 17;
 
-/// Frames whose change logs are kept: an acknowledgement older than this gets a key frame.
-pub const LOGS: usize = 16;
+/// Frames whose change logs are kept: a base older than this (the acknowledged frame, or a
+/// key frame still pending) gets a key frame. Half a second at 60 Hz, so that a key frame
+/// that lost a packet on a long round trip (a retransmission, then its acknowledgement) or
+/// an acknowledgement held up behind a lost packet on the control stream still finds its
+/// logs: with 16 (267 ms), 80 ms each way at 5 % loss made 17 to 28 key frames in 10 s,
+/// each superseding the last; 32 make one (the simulated network, seeds 1 to 3). No more
+/// than the decoded frames a viewer keeps as bases (`roam_client::core::BASES`, 32):
+/// frames are decoded in order, so a base this close is never one the viewer has dropped.
+pub const LOGS: usize = 32;
 
 /// What the viewer's control messages tell the core.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -86,7 +101,8 @@ impl Scene<'_> {
 pub struct Made {
     /// Rises by one per frame made.
     pub frame: u64,
-    /// The acknowledged frame the payload is coded against; `None` for a key frame.
+    /// The frame the payload is coded against (acknowledged, or the pending key frame);
+    /// `None` for a key frame.
     pub base: Option<u64>,
     /// The mesh payload (format 1 or 2 of `roam_protocol`).
     pub payload: Vec<u8>,
@@ -111,6 +127,9 @@ pub struct ViewerCore {
     view: Option<ViewChange>,
     budget: u32,
     acked: Option<u64>,
+    /// The newest key frame made, until the viewer acknowledges it (or a newer frame), asks
+    /// for another, or a newer key frame supersedes it.
+    pending_key: Option<u64>,
     key_requested: bool,
     /// A budget or view change arrived since the last frame (it may rebuild the cut).
     steered: bool,
@@ -142,6 +161,7 @@ impl ViewerCore {
             view: None,
             budget: messages::clamp_budget(budget),
             acked: None,
+            pending_key: None,
             key_requested: false,
             steered: false,
             next: 0,
@@ -155,14 +175,17 @@ impl ViewerCore {
                 self.budget = messages::clamp_budget(b);
                 self.steered = true;
             }
-            // Only frames made can be acknowledged; a later ack wins.
+            // Only frames made can be acknowledged; a later ack wins. An ack of the pending
+            // key frame, or of a frame after it (decoded against it), ends its wait.
             Event::Acked(f) if f < self.next => {
                 self.acked = Some(self.acked.map_or(f, |a| a.max(f)));
+                self.pending_key = self.pending_key.filter(|&k| k > f);
             }
             Event::Acked(_) => {}
             Event::KeyFrame => {
                 self.key_requested = true;
                 self.acked = None;
+                self.pending_key = None;
             }
             Event::View(v) => {
                 self.steered |= self.view != Some(v);
@@ -197,6 +220,14 @@ impl ViewerCore {
     /// The newest frame the viewer acknowledged (since its last key-frame request).
     pub fn acked(&self) -> Option<u64> {
         self.acked
+    }
+
+    /// The newest key frame, while it is pending: made, not yet acknowledged (nor a frame
+    /// after it), not superseded by a newer key frame, and no key frame asked for since.
+    /// The frames after it may be coded against it, so the shell must deliver it: reliably,
+    /// never abandoned while this names it.
+    pub fn pending_key(&self) -> Option<u64> {
+        self.pending_key
     }
 
     /// The camera of a frame at `vehicle`.
@@ -273,6 +304,8 @@ impl ViewerCore {
             payload.clear();
             self.encode_key(scene, &mut payload);
             self.key_requested = false;
+            // Supersedes any older pending key frame.
+            self.pending_key = Some(frame);
             None
         };
         Made {
@@ -309,12 +342,13 @@ impl ViewerCore {
         log
     }
 
-    /// The acknowledged frame whose changes since are all logged.
+    /// The base of the next change frame: the newer of the acknowledged frame and the
+    /// pending key frame, if the changes since are all logged.
     fn delta_base(&self) -> Option<u64> {
-        let acked = self.acked?;
+        let base = self.acked.max(self.pending_key)?;
         let oldest = self.logs.front()?.0;
         // The logs of every frame after the base are needed.
-        (acked + 1 >= oldest).then_some(acked)
+        (base + 1 >= oldest).then_some(base)
     }
 
     /// Codes the difference from `base` as a change frame; false when a key frame would be
