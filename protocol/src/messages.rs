@@ -181,7 +181,8 @@ pub struct VehicleView {
 pub struct Frame {
     /// Rises by one per frame sent to this viewer.
     pub frame: u64,
-    /// The acknowledged frame the mesh is coded against; `None` for a key frame.
+    /// The frame the mesh is coded against (one the viewer acknowledged, or the newest key
+    /// frame, sent reliably); `None` for a key frame.
     pub base: Option<u64>,
     /// The world tick the frame shows.
     pub tick: u64,

@@ -14,7 +14,7 @@ use roam_server::Terrain;
 use roam_server::sim::physics::Keys;
 use roam_server::sim::recording::{self, Event, FormatError, RecordedWorld};
 use roam_server::sim::replay::{self, ReplayError};
-use roam_server::sim::world::{self, Digest, Inputs, World};
+use roam_server::sim::world::{self, Digest, Extra, Inputs, World};
 use roam_server::terrain::dataset;
 
 fn root() -> PathBuf {
@@ -115,6 +115,16 @@ fn record_convoy(terrain: &Arc<Terrain>) -> Run {
             let k = (tick / 60 + u32::from(v.id)) as usize % pattern.len();
             inputs.set(v.id, pattern[k]);
         }
+        // Vehicle 12 waits now and then, and catches up with two steps (a driver whose
+        // key states came late).
+        inputs.clear_extra();
+        match tick % 53 {
+            7 if rec.world().vehicle(12).is_some() => inputs.set_extra(12, Extra::Wait),
+            9 if rec.world().vehicle(12).is_some() => {
+                inputs.set_extra(12, Extra::Twice(Keys::UP, Keys::UP.union(Keys::RIGHT)))
+            }
+            _ => {}
+        }
         rec.step(&inputs).expect("memory does not fail");
         digests.push(rec.world().digest());
     }
@@ -167,6 +177,20 @@ fn golden(name: &str, data: &str, run: impl Fn(&Arc<Terrain>) -> Run) {
         "{name}: a fresh recording differs from the committed one: the physics or the format \
          changed (UPDATE_EXPECT=1 rewrites it)"
     );
+}
+
+#[test]
+fn a_version_1_recording_still_replays() {
+    // `drive-v1.rec` is `drive.rec` as format version 1 wrote it (no wait or twice
+    // records): the same drive, the same digest.
+    let terrain = load("synth-65");
+    let dir = root().join("server/tests/golden");
+    let bytes = std::fs::read(dir.join("drive-v1.rec")).expect("the version 1 recording");
+    assert_eq!(bytes[8..12], 1u32.to_le_bytes(), "written as version 1");
+    let rec = recording::parse(&bytes).expect("parses");
+    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
+    let expected = std::fs::read_to_string(dir.join("drive.digest")).expect("golden digest");
+    assert_eq!(format!("{}\n", out.digest), expected);
 }
 
 #[test]
@@ -270,10 +294,10 @@ fn a_corrupt_record_is_reported_at_its_offset() {
     bad[0] = b'R';
     assert_eq!(recording::parse(&bad), Err(FormatError::Magic));
     let mut bad = run.bytes.clone();
-    bad[8] = 2;
+    bad[8] = 3;
     assert_eq!(
         recording::parse(&bad),
-        Err(FormatError::Version { found: 2 })
+        Err(FormatError::Version { found: 3 })
     );
     // A record after the end.
     let mut bad = run.bytes.clone();

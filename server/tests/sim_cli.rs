@@ -186,7 +186,7 @@ fn simulate_record_then_replay() {
         &dir.path("v9.rec"),
         "data/synth-257",
         1,
-        &["recording format version 9; this build reads version 1"],
+        &["recording format version 9; this build reads versions 1 to 2"],
     );
 }
 

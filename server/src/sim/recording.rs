@@ -1,12 +1,12 @@
 //! Session recordings: what entered the world, tick by tick, so a replay rebuilds it.
 //!
-//! # Format (version 1)
+//! # Format (version 2; version 1 files, which never wait or step twice, read the same)
 //!
 //! All integers little-endian; `f64`s as their IEEE bits.
 //!
 //! ```text
 //! magic    8 bytes  "roamrec\n"
-//! version  u32      1
+//! version  u32      2
 //! records  …        the first is the header; then events, ticks never decreasing
 //! ```
 //!
@@ -21,10 +21,13 @@
 //! | 4 | leave | tick `u64`, vehicle `u16` |
 //! | 5 | checkpoint | tick `u64`, world digest `[u8; 32]` |
 //! | 6 | end | tick `u64`, world digest `[u8; 32]` |
+//! | 7 | wait | tick `u64`, vehicle `u16`: the vehicle takes no physics step in step T + 1 |
+//! | 8 | twice | tick `u64`, vehicle `u16`, keys `u8`, keys `u8`: two physics steps in step T + 1, with these keys |
 //!
 //! An event "at tick T" happens when the world has taken T steps, before the next step: an
 //! input record gives the keys a vehicle holds from step T + 1 on (inputs are recorded only
-//! when they change); a checkpoint or end gives the digest after T steps. Checkpoints come
+//! when they change); a wait or twice record is for step T + 1 only, and leaves the keys
+//! an input record set; a checkpoint or end gives the digest after T steps. Checkpoints come
 //! at least every 100 ticks, and the writer flushes at each, so a killed server loses at most
 //! the last second. The file is append-only: a cut anywhere leaves a prefix of whole records
 //! followed by a partial one, which [`parse`] reports and skips; a whole record that is
@@ -33,12 +36,14 @@
 use std::io::{self, Write};
 
 use crate::sim::physics::{Keys, VehicleState};
-use crate::sim::world::{Digest, VehicleId};
+use crate::sim::world::{Digest, Extra, VehicleId};
 
 /// The file's first bytes.
 pub const MAGIC: [u8; 8] = *b"roamrec\n";
-/// The format version this code writes and reads.
-pub const VERSION: u32 = 1;
+/// The format version this code writes; it reads this one and [`MIN_VERSION`] on.
+pub const VERSION: u32 = 2;
+/// The oldest format version this code reads (version 1 has no wait or twice records).
+pub const MIN_VERSION: u32 = 1;
 /// Largest payload of a record.
 pub const MAX_RECORD: usize = 1 << 20;
 /// Longest interval between checkpoints, ticks.
@@ -80,6 +85,18 @@ pub enum Event {
         tick: u64,
         digest: Digest,
     },
+    /// The vehicle takes no step in step `tick + 1`.
+    Wait {
+        tick: u64,
+        vehicle: VehicleId,
+    },
+    /// The vehicle takes two steps in step `tick + 1`, with these keys.
+    Twice {
+        tick: u64,
+        vehicle: VehicleId,
+        first: Keys,
+        second: Keys,
+    },
     End {
         tick: u64,
         digest: Digest,
@@ -93,6 +110,8 @@ impl Event {
             | Event::Join { tick, .. }
             | Event::Leave { tick, .. }
             | Event::Checkpoint { tick, .. }
+            | Event::Wait { tick, .. }
+            | Event::Twice { tick, .. }
             | Event::End { tick, .. } => tick,
         }
     }
@@ -113,7 +132,9 @@ pub struct Recording {
 pub enum FormatError {
     #[error("not a roam recording: the first 8 bytes should be \"roamrec\\n\"")]
     Magic,
-    #[error("recording format version {found}; this build reads version {VERSION}")]
+    #[error(
+        "recording format version {found}; this build reads versions {MIN_VERSION} to {VERSION}"
+    )]
     Version { found: u32 },
     #[error("the file ends at byte {len}, inside the header (a recording that never started)")]
     TruncatedHeader { len: u64 },
@@ -134,6 +155,8 @@ const JOIN: u8 = 3;
 const LEAVE: u8 = 4;
 const CHECKPOINT: u8 = 5;
 const END: u8 = 6;
+const WAIT: u8 = 7;
+const TWICE: u8 = 8;
 
 fn check(kind: u8, payload: &[u8]) -> [u8; CHECK] {
     let mut h = blake3::Hasher::new();
@@ -237,6 +260,32 @@ impl<W: Write> Recorder<W> {
         self.write(INPUT, &p)
     }
 
+    /// Records that `vehicle` takes no step in the step after `tick` (its keys as recorded
+    /// stay).
+    pub fn wait(&mut self, tick: u64, vehicle: VehicleId) -> io::Result<()> {
+        let mut p = [0u8; 10];
+        p[..8].copy_from_slice(&tick.to_le_bytes());
+        p[8..].copy_from_slice(&vehicle.to_le_bytes());
+        self.write(WAIT, &p)
+    }
+
+    /// Records that `vehicle` takes two steps in the step after `tick`, with `first` and
+    /// `second` (its keys as recorded stay).
+    pub fn twice(
+        &mut self,
+        tick: u64,
+        vehicle: VehicleId,
+        first: Keys,
+        second: Keys,
+    ) -> io::Result<()> {
+        let mut p = [0u8; 12];
+        p[..8].copy_from_slice(&tick.to_le_bytes());
+        p[8..10].copy_from_slice(&vehicle.to_le_bytes());
+        p[10] = first.bits();
+        p[11] = second.bits();
+        self.write(TWICE, &p)
+    }
+
     pub fn join(&mut self, tick: u64, vehicle: VehicleId, state: &VehicleState) -> io::Result<()> {
         let mut p = Vec::with_capacity(10 + STATE);
         p.extend_from_slice(&tick.to_le_bytes());
@@ -319,7 +368,8 @@ fn length_ok(kind: u8, len: usize) -> Result<(), String> {
         }
         INPUT => 11,
         JOIN => 10 + STATE,
-        LEAVE => 10,
+        LEAVE | WAIT => 10,
+        TWICE => 12,
         CHECKPOINT | END => 40,
         other => return Err(format!("unknown record kind {other}")),
     };
@@ -454,6 +504,28 @@ fn parse_event(kind: u8, payload: &[u8], at: usize) -> Result<Event, FormatError
                 Event::Checkpoint { tick, digest }
             }
         }
+        WAIT => {
+            let mut f = sized(payload, 10, at, "wait")?;
+            Event::Wait {
+                tick: f.u64(),
+                vehicle: f.u16(),
+            }
+        }
+        TWICE => {
+            let mut f = sized(payload, 12, at, "twice")?;
+            let (tick, vehicle) = (f.u64(), f.u16());
+            let keys = |bits: u8| {
+                Keys::from_bits(bits)
+                    .ok_or_else(|| corrupt(at, format!("twice keys {bits:#04x} have unknown bits")))
+            };
+            let [a, b] = f.take::<2>();
+            Event::Twice {
+                tick,
+                vehicle,
+                first: keys(a)?,
+                second: keys(b)?,
+            }
+        }
         HEADER => return Err(corrupt(at, "a second header")),
         other => return Err(corrupt(at, format!("unknown record kind {other}"))),
     })
@@ -475,7 +547,7 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
         .get(8..12)
         .map(|v| u32::from_le_bytes([v[0], v[1], v[2], v[3]]))
         .ok_or_else(too_short)?;
-    if version != VERSION {
+    if !(MIN_VERSION..=VERSION).contains(&version) {
         return Err(FormatError::Version { found: version });
     }
     let (kind, payload, mut at) = next_record(bytes, 12)?.ok_or_else(too_short)?;
@@ -588,7 +660,11 @@ impl<G: crate::sim::physics::Ground, W: Write> RecordedWorld<G, W> {
     pub fn step(&mut self, inputs: &crate::sim::world::Inputs) -> io::Result<()> {
         let tick = self.world.tick();
         for v in self.world.vehicles() {
-            self.recorder.input(tick, v.id, inputs.get(v.id))?;
+            match inputs.extra(v.id) {
+                None => self.recorder.input(tick, v.id, inputs.get(v.id))?,
+                Some(Extra::Wait) => self.recorder.wait(tick, v.id)?,
+                Some(Extra::Twice(a, b)) => self.recorder.twice(tick, v.id, a, b)?,
+            }
         }
         crate::sim::world::step(&mut self.world, inputs);
         let tick = self.world.tick();

@@ -2,7 +2,7 @@
 
 use crate::sim::physics::{Ground, Keys, STEPS_PER_SECOND};
 use crate::sim::recording::{Event, Recording};
-use crate::sim::world::{self, Digest, Inputs, Vehicle, World, WorldError};
+use crate::sim::world::{self, Digest, Extra, Inputs, Vehicle, World, WorldError};
 
 /// How a replay ended.
 #[derive(Clone, Debug, PartialEq)]
@@ -74,13 +74,15 @@ pub fn replay<G: Ground>(
     }
     let mut inputs = Inputs::new();
     let (mut checkpoints, mut agreed, mut ended) = (0, 0, false);
-    let run_to = |world: &mut World<G>, inputs: &Inputs, tick: u64| {
+    // A wait or twice is for the next step only.
+    let run_to = |world: &mut World<G>, inputs: &mut Inputs, tick: u64| {
         while world.tick() < tick {
             world::step(world, inputs);
+            inputs.clear_extra();
         }
     };
     for event in &recording.events {
-        run_to(&mut world, &inputs, event.tick());
+        run_to(&mut world, &mut inputs, event.tick());
         let tick = world.tick();
         let fail = |error| ReplayError::World { tick, error };
         match *event {
@@ -90,6 +92,18 @@ pub fn replay<G: Ground>(
                 }
                 inputs.set(vehicle, keys)
             }
+            Event::Wait { vehicle, .. } | Event::Twice { vehicle, .. }
+                if world.vehicle(vehicle).is_none() =>
+            {
+                return Err(fail(WorldError::Missing(vehicle)));
+            }
+            Event::Wait { vehicle, .. } => inputs.set_extra(vehicle, Extra::Wait),
+            Event::Twice {
+                vehicle,
+                first,
+                second,
+                ..
+            } => inputs.set_extra(vehicle, Extra::Twice(first, second)),
             Event::Join { vehicle, state, .. } => world.add(vehicle, state).map_err(fail)?,
             Event::Leave { vehicle, .. } => {
                 world.remove(vehicle).map_err(fail)?;

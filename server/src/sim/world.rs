@@ -37,11 +37,25 @@ pub enum WorldError {
     },
 }
 
-/// The keys each vehicle holds during one step. A vehicle not listed holds none.
+/// How a vehicle's tick differs from one physics step with its keys.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Extra {
+    /// The vehicle waits: no physics step this tick (a driver whose next key state has not
+    /// arrived: its drive is delayed, never changed).
+    Wait,
+    /// Two physics steps this tick, with these keys (a driver catching up a backlog of key
+    /// states, one step each).
+    Twice(Keys, Keys),
+}
+
+/// The keys each vehicle holds during one step. A vehicle not listed holds none. A vehicle
+/// may also wait or step twice, for this tick only ([`Extra`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Inputs {
     /// Sorted by id.
     keys: Vec<(VehicleId, Keys)>,
+    /// Sorted by id; for the next step only.
+    extra: Vec<(VehicleId, Extra)>,
 }
 
 impl Inputs {
@@ -68,8 +82,29 @@ impl Inputs {
         self.keys.iter().copied()
     }
 
+    /// `id` waits or steps twice in the next step (not after it).
+    pub fn set_extra(&mut self, id: VehicleId, extra: Extra) {
+        match self.extra.binary_search_by_key(&id, |&(v, _)| v) {
+            Ok(at) => self.extra[at].1 = extra,
+            Err(at) => self.extra.insert(at, (id, extra)),
+        }
+    }
+
+    pub fn extra(&self, id: VehicleId) -> Option<Extra> {
+        self.extra
+            .binary_search_by_key(&id, |&(v, _)| v)
+            .ok()
+            .map(|at| self.extra[at].1)
+    }
+
+    /// Forgets every [`Extra`] (after the step they were for).
+    pub fn clear_extra(&mut self) {
+        self.extra.clear();
+    }
+
     pub fn clear(&mut self) {
         self.keys.clear();
+        self.extra.clear();
     }
 }
 
@@ -195,16 +230,26 @@ impl<G: Ground> World<G> {
     }
 }
 
-/// Advances the world one 10 ms tick, every vehicle with its keys from `inputs`.
+/// Advances the world one 10 ms tick, every vehicle with its keys from `inputs` (one
+/// physics step; none or two for a vehicle with an [`Extra`]).
 pub fn step<G: Ground>(world: &mut World<G>, inputs: &Inputs) {
-    // Both lists are sorted by id: walk them together.
+    // The lists are sorted by id: walk them together.
     let mut keys = inputs.keys.iter().peekable();
+    let mut extra = inputs.extra.iter().peekable();
     for v in &mut world.vehicles {
         while keys.next_if(|&&(id, _)| id < v.id).is_some() {}
+        while extra.next_if(|&&(id, _)| id < v.id).is_some() {}
         let held = keys
             .next_if(|&&(id, _)| id == v.id)
             .map_or(Keys::NONE, |&(_, k)| k);
-        v.state = physics::step(&world.ground, &v.state, held);
+        match extra.next_if(|&&(id, _)| id == v.id).map(|&(_, e)| e) {
+            None => v.state = physics::step(&world.ground, &v.state, held),
+            Some(Extra::Wait) => {}
+            Some(Extra::Twice(a, b)) => {
+                let once = physics::step(&world.ground, &v.state, a);
+                v.state = physics::step(&world.ground, &once, b);
+            }
+        }
     }
     world.tick += 1;
 }
