@@ -28,11 +28,13 @@ use tokio::sync::oneshot;
 use super::Shared;
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
-use crate::viewer::link::{Control, KeyGate, Mailbox, frame_message};
+use crate::viewer::link::{Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{Scene, ViewerCore};
 
 /// Colour-map bytes per chunk.
 const CHUNK: usize = 64 << 10;
+/// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
+const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
 fn refuse(conn: &quinn::Connection, code: u32, why: &str) {
     conn.close(code.into(), why.as_bytes());
@@ -256,6 +258,7 @@ async fn frames(
     let mut in_flight: Option<Sending> = None;
     let mut key_in_flight: Option<Sending> = None;
     let mut seen = false;
+    let mut loss = LossMeter::default();
     loop {
         interval.tick().await;
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
@@ -324,6 +327,17 @@ async fn frames(
                 .max_datagram_size()
                 .is_some_and(|max| bytes.len() <= max)
         {
+            let stats = conn.stats();
+            loss.update(stats.path.lost_packets, stats.path.sent_packets);
+            if loss.repeat(bytes.len()) {
+                // A second copy in a packet of its own, a few milliseconds later (a lost
+                // copy is repaired before the next frame; the viewer takes one of them).
+                let (conn, copy) = (conn.clone(), bytes.clone());
+                tokio::spawn(async move {
+                    tokio::time::sleep(REPEAT_AFTER).await;
+                    let _ = conn.send_datagram(copy.into());
+                });
+            }
             match conn.send_datagram(bytes.clone().into()) {
                 Ok(()) => continue,
                 Err(quinn::SendDatagramError::ConnectionLost(_)) => {
