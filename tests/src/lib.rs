@@ -3,5 +3,6 @@
 //! and a simulated network ([`simnet`]) driving the server's and the viewer's sans-IO
 //! cores together with virtual time, no sockets.
 
+pub mod fixtures;
 pub mod relay;
 pub mod simnet;

@@ -12,6 +12,7 @@
 //! direction, more are dropped and counted), flows idle for [`FLOW_IDLE`] are forgotten,
 //! and dropping the [`Relay`] stops every task it started.
 
+use crate::fixtures::SplitMix64;
 use std::collections::{BinaryHeap, HashMap};
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -146,29 +147,6 @@ impl Counters {
     }
 }
 
-/// splitmix64: a small, seeded, deterministic generator (not for secrets).
-#[derive(Clone, Debug)]
-pub struct SplitMix64(u64);
-
-impl SplitMix64 {
-    pub fn new(seed: u64) -> SplitMix64 {
-        SplitMix64(seed)
-    }
-
-    pub fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `[0, 1)`.
-    pub fn next_f64(&mut self) -> f64 {
-        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
-    }
-}
-
 /// One direction's decisions: which datagrams are dropped, and when the others leave.
 struct Shaper {
     direction: Direction,
@@ -190,8 +168,8 @@ impl Shaper {
     /// lost. Exactly two draws per datagram, so the drops of a seed do not depend on the
     /// delay settings.
     fn schedule(&mut self, now: Instant, len: usize) -> Option<Instant> {
-        let lose = self.rng.next_f64() < self.direction.loss;
-        let jitter = self.direction.jitter.mul_f64(self.rng.next_f64());
+        let lose = self.rng.unit() < self.direction.loss;
+        let jitter = self.direction.jitter.mul_f64(self.rng.unit());
         if lose {
             return None;
         }
@@ -514,7 +492,7 @@ mod tests {
         assert_ne!(draws(1), draws(2));
         let mut r = SplitMix64::new(7);
         let n = 100_000;
-        let mean = (0..n).map(|_| r.next_f64()).sum::<f64>() / f64::from(n);
+        let mean = (0..n).map(|_| r.unit()).sum::<f64>() / f64::from(n);
         assert!((mean - 0.5).abs() < 0.01, "{mean}");
     }
 

@@ -1,5 +1,6 @@
 //! End to end: a real server and headless viewers over QUIC on `127.0.0.1:0`.
 
+use roam_tests::fixtures::flat;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -8,35 +9,11 @@ use roam_client::session::{KeySource, Session, Taken};
 use roam_link::{tls, wire};
 use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange, close};
 use roam_protocol::script;
+use roam_server::Terrain;
 use roam_server::net::{Options, Server};
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::sim::{recording, replay};
 use roam_server::terrain::variance::VarianceTree;
-use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
-
-/// A 129² terrain, flat around the start and rough beyond: a vehicle at rest stays put
-/// until keys arrive (so a drive over the network can be compared with the same script
-/// simulated), and there is detail to stream.
-fn flat() -> Arc<Terrain> {
-    let side = 129u32;
-    let heights = (0..side * side)
-        .map(|i| {
-            let (x, z) = (i % side, i / side);
-            let (dx, dz) = (x.abs_diff(64), z.abs_diff(64));
-            let rough = (x * 7_919 + z * 104_729) % 3_000;
-            20_000 + if dx.max(dz) > 16 { rough as u16 } else { 0 }
-        })
-        .collect();
-    let mut map = MapParams::default_for_side(side);
-    map.h_scale = 4.0;
-    map.start.x = 256.0;
-    map.start.z = 256.0;
-    Arc::new(Terrain {
-        map,
-        heights: Heightfield::new(side, heights).expect("valid"),
-        color: ColorMap::new(128, vec![[90, 120, 60]; 128 * 128]).expect("cells²"),
-    })
-}
 
 /// The tests here each run a server with a 100 Hz world thread and 60 Hz viewers: one at a
 /// time, so that on a 2-core machine none starves another of the CPU.

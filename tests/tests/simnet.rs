@@ -5,6 +5,7 @@
 //! (the clock read once, only to stamp their arrival): a key frame that comes after the
 //! frames coded against it, a base that never comes.
 
+use roam_tests::fixtures::flat;
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -13,33 +14,10 @@ use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{self, ClientMessage, Frame, ViewChange, Welcome};
 use roam_protocol::script::{self, Script};
 use roam_protocol::{BitSet, Cut, Grid, MeshEncoder};
+use roam_server::Terrain;
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::terrain::generate;
-use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 use roam_tests::simnet::{Link, Path, Sim, Stats, TakenFrame, TrackPoint, ViewerId};
-
-/// A 129² terrain, flat around the start and rough beyond (as in `e2e.rs`): a vehicle at
-/// rest stays put until its keys arrive.
-fn flat() -> Arc<Terrain> {
-    let side = 129u32;
-    let heights = (0..side * side)
-        .map(|i| {
-            let (x, z) = (i % side, i / side);
-            let (dx, dz) = (x.abs_diff(64), z.abs_diff(64));
-            let rough = (x * 7_919 + z * 104_729) % 3_000;
-            20_000 + if dx.max(dz) > 16 { rough as u16 } else { 0 }
-        })
-        .collect();
-    let mut map = MapParams::default_for_side(side);
-    map.h_scale = 4.0;
-    map.start.x = 256.0;
-    map.start.z = 256.0;
-    Arc::new(Terrain {
-        map,
-        heights: Heightfield::new(side, heights).expect("valid"),
-        color: ColorMap::new(128, vec![[90, 120, 60]; 128 * 128]).expect("cells²"),
-    })
-}
 
 /// A synthetic 257² data set: relief to tessellate and to cull.
 fn synth() -> Arc<Terrain> {

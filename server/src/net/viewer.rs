@@ -20,15 +20,13 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use roam_link::wire;
-use roam_protocol::messages::{
-    ClientMessage, Reason, Role, ServerMessage, VERSION, Welcome, close,
-};
+use roam_protocol::messages::{ClientMessage, Reason, Role, ServerMessage, VERSION, close};
 use tokio::sync::oneshot;
 
 use super::Shared;
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
-use crate::viewer::link::{Control, KeyGate, LossMeter, Mailbox, frame_message};
+use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{Scene, ViewerCore};
 
 /// Colour-map bytes per chunk.
@@ -176,24 +174,13 @@ async fn welcome(
     shared: &Shared,
     vehicle: VehicleId,
 ) -> Result<(), wire::WireError> {
-    let t = &shared.terrain;
-    let m = &t.map;
-    let snap = shared.snapshots.borrow().clone();
-    let w = Welcome {
-        version: VERSION,
-        levels: t.heights.levels() as u8,
-        h_scale: m.h_scale,
-        v_scale: m.v_scale,
-        sun_dir: m.sun_dir.map(|v| v as f32),
-        sun_color: m.sun_color,
-        fog_density: m.fog_density as f32,
-        fog_color: m.fog_color,
-        water_level: m.water_level.map(|v| v as f32),
+    let tick = shared.snapshots.borrow().tick;
+    let w = link::welcome(
+        &shared.terrain,
         vehicle,
-        color_cells: t.color.cells(),
-        color_bytes: shared.color_map.len() as u32,
-        tick: snap.tick,
-    };
+        tick,
+        shared.color_map.len() as u32,
+    );
     wire::write(send, &ServerMessage::Welcome(w)).await?;
     for (k, chunk) in shared.color_map.chunks(CHUNK).enumerate() {
         let msg = ServerMessage::ColorMap {

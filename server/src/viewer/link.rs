@@ -1,12 +1,14 @@
 //! What one viewer's connection decides besides its frames, with no socket, task or clock:
 //! the control messages coalesced between frames ([`Mailbox`]), the key datagrams admitted
-//! and turned into world events ([`KeyGate`]), and the frame message for a snapshot
-//! ([`frame_message`]). The `net` shell and the simulated network in the tests both
+//! and turned into world events ([`KeyGate`]), the welcome ([`welcome`]), the frame message
+//! for a snapshot ([`frame_message`]), and whether small frames go twice ([`LossMeter`]). The `net` shell and the simulated network in the tests both
 //! compose them with the [`ViewerCore`](super::ViewerCore) the same way.
 
 use std::time::Instant;
 
-use roam_protocol::messages::{self, ClientMessage, Frame, KeyDatagram, VehicleView, ViewChange};
+use roam_protocol::messages::{
+    self, ClientMessage, Frame, KeyDatagram, VERSION, VehicleView, ViewChange, Welcome,
+};
 
 use super::{Event, Made};
 use crate::Terrain;
@@ -110,6 +112,27 @@ impl KeyGate {
             vehicle: self.vehicle,
             states: d.states,
         })
+    }
+}
+
+/// The welcome for a viewer of `vehicle` on `terrain` at world tick `tick`, whose colour
+/// map follows in `color_bytes` bytes.
+pub fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64, color_bytes: u32) -> Welcome {
+    let m = &terrain.map;
+    Welcome {
+        version: VERSION,
+        levels: terrain.heights.levels() as u8,
+        h_scale: m.h_scale,
+        v_scale: m.v_scale,
+        sun_dir: m.sun_dir.map(|v| v as f32),
+        sun_color: m.sun_color,
+        fog_density: m.fog_density as f32,
+        fog_color: m.fog_color,
+        water_level: m.water_level.map(|v| v as f32),
+        vehicle,
+        color_cells: terrain.color.cells(),
+        color_bytes,
+        tick,
     }
 }
 

@@ -68,22 +68,7 @@ pub(super) struct ServerSide {
 }
 
 pub(super) fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64) -> Welcome {
-    let m = &terrain.map;
-    Welcome {
-        version: VERSION,
-        levels: terrain.heights.levels() as u8,
-        h_scale: m.h_scale,
-        v_scale: m.v_scale,
-        sun_dir: m.sun_dir.map(|v| v as f32),
-        sun_color: m.sun_color,
-        fog_density: m.fog_density as f32,
-        fog_color: m.fog_color,
-        water_level: m.water_level.map(|v| v as f32),
-        vehicle,
-        color_cells: terrain.color.cells(),
-        color_bytes: 0,
-        tick,
-    }
+    roam_server::viewer::link::welcome(terrain, vehicle, tick, 0)
 }
 
 impl Sim {

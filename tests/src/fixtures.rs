@@ -1,0 +1,58 @@
+//! What the tests share: a small terrain ([`flat`]) and the seeded generator the relay and
+//! the simulated network draw every random choice from ([`SplitMix64`]).
+
+use std::sync::Arc;
+
+use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
+
+/// A 129² terrain, flat around the start and rough beyond: a vehicle at rest stays put
+/// until keys arrive (so a drive over the network can be compared with the same script
+/// simulated), and there is detail to stream.
+pub fn flat() -> Arc<Terrain> {
+    let side = 129u32;
+    let heights = (0..side * side)
+        .map(|i| {
+            let (x, z) = (i % side, i / side);
+            let (dx, dz) = (x.abs_diff(64), z.abs_diff(64));
+            let rough = (x * 7_919 + z * 104_729) % 3_000;
+            20_000 + if dx.max(dz) > 16 { rough as u16 } else { 0 }
+        })
+        .collect();
+    let mut map = MapParams::default_for_side(side);
+    map.h_scale = 4.0;
+    map.start.x = 256.0;
+    map.start.z = 256.0;
+    Arc::new(Terrain {
+        map,
+        heights: Heightfield::new(side, heights).expect("valid"),
+        color: ColorMap::new(128, vec![[90, 120, 60]; 128 * 128]).expect("cells²"),
+    })
+}
+
+/// A small deterministic generator (Vigna's SplitMix64; not for secrets).
+#[derive(Clone, Debug)]
+pub struct SplitMix64(u64);
+
+impl SplitMix64 {
+    pub fn new(seed: u64) -> SplitMix64 {
+        SplitMix64(seed)
+    }
+
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[0, 1)`.
+    pub fn unit(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// True with probability `p`.
+    pub fn chance(&mut self, p: f64) -> bool {
+        p > 0.0 && self.unit() < p
+    }
+}
