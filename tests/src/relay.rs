@@ -372,6 +372,16 @@ impl Relay {
     }
 }
 
+impl Relay {
+    /// Stops relaying and returns once every task has ended and its sockets are closed.
+    pub async fn stop(mut self) {
+        for t in std::mem::take(&mut self.tasks) {
+            t.abort();
+            let _ = t.await;
+        }
+    }
+}
+
 impl Drop for Relay {
     fn drop(&mut self) {
         // The accept task owns the flows' tasks (a JoinSet): aborting it aborts them.

@@ -89,12 +89,14 @@ async fn two_viewers_one_driving_and_the_session_replays() {
     };
     let d = tokio::spawn(headless::run(addr, r.fingerprint, driver));
     // The spectator joins once the driver's vehicle exists.
-    for _ in 0..500 {
-        if !r.server.snapshot().vehicles.is_empty() {
-            break;
-        }
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    let mut world = r.server.watch();
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        world.wait_for(|s| !s.vehicles.is_empty()),
+    )
+    .await
+    .expect("the driver's vehicle appears")
+    .expect("the world runs");
     let s = tokio::spawn(headless::run(
         addr,
         r.fingerprint,

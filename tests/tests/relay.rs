@@ -130,7 +130,7 @@ async fn loses_about_the_loss_the_same_for_a_seed() -> Result<()> {
 }
 
 #[tokio::test]
-async fn stops_when_dropped() -> Result<()> {
+async fn stops_when_stopped() -> Result<()> {
     let (server, _echo) = echo().await?;
     let relay = Relay::start(server, LinkConfig::default()).await?;
     let addr = relay.addr();
@@ -140,9 +140,7 @@ async fn stops_when_dropped() -> Result<()> {
     tokio::time::timeout(Duration::from_secs(2), socket.recv(&mut buf))
         .await
         .context("no echo within 2 s")??;
-    drop(relay);
-    // Let the aborted tasks go, then the port is free again.
-    tokio::time::sleep(Duration::from_millis(50)).await;
+    relay.stop().await;
     UdpSocket::bind(addr)
         .await
         .context("the relay's port is free once it is dropped")?;
