@@ -42,7 +42,7 @@
 //! ```
 
 use crate::bintree::{BitSet, Grid};
-use crate::changes::CutHash;
+use crate::cut::CutHash;
 use crate::format::{self, DecodeError};
 use crate::range::{self, Prob};
 
@@ -345,6 +345,56 @@ pub struct Decoded {
     pub key: bool,
 }
 
+/// Adaptive probabilities of one change frame.
+pub(crate) struct ChangeModels {
+    /// Bit length of a gap minus one (0 ..= 31): a 5-bit tree.
+    pub(crate) class: [Prob; 32],
+    /// The bit below a gap's leading one, by bit length.
+    pub(crate) second: [Prob; 32],
+    /// Height residuals, as format 1 codes them.
+    pub(crate) residuals: Models,
+}
+
+impl ChangeModels {
+    pub(crate) fn fresh() -> ChangeModels {
+        ChangeModels {
+            class: [Prob::default(); 32],
+            second: [Prob::default(); 32],
+            residuals: Models::fresh(),
+        }
+    }
+
+    /// Back to the initial probabilities, in place.
+    pub(crate) fn reset(&mut self) {
+        self.class = [Prob::default(); 32];
+        self.second = [Prob::default(); 32];
+        self.residuals.reset();
+    }
+}
+
+/// The change frame decoder's models and buffers, kept in [`MeshDecoder`]
+/// (defined here, beside the decoder, so that this module needs nothing of `changes`).
+pub(crate) struct Scratch {
+    pub(crate) models: Box<ChangeModels>,
+    /// The changes, row-major indices, in the coded order.
+    pub(crate) changes: Vec<u32>,
+    /// The splits, `depth << 32 | index`.
+    pub(crate) order: Vec<u64>,
+    /// Heights overwritten by this frame, put back if it fails.
+    pub(crate) saved: Vec<(u32, u16)>,
+}
+
+impl Scratch {
+    pub(crate) fn new() -> Scratch {
+        Scratch {
+            models: Box::new(ChangeModels::fresh()),
+            changes: Vec::new(),
+            order: Vec::new(),
+            saved: Vec::new(),
+        }
+    }
+}
+
 /// Decodes meshes of one grid, keeping every height it has decoded.
 pub struct MeshDecoder {
     pub(crate) grid: Grid,
@@ -353,7 +403,7 @@ pub struct MeshDecoder {
     next: Vec<u32>,
     pub(crate) heights: Vec<u16>,
     /// The change frame decoder's models and buffers ([`crate::changes`]).
-    pub(crate) changes: crate::changes::Scratch,
+    pub(crate) changes: Scratch,
 }
 
 impl MeshDecoder {
@@ -364,7 +414,7 @@ impl MeshDecoder {
             list: Vec::new(),
             next: Vec::new(),
             heights: vec![0; grid.vertices()],
-            changes: crate::changes::Scratch::new(),
+            changes: Scratch::new(),
         }
     }
 

@@ -7,6 +7,7 @@ pub mod bintree;
 pub mod changes;
 pub mod codec;
 pub mod colormap;
+pub mod cut;
 pub mod format;
 pub mod keys;
 pub mod mesh;
@@ -18,8 +19,9 @@ pub mod stats;
 pub mod validate;
 
 pub use bintree::{BitSet, Grid};
-pub use changes::{CHANGES_FORMAT, ChangeEncoder, Cut, CutHash};
+pub use changes::{CHANGES_FORMAT, ChangeEncoder};
 pub use codec::{Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
+pub use cut::{Cut, CutHash};
 pub use format::DecodeError;
 pub use keys::{KeyLatch, KeyStep, Keys};
 pub use mesh::Mesh;
