@@ -119,14 +119,8 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let ctl = tokio::spawn(read_control(recv, control.clone()));
-    let core = ViewerCore::new(
-        shared.terrain.heights.levels(),
-        shared.height_step,
-        hello.fov_y_deg,
-        hello.viewport,
-        hello.budget,
-    );
-    let rate = hello.frame_rate.clamp(1, 240);
+    let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello);
+    let rate = ViewerCore::frame_rate(&hello);
     tokio::select! {
         end = frames(&conn, &shared, control, core, rate, vehicle, driver) => {
             let why = match end {

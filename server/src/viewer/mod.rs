@@ -34,7 +34,7 @@
 
 use std::collections::VecDeque;
 
-use roam_protocol::messages::{self, ViewChange};
+use roam_protocol::messages::{self, Hello, ViewChange};
 use roam_protocol::{ChangeEncoder, CutHash, Grid, MeshEncoder};
 
 use crate::Terrain;
@@ -139,6 +139,23 @@ pub struct ViewerCore {
 }
 
 impl ViewerCore {
+    /// The core for a viewer that said `hello`, on `terrain` whose heights are multiples of
+    /// `height_step`.
+    pub fn for_hello(terrain: &Terrain, height_step: u16, hello: &Hello) -> ViewerCore {
+        ViewerCore::new(
+            terrain.heights.levels(),
+            height_step,
+            hello.fov_y_deg,
+            hello.viewport,
+            hello.budget,
+        )
+    }
+
+    /// The frames a second a viewer gets: what its hello asked for, within 1 ..= 240.
+    pub fn frame_rate(hello: &Hello) -> u16 {
+        hello.frame_rate.clamp(1, 240)
+    }
+
     /// A core for a map of `levels` (side `2^levels + 1`) whose heights are multiples of
     /// `height_step` ([`roam_protocol::height_step`]), for a viewer that said hello with
     /// this field of view (degrees, vertical), viewport and budget.

@@ -214,13 +214,5 @@ pub(super) fn client_flush(v: &mut Viewer, now: Duration) {
 }
 
 pub(super) fn client_control(v: &mut Viewer, now: Duration, msg: &ClientMessage) {
-    let seq = v.client.control_seq;
-    v.client.control_seq += 1;
-    v.up.send(
-        now,
-        Payload::Control {
-            seq,
-            bytes: encoded!(msg),
-        },
-    );
+    v.up.send_control(now, &mut v.client.control_seq, encoded!(msg));
 }

@@ -217,6 +217,14 @@ impl Wire {
         self.queue.push_back((now, payload));
     }
 
+    /// Queues control message `bytes` at `now` as the next of the control stream whose
+    /// next sequence number is `seq`.
+    pub(super) fn send_control(&mut self, now: Duration, seq: &mut u64, bytes: Vec<u8>) {
+        let this = *seq;
+        *seq += 1;
+        self.send(now, Payload::Control { seq: this, bytes });
+    }
+
     /// Retransmissions due by `now` are queued, and what the link can send by `now` leaves.
     pub(super) fn pump(&mut self, now: Duration) {
         let mut due = Vec::new();

@@ -170,14 +170,8 @@ impl Sim {
                 };
                 let w = welcome(&self.terrain, vehicle, self.snapshot.tick);
                 server_control_send(v, now, &ServerMessage::Welcome(w));
-                let core = ViewerCore::new(
-                    self.terrain.heights.levels(),
-                    self.height_step,
-                    hello.fov_y_deg,
-                    hello.viewport,
-                    hello.budget,
-                );
-                let rate = hello.frame_rate.clamp(1, 240);
+                let core = ViewerCore::for_hello(&self.terrain, self.height_step, &hello);
+                let rate = ViewerCore::frame_rate(&hello);
                 v.server.state = ServerState::Serving(Box::new(Serving {
                     core,
                     mailbox: Mailbox::default(),
@@ -350,13 +344,6 @@ impl Sim {
 }
 
 pub(super) fn server_control_send(v: &mut Viewer, now: Duration, msg: &ServerMessage) {
-    let seq = v.server.control_seq;
-    v.server.control_seq += 1;
-    v.down.send(
-        now,
-        Payload::Control {
-            seq,
-            bytes: encoded!(msg),
-        },
-    );
+    v.down
+        .send_control(now, &mut v.server.control_seq, encoded!(msg));
 }
