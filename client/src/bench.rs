@@ -40,6 +40,7 @@ pub async fn run(
         fov_y_deg: opts.fov_y_deg,
         budget: opts.budget,
         frame_rate: 60,
+        resume: None,
     };
     let session = Session::join(
         addr,

@@ -99,6 +99,7 @@ pub async fn run(
         fov_y_deg: opts.fov_y_deg,
         budget: opts.budget,
         frame_rate: opts.frame_rate,
+        resume: None,
     };
     let keys = match (&opts.role, &opts.inputs) {
         (Role::Driver, Some(script)) => KeySource::Script(script.clone()),

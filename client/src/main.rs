@@ -268,11 +268,10 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
                 Arc::new(terrain),
                 Arc::new(vt),
                 &identity,
-                Options {
-                    listen: "127.0.0.1:0".parse().expect("a valid address"),
-                    token: token.clone(),
-                    record: None,
-                },
+                Options::new(
+                    "127.0.0.1:0".parse().expect("a valid address"),
+                    token.clone(),
+                ),
             )?;
             let fp = tls::parse_fingerprint(&identity.fingerprint())?;
             let addr = server.addr;
@@ -302,6 +301,7 @@ fn window(
         fov_y_deg: cli.fov,
         budget: cli.budget,
         frame_rate: 60,
+        resume: None,
     };
     let keys = if cli.spectate {
         KeySource::None

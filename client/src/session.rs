@@ -58,6 +58,7 @@ pub fn describe(reason: &Reason) -> String {
         Reason::Shutdown => "the server is shutting down".into(),
         Reason::Quit => "quit".into(),
         Reason::Protocol(s) | Reason::Unavailable(s) => s.clone(),
+        Reason::Full { viewers } => format!("the server is full ({viewers} viewers)"),
     }
 }
 

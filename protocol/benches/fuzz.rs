@@ -82,6 +82,7 @@ fn seeds(grid: Grid) -> Vec<Vec<u8>> {
         fov_y_deg: 60.0,
         budget: 65_536,
         frame_rate: 60,
+        resume: None,
     });
     push(&|b| messages::encode(&hello, b).expect("encodes"));
     push(&|b| messages::encode(&ClientMessage::Ack { frame: 99 }, b).expect("encodes"));

@@ -18,8 +18,10 @@ use serde::{Deserialize, Serialize};
 
 /// The protocol version this code speaks. 2: the colour map is sent compressed
 /// ([`crate::colormap`]). 3: a frame's mesh may be a change frame (mesh format 2,
-/// [`crate::changes`]).
-pub const VERSION: u16 = 3;
+/// [`crate::changes`]). 4: a driver's welcome carries a resume ticket, and a hello may
+/// present one to take its vehicle back after a dropped connection ([`Hello::resume`]);
+/// a full server says so ([`Reason::Full`]).
+pub const VERSION: u16 = 4;
 /// The largest message (a frame with its mesh, or a colour-map chunk).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.
@@ -45,7 +47,7 @@ pub fn clamp_budget(budget: u32) -> u32 {
 pub mod close {
     /// The server is shutting down.
     pub const SHUTDOWN: u32 = 1;
-    /// The hello was refused (version, token, nothing to follow).
+    /// The hello was refused (version, token, nothing to follow, the server is full).
     pub const REFUSED: u32 = 2;
     /// The peer broke the protocol (no hello, a malformed message).
     pub const PROTOCOL: u32 = 3;
@@ -77,7 +79,14 @@ pub struct Hello {
     pub budget: u32,
     /// Frames per second wanted.
     pub frame_rate: u16,
+    /// The ticket of an earlier connection's welcome ([`Welcome::ticket`]): a driver whose
+    /// connection dropped gets its vehicle back if the server still holds it.
+    pub resume: Option<Ticket>,
 }
+
+/// A driver's claim on its vehicle across a dropped connection: random, known only to the
+/// server and that viewer.
+pub type Ticket = [u8; 16];
 
 /// The server's answer to a welcome viewer: the terrain's shape and look, and its vehicle.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -102,6 +111,14 @@ pub struct Welcome {
     pub color_bytes: u32,
     /// The world's tick when the viewer joined.
     pub tick: u64,
+    /// A driver's ticket, to present in the hello of a reconnection ([`Hello::resume`]).
+    pub ticket: Option<Ticket>,
+    /// The hello's ticket was honoured: this is the vehicle the viewer drove before.
+    pub resumed: bool,
+    /// The most triangles per frame and frames per second this server serves a viewer
+    /// (a hello or budget asking more gets these).
+    pub max_budget: u32,
+    pub max_fps: u16,
 }
 
 /// Why a connection ends or is refused.
@@ -120,6 +137,8 @@ pub enum Reason {
     Protocol(String),
     /// No vehicle to follow, or no room.
     Unavailable(String),
+    /// The server serves `viewers` viewers, its limit.
+    Full { viewers: u32 },
 }
 
 /// Viewer to server, on the control stream.

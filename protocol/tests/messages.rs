@@ -41,6 +41,7 @@ fn hello() -> Hello {
         fov_y_deg: 60.0,
         budget: 65_536,
         frame_rate: 60,
+        resume: None,
     }
 }
 
@@ -79,6 +80,10 @@ fn every_message_round_trips() {
         color_cells: 1024,
         color_bytes: 123_456,
         tick: 9_000,
+        ticket: None,
+        resumed: false,
+        max_budget: messages::MAX_BUDGET,
+        max_fps: 240,
     };
     for m in [
         ServerMessage::Welcome(welcome.clone()),

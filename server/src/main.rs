@@ -49,6 +49,7 @@ enum Command {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    init_logs();
     let result = match cli.command {
         Command::Check(args) => cli::data::check(args),
         Command::Generate(args) => cli::data::generate(args),
@@ -66,6 +67,19 @@ fn main() -> ExitCode {
             ExitCode::FAILURE
         }
     }
+}
+
+/// Logs (`tracing`) go to stderr, filtered by `RUST_LOG` (default: `info` for roam's own
+/// crates, `warn` for the rest); command output stays on stdout.
+fn init_logs() {
+    use tracing_subscriber::EnvFilter;
+    let filter = EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| EnvFilter::new("warn,roam_server=info,roam_link=info"));
+    let _already_set = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_target(false)
+        .try_init();
 }
 
 /// Writes one line to stdout for `say!`.

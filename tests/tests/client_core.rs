@@ -28,6 +28,10 @@ fn small_grid() -> (Grid, Vec<u16>, Welcome) {
         color_cells: 8,
         color_bytes: 0,
         tick: 0,
+        ticket: None,
+        resumed: false,
+        max_budget: messages::MAX_BUDGET,
+        max_fps: 240,
     };
     (grid, heights, welcome)
 }

@@ -34,9 +34,8 @@ fn start(terrain: Arc<Terrain>, record: Option<std::path::PathBuf>) -> Running {
         Arc::new(vt),
         &identity,
         Options {
-            listen: "127.0.0.1:0".parse().expect("valid"),
-            token: token.clone(),
             record,
+            ..Options::new("127.0.0.1:0".parse().expect("valid"), token.clone())
         },
     )
     .expect("listens");
@@ -173,6 +172,7 @@ fn driver_hello(r: &Running, budget: u32) -> Hello {
         fov_y_deg: 60.0,
         budget,
         frame_rate: 60,
+        resume: None,
     }
 }
 

@@ -44,6 +44,10 @@ fn welcome(color_bytes: usize) -> Welcome {
         color_cells: CELLS,
         color_bytes: color_bytes as u32,
         tick: 0,
+        ticket: None,
+        resumed: false,
+        max_budget: roam_protocol::messages::MAX_BUDGET,
+        max_fps: 240,
     }
 }
 
@@ -124,6 +128,7 @@ fn hello() -> Hello {
         fov_y_deg: 60.0,
         budget: 4_000,
         frame_rate: 60,
+        resume: None,
     }
 }
 

@@ -48,9 +48,8 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             Arc::new(vt),
             &identity,
             Options {
-                listen: args.listen,
-                token: token.clone(),
                 record: Some(record.clone()),
+                ..Options::new(args.listen, token.clone())
             },
         )?;
         say!("listening on {} (UDP)", server.addr);

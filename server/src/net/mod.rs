@@ -29,6 +29,21 @@ pub struct Options {
     pub token: String,
     /// Where to record the session, if anywhere.
     pub record: Option<PathBuf>,
+    /// What one viewer is served at most.
+    pub limits: crate::viewer::ViewerLimits,
+}
+
+impl Options {
+    /// Listening on `listen` for viewers with `token`, not recorded, with the default
+    /// limits.
+    pub fn new(listen: SocketAddr, token: String) -> Options {
+        Options {
+            listen,
+            token,
+            record: None,
+            limits: crate::viewer::ViewerLimits::default(),
+        }
+    }
 }
 
 /// What every connection task shares.
@@ -36,6 +51,7 @@ pub struct Shared {
     pub terrain: Arc<Terrain>,
     pub variance: Arc<VarianceTree>,
     pub token: String,
+    pub limits: crate::viewer::ViewerLimits,
     /// The heights' common step, for the mesh coder (computed once).
     pub height_step: u16,
     /// The colour map, compressed once (`roam_protocol::colormap`) for every welcome.
@@ -127,6 +143,7 @@ impl Server {
             terrain,
             variance,
             token: options.token,
+            limits: options.limits,
             world: inbox.clone(),
             snapshots: snapshots.clone(),
             shutdown,

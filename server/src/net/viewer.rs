@@ -119,8 +119,8 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let ctl = tokio::spawn(read_control(recv, control.clone()));
-    let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello);
-    let rate = ViewerCore::frame_rate(&hello);
+    let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
+    let rate = ViewerCore::frame_rate(&hello, shared.limits);
     tokio::select! {
         end = frames(&conn, &shared, control, core, rate, vehicle, driver) => {
             let why = match end {
@@ -174,6 +174,7 @@ async fn welcome(
         vehicle,
         tick,
         shared.color_map.len() as u32,
+        shared.limits,
     );
     wire::write(send, &ServerMessage::Welcome(w)).await?;
     for (k, chunk) in shared.color_map.chunks(CHUNK).enumerate() {

@@ -10,7 +10,7 @@ use roam_protocol::messages::{
     self, ClientMessage, Frame, KeyDatagram, VERSION, VehicleView, ViewChange, Welcome,
 };
 
-use super::{Event, Made};
+use super::{Event, Made, ViewerLimits};
 use crate::Terrain;
 use crate::sim::physics::altitude;
 use crate::sim::world::VehicleId;
@@ -116,9 +116,17 @@ impl KeyGate {
 }
 
 /// The welcome for a viewer of `vehicle` on `terrain` at world tick `tick`, whose colour
-/// map follows in `color_bytes` bytes.
-pub fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64, color_bytes: u32) -> Welcome {
+/// map follows in `color_bytes` bytes, served within `limits`. A driver's `ticket` and
+/// whether it was resumed are the caller's to add.
+pub fn welcome(
+    terrain: &Terrain,
+    vehicle: VehicleId,
+    tick: u64,
+    color_bytes: u32,
+    limits: ViewerLimits,
+) -> Welcome {
     let m = &terrain.map;
+    let limits = limits.clamped();
     Welcome {
         version: VERSION,
         levels: terrain.heights.levels() as u8,
@@ -133,6 +141,10 @@ pub fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64, color_bytes: u3
         color_cells: terrain.color.cells(),
         color_bytes,
         tick,
+        ticket: None,
+        resumed: false,
+        max_budget: limits.max_budget,
+        max_fps: limits.max_fps,
     }
 }
 

@@ -112,6 +112,43 @@ pub struct Made {
     pub triangles: u32,
 }
 
+/// What the server serves one viewer at most, whatever it asks (`serve --max-budget`,
+/// `--max-fps`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ViewerLimits {
+    /// Triangles per frame, within [`messages::MIN_BUDGET`]`..=`[`messages::MAX_BUDGET`].
+    pub max_budget: u32,
+    /// Frames per second, within 1 ..= [`MAX_FPS`].
+    pub max_fps: u16,
+}
+
+/// The most frames a second any viewer gets.
+pub const MAX_FPS: u16 = 240;
+
+impl Default for ViewerLimits {
+    fn default() -> ViewerLimits {
+        ViewerLimits {
+            max_budget: messages::MAX_BUDGET,
+            max_fps: MAX_FPS,
+        }
+    }
+}
+
+impl ViewerLimits {
+    /// These limits, each kept within what any server serves.
+    pub fn clamped(self) -> ViewerLimits {
+        ViewerLimits {
+            max_budget: messages::clamp_budget(self.max_budget),
+            max_fps: self.max_fps.clamp(1, MAX_FPS),
+        }
+    }
+
+    /// A budget a viewer asked for, as this server serves it.
+    pub fn budget(&self, asked: u32) -> u32 {
+        messages::clamp_budget(asked).min(self.max_budget)
+    }
+}
+
 /// One viewer's state: its camera settings, budget, acknowledgements and cut.
 pub struct ViewerCore {
     grid: Grid,
@@ -126,6 +163,7 @@ pub struct ViewerCore {
     camera: Camera,
     view: Option<ViewChange>,
     budget: u32,
+    caps: ViewerLimits,
     acked: Option<u64>,
     /// The newest key frame made, until the viewer acknowledges it (or a newer frame), asks
     /// for another, or a newer key frame supersedes it.
@@ -140,20 +178,29 @@ pub struct ViewerCore {
 
 impl ViewerCore {
     /// The core for a viewer that said `hello`, on `terrain` whose heights are multiples of
-    /// `height_step`.
-    pub fn for_hello(terrain: &Terrain, height_step: u16, hello: &Hello) -> ViewerCore {
-        ViewerCore::new(
+    /// `height_step`, served within `caps`.
+    pub fn for_hello(
+        terrain: &Terrain,
+        height_step: u16,
+        hello: &Hello,
+        caps: ViewerLimits,
+    ) -> ViewerCore {
+        let mut core = ViewerCore::new(
             terrain.heights.levels(),
             height_step,
             hello.fov_y_deg,
             hello.viewport,
             hello.budget,
-        )
+        );
+        core.caps = caps.clamped();
+        core.budget = core.caps.budget(hello.budget);
+        core
     }
 
-    /// The frames a second a viewer gets: what its hello asked for, within 1 ..= 240.
-    pub fn frame_rate(hello: &Hello) -> u16 {
-        hello.frame_rate.clamp(1, 240)
+    /// The frames a second a viewer gets: what its hello asked for, within 1 ..=
+    /// `caps.max_fps`.
+    pub fn frame_rate(hello: &Hello, caps: ViewerLimits) -> u16 {
+        hello.frame_rate.clamp(1, caps.clamped().max_fps)
     }
 
     /// A core for a map of `levels` (side `2^levels + 1`) whose heights are multiples of
@@ -177,6 +224,7 @@ impl ViewerCore {
             camera: camera::default_camera(fov_y_deg, viewport),
             view: None,
             budget: messages::clamp_budget(budget),
+            caps: ViewerLimits::default(),
             acked: None,
             pending_key: None,
             key_requested: false,
@@ -189,7 +237,7 @@ impl ViewerCore {
     pub fn handle(&mut self, event: Event) {
         match event {
             Event::Budget(b) => {
-                self.budget = messages::clamp_budget(b);
+                self.budget = self.caps.budget(b);
                 self.steered = true;
             }
             // Only frames made can be acknowledged; a later ack wins. An ack of the pending

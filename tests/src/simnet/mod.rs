@@ -336,6 +336,7 @@ impl Sim {
             fov_y_deg: FOV_Y_DEG,
             budget: messages::clamp_budget(budget),
             frame_rate: FRAME_RATE,
+            resume: None,
         };
         let mut v = Viewer {
             up: Wire::new(path.up, seed(1)),

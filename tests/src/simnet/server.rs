@@ -13,7 +13,7 @@ use roam_server::sim::world::VehicleId;
 use roam_server::sim::world_core;
 use roam_server::tessellate::Mesh;
 use roam_server::viewer::link::{Control, KeyGate, Mailbox, frame_message};
-use roam_server::viewer::{Scene, ViewerCore};
+use roam_server::viewer::{Scene, ViewerCore, ViewerLimits};
 
 use super::link::{InOrder, Payload};
 use super::{
@@ -68,7 +68,7 @@ pub(super) struct ServerSide {
 }
 
 pub(super) fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64) -> Welcome {
-    roam_server::viewer::link::welcome(terrain, vehicle, tick, 0)
+    roam_server::viewer::link::welcome(terrain, vehicle, tick, 0, ViewerLimits::default())
 }
 
 impl Sim {
@@ -170,8 +170,9 @@ impl Sim {
                 };
                 let w = welcome(&self.terrain, vehicle, self.snapshot.tick);
                 server_control_send(v, now, &ServerMessage::Welcome(w));
-                let core = ViewerCore::for_hello(&self.terrain, self.height_step, &hello);
-                let rate = ViewerCore::frame_rate(&hello);
+                let core =
+                    ViewerCore::for_hello(&self.terrain, self.height_step, &hello, ViewerLimits::default());
+                let rate = ViewerCore::frame_rate(&hello, ViewerLimits::default());
                 v.server.state = ServerState::Serving(Box::new(Serving {
                     core,
                     mailbox: Mailbox::default(),
