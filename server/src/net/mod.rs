@@ -31,7 +31,27 @@ pub struct Options {
     pub record: Option<PathBuf>,
     /// What one viewer is served at most.
     pub limits: crate::viewer::ViewerLimits,
+    /// Viewers served at once (drivers and spectators); the next is refused with
+    /// [`roam_protocol::messages::Reason::Full`].
+    pub max_viewers: usize,
+    /// Connections still in their handshake or hello at once; past it, new ones must
+    /// prove their address (QUIC Retry), and are refused if still over.
+    pub max_pending: usize,
+    /// One deadline for a connection's TLS handshake and its hello together.
+    pub hello_timeout: std::time::Duration,
+    /// How long a driver's vehicle is held after its connection drops, for the driver to
+    /// come back to ([`roam_protocol::messages::Hello::resume`]).
+    pub hold: std::time::Duration,
 }
+
+/// [`Options::max_viewers`] unless told otherwise.
+pub const MAX_VIEWERS: usize = 64;
+/// [`Options::max_pending`] unless told otherwise.
+pub const MAX_PENDING: usize = 256;
+/// [`Options::hello_timeout`] unless told otherwise.
+pub const HELLO_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+/// [`Options::hold`] unless told otherwise.
+pub const HOLD: std::time::Duration = std::time::Duration::from_secs(30);
 
 impl Options {
     /// Listening on `listen` for viewers with `token`, not recorded, with the default
@@ -42,6 +62,10 @@ impl Options {
             token,
             record: None,
             limits: crate::viewer::ViewerLimits::default(),
+            max_viewers: MAX_VIEWERS,
+            max_pending: MAX_PENDING,
+            hello_timeout: HELLO_TIMEOUT,
+            hold: HOLD,
         }
     }
 }
