@@ -8,6 +8,8 @@ use anyhow::{Context, Result};
 use clap::Args;
 use roam_link::tls;
 use roam_server::net::{self, Options, Server};
+use roam_server::viewer::ViewerLimits;
+use std::time::Duration;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -25,15 +27,81 @@ pub struct ServeArgs {
     /// Where sessions are recorded (default: `recordings` in the state directory).
     #[arg(long)]
     pub record_dir: Option<PathBuf>,
+    /// Viewers served at once (drivers and spectators); the next is refused as full.
+    #[arg(long, default_value_t = net::MAX_VIEWERS)]
+    pub max_viewers: usize,
+    /// Connections in their handshake or hello at once; past it, new ones must prove
+    /// their address (QUIC Retry), and the oldest pending one is closed for a proven one.
+    #[arg(long, default_value_t = net::MAX_PENDING)]
+    pub max_pending: usize,
+    /// Seconds a connection has for its TLS handshake and hello together.
+    #[arg(long, default_value_t = net::HELLO_TIMEOUT.as_secs_f64(), value_parser = seconds)]
+    pub hello_timeout: f64,
+    /// Most triangles per frame a viewer is served, whatever it asks.
+    #[arg(long, default_value_t = roam_protocol::messages::MAX_BUDGET)]
+    pub max_budget: u32,
+    /// Most frames a second a viewer is served, whatever it asks.
+    #[arg(long, default_value_t = roam_server::viewer::MAX_FPS)]
+    pub max_fps: u16,
+    /// Seconds a driver's vehicle is held after its connection drops, for it to come back.
+    #[arg(long, default_value_t = net::HOLD.as_secs_f64(), value_parser = seconds)]
+    pub hold: f64,
+    /// Seconds between the summary lines in the log.
+    #[arg(long, default_value_t = 60.0, value_parser = seconds)]
+    pub log_every: f64,
+}
+
+/// A number of seconds: finite, positive and at most a day.
+fn seconds(text: &str) -> Result<f64, String> {
+    let s: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?}: expected a number of seconds"))?;
+    if !(s > 0.0 && s <= 86_400.0) {
+        return Err(format!("{text}: expected more than 0 and at most 86400 seconds"));
+    }
+    Ok(s)
+}
+
+impl ServeArgs {
+    /// The serving options these flags give, or why they are wrong.
+    fn options(&self, token: String, record: Option<PathBuf>) -> Result<Options> {
+        let limits = ViewerLimits {
+            max_budget: self.max_budget,
+            max_fps: self.max_fps,
+        };
+        anyhow::ensure!(
+            limits.clamped() == limits,
+            "--max-budget {} / --max-fps {}: expected {} ..= {} triangles and 1 ..= {} frames a second",
+            self.max_budget,
+            self.max_fps,
+            roam_protocol::messages::MIN_BUDGET,
+            roam_protocol::messages::MAX_BUDGET,
+            roam_server::viewer::MAX_FPS
+        );
+        anyhow::ensure!(self.max_viewers >= 1, "--max-viewers: expected at least 1");
+        anyhow::ensure!(self.max_pending >= 1, "--max-pending: expected at least 1");
+        Ok(Options {
+            record,
+            limits,
+            max_viewers: self.max_viewers,
+            max_pending: self.max_pending,
+            hello_timeout: Duration::from_secs_f64(self.hello_timeout),
+            hold: Duration::from_secs_f64(self.hold),
+            summary_every: Duration::from_secs_f64(self.log_every),
+            ..Options::new(self.listen, token)
+        })
+    }
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
     let (terrain, vt, _) = super::tess::load(&args.dir)?;
+    net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
     let identity = tls::load_or_create(&args.state_dir)
         .with_context(|| format!("the certificate in {}", args.state_dir.display()))?;
     let token = args.token.unwrap_or_else(net::random_token);
     let record_dir = args
         .record_dir
+        .clone()
         .unwrap_or_else(|| args.state_dir.join("recordings"));
     std::fs::create_dir_all(&record_dir)
         .with_context(|| format!("creating {}", record_dir.display()))?;
@@ -47,14 +115,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             Arc::new(terrain),
             Arc::new(vt),
             &identity,
-            Options {
-                record: Some(record.clone()),
-                ..Options::new(args.listen, token.clone())
-            },
+            args.options(token.clone(), Some(record.clone()))?,
         )?;
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
-        say!("token {token}");
         say!("recording to {}", record.display());
         let host = if server.addr.ip().is_unspecified() {
             format!("<this machine's address>:{}", server.addr.port())

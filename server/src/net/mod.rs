@@ -7,18 +7,24 @@
 //!        ──key datagrams──────────────────────► world thread (100 Hz) ──snapshot (latest)──┘
 //! ```
 
+mod handshake;
+pub mod stats;
 pub mod viewer;
 pub mod world_loop;
 
+use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use roam_link::tls;
 use tokio::sync::watch;
 
 use crate::Terrain;
 use crate::sim::world_core::Snapshot;
+use crate::viewer::admission::{Admission, PendingId};
+use roam_protocol::messages::Ticket;
+use stats::ServeStats;
 use crate::terrain::variance::VarianceTree;
 use world_loop::Inbound;
 
@@ -42,6 +48,8 @@ pub struct Options {
     /// How long a driver's vehicle is held after its connection drops, for the driver to
     /// come back to ([`roam_protocol::messages::Hello::resume`]).
     pub hold: std::time::Duration,
+    /// How often the summary line is logged.
+    pub summary_every: std::time::Duration,
 }
 
 /// [`Options::max_viewers`] unless told otherwise.
@@ -66,6 +74,7 @@ impl Options {
             max_pending: MAX_PENDING,
             hello_timeout: HELLO_TIMEOUT,
             hold: HOLD,
+            summary_every: std::time::Duration::from_secs(60),
         }
     }
 }
@@ -84,9 +93,32 @@ pub struct Shared {
     world: std::sync::mpsc::Sender<Inbound>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     shutdown: watch::Receiver<bool>,
+    hello_timeout: std::time::Duration,
+    /// Admission, and how to evict each pending connection.
+    gate: Mutex<Gate>,
+    /// Drivers' tickets: the vehicle each names.
+    tickets: Mutex<HashMap<Ticket, handshake::Claim>>,
+    /// Blocking frame makers at once: one fewer than the cores (at least one), so the
+    /// world thread always finds a core.
+    makers: tokio::sync::Semaphore,
+    stats: Arc<ServeStats>,
+}
+
+/// Admission's state and each pending connection's eviction notice.
+struct Gate {
+    admission: Admission,
+    evict: HashMap<PendingId, tokio::sync::oneshot::Sender<()>>,
 }
 
 impl Shared {
+    fn gate(&self) -> MutexGuard<'_, Gate> {
+        self.gate.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    fn tickets(&self) -> MutexGuard<'_, HashMap<Ticket, handshake::Claim>> {
+        self.tickets.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
     async fn shutting_down(&self) {
         let mut rx = self.shutdown.clone();
         let _ = rx.wait_for(|&s| s).await;
@@ -102,6 +134,8 @@ pub struct Server {
     accept: tokio::task::JoinHandle<()>,
     world: std::thread::JoinHandle<std::io::Result<crate::sim::world::World>>,
     world_inbox: Option<std::sync::mpsc::Sender<Inbound>>,
+    shared: Arc<Shared>,
+    summary: tokio::task::JoinHandle<()>,
 }
 
 /// Why the server could not start or stop cleanly.
@@ -122,6 +156,29 @@ pub enum ServeError {
     ColorMapShape(String),
     #[error("the colour map codes to {0} bytes, more than a viewer takes")]
     ColorMap(usize),
+    #[error(
+        "a grid of {side}² samples: this server serves at most {max}² (2^{levels} + 1), \
+         the most a viewer holds; import it again with a smaller side"
+    )]
+    TooLarge { side: u32, max: u32, levels: u32 },
+}
+
+/// The most levels a served data set may have: a grid of `2^13 + 1` samples a side, the
+/// most a viewer holds (its colour map is `2^13` texels a side, within every GPU's
+/// texture limit).
+pub const MAX_LEVELS: u32 = 13;
+
+/// Whether `terrain` can be served: an error (before anything starts) if not.
+pub fn check_servable(terrain: &Terrain) -> Result<(), ServeError> {
+    let levels = terrain.heights.levels();
+    if levels > MAX_LEVELS {
+        return Err(ServeError::TooLarge {
+            side: terrain.heights.side(),
+            max: (1 << MAX_LEVELS) + 1,
+            levels: MAX_LEVELS,
+        });
+    }
+    Ok(())
 }
 
 impl Server {
@@ -132,6 +189,7 @@ impl Server {
         identity: &tls::Identity,
         options: Options,
     ) -> Result<Server, ServeError> {
+        check_servable(&terrain)?;
         let config = tls::server_config(identity)?;
         let endpoint = quinn::Endpoint::server(config, options.listen).map_err(|error| {
             ServeError::Listen {
@@ -171,8 +229,17 @@ impl Server {
             world: inbox.clone(),
             snapshots: snapshots.clone(),
             shutdown,
+            hello_timeout: options.hello_timeout,
+            gate: Mutex::new(Gate {
+                admission: Admission::new(options.max_pending, options.max_viewers),
+                evict: HashMap::new(),
+            }),
+            tickets: Mutex::new(HashMap::new()),
+            makers: tokio::sync::Semaphore::new(makers()),
+            stats: Arc::new(ServeStats::default()),
         });
-        let accept = tokio::spawn(accept_loop(endpoint.clone(), shared));
+        let accept = tokio::spawn(accept_loop(endpoint.clone(), shared.clone()));
+        let summary = tokio::spawn(summary_loop(shared.clone(), options.summary_every));
         Ok(Server {
             addr,
             snapshots,
@@ -181,7 +248,20 @@ impl Server {
             accept,
             world,
             world_inbox: Some(inbox),
+            shared,
+            summary,
         })
+    }
+
+    /// What the server has counted so far.
+    pub fn counts(&self) -> stats::Counts {
+        self.shared.stats.counts()
+    }
+
+    /// Connections pending (handshake or hello) and viewers served, now.
+    pub fn load(&self) -> (usize, usize) {
+        let gate = self.shared.gate();
+        (gate.admission.pending(), gate.admission.viewers())
     }
 
     /// The world after its latest tick.
@@ -207,6 +287,7 @@ impl Server {
         );
         self.accept.abort();
         let _ = self.accept.await;
+        self.summary.abort();
         self.endpoint.wait_idle().await;
         // Connections are closed; viewer tasks (and a tessellation in flight) end shortly
         // and drop their senders, and then the world thread sees the channel close.
@@ -221,12 +302,56 @@ impl Server {
 
 async fn accept_loop(endpoint: quinn::Endpoint, shared: Arc<Shared>) {
     while let Some(incoming) = endpoint.accept().await {
-        let shared = shared.clone();
-        tokio::spawn(async move {
-            if let Ok(conn) = incoming.await {
-                viewer::serve(conn, shared).await;
-            }
-        });
+        handshake::arrive(incoming, &shared);
+    }
+}
+
+/// Blocking frame makers at once: one fewer than the cores, at least one.
+fn makers() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get().saturating_sub(1).max(1))
+}
+
+/// Logs a summary every `every`: viewers, frames a second, CPU per frame, bytes out a
+/// second, the world's health and what admission turned away.
+async fn summary_loop(shared: Arc<Shared>, every: std::time::Duration) {
+    let mut ticker = tokio::time::interval(every);
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    ticker.tick().await;
+    let mut last = (
+        std::time::Instant::now(),
+        shared.stats.counts(),
+        stats::process_cpu(),
+    );
+    loop {
+        ticker.tick().await;
+        let now = (
+            std::time::Instant::now(),
+            shared.stats.counts(),
+            stats::process_cpu(),
+        );
+        let seconds = now.0.duration_since(last.0).as_secs_f64().max(1e-3);
+        let cpu = now.2.zip(last.2).map(|(b, a)| b.saturating_sub(a));
+        let s = stats::Summary::between(&last.1, &now.1, seconds, cpu);
+        let (pending, viewers) = {
+            let gate = shared.gate();
+            (gate.admission.pending(), gate.admission.viewers())
+        };
+        let snap = shared.snapshots.borrow().clone();
+        tracing::info!(
+            viewers,
+            vehicles = snap.vehicles.len(),
+            tick = snap.tick,
+            fps = format_args!("{:.1}", s.frames_per_s),
+            cpu_per_frame_us = format_args!("{:.0}", s.cpu_per_frame_us.unwrap_or(0.0)),
+            make_us = format_args!("{:.0}", s.make_us.unwrap_or(0.0)),
+            kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
+            pending,
+            junk_closed = s.junk,
+            retried = s.retried,
+            refused = s.refused,
+            "summary"
+        );
+        last = now;
     }
 }
 

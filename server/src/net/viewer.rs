@@ -16,14 +16,16 @@
 //!   only once superseded by a newer key frame (or when the viewer asked for another),
 //!   unless acknowledged.
 
+use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use roam_link::wire;
-use roam_protocol::messages::{ClientMessage, Reason, Role, ServerMessage, VERSION, close};
+use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
 use tokio::sync::oneshot;
 
 use super::Shared;
+use super::handshake::{Joined, MAX_CONTROL, Seat};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
 use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
@@ -34,86 +36,46 @@ const CHUNK: usize = 64 << 10;
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
-fn refuse(conn: &quinn::Connection, code: u32, why: &str) {
-    conn.close(code.into(), why.as_bytes());
-}
-
 /// Sends a last message (a refusal, a goodbye) and gives it a moment to arrive before the
 /// connection closes (closing drops what is unsent).
-async fn last_word(send: &mut quinn::SendStream, msg: &ServerMessage) {
+pub(super) async fn last_word(send: &mut quinn::SendStream, msg: &ServerMessage) {
     if wire::write(send, msg).await.is_ok() && send.finish().is_ok() {
         let _ = tokio::time::timeout(Duration::from_millis(250), send.stopped()).await;
     }
 }
 
-/// Serves one connection to its end.
-pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
-    let accepted = tokio::time::timeout(Duration::from_secs(5), conn.accept_bi()).await;
-    let Ok(Ok((mut send, mut recv))) = accepted else {
-        refuse(&conn, close::PROTOCOL, "no control stream within 5 s");
-        return;
-    };
-    let hello = match tokio::time::timeout(
-        Duration::from_secs(5),
-        wire::read::<ClientMessage>(&mut recv, 4096),
-    )
-    .await
-    {
-        Ok(Ok(ClientMessage::Hello(h))) => h,
-        _ => {
-            refuse(&conn, close::PROTOCOL, "expected a hello");
-            return;
-        }
-    };
-    let reply = |reason: Reason| ServerMessage::Refused(reason);
-    if hello.version != VERSION {
-        last_word(&mut send, &reply(Reason::Version { server: VERSION })).await;
-        refuse(&conn, close::REFUSED, "protocol version");
-        return;
-    }
-    if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
-        last_word(&mut send, &reply(Reason::WrongToken)).await;
-        refuse(&conn, close::REFUSED, "wrong token");
-        return;
-    }
-    // A driver gets a vehicle; a spectator follows one.
-    let (vehicle, driver) = match hello.role {
-        Role::Driver => {
-            let (tx, rx) = oneshot::channel();
-            if shared.world.send((Event::Join, Some(tx))).is_err() {
-                refuse(&conn, close::SHUTDOWN, "shutting down");
-                return;
-            }
-            match rx.await {
-                Ok(id) => (id, true),
-                Err(_) => {
-                    refuse(&conn, close::SHUTDOWN, "shutting down");
-                    return;
-                }
-            }
-        }
-        Role::Spectator { follow } => {
-            let snap = shared.snapshots.borrow().clone();
-            let target = match follow {
-                Some(id) => snap.vehicles.iter().find(|v| v.id == id),
-                None => snap.vehicles.first(),
-            };
-            match target {
-                Some(v) => (v.id, false),
-                None => {
-                    let why = Reason::Unavailable("no vehicle to follow".into());
-                    last_word(&mut send, &reply(why)).await;
-                    refuse(&conn, close::REFUSED, "no vehicle to follow");
-                    return;
-                }
-            }
-        }
-    };
-    let leave = Leave {
+/// A viewer past its hello ([`super::handshake`]).
+pub(super) struct Viewer {
+    pub conn: quinn::Connection,
+    pub send: quinn::SendStream,
+    pub recv: quinn::RecvStream,
+    pub hello: Hello,
+    pub peer: SocketAddr,
+    pub joined: Joined,
+}
+
+/// Serves a welcomed viewer to its end. A driver whose connection is lost (not a
+/// goodbye) has its vehicle held for a while, to take back with its ticket.
+pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
+    let Viewer {
+        conn,
+        mut send,
+        recv,
+        hello,
+        peer,
+        mut joined,
+    } = viewer;
+    let (vehicle, driver) = (joined.vehicle, joined.driver);
+    let replaced = joined.replaced.take();
+    let mut answer = None;
+    let mut leave = Leave {
         world: shared.world.clone(),
         vehicle: driver.then_some(vehicle),
+        hold: false,
     };
-    if welcome(&mut send, &shared, vehicle).await.is_err() {
+    let started = std::time::Instant::now();
+    if welcome(&mut send, &shared, &joined).await.is_err() {
+        leave.hold = true;
         return;
     }
     let control = Arc::new(Mutex::new(Mailbox::default()));
@@ -121,61 +83,120 @@ pub async fn serve(conn: quinn::Connection, shared: Arc<Shared>) {
     let ctl = tokio::spawn(read_control(recv, control.clone()));
     let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
     let rate = ViewerCore::frame_rate(&hello, shared.limits);
-    tokio::select! {
-        end = frames(&conn, &shared, control, core, rate, vehicle, driver) => {
-            let why = match end {
-                FramesEnd::ConnectionLost => None,
-                FramesEnd::VehicleLeft => Some("the vehicle followed has left"),
-                FramesEnd::Failed(why) => Some(why),
-            };
-            if let Some(why) = why {
-                let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
-                last_word(&mut send, &bye).await;
-                conn.close(close::BYE.into(), why.as_bytes());
+    let mut sent = 0u64;
+    let why: String = tokio::select! {
+        end = frames(&conn, &shared, control, core, rate, (vehicle, driver), &mut sent) => {
+            match end {
+                FramesEnd::ConnectionLost => {
+                    leave.hold = true;
+                    lost(&conn)
+                }
+                FramesEnd::VehicleLeft | FramesEnd::Failed(_) => {
+                    let why = match end {
+                        FramesEnd::Failed(why) => why,
+                        _ => "the vehicle followed has left",
+                    };
+                    let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
+                    last_word(&mut send, &bye).await;
+                    conn.close(close::BYE.into(), why.as_bytes());
+                    why.into()
+                }
             }
         }
-        _ = ctl => conn.close(close::BYE.into(), b"bye"),
-        _ = conn.closed() => {}
+        _ = ctl => {
+            conn.close(close::BYE.into(), b"bye");
+            "goodbye".into()
+        }
+        _ = conn.closed() => {
+            // Closed by the viewer on purpose: a leave; lost (timed out, reset): held.
+            leave.hold = !matches!(
+                conn.close_reason(),
+                Some(quinn::ConnectionError::ApplicationClosed(_))
+            );
+            lost(&conn)
+        }
+        Ok(done) = async move {
+            match replaced {
+                Some(rx) => rx.await,
+                None => std::future::pending().await,
+            }
+        } => {
+            leave.hold = true;
+            answer = Some(done);
+            conn.close(close::BYE.into(), b"replaced by a reconnection");
+            "replaced by a reconnection".into()
+        }
         _ = shared.shutting_down() => {
             last_word(&mut send, &ServerMessage::Bye(Reason::Shutdown)).await;
             conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
+            "the server is shutting down".into()
         }
-    }
+    };
     keys.abort();
+    let held = leave.hold && leave.vehicle.is_some();
+    tracing::info!(
+        %peer,
+        role = super::handshake::role_name(&hello.role),
+        vehicle,
+        reason = %why,
+        held,
+        frames = sent,
+        seconds = started.elapsed().as_secs(),
+        "left"
+    );
     drop(leave);
+    drop(seat);
+    if let Some(done) = answer {
+        let _ = done.send(()); // the vehicle's hold is on its way to the world
+    }
 }
 
-/// Tells the world a driver left, however the connection ended.
+/// Why a connection ended, as the logs say it.
+fn lost(conn: &quinn::Connection) -> String {
+    match conn.close_reason() {
+        Some(e) => format!("connection lost: {e}"),
+        None => "connection lost".into(),
+    }
+}
+
+/// Tells the world a driver left, however the connection ended: a goodbye frees its
+/// vehicle, a lost connection has it held ([`Event::Hold`]).
 struct Leave {
     world: std::sync::mpsc::Sender<super::world_loop::Inbound>,
     vehicle: Option<VehicleId>,
+    hold: bool,
 }
 
 impl Drop for Leave {
     fn drop(&mut self) {
         if let Some(vehicle) = self.vehicle {
-            let _ = self.world.send((Event::Leave(vehicle), None));
+            let event = if self.hold {
+                Event::Hold(vehicle)
+            } else {
+                Event::Leave(vehicle)
+            };
+            let _ = self.world.send((event, None));
         }
     }
-}
-
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }
 
 async fn welcome(
     send: &mut quinn::SendStream,
     shared: &Shared,
-    vehicle: VehicleId,
+    joined: &Joined,
 ) -> Result<(), wire::WireError> {
     let tick = shared.snapshots.borrow().tick;
-    let w = link::welcome(
-        &shared.terrain,
-        vehicle,
-        tick,
-        shared.color_map.len() as u32,
-        shared.limits,
-    );
+    let w = Welcome {
+        ticket: joined.ticket,
+        resumed: joined.resumed,
+        ..link::welcome(
+            &shared.terrain,
+            joined.vehicle,
+            tick,
+            shared.color_map.len() as u32,
+            shared.limits,
+        )
+    };
     wire::write(send, &ServerMessage::Welcome(w)).await?;
     for (k, chunk) in shared.color_map.chunks(CHUNK).enumerate() {
         let msg = ServerMessage::ColorMap {
@@ -204,7 +225,7 @@ async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: Vehicl
 /// Control messages into the mailbox until the viewer says goodbye or sends something
 /// that is not one.
 async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) {
-    while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, 4096).await {
+    while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
         let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
         if c.push(msg) == Control::End {
             return;
@@ -229,10 +250,11 @@ async fn frames(
     control: Arc<Mutex<Mailbox>>,
     core: ViewerCore,
     rate: u16,
-    vehicle: VehicleId,
-    driver: bool,
+    (vehicle, driver): (VehicleId, bool),
+    sent: &mut u64,
 ) -> FramesEnd {
     let mut core = Some(core);
+    let mut bytes_out = conn.stats().udp_tx.bytes;
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     // The newest change frame sent on a stream, and the newest key frame (kept apart: it
@@ -271,14 +293,27 @@ async fn frames(
         // An update is a fraction of a millisecond: made in line. A rebuild or a key frame
         // (milliseconds at large budgets) goes to a blocking thread, so it never holds up
         // the other viewers' tasks.
+        // At most one fewer blocking frame maker than cores ([`Shared::makers`]): the
+        // world thread always finds a core, whatever the viewers ask for.
+        let started = std::time::Instant::now();
         let (c, made) = if c.next_is_cheap(&scene, &state) {
             make(c)
         } else {
+            let Ok(_permit) = shared.makers.acquire().await else {
+                return FramesEnd::Failed("the server is shutting down");
+            };
             match tokio::task::spawn_blocking(move || make(c)).await {
                 Ok(r) => r,
                 Err(_) => return FramesEnd::Failed("the frame maker failed"),
             }
         };
+        let stats = &shared.stats;
+        stats.add(&stats.make_ns, started.elapsed().as_nanos() as u64);
+        stats.add(&stats.frames, 1);
+        *sent += 1;
+        let tx = conn.stats().udp_tx.bytes;
+        stats.add(&stats.bytes_out, tx.saturating_sub(bytes_out));
+        bytes_out = tx;
         let acked = c.acked();
         let pending_key = c.pending_key();
         core = Some(c);

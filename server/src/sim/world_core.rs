@@ -52,6 +52,10 @@ pub enum Event {
     /// A driver left (or its join was abandoned): its vehicle goes. A vehicle that is not
     /// there changes nothing.
     Leave(VehicleId),
+    /// TEMPORARY (replaced by the records branch): a lost connection's vehicle.
+    Hold(VehicleId),
+    /// TEMPORARY (replaced by the records branch): take a held vehicle back.
+    Resume(VehicleId),
     /// A driver's key states, from one datagram: any order, repeats allowed.
     Keys {
         vehicle: VehicleId,
@@ -217,6 +221,8 @@ impl<W: Write> WorldCore<W> {
                 };
                 None
             }
+            Event::Hold(vehicle) => self.handle(Event::Leave(vehicle)),
+            Event::Resume(_) => None,
             Event::Keys { vehicle, states } => {
                 if let Some(d) = self.drivers.iter_mut().find(|d| d.id == vehicle) {
                     d.receive(states);

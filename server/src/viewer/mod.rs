@@ -44,6 +44,7 @@ use crate::terrain::variance::VarianceTree;
 use crate::tessellate::camera::Camera;
 use crate::tessellate::{Coherent, Limits, Mode, Scales};
 
+pub mod admission;
 mod camera;
 pub mod link;
 

@@ -1,0 +1,353 @@
+//! A connection from its first packet to its welcome: admission (the pending cap, QUIC
+//! Retry, eviction of the oldest pending connection: [`crate::viewer::admission`]), one
+//! deadline for the TLS handshake and the hello together, the hello's checks (version,
+//! token, the viewer limit), and the join: a new vehicle, a held one taken back with the
+//! driver's ticket, or a vehicle to follow. Every refusal is said to the viewer with its
+//! reason and logged with the peer's address; junk that never says hello is closed at the
+//! deadline (or evicted) and only counted (one log line per junk connection would let a
+//! flood fill the disk).
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use roam_link::wire;
+use roam_protocol::messages::{ClientMessage, Hello, Reason, Role, ServerMessage, Ticket};
+use roam_protocol::messages::{VERSION, close};
+use tokio::sync::oneshot;
+use tokio::time::Instant;
+
+use super::Shared;
+use crate::sim::world::VehicleId;
+use crate::sim::world_core::Event;
+use crate::viewer::admission::{PendingId, Verdict};
+
+/// Control-stream messages from a viewer are at most this long (a hello is well under).
+pub const MAX_CONTROL: usize = 4096;
+
+/// A new connection: admitted (its handshake runs on a task of its own), asked to retry
+/// from a proven address, or refused, as [`crate::viewer::admission`] decides.
+pub(super) fn arrive(incoming: quinn::Incoming, shared: &Arc<Shared>) {
+    let mut gate = shared.gate();
+    let verdict = gate
+        .admission
+        .arrive(incoming.remote_address_validated(), incoming.may_retry());
+    let id = match verdict {
+        Verdict::Retry => {
+            shared.stats.add(&shared.stats.retried, 1);
+            if let Err(e) = incoming.retry() {
+                e.into_incoming().refuse();
+            }
+            return;
+        }
+        Verdict::Refuse => {
+            shared.stats.add(&shared.stats.refused_early, 1);
+            incoming.refuse();
+            return;
+        }
+        Verdict::Admit(id) => id,
+        Verdict::AdmitEvicting { id, evict } => {
+            if let Some(tx) = gate.evict.remove(&evict) {
+                let _ = tx.send(());
+            }
+            shared.stats.add(&shared.stats.evicted, 1);
+            id
+        }
+    };
+    let (tx, evicted) = oneshot::channel();
+    gate.evict.insert(id, tx);
+    drop(gate);
+    let pending = Pending {
+        id,
+        shared: shared.clone(),
+    };
+    tokio::spawn(handshake(incoming, pending, evicted, shared.clone()));
+}
+
+/// A connection counted as pending until dropped.
+struct Pending {
+    id: PendingId,
+    shared: Arc<Shared>,
+}
+
+impl Drop for Pending {
+    fn drop(&mut self) {
+        let mut gate = self.shared.gate();
+        gate.admission.gone(self.id);
+        gate.evict.remove(&self.id);
+    }
+}
+
+/// Why a pending connection never said hello.
+enum Early {
+    /// The deadline passed.
+    Deadline,
+    /// A newer connection took its place.
+    Evicted,
+    /// The handshake failed, or the peer closed, or sent something else.
+    Failed(String),
+}
+
+async fn handshake(
+    incoming: quinn::Incoming,
+    pending: Pending,
+    mut evicted: oneshot::Receiver<()>,
+    shared: Arc<Shared>,
+) {
+    let peer = incoming.remote_address();
+    let deadline = Instant::now() + shared.hello_timeout;
+    let conn = tokio::select! {
+        r = tokio::time::timeout_at(deadline, async {
+            incoming.accept().map_err(|e| e.to_string())?.await.map_err(|e| e.to_string())
+        }) => match r {
+            Ok(Ok(conn)) => conn,
+            Ok(Err(why)) => return early(&shared, peer, None, Early::Failed(why)),
+            Err(_) => return early(&shared, peer, None, Early::Deadline),
+        },
+        _ = &mut evicted => return early(&shared, peer, None, Early::Evicted),
+    };
+    let greeted = tokio::select! {
+        r = tokio::time::timeout_at(deadline, greet(&conn)) => match r {
+            Ok(Ok(g)) => g,
+            Ok(Err(why)) => return early(&shared, peer, Some(&conn), Early::Failed(why)),
+            Err(_) => return early(&shared, peer, Some(&conn), Early::Deadline),
+        },
+        _ = &mut evicted => return early(&shared, peer, Some(&conn), Early::Evicted),
+    };
+    let (mut send, recv, hello) = greeted;
+    // The hello is in: the connection is no longer pending, and counts as a viewer now,
+    // or is refused when the server is full.
+    let admitted = shared.gate().admission.hello(pending.id);
+    drop(pending);
+    let role = role_name(&hello.role);
+    let refuse = async |send: &mut quinn::SendStream, reason: Reason, why: &str| {
+        tracing::info!(%peer, role, reason = why, "refused");
+        shared.stats.add(&shared.stats.refused, 1);
+        super::viewer::last_word(send, &ServerMessage::Refused(reason)).await;
+        conn.close(close::REFUSED.into(), why.as_bytes());
+    };
+    if let Err(full) = admitted {
+        let reason = Reason::Full {
+            viewers: full.max as u32,
+        };
+        return refuse(&mut send, reason, &full.to_string()).await;
+    }
+    let seat = Seat {
+        shared: shared.clone(),
+    };
+    if hello.version != VERSION {
+        let why = format!("protocol version {} (this server: {VERSION})", hello.version);
+        return refuse(&mut send, Reason::Version { server: VERSION }, &why).await;
+    }
+    if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
+        return refuse(&mut send, Reason::WrongToken, "wrong token").await;
+    }
+    let joined = match join(&shared, &hello).await {
+        Ok(j) => j,
+        Err(Refusal::Shutdown) => {
+            conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
+            return;
+        }
+        Err(Refusal::Unavailable(why)) => {
+            return refuse(&mut send, Reason::Unavailable(why.clone()), &why).await;
+        }
+    };
+    tracing::info!(
+        %peer,
+        role,
+        vehicle = joined.vehicle,
+        resumed = joined.resumed,
+        "joined"
+    );
+    shared.stats.add(&shared.stats.joins, 1);
+    super::viewer::serve(
+        super::viewer::Viewer {
+            conn,
+            send,
+            recv,
+            hello,
+            peer,
+            joined,
+        },
+        seat,
+        shared,
+    )
+    .await;
+}
+
+/// Counts a connection that never said hello, and closes it with the reason.
+fn early(shared: &Shared, peer: SocketAddr, conn: Option<&quinn::Connection>, why: Early) {
+    let (counter, text) = match &why {
+        Early::Deadline => (&shared.stats.timed_out, "no hello by the deadline".to_owned()),
+        Early::Evicted => (
+            &shared.stats.evicted_closed,
+            "evicted: too many connections without a hello".to_owned(),
+        ),
+        Early::Failed(e) => (&shared.stats.failed, e.clone()),
+    };
+    shared.stats.add(counter, 1);
+    tracing::debug!(%peer, reason = %text, "closed before its hello");
+    if let Some(conn) = conn {
+        let code = match why {
+            Early::Failed(_) => close::PROTOCOL,
+            _ => close::REFUSED,
+        };
+        conn.close(code.into(), text.as_bytes());
+    }
+}
+
+/// The viewer's control stream and its hello.
+async fn greet(
+    conn: &quinn::Connection,
+) -> Result<(quinn::SendStream, quinn::RecvStream, Hello), String> {
+    let (send, mut recv) = conn
+        .accept_bi()
+        .await
+        .map_err(|e| format!("no control stream: {e}"))?;
+    match wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
+        Ok(ClientMessage::Hello(h)) => Ok((send, recv, h)),
+        Ok(_) => Err("expected a hello, got another message".into()),
+        Err(e) => Err(format!("expected a hello: {e}")),
+    }
+}
+
+/// A viewer being served: counted until dropped.
+pub(super) struct Seat {
+    shared: Arc<Shared>,
+}
+
+impl Drop for Seat {
+    fn drop(&mut self) {
+        self.shared.gate().admission.left();
+    }
+}
+
+/// A viewer's place in the world.
+pub(super) struct Joined {
+    pub vehicle: VehicleId,
+    pub driver: bool,
+    /// A driver's claim on its vehicle, for a reconnection.
+    pub ticket: Option<Ticket>,
+    pub resumed: bool,
+    /// A driver's connection is told here that a reconnection with its ticket replaces it
+    /// (the viewer came back before this server saw the old connection die): it ends,
+    /// has its vehicle held, then answers on the sender it was given.
+    pub replaced: Option<oneshot::Receiver<oneshot::Sender<()>>>,
+}
+
+/// What a ticket names: the vehicle, and how to end the connection driving it now.
+pub(super) struct Claim {
+    vehicle: VehicleId,
+    replace: Option<oneshot::Sender<oneshot::Sender<()>>>,
+}
+
+enum Refusal {
+    Shutdown,
+    Unavailable(String),
+}
+
+/// How long a reconnection waits for the connection it replaces to end.
+const REPLACE_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
+
+/// A driver takes its held vehicle back with its ticket, or gets a new one; a spectator
+/// follows the vehicle it asked for (or the first).
+async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
+    if let Role::Spectator { follow } = hello.role {
+        let snap = shared.snapshots.borrow().clone();
+        let target = match follow {
+            Some(id) => snap.vehicles.iter().find(|v| v.id == id),
+            None => snap.vehicles.first(),
+        };
+        return match target {
+            Some(v) => Ok(Joined {
+                vehicle: v.id,
+                driver: false,
+                ticket: None,
+                resumed: false,
+                replaced: None,
+            }),
+            None => Err(Refusal::Unavailable("no vehicle to follow".into())),
+        };
+    }
+    let (replace, replaced) = oneshot::channel();
+    let claim = hello.resume.and_then(|t| shared.tickets().remove(&t));
+    if let (Some(ticket), Some(claim)) = (hello.resume, claim) {
+        // The old connection may still be up (its loss not yet seen here): end it first,
+        // so that the world holds the vehicle before it is asked for it back.
+        if let Some(old) = claim.replace {
+            let (done, ended) = oneshot::channel();
+            if old.send(done).is_ok() {
+                let _ = tokio::time::timeout(REPLACE_WAIT, ended).await;
+            }
+        }
+        if let Ok(vehicle) = ask(shared, Event::Resume(claim.vehicle)).await {
+            shared.tickets().insert(
+                ticket,
+                Claim {
+                    vehicle,
+                    replace: Some(replace),
+                },
+            );
+            return Ok(Joined {
+                vehicle,
+                driver: true,
+                ticket: Some(ticket),
+                resumed: true,
+                replaced: Some(replaced),
+            });
+        }
+    }
+    let vehicle = ask(shared, Event::Join).await.map_err(|()| {
+        if *shared.shutdown.borrow() {
+            Refusal::Shutdown
+        } else {
+            Refusal::Unavailable("no vehicle free".into())
+        }
+    })?;
+    let ticket = random_ticket();
+    let mut tickets = shared.tickets();
+    // A ticket names one vehicle, and a vehicle has one ticket (ids are reused).
+    tickets.retain(|_, c| c.vehicle != vehicle);
+    tickets.insert(
+        ticket,
+        Claim {
+            vehicle,
+            replace: Some(replace),
+        },
+    );
+    Ok(Joined {
+        vehicle,
+        driver: true,
+        ticket: Some(ticket),
+        resumed: false,
+        replaced: Some(replaced),
+    })
+}
+
+/// Hands the world an event that answers with a vehicle: `Err` when it answers none (a
+/// resume too late, no free id) or has stopped.
+async fn ask(shared: &Shared, event: Event) -> Result<VehicleId, ()> {
+    let (tx, rx) = oneshot::channel();
+    shared.world.send((event, Some(tx))).map_err(|_| ())?;
+    rx.await.map_err(|_| ())
+}
+
+fn random_ticket() -> Ticket {
+    use ring::rand::SecureRandom;
+    let mut t = [0u8; 16];
+    ring::rand::SystemRandom::new()
+        .fill(&mut t)
+        .expect("the system's random source works");
+    t
+}
+
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+/// The role as the logs name it.
+pub(super) fn role_name(role: &Role) -> &'static str {
+    match role {
+        Role::Driver => "driver",
+        Role::Spectator { .. } => "spectator",
+    }
+}

@@ -1,0 +1,165 @@
+//! What the server counts while it serves, and the periodic summary it logs from them:
+//! viewers, frames a second served, CPU per frame (the whole process's, from
+//! `/proc/self/stat`, over the frames served in the interval), bytes out a second, and
+//! what admission did with connections that never said hello.
+//!
+//! Counters are relaxed atomics: each is a plain count that nothing else is ordered by.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
+
+/// Running totals since the server started.
+#[derive(Debug, Default)]
+pub struct ServeStats {
+    /// Frames made and sent, all viewers.
+    pub frames: AtomicU64,
+    /// UDP bytes sent to welcomed viewers.
+    pub bytes_out: AtomicU64,
+    /// Time spent making frames, nanoseconds.
+    pub make_ns: AtomicU64,
+    /// Viewers welcomed.
+    pub joins: AtomicU64,
+    /// Hellos refused (token, version, full, nothing to follow).
+    pub refused: AtomicU64,
+    /// Connections past the pending cap sent a QUIC Retry.
+    pub retried: AtomicU64,
+    /// Connections refused without a handshake (past the cap, address not provable).
+    pub refused_early: AtomicU64,
+    /// Pending connections evicted to make room (decided), and those closed for it.
+    pub evicted: AtomicU64,
+    pub evicted_closed: AtomicU64,
+    /// Connections closed because no hello came by the deadline.
+    pub timed_out: AtomicU64,
+    /// Connections whose handshake failed or that sent something other than a hello.
+    pub failed: AtomicU64,
+}
+
+/// The counters at one moment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
+pub struct Counts {
+    pub frames: u64,
+    pub bytes_out: u64,
+    pub make_ns: u64,
+    pub joins: u64,
+    pub refused: u64,
+    pub retried: u64,
+    pub refused_early: u64,
+    pub evicted: u64,
+    pub evicted_closed: u64,
+    pub timed_out: u64,
+    pub failed: u64,
+}
+
+impl ServeStats {
+    pub fn add(&self, counter: &AtomicU64, n: u64) {
+        counter.fetch_add(n, Ordering::Relaxed);
+    }
+
+    pub fn counts(&self) -> Counts {
+        let get = |c: &AtomicU64| c.load(Ordering::Relaxed);
+        Counts {
+            frames: get(&self.frames),
+            bytes_out: get(&self.bytes_out),
+            make_ns: get(&self.make_ns),
+            joins: get(&self.joins),
+            refused: get(&self.refused),
+            retried: get(&self.retried),
+            refused_early: get(&self.refused_early),
+            evicted: get(&self.evicted),
+            evicted_closed: get(&self.evicted_closed),
+            timed_out: get(&self.timed_out),
+            failed: get(&self.failed),
+        }
+    }
+}
+
+/// The process's CPU time so far (user and system), from `/proc/self/stat` (in clock
+/// ticks of 1/100 s, Linux's fixed `USER_HZ` for that file); `None` where there is none.
+pub fn process_cpu() -> Option<Duration> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // The command name (field 2) may hold spaces: count fields after its `)`.
+    let rest = &stat[stat.rfind(')')? + 1..];
+    let mut fields = rest.split_whitespace();
+    // After `)`: state is field 3, so utime (14) and stime (15) are the 12th and 13th.
+    let utime: u64 = fields.nth(11)?.parse().ok()?;
+    let stime: u64 = fields.next()?.parse().ok()?;
+    Some(Duration::from_millis((utime + stime) * 10))
+}
+
+/// One summary line's figures, from the counts at the start and end of an interval.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Summary {
+    pub frames_per_s: f64,
+    pub bytes_out_per_s: f64,
+    /// Process CPU per frame served, microseconds (`None` without frames or a CPU clock).
+    pub cpu_per_frame_us: Option<f64>,
+    /// Time making a frame, microseconds, on average.
+    pub make_us: Option<f64>,
+    /// Connections closed before their hello (deadline, eviction, failure), retried and
+    /// refused early, and hellos refused, in the interval.
+    pub junk: u64,
+    pub retried: u64,
+    pub refused: u64,
+}
+
+impl Summary {
+    pub fn between(a: &Counts, b: &Counts, seconds: f64, cpu: Option<Duration>) -> Summary {
+        let frames = b.frames - a.frames;
+        let per_frame = |total: f64| (frames > 0).then(|| total / frames as f64);
+        Summary {
+            frames_per_s: frames as f64 / seconds,
+            bytes_out_per_s: (b.bytes_out - a.bytes_out) as f64 / seconds,
+            cpu_per_frame_us: cpu.and_then(|c| per_frame(c.as_secs_f64() * 1e6)),
+            make_us: per_frame((b.make_ns - a.make_ns) as f64 / 1e3),
+            junk: (b.timed_out + b.evicted_closed + b.failed)
+                - (a.timed_out + a.evicted_closed + a.failed),
+            retried: (b.retried + b.refused_early) - (a.retried + a.refused_early),
+            refused: b.refused - a.refused,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_summary_divides_by_the_interval_and_the_frames() {
+        let a = Counts {
+            frames: 100,
+            bytes_out: 1_000,
+            make_ns: 0,
+            timed_out: 3,
+            ..Counts::default()
+        };
+        let b = Counts {
+            frames: 700,
+            bytes_out: 61_000,
+            make_ns: 600_000_000,
+            timed_out: 5,
+            evicted_closed: 1,
+            retried: 4,
+            ..Counts::default()
+        };
+        let s = Summary::between(&a, &b, 10.0, Some(Duration::from_millis(300)));
+        assert_eq!(s.frames_per_s, 60.0);
+        assert_eq!(s.bytes_out_per_s, 6_000.0);
+        assert_eq!(s.cpu_per_frame_us, Some(500.0));
+        assert_eq!(s.make_us, Some(1_000.0));
+        assert_eq!((s.junk, s.retried, s.refused), (3, 4, 0));
+        let idle = Summary::between(&b, &b, 10.0, None);
+        assert_eq!((idle.cpu_per_frame_us, idle.make_us), (None, None));
+    }
+
+    #[test]
+    fn this_process_has_used_some_cpu() {
+        // Linux only: the CI and every supported server run it.
+        let mut x = 0u64;
+        for i in 0..50_000_000u64 {
+            x = x.wrapping_add(std::hint::black_box(i * i));
+        }
+        std::hint::black_box(x);
+        let cpu = process_cpu().expect("/proc/self/stat is readable on Linux");
+        assert!(cpu > Duration::ZERO, "{cpu:?}");
+    }
+}
