@@ -98,7 +98,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
     let identity = tls::load_or_create(&args.state_dir)
         .with_context(|| format!("the certificate in {}", args.state_dir.display()))?;
-    let token = args.token.unwrap_or_else(net::random_token);
+    let token = args.token.clone().unwrap_or_else(net::random_token);
     let record_dir = args
         .record_dir
         .clone()
