@@ -13,14 +13,15 @@
 //!   is most likely shared (`/tmp`), so changing its mode would lock its other users out;
 //!   the operator decides (a directory of one's own, or `chmod 700` after a look).
 //! - **Atomic writes.** Each file is written whole to a temporary name in the same
-//!   directory (`.key.der.new`, `.cert.der.new`), created with its final mode, synced, and
-//!   only then renamed over the real name, the key first: a crash never leaves a truncated
-//!   file, nor a certificate without its key. A crash between the two renames leaves the
-//!   new key beside the old certificate and `.cert.der.new`: the next start finishes the
-//!   change (the certificate is complete and synced by then); a crash before the first
-//!   rename leaves only temporary files, which the next start removes (the old identity,
-//!   if any, stands). The directory is locked (`flock`) while the identity is read or
-//!   written, so two starts at once cannot mix their keys and certificates.
+//!   directory (`.key.der.new`, `.cert.der.new`), created with its final mode (exact, not
+//!   left to the umask), synced, and only then renamed over the real name, the key first: a
+//!   crash never leaves a truncated file, nor a certificate without its key. A crash
+//!   between the two renames leaves the new key beside the old certificate and
+//!   `.cert.der.new`: the next start finishes the change (the certificate is complete and
+//!   synced by then); a crash before the first rename leaves only temporary files, which
+//!   the next start removes (the old identity, if any, stands). The directory is locked
+//!   (`flock`) while the identity is read or written, so two starts at once cannot mix
+//!   their keys and certificates.
 //! - **Never a silent new identity.** A new identity breaks every viewer's pinned
 //!   fingerprint, so one is made only where there is none at all: a certificate without its
 //!   key (or the reverse), a file that does not parse, or a key that is not the
@@ -419,9 +420,16 @@ impl StateDir {
         options.write(true).create_new(true);
         #[cfg(unix)]
         std::os::unix::fs::OpenOptionsExt::mode(&mut options, mode);
+        let mut file = options.open(&path).map_err(io(&path))?;
+        // The mode given at creation is masked by the umask: make it exact.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            file.set_permissions(std::fs::Permissions::from_mode(mode))
+                .map_err(io(&path))?;
+        }
         #[cfg(not(unix))]
         let _ = mode;
-        let mut file = options.open(&path).map_err(io(&path))?;
         file.write_all(bytes)
             .and_then(|()| file.sync_all())
             .map_err(io(&path))

@@ -154,50 +154,34 @@ fn a_state_dir_others_can_write_is_refused_untouched() {
 }
 
 #[test]
-fn a_certificate_without_its_key_is_an_error_naming_both() {
-    let scratch = Scratch::new("cert-only");
-    let dir = scratch.state(Some(0o700));
-    let (cert, _, fingerprint) = other_identity(&scratch);
-    std::fs::write(dir.join("cert.der"), &cert).expect("a writable directory");
-    let text = error_text(&dir);
-    let (cert_path, key_path) = (dir.join("cert.der"), dir.join("key.der"));
-    assert!(
-        text.contains(&format!(
-            "{} exists but {} does not",
-            cert_path.display(),
-            key_path.display()
-        )),
-        "{text}"
-    );
-    assert!(
-        text.contains(&fingerprint),
-        "names the pinned fingerprint: {text}"
-    );
-    assert_eq!(names(&dir), ["cert.der"], "nothing made");
-    assert_eq!(std::fs::read(&cert_path).expect("still there"), cert);
-}
-
-#[test]
-fn a_key_without_its_certificate_is_an_error_naming_both() {
-    let scratch = Scratch::new("key-only");
-    let dir = scratch.state(Some(0o700));
-    let (_, key, _) = other_identity(&scratch);
-    std::fs::write(dir.join("key.der"), &key).expect("a writable directory");
-    chmod(&dir.join("key.der"), 0o600);
-    let text = error_text(&dir);
-    assert!(
-        text.contains(&format!(
-            "{} exists but {} does not",
-            dir.join("key.der").display(),
-            dir.join("cert.der").display()
-        )),
-        "{text}"
-    );
-    assert_eq!(names(&dir), ["key.der"], "nothing made");
-    assert_eq!(
-        std::fs::read(dir.join("key.der")).expect("still there"),
-        key
-    );
+fn one_file_without_the_other_is_an_error_naming_both() {
+    let scratch = Scratch::new("half");
+    let (cert, key, fingerprint) = other_identity(&scratch);
+    // (the file there, its bytes, the file missing, what the message restores)
+    let cases = [
+        ("cert.der", &cert, "key.der", "restore the key"),
+        ("key.der", &key, "cert.der", "restore the certificate"),
+    ];
+    for (present, bytes, missing, restore) in cases {
+        let dir = scratch.0.join(present);
+        std::fs::create_dir(&dir).expect("a new directory");
+        chmod(&dir, 0o700);
+        std::fs::write(dir.join(present), bytes).expect("a writable directory");
+        chmod(&dir.join(present), 0o600);
+        let text = error_text(&dir);
+        let (present_path, missing_path) = (dir.join(present), dir.join(missing));
+        let says = format!(
+            "{} exists but {} does not: {restore}, or remove {} to make a new identity",
+            present_path.display(),
+            missing_path.display(),
+            present_path.display()
+        );
+        assert!(text.contains(&says), "{present}: {text}");
+        // Only a certificate tells which fingerprint the viewers pinned.
+        assert_eq!(text.contains(&fingerprint), present == "cert.der", "{text}");
+        assert_eq!(names(&dir), [present], "nothing made");
+        assert_eq!(&std::fs::read(&present_path).expect("still there"), bytes);
+    }
 }
 
 #[test]
