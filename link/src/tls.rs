@@ -1,7 +1,39 @@
 //! Certificates: a self-signed one made on first run and kept in the state directory, its
 //! SHA-256 fingerprint (what viewers pin), and the QUIC configurations of both ends.
+//!
+//! The state directory holds the server's identity: `key.der` (its private key, PKCS#8) and
+//! `cert.der` (its certificate, whose SHA-256 viewers pin). Its rules, in the spirit of ssh:
+//!
+//! - **Modes.** The directory is made `0700` and `key.der` is written `0600` (`cert.der`
+//!   `0644`: it is public, sent to every peer). An existing directory that others may only
+//!   *read* (the `0755` that earlier versions made) is tightened to `0700` with a warning,
+//!   and so is a `key.der` others may read (`0600`): the fix is unambiguous, and the warning
+//!   says to rotate the identity if the key may have been read. A directory others may
+//!   *write* is refused: anyone could have swapped the identity in it, and such a directory
+//!   is most likely shared (`/tmp`), so changing its mode would lock its other users out;
+//!   the operator decides (a directory of one's own, or `chmod 700` after a look).
+//! - **Atomic writes.** Each file is written whole to a temporary name in the same
+//!   directory (`.key.der.new`, `.cert.der.new`), created with its final mode (exact, not
+//!   left to the umask), synced, and only then renamed over the real name, the key first: a
+//!   crash never leaves a truncated file, nor a certificate without its key. A crash
+//!   between the two renames leaves the new key beside the old certificate and
+//!   `.cert.der.new`: the next start finishes the change (the certificate is complete and
+//!   synced by then); a crash before the first rename leaves only temporary files, which
+//!   the next start removes (the old identity, if any, stands). The directory is locked
+//!   (`flock`) while the identity is read or written, so two starts at once cannot mix
+//!   their keys and certificates.
+//! - **Never a silent new identity.** A new identity breaks every viewer's pinned
+//!   fingerprint, so one is made only where there is none at all: a certificate without its
+//!   key (or the reverse), a file that does not parse, or a key that is not the
+//!   certificate's is an error naming the files and what to do, and nothing is written.
+//!   [`rotate`] replaces an identity on purpose.
+//!
+//! Only Linux is built and tested; the mode and lock code is `#[cfg(unix)]` and other
+//! systems skip it.
 
-use std::path::Path;
+use std::fs::File;
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use rustls::client::danger::{HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier};
@@ -25,6 +57,37 @@ pub enum TlsError {
     Quic(String),
     #[error("fingerprint {0:?}: expected 64 hex digits (a SHA-256)")]
     Fingerprint(String),
+    /// One file of the identity without the other.
+    #[error(
+        "{present} exists but {missing} does not: restore the {what}, or remove {present} to \
+         make a new identity ({pinned})"
+    )]
+    Incomplete {
+        present: String,
+        missing: String,
+        what: &'static str,
+        pinned: String,
+    },
+    /// A file of the identity that is not what its name says.
+    #[error("{path}: {what}")]
+    Invalid { path: String, what: String },
+    /// A key and a certificate that are each fine but not a pair.
+    #[error(
+        "{key} is not the key of {cert}: restore the pair that belong together, or remove both \
+         to make a new identity ({pinned})"
+    )]
+    Mismatch {
+        cert: String,
+        key: String,
+        pinned: String,
+    },
+    /// A state directory other users may write to.
+    #[error(
+        "{path} can be written by other users (mode {mode:03o}), so anyone could have replaced \
+         the server's identity in it: keep the state in a directory of your own, or check its \
+         files and `chmod 700 {path}`"
+    )]
+    SharedDir { path: String, mode: u32 },
 }
 
 /// A certificate and its key.
@@ -65,26 +128,312 @@ pub fn parse_fingerprint(text: &str) -> Result<[u8; 32], TlsError> {
     Ok(out)
 }
 
-/// The identity in `dir` (`cert.der`, `key.der`), made and saved there on first use.
+/// The identity in `dir` (`cert.der`, `key.der`), made and saved there on first use; see
+/// the module's header for the modes, the atomic writes and the errors.
 pub fn load_or_create(dir: &Path) -> Result<Identity, TlsError> {
-    let io = |path: &Path| {
-        let path = path.display().to_string();
-        move |error| TlsError::Io { path, error }
-    };
-    let (cert_path, key_path) = (dir.join("cert.der"), dir.join("key.der"));
-    if cert_path.exists() && key_path.exists() {
-        let cert = std::fs::read(&cert_path).map_err(io(&cert_path))?;
-        let key = std::fs::read(&key_path).map_err(io(&key_path))?;
-        return Ok(Identity {
-            cert: CertificateDer::from(cert),
-            key: PrivatePkcs8KeyDer::from(key),
-        });
+    let state = StateDir::open(dir)?;
+    if let Some(id) = state.load()? {
+        return Ok(id);
     }
     let id = generate()?;
-    std::fs::create_dir_all(dir).map_err(io(dir))?;
-    std::fs::write(&cert_path, id.cert.as_ref()).map_err(io(&cert_path))?;
-    std::fs::write(&key_path, id.key.secret_pkcs8_der()).map_err(io(&key_path))?;
+    state.save(&id)?;
     Ok(id)
+}
+
+/// What [`rotate`] did.
+pub struct Rotated {
+    /// The fingerprint of the certificate it replaced, if there was one.
+    pub old: Option<String>,
+    /// The identity now in the directory.
+    pub new: Identity,
+}
+
+/// Replaces the identity in `dir` with a new one (made if there was none), atomically: a
+/// crash leaves the old identity or the new one, never a mix. Whatever was there goes,
+/// even a broken or incomplete identity; the old key is not kept (one rotates because it
+/// may have leaked).
+pub fn rotate(dir: &Path) -> Result<Rotated, TlsError> {
+    let state = StateDir::open(dir)?;
+    let old = state.read(CERT)?.map(|cert| hex(&sha256(&cert)));
+    let new = generate()?;
+    state.save(&new)?;
+    Ok(Rotated { old, new })
+}
+
+const KEY: &str = "key.der";
+const CERT: &str = "cert.der";
+/// Where [`KEY`] and [`CERT`] are written before they are renamed into place.
+const KEY_NEW: &str = ".key.der.new";
+const CERT_NEW: &str = ".cert.der.new";
+/// What a file of the identity may weigh: both are a few hundred bytes.
+const MAX_FILE: u64 = 64 << 10;
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> TlsError {
+    let path = path.display().to_string();
+    move |error| TlsError::Io { path, error }
+}
+
+/// What a new identity costs the viewers, for the error messages.
+fn pinned(cert: Option<&[u8]>) -> String {
+    match cert {
+        Some(cert) => format!(
+            "viewers pinned to fingerprint {} will need the new one",
+            hex(&sha256(cert))
+        ),
+        None => "viewers will need its new fingerprint".to_owned(),
+    }
+}
+
+/// The state directory, made and checked, and locked for as long as this lives.
+struct StateDir {
+    path: PathBuf,
+    /// The directory itself, open: holds the lock, and syncs renames to disk.
+    #[cfg(unix)]
+    handle: File,
+}
+
+impl StateDir {
+    /// Makes `dir` (`0700`) or checks its mode, locks it, and finishes or undoes an identity
+    /// change a crash interrupted.
+    fn open(dir: &Path) -> Result<StateDir, TlsError> {
+        let mut builder = std::fs::DirBuilder::new();
+        builder.recursive(true);
+        #[cfg(unix)]
+        std::os::unix::fs::DirBuilderExt::mode(&mut builder, 0o700);
+        builder.create(dir).map_err(io(dir))?;
+        let state = StateDir {
+            path: dir.to_path_buf(),
+            #[cfg(unix)]
+            handle: File::open(dir).map_err(io(dir))?,
+        };
+        #[cfg(unix)]
+        state.secure()?;
+        state.recover()?;
+        Ok(state)
+    }
+
+    /// Locks the directory and keeps it to its owner (see the module's header).
+    #[cfg(unix)]
+    fn secure(&self) -> Result<(), TlsError> {
+        use std::os::unix::fs::PermissionsExt;
+        let dir = &self.path;
+        self.handle.lock().map_err(io(dir))?;
+        let mode = self
+            .handle
+            .metadata()
+            .map_err(io(dir))?
+            .permissions()
+            .mode()
+            & 0o777;
+        if mode & 0o022 != 0 {
+            return Err(TlsError::SharedDir {
+                path: dir.display().to_string(),
+                mode,
+            });
+        }
+        if mode & 0o077 != 0 {
+            self.handle
+                .set_permissions(std::fs::Permissions::from_mode(0o700))
+                .map_err(io(dir))?;
+            tracing::warn!(
+                "{} was open to other users (mode {mode:03o}): made it 700. If they could read \
+                 {} in it, rotate the identity",
+                dir.display(),
+                self.file(KEY).display()
+            );
+        }
+        Ok(())
+    }
+
+    fn file(&self, name: &str) -> PathBuf {
+        self.path.join(name)
+    }
+
+    /// Flushes the directory's entries (renames) to disk.
+    fn sync(&self) -> Result<(), TlsError> {
+        #[cfg(unix)]
+        self.handle.sync_all().map_err(io(&self.path))?;
+        Ok(())
+    }
+
+    fn exists(&self, name: &str) -> Result<bool, TlsError> {
+        let path = self.file(name);
+        match std::fs::symlink_metadata(&path) {
+            Ok(_) => Ok(true),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(io(&path)(e)),
+        }
+    }
+
+    fn remove(&self, name: &str) -> Result<(), TlsError> {
+        let path = self.file(name);
+        std::fs::remove_file(&path).map_err(io(&path))
+    }
+
+    /// Moves `from` over `to` and syncs the directory.
+    fn rename(&self, from: &str, to: &str) -> Result<(), TlsError> {
+        let from = self.file(from);
+        std::fs::rename(&from, self.file(to)).map_err(io(&from))?;
+        self.sync()
+    }
+
+    /// Finishes or undoes what [`StateDir::save`] left when it was interrupted.
+    fn recover(&self) -> Result<(), TlsError> {
+        match (self.exists(KEY_NEW)?, self.exists(CERT_NEW)?) {
+            (false, false) => {}
+            (false, true) => {
+                // The key was renamed into place: its certificate is whole and synced.
+                self.rename(CERT_NEW, CERT)?;
+                tracing::warn!(
+                    "{}: finished an identity change interrupted between its key and its \
+                     certificate",
+                    self.path.display()
+                );
+            }
+            (true, cert_new) => {
+                // Interrupted before the first rename: what was there stands.
+                self.remove(KEY_NEW)?;
+                if cert_new {
+                    self.remove(CERT_NEW)?;
+                }
+                self.sync()?;
+                tracing::warn!(
+                    "{}: removed the files of an identity change interrupted before it took \
+                     effect",
+                    self.path.display()
+                );
+            }
+        }
+        Ok(())
+    }
+
+    /// The file `name`, if there is one. [`KEY`] is kept to its owner: one others may read
+    /// is tightened to `0600`, with a warning.
+    fn read(&self, name: &str) -> Result<Option<Vec<u8>>, TlsError> {
+        let path = self.file(name);
+        let file = match File::open(&path) {
+            Ok(file) => file,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(io(&path)(e)),
+        };
+        #[cfg(unix)]
+        if name == KEY {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = file.metadata().map_err(io(&path))?.permissions().mode() & 0o777;
+            if mode & 0o077 != 0 {
+                file.set_permissions(std::fs::Permissions::from_mode(0o600))
+                    .map_err(io(&path))?;
+                tracing::warn!(
+                    "{} was readable by other users (mode {mode:03o}): made it 600. If someone \
+                     may have read it, rotate the identity",
+                    path.display()
+                );
+            }
+        }
+        let mut bytes = Vec::new();
+        file.take(MAX_FILE + 1)
+            .read_to_end(&mut bytes)
+            .map_err(io(&path))?;
+        if bytes.len() as u64 > MAX_FILE {
+            return Err(TlsError::Invalid {
+                path: path.display().to_string(),
+                what: format!("over {MAX_FILE} bytes: not a certificate or key roam made"),
+            });
+        }
+        Ok(Some(bytes))
+    }
+
+    /// The identity in the directory: none if neither file is there, an error if only one
+    /// is, if either does not parse, or if they are not a pair.
+    fn load(&self) -> Result<Option<Identity>, TlsError> {
+        let (cert_path, key_path) = (self.file(CERT), self.file(KEY));
+        let name = |p: &Path| p.display().to_string();
+        let (cert, key) = match (self.read(CERT)?, self.read(KEY)?) {
+            (None, None) => return Ok(None),
+            (Some(cert), Some(key)) => (CertificateDer::from(cert), PrivatePkcs8KeyDer::from(key)),
+            (Some(cert), None) => {
+                return Err(TlsError::Incomplete {
+                    present: name(&cert_path),
+                    missing: name(&key_path),
+                    what: "key",
+                    pinned: pinned(Some(&cert)),
+                });
+            }
+            (None, Some(_)) => {
+                return Err(TlsError::Incomplete {
+                    present: name(&key_path),
+                    missing: name(&cert_path),
+                    what: "certificate",
+                    pinned: pinned(None),
+                });
+            }
+        };
+        rustls::server::ParsedCertificate::try_from(&cert).map_err(|e| TlsError::Invalid {
+            path: name(&cert_path),
+            what: format!("not a certificate (X.509, DER): {e}"),
+        })?;
+        let signer = provider()
+            .key_provider
+            .load_private_key(PrivateKeyDer::Pkcs8(key.clone_key()))
+            .map_err(|e| TlsError::Invalid {
+                path: name(&key_path),
+                what: format!("not a private key (PKCS#8, DER): {e}"),
+            })?;
+        match rustls::sign::CertifiedKey::new(vec![cert.clone()], signer).keys_match() {
+            Ok(()) => Ok(Some(Identity { cert, key })),
+            Err(rustls::Error::InconsistentKeys(rustls::InconsistentKeys::KeyMismatch)) => {
+                Err(TlsError::Mismatch {
+                    cert: name(&cert_path),
+                    key: name(&key_path),
+                    pinned: pinned(Some(&cert)),
+                })
+            }
+            Err(e) => Err(TlsError::Invalid {
+                path: name(&cert_path),
+                what: format!("cannot check it against {}: {e}", name(&key_path)),
+            }),
+        }
+    }
+
+    /// Writes `id` over the directory's identity: both files to temporary names (final
+    /// modes, synced), then the key renamed into place, then the certificate.
+    fn save(&self, id: &Identity) -> Result<(), TlsError> {
+        let written = self
+            .write_new(KEY_NEW, id.key.secret_pkcs8_der(), 0o600)
+            .and_then(|()| self.write_new(CERT_NEW, &id.cert, 0o644))
+            .and_then(|()| self.sync());
+        if let Err(e) = written {
+            // Nothing took effect; the next start would remove these anyway.
+            for name in [KEY_NEW, CERT_NEW] {
+                let _best_effort = std::fs::remove_file(self.file(name));
+            }
+            return Err(e);
+        }
+        self.rename(KEY_NEW, KEY)?;
+        self.rename(CERT_NEW, CERT)
+    }
+
+    /// Writes a new file `name` with `mode` from its creation on, and syncs it.
+    fn write_new(&self, name: &str, bytes: &[u8], mode: u32) -> Result<(), TlsError> {
+        let path = self.file(name);
+        let mut options = std::fs::OpenOptions::new();
+        options.write(true).create_new(true);
+        #[cfg(unix)]
+        std::os::unix::fs::OpenOptionsExt::mode(&mut options, mode);
+        let mut file = options.open(&path).map_err(io(&path))?;
+        // The mode given at creation is masked by the umask: make it exact.
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            file.set_permissions(std::fs::Permissions::from_mode(mode))
+                .map_err(io(&path))?;
+        }
+        #[cfg(not(unix))]
+        let _ = mode;
+        file.write_all(bytes)
+            .and_then(|()| file.sync_all())
+            .map_err(io(&path))
+    }
 }
 
 /// A fresh self-signed identity (for tests and in-process servers).

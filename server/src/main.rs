@@ -45,6 +45,8 @@ enum Command {
     Replay(cli::sim::ReplayArgs),
     /// Serve the terrain to viewers over QUIC, the world at 100 Hz; stop with Ctrl-C.
     Serve(cli::net::ServeArgs),
+    /// Print the server's certificate fingerprint (made if absent); `--rotate` replaces it.
+    Identity(cli::identity::IdentityArgs),
 }
 
 fn main() -> ExitCode {
@@ -59,6 +61,7 @@ fn main() -> ExitCode {
         Command::Simulate(args) => cli::sim::simulate(args),
         Command::Replay(args) => cli::sim::replay(args),
         Command::Serve(args) => cli::net::serve(args),
+        Command::Identity(args) => cli::identity::identity(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

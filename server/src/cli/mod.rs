@@ -2,7 +2,9 @@
 //! serving), and the terminal progress bar they share.
 
 pub mod data;
+pub mod identity;
 pub mod net;
 pub mod progress;
 pub mod sim;
 pub mod tess;
+pub mod token;
