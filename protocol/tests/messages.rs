@@ -195,6 +195,7 @@ fn limits() {
     let token = |n: usize| {
         encoded(&ClientMessage::Hello(Hello {
             token: "x".repeat(n),
+            role: Role::Driver,
             ..hello()
         }))
     };
@@ -223,8 +224,8 @@ fn limits() {
     // A frame: frame 3, no base, tick 77, then its vehicles' count.
     let frame_head = [3, 0, 77];
     let mut bad_utf8 = token(2);
-    let at = bad_utf8.len() - token(0).len() + 3;
-    bad_utf8[at] = 0xff;
+    // The token's first byte, after the hello's head and the token's length.
+    bad_utf8[hello_head.len() + 1] = 0xff;
     for (name, kind, input, want) in [
         ("a 128-byte token", As::Client, token(128), Value),
         (
@@ -316,6 +317,14 @@ fn limits() {
     ] {
         check(name, kind, &input, want);
     }
+    let mut bad_utf8 = token(2);
+    bad_utf8[hello_head.len() + 1] = 0xff;
+    let err = messages::decode::<ClientMessage>(&bad_utf8).expect_err("not UTF-8");
+    assert!(
+        err.to_string()
+            .contains("join token bytes: not UTF-8 at byte 0"),
+        "{err}"
+    );
 }
 
 proptest! {
