@@ -1,9 +1,10 @@
 //! roam-protocol: what crosses the wire between a roam server and its viewers, the mesh
 //! codec and the colour map codec. Pure: no I/O, no sockets, no async runtime, no clock.
 //! Any byte string decodes to a value or an error, never a panic, and never allocates
-//! beyond the decode's limit.
+//! beyond the decode's limit (a message's fields are read by `bounded`).
 
 pub mod bintree;
+mod bounded;
 pub mod changes;
 pub mod codec;
 pub mod colormap;

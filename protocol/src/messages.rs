@@ -10,11 +10,20 @@
 //! - **one unidirectional stream per frame** ([`Frame`]), abandoned (reset) when a newer
 //!   frame is ready first.
 //!
-//! Every decode has a byte limit: a length or count that claims more than the limit is an
-//! error before anything is allocated, and bytes left over after a message are an error.
+//! Every decode has a byte limit ([`Checked::MAX_BYTES`]), and every variable-length field
+//! one of its own: the join token [`MAX_TOKEN`] bytes, a reason [`MAX_REASON`], a key
+//! datagram [`KEY_HISTORY`] states, a frame [`MAX_VEHICLES`] vehicles, a colour-map chunk
+//! [`MAX_CHUNK`] bytes, a frame's mesh what the message holds. A length or count that
+//! claims more than its limit is [`DecodeError::TooLong`], naming the field, before
+//! anything is allocated for it; a list reserves little until its items arrive (see
+//! `bounded`). Decoding borrows from the input, so no string or byte string is allocated
+//! before its length has been checked. Bytes left over after a message are an error.
 
 use serde::de::DeserializeOwned;
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
+
+use crate::bounded;
+pub use crate::bounded::PREALLOC;
 
 /// The protocol version this code speaks. 2: the colour map is sent compressed
 /// ([`crate::colormap`]). 3: a frame's mesh may be a change frame (mesh format 2,
@@ -30,6 +39,12 @@ pub const MAX_DATAGRAM: usize = 256;
 pub const MAX_TOKEN: usize = 128;
 /// Key states a datagram repeats.
 pub const KEY_HISTORY: usize = 8;
+/// Longest reason ([`Reason::Protocol`], [`Reason::Unavailable`]), bytes.
+pub const MAX_REASON: usize = 1024;
+/// The most vehicles a frame lists: one per vehicle id (`u16`).
+pub const MAX_VEHICLES: usize = 1 << 16;
+/// The largest colour-map chunk ([`ServerMessage::ColorMap`]), bytes.
+pub const MAX_CHUNK: usize = 64 << 10;
 /// The fewest and the most triangles a viewer may ask for: one limit, kept by both ends
 /// ([`clamp_budget`]).
 pub const MIN_BUDGET: u32 = 2;
@@ -70,6 +85,7 @@ pub struct Hello {
     pub version: u16,
     pub role: Role,
     /// The join token the server printed.
+    #[serde(deserialize_with = "token")]
     pub token: String,
     /// Viewport in pixels, width and height.
     pub viewport: [u32; 2],
@@ -134,11 +150,13 @@ pub enum Reason {
     /// The viewer quit.
     Quit,
     /// The viewer sent something that is not the protocol.
-    Protocol(String),
+    Protocol(#[serde(deserialize_with = "reason")] String),
     /// No vehicle to follow, or no room.
-    Unavailable(String),
+    Unavailable(#[serde(deserialize_with = "reason")] String),
     /// The server serves `viewers` viewers, its limit.
-    Full { viewers: u32 },
+    Full {
+        viewers: u32,
+    },
 }
 
 /// Viewer to server, on the control stream.
@@ -177,6 +195,7 @@ pub enum ServerMessage {
     /// Part of the compressed colour map, at byte `offset`.
     ColorMap {
         offset: u32,
+        #[serde(deserialize_with = "chunk")]
         data: Vec<u8>,
     },
     Refused(Reason),
@@ -205,10 +224,12 @@ pub struct Frame {
     pub base: Option<u64>,
     /// The world tick the frame shows.
     pub tick: u64,
+    #[serde(deserialize_with = "vehicles")]
     pub vehicles: Vec<VehicleView>,
     /// The newest key state of this viewer the world had applied by `tick` (drivers).
     pub input_seq: Option<u32>,
     /// The mesh, in the codec's format ([`crate::codec`]).
+    #[serde(deserialize_with = "crate::bounded::bytes")]
     pub mesh: Vec<u8>,
 }
 
@@ -225,6 +246,7 @@ pub struct KeyState {
 /// The viewer's latest key states, newest first, at most [`KEY_HISTORY`].
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct KeyDatagram {
+    #[serde(deserialize_with = "key_states")]
     pub states: Vec<KeyState>,
 }
 
@@ -258,27 +280,37 @@ pub fn encode<T: Serialize>(msg: &T, out: &mut Vec<u8>) -> Result<(), EncodeErro
     Ok(())
 }
 
-/// Decodes a whole message from `bytes` (nothing may follow it).
+/// Decodes a whole message from `bytes` (nothing may follow it). Strings and byte
+/// strings are read from the slice itself, and every length is checked against its
+/// field's limit before anything is allocated for it.
 pub fn decode<T: DeserializeOwned + Checked>(bytes: &[u8]) -> Result<T, DecodeError> {
     at_most("message bytes", bytes.len(), T::MAX_BYTES)?;
-    let (msg, used): (T, usize) = bincode::serde::decode_from_slice(bytes, config())?;
+    // Nothing left over from an earlier decode on this thread (one that panicked).
+    bounded::take_refusal();
+    let decoded = bincode::serde::borrow_decode_from_slice::<T, _>(bytes, config());
+    let refusal = bounded::take_refusal();
+    let (msg, used) = match (decoded, refusal) {
+        (Ok(decoded), _) => decoded,
+        (Err(_), Some(r)) => {
+            return Err(DecodeError::TooLong {
+                what: r.what,
+                got: r.got,
+                limit: r.limit,
+            });
+        }
+        (Err(e), None) => return Err(e.into()),
+    };
     if used != bytes.len() {
         return Err(DecodeError::Trailing {
             extra: bytes.len() - used,
         });
     }
-    msg.check()?;
     Ok(msg)
 }
 
-/// Limits a decoded message must also meet.
+/// The longest encoding of a message that [`decode`] accepts.
 pub trait Checked {
-    /// The longest encoding accepted.
     const MAX_BYTES: usize = MAX_MESSAGE;
-
-    fn check(&self) -> Result<(), DecodeError> {
-        Ok(())
-    }
 }
 
 fn at_most(what: &'static str, got: usize, limit: usize) -> Result<(), DecodeError> {
@@ -288,25 +320,33 @@ fn at_most(what: &'static str, got: usize, limit: usize) -> Result<(), DecodeErr
     Ok(())
 }
 
-impl Checked for ClientMessage {
-    fn check(&self) -> Result<(), DecodeError> {
-        match self {
-            ClientMessage::Hello(h) => at_most("join token bytes", h.token.len(), MAX_TOKEN),
-            ClientMessage::Bye(Reason::Protocol(s) | Reason::Unavailable(s)) => {
-                at_most("reason bytes", s.len(), 1024)
-            }
-            _ => Ok(()),
-        }
-    }
-}
-
+impl Checked for ClientMessage {}
 impl Checked for ServerMessage {}
 impl Checked for Frame {}
 
 impl Checked for KeyDatagram {
     const MAX_BYTES: usize = MAX_DATAGRAM;
+}
 
-    fn check(&self) -> Result<(), DecodeError> {
-        at_most("key states", self.states.len(), KEY_HISTORY)
-    }
+// The bounded fields' readers (`#[serde(deserialize_with)]` above): each field's name, as
+// errors give it, and its limit.
+
+fn token<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    bounded::string(d, "join token bytes", MAX_TOKEN)
+}
+
+fn reason<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    bounded::string(d, "reason bytes", MAX_REASON)
+}
+
+fn chunk<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+    bounded::list(d, "colour map chunk bytes", MAX_CHUNK)
+}
+
+fn vehicles<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<VehicleView>, D::Error> {
+    bounded::list(d, "vehicles", MAX_VEHICLES)
+}
+
+fn key_states<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<KeyState>, D::Error> {
+    bounded::list(d, "key states", KEY_HISTORY)
 }

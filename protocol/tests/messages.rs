@@ -136,42 +136,194 @@ fn every_message_round_trips() {
     });
 }
 
+/// What a decode should give.
+#[derive(Debug, PartialEq)]
+enum Want {
+    Value,
+    /// `DecodeError::TooLong` naming the field, the length and the limit.
+    TooLong(&'static str, usize, usize),
+    /// Any other error.
+    Error,
+}
+
+/// Which message type the bytes are decoded as.
+#[derive(Clone, Copy, Debug)]
+enum As {
+    Client,
+    Server,
+    Frame,
+    Keys,
+}
+
+fn outcome<T: serde::de::DeserializeOwned + messages::Checked>(bytes: &[u8]) -> Want {
+    match messages::decode::<T>(bytes) {
+        Ok(_) => Want::Value,
+        Err(DecodeError::TooLong { what, got, limit }) => Want::TooLong(what, got, limit),
+        Err(_) => Want::Error,
+    }
+}
+
+/// Decoding `input` as `kind` gives `want`.
+fn check(name: &str, kind: As, input: &[u8], want: Want) {
+    let got = match kind {
+        As::Client => outcome::<ClientMessage>(input),
+        As::Server => outcome::<ServerMessage>(input),
+        As::Frame => outcome::<Frame>(input),
+        As::Keys => outcome::<KeyDatagram>(input),
+    };
+    assert_eq!(got, want, "{name}");
+}
+
+fn encoded<T: serde::Serialize>(msg: &T) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    messages::encode(msg, &mut bytes).expect("encodes");
+    bytes
+}
+
+/// `prefix`, then a bincode varint claiming `len` (its `u32` form), then `rest`.
+fn claiming(prefix: &[u8], len: u32, rest: &[u8]) -> Vec<u8> {
+    let mut v = prefix.to_vec();
+    v.push(252);
+    v.extend_from_slice(&len.to_le_bytes());
+    v.extend_from_slice(rest);
+    v
+}
+
 #[test]
 fn limits() {
-    let long = ClientMessage::Hello(Hello {
-        token: "x".repeat(129),
-        ..hello()
-    });
-    let mut bytes = Vec::new();
-    messages::encode(&long, &mut bytes).expect("encodes");
-    assert!(matches!(
-        messages::decode::<ClientMessage>(&bytes),
-        Err(DecodeError::TooLong {
-            what: "join token bytes",
-            got: 129,
-            limit: 128
-        })
-    ));
-    let many = KeyDatagram {
-        states: vec![
-            KeyState {
-                seq: 1,
-                held: 0,
-                pressed: 0
-            };
-            9
-        ],
+    use Want::{Error, TooLong, Value};
+    let token = |n: usize| {
+        encoded(&ClientMessage::Hello(Hello {
+            token: "x".repeat(n),
+            role: Role::Driver,
+            ..hello()
+        }))
     };
-    let mut bytes = Vec::new();
-    messages::encode(&many, &mut bytes).expect("encodes");
-    assert!(messages::decode::<KeyDatagram>(&bytes).is_err());
-    // A count claiming far more than the bytes hold fails without allocating it.
-    let mut huge = vec![0u8; 4];
-    huge.extend_from_slice(&[0xfc, 0xff, 0xff, 0xff, 0x7f]);
-    assert!(messages::decode::<Frame>(&huge).is_err());
+    let reason = |n: usize| Reason::Protocol("r".repeat(n));
+    let chunk = |n: usize| {
+        encoded(&ServerMessage::ColorMap {
+            offset: 0,
+            data: vec![3; n],
+        })
+    };
+    let keys = |n: usize| {
+        encoded(&KeyDatagram {
+            states: vec![
+                KeyState {
+                    seq: 1,
+                    held: 0,
+                    pressed: 0
+                };
+                n
+            ],
+        })
+    };
+    let mb16 = 16 << 20;
+    // A hello: variant, version, role (a driver), then the token's length.
+    let hello_head = [0, messages::VERSION as u8, 0];
+    // A frame: frame 3, no base, tick 77, then its vehicles' count.
+    let frame_head = [3, 0, 77];
+    let mut bad_utf8 = token(2);
+    // The token's first byte, after the hello's head and the token's length.
+    bad_utf8[hello_head.len() + 1] = 0xff;
+    for (name, kind, input, want) in [
+        ("a 128-byte token", As::Client, token(128), Value),
+        (
+            "a 129-byte token",
+            As::Client,
+            token(129),
+            TooLong("join token bytes", 129, 128),
+        ),
+        (
+            "a token claiming 16 MiB",
+            As::Client,
+            claiming(&hello_head, mb16, b"abc"),
+            TooLong("join token bytes", 16 << 20, 128),
+        ),
+        ("a token that is not UTF-8", As::Client, bad_utf8, Error),
+        (
+            "a 1024-byte reason",
+            As::Client,
+            encoded(&ClientMessage::Bye(reason(1024))),
+            Value,
+        ),
+        (
+            "a 1025-byte reason from a viewer",
+            As::Client,
+            encoded(&ClientMessage::Bye(reason(1025))),
+            TooLong("reason bytes", 1025, 1024),
+        ),
+        (
+            "a 1025-byte reason from a server",
+            As::Server,
+            encoded(&ServerMessage::Refused(reason(1025))),
+            TooLong("reason bytes", 1025, 1024),
+        ),
+        (
+            "a 64 KiB colour-map chunk",
+            As::Server,
+            chunk(64 << 10),
+            Value,
+        ),
+        (
+            "a colour-map chunk of 64 KiB and a byte",
+            As::Server,
+            chunk((64 << 10) + 1),
+            TooLong("colour map chunk bytes", (64 << 10) + 1, 64 << 10),
+        ),
+        (
+            "a colour-map chunk claiming 16 MiB",
+            As::Server,
+            claiming(&[1, 0], mb16, &[]),
+            TooLong("colour map chunk bytes", 16 << 20, 64 << 10),
+        ),
+        (
+            "a frame claiming 65,537 vehicles",
+            As::Frame,
+            claiming(&frame_head, 65_537, &[]),
+            TooLong("vehicles", 65_537, 65_536),
+        ),
+        (
+            "a frame claiming 65,536 vehicles it does not hold",
+            As::Frame,
+            claiming(&frame_head, 65_536, &[0; 60]),
+            Error,
+        ),
+        (
+            "a frame claiming a mesh it does not hold",
+            As::Frame,
+            claiming(&[3, 0, 77, 0, 0], mb16, &[0; 60]),
+            Error,
+        ),
+        ("eight key states", As::Keys, keys(8), Value),
+        (
+            "nine key states",
+            As::Keys,
+            keys(9),
+            TooLong("key states", 9, 8),
+        ),
+        (
+            "a key datagram claiming 2^20 states",
+            As::Keys,
+            claiming(&[], 1 << 20, &[]),
+            TooLong("key states", 1 << 20, 8),
+        ),
+        (
+            "a key datagram longer than a datagram",
+            As::Keys,
+            vec![0; 300],
+            TooLong("message bytes", 300, 256),
+        ),
+    ] {
+        check(name, kind, &input, want);
+    }
+    let mut bad_utf8 = token(2);
+    bad_utf8[hello_head.len() + 1] = 0xff;
+    let err = messages::decode::<ClientMessage>(&bad_utf8).expect_err("not UTF-8");
     assert!(
-        messages::decode::<KeyDatagram>(&[0u8; 300]).is_err(),
-        "over the datagram limit"
+        err.to_string()
+            .contains("join token bytes: not UTF-8 at byte 0"),
+        "{err}"
     );
 }
 

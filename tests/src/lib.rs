@@ -1,8 +1,10 @@
 //! Helpers for the end-to-end tests in `tests/` and the measuring scripts: a seeded lossy
 //! UDP relay ([`relay`], and the `roam-relay` binary) to put between a server and viewers,
 //! and a simulated network ([`simnet`]) driving the server's and the viewer's sans-IO
-//! cores together with virtual time, no sockets.
+//! cores together with virtual time, no sockets; and the inputs and decoders of the
+//! fuzzing bench and test ([`fuzz`]).
 
 pub mod fixtures;
+pub mod fuzz;
 pub mod relay;
 pub mod simnet;

@@ -1,0 +1,463 @@
+//! Fuzzing every decoder: the inputs, and the decoders with the state a viewer or a server
+//! holds when it decodes. Shared by the million-input bench (`cargo bench -p roam-tests
+//! --bench fuzz`) and the test that runs a smaller count under a counting allocator
+//! (`tests/tests/fuzz.rs`).
+//!
+//! Inputs alternate ([`Fuzz::input`]): random bytes (under 300), and valid encodings
+//! ([`seeds`]: messages of every kind, frames carrying real key and change frames, bare
+//! meshes, colour maps) with one to four bytes flipped, cut or appended. Each input goes
+//! through every [`Stage`] ([`Fuzz::feed`]): the four message decoders, the control
+//! stream's framing (the input behind a length prefix that is true, random, or claims up
+//! to 32 MiB), the mesh decoder (key, delta and change frames) and the colour-map decoder;
+//! a frame that decodes goes on through the mesh decoder and the viewer's vertex builder.
+//! The caller runs each stage (to count outcomes, catch panics, measure allocations).
+
+use std::future::Future;
+use std::pin::pin;
+use std::task::{Context, Poll, Waker};
+
+use roam_client::render::{Scene, TerrainVertices};
+use roam_link::wire;
+use roam_protocol::messages::{
+    self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
+};
+use roam_protocol::{
+    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Grid, Mesh, MeshDecoder, MeshEncoder, colormap,
+    mesh,
+};
+
+use crate::fixtures::SplitMix64;
+
+/// The side of the fuzzed colour maps: small, so that the many inputs that get past the
+/// header (and decode every texel) stay quick.
+pub const COLOR_CELLS: u32 = 32;
+/// The fuzzed grid's levels (65 × 65 vertices).
+pub const LEVELS: u32 = 6;
+/// The triangle limit the mesh decoders are given.
+pub const MAX_TRIANGLES: u32 = 100_000;
+/// The control-stream limit of a server reading a viewer's messages (as the server does).
+pub const HELLO_LIMIT: usize = 4096;
+
+/// One step an input is taken through.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Stage {
+    /// `messages::decode::<ClientMessage>`, as a server reads a control message.
+    ClientMessage,
+    /// `messages::decode::<ServerMessage>`, as a viewer reads one.
+    ServerMessage,
+    /// `messages::decode::<KeyDatagram>`.
+    KeyDatagram,
+    /// `messages::decode::<Frame>`.
+    Frame,
+    /// `wire::read::<ClientMessage>` with the server's limit ([`HELLO_LIMIT`]), over the
+    /// framed input.
+    WireClient,
+    /// `wire::read::<ServerMessage>` with the viewer's limit (`MAX_MESSAGE`).
+    WireServer,
+    /// A decoded frame's mesh through `MeshDecoder::decode_cut`: against the base a viewer
+    /// holds when the frame names one.
+    FrameMesh,
+    /// A mesh that decoded (a frame's, a key frame's or a change frame's) emitted
+    /// (`mesh::emit`) and built into vertices (`TerrainVertices::build`).
+    Vertices,
+    /// `MeshDecoder::decode` as a key frame.
+    KeyMesh,
+    /// `MeshDecoder::decode` as a delta on an empty base.
+    DeltaMesh,
+    /// `MeshDecoder::decode_cut` against the change frames' base; random inputs go behind a
+    /// change frame's header.
+    ChangeMesh,
+    /// `colormap::decode` of a [`COLOR_CELLS`]² map.
+    ColorMap,
+}
+
+/// Runs one stage: given the stage, the bytes it reads and the step itself (true when it
+/// gave a value), returns what the step returned (false if it did not run to the end).
+pub type Runner<'a> = dyn FnMut(Stage, &[u8], &mut dyn FnMut() -> bool) -> bool + 'a;
+
+/// A value below `n` (0 when `n` is 0).
+pub fn below(rng: &mut SplitMix64, n: usize) -> usize {
+    (rng.next_u64() % n.max(1) as u64) as usize
+}
+
+/// Random split sets: `n` closed splits at random points.
+fn random_splits(grid: Grid, set: &mut BitSet, rng: &mut SplitMix64, n: u32) {
+    for _ in 0..n {
+        let side = grid.side() as usize;
+        let (x, z) = (below(rng, side) as u32, below(rng, side) as u32);
+        grid.split_closed(set, x, z);
+    }
+}
+
+/// The fuzzed terrain's heights.
+pub fn heights(grid: Grid) -> Vec<u16> {
+    (0..grid.vertices() as u32)
+        .map(|i| (i * 7919 % 60_000) as u16)
+        .collect()
+}
+
+/// The base the change frames are coded against (as a viewer holds it) and the split
+/// sets the fuzzed change frames lead to.
+pub fn change_base(grid: Grid, heights: &[u16]) -> (Cut, Vec<BitSet>) {
+    let mut rng = SplitMix64::new(11);
+    let mut base = BitSet::new(grid.vertices());
+    random_splits(grid, &mut base, &mut rng, 30);
+    let nows = [2, 10, 40]
+        .into_iter()
+        .map(|n| {
+            let mut now = base.clone();
+            random_splits(grid, &mut now, &mut rng, n);
+            now
+        })
+        .collect();
+    (Cut::of(&grid, base, heights), nows)
+}
+
+/// The key frame of `split`.
+fn key_frame(grid: Grid, split: &BitSet, heights: &[u16]) -> Vec<u8> {
+    let mut b = Vec::new();
+    MeshEncoder::new(grid)
+        .encode(split, heights, None, &mut b)
+        .expect("a closed split set of this grid encodes");
+    b
+}
+
+fn encoded<T: serde::Serialize>(msg: &T) -> Vec<u8> {
+    let mut b = Vec::new();
+    messages::encode(msg, &mut b).expect("a message encodes");
+    b
+}
+
+/// A frame carrying `mesh`.
+fn frame(base: Option<u64>, mesh: Vec<u8>) -> Frame {
+    Frame {
+        frame: 3,
+        base,
+        tick: 77,
+        vehicles: vec![VehicleView {
+            id: 1,
+            x: 1.0,
+            z: 2.0,
+            y: 3.0,
+            speed: 4.0,
+            heading: 5.0,
+        }],
+        input_seq: None,
+        mesh,
+    }
+}
+
+/// Valid encodings to mutate: messages of every kind, frames carrying a key frame, a
+/// change frame and bytes that are no mesh, bare meshes (key frames and change frames)
+/// and colour maps.
+pub fn seeds(grid: Grid) -> Vec<Vec<u8>> {
+    let hello = ClientMessage::Hello(Hello {
+        version: messages::VERSION,
+        role: Role::Driver,
+        token: "token".into(),
+        viewport: [1280, 720],
+        fov_y_deg: 60.0,
+        budget: 65_536,
+        frame_rate: 60,
+        resume: Some([7; 16]),
+    });
+    let mut out = vec![
+        encoded(&hello),
+        encoded(&ClientMessage::Ack { frame: 99 }),
+        encoded(&ServerMessage::ColorMap {
+            offset: 0,
+            data: vec![1; 64],
+        }),
+        encoded(&frame(Some(2), vec![9; 40])),
+        encoded(&KeyDatagram {
+            states: vec![
+                KeyState {
+                    seq: 5,
+                    held: 3,
+                    pressed: 1
+                };
+                4
+            ],
+        }),
+    ];
+    let heights = heights(grid);
+    let (base, nows) = change_base(grid, &heights);
+    out.push(encoded(&frame(
+        None,
+        key_frame(grid, &base.split, &heights),
+    )));
+    let mut enc = ChangeEncoder::new(grid, 1);
+    for now in &nows {
+        for (from, to) in [(&base.split, now), (now, &base.split)] {
+            let changes: Vec<u32> = (0..grid.vertices() as u32)
+                .filter(|&i| from.contains(i) != to.contains(i))
+                .collect();
+            let cut = Cut::of(&grid, to.clone(), &heights);
+            let mut b = Vec::new();
+            enc.encode(
+                &changes,
+                |i| to.contains(i),
+                &heights,
+                cut.triangles,
+                to.len() as u32,
+                cut.hash,
+                &mut b,
+            )
+            .expect("a change list of this grid encodes");
+            if std::ptr::eq(from, &base.split) && std::ptr::eq(now, &nows[1]) {
+                out.push(encoded(&frame(Some(1), b.clone())));
+            }
+            // Those back to the base are coded against `now`: wrong-base frames here.
+            out.push(b);
+        }
+    }
+    let empty = BitSet::new(grid.vertices());
+    for n in [3u32, 40, 400] {
+        let mut set = BitSet::new(grid.vertices());
+        random_splits(grid, &mut set, &mut SplitMix64::new(u64::from(n)), n);
+        out.push(key_frame(grid, &set, &heights));
+        if n == 40 {
+            // A delta frame (format 1) against the empty split set.
+            let mut b = Vec::new();
+            MeshEncoder::new(grid)
+                .encode(&set, &heights, Some(&empty), &mut b)
+                .expect("a closed split set of this grid encodes");
+            out.push(b);
+        }
+    }
+    let mut rng = SplitMix64::new(7);
+    let n = COLOR_CELLS * COLOR_CELLS;
+    for amp in [0u64, 8, 256] {
+        // Smooth colour under noise of growing strength (256: pure noise).
+        let rgb: Vec<u8> = (0..n * 3)
+            .map(|i| (i / 3 % COLOR_CELLS * 5 + i / 3 / COLOR_CELLS * 3) as u64)
+            .map(|smooth| (smooth + rng.next_u64() % amp.max(1)) as u8)
+            .collect();
+        let mut b = Vec::new();
+        colormap::encode(COLOR_CELLS, &rgb, &mut b).expect("texels of the right size");
+        out.push(b);
+    }
+    out
+}
+
+/// The output of a future that is ready at once (reading bytes in memory), or `None`.
+fn now<F: Future>(f: F) -> Option<F::Output> {
+    match pin!(f).poll(&mut Context::from_waker(Waker::noop())) {
+        Poll::Ready(v) => Some(v),
+        Poll::Pending => None,
+    }
+}
+
+/// The inputs, and every decoder with the state it decodes against.
+pub struct Fuzz {
+    pub grid: Grid,
+    seeds: Vec<Vec<u8>>,
+    rng: SplitMix64,
+    /// Key and delta frames (format 1).
+    dec: MeshDecoder,
+    empty: BitSet,
+    got: BitSet,
+    /// Decodes change frames against `cut_base`, whose heights it holds.
+    change_dec: MeshDecoder,
+    /// A frame's mesh, as a viewer holding `cut_base` decodes it.
+    frame_dec: MeshDecoder,
+    cut_base: Cut,
+    cut: Cut,
+    view: View,
+    texels: Vec<u8>,
+    /// Scratch: a change frame's header on random bytes, a framed input.
+    forced: Vec<u8>,
+    framed: Vec<u8>,
+}
+
+impl Fuzz {
+    /// Inputs drawn from `seed`.
+    pub fn new(seed: u64) -> Fuzz {
+        let grid = Grid::new(LEVELS).expect("a valid number of levels");
+        let heights = heights(grid);
+        let (cut_base, _) = change_base(grid, &heights);
+        let key = key_frame(grid, &cut_base.split, &heights);
+        let holding_base = || {
+            let mut dec = MeshDecoder::new(grid);
+            let mut cut = Cut::default();
+            dec.decode_cut(&key, None, u32::MAX, &mut cut)
+                .expect("the key frame just encoded decodes");
+            assert_eq!(cut, cut_base, "the key frame decodes to its cut");
+            dec
+        };
+        let scene = Scene {
+            levels: LEVELS,
+            h_scale: 30.0,
+            v_scale: 0.05,
+            sun_dir: [0.0, 1.0, 0.0],
+            sun_color: [255; 3],
+            fog_density: 0.0,
+            fog_color: [200; 3],
+            water_level: None,
+            cells: 0,
+            colors: Vec::new(),
+        };
+        Fuzz {
+            grid,
+            seeds: seeds(grid),
+            rng: SplitMix64::new(seed),
+            dec: MeshDecoder::new(grid),
+            empty: BitSet::new(grid.vertices()),
+            got: BitSet::default(),
+            change_dec: holding_base(),
+            frame_dec: holding_base(),
+            cut_base,
+            cut: Cut::default(),
+            view: View {
+                mesh: Mesh::default(),
+                scene,
+                vertices: TerrainVertices::default(),
+            },
+            texels: Vec::new(),
+            forced: Vec::new(),
+            framed: Vec::new(),
+        }
+    }
+
+    /// Input `n` into `input`: random bytes when `n` is even, else a seed mutated.
+    pub fn input(&mut self, n: usize, input: &mut Vec<u8>) {
+        let rng = &mut self.rng;
+        input.clear();
+        if n.is_multiple_of(2) {
+            let len = below(rng, 300);
+            input.extend((0..len).map(|_| rng.next_u64() as u8));
+            return;
+        }
+        input.extend_from_slice(&self.seeds[below(rng, self.seeds.len())]);
+        for _ in 0..1 + below(rng, 4) {
+            match below(rng, 3) {
+                0 if !input.is_empty() => {
+                    let i = below(rng, input.len());
+                    input[i] ^= 1 << below(rng, 8);
+                }
+                1 => input.truncate(below(rng, input.len() + 1)),
+                _ => input.push(rng.next_u64() as u8),
+            }
+        }
+    }
+
+    /// Takes input `n` through every stage, each run by `run`.
+    pub fn feed(&mut self, n: usize, input: &[u8], run: &mut Runner) {
+        run(Stage::ClientMessage, input, &mut || {
+            messages::decode::<ClientMessage>(input).is_ok()
+        });
+        run(Stage::ServerMessage, input, &mut || {
+            messages::decode::<ServerMessage>(input).is_ok()
+        });
+        run(Stage::KeyDatagram, input, &mut || {
+            messages::decode::<KeyDatagram>(input).is_ok()
+        });
+        self.frame(input, run);
+        // The control stream: the input behind its length, a random length, or one of up
+        // to 32 MiB (mostly within the viewer's limit, and far more than the input).
+        let claimed = match n % 4 {
+            0 | 1 => input.len() as u32,
+            2 => self.rng.next_u64() as u32,
+            _ => below(&mut self.rng, 32 << 20) as u32,
+        };
+        self.framed.clear();
+        self.framed.extend_from_slice(&claimed.to_le_bytes());
+        self.framed.extend_from_slice(input);
+        let framed = &self.framed[..];
+        let ready = "bytes in memory are read at once";
+        run(Stage::WireClient, framed, &mut || {
+            now(wire::read::<ClientMessage>(&mut &*framed, HELLO_LIMIT))
+                .expect(ready)
+                .is_ok()
+        });
+        run(Stage::WireServer, framed, &mut || {
+            now(wire::read::<ServerMessage>(
+                &mut &*framed,
+                messages::MAX_MESSAGE,
+            ))
+            .expect(ready)
+            .is_ok()
+        });
+        let (dec, got, empty) = (&mut self.dec, &mut self.got, &self.empty);
+        if run(Stage::KeyMesh, input, &mut || {
+            dec.decode(input, None, MAX_TRIANGLES, got).is_ok()
+        }) {
+            self.view.build(&self.grid, got, dec.heights(), input, run);
+        }
+        run(Stage::DeltaMesh, input, &mut || {
+            dec.decode(input, Some(empty), MAX_TRIANGLES, got).is_ok()
+        });
+        // Random bytes reach the change frame decoder behind a change frame's header.
+        let change_input: &[u8] = if n.is_multiple_of(2) && input.len() >= 4 {
+            self.forced.clear();
+            self.forced.extend_from_slice(input);
+            self.forced[..4].copy_from_slice(&[CHANGES_FORMAT, LEVELS as u8, 0, 0]);
+            &self.forced
+        } else {
+            input
+        };
+        let (change_dec, base, cut) = (&mut self.change_dec, &self.cut_base, &mut self.cut);
+        if run(Stage::ChangeMesh, change_input, &mut || {
+            change_dec
+                .decode_cut(change_input, Some(base), MAX_TRIANGLES, cut)
+                .is_ok()
+        }) {
+            let heights = change_dec.heights();
+            self.view
+                .build(&self.grid, &cut.split, heights, change_input, run);
+        }
+        let texels = &mut self.texels;
+        run(Stage::ColorMap, input, &mut || {
+            colormap::decode(COLOR_CELLS, input, texels).is_ok()
+        });
+    }
+
+    /// A frame: decoded, then its mesh decoded and built into vertices.
+    fn frame(&mut self, input: &[u8], run: &mut Runner) {
+        let mut frame = None;
+        if !run(Stage::Frame, input, &mut || {
+            frame = messages::decode::<Frame>(input).ok();
+            frame.is_some()
+        }) {
+            return;
+        }
+        let Some(frame) = frame else { return };
+        let base = frame.base.map(|_| &self.cut_base);
+        let (dec, cut) = (&mut self.frame_dec, &mut self.cut);
+        if !run(Stage::FrameMesh, &frame.mesh, &mut || {
+            dec.decode_cut(&frame.mesh, base, MAX_TRIANGLES, cut)
+                .is_ok()
+        }) {
+            return;
+        }
+        self.view
+            .build(&self.grid, &cut.split, dec.heights(), &frame.mesh, run);
+    }
+}
+
+/// What a viewer makes of a decoded mesh.
+struct View {
+    mesh: Mesh,
+    scene: Scene,
+    vertices: TerrainVertices,
+}
+
+impl View {
+    /// The mesh of `split` emitted and built into vertices, run as [`Stage::Vertices`] on
+    /// `bytes` (the mesh's payload).
+    fn build(
+        &mut self,
+        grid: &Grid,
+        split: &BitSet,
+        heights: &[u16],
+        bytes: &[u8],
+        run: &mut Runner,
+    ) {
+        let (mesh, scene, vertices) = (&mut self.mesh, &self.scene, &mut self.vertices);
+        run(Stage::Vertices, bytes, &mut || {
+            mesh::emit(grid, split, heights, mesh);
+            vertices.build(scene, mesh);
+            vertices.triangles() == mesh.triangle_count()
+        });
+    }
+}
