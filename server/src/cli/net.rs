@@ -18,9 +18,9 @@ pub struct ServeArgs {
     /// Address to listen on (UDP).
     #[arg(long, default_value = "0.0.0.0:4433")]
     pub listen: SocketAddr,
-    /// The join token viewers must present (default: a random one, printed at start).
-    #[arg(long)]
-    pub token: Option<String>,
+    /// The join token viewers must present.
+    #[command(flatten)]
+    pub token: super::token::TokenArgs,
     /// Where the certificate is kept (made on first run).
     #[arg(long, default_value = "roam-state")]
     pub state_dir: PathBuf,
@@ -94,11 +94,13 @@ impl ServeArgs {
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {
+    // The token first: a bad one fails before anything is loaded.
+    let token = args.token.resolve()?;
+    tracing::info!("join token from {}", token.source);
+    let token = token.as_str().to_owned();
     let (terrain, vt, _) = super::tess::load(&args.dir)?;
     net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
-    let identity = tls::load_or_create(&args.state_dir)
-        .with_context(|| format!("the certificate in {}", args.state_dir.display()))?;
-    let token = args.token.clone().unwrap_or_else(net::random_token);
+    let identity = tls::load_or_create(&args.state_dir)?;
     let record_dir = args
         .record_dir
         .clone()

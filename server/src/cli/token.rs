@@ -13,10 +13,6 @@
 //! pasted into command lines and URLs). Error messages name the source and never repeat
 //! the token. The environment is read by [`TokenArgs::resolve`] and handed to
 //! [`TokenArgs::resolve_with`], so the tests never touch the process's environment.
-#![expect(
-    dead_code,
-    reason = "until `serve` flattens TokenArgs (cli/net.rs, rewritten for issue 13): then remove this"
-)]
 
 use std::ffi::OsString;
 use std::fmt;
