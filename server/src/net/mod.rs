@@ -11,7 +11,6 @@ pub mod viewer;
 pub mod world_loop;
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use roam_link::tls;
@@ -27,8 +26,9 @@ pub struct Options {
     pub listen: SocketAddr,
     /// The join token viewers must present.
     pub token: String,
-    /// Where to record the session, if anywhere.
-    pub record: Option<PathBuf>,
+    /// Where to record the session, if anywhere: the files (a
+    /// [`crate::sim::record_files::RecordDir`]) and the size cap of each.
+    pub record: Option<crate::sim::session::RecordOptions>,
     /// What one viewer is served at most.
     pub limits: crate::viewer::ViewerLimits,
     /// Viewers served at once (drivers and spectators); the next is refused with
@@ -100,7 +100,8 @@ pub struct Server {
     endpoint: quinn::Endpoint,
     stop: watch::Sender<bool>,
     accept: tokio::task::JoinHandle<()>,
-    world: std::thread::JoinHandle<std::io::Result<crate::sim::world::World>>,
+    world: std::thread::JoinHandle<crate::sim::world::World>,
+    world_stats: Arc<world_loop::WorldStats>,
     world_inbox: Option<std::sync::mpsc::Sender<Inbound>>,
 }
 
@@ -145,12 +146,15 @@ impl Server {
         })?;
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
+        let world_stats = Arc::new(world_loop::WorldStats::default());
         let world = {
-            let terrain = terrain.clone();
-            let record = options.record.clone();
+            let core = crate::sim::world_core::WorldCore::new(terrain.clone(), options.record)
+                .map_err(ServeError::World)?
+                .with_hold(world_loop::hold_ticks(options.hold));
+            let stats = world_stats.clone();
             std::thread::Builder::new()
                 .name("roam-world".into())
-                .spawn(move || world_loop::run(terrain, record.as_deref(), inbox_rx, snap_tx))
+                .spawn(move || world_loop::run(core, inbox_rx, snap_tx, &stats))
                 .map_err(ServeError::World)?
         };
         let (stop, shutdown) = watch::channel(false);
@@ -180,8 +184,14 @@ impl Server {
             stop,
             accept,
             world,
+            world_stats,
             world_inbox: Some(inbox),
         })
+    }
+
+    /// How the world thread keeps time (ticks made, dropped, late).
+    pub fn world_stats(&self) -> Arc<world_loop::WorldStats> {
+        self.world_stats.clone()
     }
 
     /// The world after its latest tick.
@@ -215,7 +225,7 @@ impl Server {
             .await
             .map_err(|_| ServeError::WorldPanicked)?
             .map_err(|_| ServeError::WorldPanicked)?;
-        world.map_err(ServeError::World)
+        Ok(world)
     }
 }
 
