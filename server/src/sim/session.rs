@@ -197,13 +197,18 @@ impl SessionRecording {
             Ok(rec) => Ok(Live { name, rec }),
             // The file (dropped with the recorder) holds part of a header at most.
             Err(error) => Err(Notice::Failed {
-                ended: match self.files.remove(&name) {
-                    Ok(()) => Ended::Removed,
-                    Err(e) => Ended::Uncut(e.to_string()),
-                },
+                ended: self.remove(&name),
                 file: name,
                 error: error.to_string(),
             }),
+        }
+    }
+
+    /// Removes a file without a whole header.
+    fn remove(&mut self, name: &str) -> Ended {
+        match self.files.remove(name) {
+            Ok(()) => Ended::Removed,
+            Err(e) => Ended::Uncut(e.to_string()),
         }
     }
 
@@ -215,10 +220,7 @@ impl SessionRecording {
         let whole = rec.whole_len();
         let ended = if whole == 0 {
             drop(rec);
-            match self.files.remove(&name) {
-                Ok(()) => Ended::Removed,
-                Err(e) => Ended::Uncut(e.to_string()),
-            }
+            self.remove(&name)
         } else {
             match rec.get_mut().cut(whole) {
                 Ok(()) => Ended::Whole(whole),
