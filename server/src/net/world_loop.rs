@@ -145,13 +145,48 @@ pub fn run(
         snapshots.send_replace(Arc::new(snapshot));
         due += tick;
         let now = Instant::now();
-        if now > due + MAX_BEHIND {
-            // Far behind (the machine stalled): skip the backlog rather than race. The
-            // ticks due up to now are never made.
-            let behind = (now - due).as_nanos() / tick.as_nanos();
-            let skipped = u64::try_from(behind).unwrap_or(u64::MAX).saturating_add(1);
+        let skipped = skipped(due, now, tick);
+        if skipped > 0 {
+            // Far behind (the machine stalled): skip the backlog rather than race.
             stats.dropped.fetch_add(skipped, Ordering::Relaxed);
             due = now + tick;
         }
+    }
+}
+
+/// Ticks to skip with the next one `due` at `now`: none unless more than [`MAX_BEHIND`]
+/// late, else every tick due by now (the next is made a tick from now).
+fn skipped(due: Instant, now: Instant, tick: Duration) -> u64 {
+    if now <= due + MAX_BEHIND {
+        return 0;
+    }
+    let behind = (now - due).as_nanos() / tick.as_nanos().max(1);
+    u64::try_from(behind).unwrap_or(u64::MAX).saturating_add(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::{Duration, Instant};
+
+    use super::{hold_ticks, skipped};
+
+    #[test]
+    fn the_backlog_skipped_is_every_tick_due() {
+        let tick = Duration::from_millis(10);
+        let due = Instant::now();
+        let at = |ms| due + Duration::from_millis(ms);
+        assert_eq!(skipped(due, at(0), tick), 0);
+        assert_eq!(skipped(due, at(250), tick), 0, "250 ms behind is caught up");
+        // 251 ms late: the ticks due at 0, 10, … 250 ms are never made.
+        assert_eq!(skipped(due, at(251), tick), 26);
+        assert_eq!(skipped(due, at(1000), tick), 101);
+        assert_eq!(skipped(at(5), due, tick), 0, "early");
+    }
+
+    #[test]
+    fn holds_in_ticks() {
+        assert_eq!(hold_ticks(Duration::from_secs(30)), 3000);
+        assert_eq!(hold_ticks(Duration::from_millis(15)), 1);
+        assert_eq!(hold_ticks(Duration::ZERO), 0);
     }
 }
