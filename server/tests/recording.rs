@@ -64,16 +64,29 @@ fn edge_distance<G: roam_server::sim::physics::Ground>(w: &World<G>) -> f64 {
 
 /// One vehicle driving `script` from the map's start, recorded.
 fn record_drive(terrain: &Arc<Terrain>, script: &Script) -> Run {
+    record_drive_from(terrain, script, 0)
+}
+
+/// One vehicle driving `script` from the map's start, recorded from tick `from` on (as a
+/// file the server starts mid-session).
+fn record_drive_from(terrain: &Arc<Terrain>, script: &Script, from: usize) -> Run {
     let mut world = World::new(terrain.clone());
     world
         .add(0, world::start_state(terrain, 0))
         .expect("the start is on the map");
-    let mut rec = RecordedWorld::start(world, Vec::new(), terrain.content_hash(), 100)
-        .expect("memory does not fail");
-    let mut digests = vec![rec.world().digest()];
+    let mut digests = vec![world.digest()];
     let mut edge = f64::INFINITY;
     let mut inputs = Inputs::new();
-    for keys in script.keys() {
+    let keys: Vec<Keys> = script.keys().collect();
+    for &k in &keys[..from] {
+        inputs.set(0, k);
+        world::step(&mut world, &inputs);
+        digests.push(world.digest());
+        edge = edge.min(edge_distance(&world));
+    }
+    let mut rec = RecordedWorld::start(world, Vec::new(), terrain.content_hash(), 100)
+        .expect("memory does not fail");
+    for &keys in &keys[from..] {
         inputs.set(0, keys);
         rec.step(&inputs).expect("memory does not fail");
         digests.push(rec.world().digest());
@@ -180,17 +193,41 @@ fn golden(name: &str, data: &str, run: impl Fn(&Arc<Terrain>) -> Run) {
 }
 
 #[test]
-fn a_version_1_recording_still_replays() {
-    // `drive-v1.rec` is `drive.rec` as format version 1 wrote it (no wait or twice
-    // records): the same drive, the same digest.
+fn older_versions_still_replay() {
+    // `drive-v1.rec` and `drive-v2.rec` are `drive.rec` as format versions 1 (no wait or
+    // twice records) and 2 (no start tick) wrote it: the same drive, the same digest.
     let terrain = load("synth-65");
     let dir = root().join("server/tests/golden");
-    let bytes = std::fs::read(dir.join("drive-v1.rec")).expect("the version 1 recording");
-    assert_eq!(bytes[8..12], 1u32.to_le_bytes(), "written as version 1");
-    let rec = recording::parse(&bytes).expect("parses");
-    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
     let expected = std::fs::read_to_string(dir.join("drive.digest")).expect("golden digest");
-    assert_eq!(format!("{}\n", out.digest), expected);
+    for version in [1u32, 2] {
+        let bytes = std::fs::read(dir.join(format!("drive-v{version}.rec"))).expect("golden");
+        assert_eq!(
+            bytes[8..12],
+            version.to_le_bytes(),
+            "written as version {version}"
+        );
+        let rec = recording::parse(&bytes).expect("parses");
+        assert_eq!(rec.header.start_tick, 0);
+        let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
+        assert!(out.ended && out.start_tick == 0);
+        assert_eq!(format!("{}\n", out.digest), expected, "version {version}");
+    }
+}
+
+#[test]
+fn golden_drive_from_a_later_tick_replays_to_the_same_digest() {
+    // Version 3: the header's start tick. A file that starts at tick 1234 (as one the
+    // server rotates in) replays on its own to the whole drive's final digest.
+    golden("drive-late", "synth-65", |t| {
+        let run = record_drive_from(t, &drive_script(), 1234);
+        let rec = recording::parse(&run.bytes).expect("whole");
+        assert_eq!(rec.header.start_tick, 1234);
+        assert_eq!(run.bytes[8..12], recording::VERSION.to_le_bytes());
+        run
+    });
+    let dir = root().join("server/tests/golden");
+    let read = |f: &str| std::fs::read_to_string(dir.join(f)).expect("golden digest");
+    assert_eq!(read("drive-late.digest"), read("drive.digest"));
 }
 
 #[test]
@@ -256,7 +293,7 @@ fn check_every_cut(run: &Run, terrain: &Arc<Terrain>) {
         );
         let out = replay::replay(&rec, terrain.clone(), &hash)
             .unwrap_or_else(|e| panic!("cut at {cut}: {e}"));
-        let last_tick = rec.events.last().map_or(0, Event::tick);
+        let last_tick = rec.events.last().map_or(rec.header.start_tick, Event::tick);
         assert_eq!(out.tick, last_tick, "cut at {cut}");
         assert_eq!(out.digest, run.digests[last_tick as usize], "cut at {cut}");
     }
@@ -268,6 +305,7 @@ fn a_recording_cut_at_any_byte_replays_its_whole_records() {
     let script = script::parse("150 U\n120 UL\n40 D\n60 R\n").expect("valid");
     check_every_cut(&record_drive(&terrain, &script), &terrain);
     check_every_cut(&record_convoy(&terrain), &terrain);
+    check_every_cut(&record_drive_from(&terrain, &script, 77), &terrain);
 }
 
 #[test]
@@ -294,10 +332,10 @@ fn a_corrupt_record_is_reported_at_its_offset() {
     bad[0] = b'R';
     assert_eq!(recording::parse(&bad), Err(FormatError::Magic));
     let mut bad = run.bytes.clone();
-    bad[8] = 3;
+    bad[8] = 4;
     assert_eq!(
         recording::parse(&bad),
-        Err(FormatError::Version { found: 3 })
+        Err(FormatError::Version { found: 4 })
     );
     // A record after the end.
     let mut bad = run.bytes.clone();
@@ -320,6 +358,7 @@ fn with_records(
         data_hash: terrain.content_hash(),
         steps_per_second: 100,
         checkpoint_interval: 100,
+        start_tick: 0,
         vehicles: vec![(0, world::start_state(terrain, 0))],
     };
     header(&mut h);

@@ -186,25 +186,33 @@ fn simulate_record_then_replay() {
         &dir.path("v9.rec"),
         "data/synth-257",
         1,
-        &["recording format version 9; this build reads versions 1 to 2"],
+        &["recording format version 9; this build reads versions 1 to 3"],
     );
 }
 
 #[test]
-fn replay_the_golden_recording() {
-    let out = check(
-        &[
-            "replay",
-            "server/tests/golden/drive.rec",
-            "--data",
-            "data/synth-65",
-        ],
-        0,
-        &["checkpoints matched", "closed cleanly"],
-    );
+fn replay_the_golden_recordings() {
+    // Every format version this build reads, and a file that starts mid-session (version
+    // 3's start tick, as the server writes after a rotation): the same drive's digest.
     let expected =
         fs::read_to_string(root().join("server/tests/golden/drive.digest")).expect("golden digest");
-    assert_eq!(digest_of(&out), expected.trim());
+    for (file, says) in [
+        ("drive.rec", "replayed 5280 ticks"),
+        ("drive-v1.rec", "replayed 5280 ticks"),
+        ("drive-v2.rec", "replayed 5280 ticks"),
+        (
+            "drive-late.rec",
+            "replayed 4046 ticks (40.46 s) of server/tests/golden/drive-late.rec from tick 1234",
+        ),
+    ] {
+        let path = format!("server/tests/golden/{file}");
+        let out = check(
+            &["replay", &path, "--data", "data/synth-65"],
+            0,
+            &[says, "checkpoints matched", "closed cleanly"],
+        );
+        assert_eq!(digest_of(&out), expected.trim(), "{file}");
+    }
 }
 
 #[test]

@@ -11,6 +11,8 @@ use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange, c
 use roam_protocol::script;
 use roam_server::Terrain;
 use roam_server::net::{Options, Server};
+use roam_server::sim::record_files::RecordDir;
+use roam_server::sim::session::{self, RecordOptions};
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::sim::{recording, replay};
 use roam_server::terrain::variance::VarianceTree;
@@ -25,6 +27,7 @@ struct Running {
     fingerprint: [u8; 32],
 }
 
+/// A server on `terrain`, recording into the directory `record` if given.
 fn start(terrain: Arc<Terrain>, record: Option<std::path::PathBuf>) -> Running {
     let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
     let identity = tls::generate().expect("a certificate");
@@ -34,7 +37,10 @@ fn start(terrain: Arc<Terrain>, record: Option<std::path::PathBuf>) -> Running {
         Arc::new(vt),
         &identity,
         Options {
-            record,
+            record: record.map(|dir| {
+                let files = RecordDir::new(dir, roam_server::net::world_loop::unix_seconds);
+                RecordOptions::new(files, session::DEFAULT_MAX_BYTES)
+            }),
             ..Options::new("127.0.0.1:0".parse().expect("valid"), token.clone())
         },
     )
@@ -77,10 +83,10 @@ fn simulated(terrain: &Arc<Terrain>) -> world::Vehicle {
 async fn two_viewers_one_driving_and_the_session_replays() {
     let _turn = ONE_AT_A_TIME.lock().await;
     let dir = std::env::temp_dir().join(format!("roam-e2e-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("temp dir");
-    let rec_path = dir.join("session.rec");
     let terrain = flat();
-    let r = start(terrain.clone(), Some(rec_path.clone()));
+    let r = start(terrain.clone(), Some(dir.clone()));
     let addr = r.server.addr;
     let driver = ViewerOptions {
         inputs: Some(script::parse(DRIVE).expect("valid")),
@@ -128,7 +134,12 @@ async fn two_viewers_one_driving_and_the_session_replays() {
     assert!(!d.latencies_ms.is_empty(), "key changes were seen applied");
     // The server's recording replays bit for bit.
     let final_world = r.server.shutdown().await.expect("stops cleanly");
-    let bytes = std::fs::read(&rec_path).expect("the recording");
+    let files: Vec<_> = std::fs::read_dir(&dir)
+        .expect("the recording directory")
+        .map(|e| e.expect("a directory entry").path())
+        .collect();
+    assert_eq!(files.len(), 1, "one recording file: {files:?}");
+    let bytes = std::fs::read(&files[0]).expect("the recording");
     let rec = recording::parse(&bytes).expect("parses");
     let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
     assert!(out.ended, "closed cleanly");

@@ -10,6 +10,8 @@ use roam_link::tls;
 use roam_server::net::{self, Options, Server};
 use roam_server::viewer::ViewerLimits;
 use std::time::Duration;
+use roam_server::sim::record_files::RecordDir;
+use roam_server::sim::session::{self, RecordOptions};
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -49,6 +51,11 @@ pub struct ServeArgs {
     /// Seconds between the summary lines in the log.
     #[arg(long, default_value_t = 60.0, value_parser = seconds)]
     pub log_every: f64,
+    /// A recording file is closed and the next begun before it grows past this many bytes
+    /// (64 KiB to 256 MiB, the most `replay` reads).
+    #[arg(long, default_value_t = session::DEFAULT_MAX_BYTES,
+          value_parser = clap::value_parser!(u64).range(session::MIN_MAX_BYTES..=session::MAX_MAX_BYTES))]
+    pub record_max_bytes: u64,
 }
 
 /// A number of seconds: finite, positive and at most a day.
@@ -64,7 +71,7 @@ fn seconds(text: &str) -> Result<f64, String> {
 
 impl ServeArgs {
     /// The serving options these flags give, or why they are wrong.
-    fn options(&self, token: String, record: Option<PathBuf>) -> Result<Options> {
+    fn options(&self, token: String, record: Option<RecordOptions>) -> Result<Options> {
         let limits = ViewerLimits {
             max_budget: self.max_budget,
             max_fps: self.max_fps,
@@ -107,21 +114,23 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         .unwrap_or_else(|| args.state_dir.join("recordings"));
     std::fs::create_dir_all(&record_dir)
         .with_context(|| format!("creating {}", record_dir.display()))?;
-    let stamp = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    let record = record_dir.join(format!("session-{stamp}.rec"));
+    let files = RecordDir::new(&record_dir, net::world_loop::unix_seconds);
+    let made = files.made();
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
         let server = Server::start(
             Arc::new(terrain),
             Arc::new(vt),
             &identity,
-            args.options(token.clone(), Some(record.clone()))?,
+            args.options(
+                token.clone(),
+                Some(RecordOptions::new(files, args.record_max_bytes)),
+            )?,
         )?;
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
-        say!("recording to {}", record.display());
+        let first = made.list().first().map(|p| p.display().to_string());
+        say!("recording to {}", first.as_deref().unwrap_or("nothing"));
         let host = if server.addr.ip().is_unspecified() {
             format!("<this machine's address>:{}", server.addr.port())
         } else {
@@ -136,12 +145,25 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             .context("waiting for Ctrl-C")?;
         say!("shutting down");
         let world = server.shutdown().await?;
-        say!(
-            "stopped at tick {}; the session replays with: roam-server replay {} --data {}",
-            world.tick(),
-            record.display(),
-            args.dir.display()
-        );
+        match made.list().as_slice() {
+            [] => say!("stopped at tick {}", world.tick()),
+            [one] => say!(
+                "stopped at tick {}; the session replays with: roam-server replay {} --data {}",
+                world.tick(),
+                one.display(),
+                args.dir.display()
+            ),
+            [first, .., last] => say!(
+                "stopped at tick {}; the session is in {} files in {}, {} to {}; each replays \
+                 with: roam-server replay FILE --data {}",
+                world.tick(),
+                made.list().len(),
+                record_dir.display(),
+                first.display(),
+                last.display(),
+                args.dir.display()
+            ),
+        }
         Ok(())
     })
 }

@@ -42,9 +42,9 @@ pub struct ReplayArgs {
     pub data: PathBuf,
 }
 
-/// Recordings larger than this are refused rather than read (a day of driving takes a few
-/// megabytes).
-const MAX_RECORDING_BYTES: u64 = 256 << 20;
+/// Recordings larger than this are refused rather than read: the server's size cap keeps
+/// its files within it.
+const MAX_RECORDING_BYTES: u64 = recording::MAX_FILE_BYTES;
 
 fn load(dir: &Path) -> Result<Arc<Terrain>> {
     let mut p = Progress::new("loading");
@@ -204,10 +204,14 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
     let terrain = load(&args.data)?;
     let outcome = replay::replay(&rec, terrain.clone(), &terrain.content_hash())
         .with_context(|| format!("replaying {name} on {}", args.data.display()))?;
+    let ticks = outcome.tick - outcome.start_tick;
+    let from = match outcome.start_tick {
+        0 => String::new(),
+        t => format!(" from tick {t} (the file continues a session)"),
+    };
     say!(
-        "replayed {} ticks ({:.2} s) of {name}: {} checkpoints matched, {}",
-        outcome.tick,
-        outcome.tick as f64 / f64::from(STEPS_PER_SECOND),
+        "replayed {ticks} ticks ({:.2} s) of {name}{from}: {} checkpoints matched, {}",
+        ticks as f64 / f64::from(STEPS_PER_SECOND),
         outcome.checkpoints,
         if outcome.ended {
             "closed cleanly"

@@ -14,7 +14,6 @@ pub mod world_loop;
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use roam_link::tls;
@@ -33,8 +32,9 @@ pub struct Options {
     pub listen: SocketAddr,
     /// The join token viewers must present.
     pub token: String,
-    /// Where to record the session, if anywhere.
-    pub record: Option<PathBuf>,
+    /// Where to record the session, if anywhere: the files (a
+    /// [`crate::sim::record_files::RecordDir`]) and the size cap of each.
+    pub record: Option<crate::sim::session::RecordOptions>,
     /// What one viewer is served at most.
     pub limits: crate::viewer::ViewerLimits,
     /// Viewers served at once (drivers and spectators); the next is refused with
@@ -132,7 +132,8 @@ pub struct Server {
     endpoint: quinn::Endpoint,
     stop: watch::Sender<bool>,
     accept: tokio::task::JoinHandle<()>,
-    world: std::thread::JoinHandle<std::io::Result<crate::sim::world::World>>,
+    world: std::thread::JoinHandle<crate::sim::world::World>,
+    world_stats: Arc<world_loop::WorldStats>,
     world_inbox: Option<std::sync::mpsc::Sender<Inbound>>,
     shared: Arc<Shared>,
     summary: tokio::task::JoinHandle<()>,
@@ -190,6 +191,14 @@ impl Server {
         options: Options,
     ) -> Result<Server, ServeError> {
         check_servable(&terrain)?;
+        // Everything that can refuse the data set comes before the recording's first file.
+        let mut color_map = Vec::new();
+        let rgb: Vec<u8> = terrain.color.rgb().iter().flatten().copied().collect();
+        roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map)
+            .map_err(|e| ServeError::ColorMapShape(e.to_string()))?;
+        if color_map.len() > roam_protocol::colormap::max_len(terrain.color.cells()) {
+            return Err(ServeError::ColorMap(color_map.len()));
+        }
         let config = tls::server_config(identity)?;
         let endpoint = quinn::Endpoint::server(config, options.listen).map_err(|error| {
             ServeError::Listen {
@@ -203,22 +212,18 @@ impl Server {
         })?;
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
+        let world_stats = Arc::new(world_loop::WorldStats::default());
         let world = {
-            let terrain = terrain.clone();
-            let record = options.record.clone();
+            let core = crate::sim::world_core::WorldCore::new(terrain.clone(), options.record)
+                .map_err(ServeError::World)?
+                .with_hold(world_loop::hold_ticks(options.hold));
+            let stats = world_stats.clone();
             std::thread::Builder::new()
                 .name("roam-world".into())
-                .spawn(move || world_loop::run(terrain, record.as_deref(), inbox_rx, snap_tx))
+                .spawn(move || world_loop::run(core, inbox_rx, snap_tx, &stats))
                 .map_err(ServeError::World)?
         };
         let (stop, shutdown) = watch::channel(false);
-        let mut color_map = Vec::new();
-        let rgb: Vec<u8> = terrain.color.rgb().iter().flatten().copied().collect();
-        roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map)
-            .map_err(|e| ServeError::ColorMapShape(e.to_string()))?;
-        if color_map.len() > roam_protocol::colormap::max_len(terrain.color.cells()) {
-            return Err(ServeError::ColorMap(color_map.len()));
-        }
         let shared = Arc::new(Shared {
             height_step: roam_protocol::height_step(terrain.heights.samples()),
             color_map,
@@ -247,6 +252,7 @@ impl Server {
             stop,
             accept,
             world,
+            world_stats,
             world_inbox: Some(inbox),
             shared,
             summary,
@@ -262,6 +268,11 @@ impl Server {
     pub fn load(&self) -> (usize, usize) {
         let gate = self.shared.gate();
         (gate.admission.pending(), gate.admission.viewers())
+    }
+
+    /// How the world thread keeps time (ticks made, dropped, late).
+    pub fn world_stats(&self) -> Arc<world_loop::WorldStats> {
+        self.world_stats.clone()
     }
 
     /// The world after its latest tick.
@@ -296,7 +307,7 @@ impl Server {
             .await
             .map_err(|_| ServeError::WorldPanicked)?
             .map_err(|_| ServeError::WorldPanicked)?;
-        world.map_err(ServeError::World)
+        Ok(world)
     }
 }
 

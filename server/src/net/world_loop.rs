@@ -2,50 +2,118 @@
 //! are handed to the core as they arrive; every 10 ms by this thread's clock the core
 //! ticks, and the snapshot is published in a `watch` (latest value wins: nobody queues
 //! behind a slow reader).
+//!
+//! The loop never ends on its own account: the core's recording reports its failures as
+//! notices, which are logged here (`tracing`: errors as errors, rotation as info, joins
+//! after a failed recording as warnings), and the world goes on. [`WorldStats`] counts the
+//! ticks made, those dropped when the thread fell more than 250 ms behind, and those that
+//! started more than a tick late, for the shell and the load tests to read.
 
-use std::fs::File;
-use std::io::BufWriter;
-use std::path::Path;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError};
 use std::time::{Duration, Instant};
 
 use tokio::sync::{oneshot, watch};
 
-use crate::Terrain;
+use crate::sim::physics::STEPS_PER_SECOND;
+use crate::sim::session::Notice;
 use crate::sim::world::{VehicleId, World};
 use crate::sim::world_core::{Event, Snapshot, WorldCore};
 
-/// An event for the world, and where a join's answer goes (a dropped sender refuses it).
+/// An event for the world, and where a join's or a resume's answer goes (a dropped sender
+/// refuses it).
 pub type Inbound = (Event, Option<oneshot::Sender<VehicleId>>);
 
 /// Events handled at most between two ticks: a flood waits for the next tick rather than
 /// starving this one (each viewer's key datagrams are rate-limited before they get here).
 const MAX_EVENTS_PER_TICK: usize = 4096;
 
-/// Runs the world until `inbox` closes, then closes the recording. Returns the final
+/// Behind by more than this, the loop skips the backlog rather than race through it.
+const MAX_BEHIND: Duration = Duration::from_millis(250);
+
+/// How the world thread keeps time, counted as it goes (read from any thread).
+#[derive(Debug, Default)]
+pub struct WorldStats {
+    ticks: AtomicU64,
+    dropped: AtomicU64,
+    late: AtomicU64,
+}
+
+impl WorldStats {
+    /// Ticks made.
+    pub fn ticks(&self) -> u64 {
+        self.ticks.load(Ordering::Relaxed)
+    }
+
+    /// Ticks skipped because the thread was more than 250 ms behind (never made).
+    pub fn dropped(&self) -> u64 {
+        self.dropped.load(Ordering::Relaxed)
+    }
+
+    /// Ticks made that started more than one tick after they were due.
+    pub fn late(&self) -> u64 {
+        self.late.load(Ordering::Relaxed)
+    }
+}
+
+/// The world's ticks in `hold` (for [`WorldCore::with_hold`]).
+pub fn hold_ticks(hold: Duration) -> u64 {
+    let ms = u64::try_from(hold.as_millis()).unwrap_or(u64::MAX);
+    ms / (1000 / u64::from(STEPS_PER_SECOND))
+}
+
+/// The wall clock in Unix seconds (recording file names: see
+/// [`crate::sim::record_files::RecordDir`]); 0 on a clock set before 1970.
+pub fn unix_seconds() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs())
+}
+
+/// Logs what happened to the recording.
+pub fn log(notice: &Notice) {
+    match notice {
+        Notice::Failed { .. } | Notice::CreateFailed { .. } => tracing::error!("{notice}"),
+        Notice::JoinedUnrecorded { .. } => tracing::warn!("{notice}"),
+        Notice::Started { .. } | Notice::Rotated { .. } | Notice::Closed { .. } => {
+            tracing::info!("{notice}")
+        }
+    }
+}
+
+fn log_all(core: &mut WorldCore) {
+    for n in core.notices() {
+        log(&n);
+    }
+}
+
+/// Runs the world until `inbox` closes, then finishes the recording. Returns the final
 /// world.
 pub fn run(
-    terrain: Arc<Terrain>,
-    record: Option<&Path>,
+    mut core: WorldCore,
     inbox: Receiver<Inbound>,
     snapshots: watch::Sender<Arc<Snapshot>>,
-) -> std::io::Result<World> {
-    let out = match record {
-        Some(path) => Some(BufWriter::new(File::create(path)?)),
-        None => None,
-    };
-    let mut core = WorldCore::new(terrain, out)?;
-    let handle = |core: &mut WorldCore<BufWriter<File>>, (event, reply): Inbound| {
-        let joined = core.handle(event);
-        if let (Some(id), Some(reply)) = (joined, reply)
+    stats: &WorldStats,
+) -> World {
+    let handle = |core: &mut WorldCore, (event, reply): Inbound| {
+        let resume = matches!(event, Event::Resume(_));
+        let answer = core.handle(event);
+        if let (Some(id), Some(reply)) = (answer, reply)
             && reply.send(id).is_err()
         {
-            // The viewer went away while joining: no vehicle left behind.
-            core.handle(Event::Leave(id));
+            // The viewer went away while joining (no vehicle left behind) or resuming
+            // (held again, for a later try).
+            core.handle(if resume {
+                Event::Hold(id)
+            } else {
+                Event::Leave(id)
+            });
         }
+        log_all(core);
     };
-    let tick = Duration::from_millis(10);
+    log_all(&mut core);
+    let tick = Duration::from_millis(1000 / u64::from(STEPS_PER_SECOND));
     let mut due = Instant::now() + tick;
     loop {
         // Events as they come until the tick is due.
@@ -57,20 +125,68 @@ pub fn run(
             match inbox.recv_timeout(wait) {
                 Ok(inbound) => handle(&mut core, inbound),
                 Err(RecvTimeoutError::Timeout) => break,
-                Err(RecvTimeoutError::Disconnected) => return Ok(core.finish()?.0),
+                Err(RecvTimeoutError::Disconnected) => {
+                    let (world, notices) = core.finish();
+                    notices.iter().for_each(log);
+                    return world;
+                }
             }
         }
         // What arrived while the tick came due belongs to this tick.
         for inbound in inbox.try_iter().take(MAX_EVENTS_PER_TICK) {
             handle(&mut core, inbound);
         }
-        let snapshot = core.tick()?;
+        if Instant::now() > due + tick {
+            stats.late.fetch_add(1, Ordering::Relaxed);
+        }
+        let snapshot = core.tick();
+        log_all(&mut core);
+        stats.ticks.fetch_add(1, Ordering::Relaxed);
         snapshots.send_replace(Arc::new(snapshot));
         due += tick;
         let now = Instant::now();
-        if now > due + Duration::from_millis(250) {
+        let skipped = skipped(due, now, tick);
+        if skipped > 0 {
             // Far behind (the machine stalled): skip the backlog rather than race.
+            stats.dropped.fetch_add(skipped, Ordering::Relaxed);
             due = now + tick;
         }
+    }
+}
+
+/// Ticks to skip with the next one `due` at `now`: none unless more than [`MAX_BEHIND`]
+/// late, else every tick due by now (the next is made a tick from now).
+fn skipped(due: Instant, now: Instant, tick: Duration) -> u64 {
+    if now <= due + MAX_BEHIND {
+        return 0;
+    }
+    let behind = (now - due).as_nanos() / tick.as_nanos().max(1);
+    u64::try_from(behind).unwrap_or(u64::MAX).saturating_add(1)
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::{Duration, Instant};
+
+    use super::{hold_ticks, skipped};
+
+    #[test]
+    fn the_backlog_skipped_is_every_tick_due() {
+        let tick = Duration::from_millis(10);
+        let due = Instant::now();
+        let at = |ms| due + Duration::from_millis(ms);
+        assert_eq!(skipped(due, at(0), tick), 0);
+        assert_eq!(skipped(due, at(250), tick), 0, "250 ms behind is caught up");
+        // 251 ms late: the ticks due at 0, 10, … 250 ms are never made.
+        assert_eq!(skipped(due, at(251), tick), 26);
+        assert_eq!(skipped(due, at(1000), tick), 101);
+        assert_eq!(skipped(at(5), due, tick), 0, "early");
+    }
+
+    #[test]
+    fn holds_in_ticks() {
+        assert_eq!(hold_ticks(Duration::from_secs(30)), 3000);
+        assert_eq!(hold_ticks(Duration::from_millis(15)), 1);
+        assert_eq!(hold_ticks(Duration::ZERO), 0);
     }
 }

@@ -1,12 +1,14 @@
-//! Session recordings: what entered the world, tick by tick, so a replay rebuilds it.
+//! Session recordings: what entered the world, tick by tick, so a replay rebuilds it. This
+//! module is the format and its reader; [`crate::sim::recorder`] writes it, and
+//! [`crate::sim::session`] is the server's fail-safe, rotating use of the writer.
 //!
-//! # Format (version 2; version 1 files, which never wait or step twice, read the same)
+//! # Format (version 3; versions 1 and 2 read as well)
 //!
 //! All integers little-endian; `f64`s as their IEEE bits.
 //!
 //! ```text
 //! magic    8 bytes  "roamrec\n"
-//! version  u32      2
+//! version  u32      3
 //! records  …        the first is the header; then events, ticks never decreasing
 //! ```
 //!
@@ -15,7 +17,7 @@
 //!
 //! | kind | record | payload |
 //! | --- | --- | --- |
-//! | 1 | header | data-set hash `[u8; 32]`, steps per second `u32`, checkpoint interval `u32`, vehicle count `u32`, then per vehicle: id `u16`, state (x, z, speed, heading: 4 × `f64`) |
+//! | 1 | header | data-set hash `[u8; 32]`, steps per second `u32`, checkpoint interval `u32`, start tick `u64` (version 3 only), vehicle count `u32`, then per vehicle: id `u16`, state (x, z, speed, heading: 4 × `f64`) |
 //! | 2 | input | tick `u64`, vehicle `u16`, keys `u8` (bits: Up, Down, Left, Right) |
 //! | 3 | join | tick `u64`, vehicle `u16`, state (4 × `f64`) |
 //! | 4 | leave | tick `u64`, vehicle `u16` |
@@ -24,33 +26,54 @@
 //! | 7 | wait | tick `u64`, vehicle `u16`: the vehicle takes no physics step in step T + 1 |
 //! | 8 | twice | tick `u64`, vehicle `u16`, keys `u8`, keys `u8`: two physics steps in step T + 1, with these keys |
 //!
+//! The header holds the world where the recording starts: its vehicles, and (version 3) the
+//! tick it has reached, so that a file the server starts mid-session, when the one before it
+//! reached its size cap, replays on its own (versions 1 and 2 always start at tick 0). Every
+//! vehicle holds no keys at the start: an input record gives a vehicle's first keys.
+//!
 //! An event "at tick T" happens when the world has taken T steps, before the next step: an
 //! input record gives the keys a vehicle holds from step T + 1 on (inputs are recorded only
 //! when they change); a wait or twice record is for step T + 1 only, and leaves the keys
 //! an input record set; a checkpoint or end gives the digest after T steps. Checkpoints come
-//! at least every 100 ticks, and the writer flushes at each, so a killed server loses at most
-//! the last second. The file is append-only: a cut anywhere leaves a prefix of whole records
-//! followed by a partial one, which [`parse`] reports and skips; a whole record that is
-//! wrong (its check, kind, length or content) is an error naming its byte offset.
-
-use std::io::{self, Write};
+//! every interval (at most 100) ticks counted from the start tick, and the writer hands its
+//! records to the file at each, so a killed server loses at most the last second. The file
+//! is append-only: a cut anywhere leaves a prefix of whole records followed by a partial
+//! one, which [`parse`] reports and skips; a whole record that is wrong (its check, kind,
+//! length or content) is an error naming its byte offset. The server never leaves a
+//! partial record behind itself: a failed write is cut back to the last whole record
+//! ([`crate::sim::session`]).
 
 use crate::sim::physics::{Keys, VehicleState};
-use crate::sim::world::{Digest, Extra, VehicleId};
+use crate::sim::world::{Digest, VehicleId};
 
 /// The file's first bytes.
 pub const MAGIC: [u8; 8] = *b"roamrec\n";
 /// The format version this code writes; it reads this one and [`MIN_VERSION`] on.
-pub const VERSION: u32 = 2;
+pub const VERSION: u32 = 3;
 /// The oldest format version this code reads (version 1 has no wait or twice records).
 pub const MIN_VERSION: u32 = 1;
 /// Largest payload of a record.
 pub const MAX_RECORD: usize = 1 << 20;
 /// Longest interval between checkpoints, ticks.
 pub const MAX_CHECKPOINT_INTERVAL: u32 = 100;
-const CHECK: usize = 8;
+/// The largest recording `replay` reads, and so the largest file the server writes (its
+/// size cap may be at most this).
+pub const MAX_FILE_BYTES: u64 = 256 << 20;
+pub(crate) const CHECK: usize = 8;
 /// Bytes of a header vehicle and of a state.
-const STATE: usize = 32;
+pub(crate) const STATE: usize = 32;
+/// The latest start tick a header may give (millennia at 100 Hz): a replay's ticks count
+/// on from it without overflowing.
+pub const MAX_START_TICK: u64 = 1 << 48;
+/// Bytes of a header's payload before its vehicles, by version.
+const fn header_fixed(version: u32) -> usize {
+    if version >= 3 { 52 } else { 44 }
+}
+
+/// Bytes a record with a payload of `payload` bytes takes in the file.
+pub const fn record_len(payload: usize) -> u64 {
+    (5 + payload + CHECK) as u64
+}
 
 /// The header: what a replay needs before the first event.
 #[derive(Clone, Debug, PartialEq)]
@@ -60,7 +83,9 @@ pub struct Header {
     pub steps_per_second: u32,
     /// Ticks between checkpoints (1 ..= 100).
     pub checkpoint_interval: u32,
-    /// The vehicles at tick 0.
+    /// The tick the world has reached where the recording starts (0 before version 3).
+    pub start_tick: u64,
+    /// The vehicles at the start tick.
     pub vehicles: Vec<(VehicleId, VehicleState)>,
 }
 
@@ -149,16 +174,16 @@ fn corrupt(offset: usize, what: impl Into<String>) -> FormatError {
     }
 }
 
-const HEADER: u8 = 1;
-const INPUT: u8 = 2;
-const JOIN: u8 = 3;
-const LEAVE: u8 = 4;
-const CHECKPOINT: u8 = 5;
-const END: u8 = 6;
-const WAIT: u8 = 7;
-const TWICE: u8 = 8;
+pub(crate) const HEADER: u8 = 1;
+pub(crate) const INPUT: u8 = 2;
+pub(crate) const JOIN: u8 = 3;
+pub(crate) const LEAVE: u8 = 4;
+pub(crate) const CHECKPOINT: u8 = 5;
+pub(crate) const END: u8 = 6;
+pub(crate) const WAIT: u8 = 7;
+pub(crate) const TWICE: u8 = 8;
 
-fn check(kind: u8, payload: &[u8]) -> [u8; CHECK] {
+pub(crate) fn check(kind: u8, payload: &[u8]) -> [u8; CHECK] {
     let mut h = blake3::Hasher::new();
     h.update(&[kind]);
     h.update(&(payload.len() as u32).to_le_bytes());
@@ -168,161 +193,10 @@ fn check(kind: u8, payload: &[u8]) -> [u8; CHECK] {
     out
 }
 
-fn put_state(out: &mut Vec<u8>, s: &VehicleState) {
+pub(crate) fn put_state(out: &mut Vec<u8>, s: &VehicleState) {
     for bits in s.to_bits() {
         out.extend_from_slice(&bits.to_le_bytes());
     }
-}
-
-/// Writes a recording to any `Write` (a file in the server; memory in tests): records as
-/// they happen, flushing at every checkpoint.
-pub struct Recorder<W: Write> {
-    out: W,
-    /// The keys last recorded per vehicle, by id.
-    keys: Vec<(VehicleId, Keys)>,
-    interval: u32,
-    buf: Vec<u8>,
-}
-
-impl<W: Write> Recorder<W> {
-    /// Starts a recording: writes the magic, the version and the header, and flushes.
-    pub fn new(mut out: W, header: &Header) -> io::Result<Recorder<W>> {
-        if !(1..=MAX_CHECKPOINT_INTERVAL).contains(&header.checkpoint_interval) {
-            return Err(io::Error::new(
-                io::ErrorKind::InvalidInput,
-                format!(
-                    "checkpoint interval {} is not in 1 ..= {MAX_CHECKPOINT_INTERVAL}",
-                    header.checkpoint_interval
-                ),
-            ));
-        }
-        out.write_all(&MAGIC)?;
-        out.write_all(&VERSION.to_le_bytes())?;
-        let mut p = Vec::new();
-        p.extend_from_slice(&header.data_hash);
-        p.extend_from_slice(&header.steps_per_second.to_le_bytes());
-        p.extend_from_slice(&header.checkpoint_interval.to_le_bytes());
-        p.extend_from_slice(&(header.vehicles.len() as u32).to_le_bytes());
-        for (id, state) in &header.vehicles {
-            p.extend_from_slice(&id.to_le_bytes());
-            put_state(&mut p, state);
-        }
-        if p.len() > MAX_RECORD {
-            return Err(io::Error::new(
-                io::ErrorKind::InvalidInput,
-                "too many vehicles for one header record",
-            ));
-        }
-        let mut rec = Recorder {
-            out,
-            keys: Vec::new(),
-            interval: header.checkpoint_interval,
-            buf: Vec::new(),
-        };
-        rec.write(HEADER, &p)?;
-        rec.out.flush()?;
-        Ok(rec)
-    }
-
-    /// Ticks between checkpoints.
-    pub fn checkpoint_interval(&self) -> u32 {
-        self.interval
-    }
-
-    fn write(&mut self, kind: u8, payload: &[u8]) -> io::Result<()> {
-        self.buf.clear();
-        self.buf.push(kind);
-        self.buf
-            .extend_from_slice(&(payload.len() as u32).to_le_bytes());
-        self.buf.extend_from_slice(payload);
-        self.buf.extend_from_slice(&check(kind, payload));
-        self.out.write_all(&self.buf)
-    }
-
-    /// Records `keys` for `vehicle` from the step after `tick`, if they differ from the
-    /// last keys recorded for it.
-    pub fn input(&mut self, tick: u64, vehicle: VehicleId, keys: Keys) -> io::Result<()> {
-        let last = match self.keys.binary_search_by_key(&vehicle, |&(v, _)| v) {
-            Ok(at) => &mut self.keys[at].1,
-            Err(at) => {
-                self.keys.insert(at, (vehicle, Keys::NONE));
-                &mut self.keys[at].1
-            }
-        };
-        if *last == keys {
-            return Ok(());
-        }
-        *last = keys;
-        let mut p = [0u8; 11];
-        p[..8].copy_from_slice(&tick.to_le_bytes());
-        p[8..10].copy_from_slice(&vehicle.to_le_bytes());
-        p[10] = keys.bits();
-        self.write(INPUT, &p)
-    }
-
-    /// Records that `vehicle` takes no step in the step after `tick` (its keys as recorded
-    /// stay).
-    pub fn wait(&mut self, tick: u64, vehicle: VehicleId) -> io::Result<()> {
-        let mut p = [0u8; 10];
-        p[..8].copy_from_slice(&tick.to_le_bytes());
-        p[8..].copy_from_slice(&vehicle.to_le_bytes());
-        self.write(WAIT, &p)
-    }
-
-    /// Records that `vehicle` takes two steps in the step after `tick`, with `first` and
-    /// `second` (its keys as recorded stay).
-    pub fn twice(
-        &mut self,
-        tick: u64,
-        vehicle: VehicleId,
-        first: Keys,
-        second: Keys,
-    ) -> io::Result<()> {
-        let mut p = [0u8; 12];
-        p[..8].copy_from_slice(&tick.to_le_bytes());
-        p[8..10].copy_from_slice(&vehicle.to_le_bytes());
-        p[10] = first.bits();
-        p[11] = second.bits();
-        self.write(TWICE, &p)
-    }
-
-    pub fn join(&mut self, tick: u64, vehicle: VehicleId, state: &VehicleState) -> io::Result<()> {
-        let mut p = Vec::with_capacity(10 + STATE);
-        p.extend_from_slice(&tick.to_le_bytes());
-        p.extend_from_slice(&vehicle.to_le_bytes());
-        put_state(&mut p, state);
-        self.write(JOIN, &p)
-    }
-
-    pub fn leave(&mut self, tick: u64, vehicle: VehicleId) -> io::Result<()> {
-        if let Ok(at) = self.keys.binary_search_by_key(&vehicle, |&(v, _)| v) {
-            self.keys.remove(at);
-        }
-        let mut p = [0u8; 10];
-        p[..8].copy_from_slice(&tick.to_le_bytes());
-        p[8..].copy_from_slice(&vehicle.to_le_bytes());
-        self.write(LEAVE, &p)
-    }
-
-    /// Records the world's digest after `tick` steps and flushes.
-    pub fn checkpoint(&mut self, tick: u64, digest: &Digest) -> io::Result<()> {
-        self.write(CHECKPOINT, &tick_digest(tick, digest))?;
-        self.out.flush()
-    }
-
-    /// Ends the recording with the final tick and digest, flushes, and returns the writer.
-    pub fn finish(mut self, tick: u64, digest: &Digest) -> io::Result<W> {
-        self.write(END, &tick_digest(tick, digest))?;
-        self.out.flush()?;
-        Ok(self.out)
-    }
-}
-
-fn tick_digest(tick: u64, digest: &Digest) -> [u8; 40] {
-    let mut p = [0u8; 40];
-    p[..8].copy_from_slice(&tick.to_le_bytes());
-    p[8..].copy_from_slice(&digest.0);
-    p
 }
 
 /// Reads fixed-size fields from a payload whose length was checked first.
@@ -353,16 +227,17 @@ impl Fields<'_> {
 /// A framed record: its kind, its payload, and where the next record starts.
 type Framed<'a> = (u8, &'a [u8], usize);
 
-/// The payload length a record of `kind` must have (a header: 44 bytes plus 34 per
-/// vehicle), or why it cannot.
-fn length_ok(kind: u8, len: usize) -> Result<(), String> {
+/// The payload length a record of `kind` must have in a file of `version` (a header:
+/// 44 or 52 bytes plus 34 per vehicle), or why it cannot.
+fn length_ok(kind: u8, len: usize, version: u32) -> Result<(), String> {
     let fixed = match kind {
         HEADER => {
-            return if len >= 44 && (len - 44).is_multiple_of(2 + STATE) && len <= MAX_RECORD {
+            let head = header_fixed(version);
+            return if len >= head && (len - head).is_multiple_of(2 + STATE) && len <= MAX_RECORD {
                 Ok(())
             } else {
                 Err(format!(
-                    "a header of {len} bytes (expected 44 plus 34 per vehicle, at most {MAX_RECORD})"
+                    "a header of {len} bytes (expected {head} plus 34 per vehicle, at most {MAX_RECORD})"
                 ))
             };
         }
@@ -384,11 +259,11 @@ fn length_ok(kind: u8, len: usize) -> Result<(), String> {
 
 /// One framed record: `Ok(None)` when the bytes end inside it. The kind and length are
 /// checked before the end of the bytes is, so a damaged length is an error, not a cut.
-fn next_record(bytes: &[u8], at: usize) -> Result<Option<Framed<'_>>, FormatError> {
+fn next_record(bytes: &[u8], at: usize, version: u32) -> Result<Option<Framed<'_>>, FormatError> {
     let Some(head) = bytes.get(at..at + 5) else {
         if let Some(&kind) = bytes.get(at) {
             // At least the kind is there: it must be one we know.
-            length_ok(kind, 0).or_else(|e| {
+            length_ok(kind, 0, version).or_else(|e| {
                 if e.starts_with("unknown") {
                     Err(corrupt(at, e))
                 } else {
@@ -400,7 +275,7 @@ fn next_record(bytes: &[u8], at: usize) -> Result<Option<Framed<'_>>, FormatErro
     };
     let kind = head[0];
     let len = u32::from_le_bytes([head[1], head[2], head[3], head[4]]) as usize;
-    length_ok(kind, len).map_err(|e| corrupt(at, e))?;
+    length_ok(kind, len, version).map_err(|e| corrupt(at, e))?;
     let end = at + 5 + len + CHECK;
     let Some(whole) = bytes.get(at..end) else {
         return Ok(None);
@@ -428,17 +303,28 @@ fn sized<'a>(
     Ok(Fields { bytes: payload })
 }
 
-fn parse_header(payload: &[u8], at: usize) -> Result<Header, FormatError> {
-    if payload.len() < 44 {
+fn parse_header(payload: &[u8], at: usize, version: u32) -> Result<Header, FormatError> {
+    let head = header_fixed(version);
+    if payload.len() < head {
         return Err(corrupt(
             at,
-            format!("header of {} bytes, expected at least 44", payload.len()),
+            format!(
+                "header of {} bytes, expected at least {head}",
+                payload.len()
+            ),
         ));
     }
     let mut f = Fields { bytes: payload };
     let data_hash = f.take::<32>();
     let steps_per_second = f.u32();
     let checkpoint_interval = f.u32();
+    let start_tick = if version >= 3 { f.u64() } else { 0 };
+    if start_tick > MAX_START_TICK {
+        return Err(corrupt(
+            at,
+            format!("start tick {start_tick}, expected at most {MAX_START_TICK}"),
+        ));
+    }
     let count = f.u32() as usize;
     if f.bytes.len() as u64 != count as u64 * (2 + STATE) as u64 {
         return Err(corrupt(
@@ -463,6 +349,7 @@ fn parse_header(payload: &[u8], at: usize) -> Result<Header, FormatError> {
         data_hash,
         steps_per_second,
         checkpoint_interval,
+        start_tick,
         vehicles,
     })
 }
@@ -550,30 +437,39 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
     if !(MIN_VERSION..=VERSION).contains(&version) {
         return Err(FormatError::Version { found: version });
     }
-    let (kind, payload, mut at) = next_record(bytes, 12)?.ok_or_else(too_short)?;
+    let (kind, payload, mut at) = next_record(bytes, 12, version)?.ok_or_else(too_short)?;
     if kind != HEADER {
         return Err(corrupt(
             12,
             format!("the first record is of kind {kind}, not a header"),
         ));
     }
-    let header = parse_header(payload, 12)?;
+    let header = parse_header(payload, 12, version)?;
     let interval = u64::from(header.checkpoint_interval);
     let mut events: Vec<Event> = Vec::new();
     let mut truncated_at = None;
     // The writer checkpoints every `interval` ticks: no event lies further than that past
     // the last checkpoint, which also bounds how far a replay steps per record.
-    let mut checkpointed = 0u64;
+    let mut checkpointed = header.start_tick;
     while at < bytes.len() {
         if let Some(Event::End { .. }) = events.last() {
             return Err(corrupt(at, "bytes after the end record"));
         }
-        let Some((kind, payload, end)) = next_record(bytes, at)? else {
+        let Some((kind, payload, end)) = next_record(bytes, at, version)? else {
             truncated_at = Some(at as u64);
             break;
         };
         let event = parse_event(kind, payload, at)?;
         let tick = event.tick();
+        if tick < header.start_tick {
+            return Err(corrupt(
+                at,
+                format!(
+                    "tick {tick} comes before the recording's start (tick {})",
+                    header.start_tick
+                ),
+            ));
+        }
         if let Some(last) = events.last()
             && tick < last.tick()
         {
@@ -612,85 +508,4 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
     })
 }
 
-/// Why a recorded world refused a change.
-#[derive(Debug, thiserror::Error)]
-pub enum RecordError {
-    #[error(transparent)]
-    World(#[from] crate::sim::world::WorldError),
-    #[error("writing the recording: {0}")]
-    Io(#[from] io::Error),
-}
-
-/// A world that records everything that enters it: the same `world::step`, with the inputs,
-/// joins and leaves written down on the tick they apply, and a checkpoint every interval.
-pub struct RecordedWorld<G, W: Write> {
-    world: crate::sim::world::World<G>,
-    recorder: Recorder<W>,
-}
-
-impl<G: crate::sim::physics::Ground, W: Write> RecordedWorld<G, W> {
-    /// Starts recording `world` (at tick 0) into `out`.
-    pub fn start(
-        world: crate::sim::world::World<G>,
-        out: W,
-        data_hash: [u8; 32],
-        checkpoint_interval: u32,
-    ) -> io::Result<Self> {
-        if world.tick() != 0 {
-            return Err(io::Error::new(
-                io::ErrorKind::InvalidInput,
-                "a recording starts at tick 0",
-            ));
-        }
-        let header = Header {
-            data_hash,
-            steps_per_second: crate::sim::physics::STEPS_PER_SECOND,
-            checkpoint_interval,
-            vehicles: world.vehicles().iter().map(|v| (v.id, v.state)).collect(),
-        };
-        let recorder = Recorder::new(out, &header)?;
-        Ok(RecordedWorld { world, recorder })
-    }
-
-    pub fn world(&self) -> &crate::sim::world::World<G> {
-        &self.world
-    }
-
-    /// Records the vehicles' keys, steps, and checkpoints when the interval comes round.
-    pub fn step(&mut self, inputs: &crate::sim::world::Inputs) -> io::Result<()> {
-        let tick = self.world.tick();
-        for v in self.world.vehicles() {
-            match inputs.extra(v.id) {
-                None => self.recorder.input(tick, v.id, inputs.get(v.id))?,
-                Some(Extra::Wait) => self.recorder.wait(tick, v.id)?,
-                Some(Extra::Twice(a, b)) => self.recorder.twice(tick, v.id, a, b)?,
-            }
-        }
-        crate::sim::world::step(&mut self.world, inputs);
-        let tick = self.world.tick();
-        if tick.is_multiple_of(u64::from(self.recorder.checkpoint_interval())) {
-            self.recorder.checkpoint(tick, &self.world.digest())?;
-        }
-        Ok(())
-    }
-
-    pub fn join(&mut self, id: VehicleId, state: VehicleState) -> Result<(), RecordError> {
-        self.world.add(id, state)?;
-        self.recorder.join(self.world.tick(), id, &state)?;
-        Ok(())
-    }
-
-    pub fn leave(&mut self, id: VehicleId) -> Result<(), RecordError> {
-        self.world.remove(id)?;
-        self.recorder.leave(self.world.tick(), id)?;
-        Ok(())
-    }
-
-    /// Writes the end record and returns the world and the writer.
-    pub fn finish(self) -> io::Result<(crate::sim::world::World<G>, W)> {
-        let out = self
-            .recorder
-            .finish(self.world.tick(), &self.world.digest())?;
-        Ok((self.world, out))
-    }
-}
+pub use crate::sim::recorder::{RecordError, RecordedWorld, Recorder, header_of};

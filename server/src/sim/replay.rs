@@ -1,4 +1,5 @@
-//! Replaying a recording: the recorded events fed to the same `world::step`.
+//! Replaying a recording: the recorded events fed to the same `world::step`, from the world
+//! its header gives (at its start tick: a file the server rotated in starts mid-session).
 
 use crate::sim::physics::{Ground, Keys, STEPS_PER_SECOND};
 use crate::sim::recording::{Event, Recording};
@@ -7,6 +8,8 @@ use crate::sim::world::{self, Digest, Extra, Inputs, Vehicle, World, WorldError}
 /// How a replay ended.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Outcome {
+    /// The tick the recording starts at (its header's).
+    pub start_tick: u64,
     /// The last tick the recording reached.
     pub tick: u64,
     pub vehicles: Vec<Vehicle>,
@@ -66,14 +69,15 @@ pub fn replay<G: Ground>(
             found: header.steps_per_second,
         });
     }
-    let mut world = World::new(ground);
+    let mut world = World::at_tick(ground, header.start_tick);
     for &(id, state) in &header.vehicles {
-        world
-            .add(id, state)
-            .map_err(|error| ReplayError::World { tick: 0, error })?;
+        world.add(id, state).map_err(|error| ReplayError::World {
+            tick: header.start_tick,
+            error,
+        })?;
     }
     let mut inputs = Inputs::new();
-    let (mut checkpoints, mut agreed, mut ended) = (0, 0, false);
+    let (mut checkpoints, mut agreed, mut ended) = (0, header.start_tick, false);
     // A wait or twice is for the next step only.
     let run_to = |world: &mut World<G>, inputs: &mut Inputs, tick: u64| {
         while world.tick() < tick {
@@ -126,6 +130,7 @@ pub fn replay<G: Ground>(
         }
     }
     Ok(Outcome {
+        start_tick: header.start_tick,
         tick: world.tick(),
         vehicles: world.vehicles().to_vec(),
         digest: world.digest(),

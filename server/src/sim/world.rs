@@ -161,6 +161,16 @@ impl<G: Ground> World<G> {
         }
     }
 
+    /// An empty world that has taken `tick` steps already (where a recording that starts
+    /// mid-session begins).
+    pub fn at_tick(ground: G, tick: u64) -> Self {
+        World {
+            ground,
+            tick,
+            vehicles: Vec::new(),
+        }
+    }
+
     pub fn ground(&self) -> &G {
         &self.ground
     }

@@ -1,16 +1,19 @@
 //! The world's decisions, with no clock, channel or thread (as `quinn-proto` is to `quinn`):
 //! who joins and where they start, which vehicle id they get, each driver's queue of key
-//! states, who leaves, and the snapshot after each tick. [`WorldCore::handle`] takes the one
-//! closed set of [`Event`]s the network produces; [`WorldCore::tick`] advances the world
-//! one 10 ms step. The server's world thread (`net::world_loop`) only paces it; the
-//! simulated network in the tests drives it by virtual time.
+//! states, whose vehicle is held for a dropped driver, who leaves, and the snapshot after
+//! each tick. [`WorldCore::handle`] takes the one closed set of [`Event`]s the network
+//! produces; [`WorldCore::tick`] advances the world one 10 ms step. The server's world
+//! thread (`net::world_loop`) only paces it; the simulated network in the tests drives it
+//! by virtual time.
 //!
 //! **A tick, in order:**
 //!
 //! 1. Events that arrived since the last tick have been handled in arrival order (joins
 //!    take the lowest free start slot and the next free id; leaves free both; key states
-//!    are queued per driver by sequence number, repeats and stale ones dropped).
-//! 2. Each driver takes its steps for the tick, one physics step per key state, in order:
+//!    are queued per driver by sequence number, repeats and stale ones dropped; a hold
+//!    clears its driver's queue and keys, a resume makes a held vehicle driven again).
+//! 2. Each driver takes its steps for the tick, one physics step per key state, in order
+//!    (a held vehicle has no queue, so it waits):
 //!    - until [`PRIME`] states have queued (a tick of slack for jitter), or when its queue
 //!      has run dry (a state lost and not yet repeated, or late), its vehicle **waits**: no
 //!      step this tick, so its drive is delayed, never changed;
@@ -20,8 +23,20 @@
 //!    - a queue longer than [`MAX_QUEUED`] (a viewer whose clock runs fast) is folded into
 //!      the latch at once: the only case where a drive is not step for step the script's.
 //! 3. The world steps (and the recording takes the tick's inputs, joins and leaves).
-//! 4. The snapshot: tick, every vehicle, and each driver's newest applied key state (the
-//!    viewer measures input→frame latency from it).
+//! 4. Held vehicles whose hold has lasted its ticks ([`WorldCore::with_hold`]) leave, as a
+//!    [`Event::Leave`] would make them (and recorded as one).
+//! 5. The snapshot: tick, every vehicle, each driver's newest applied key state (the
+//!    viewer measures input→frame latency from it), and which vehicles are held.
+//!
+//! **A recording never stops the world:** it is a [`SessionRecording`], which changes the
+//! world and records the change, and reports its failures as [`Notice`]s that the shell
+//! drains ([`WorldCore::notices`]) and logs; the world goes on unrecorded.
+//!
+//! **Held vehicles:** a driver whose connection dropped (not a goodbye) comes back with a
+//! ticket; meanwhile [`Event::Hold`] keeps its vehicle in the world, waiting, and
+//! [`Event::Resume`] gives it back. Key states after a resume may number on from the old
+//! connection's or start again: the first states after a resume that are all at or below
+//! the newest seen before say the count started again.
 //!
 //! **Why the world keeps a queue rather than the latest state:** a viewer samples its keys
 //! every 10 ms, the physics' step, and numbers them. Applying them one step each, in
@@ -33,14 +48,14 @@
 //! loss with 20 ms of delay on every seed).
 
 use std::collections::VecDeque;
-use std::io::{self, Write};
+use std::io;
 use std::sync::Arc;
 
 use roam_protocol::keys::{KeyLatch, KeyStep, Keys};
 use roam_protocol::messages::KeyState;
 
 use crate::Terrain;
-use crate::sim::recording::{self, RecordedWorld};
+use crate::sim::session::{Notice, RecordOptions, SessionRecording};
 use crate::sim::world::{self, Extra, Inputs, Vehicle, VehicleId, World};
 
 /// What the network tells the world.
@@ -52,15 +67,19 @@ pub enum Event {
     /// A driver left (or its join was abandoned): its vehicle goes. A vehicle that is not
     /// there changes nothing.
     Leave(VehicleId),
-    /// TEMPORARY (replaced by the records branch): a lost connection's vehicle.
-    Hold(VehicleId),
-    /// TEMPORARY (replaced by the records branch): take a held vehicle back.
-    Resume(VehicleId),
-    /// A driver's key states, from one datagram: any order, repeats allowed.
+    /// A driver's key states, from one datagram: any order, repeats allowed. A held
+    /// vehicle takes none.
     Keys {
         vehicle: VehicleId,
         states: Vec<KeyState>,
     },
+    /// A driver's connection dropped (not a goodbye): its vehicle stays, waiting, until
+    /// resumed or until the hold runs out (then it leaves). Its queued keys are dropped.
+    Hold(VehicleId),
+    /// A held vehicle's driver is back: [`WorldCore::handle`] gives the vehicle back
+    /// (driven again, its queue empty and unprimed), or `None` when it is not held (freed,
+    /// or never held).
+    Resume(VehicleId),
 }
 
 /// The world after a tick.
@@ -70,6 +89,8 @@ pub struct Snapshot {
     pub vehicles: Vec<Vehicle>,
     /// Per driver, the newest key state applied by this tick.
     pub applied: Vec<(VehicleId, u32)>,
+    /// The vehicles held for a driver whose connection dropped, by id.
+    pub held: Vec<VehicleId>,
 }
 
 impl Snapshot {
@@ -95,6 +116,9 @@ pub const CATCH_UP: usize = 2;
 /// into the latch at once, so a fast clock cannot delay a driver's keys without bound.
 pub const MAX_QUEUED: usize = 32;
 
+/// Ticks a dropped driver's vehicle is held unless told otherwise (30 s).
+pub const HOLD_TICKS: u64 = 3000;
+
 /// One driver's keys: the states received and not yet applied, oldest first.
 struct Driver {
     id: VehicleId,
@@ -107,9 +131,43 @@ struct Driver {
     /// The newest state applied.
     applied: Option<u32>,
     primed: bool,
+    /// The tick its hold began, while its vehicle is held.
+    held_since: Option<u64>,
+    /// Resumed, and no key state taken since: the next may number from 0 again.
+    resumed: bool,
 }
 
 impl Driver {
+    fn new(id: VehicleId, slot: u32) -> Driver {
+        Driver {
+            id,
+            slot,
+            latch: KeyLatch::default(),
+            received: None,
+            queue: VecDeque::new(),
+            applied: None,
+            primed: false,
+            held_since: None,
+            resumed: false,
+        }
+    }
+
+    /// Its connection dropped at `tick`: no keys until resumed, so it waits.
+    fn hold(&mut self, tick: u64) {
+        self.held_since = Some(tick);
+        self.queue.clear();
+        self.primed = false;
+        self.latch = KeyLatch::default();
+    }
+
+    /// Driven again: an empty queue, unprimed; the key states' count may start again.
+    fn resume(&mut self) {
+        self.held_since = None;
+        self.queue.clear();
+        self.primed = false;
+        self.resumed = true;
+    }
+
     fn apply(&mut self, (seq, step): (u32, KeyStep)) {
         self.latch.apply(step);
         self.applied = Some(seq);
@@ -144,6 +202,15 @@ impl Driver {
 
     fn receive(&mut self, mut states: Vec<KeyState>) {
         states.sort_by_key(|s| s.seq);
+        if self.resumed && !states.is_empty() {
+            self.resumed = false;
+            if states
+                .iter()
+                .all(|s| self.received.is_some_and(|seq| s.seq <= seq))
+            {
+                self.received = None; // the count started again
+            }
+        }
         for s in states {
             if self.received.is_some_and(|seq| s.seq <= seq) {
                 continue; // seen already
@@ -163,73 +230,120 @@ impl Driver {
     }
 }
 
-/// The world, recorded or not.
-enum Stepper<W: Write> {
-    Plain(World),
-    Recorded(RecordedWorld<Arc<Terrain>, W>),
-}
-
 /// The world and the decisions around it (see the module docs for a tick's order).
-pub struct WorldCore<W: Write> {
+pub struct WorldCore {
     terrain: Arc<Terrain>,
-    stepper: Stepper<W>,
+    world: World,
+    /// `None`: not recorded.
+    recording: Option<SessionRecording>,
     drivers: Vec<Driver>,
     next_id: VehicleId,
     inputs: Inputs,
+    hold_ticks: u64,
 }
 
-impl<W: Write> WorldCore<W> {
-    /// An empty world on `terrain`, recorded to `record` if given.
-    pub fn new(terrain: Arc<Terrain>, record: Option<W>) -> io::Result<WorldCore<W>> {
+impl WorldCore {
+    /// An empty world on `terrain`, recorded as `record` says if given. An error is the
+    /// recording's first file failing (the only error there is: later ones are
+    /// [`Notice`]s).
+    pub fn new(terrain: Arc<Terrain>, record: Option<RecordOptions>) -> io::Result<WorldCore> {
         let world = World::new(terrain.clone());
-        let stepper = match record {
-            Some(out) => Stepper::Recorded(RecordedWorld::start(
-                world,
-                out,
+        let recording = match record {
+            Some(options) => Some(SessionRecording::start(
+                options,
                 terrain.content_hash(),
-                recording::MAX_CHECKPOINT_INTERVAL,
+                &world,
             )?),
-            None => Stepper::Plain(world),
+            None => None,
         };
         Ok(WorldCore {
             terrain,
-            stepper,
+            world,
+            recording,
             drivers: Vec::new(),
             next_id: 0,
             inputs: Inputs::new(),
+            hold_ticks: HOLD_TICKS,
         })
     }
 
+    /// Holds a dropped driver's vehicle `ticks` ticks (default [`HOLD_TICKS`]).
+    pub fn with_hold(mut self, ticks: u64) -> WorldCore {
+        self.hold_ticks = ticks;
+        self
+    }
+
     pub fn world(&self) -> &World {
-        match &self.stepper {
-            Stepper::Plain(w) => w,
-            Stepper::Recorded(r) => r.world(),
-        }
+        &self.world
+    }
+
+    /// The vehicles that have a driver (held ones included), by id: every vehicle in the
+    /// world, always.
+    pub fn drivers(&self) -> Vec<VehicleId> {
+        let mut ids: Vec<VehicleId> = self.drivers.iter().map(|d| d.id).collect();
+        ids.sort_unstable();
+        ids
+    }
+
+    /// The recording's file being written; `None` when not recorded or after a failure.
+    pub fn recording_file(&self) -> Option<&str> {
+        self.recording.as_ref().and_then(|r| r.file())
+    }
+
+    /// What happened to the recording since the last call, for the shell to log.
+    pub fn notices(&mut self) -> Vec<Notice> {
+        self.recording
+            .as_mut()
+            .map_or_else(Vec::new, SessionRecording::notices)
     }
 
     /// Handles one event. A [`Event::Join`] returns the new driver's vehicle (`None`:
-    /// every id is taken, or the recording refused it); other events return `None`.
+    /// every id is taken), a [`Event::Resume`] the vehicle given back (`None`: it is not
+    /// held); other events return `None`.
     pub fn handle(&mut self, event: Event) -> Option<VehicleId> {
         match event {
             Event::Join => self.join(),
             Event::Leave(vehicle) => {
-                self.drivers.retain(|d| d.id != vehicle);
-                // A vehicle that is not there (a repeated leave) changes nothing.
-                let _gone = match &mut self.stepper {
-                    Stepper::Plain(w) => w.remove(vehicle).is_ok(),
-                    Stepper::Recorded(r) => r.leave(vehicle).is_ok(),
-                };
+                self.leave(vehicle);
                 None
             }
-            Event::Hold(vehicle) => self.handle(Event::Leave(vehicle)),
-            Event::Resume(_) => None,
             Event::Keys { vehicle, states } => {
-                if let Some(d) = self.drivers.iter_mut().find(|d| d.id == vehicle) {
+                if let Some(d) = self.driver(vehicle)
+                    && d.held_since.is_none()
+                {
                     d.receive(states);
                 }
                 None
             }
+            Event::Hold(vehicle) => {
+                let tick = self.world.tick();
+                if let Some(d) = self.driver(vehicle)
+                    && d.held_since.is_none()
+                {
+                    d.hold(tick);
+                }
+                None
+            }
+            Event::Resume(vehicle) => {
+                let d = self.driver(vehicle)?;
+                d.held_since?;
+                d.resume();
+                Some(vehicle)
+            }
         }
+    }
+
+    fn driver(&mut self, vehicle: VehicleId) -> Option<&mut Driver> {
+        self.drivers.iter_mut().find(|d| d.id == vehicle)
+    }
+
+    /// The driver and its vehicle go (a vehicle that is not there changes nothing).
+    fn leave(&mut self, vehicle: VehicleId) {
+        self.drivers.retain(|d| d.id != vehicle);
+        let _gone = match &mut self.recording {
+            Some(r) => r.leave(&mut self.world, vehicle).is_ok(),
+            None => self.world.remove(vehicle).is_ok(),
+        };
     }
 
     fn join(&mut self) -> Option<VehicleId> {
@@ -240,62 +354,68 @@ impl<W: Write> WorldCore<W> {
             .find(|s| drivers.iter().all(|d| d.slot != *s))
             .expect("fewer than 2^32 vehicles");
         let state = world::start_state(&self.terrain, slot);
-        let joined = match &mut self.stepper {
-            Stepper::Plain(w) => w.add(id, state).is_ok(),
-            Stepper::Recorded(r) => r.join(id, state).is_ok(),
+        // Made in the world first, then recorded: a failing record ends the recording, not
+        // the join, so every vehicle has its driver.
+        let joined = match &mut self.recording {
+            Some(r) => r.join(&mut self.world, id, state).is_ok(),
+            None => self.world.add(id, state).is_ok(),
         };
         joined.then(|| {
-            self.drivers.push(Driver {
-                id,
-                slot,
-                latch: KeyLatch::default(),
-                received: None,
-                queue: VecDeque::new(),
-                applied: None,
-                primed: false,
-            });
+            self.drivers.push(Driver::new(id, slot));
             id
         })
     }
 
-    /// One tick (steps 2 to 4 of the module docs): every driver's keys, one step of the
-    /// world, and the snapshot after it. An error is the recording's.
-    pub fn tick(&mut self) -> io::Result<Snapshot> {
+    /// One tick (steps 2 to 5 of the module docs): every driver's keys, one step of the
+    /// world, the holds that ran out, and the snapshot after it. Recording errors are
+    /// [`Notice`]s: a tick always happens.
+    pub fn tick(&mut self) -> Snapshot {
         self.inputs.clear();
         for d in &mut self.drivers {
             d.take(&mut self.inputs);
         }
-        let w = match &mut self.stepper {
-            Stepper::Plain(w) => {
-                world::step(w, &self.inputs);
-                &*w
-            }
-            Stepper::Recorded(r) => {
-                r.step(&self.inputs)?;
-                r.world()
-            }
-        };
-        Ok(Snapshot {
-            tick: w.tick(),
-            vehicles: w.vehicles().to_vec(),
+        match &mut self.recording {
+            Some(r) => r.step(&mut self.world, &self.inputs),
+            None => world::step(&mut self.world, &self.inputs),
+        }
+        let now = self.world.tick();
+        let hold = self.hold_ticks;
+        let expired: Vec<VehicleId> = self
+            .drivers
+            .iter()
+            .filter(|d| d.held_since.is_some_and(|since| now - since >= hold))
+            .map(|d| d.id)
+            .collect();
+        for id in expired {
+            self.leave(id);
+        }
+        let mut held: Vec<VehicleId> = self
+            .drivers
+            .iter()
+            .filter(|d| d.held_since.is_some())
+            .map(|d| d.id)
+            .collect();
+        held.sort_unstable();
+        Snapshot {
+            tick: now,
+            vehicles: self.world.vehicles().to_vec(),
             applied: self
                 .drivers
                 .iter()
                 .filter_map(|d| d.applied.map(|s| (d.id, s)))
                 .collect(),
-        })
+            held,
+        }
     }
 
-    /// Ends the world: the recording is closed. Returns the final world and the
-    /// recording's writer.
-    pub fn finish(self) -> io::Result<(World, Option<W>)> {
-        match self.stepper {
-            Stepper::Plain(w) => Ok((w, None)),
-            Stepper::Recorded(r) => {
-                let (w, out) = r.finish()?;
-                Ok((w, Some(out)))
-            }
-        }
+    /// Ends the world: the recording is finished. Returns the final world and the
+    /// recording's last notices (its closing among them).
+    pub fn finish(self) -> (World, Vec<Notice>) {
+        let notices = match self.recording {
+            Some(r) => r.finish(&self.world),
+            None => Vec::new(),
+        };
+        (self.world, notices)
     }
 }
 
@@ -314,7 +434,148 @@ fn free_id(next: &mut u16, taken: impl Fn(u16) -> bool) -> Option<u16> {
 
 #[cfg(test)]
 mod tests {
-    use super::free_id;
+    use std::sync::Arc;
+
+    use roam_protocol::keys::Keys;
+    use roam_protocol::messages::KeyState;
+
+    use super::{Event, WorldCore, free_id};
+    use crate::sim::physics::VehicleState;
+    use crate::sim::world::VehicleId;
+
+    fn core(hold: u64) -> WorldCore {
+        let terrain = Arc::new(crate::terrain::generate::synthetic(65, 7));
+        WorldCore::new(terrain, None)
+            .expect("nothing recorded")
+            .with_hold(hold)
+    }
+
+    /// `vehicle`'s key states `seqs`, Up held, in one datagram.
+    fn up(vehicle: VehicleId, seqs: std::ops::RangeInclusive<u32>) -> Event {
+        Event::Keys {
+            vehicle,
+            states: seqs
+                .map(|seq| KeyState {
+                    seq,
+                    held: Keys::UP.bits(),
+                    pressed: 0,
+                })
+                .collect(),
+        }
+    }
+
+    fn state(c: &WorldCore, id: VehicleId) -> Option<VehicleState> {
+        c.world().vehicle(id).map(|v| v.state)
+    }
+
+    /// Key states `seqs`, one a tick, then ticks until the queue is dry.
+    fn drive(c: &mut WorldCore, id: VehicleId, seqs: std::ops::RangeInclusive<u32>) {
+        for seq in seqs {
+            c.handle(up(id, seq..=seq));
+            c.tick();
+        }
+        for _ in 0..10 {
+            c.tick();
+        }
+    }
+
+    /// One vehicle that took `n` steps with Up, from its start.
+    fn driven(n: u32) -> VehicleState {
+        let mut c = core(100);
+        let id = c.handle(Event::Join).expect("a vehicle");
+        drive(&mut c, id, 0..=n - 1);
+        state(&c, id).expect("still there")
+    }
+
+    #[test]
+    fn a_held_vehicle_waits_and_is_given_back_as_it_was() {
+        let mut c = core(50);
+        let a = c.handle(Event::Join).expect("a vehicle");
+        let b = c.handle(Event::Join).expect("another");
+        c.handle(up(a, 0..=5));
+        for _ in 0..3 {
+            c.tick();
+        }
+        c.handle(Event::Hold(a));
+        let held = state(&c, a).expect("still there");
+        assert!(held.speed > 0.0, "it was moving");
+        // Keys for a held vehicle are not taken; it waits, its state unchanged.
+        c.handle(up(a, 6..=20));
+        for _ in 0..49 {
+            let s = c.tick();
+            assert_eq!(s.held, [a]);
+            assert_eq!(state(&c, a), Some(held));
+        }
+        assert_eq!(c.handle(Event::Resume(a)), Some(a), "given back");
+        assert_eq!(state(&c, a), Some(held));
+        assert_eq!(c.drivers(), [a, b]);
+        let s = c.tick();
+        assert!(s.held.is_empty());
+        assert_eq!(state(&c, a), Some(held), "unprimed: it waits for its keys");
+        // Not held any more, or never held: nothing to resume.
+        assert_eq!(c.handle(Event::Resume(a)), None);
+        assert_eq!(c.handle(Event::Resume(b)), None);
+        assert_eq!(c.handle(Event::Resume(77)), None);
+    }
+
+    #[test]
+    fn key_numbering_may_start_again_or_go_on_after_a_resume() {
+        // 16 states with Up, however they are split around a hold, make 16 steps.
+        let want = driven(16);
+        for restart in [false, true] {
+            let mut c = core(500);
+            let id = c.handle(Event::Join).expect("a vehicle");
+            drive(&mut c, id, 0..=10);
+            c.handle(Event::Hold(id));
+            for _ in 0..20 {
+                c.tick();
+            }
+            assert_eq!(c.handle(Event::Resume(id)), Some(id));
+            if restart {
+                drive(&mut c, id, 0..=4);
+            } else {
+                // The first datagram repeats states the old connection sent.
+                c.handle(up(id, 6..=11));
+                drive(&mut c, id, 12..=15);
+            }
+            assert_eq!(state(&c, id), Some(want), "restart {restart}");
+            let applied = c.tick().applied_by(id);
+            assert_eq!(applied, Some(if restart { 4 } else { 15 }));
+        }
+    }
+
+    #[test]
+    fn a_hold_runs_out_after_its_ticks_as_a_leave() {
+        let mut c = core(30);
+        let a = c.handle(Event::Join).expect("a vehicle");
+        c.tick();
+        c.handle(Event::Hold(a));
+        c.handle(Event::Hold(a)); // a second hold does not restart it
+        for _ in 0..29 {
+            assert_eq!(c.tick().held, [a]);
+        }
+        let s = c.tick();
+        assert!(s.vehicles.is_empty() && s.held.is_empty(), "{s:?}");
+        assert!(c.drivers().is_empty());
+        assert_eq!(c.handle(Event::Resume(a)), None, "freed");
+        // Its start slot is free again: the next driver starts where it did.
+        let b = c.handle(Event::Join).expect("a vehicle");
+        let mut fresh = core(30);
+        let first = fresh.handle(Event::Join).expect("a vehicle");
+        assert_eq!(state(&c, b), state(&fresh, first));
+    }
+
+    #[test]
+    fn a_leave_frees_a_held_vehicle_at_once() {
+        let mut c = core(3000);
+        let a = c.handle(Event::Join).expect("a vehicle");
+        c.tick();
+        c.handle(Event::Hold(a));
+        c.handle(Event::Leave(a));
+        let s = c.tick();
+        assert!(s.vehicles.is_empty() && s.held.is_empty());
+        assert_eq!(c.handle(Event::Resume(a)), None);
+    }
 
     #[test]
     fn ids_wrap_and_skip_those_in_use() {

@@ -93,6 +93,7 @@ pub fn diverged_recording(
         data_hash: terrain.content_hash(),
         steps_per_second: 100,
         checkpoint_interval: interval,
+        start_tick: 0,
         vehicles: vec![(0, world.vehicles()[0].state)],
     };
     let mut rec = Recorder::new(Vec::new(), &header).expect("memory does not fail");

@@ -246,7 +246,7 @@ pub struct Sim {
     terrain: Arc<Terrain>,
     variance: VarianceTree,
     height_step: u16,
-    world: WorldCore<Vec<u8>>,
+    world: WorldCore,
     snapshot: Snapshot,
     next_tick: Duration,
     viewers: Vec<Viewer>,
