@@ -299,9 +299,12 @@ impl Server {
         self.accept.abort();
         let _ = self.accept.await;
         self.summary.abort();
+        let _ = self.summary.await;
         self.endpoint.wait_idle().await;
         // Connections are closed; viewer tasks (and a tessellation in flight) end shortly
-        // and drop their senders, and then the world thread sees the channel close.
+        // and drop their senders (the last of them in `shared`), and then the world
+        // thread sees the channel close.
+        drop(self.shared);
         drop(self.world_inbox.take());
         let world = tokio::task::spawn_blocking(move || self.world.join())
             .await

@@ -108,10 +108,12 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
             "goodbye".into()
         }
         _ = conn.closed() => {
-            // Closed by the viewer on purpose: a leave; lost (timed out, reset): held.
+            // Closed by the viewer with its goodbye code: a leave; anything else (timed
+            // out, reset, a viewer that gave up on a path it thinks dead): held.
             leave.hold = !matches!(
                 conn.close_reason(),
-                Some(quinn::ConnectionError::ApplicationClosed(_))
+                Some(quinn::ConnectionError::ApplicationClosed(c))
+                    if c.error_code == quinn::VarInt::from_u32(close::BYE)
             );
             lost(&conn)
         }
