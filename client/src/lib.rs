@@ -8,6 +8,7 @@ pub mod camera;
 pub mod core;
 pub mod headless;
 pub mod hud;
+pub mod join;
 pub mod live;
 pub mod render;
 pub mod session;

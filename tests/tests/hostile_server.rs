@@ -1,13 +1,20 @@
 //! A viewer against a hostile or broken server: every malformed welcome, colour map or
-//! frame is a clear error or a dropped frame, never a panic or an outsized allocation.
+//! frame is a clear error or a dropped frame, never a panic or an outsized allocation; a
+//! server that welcomes and then says nothing is given up on (after one reconnection),
+//! never waited on forever; a frame number no server could send ends the session with
+//! the numbers named, and does not wedge the viewer.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
 
-use roam_client::session::{KeySource, Session, Taken};
+use roam_client::session::{KeySource, Patience, Session, State, Taken};
 use roam_link::{tls, wire};
 use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION, Welcome,
 };
+use roam_protocol::{BitSet, Grid, MeshEncoder};
 
 /// What the fake server sends after reading the hello.
 #[derive(Clone, Debug)]
@@ -66,50 +73,77 @@ fn good_join() -> Vec<Say> {
 /// A server that answers one viewer with `script`, then closes. Its address and
 /// certificate fingerprint.
 async fn fake(script: Vec<Say>) -> (SocketAddr, [u8; 32], tokio::task::JoinHandle<()>) {
+    let (addr, fp, _, task) = fakes(script, 1).await;
+    (addr, fp, task)
+}
+
+/// A server that answers up to `connections` connections, each with `script`: its address,
+/// certificate fingerprint, and the count of connections it accepted.
+async fn fakes(
+    script: Vec<Say>,
+    connections: usize,
+) -> (
+    SocketAddr,
+    [u8; 32],
+    Arc<AtomicUsize>,
+    tokio::task::JoinHandle<()>,
+) {
     let id = tls::generate().expect("a certificate");
     let config = tls::server_config(&id).expect("a config");
     let endpoint =
         quinn::Endpoint::server(config, "127.0.0.1:0".parse().expect("valid")).expect("listens");
     let addr = endpoint.local_addr().expect("bound");
     let fingerprint = tls::parse_fingerprint(&id.fingerprint()).expect("valid");
+    let accepted = Arc::new(AtomicUsize::new(0));
+    let count = accepted.clone();
     let task = tokio::spawn(async move {
-        let Some(incoming) = endpoint.accept().await else {
-            return;
-        };
-        let Ok(conn) = incoming.await else { return };
-        let Ok((mut send, mut recv)) = conn.accept_bi().await else {
-            return;
-        };
-        if wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE)
-            .await
-            .is_err()
-        {
-            return;
-        }
-        for say in script {
-            let sent = match say {
-                Say::Msg(m) => wire::write(&mut send, &m).await.is_ok(),
-                Say::Raw(b) => send.write_all(&b).await.is_ok(),
-                Say::Stream(b) => match conn.open_uni().await {
-                    Ok(mut s) => s.write_all(&b).await.is_ok() && s.finish().is_ok(),
-                    Err(_) => false,
-                },
-            };
-            if !sent {
-                return;
-            }
-        }
-        // Everything said: hang up once the viewer has asked for a key frame (it could not
-        // decode a frame) or gone away.
-        while let Ok(m) = wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await {
-            if m == ClientMessage::KeyFrame {
+        let mut served = tokio::task::JoinSet::new();
+        for _ in 0..connections {
+            let Some(incoming) = endpoint.accept().await else {
                 break;
-            }
+            };
+            count.fetch_add(1, Ordering::SeqCst);
+            served.spawn(answer(incoming, script.clone()));
         }
-        conn.close(0u32.into(), b"done");
+        while served.join_next().await.is_some() {}
         endpoint.wait_idle().await;
     });
-    (addr, fingerprint, task)
+    (addr, fingerprint, accepted, task)
+}
+
+/// Answers one connection with `script`.
+async fn answer(incoming: quinn::Incoming, script: Vec<Say>) {
+    let Ok(conn) = incoming.await else { return };
+    let Ok((mut send, mut recv)) = conn.accept_bi().await else {
+        return;
+    };
+    if wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE)
+        .await
+        .is_err()
+    {
+        return;
+    }
+    for say in script {
+        let sent = match say {
+            Say::Msg(m) => wire::write(&mut send, &m).await.is_ok(),
+            Say::Raw(b) => send.write_all(&b).await.is_ok(),
+            Say::Stream(b) => match conn.open_uni().await {
+                Ok(mut s) => s.write_all(&b).await.is_ok() && s.finish().is_ok(),
+                Err(_) => false,
+            },
+        };
+        if !sent {
+            return;
+        }
+    }
+    // Everything said: hang up once the viewer has asked for a key frame (it could not
+    // decode a frame) or gone away; until then, say nothing more.
+    while let Ok(m) = wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await {
+        if m == ClientMessage::KeyFrame {
+            break;
+        }
+    }
+    conn.close(0u32.into(), b"done");
 }
 
 /// `f`, or a failed test after a minute (a regression fails, never hangs).
@@ -232,7 +266,7 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
     };
     let mut script = good_join();
     script.push(Say::Stream(vec![0xab; 100]));
-    script.push(Say::Stream(frame(u64::MAX, vec![1, 2, 3])));
+    script.push(Say::Stream(frame(1, vec![1, 2, 3])));
     let (addr, fp, task) = fake(script).await;
     let s = bounded(Session::join(addr, fp, hello(), KeySource::None))
         .await
@@ -253,6 +287,121 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
     assert!(
         ended.contains("closed") || ended.contains("ended") || ended.contains("lost"),
         "{ended}"
+    );
+    task.abort();
+}
+
+/// A key frame of the fake's grid (the root's two triangles), numbered `frame`.
+fn key_frame(frame: u64) -> Vec<u8> {
+    let grid = Grid::new(6).expect("a valid size");
+    let heights = vec![100u16; grid.vertices()];
+    let mut mesh = Vec::new();
+    MeshEncoder::new(grid)
+        .encode(&BitSet::new(grid.vertices()), &heights, None, &mut mesh)
+        .expect("a closed cut");
+    let mut out = Vec::new();
+    messages::encode(
+        &messages::Frame {
+            frame,
+            base: None,
+            tick: frame,
+            vehicles: Vec::new(),
+            input_seq: None,
+            mesh,
+        },
+        &mut out,
+    )
+    .expect("within the limits");
+    out
+}
+
+/// A server that welcomes and then says nothing (no frame, no control message; its QUIC
+/// stack still answers): the session finds it silent after the configured silence,
+/// reconnects once (it might have been the path), finds it silent again with no frame
+/// between, and ends with an error saying so. Never waited on forever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_that_goes_silent_is_given_up_on() {
+    let (addr, fp, accepted, task) = fakes(good_join(), 4).await;
+    let patience = Patience {
+        silence: Duration::from_secs(1),
+        reconnect_for: Duration::from_secs(10),
+    };
+    let s = bounded(Session::join_with(
+        addr,
+        fp,
+        hello(),
+        KeySource::None,
+        patience,
+    ))
+    .await
+    .expect("joins");
+    let mut changes = s.status_changes();
+    let err = loop {
+        match bounded(s.next_frame(true)).await {
+            Ok(Taken::Frame(f)) => panic!("the silent server sent frame {}", f.frame),
+            Ok(_) => {}
+            Err(e) => break format!("{e:#}"),
+        }
+    };
+    for want in [
+        &format!("lost the server at {addr}"),
+        "no frame or message from the server for 1.0 s",
+        "again right after reconnecting",
+    ] {
+        assert!(err.contains(want), "{want:?} not in {err:?}");
+    }
+    assert_eq!(accepted.load(Ordering::SeqCst), 2, "one reconnection");
+    let status = changes.borrow_and_update().clone();
+    assert_eq!(status.gaps.reconnects, 1);
+    assert!(
+        matches!(status.state, State::Ended(_)),
+        "{:?}",
+        status.state
+    );
+    task.abort();
+}
+
+/// A frame numbered `u64::MAX` (which would make every later frame look old), with good
+/// frames around it: the session ends with an error naming the server and the numbers
+/// rather than ignoring frames forever, and does not reconnect (the server is broken, not
+/// lost).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_poisoned_frame_number_ends_the_session_and_never_wedges_it() {
+    let mut script = good_join();
+    script.push(Say::Stream(key_frame(0)));
+    script.push(Say::Stream(key_frame(u64::MAX)));
+    for f in 1..4 {
+        script.push(Say::Stream(key_frame(f)));
+    }
+    let (addr, fp, accepted, task) = fakes(script, 2).await;
+    let s = bounded(Session::join(addr, fp, hello(), KeySource::None))
+        .await
+        .expect("joins");
+    let mut taken = Vec::new();
+    let err = loop {
+        match bounded(s.next_frame(true)).await {
+            Ok(Taken::Frame(f)) => taken.push(f.frame),
+            Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
+            Ok(Taken::Nothing) => {}
+            Err(e) => break format!("{e:#}"),
+        }
+        assert!(taken.len() <= 4, "only four good frames were sent");
+    };
+    for want in [
+        format!("the server at {addr}"),
+        format!("frame {}", u64::MAX),
+        "frame numbers rise by one".to_string(),
+    ] {
+        assert!(err.contains(&want), "{want:?} not in {err:?}");
+    }
+    assert!(
+        taken.windows(2).all(|w| w[0] < w[1]),
+        "frames in order: {taken:?}"
+    );
+    assert_eq!(accepted.load(Ordering::SeqCst), 1, "no reconnection");
+    assert!(
+        bounded(s.next_frame(true)).await.is_err(),
+        "the session stays ended"
     );
     task.abort();
 }
