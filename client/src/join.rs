@@ -12,9 +12,8 @@ use roam_link::{tls, wire};
 use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, Welcome};
 
 /// A client endpoint for `addr`'s address family that accepts only the certificate with
-/// SHA-256 `fingerprint`: one per session, reused by its reconnections (so the server's
-/// packets for a connection it lost get a stateless reset from this socket, and the server
-/// learns at once that the old connection is gone).
+/// SHA-256 `fingerprint`: one per session, reused by its reconnections (one UDP socket
+/// however often it connects again).
 pub fn endpoint(addr: SocketAddr, fingerprint: [u8; 32]) -> Result<quinn::Endpoint> {
     let bind: SocketAddr = if addr.is_ipv4() {
         "0.0.0.0:0".parse().expect("a valid address")

@@ -5,6 +5,7 @@
 
 pub mod bench;
 pub mod camera;
+mod connection;
 pub mod core;
 pub mod headless;
 pub mod hud;

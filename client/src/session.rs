@@ -36,13 +36,15 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, anyhow, bail};
 use roam_link::wire;
 use roam_protocol::keys::{KeyStep, Keys};
-use roam_protocol::messages::{
-    self, ClientMessage, Hello, Reason, Role, ServerMessage, ViewChange, Welcome, close,
-};
+use roam_protocol::messages::{self, ClientMessage, Hello, Role, ViewChange, Welcome, close};
 use roam_protocol::script::Script;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 use tokio::task::JoinSet;
 
+pub use crate::connection::MAX_FRAME;
+use crate::connection::{
+    End, Outgoing, failed_write, goodbye, quit_asked, read_control, read_frames,
+};
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, Received, Taken};
 use crate::join::{self, JoinError, Joined, TerrainId};
 pub use crate::join::{connect, describe};
@@ -53,9 +55,6 @@ use crate::render::Scene;
 const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
 /// How long the welcome and the colour map may take.
 const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
-/// The largest frame message read: a key frame at the largest budget is under 2 MiB, and
-/// 16 streams of this much bound what a server can make the viewer hold.
-pub const MAX_FRAME: usize = 8 << 20;
 /// [`Patience::silence`] unless told otherwise.
 pub const SILENCE: Duration = Duration::from_secs(10);
 /// [`Patience::reconnect_for`] unless told otherwise: the server's hold (30 s) and a margin.
@@ -63,7 +62,8 @@ pub const RECONNECT_FOR: Duration = Duration::from_secs(35);
 /// The first pause between reconnection attempts, doubled after each up to the second.
 const BACKOFF_FIRST: Duration = Duration::from_millis(100);
 const BACKOFF_MOST: Duration = Duration::from_secs(2);
-/// A reconnection's QUIC handshake, at most (the next attempt starts afresh).
+/// A reconnection's QUIC handshake, at most (the next attempt starts afresh; the last
+/// may end this much after [`Patience::reconnect_for`]).
 const HANDSHAKE: Duration = Duration::from_secs(5);
 
 /// How long a session waits on its server.
@@ -137,15 +137,8 @@ pub enum KeySource {
 /// Each physics step's keys, taken from the core's latch or a script.
 type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
 
-/// What the control writer is asked to do.
-enum Outgoing {
-    Message(ClientMessage),
-    /// Say goodbye, finish the stream, and tell whether the server heard.
-    Quit(oneshot::Sender<bool>),
-}
-
 /// What the tasks and the caller share.
-struct Link {
+pub(crate) struct Link {
     /// The connection's frames; replaced with each connection.
     core: Mutex<ClientCore>,
     /// Locked apart from the frames: a key state never waits on a decode. For the session.
@@ -188,12 +181,13 @@ impl Link {
         }
     }
 
-    fn heard(&self) {
+    /// The server was heard from, now.
+    pub(crate) fn heard(&self) {
         *lock(&self.heard) = Instant::now();
     }
 
     /// Bytes of a frame of connection `epoch` arrived.
-    fn offer(&self, epoch: u64, bytes: &[u8]) {
+    pub(crate) fn offer(&self, epoch: u64, bytes: &[u8]) {
         {
             let mut core = lock(&self.core);
             if self.epoch.load(Ordering::Acquire) != epoch {
@@ -508,25 +502,6 @@ fn next_hello(mut hello: Hello, welcome: &Welcome) -> Hello {
     hello
 }
 
-/// How a connection ended.
-enum End {
-    /// The viewer quit (or the session was dropped).
-    Quit,
-    /// Lost: worth connecting again. `silent`: the server went silent.
-    Lost { why: String, silent: bool },
-    /// For good.
-    Final(String),
-}
-
-impl End {
-    fn of(e: &quinn::ConnectionError) -> End {
-        match join::ending(e) {
-            (true, why) => End::Lost { why, silent: false },
-            (false, why) => End::Final(why),
-        }
-    }
-}
-
 /// The connection's life and the reconnections: owns the control stream's writing end.
 struct Supervisor {
     addr: SocketAddr,
@@ -589,7 +564,10 @@ impl Supervisor {
                 joined.conn.close(0u32.into(), b"bye");
                 return;
             }
-            self.adopt(&joined);
+            if let Err(why) = self.adopt(&joined) {
+                joined.conn.close(0u32.into(), b"bye");
+                return self.link.end(why);
+            }
         }
     }
 
@@ -665,10 +643,9 @@ impl Supervisor {
                     *a = attempts;
                 }
             });
-            let left = deadline.saturating_duration_since(Instant::now());
-            let handshake = left.max(BACKOFF_FIRST).min(HANDSHAKE);
+            // An attempt begun before the deadline has its whole handshake.
             let hello = self.hello_now();
-            let attempt = attempt(&self.endpoint, self.addr, handshake, hello);
+            let attempt = attempt(&self.endpoint, self.addr, HANDSHAKE, hello);
             let result = tokio::select! {
                 r = attempt => r,
                 () = quit_asked(&mut self.outgoing) => return Ok(None),
@@ -712,14 +689,12 @@ impl Supervisor {
 
     /// Makes `joined` the session's connection: a fresh core (with the budget and the view
     /// asked so far), the keys sent on it, the reconnection counted.
-    fn adopt(&mut self, joined: &Joined) {
+    fn adopt(&mut self, joined: &Joined) -> Result<(), String> {
         let welcome = joined.welcome.clone();
         {
             let mut core = lock(&self.link.core);
-            let Some(mut fresh) = ClientCore::new(&welcome, core.budget()) else {
-                // The same grid as the first connection's (checked): cannot fail.
-                return;
-            };
+            let mut fresh = ClientCore::new(&welcome, core.budget())
+                .ok_or_else(|| format!("a grid of 2^{} + 1", welcome.levels))?;
             if let Some(view) = *lock(&self.link.view) {
                 fresh.set_view(view);
             }
@@ -738,6 +713,7 @@ impl Supervisor {
             s.welcome = welcome.clone();
         });
         self.hello = next_hello(self.hello.clone(), &welcome);
+        Ok(())
     }
 }
 
@@ -777,53 +753,12 @@ async fn attempt(
     }
 }
 
-/// Returns once the viewer quits (answering that the server did not hear: there is no
-/// connection to say goodbye on) or the session is dropped; control messages meanwhile are
-/// dropped (the next hello asks for the budget, and the view is sent again).
-async fn quit_asked(outgoing: &mut mpsc::UnboundedReceiver<Outgoing>) {
-    loop {
-        match outgoing.recv().await {
-            Some(Outgoing::Message(_)) => {}
-            Some(Outgoing::Quit(heard)) => {
-                let _ = heard.send(false);
-                return;
-            }
-            None => return,
-        }
-    }
-}
-
 /// Writes a control message, within [`CONTROL_TIMEOUT`].
 async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
     tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
         .await
         .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
     Ok(())
-}
-
-/// How a connection whose control message could not be written ends: as the connection
-/// did, if it did; else for good (the server stopped reading).
-fn failed_write(conn: &quinn::Connection, e: anyhow::Error) -> End {
-    match conn.close_reason() {
-        Some(e) => End::of(&e),
-        None => End::Final(format!("{e:#}")),
-    }
-}
-
-/// Says goodbye, finishes the stream, and tells whether the server heard.
-async fn goodbye(send: &mut quinn::SendStream) -> bool {
-    let said = async {
-        wire::write(send, &ClientMessage::Bye(Reason::Quit)).await?;
-        send.finish()?;
-        match send.stopped().await {
-            Ok(_) => anyhow::Ok(true),
-            Err(quinn::StoppedError::ConnectionLost(
-                quinn::ConnectionError::ApplicationClosed(c),
-            )) => Ok(c.error_code == close::BYE.into()),
-            Err(e) => Err(e.into()),
-        }
-    };
-    matches!(said.await, Ok(true))
 }
 
 /// Sends a key datagram every 10 ms (the physics' step) with the step's keys from
@@ -851,65 +786,4 @@ async fn send_keys(link: Arc<Link>, mut steps: Steps) {
             let _ = conn.send_datagram(bytes.into());
         }
     }
-}
-
-/// The server's control messages after the colour map: each is news of the server; a
-/// goodbye ends the session, anything else is not the protocol. Ends with the stream.
-async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mpsc::Sender<End>) {
-    let end = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
-        Ok(ServerMessage::Bye(reason)) => {
-            End::Final(format!("the server said goodbye: {}", describe(&reason)))
-        }
-        Ok(other) => End::Final(format!(
-            "the server sent {} after the colour map",
-            join::name(&other)
-        )),
-        // The stream or the connection ended: the connection tells why.
-        Err(wire::WireError::Closed | wire::WireError::Read(_)) => return,
-        Err(e) => End::Final(format!("the server's control stream: {e}")),
-    };
-    link.heard();
-    let _ = ends.send(end).await;
-}
-
-/// Reads frames into the core as they arrive: datagrams (small frames), and streams, each
-/// read to its end in a task of its own (a stream the server abandons is skipped). Every
-/// chunk counts as news of the server (a large frame on a slow link is not silence).
-async fn read_frames(conn: quinn::Connection, link: Arc<Link>, epoch: u64) {
-    let datagrams = async {
-        while let Ok(bytes) = conn.read_datagram().await {
-            link.offer(epoch, &bytes);
-        }
-    };
-    let streams = async {
-        let mut readers = JoinSet::new();
-        while let Ok(stream) = conn.accept_uni().await {
-            readers.spawn(read_stream(stream, link.clone(), epoch));
-            while readers.try_join_next().is_some() {}
-        }
-    };
-    tokio::select! {
-        () = datagrams => {}
-        () = streams => {}
-    }
-}
-
-/// One frame's stream, read to its end (at most [`MAX_FRAME`] bytes) and offered.
-async fn read_stream(mut stream: quinn::RecvStream, link: Arc<Link>, epoch: u64) {
-    let mut bytes = Vec::new();
-    loop {
-        match stream.read_chunk(MAX_FRAME, true).await {
-            Ok(Some(chunk)) => {
-                link.heard();
-                if bytes.len() + chunk.bytes.len() > MAX_FRAME {
-                    let _ = stream.stop(0u32.into());
-                    return;
-                }
-                bytes.extend_from_slice(&chunk.bytes);
-            }
-            Ok(None) => break,
-            Err(_) => return,
-        }
-    }
-    link.offer(epoch, &bytes);
 }

@@ -73,14 +73,18 @@ fn good_join() -> Vec<Say> {
 /// A server that answers one viewer with `script`, then closes. Its address and
 /// certificate fingerprint.
 async fn fake(script: Vec<Say>) -> (SocketAddr, [u8; 32], tokio::task::JoinHandle<()>) {
-    let (addr, fp, _, task) = fakes(script, 1).await;
+    let (addr, fp, _, task) = fakes(move |_, _| script.clone(), 1).await;
     (addr, fp, task)
 }
 
-/// A server that answers up to `connections` connections, each with `script`: its address,
-/// certificate fingerprint, and the count of connections it accepted.
+/// What a fake server says on its `n`th connection (from 0), given the viewer's hello.
+type Scripts = Arc<dyn Fn(usize, &Hello) -> Vec<Say> + Send + Sync>;
+
+/// A server that answers up to `connections` connections, the `n`th with `scripts(n,
+/// hello)`: its address, certificate fingerprint, and the count of connections it
+/// accepted.
 async fn fakes(
-    script: Vec<Say>,
+    scripts: impl Fn(usize, &Hello) -> Vec<Say> + Send + Sync + 'static,
     connections: usize,
 ) -> (
     SocketAddr,
@@ -88,6 +92,7 @@ async fn fakes(
     Arc<AtomicUsize>,
     tokio::task::JoinHandle<()>,
 ) {
+    let scripts: Scripts = Arc::new(scripts);
     let id = tls::generate().expect("a certificate");
     let config = tls::server_config(&id).expect("a config");
     let endpoint =
@@ -98,12 +103,12 @@ async fn fakes(
     let count = accepted.clone();
     let task = tokio::spawn(async move {
         let mut served = tokio::task::JoinSet::new();
-        for _ in 0..connections {
+        for n in 0..connections {
             let Some(incoming) = endpoint.accept().await else {
                 break;
             };
             count.fetch_add(1, Ordering::SeqCst);
-            served.spawn(answer(incoming, script.clone()));
+            served.spawn(answer(incoming, scripts.clone(), n));
         }
         while served.join_next().await.is_some() {}
         endpoint.wait_idle().await;
@@ -111,19 +116,18 @@ async fn fakes(
     (addr, fingerprint, accepted, task)
 }
 
-/// Answers one connection with `script`.
-async fn answer(incoming: quinn::Incoming, script: Vec<Say>) {
+/// Answers connection `n` with its script.
+async fn answer(incoming: quinn::Incoming, scripts: Scripts, n: usize) {
     let Ok(conn) = incoming.await else { return };
     let Ok((mut send, mut recv)) = conn.accept_bi().await else {
         return;
     };
-    if wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE)
-        .await
-        .is_err()
-    {
+    let Ok(ClientMessage::Hello(hello)) =
+        wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await
+    else {
         return;
-    }
-    for say in script {
+    };
+    for say in scripts(n, &hello) {
         let sent = match say {
             Say::Msg(m) => wire::write(&mut send, &m).await.is_ok(),
             Say::Raw(b) => send.write_all(&b).await.is_ok(),
@@ -321,7 +325,7 @@ fn key_frame(frame: u64) -> Vec<u8> {
 /// between, and ends with an error saying so. Never waited on forever.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_server_that_goes_silent_is_given_up_on() {
-    let (addr, fp, accepted, task) = fakes(good_join(), 4).await;
+    let (addr, fp, accepted, task) = fakes(|_, _| good_join(), 4).await;
     let patience = Patience {
         silence: Duration::from_secs(1),
         reconnect_for: Duration::from_secs(10),
@@ -373,7 +377,7 @@ async fn a_poisoned_frame_number_ends_the_session_and_never_wedges_it() {
     for f in 1..4 {
         script.push(Say::Stream(key_frame(f)));
     }
-    let (addr, fp, accepted, task) = fakes(script, 2).await;
+    let (addr, fp, accepted, task) = fakes(move |_, _| script.clone(), 2).await;
     let s = bounded(Session::join(addr, fp, hello(), KeySource::None))
         .await
         .expect("joins");
@@ -403,5 +407,172 @@ async fn a_poisoned_frame_number_ends_the_session_and_never_wedges_it() {
         bounded(s.next_frame(true)).await.is_err(),
         "the session stays ended"
     );
+    task.abort();
+}
+
+/// A join with `w` as the welcome and a good colour map, then `frames` key frames.
+fn join_as(w: Welcome, frames: std::ops::Range<u64>) -> Vec<Say> {
+    let packed = packed_colors();
+    let mut out = vec![
+        Say::Msg(ServerMessage::Welcome(Welcome {
+            color_bytes: packed.len() as u32,
+            ..w
+        })),
+        Say::Msg(ServerMessage::ColorMap {
+            offset: 0,
+            data: packed,
+        }),
+    ];
+    out.extend(frames.map(|f| Say::Stream(key_frame(f))));
+    out
+}
+
+const TICKET: [u8; 16] = [7; 16];
+
+/// Short patience, for a fake that falls silent to make the viewer reconnect.
+const QUICK: Patience = Patience {
+    silence: Duration::from_secs(1),
+    reconnect_for: Duration::from_secs(10),
+};
+
+/// A driver's connection that goes silent after two frames (a lost path, for the
+/// viewer): what the fakes below say first.
+fn first_connection() -> Vec<Say> {
+    join_as(
+        Welcome {
+            vehicle: 3,
+            ticket: Some(TICKET),
+            ..welcome(0)
+        },
+        0..2,
+    )
+}
+
+/// The session, joined to a fake with short patience, once it has reconnected or ended;
+/// and the first frame of the new connection, or the error it ended with.
+async fn reconnected(addr: SocketAddr, fp: [u8; 32]) -> (Session, anyhow::Result<u64>) {
+    let s = bounded(Session::join_with(
+        addr,
+        fp,
+        hello(),
+        KeySource::None,
+        QUICK,
+    ))
+    .await
+    .expect("joins");
+    let mut changes = s.status_changes();
+    bounded(changes.wait_for(|st| st.gaps.reconnects > 0 || matches!(st.state, State::Ended(_))))
+        .await
+        .expect("the session is there");
+    // The core is the new connection's once the reconnection counts.
+    let end = loop {
+        match bounded(s.next_frame(true)).await {
+            Ok(Taken::Frame(f)) => break Ok(f.frame),
+            Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
+            Ok(Taken::Nothing) => {}
+            Err(e) => break Err(e),
+        }
+    };
+    (s, end)
+}
+
+/// After a silence the driver connects again presenting the ticket of its welcome; a
+/// server that still holds the vehicle says `resumed`, and the frames of the new
+/// connection (numbered from 0 again) are taken.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reconnection_presents_the_ticket_and_takes_the_vehicle_back() {
+    let (addr, fp, accepted, task) = fakes(
+        |n, hello| match (n, hello.resume) {
+            (0, None) => first_connection(),
+            (_, Some(TICKET)) => join_as(
+                Welcome {
+                    vehicle: 3,
+                    ticket: Some([8; 16]),
+                    resumed: true,
+                    ..welcome(0)
+                },
+                0..3,
+            ),
+            (n, resume) => vec![Say::Msg(ServerMessage::Refused(Reason::Protocol(format!(
+                "connection {n}: a hello presenting {resume:?}"
+            ))))],
+        },
+        2,
+    )
+    .await;
+    let (s, end) = reconnected(addr, fp).await;
+    let frame = end.unwrap_or_else(|e| panic!("the session ended: {e:#}"));
+    assert!(
+        frame < 3,
+        "frame {frame}: the new connection's, numbered from 0"
+    );
+    let status = s.status();
+    assert_eq!((status.gaps.reconnects, status.gaps.resumed), (1, 1));
+    assert!(status.welcome.resumed);
+    assert_eq!(s.vehicle(), 3);
+    assert_eq!(
+        status.welcome.ticket,
+        Some([8; 16]),
+        "the newest ticket kept"
+    );
+    assert_eq!(accepted.load(Ordering::SeqCst), 2);
+    task.abort();
+}
+
+/// A reconnection finding another terrain (here another colour map) ends the session:
+/// the scene drawn would no longer be the server's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reconnection_to_another_terrain_ends_the_session() {
+    let (addr, fp, _, task) = fakes(
+        |n, _| match n {
+            0 => first_connection(),
+            _ => {
+                let rgb = vec![9u8; (CELLS * CELLS * 3) as usize];
+                let mut other = Vec::new();
+                roam_protocol::colormap::encode(CELLS, &rgb, &mut other).expect("texels");
+                vec![
+                    Say::Msg(ServerMessage::Welcome(welcome(other.len()))),
+                    Say::Msg(ServerMessage::ColorMap {
+                        offset: 0,
+                        data: other,
+                    }),
+                ]
+            }
+        },
+        2,
+    )
+    .await;
+    let (_s, end) = reconnected(addr, fp).await;
+    let err = format!("{:#}", end.expect_err("another terrain"));
+    for want in [
+        &format!("lost the server at {addr}"),
+        "the server changed its terrain: another colour map",
+    ] {
+        assert!(err.contains(want), "{want:?} not in {err:?}");
+    }
+    task.abort();
+}
+
+/// A refusal on reconnecting (a full server) is final: no attempt after it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_server_on_reconnecting_is_not_tried_again() {
+    let (addr, fp, accepted, task) = fakes(
+        |n, _| match n {
+            0 => first_connection(),
+            _ => vec![Say::Msg(ServerMessage::Refused(Reason::Full {
+                viewers: 64,
+            }))],
+        },
+        3,
+    )
+    .await;
+    let (s, end) = reconnected(addr, fp).await;
+    let err = format!("{:#}", end.expect_err("refused"));
+    assert!(
+        err.contains("refused: the server is full (64 viewers)"),
+        "{err}"
+    );
+    assert_eq!(accepted.load(Ordering::SeqCst), 2, "no third attempt");
+    assert_eq!(s.status().gaps.reconnects, 0);
     task.abort();
 }
