@@ -89,7 +89,7 @@ pub async fn run(
         gpu.queue.submit([]);
         wait(&gpu)?;
         let t2 = Instant::now();
-        let me = session.welcome.vehicle;
+        let me = session.vehicle();
         let Some(v) = r.vehicles.iter().find(|v| v.id == me) else {
             continue;
         };

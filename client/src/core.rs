@@ -26,9 +26,23 @@
 //! decoded. With one lock, a decode preempted on a loaded machine held the key sender past
 //! the server's one tick of slack, and the exact drive over the network diverged (seen in
 //! `tests/tests/e2e.rs` with the CPU saturated).
+//!
+//! **Frame numbers are checked** ([`Broken`]): a server numbers the frames of a connection
+//! from 0, one more per frame sent, so a frame more than [`MAX_FRAME_JUMP`] past the newest
+//! one offered (or past [`MAX_FRAME_NUMBER`]) is not a frame this server could have sent in
+//! order: it would make every later frame look old (latest wins) and wedge the viewer. It
+//! is dropped, never taken into account, and [`ClientCore::take`] reports it as an error,
+//! as it does a frame coded against a base that is not before it, and a frame showing an
+//! older tick than the frame taken before it. The session ends on such an error (the
+//! server is broken or hostile); the core itself goes on with the frames after it.
+//!
+//! **Across connections**: a [`ClientCore`] lives for one connection (frame numbers start
+//! again at 0 on the next); the [`KeyCore`] lives for the session (key states keep their
+//! numbering across a reconnection, so a resumed vehicle's queue takes them as new), and so
+//! do the [`Gaps`], which count reconnections and measure the time without frames.
 
 use std::collections::VecDeque;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use roam_protocol::keys::{KeyLatch, KeyStep, Keys};
 use roam_protocol::messages::{
@@ -48,6 +62,14 @@ pub const AWAIT_BASE: u32 = 60;
 
 /// Key changes awaiting the frame that shows them applied (a spectator's never are).
 const MAX_PENDING: usize = 1024;
+
+/// How far past the newest frame offered (or past 0, before any) a frame's number may be:
+/// the frames between were lost or superseded, and a connection that loses 65,536 frames
+/// in a row (18 minutes at 60 Hz) has long timed out.
+pub const MAX_FRAME_JUMP: u64 = 1 << 16;
+/// Frame numbers from here on are refused whatever came before (the largest integer a
+/// double holds exactly: no server gets there at any frame rate).
+pub const MAX_FRAME_NUMBER: u64 = 1 << 53;
 
 /// A frame taken.
 #[derive(Clone, Debug)]
@@ -83,13 +105,105 @@ pub enum Taken {
     Dropped(String),
 }
 
-/// The mesh of a frame disagrees with its own header: the server is broken.
-#[derive(Debug, thiserror::Error)]
-#[error("frame {frame}: {emitted} triangles emitted, the header says {header}")]
-pub struct Inconsistent {
-    pub frame: u64,
-    pub emitted: usize,
-    pub header: u32,
+/// A frame the server could not have sent: the server is broken (or hostile). Reported by
+/// [`ClientCore::take`]; the frame is not taken.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum Broken {
+    /// The mesh of a frame disagrees with its own header.
+    #[error("frame {frame}: {emitted} triangles emitted, the header says {header}")]
+    Inconsistent {
+        frame: u64,
+        emitted: usize,
+        header: u32,
+    },
+    /// A frame number too far ahead of the newest frame offered (`None`: before any).
+    #[error(
+        "frame {frame} is {} frames past {}: frame numbers rise by one per frame \
+         sent, and at most {MAX_FRAME_JUMP} may be skipped (below {MAX_FRAME_NUMBER} in all)",
+        .frame.saturating_sub(.newest.unwrap_or(0)),
+        .newest.map_or("the start (0)".to_string(), |n| format!("the newest frame, {n}"))
+    )]
+    FrameAhead { frame: u64, newest: Option<u64> },
+    /// A frame coded against a frame that is not before it.
+    #[error("frame {frame} is coded against frame {base}, which is not before it")]
+    BaseAhead { frame: u64, base: u64 },
+    /// A frame showing an older tick than the frame taken before it.
+    #[error("frame {frame} shows tick {tick}, before tick {newest_tick} of frame {newest}")]
+    TickBackwards {
+        frame: u64,
+        tick: u64,
+        newest: u64,
+        newest_tick: u64,
+    },
+}
+
+/// The frame-number checks of a frame offered when the newest offered is `newest`.
+fn check_numbers(frame: &Frame, newest: Option<u64>) -> Result<(), Broken> {
+    let reference = newest.unwrap_or(0);
+    if frame.frame >= MAX_FRAME_NUMBER || frame.frame > reference.saturating_add(MAX_FRAME_JUMP) {
+        return Err(Broken::FrameAhead {
+            frame: frame.frame,
+            newest,
+        });
+    }
+    match frame.base {
+        Some(base) if base >= frame.frame => Err(Broken::BaseAhead {
+            frame: frame.frame,
+            base,
+        }),
+        _ => Ok(()),
+    }
+}
+
+/// What a session's reconnections cost, kept across its connections: how many there were,
+/// how many got their vehicle back, and the time without frames. Instants come in (the
+/// arrival of each frame taken, the moment a loss is noticed); nothing here reads a clock.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct Gaps {
+    /// Connections made again after one was lost.
+    pub reconnects: u32,
+    /// Of those, the drivers' that got their vehicle back.
+    pub resumed: u32,
+    /// When the newest frame taken arrived.
+    pub last_frame: Option<Instant>,
+    /// While reconnecting: when the loss was noticed.
+    pub lost_at: Option<Instant>,
+    /// The longest time between two frames taken so far.
+    longest: Duration,
+}
+
+impl Gaps {
+    /// A frame taken, which arrived at `arrived`.
+    pub fn frame(&mut self, arrived: Instant) {
+        if let Some(last) = self.last_frame {
+            self.longest = self.longest.max(arrived.saturating_duration_since(last));
+        }
+        self.last_frame = Some(self.last_frame.map_or(arrived, |l| l.max(arrived)));
+    }
+
+    /// The connection was found lost at `now`.
+    pub fn lost(&mut self, now: Instant) {
+        self.lost_at.get_or_insert(now);
+    }
+
+    /// A new connection is up; `resumed`: the server gave the vehicle back.
+    pub fn reconnected(&mut self, resumed: bool) {
+        self.reconnects += 1;
+        self.resumed += u32::from(resumed);
+        self.lost_at = None;
+    }
+
+    /// While reconnecting, the time without frames at `now`: since the last frame (or since
+    /// the loss, when none came).
+    pub fn current(&self, now: Instant) -> Option<Duration> {
+        let lost = self.lost_at?;
+        Some(now.saturating_duration_since(self.last_frame.unwrap_or(lost).min(lost)))
+    }
+
+    /// The longest time between two frames, the one going on included.
+    pub fn longest(&self, now: Instant) -> Duration {
+        self.longest.max(self.current(now).unwrap_or_default())
+    }
 }
 
 /// A frame offered: the frame, its size on the wire and when it arrived.
@@ -114,6 +228,12 @@ pub struct ClientCore {
     junk: Option<String>,
     /// The newest frame number offered (frames older than it are superseded).
     offered: Option<u64>,
+    /// A frame offered that the server could not have sent, not yet reported.
+    broken: Option<Broken>,
+    /// The tick of the newest frame taken.
+    newest_tick: Option<u64>,
+    /// The most triangles the server serves ([`Welcome::max_budget`]).
+    max_budget: u32,
     mesh: mesh::Mesh,
     budget: u32,
     /// The largest budget asked for: frames tessellated before a cut may still come.
@@ -150,6 +270,9 @@ impl ClientCore {
             awaiting_base: 0,
             junk: None,
             offered: None,
+            broken: None,
+            newest_tick: None,
+            max_budget: welcome.max_budget,
             mesh: mesh::Mesh::default(),
             budget,
             limit: budget,
@@ -172,8 +295,14 @@ impl ClientCore {
         std::mem::take(&mut self.mesh)
     }
 
+    /// The budget asked for.
     pub fn budget(&self) -> u32 {
         self.budget
+    }
+
+    /// The budget served: the one asked for, or the server's most if that is less.
+    pub fn effective_budget(&self) -> u32 {
+        self.budget.min(self.max_budget)
     }
 
     /// Frame bytes received so far (frames superseded or dropped included).
@@ -185,10 +314,15 @@ impl ClientCore {
     /// waits to be taken if it is the newest yet; an older one is superseded. A key frame
     /// waits apart, if it is newer than the newest taken and the newest key frame offered,
     /// even when older than a frame offered already (that frame may be coded against it).
+    /// A frame failing the frame-number checks ([`Broken`]) is dropped, to be reported.
     pub fn offer(&mut self, bytes: &[u8], now: Instant) {
         self.bytes_in += bytes.len() as u64;
         match messages::decode::<Frame>(bytes) {
             Ok(frame) => {
+                if let Err(broken) = check_numbers(&frame, self.offered) {
+                    self.broken.get_or_insert(broken);
+                    return;
+                }
                 let newer = |than: Option<u64>| than.is_none_or(|n| frame.frame > n);
                 let newest_offered = newer(self.offered);
                 if newest_offered {
@@ -214,7 +348,7 @@ impl ClientCore {
 
     /// Whether [`Self::take`] has something to say.
     pub fn has_frame(&self) -> bool {
-        self.waiting.is_some() || self.key.is_some() || self.junk.is_some()
+        self.waiting.is_some() || self.key.is_some() || self.junk.is_some() || self.broken.is_some()
     }
 
     /// The frame to take: the waiting frame, or the key frame kept apart when the waiting
@@ -253,8 +387,13 @@ impl ClientCore {
     /// waiting frame's base is not decoded yet. A frame coded against a base newer than the
     /// newest taken is passed over ([`Taken::Nothing`]: the base is on its way), up to
     /// [`AWAIT_BASE`] in a row; any other frame that cannot be decoded asks for a key frame.
-    /// An error only for a frame inconsistent with itself (the server is broken).
-    pub fn take(&mut self, decode: bool) -> Result<Taken, Inconsistent> {
+    /// An error for a frame the server could not have sent ([`Broken`]): one that failed
+    /// the frame-number checks when offered, one showing an older tick than the frame
+    /// before it, or one inconsistent with itself.
+    pub fn take(&mut self, decode: bool) -> Result<Taken, Broken> {
+        if let Some(broken) = self.broken.take() {
+            return Err(broken);
+        }
         if let Some(why) = self.junk.take() {
             self.request_key_frame();
             return Ok(Taken::Dropped(why));
@@ -264,6 +403,16 @@ impl ClientCore {
         };
         if self.newest.is_some_and(|n| frame.frame <= n) {
             return Ok(Taken::Nothing);
+        }
+        if let (Some(newest), Some(newest_tick)) = (self.newest, self.newest_tick)
+            && frame.tick < newest_tick
+        {
+            return Err(Broken::TickBackwards {
+                frame: frame.frame,
+                tick: frame.tick,
+                newest,
+                newest_tick,
+            });
         }
         let mut triangles = 0;
         if decode {
@@ -309,7 +458,7 @@ impl ClientCore {
             );
             triangles = self.mesh.triangle_count();
             if triangles != info.triangles as usize {
-                return Err(Inconsistent {
+                return Err(Broken::Inconsistent {
                     frame: frame.frame,
                     emitted: triangles,
                     header: info.triangles,
@@ -324,6 +473,7 @@ impl ClientCore {
         self.outbox
             .push_back(ClientMessage::Ack { frame: frame.frame });
         self.newest = Some(frame.frame);
+        self.newest_tick = Some(frame.tick);
         Ok(Taken::Frame(Received {
             frame: frame.frame,
             tick: frame.tick,

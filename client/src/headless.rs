@@ -1,5 +1,7 @@
 //! A headless viewer: connects, plays an input script as key datagrams, decodes and checks
-//! every frame, acknowledges it, and measures what it got.
+//! every frame, acknowledges it, and measures what it got: reconnections and the longest
+//! time without frames included. A session lost for good midway still reports what it
+//! measured ([`measure`]), with the error beside.
 
 use std::net::SocketAddr;
 use std::time::Instant;
@@ -9,7 +11,7 @@ use roam_protocol::mesh;
 use roam_protocol::messages::{self, Hello, Role, VERSION};
 use roam_protocol::script::Script;
 
-use crate::session::{KeySource, Session, Taken};
+use crate::session::{KeySource, Patience, Session, Taken};
 
 pub use crate::session::connect;
 
@@ -33,6 +35,8 @@ pub struct ViewerOptions {
     pub keep_last: bool,
     /// Set to true to stop early (Ctrl-C): the viewer says goodbye and reports.
     pub stop: Option<tokio::sync::watch::Receiver<bool>>,
+    /// How long to wait on a silent server, and to reconnect after a loss.
+    pub patience: Patience,
 }
 
 impl Default for ViewerOptions {
@@ -49,6 +53,7 @@ impl Default for ViewerOptions {
             skip_decode: false,
             keep_last: false,
             stop: None,
+            patience: Patience::default(),
         }
     }
 }
@@ -59,9 +64,12 @@ pub struct ViewerStats {
     pub frames: u64,
     /// Numbers of the first and the last frame taken: the server made every frame between
     /// them, so their span over [`Self::seconds`] is the rate it sent at, and the frames not
-    /// taken were lost or superseded before the viewer got to them.
+    /// taken were lost or superseded before the viewer got to them. Of the newest
+    /// connection: frame numbers start again on each.
     pub first_frame: Option<u64>,
     pub last_frame: u64,
+    /// The frames the server made on the connections before the newest (their spans).
+    pub made_before: u64,
     pub seconds: f64,
     /// From the join (welcome and colour map received) to the first frame, and from the
     /// first frame to the last: the frame rate is taken over the latter, so it measures
@@ -83,10 +91,45 @@ pub struct ViewerStats {
     /// With `keep_last`: the scene, and the last mesh decoded.
     pub scene: Option<crate::render::Scene>,
     pub last_mesh: Option<mesh::Mesh>,
+    /// Connections made again after one was lost, and of those the driver's that got its
+    /// vehicle back.
+    pub reconnects: u32,
+    pub resumed: u32,
+    /// The longest time between two frames (a reconnection's gap included), seconds.
+    pub gap_max_s: f64,
+    /// The budget served: the one asked for, or the server's most if that is less.
+    pub budget_served: u32,
+    /// Why the session ended before its frame count, if it did.
+    pub error: Option<String>,
 }
 
-/// Runs one viewer to its frame count.
+impl ViewerStats {
+    /// The frames the server made from the first frame taken to the last, every connection
+    /// together.
+    pub fn made(&self) -> u64 {
+        self.made_before
+            + self
+                .first_frame
+                .map_or(0, |f| self.last_frame.saturating_sub(f) + 1)
+    }
+}
+
+/// Runs one viewer to its frame count; an error if the session ended before.
 pub async fn run(
+    addr: SocketAddr,
+    fingerprint: [u8; 32],
+    opts: ViewerOptions,
+) -> Result<ViewerStats> {
+    let stats = measure(addr, fingerprint, opts).await?;
+    match &stats.error {
+        Some(e) => Err(anyhow!("{e}")),
+        None => Ok(stats),
+    }
+}
+
+/// Runs one viewer to its frame count, or until its session ends: what it measured, with
+/// [`ViewerStats::error`] saying why it ended early. An error only when it cannot join.
+pub async fn measure(
     addr: SocketAddr,
     fingerprint: [u8; 32],
     opts: ViewerOptions,
@@ -105,15 +148,46 @@ pub async fn run(
         (Role::Driver, Some(script)) => KeySource::Script(script.clone()),
         _ => KeySource::None,
     };
-    let session = Session::join(addr, fingerprint, hello, keys).await?;
+    let session = Session::join_with(addr, fingerprint, hello, keys, opts.patience).await?;
     let mut stats = ViewerStats {
-        vehicle: session.welcome.vehicle,
         scene: opts.keep_last.then(|| session.scene.clone()),
         ..ViewerStats::default()
     };
     let started = Instant::now();
     let mut first_at: Option<Instant> = None;
+    let ended = frames(&session, &opts, &mut stats, started, &mut first_at).await;
+    stats.seconds = started.elapsed().as_secs_f64();
+    stats.streaming_s = first_at.map_or(0.0, |t| t.elapsed().as_secs_f64());
+    let status = session.status();
+    stats.vehicle = status.welcome.vehicle;
+    stats.reconnects = status.gaps.reconnects;
+    stats.resumed = status.gaps.resumed;
+    stats.gap_max_s = status.gaps.longest(Instant::now()).as_secs_f64();
+    stats.budget_served = session.core().effective_budget();
+    if opts.keep_last && stats.max_triangles > 0 {
+        // The mesh of the last frame decoded.
+        stats.last_mesh = Some(session.core().take_mesh());
+    }
+    match ended {
+        Ok(()) => {
+            session.quit().await;
+        }
+        Err(e) => stats.error = Some(format!("{e:#}")),
+    }
+    Ok(stats)
+}
+
+/// Takes frames into `stats` until the frame count, a stop, or the session's end (an
+/// error).
+async fn frames(
+    session: &Session,
+    opts: &ViewerOptions,
+    stats: &mut ViewerStats,
+    started: Instant,
+    first_at: &mut Option<Instant>,
+) -> Result<()> {
     let mut stop = opts.stop.clone();
+    let mut connection = 0;
     while stats.frames < opts.frames {
         let taken = tokio::select! {
             t = session.next_frame(!opts.skip_decode) => t?,
@@ -127,10 +201,17 @@ pub async fn run(
             }
             Taken::Frame(r) => r,
         };
-        stats.frames += 1;
-        if stats.first_frame.is_none() {
-            first_at = Some(Instant::now());
+        if stats.frames == 0 {
+            *first_at = Some(Instant::now());
             stats.first_frame_s = started.elapsed().as_secs_f64();
+        }
+        stats.frames += 1;
+        let reconnects = session.reconnects();
+        if reconnects != connection {
+            // A new connection: its frames are numbered from 0 again.
+            connection = reconnects;
+            stats.made_before = stats.made();
+            stats.first_frame = None;
         }
         stats.first_frame.get_or_insert(r.frame);
         stats.last_frame = r.frame;
@@ -163,20 +244,10 @@ pub async fn run(
         }
         stats.max_triangles = stats.max_triangles.max(tris);
         stats.latencies_ms.extend(&r.latencies_ms);
-        stats.last = r
-            .vehicles
-            .iter()
-            .find(|v| v.id == session.welcome.vehicle)
-            .copied();
+        let me = session.vehicle();
+        stats.last = r.vehicles.iter().find(|v| v.id == me).copied();
     }
-    stats.seconds = started.elapsed().as_secs_f64();
-    stats.streaming_s = first_at.map_or(0.0, |t| t.elapsed().as_secs_f64());
-    if opts.keep_last && stats.max_triangles > 0 {
-        // The mesh of the last frame decoded.
-        stats.last_mesh = Some(session.core().take_mesh());
-    }
-    session.quit().await;
-    Ok(stats)
+    Ok(())
 }
 
 /// Returns once `stop` is set; never without one.

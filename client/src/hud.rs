@@ -64,11 +64,51 @@ pub struct Numbers {
     pub speed: f64,
     /// SPEC heading: 0 faces south, 90 east.
     pub heading_deg: f64,
+    /// The budget asked for, and the most the server serves (0: not known).
     pub budget: u32,
+    pub max_budget: u32,
     pub toggles: Toggles,
     pub connection: String,
     pub connected: bool,
+    /// While reconnecting: the time without frames so far, seconds.
+    pub reconnecting_s: Option<f64>,
+    /// Connections made again after a loss, and of those the ones that got the vehicle
+    /// back.
+    pub reconnects: u32,
+    pub resumed: u32,
     pub adapter: String,
+}
+
+/// The HUD's first line: the connection, a reconnection going on, or the ones there were.
+fn connection_line(n: &Numbers) -> String {
+    if let Some(gap) = n.reconnecting_s {
+        return format!("reconnecting… {gap:.1} s  ({})", n.connection);
+    }
+    match n.reconnects {
+        0 => n.connection.clone(),
+        r => format!(
+            "{}  · reconnected {r}×{}",
+            n.connection,
+            if n.resumed < r {
+                format!(" ({} with the vehicle back)", n.resumed)
+            } else {
+                String::new()
+            }
+        ),
+    }
+}
+
+/// The budget as the HUD says it: the one served, and the one asked when the server's
+/// cap is below it.
+fn budget_text(n: &Numbers) -> String {
+    if n.max_budget > 0 && n.max_budget < n.budget {
+        format!(
+            "budget {} (the server's most; {} asked)",
+            n.max_budget, n.budget
+        )
+    } else {
+        format!("budget {}", n.budget)
+    }
 }
 
 /// The compass bearing (clockwise from north) of a SPEC heading, and its point of the
@@ -93,14 +133,14 @@ pub fn lines(n: &Numbers) -> Vec<String> {
     let ms = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.1} ms"));
     let (b, point) = bearing(n.heading_deg);
     vec![
-        n.connection.clone(),
+        connection_line(n),
         format!(
             "{:.0} fps  ({} a frame)  {}",
             n.fps,
             ms(n.frame_ms),
             n.adapter
         ),
-        format!("{} triangles  (budget {}, [+]/[-])", n.triangles, n.budget),
+        format!("{} triangles  ({}, [+]/[-])", n.triangles, budget_text(n)),
         format!(
             "server {:.0} frames/s  {:.1} KB/s in",
             n.server_fps, n.kb_per_s
@@ -305,5 +345,37 @@ mod tests {
         ] {
             assert!(text.contains(want), "{want:?} missing from\n{text}");
         }
+    }
+
+    #[test]
+    fn the_hud_shows_a_reconnection_and_the_servers_cap() {
+        let mut n = Numbers {
+            budget: 65_536,
+            max_budget: 16_384,
+            connection: "connected to 10.0.0.1:4433".into(),
+            reconnecting_s: Some(2.345),
+            ..Numbers::default()
+        };
+        let first = |n: &Numbers| lines(n)[0].clone();
+        assert!(
+            first(&n).starts_with("reconnecting… 2.3 s"),
+            "{}",
+            first(&n)
+        );
+        n.reconnecting_s = None;
+        n.reconnects = 2;
+        n.resumed = 1;
+        assert!(
+            first(&n).ends_with("reconnected 2× (1 with the vehicle back)"),
+            "{}",
+            first(&n)
+        );
+        n.resumed = 2;
+        assert!(first(&n).ends_with("reconnected 2×"), "{}", first(&n));
+        let text = lines(&n).join("\n");
+        assert!(
+            text.contains("budget 16384 (the server's most; 65536 asked)"),
+            "{text}"
+        );
     }
 }

@@ -5,9 +5,11 @@
 
 pub mod bench;
 pub mod camera;
+mod connection;
 pub mod core;
 pub mod headless;
 pub mod hud;
+pub mod join;
 pub mod live;
 pub mod render;
 pub mod session;

@@ -1,6 +1,7 @@
 //! The window's network task: it keeps a [`Session`] going on the async runtime, sends the
 //! key latch every physics step, decodes the newest frame and builds its vertices, and
-//! leaves the result for the render thread, which never waits on the network.
+//! leaves the result for the render thread, which never waits on the network. The session
+//! reconnects by itself; the HUD reads its state ([`Shared::status`]).
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -63,8 +64,6 @@ pub struct Shared {
     pub dropped: AtomicU64,
     /// Recent input→frame latencies, milliseconds.
     pub latencies: Mutex<VecDeque<f64>>,
-    /// The vehicle the camera rides.
-    pub vehicle: u16,
     /// Ctrl-C was pressed in the terminal.
     pub interrupted: std::sync::atomic::AtomicBool,
 }
@@ -100,6 +99,16 @@ impl Shared {
         self.session.bytes_in()
     }
 
+    /// The vehicle the camera rides (another after a reconnection that did not get it back).
+    pub fn vehicle(&self) -> u16 {
+        self.session.vehicle()
+    }
+
+    /// The session's state (reconnecting, and since when), its gaps and welcome.
+    pub fn status(&self) -> crate::session::Status {
+        self.session.status()
+    }
+
     /// The median of the recent latencies, milliseconds.
     pub fn latency_ms(&self) -> Option<f64> {
         let l = lock(&self.latencies);
@@ -129,7 +138,6 @@ pub fn spawn(
         frames: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
         latencies: Mutex::new(VecDeque::new()),
-        vehicle: session.welcome.vehicle,
         interrupted: std::sync::atomic::AtomicBool::new(false),
     });
     let (tx, rx) = mpsc::unbounded_channel();
@@ -185,7 +193,8 @@ async fn run(
         let started = Instant::now();
         let mut terrain = TerrainVertices::default();
         terrain.build(&session.scene, session.core().mesh());
-        let ground = match r.vehicles.iter().find(|v| v.id == shared.vehicle) {
+        let me = session.vehicle();
+        let ground = match r.vehicles.iter().find(|v| v.id == me) {
             Some(v) => LocalGround::near(&terrain.corners, v.x as f32, v.z as f32, GROUND_RADIUS),
             None => LocalGround::default(),
         };

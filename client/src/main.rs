@@ -220,7 +220,7 @@ fn run(cli: Cli) -> Result<()> {
                 stop: Some(stopped.clone()),
                 ..ViewerOptions::default()
             };
-            tasks.push(tokio::spawn(headless::run(addr, fingerprint, opts)));
+            tasks.push(tokio::spawn(headless::measure(addr, fingerprint, opts)));
         }
         let mut all = Vec::new();
         for t in tasks {
@@ -229,10 +229,19 @@ fn run(cli: Cli) -> Result<()> {
         if let Some(server) = server {
             server.shutdown().await?;
         }
-        if let Some(path) = &cli.screenshot {
+        // A session lost for good still reports what it measured, then fails the run.
+        let lost: Vec<String> = all.iter().filter_map(|s| s.error.clone()).collect();
+        if let Some(path) = &cli.screenshot
+            && lost.is_empty()
+        {
             screenshot(path, &all[0], &cli)?;
         }
-        write_report(&cli, &roam_client::stats::report(&all))
+        write_report(&cli, &roam_client::stats::report(&all))?;
+        match lost.as_slice() {
+            [] => Ok(()),
+            [one] => bail!("{one}"),
+            [first, ..] => bail!("{} viewers ended early; the first: {first}", lost.len()),
+        }
     })
 }
 

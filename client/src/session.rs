@@ -1,71 +1,117 @@
-//! The viewer's I/O: QUIC, tasks and the clock around the clock-free [`ClientCore`]. It
-//! connects (pinning the server's certificate), joins (hello, welcome, the colour map checked
-//! against the grid before anything is allocated), then runs three tasks beside the
-//! caller: one reads frames (datagrams, and streams read to their end) into the core, one
-//! writes the core's control messages in order, and one sends a key datagram every 10 ms
-//! (the physics' step) from the core's latch or a script. The window, the headless viewer
-//! and `--bench` take frames with [`Session::next_frame`].
+//! The viewer's I/O: QUIC, tasks and the clock around the clock-free cores
+//! ([`ClientCore`] per connection, [`KeyCore`] and [`Gaps`] per session). It joins
+//! ([`crate::join`]: hello, welcome, the colour map checked against the grid before anything
+//! is allocated), then runs beside the caller: a **supervisor** that drives the connection
+//! (reading frames into the core, the server's control messages, writing the core's control
+//! messages in order) and reconnects when it is lost, and a **key sender** that sends a key
+//! datagram every 10 ms (the physics' step) from the core's latch or a script. The window,
+//! the headless viewer and `--bench` take frames with [`Session::next_frame`].
+//!
+//! **Reconnecting.** A connection is *lost* when QUIC says so (idle timeout, reset,
+//! transport error) or when the server is *silent*: no frame, no control message and no
+//! frame bytes for [`Patience::silence`] (10 s) after the welcome (the server sends frames
+//! at the viewer's rate whatever the world does, so silence means a stuck path or server).
+//! Then the session connects again to the same address, from the same endpoint, with the
+//! same certificate pin and token, presenting the driver's ticket
+//! ([`Hello::resume`]; a spectator asks to follow the same vehicle), after 100 ms, then
+//! doubling to 2 s between attempts, each handshake bounded to 5 s, for
+//! [`Patience::reconnect_for`] (35 s: the server's 30 s hold and a margin), and then gives
+//! up with an error naming the server. The new connection starts a fresh [`ClientCore`]
+//! (frame numbers start again at 0) with the budget and view asked so far; the keys go on
+//! (their numbers keep rising, so a resumed vehicle's queue takes them as new). Its
+//! welcome must show the same terrain (grid, scales, colour map), else the session ends.
+//!
+//! Never reconnected after: a refusal (wrong token, version, a full server), the server
+//! closing the connection (a goodbye, shutting down), a frame the server could not have
+//! sent ([`crate::core::Broken`]: the session ends with the server and the numbers named),
+//! the viewer quitting. **Silence reconnects once**: it may be a stuck path, but a server
+//! that welcomes again and then stays silent (two silences with no frame between) is
+//! stuck itself, and the session ends.
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
-use roam_link::{tls, wire};
+use roam_link::wire;
 use roam_protocol::keys::{KeyStep, Keys};
-use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
+use roam_protocol::messages::{self, ClientMessage, Hello, Role, ViewChange, Welcome, close};
 use roam_protocol::script::Script;
-use tokio::sync::{Notify, mpsc, oneshot};
+use tokio::sync::{Notify, mpsc, oneshot, watch};
+use tokio::task::JoinSet;
 
-pub use crate::core::{ClientCore, KeyCore, Received, Taken};
+pub use crate::connection::MAX_FRAME;
+use crate::connection::{
+    End, Outgoing, failed_write, goodbye, quit_asked, read_control, read_frames,
+};
+pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, Received, Taken};
+use crate::join::{self, JoinError, Joined, TerrainId};
+pub use crate::join::{connect, describe};
 use crate::render::Scene;
-
-/// Connects to `addr`, accepting only the certificate with SHA-256 `fingerprint`.
-pub async fn connect(
-    addr: SocketAddr,
-    fingerprint: [u8; 32],
-) -> Result<(quinn::Endpoint, quinn::Connection)> {
-    let bind: SocketAddr = if addr.is_ipv4() {
-        "0.0.0.0:0".parse().expect("a valid address")
-    } else {
-        "[::]:0".parse().expect("a valid address")
-    };
-    let mut endpoint = quinn::Endpoint::client(bind).context("opening a UDP socket")?;
-    endpoint.set_default_client_config(tls::client_config(fingerprint)?);
-    let conn = endpoint
-        .connect(addr, "roam")
-        .with_context(|| format!("connecting to {addr}"))?
-        .await
-        .with_context(|| format!("connecting to {addr}"))?;
-    Ok((endpoint, conn))
-}
 
 /// How long a control message may take to leave (a server that stops reading does not
 /// hold the viewer).
 const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
 /// How long the welcome and the colour map may take.
 const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
-/// The largest frame message read: a key frame at the largest budget is under 2 MiB, and
-/// 16 streams of this much bound what a server can make the viewer hold.
-pub const MAX_FRAME: usize = 8 << 20;
+/// [`Patience::silence`] unless told otherwise.
+pub const SILENCE: Duration = Duration::from_secs(10);
+/// [`Patience::reconnect_for`] unless told otherwise: the server's hold (30 s) and a margin.
+pub const RECONNECT_FOR: Duration = Duration::from_secs(35);
+/// The first pause between reconnection attempts, doubled after each up to the second.
+const BACKOFF_FIRST: Duration = Duration::from_millis(100);
+const BACKOFF_MOST: Duration = Duration::from_secs(2);
+/// A reconnection's QUIC handshake, at most (the next attempt starts afresh; the last
+/// may end this much after [`Patience::reconnect_for`]).
+const HANDSHAKE: Duration = Duration::from_secs(5);
 
-/// Why a connection ended or was refused, in words.
-pub fn describe(reason: &Reason) -> String {
-    match reason {
-        Reason::WrongToken => "wrong token".into(),
-        Reason::Version { server } => format!("the server speaks protocol version {server}"),
-        Reason::Shutdown => "the server is shutting down".into(),
-        Reason::Quit => "quit".into(),
-        Reason::Protocol(s) | Reason::Unavailable(s) => s.clone(),
-        Reason::Full { viewers } => format!("the server is full ({viewers} viewers)"),
+/// How long a session waits on its server.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Patience {
+    /// After the welcome, this long without a frame or a control message: the connection
+    /// is lost.
+    pub silence: Duration,
+    /// How long after a loss to keep trying to connect again.
+    pub reconnect_for: Duration,
+}
+
+impl Default for Patience {
+    fn default() -> Self {
+        Patience {
+            silence: SILENCE,
+            reconnect_for: RECONNECT_FOR,
+        }
     }
+}
+
+/// Where a session stands.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum State {
+    Connected,
+    /// The connection was lost (`why`); `attempts` to connect again so far.
+    Reconnecting {
+        why: String,
+        attempts: u32,
+    },
+    /// No more frames will come: why.
+    Ended(String),
+}
+
+/// What a session shows of itself: its state, its gaps and its newest welcome.
+#[derive(Clone, Debug)]
+pub struct Status {
+    pub state: State,
+    pub gaps: Gaps,
+    /// The newest connection's welcome (the vehicle may change on a reconnection that
+    /// did not get it back).
+    pub welcome: Welcome,
 }
 
 /// Set once Ctrl-C is pressed in the terminal; a second Ctrl-C exits at once (130), not
 /// waiting for goodbyes. For the headless viewer and the window alike.
-pub fn ctrl_c() -> tokio::sync::watch::Receiver<bool> {
-    let (stop, stopped) = tokio::sync::watch::channel(false);
+pub fn ctrl_c() -> watch::Receiver<bool> {
+    let (stop, stopped) = watch::channel(false);
     tokio::spawn(async move {
         if tokio::signal::ctrl_c().await.is_ok() {
             let _ = stop.send(true);
@@ -91,30 +137,74 @@ pub enum KeySource {
 /// Each physics step's keys, taken from the core's latch or a script.
 type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
 
-/// What the control writer is asked to do.
-enum Outgoing {
-    Message(ClientMessage),
-    /// Say goodbye, finish the stream, and tell whether the server heard.
-    Quit(oneshot::Sender<bool>),
-}
-
-/// What the I/O tasks and the caller share.
-struct Link {
+/// What the tasks and the caller share.
+pub(crate) struct Link {
+    /// The connection's frames; replaced with each connection.
     core: Mutex<ClientCore>,
-    /// Locked apart from the frames: a key state never waits on a decode.
+    /// Locked apart from the frames: a key state never waits on a decode. For the session.
     keys: Mutex<KeyCore>,
-    /// Woken when a frame is offered or the connection ends.
+    /// Woken when a frame is offered or the session ends.
     notify: Notify,
-    /// Set once no more frames can come: the reason.
-    ended: Mutex<Option<String>>,
-    closed: AtomicBool,
+    /// Bumped (under the core's lock) with each connection: bytes of an older one are not
+    /// offered to the new core.
+    epoch: AtomicU64,
+    /// The connection the keys go on; none while reconnecting.
+    conn: Mutex<Option<quinn::Connection>>,
+    /// When the server was last heard (a frame's bytes, a control message, the welcome).
+    heard: Mutex<Instant>,
+    /// Frames offered, all connections together.
+    frames: AtomicU64,
+    /// Frame bytes of the connections before this one.
+    bytes_before: AtomicU64,
+    /// The newest view asked for, sent again on a new connection.
+    view: Mutex<Option<ViewChange>>,
+    status: watch::Sender<Status>,
 }
 
 impl Link {
+    /// The session ends with `why` (the first reason given stands).
     fn end(&self, why: String) {
-        lock(&self.ended).get_or_insert(why);
-        self.closed.store(true, Ordering::Release);
+        self.status.send_if_modified(|s| {
+            if matches!(s.state, State::Ended(_)) {
+                return false;
+            }
+            s.state = State::Ended(why);
+            true
+        });
         self.notify.notify_one();
+    }
+
+    fn ended(&self) -> Option<String> {
+        match &self.status.borrow().state {
+            State::Ended(why) => Some(why.clone()),
+            _ => None,
+        }
+    }
+
+    /// The server was heard from, now.
+    pub(crate) fn heard(&self) {
+        *lock(&self.heard) = Instant::now();
+    }
+
+    /// Bytes of a frame of connection `epoch` arrived.
+    pub(crate) fn offer(&self, epoch: u64, bytes: &[u8]) {
+        {
+            let mut core = lock(&self.core);
+            if self.epoch.load(Ordering::Acquire) != epoch {
+                return;
+            }
+            core.offer(bytes, Instant::now());
+        }
+        self.frames.fetch_add(1, Ordering::Relaxed);
+        self.heard();
+        self.notify.notify_one();
+    }
+
+    /// Closes the current connection, if any.
+    fn close(&self, code: u32, why: &[u8]) {
+        if let Some(conn) = lock(&self.conn).take() {
+            conn.close(code.into(), why);
+        }
     }
 }
 
@@ -122,11 +212,14 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// Seconds, as people read them.
+fn secs(d: Duration) -> String {
+    format!("{:.1} s", d.as_secs_f64())
+}
+
 /// A joined viewer.
 pub struct Session {
-    _endpoint: quinn::Endpoint,
-    pub conn: quinn::Connection,
-    pub welcome: Welcome,
+    addr: SocketAddr,
     pub scene: Scene,
     link: Arc<Link>,
     control: mpsc::UnboundedSender<Outgoing>,
@@ -135,45 +228,45 @@ pub struct Session {
 
 impl Session {
     /// Connects, says hello, receives the welcome and the colour map, and starts the I/O
-    /// tasks; keys are sent from `keys`.
+    /// tasks; keys are sent from `keys`. Waits on the server as [`Patience::default`] says.
     pub async fn join(
         addr: SocketAddr,
         fingerprint: [u8; 32],
         hello: Hello,
         keys: KeySource,
     ) -> Result<Session> {
-        let (endpoint, conn) = connect(addr, fingerprint).await?;
-        let (mut send, mut recv) = conn.open_bi().await.context("opening the control stream")?;
+        Session::join_with(addr, fingerprint, hello, keys, Patience::default()).await
+    }
+
+    /// As [`Session::join`], with this patience.
+    pub async fn join_with(
+        addr: SocketAddr,
+        fingerprint: [u8; 32],
+        hello: Hello,
+        keys: KeySource,
+        patience: Patience,
+    ) -> Result<Session> {
+        let endpoint = join::endpoint(addr, fingerprint)?;
+        let conn = endpoint
+            .connect(addr, "roam")
+            .with_context(|| format!("connecting to {addr}"))?
+            .await
+            .with_context(|| format!("connecting to {addr}"))?;
         let mut hello = hello;
         hello.budget = messages::clamp_budget(hello.budget);
-        let budget = hello.budget;
-        write_control(&mut send, &ClientMessage::Hello(hello)).await?;
-        let joined = tokio::time::timeout(JOIN_TIMEOUT, async {
-            let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await
-            {
-                Ok(ServerMessage::Welcome(w)) => w,
-                Ok(ServerMessage::Refused(reason)) => {
-                    bail!("refused: {}", describe(&reason))
-                }
-                Ok(other) => bail!("expected a welcome, got {other:?}"),
-                Err(e) => match conn.close_reason() {
-                    Some(why) => bail!("the server closed the connection: {why} ({e})"),
-                    None => bail!("reading the welcome: {e}"),
-                },
+        let joined =
+            match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn, hello.clone())).await {
+                Ok(j) => j.map_err(|e| anyhow!("{e}"))?,
+                Err(_) => bail!(
+                    "the server sent no welcome and colour map within {} s",
+                    JOIN_TIMEOUT.as_secs()
+                ),
             };
-            let colors = color_map(&mut recv, &welcome).await?;
-            anyhow::Ok((welcome, colors))
-        })
-        .await;
-        let (welcome, colors) = match joined {
-            Ok(j) => j?,
-            Err(_) => bail!(
-                "the server sent no welcome and colour map within {} s",
-                JOIN_TIMEOUT.as_secs()
-            ),
-        };
-        let core = ClientCore::new(&welcome, budget)
+        let mut joined = joined;
+        let welcome = joined.welcome.clone();
+        let core = ClientCore::new(&welcome, hello.budget)
             .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
+        let terrain = TerrainId::of(&welcome, &joined.colors);
         let scene = Scene {
             levels: u32::from(welcome.levels),
             h_scale: welcome.h_scale,
@@ -184,20 +277,36 @@ impl Session {
             fog_color: welcome.fog_color,
             water_level: welcome.water_level,
             cells: welcome.color_cells,
-            colors,
+            colors: std::mem::take(&mut joined.colors),
         };
+        let (status, _) = watch::channel(Status {
+            state: State::Connected,
+            gaps: Gaps::default(),
+            welcome: welcome.clone(),
+        });
         let link = Arc::new(Link {
             core: Mutex::new(core),
             keys: Mutex::new(KeyCore::default()),
             notify: Notify::new(),
-            ended: Mutex::new(None),
-            closed: AtomicBool::new(false),
+            epoch: AtomicU64::new(0),
+            conn: Mutex::new(Some(joined.conn.clone())),
+            heard: Mutex::new(Instant::now()),
+            frames: AtomicU64::new(0),
+            bytes_before: AtomicU64::new(0),
+            view: Mutex::new(None),
+            status,
         });
         let (control, outgoing) = mpsc::unbounded_channel();
-        let mut tasks = vec![
-            tokio::spawn(read_frames(conn.clone(), link.clone())),
-            tokio::spawn(control_writer(send, outgoing, link.clone())),
-        ];
+        let supervisor = Supervisor {
+            addr,
+            endpoint,
+            hello: next_hello(hello, &welcome),
+            patience,
+            terrain,
+            link: link.clone(),
+            outgoing,
+        };
+        let mut tasks = vec![tokio::spawn(supervisor.run(joined))];
         let steps: Option<Steps> = match keys {
             KeySource::None => None,
             KeySource::Latch => Some(Box::new(KeyCore::take_keys)),
@@ -213,12 +322,10 @@ impl Session {
             }
         };
         if let Some(steps) = steps {
-            tasks.push(tokio::spawn(send_keys(conn.clone(), link.clone(), steps)));
+            tasks.push(tokio::spawn(send_keys(link.clone(), steps)));
         }
         Ok(Session {
-            _endpoint: endpoint,
-            conn,
-            welcome,
+            addr,
             scene,
             link,
             control,
@@ -226,10 +333,41 @@ impl Session {
         })
     }
 
-    /// The core (the newest mesh, the grid, the budget): held briefly, never across an
-    /// await.
+    /// The server's address.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// The core (the newest mesh, the grid, the budget) of the current connection: held
+    /// briefly, never across an await.
     pub fn core(&self) -> MutexGuard<'_, ClientCore> {
         lock(&self.link.core)
+    }
+
+    /// Where the session stands, its gaps and its newest welcome.
+    pub fn status(&self) -> Status {
+        self.link.status.borrow().clone()
+    }
+
+    /// The status as it changes (the state, reconnections; not each frame): to wait for a
+    /// loss or a reconnection without polling.
+    pub fn status_changes(&self) -> watch::Receiver<Status> {
+        self.link.status.subscribe()
+    }
+
+    /// The newest connection's welcome.
+    pub fn welcome(&self) -> Welcome {
+        self.link.status.borrow().welcome.clone()
+    }
+
+    /// Connections made again after one was lost, so far.
+    pub fn reconnects(&self) -> u32 {
+        self.link.status.borrow().gaps.reconnects
+    }
+
+    /// The vehicle driven or followed now.
+    pub fn vehicle(&self) -> u16 {
+        self.link.status.borrow().welcome.vehicle
     }
 
     /// Sends what the core has for the control stream.
@@ -240,62 +378,63 @@ impl Session {
     }
 
     /// Waits for the next frame and takes it: decoded into the core's mesh (unless
-    /// `decode` is false) and acknowledged. An error when the connection has ended or the
-    /// server sent a frame inconsistent with itself.
+    /// `decode` is false) and acknowledged. Waits through a reconnection. An error once
+    /// the session has ended (frames still waiting are not taken) (lost for good, closed by the server, refused on
+    /// reconnecting), or the server sent a frame it could not have sent (then the session
+    /// ends, naming the server and the frame).
     pub async fn next_frame(&self, decode: bool) -> Result<Taken> {
         loop {
             let notified = self.link.notify.notified();
             tokio::pin!(notified);
             notified.as_mut().enable();
+            if let Some(why) = self.link.ended() {
+                bail!("{why}");
+            }
             {
                 let mut core = self.core();
                 if core.has_frame() {
                     let started = Instant::now();
-                    let mut taken = core.take(decode);
+                    let taken = core.take(decode);
                     self.flush(&mut core);
                     drop(core);
-                    if let Ok(Taken::Frame(r)) = &mut taken {
-                        r.decode_s = started.elapsed().as_secs_f64();
-                        if let Some(seq) = r.input_seq {
-                            r.latencies_ms = lock(&self.link.keys).applied(seq, r.arrived);
+                    return match taken {
+                        Ok(Taken::Frame(mut r)) => {
+                            r.decode_s = started.elapsed().as_secs_f64();
+                            if let Some(seq) = r.input_seq {
+                                r.latencies_ms = lock(&self.link.keys).applied(seq, r.arrived);
+                            }
+                            // Not a change to wake watchers for: read with `status`.
+                            self.link.status.send_if_modified(|s| {
+                                s.gaps.frame(r.arrived);
+                                false
+                            });
+                            Ok(Taken::Frame(r))
                         }
-                    }
-                    return Ok(taken?);
+                        Ok(other) => Ok(other),
+                        Err(broken) => {
+                            let why = format!("the server at {}: {broken}", self.addr);
+                            self.link.end(why.clone());
+                            self.link.close(close::PROTOCOL, b"a frame out of order");
+                            Err(anyhow!(why))
+                        }
+                    };
                 }
-            }
-            if self.link.closed.load(Ordering::Acquire) {
-                bail!("{}", self.ended());
             }
             notified.await;
         }
     }
 
-    /// Why the connection ended, in words.
-    pub fn ended(&self) -> String {
-        if let Some(why) = lock(&self.link.ended).clone()
-            && self.conn.close_reason().is_none()
-        {
-            return why;
-        }
-        match self.conn.close_reason() {
-            Some(quinn::ConnectionError::ApplicationClosed(c)) => format!(
-                "the server closed the connection: {}",
-                String::from_utf8_lossy(&c.reason)
-            ),
-            Some(e) => format!("the connection ended: {e}"),
-            None => "the connection ended".into(),
-        }
-    }
-
-    /// Asks for `budget` triangles from now on.
+    /// Asks for `budget` triangles from now on (on this connection and the next).
     pub fn set_budget(&self, budget: u32) {
         let mut core = self.core();
         core.set_budget(budget);
         self.flush(&mut core);
     }
 
-    /// Tells the server how the camera differs from the default at the vehicle.
-    pub fn set_view(&self, view: messages::ViewChange) {
+    /// Tells the server how the camera differs from the default at the vehicle (this
+    /// connection, and the next).
+    pub fn set_view(&self, view: ViewChange) {
+        *lock(&self.link.view) = Some(view);
         let mut core = self.core();
         core.set_view(view);
         self.flush(&mut core);
@@ -314,15 +453,16 @@ impl Session {
         lock(&self.link.keys).keys_released();
     }
 
-    /// Frame bytes received so far.
+    /// Frame bytes received so far, every connection's.
     pub fn bytes_in(&self) -> u64 {
-        self.core().bytes_in()
+        let core = self.core();
+        self.link.bytes_before.load(Ordering::Relaxed) + core.bytes_in()
     }
 
     /// Says goodbye and closes the connection. True when the server heard: it took the
     /// whole control stream, goodbye included, or closed the connection with the code it
     /// closes with on a goodbye (bounded: a dead or slow server does not hold the viewer
-    /// more than a second).
+    /// more than a second). False while reconnecting.
     pub async fn quit(&self) -> bool {
         let (tx, rx) = oneshot::channel();
         let heard = if self.control.send(Outgoing::Quit(tx)).is_ok() {
@@ -332,7 +472,8 @@ impl Session {
         } else {
             false
         };
-        self.conn.close(0u32.into(), b"quit");
+        self.link.end("quit".into());
+        self.link.close(0, b"quit");
         heard
     }
 }
@@ -343,7 +484,272 @@ impl Drop for Session {
         for t in &self.tasks {
             t.abort();
         }
-        self.conn.close(0u32.into(), b"bye");
+        self.link.close(0, b"bye");
+    }
+}
+
+/// The hello of the next connection after `welcome`: a driver presents its ticket, a
+/// spectator asks for the vehicle it followed.
+fn next_hello(mut hello: Hello, welcome: &Welcome) -> Hello {
+    match hello.role {
+        Role::Driver => hello.resume = welcome.ticket,
+        Role::Spectator { .. } => {
+            hello.role = Role::Spectator {
+                follow: Some(welcome.vehicle),
+            }
+        }
+    }
+    hello
+}
+
+/// The connection's life and the reconnections: owns the control stream's writing end.
+struct Supervisor {
+    addr: SocketAddr,
+    endpoint: quinn::Endpoint,
+    /// The hello of the next connection (the newest ticket, the vehicle followed).
+    hello: Hello,
+    patience: Patience,
+    /// The first connection's terrain: every later one must show it.
+    terrain: TerrainId,
+    link: Arc<Link>,
+    outgoing: mpsc::UnboundedReceiver<Outgoing>,
+}
+
+impl Supervisor {
+    async fn run(mut self, mut joined: Joined) {
+        // Frames offered at the last silence: a second silence with none since ends it.
+        let mut silent_at: Option<u64> = None;
+        loop {
+            let Joined {
+                conn,
+                mut send,
+                recv,
+                ..
+            } = joined;
+            let end = self.drive(&conn, &mut send, recv).await;
+            let (why, silent) = match end {
+                End::Quit => return self.link.end("quit".into()),
+                End::Final(why) => {
+                    conn.close(0u32.into(), b"bye");
+                    return self.link.end(why);
+                }
+                End::Lost { why, silent } => (why, silent),
+            };
+            conn.close(0u32.into(), b"lost");
+            *lock(&self.link.conn) = None;
+            if silent {
+                let frames = self.link.frames.load(Ordering::Relaxed);
+                if silent_at == Some(frames) {
+                    return self.link.end(format!(
+                        "lost the server at {}: {why}, again right after reconnecting, with \
+                         no frame between: the server welcomes but sends nothing",
+                        self.addr
+                    ));
+                }
+                silent_at = Some(frames);
+            }
+            self.link.status.send_modify(|s| {
+                s.gaps.lost(Instant::now());
+                s.state = State::Reconnecting {
+                    why: why.clone(),
+                    attempts: 0,
+                };
+            });
+            joined = match self.reconnect(&why).await {
+                Ok(Some(j)) => j,
+                Ok(None) => return self.link.end("quit".into()),
+                Err(why) => return self.link.end(why),
+            };
+            if self.link.ended().is_some() {
+                joined.conn.close(0u32.into(), b"bye");
+                return;
+            }
+            if let Err(why) = self.adopt(&joined) {
+                joined.conn.close(0u32.into(), b"bye");
+                return self.link.end(why);
+            }
+        }
+    }
+
+    /// Serves one connection until it ends: frames into the core, the server's control
+    /// messages, the core's control messages out, the silence watched.
+    async fn drive(
+        &mut self,
+        conn: &quinn::Connection,
+        send: &mut quinn::SendStream,
+        recv: quinn::RecvStream,
+    ) -> End {
+        let epoch = self.link.epoch.load(Ordering::Acquire);
+        let (ends_tx, mut ends) = mpsc::channel(1);
+        // Dropped on return: the readers stop with the connection's end.
+        let mut tasks = JoinSet::new();
+        tasks.spawn(read_frames(conn.clone(), self.link.clone(), epoch));
+        tasks.spawn(read_control(recv, self.link.clone(), ends_tx));
+        // A view to tell the new connection.
+        let mut outbox = Vec::new();
+        while let Some(m) = lock(&self.link.core).poll_control() {
+            outbox.push(m);
+        }
+        for m in outbox {
+            if let Err(e) = write_control(send, &m).await {
+                return failed_write(conn, e);
+            }
+        }
+        let silence = self.patience.silence;
+        loop {
+            let quiet_until = *lock(&self.link.heard) + silence;
+            tokio::select! {
+                o = self.outgoing.recv() => match o {
+                    Some(Outgoing::Message(m)) => {
+                        if let Err(e) = write_control(send, &m).await {
+                            return failed_write(conn, e);
+                        }
+                    }
+                    Some(Outgoing::Quit(heard)) => {
+                        let _ = heard.send(goodbye(send).await);
+                        return End::Quit;
+                    }
+                    None => return End::Quit,
+                },
+                Some(end) = ends.recv() => return end,
+                e = conn.closed() => return End::of(&e),
+                () = tokio::time::sleep_until(quiet_until.into()) => {
+                    if lock(&self.link.heard).elapsed() >= silence {
+                        return End::Lost {
+                            why: format!(
+                                "no frame or message from the server for {}",
+                                secs(silence)
+                            ),
+                            silent: true,
+                        };
+                    }
+                }
+            }
+        }
+    }
+
+    /// Connects again until a connection joins, the session quits (`None`), or the time
+    /// runs out or the server refuses (an error, in words).
+    async fn reconnect(&mut self, why: &str) -> Result<Option<Joined>, String> {
+        let deadline = Instant::now() + self.patience.reconnect_for;
+        let mut backoff = BACKOFF_FIRST;
+        let mut attempts = 0u32;
+        let lost =
+            |more: String| format!("lost the server at {}: {why}; {more}", self.addr, why = why);
+        loop {
+            attempts += 1;
+            self.link.status.send_modify(|s| {
+                if let State::Reconnecting { attempts: a, .. } = &mut s.state {
+                    *a = attempts;
+                }
+            });
+            // An attempt begun before the deadline has its whole handshake.
+            let hello = self.hello_now();
+            let attempt = attempt(&self.endpoint, self.addr, HANDSHAKE, hello);
+            let result = tokio::select! {
+                r = attempt => r,
+                () = quit_asked(&mut self.outgoing) => return Ok(None),
+            };
+            let last = match result {
+                Ok(j) => {
+                    let found = TerrainId::of(&j.welcome, &j.colors);
+                    return match self.terrain.differences(&found) {
+                        None => Ok(Some(j)),
+                        Some(d) => {
+                            j.conn.close(0u32.into(), b"another terrain");
+                            Err(lost(format!("the server changed its terrain: {d}")))
+                        }
+                    };
+                }
+                Err(e) if !e.lost => return Err(lost(format!("reconnecting: {e}"))),
+                Err(e) => e.message,
+            };
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() || self.link.ended().is_some() {
+                return Err(lost(format!(
+                    "tried to reconnect for {} s ({attempts} attempts; the last: {last})",
+                    self.patience.reconnect_for.as_secs()
+                )));
+            }
+            tokio::select! {
+                () = tokio::time::sleep(backoff.min(left)) => {}
+                () = quit_asked(&mut self.outgoing) => return Ok(None),
+            }
+            backoff = (backoff * 2).min(BACKOFF_MOST);
+        }
+    }
+
+    /// The next hello, asking for the budget asked so far.
+    fn hello_now(&self) -> Hello {
+        Hello {
+            budget: lock(&self.link.core).budget(),
+            ..self.hello.clone()
+        }
+    }
+
+    /// Makes `joined` the session's connection: a fresh core (with the budget and the view
+    /// asked so far), the keys sent on it, the reconnection counted.
+    fn adopt(&mut self, joined: &Joined) -> Result<(), String> {
+        let welcome = joined.welcome.clone();
+        {
+            let mut core = lock(&self.link.core);
+            let mut fresh = ClientCore::new(&welcome, core.budget())
+                .ok_or_else(|| format!("a grid of 2^{} + 1", welcome.levels))?;
+            if let Some(view) = *lock(&self.link.view) {
+                fresh.set_view(view);
+            }
+            self.link
+                .bytes_before
+                .fetch_add(core.bytes_in(), Ordering::Relaxed);
+            self.link.epoch.fetch_add(1, Ordering::AcqRel);
+            *core = fresh;
+        }
+        self.link.heard();
+        *lock(&self.link.conn) = Some(joined.conn.clone());
+        let driver = self.hello.role == Role::Driver;
+        self.link.status.send_modify(|s| {
+            s.gaps.reconnected(driver && welcome.resumed);
+            s.state = State::Connected;
+            s.welcome = welcome.clone();
+        });
+        self.hello = next_hello(self.hello.clone(), &welcome);
+        Ok(())
+    }
+}
+
+/// One attempt to join: the handshake within `handshake`, the welcome and the colour map
+/// within [`JOIN_TIMEOUT`].
+async fn attempt(
+    endpoint: &quinn::Endpoint,
+    addr: SocketAddr,
+    handshake: Duration,
+    hello: Hello,
+) -> Result<Joined, JoinError> {
+    let connecting = endpoint
+        .connect(addr, "roam")
+        .map_err(|e| JoinError::fatal(format!("connecting: {e}")))?;
+    let conn = match tokio::time::timeout(handshake, connecting).await {
+        Ok(Ok(conn)) => conn,
+        Ok(Err(e)) => {
+            let (lost, why) = join::ending(&e);
+            return Err(JoinError { lost, message: why });
+        }
+        Err(_) => {
+            return Err(JoinError::lost(format!(
+                "no handshake within {}",
+                secs(handshake)
+            )));
+        }
+    };
+    match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn.clone(), hello)).await {
+        Ok(r) => r.inspect_err(|_| conn.close(0u32.into(), b"bye")),
+        Err(_) => {
+            conn.close(0u32.into(), b"too slow");
+            Err(JoinError::lost(format!(
+                "no welcome and colour map within {} s",
+                JOIN_TIMEOUT.as_secs()
+            )))
+        }
     }
 }
 
@@ -355,134 +761,29 @@ async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Res
     Ok(())
 }
 
-/// Writes the control messages in order until the session ends or a write fails (then
-/// the session ends with why).
-async fn control_writer(
-    mut send: quinn::SendStream,
-    mut outgoing: mpsc::UnboundedReceiver<Outgoing>,
-    link: Arc<Link>,
-) {
-    while let Some(o) = outgoing.recv().await {
-        match o {
-            Outgoing::Message(m) => {
-                if let Err(e) = write_control(&mut send, &m).await {
-                    link.end(format!("{e:#}"));
-                    return;
-                }
-            }
-            Outgoing::Quit(heard) => {
-                let said = async {
-                    wire::write(&mut send, &ClientMessage::Bye(Reason::Quit)).await?;
-                    send.finish()?;
-                    match send.stopped().await {
-                        Ok(_) => anyhow::Ok(true),
-                        Err(quinn::StoppedError::ConnectionLost(
-                            quinn::ConnectionError::ApplicationClosed(c),
-                        )) => Ok(c.error_code == close::BYE.into()),
-                        Err(e) => Err(e.into()),
-                    }
-                };
-                let _ = heard.send(matches!(said.await, Ok(true)));
-                return;
-            }
-        }
-    }
-}
-
 /// Sends a key datagram every 10 ms (the physics' step) with the step's keys from
-/// `steps`: the core numbers the state and repeats the last eight, so a lost datagram
-/// costs nothing. Ends when the connection does.
-async fn send_keys(conn: quinn::Connection, link: Arc<Link>, mut steps: Steps) {
+/// `steps`, on whichever connection is up: the core numbers the state and repeats the
+/// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
+/// are numbered) unsent. Ends with the session.
+async fn send_keys(link: Arc<Link>, mut steps: Steps) {
     let mut tick = tokio::time::interval(Duration::from_millis(10));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tick.tick().await;
+        if link.ended().is_some() {
+            return;
+        }
         let datagram = {
             let mut keys = lock(&link.keys);
             let step = steps(&mut keys);
             keys.key_datagram(step, Instant::now())
         };
+        let conn = lock(&link.conn).clone();
         let mut bytes = Vec::new();
-        if messages::encode(&datagram, &mut bytes).is_ok()
-            && conn.send_datagram(bytes.into()).is_err()
+        if let Some(conn) = conn
+            && messages::encode(&datagram, &mut bytes).is_ok()
         {
-            return;
+            let _ = conn.send_datagram(bytes.into());
         }
     }
-}
-
-/// Reads frames into the core as they arrive: datagrams (small frames), and streams, each
-/// read to its end in a task of its own (a stream the server abandons is skipped).
-async fn read_frames(conn: quinn::Connection, link: Arc<Link>) {
-    let offer = |link: &Link, bytes: &[u8]| {
-        lock(&link.core).offer(bytes, Instant::now());
-        link.notify.notify_one();
-    };
-    let datagrams = {
-        let (conn, link) = (conn.clone(), link.clone());
-        tokio::spawn(async move {
-            while let Ok(bytes) = conn.read_datagram().await {
-                offer(&link, &bytes);
-            }
-        })
-    };
-    while let Ok(mut stream) = conn.accept_uni().await {
-        let link = link.clone();
-        tokio::spawn(async move {
-            if let Ok(bytes) = stream.read_to_end(MAX_FRAME).await {
-                offer(&link, &bytes);
-            }
-        });
-    }
-    datagrams.abort();
-    link.end("the connection ended".into());
-}
-
-/// Receives the colour map that follows the welcome, after checking its announced sizes
-/// against the grid (nothing is allocated before).
-async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Vec<u8>> {
-    if welcome.levels > 13 {
-        bail!(
-            "the server's grid is 2^{} + 1: more than this viewer holds (2^13 + 1)",
-            welcome.levels
-        );
-    }
-    let cells = 1u64 << welcome.levels;
-    let most = roam_protocol::colormap::max_len(cells as u32) as u64;
-    if u64::from(welcome.color_cells) != cells || u64::from(welcome.color_bytes) > most {
-        bail!(
-            "the server's colour map is {} bytes of {} cells a side, expected {cells} cells \
-             in at most {most} bytes",
-            welcome.color_bytes,
-            welcome.color_cells,
-        );
-    }
-    // Grown as chunks come, not allocated at the size claimed.
-    let size = welcome.color_bytes as usize;
-    let mut packed = Vec::new();
-    let mut got = 0usize;
-    while got < size {
-        match wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await? {
-            ServerMessage::ColorMap { offset, data } => {
-                let at = offset as usize;
-                let end = at
-                    .checked_add(data.len())
-                    .filter(|&e| e <= size)
-                    .ok_or_else(|| anyhow!("a colour-map chunk past the end"))?;
-                if data.is_empty() {
-                    bail!("an empty colour-map chunk");
-                }
-                if packed.len() < end {
-                    packed.resize(end, 0);
-                }
-                packed[at..end].copy_from_slice(&data);
-                got += data.len();
-            }
-            other => bail!("expected the colour map, got {other:?}"),
-        }
-    }
-    let mut color = Vec::new();
-    roam_protocol::colormap::decode(welcome.color_cells, &packed, &mut color)
-        .map_err(|e| anyhow!("the server's colour map: {e}"))?;
-    Ok(color)
 }

@@ -1,4 +1,9 @@
-//! The stats a headless run writes (`--stats OUT.json`).
+//! The stats a headless run writes (`--stats OUT.json`). Every key scripts read stays as it
+//! is; the reconnection keys are `reconnects` (connections made again after a loss, every
+//! viewer's), `resumed` (of those, the drivers' that got their vehicle back: equal to
+//! `reconnects` when every one did), `gap_ms_max` (the longest time between two frames,
+//! a reconnection's included), `budget_served_min` (the smallest budget served: asked, or
+//! the server's most if less) and `errors` (viewers whose session ended early).
 
 use crate::headless::ViewerStats;
 
@@ -17,12 +22,7 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         .collect();
     let made: Vec<f64> = viewers
         .iter()
-        .map(|s| {
-            let span = s
-                .first_frame
-                .map_or(0, |f| s.last_frame.saturating_sub(f) + 1);
-            span as f64 / s.seconds.max(1e-9)
-        })
+        .map(|s| s.made() as f64 / s.seconds.max(1e-9))
         .collect();
     let latencies = all(&|s| s.latencies_ms.clone());
     serde_json::json!({
@@ -38,5 +38,10 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         "input_to_frame_ms_p99": quantile(&latencies, 0.99),
         "decode_errors": viewers.iter().map(|s| s.decode_errors).sum::<u64>(),
         "max_triangles": viewers.iter().map(|s| s.max_triangles).max().unwrap_or(0),
+        "budget_served_min": viewers.iter().map(|s| s.budget_served).min().unwrap_or(0),
+        "reconnects": viewers.iter().map(|s| s.reconnects).sum::<u32>(),
+        "resumed": viewers.iter().map(|s| s.resumed).sum::<u32>(),
+        "gap_ms_max": viewers.iter().map(|s| s.gap_max_s * 1e3).fold(0.0, f64::max),
+        "errors": viewers.iter().filter(|s| s.error.is_some()).count(),
     })
 }

@@ -20,7 +20,7 @@ use crate::camera::{Interpolator, LocalGround, Rig};
 use crate::hud::{Numbers, Overlay, Rate};
 use crate::live::{self, Command, Link, Shared};
 use crate::render::{Gpu, Marker, Renderer, Scene, Toggles, View};
-use crate::session::Session;
+use crate::session::{Session, State};
 
 /// How the window starts.
 #[derive(Clone, Debug)]
@@ -299,7 +299,7 @@ impl App {
         self.bytes.add(now, (bytes - self.last_bytes) as f64);
         self.last_bytes = bytes;
 
-        let me = self.shared.vehicle;
+        let me = self.shared.vehicle();
         let followed = self.interpolators.get(&me).and_then(|i| i.sample(now));
         let markers: Vec<Marker> = self
             .interpolators
@@ -395,6 +395,8 @@ impl App {
             .render(&gfx.gpu, &target, size, &view, self.toggles);
         let numbers = self.hud_shown.then(|| {
             let link = self.shared.link();
+            let status = self.shared.status();
+            let reconnecting = matches!(status.state, State::Reconnecting { .. });
             let (speed, heading) = followed.map_or((0.0, 0.0), |v| (v.speed, v.heading));
             Numbers {
                 fps: self.frames.per_second(now),
@@ -408,10 +410,21 @@ impl App {
                 speed,
                 heading_deg: heading,
                 budget: self.budget.round() as u32,
+                max_budget: status.welcome.max_budget,
                 toggles: self.toggles,
-                connected: link == Link::Connected,
-                connection: match link {
-                    Link::Connected => format!(
+                connected: link == Link::Connected && !reconnecting,
+                reconnecting_s: status
+                    .gaps
+                    .current(Instant::now())
+                    .filter(|_| reconnecting)
+                    .map(|g| g.as_secs_f64()),
+                reconnects: status.gaps.reconnects,
+                resumed: status.gaps.resumed,
+                connection: match (link, &status.state) {
+                    (Link::Connected, State::Reconnecting { why, attempts }) => {
+                        format!("to {} · {why} · attempt {attempts}", self.opts.server)
+                    }
+                    (Link::Connected, _) => format!(
                         "connected to {} · vehicle #{me} · {}",
                         self.opts.server,
                         if self.opts.driver {
@@ -420,7 +433,7 @@ impl App {
                             "watching"
                         }
                     ),
-                    Link::Ended(why) => format!("disconnected: {why}"),
+                    (Link::Ended(why), _) => format!("disconnected: {why}"),
                 },
                 adapter: format!("{} ({:?})", gfx.gpu.adapter.name, gfx.gpu.adapter.backend),
             }

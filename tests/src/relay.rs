@@ -7,6 +7,11 @@
 //! viewer ◄── relay.addr() ◄─(to_client: loss, delay, jitter)─── upstream socket per viewer ◄── server
 //! ```
 //!
+//! [`Relay::cut`] black-holes every datagram both ways (as a dropped Wi-Fi link does) until
+//! [`Relay::restore`]; datagrams already in a delay line still arrive. The flows and their
+//! sockets stay, so a viewer that sends again after the cut reaches the server from the
+//! same address.
+//!
 //! Every client source address gets an upstream socket of its own, so the server sees
 //! several viewers as several peers. Queues are bounded ([`MAX_QUEUED`] datagrams per
 //! direction, more are dropped and counted), flows idle for [`FLOW_IDLE`] are forgotten,
@@ -16,7 +21,7 @@ use crate::fixtures::SplitMix64;
 use std::collections::{BinaryHeap, HashMap};
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
@@ -89,6 +94,8 @@ pub struct DirectionStats {
     /// Datagrams dropped because the delay line was full ([`MAX_QUEUED`]), there were too
     /// many flows, or the send failed.
     pub overflowed: u64,
+    /// Datagrams dropped while the link was cut ([`Relay::cut`]).
+    pub cut: u64,
     /// Bytes delivered.
     pub bytes: u64,
 }
@@ -96,7 +103,7 @@ pub struct DirectionStats {
 impl DirectionStats {
     /// Every datagram dropped, for whatever reason.
     pub fn dropped(&self) -> u64 {
-        self.lost + self.overflowed
+        self.lost + self.overflowed + self.cut
     }
 }
 
@@ -111,8 +118,8 @@ impl std::fmt::Display for LinkStats {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let one = |d: &DirectionStats| {
             format!(
-                "{} forwarded ({} bytes), {} lost, {} overflowed",
-                d.forwarded, d.bytes, d.lost, d.overflowed
+                "{} forwarded ({} bytes), {} lost, {} overflowed, {} cut",
+                d.forwarded, d.bytes, d.lost, d.overflowed, d.cut
             )
         };
         write!(
@@ -129,6 +136,7 @@ struct Counters {
     forwarded: AtomicU64,
     lost: AtomicU64,
     overflowed: AtomicU64,
+    cut: AtomicU64,
     bytes: AtomicU64,
 }
 
@@ -138,6 +146,7 @@ impl Counters {
             forwarded: self.forwarded.load(Ordering::Relaxed),
             lost: self.lost.load(Ordering::Relaxed),
             overflowed: self.overflowed.load(Ordering::Relaxed),
+            cut: self.cut.load(Ordering::Relaxed),
             bytes: self.bytes.load(Ordering::Relaxed),
         }
     }
@@ -218,10 +227,16 @@ struct Line {
     queue: mpsc::Sender<Pending>,
     counters: Arc<Counters>,
     order: Arc<AtomicU64>,
+    /// Set while the link is cut: every datagram is dropped.
+    cut: Arc<AtomicBool>,
 }
 
 impl Line {
     fn offer(&self, bytes: &[u8], socket: &Arc<UdpSocket>, to: SocketAddr) {
+        if self.cut.load(Ordering::Acquire) {
+            self.counters.cut.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         let now = Instant::now();
         let due = self
             .shaper
@@ -286,6 +301,7 @@ pub struct Relay {
     upstream: SocketAddr,
     to_server: Arc<Counters>,
     to_client: Arc<Counters>,
+    cut: Arc<AtomicBool>,
     tasks: Vec<JoinHandle<()>>,
 }
 
@@ -325,6 +341,7 @@ impl Relay {
             .with_context(|| format!("the address bound for {listen}"))?;
         let socket = Arc::new(socket);
         let (to_server, to_client) = (Arc::new(Counters::default()), Arc::new(Counters::default()));
+        let cut = Arc::new(AtomicBool::new(false));
         let line = |direction: Direction, seed: u64, counters: &Arc<Counters>| {
             let (tx, rx) = mpsc::channel(MAX_QUEUED);
             let line = Line {
@@ -332,6 +349,7 @@ impl Relay {
                 queue: tx,
                 counters: counters.clone(),
                 order: Arc::new(AtomicU64::new(0)),
+                cut: cut.clone(),
             };
             (line, tokio::spawn(deliver(rx, counters.clone())))
         };
@@ -349,6 +367,7 @@ impl Relay {
             upstream,
             to_server,
             to_client,
+            cut,
             tasks: vec![accept, up_task, down_task],
         })
     }
@@ -361,6 +380,22 @@ impl Relay {
     /// Where datagrams go.
     pub fn upstream(&self) -> SocketAddr {
         self.upstream
+    }
+
+    /// From now on, every datagram either way is dropped (counted in
+    /// [`DirectionStats::cut`]), until [`Relay::restore`].
+    pub fn cut(&self) {
+        self.cut.store(true, Ordering::Release);
+    }
+
+    /// Datagrams go through again.
+    pub fn restore(&self) {
+        self.cut.store(false, Ordering::Release);
+    }
+
+    /// Whether the link is cut.
+    pub fn is_cut(&self) -> bool {
+        self.cut.load(Ordering::Acquire)
     }
 
     /// The counters so far.

@@ -1,10 +1,14 @@
 //! The viewer's frame core ([`ClientCore`]) fed frames by hand, with no network (the
 //! clock read once, only to stamp their arrival): a key frame that comes after the frames
-//! coded against it is taken first, and a base that never comes asks for a key frame.
+//! coded against it is taken first, a base that never comes asks for a key frame, frame
+//! numbers no server could send are reported and never wedge the core, and the session's
+//! [`Gaps`] count reconnections and the time without frames.
 
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use roam_client::core::{AWAIT_BASE, ClientCore, Taken};
+use roam_client::core::{
+    AWAIT_BASE, Broken, ClientCore, Gaps, MAX_FRAME_JUMP, MAX_FRAME_NUMBER, Taken,
+};
 use roam_protocol::messages::{self, ClientMessage, Frame, Welcome};
 use roam_protocol::{BitSet, Cut, Grid, MeshEncoder};
 
@@ -163,4 +167,137 @@ fn a_base_that_never_comes_asks_for_a_key_frame() {
     let t = core.take(true).expect("consistent");
     assert!(matches!(t, Taken::Dropped(_)), "{t:?}");
     assert_eq!(core.poll_control(), Some(ClientMessage::KeyFrame));
+}
+
+/// `bytes`, a frame message, with its tick and base changed.
+fn altered(bytes: &[u8], tick: u64, base: Option<u64>) -> Vec<u8> {
+    let mut f: Frame = messages::decode(bytes).expect("a frame");
+    f.tick = tick;
+    f.base = base;
+    let mut out = Vec::new();
+    messages::encode(&f, &mut out).expect("within the limits");
+    out
+}
+
+/// A frame number far ahead of the newest (`u64::MAX`, past [`MAX_FRAME_NUMBER`], or more
+/// than [`MAX_FRAME_JUMP`] ahead) is reported once, names the numbers, and is not taken
+/// into account: the frames after it are taken as if it had never come (latest wins would
+/// otherwise have made every later frame look old).
+#[test]
+fn a_frame_number_no_server_could_send_is_reported_and_does_not_wedge_the_core() {
+    let (grid, heights, welcome) = small_grid();
+    let cuts = growing_cuts(grid, 2);
+    let key = |f: u64| frame_bytes(grid, &heights, f, &cuts[1], None);
+    let mut core = ClientCore::new(&welcome, 1_000).expect("a valid grid");
+    let now = Instant::now();
+    let taken = |core: &mut ClientCore| match core.take(true) {
+        Ok(Taken::Frame(r)) => Ok(Some(r.frame)),
+        Ok(Taken::Nothing) => Ok(None),
+        Ok(Taken::Dropped(why)) => panic!("dropped: {why}"),
+        Err(e) => Err(e),
+    };
+    // Before any frame, numbers start at 0: more than the jump ahead of 0 is refused.
+    core.offer(&key(MAX_FRAME_JUMP + 1), now);
+    assert!(core.has_frame(), "the violation is there to be reported");
+    let e = taken(&mut core).expect_err("too far ahead of the start");
+    assert_eq!(
+        e,
+        Broken::FrameAhead {
+            frame: MAX_FRAME_JUMP + 1,
+            newest: None
+        }
+    );
+    assert!(e.to_string().contains("the start (0)"), "{e}");
+    assert!(!core.has_frame(), "reported once");
+    core.offer(&key(3), now);
+    assert_eq!(taken(&mut core), Ok(Some(3)));
+    for poison in [u64::MAX, MAX_FRAME_NUMBER, 3 + MAX_FRAME_JUMP + 1] {
+        core.offer(&key(poison), now);
+        let e = taken(&mut core).expect_err("a poisoned number");
+        assert_eq!(
+            e,
+            Broken::FrameAhead {
+                frame: poison,
+                newest: Some(3)
+            }
+        );
+        let text = e.to_string();
+        assert!(
+            text.contains(&format!("frame {poison}")) && text.contains("the newest frame, 3"),
+            "{text}"
+        );
+    }
+    // The next frames are taken: the poison changed nothing. The largest jump allowed
+    // is taken too.
+    core.offer(&key(4), now);
+    assert_eq!(taken(&mut core), Ok(Some(4)));
+    core.offer(&key(4 + MAX_FRAME_JUMP), now);
+    assert_eq!(taken(&mut core), Ok(Some(4 + MAX_FRAME_JUMP)));
+    let acks: Vec<ClientMessage> = std::iter::from_fn(|| core.poll_control()).collect();
+    assert_eq!(
+        acks,
+        [3, 4, 4 + MAX_FRAME_JUMP].map(|frame| ClientMessage::Ack { frame })
+    );
+}
+
+/// A frame coded against a frame not before it, and a frame showing an older tick than
+/// the frame taken before it, are reported and not taken.
+#[test]
+fn a_base_ahead_of_its_frame_or_a_tick_going_back_is_reported() {
+    let (grid, heights, welcome) = small_grid();
+    let cuts = growing_cuts(grid, 3);
+    let mut core = ClientCore::new(&welcome, 1_000).expect("a valid grid");
+    let now = Instant::now();
+    let key = frame_bytes(grid, &heights, 5, &cuts[1], None);
+    core.offer(&altered(&key, 50, None), now);
+    assert!(matches!(core.take(true), Ok(Taken::Frame(r)) if r.frame == 5 && r.tick == 50));
+    for base in [6, 7] {
+        let delta = frame_bytes(grid, &heights, 6, &cuts[2], Some((5, &cuts[1])));
+        core.offer(&altered(&delta, 60, Some(base)), now);
+        let e = core.take(true).expect_err("a base not before its frame");
+        assert_eq!(e, Broken::BaseAhead { frame: 6, base });
+        assert!(e.to_string().contains("not before it"), "{e}");
+    }
+    let delta = frame_bytes(grid, &heights, 6, &cuts[2], Some((5, &cuts[1])));
+    core.offer(&altered(&delta, 49, Some(5)), now);
+    let e = core.take(true).expect_err("a tick going back");
+    assert_eq!(
+        e,
+        Broken::TickBackwards {
+            frame: 6,
+            tick: 49,
+            newest: 5,
+            newest_tick: 50
+        }
+    );
+    // The same tick again is fine (the world did not tick between two frames).
+    let next = frame_bytes(grid, &heights, 7, &cuts[2], Some((5, &cuts[1])));
+    core.offer(&altered(&next, 50, Some(5)), now);
+    assert!(matches!(core.take(true), Ok(Taken::Frame(r)) if r.frame == 7 && r.tick == 50));
+}
+
+/// The gaps of a session: the longest time between two frames taken (a reconnection's
+/// included), the gap going on while reconnecting, and the reconnections counted with
+/// those that got the vehicle back.
+#[test]
+fn gaps_count_reconnections_and_the_time_without_frames() {
+    let t0 = Instant::now();
+    let ms = |n: u64| t0 + Duration::from_millis(n);
+    let mut g = Gaps::default();
+    assert_eq!(g.current(ms(5)), None);
+    g.frame(ms(0));
+    g.frame(ms(16));
+    g.frame(ms(40));
+    assert_eq!(g.longest(ms(41)), Duration::from_millis(24));
+    // Lost at 1.04 s (the silence noticed): the gap runs from the last frame.
+    g.lost(ms(1_040));
+    assert_eq!(g.current(ms(2_040)), Some(Duration::from_millis(2_000)));
+    assert_eq!(g.longest(ms(2_040)), Duration::from_millis(2_000));
+    g.reconnected(true);
+    assert_eq!(g.current(ms(2_100)), None, "connected again");
+    g.frame(ms(2_140));
+    assert_eq!(g.longest(ms(9_000)), Duration::from_millis(2_100));
+    g.lost(ms(3_000));
+    g.reconnected(false);
+    assert_eq!((g.reconnects, g.resumed), (2, 1));
 }

@@ -1,13 +1,20 @@
 //! A viewer against a hostile or broken server: every malformed welcome, colour map or
-//! frame is a clear error or a dropped frame, never a panic or an outsized allocation.
+//! frame is a clear error or a dropped frame, never a panic or an outsized allocation; a
+//! server that welcomes and then says nothing is given up on (after one reconnection),
+//! never waited on forever; a frame number no server could send ends the session with
+//! the numbers named, and does not wedge the viewer.
 
 use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::time::Duration;
 
-use roam_client::session::{KeySource, Session, Taken};
+use roam_client::session::{KeySource, Patience, Session, State, Taken};
 use roam_link::{tls, wire};
 use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION, Welcome,
 };
+use roam_protocol::{BitSet, Grid, MeshEncoder};
 
 /// What the fake server sends after reading the hello.
 #[derive(Clone, Debug)]
@@ -66,50 +73,81 @@ fn good_join() -> Vec<Say> {
 /// A server that answers one viewer with `script`, then closes. Its address and
 /// certificate fingerprint.
 async fn fake(script: Vec<Say>) -> (SocketAddr, [u8; 32], tokio::task::JoinHandle<()>) {
+    let (addr, fp, _, task) = fakes(move |_, _| script.clone(), 1).await;
+    (addr, fp, task)
+}
+
+/// What a fake server says on its `n`th connection (from 0), given the viewer's hello.
+type Scripts = Arc<dyn Fn(usize, &Hello) -> Vec<Say> + Send + Sync>;
+
+/// A server that answers up to `connections` connections, the `n`th with `scripts(n,
+/// hello)`: its address, certificate fingerprint, and the count of connections it
+/// accepted.
+async fn fakes(
+    scripts: impl Fn(usize, &Hello) -> Vec<Say> + Send + Sync + 'static,
+    connections: usize,
+) -> (
+    SocketAddr,
+    [u8; 32],
+    Arc<AtomicUsize>,
+    tokio::task::JoinHandle<()>,
+) {
+    let scripts: Scripts = Arc::new(scripts);
     let id = tls::generate().expect("a certificate");
     let config = tls::server_config(&id).expect("a config");
     let endpoint =
         quinn::Endpoint::server(config, "127.0.0.1:0".parse().expect("valid")).expect("listens");
     let addr = endpoint.local_addr().expect("bound");
     let fingerprint = tls::parse_fingerprint(&id.fingerprint()).expect("valid");
+    let accepted = Arc::new(AtomicUsize::new(0));
+    let count = accepted.clone();
     let task = tokio::spawn(async move {
-        let Some(incoming) = endpoint.accept().await else {
-            return;
-        };
-        let Ok(conn) = incoming.await else { return };
-        let Ok((mut send, mut recv)) = conn.accept_bi().await else {
-            return;
-        };
-        if wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE)
-            .await
-            .is_err()
-        {
-            return;
-        }
-        for say in script {
-            let sent = match say {
-                Say::Msg(m) => wire::write(&mut send, &m).await.is_ok(),
-                Say::Raw(b) => send.write_all(&b).await.is_ok(),
-                Say::Stream(b) => match conn.open_uni().await {
-                    Ok(mut s) => s.write_all(&b).await.is_ok() && s.finish().is_ok(),
-                    Err(_) => false,
-                },
-            };
-            if !sent {
-                return;
-            }
-        }
-        // Everything said: hang up once the viewer has asked for a key frame (it could not
-        // decode a frame) or gone away.
-        while let Ok(m) = wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await {
-            if m == ClientMessage::KeyFrame {
+        let mut served = tokio::task::JoinSet::new();
+        for n in 0..connections {
+            let Some(incoming) = endpoint.accept().await else {
                 break;
-            }
+            };
+            count.fetch_add(1, Ordering::SeqCst);
+            served.spawn(answer(incoming, scripts.clone(), n));
         }
-        conn.close(0u32.into(), b"done");
+        while served.join_next().await.is_some() {}
         endpoint.wait_idle().await;
     });
-    (addr, fingerprint, task)
+    (addr, fingerprint, accepted, task)
+}
+
+/// Answers connection `n` with its script.
+async fn answer(incoming: quinn::Incoming, scripts: Scripts, n: usize) {
+    let Ok(conn) = incoming.await else { return };
+    let Ok((mut send, mut recv)) = conn.accept_bi().await else {
+        return;
+    };
+    let Ok(ClientMessage::Hello(hello)) =
+        wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await
+    else {
+        return;
+    };
+    for say in scripts(n, &hello) {
+        let sent = match say {
+            Say::Msg(m) => wire::write(&mut send, &m).await.is_ok(),
+            Say::Raw(b) => send.write_all(&b).await.is_ok(),
+            Say::Stream(b) => match conn.open_uni().await {
+                Ok(mut s) => s.write_all(&b).await.is_ok() && s.finish().is_ok(),
+                Err(_) => false,
+            },
+        };
+        if !sent {
+            return;
+        }
+    }
+    // Everything said: hang up once the viewer has asked for a key frame (it could not
+    // decode a frame) or gone away; until then, say nothing more.
+    while let Ok(m) = wire::read::<ClientMessage>(&mut recv, messages::MAX_MESSAGE).await {
+        if m == ClientMessage::KeyFrame {
+            break;
+        }
+    }
+    conn.close(0u32.into(), b"done");
 }
 
 /// `f`, or a failed test after a minute (a regression fails, never hangs).
@@ -232,7 +270,7 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
     };
     let mut script = good_join();
     script.push(Say::Stream(vec![0xab; 100]));
-    script.push(Say::Stream(frame(u64::MAX, vec![1, 2, 3])));
+    script.push(Say::Stream(frame(1, vec![1, 2, 3])));
     let (addr, fp, task) = fake(script).await;
     let s = bounded(Session::join(addr, fp, hello(), KeySource::None))
         .await
@@ -254,5 +292,287 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
         ended.contains("closed") || ended.contains("ended") || ended.contains("lost"),
         "{ended}"
     );
+    task.abort();
+}
+
+/// A key frame of the fake's grid (the root's two triangles), numbered `frame`.
+fn key_frame(frame: u64) -> Vec<u8> {
+    let grid = Grid::new(6).expect("a valid size");
+    let heights = vec![100u16; grid.vertices()];
+    let mut mesh = Vec::new();
+    MeshEncoder::new(grid)
+        .encode(&BitSet::new(grid.vertices()), &heights, None, &mut mesh)
+        .expect("a closed cut");
+    let mut out = Vec::new();
+    messages::encode(
+        &messages::Frame {
+            frame,
+            base: None,
+            tick: frame,
+            vehicles: Vec::new(),
+            input_seq: None,
+            mesh,
+        },
+        &mut out,
+    )
+    .expect("within the limits");
+    out
+}
+
+/// A server that welcomes and then says nothing (no frame, no control message; its QUIC
+/// stack still answers): the session finds it silent after the configured silence,
+/// reconnects once (it might have been the path), finds it silent again with no frame
+/// between, and ends with an error saying so. Never waited on forever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_that_goes_silent_is_given_up_on() {
+    let (addr, fp, accepted, task) = fakes(|_, _| good_join(), 4).await;
+    let patience = Patience {
+        silence: Duration::from_secs(1),
+        reconnect_for: Duration::from_secs(10),
+    };
+    let s = bounded(Session::join_with(
+        addr,
+        fp,
+        hello(),
+        KeySource::None,
+        patience,
+    ))
+    .await
+    .expect("joins");
+    let mut changes = s.status_changes();
+    let err = loop {
+        match bounded(s.next_frame(true)).await {
+            Ok(Taken::Frame(f)) => panic!("the silent server sent frame {}", f.frame),
+            Ok(_) => {}
+            Err(e) => break format!("{e:#}"),
+        }
+    };
+    for want in [
+        &format!("lost the server at {addr}"),
+        "no frame or message from the server for 1.0 s",
+        "again right after reconnecting",
+    ] {
+        assert!(err.contains(want), "{want:?} not in {err:?}");
+    }
+    assert_eq!(accepted.load(Ordering::SeqCst), 2, "one reconnection");
+    let status = changes.borrow_and_update().clone();
+    assert_eq!(status.gaps.reconnects, 1);
+    assert!(
+        matches!(status.state, State::Ended(_)),
+        "{:?}",
+        status.state
+    );
+    task.abort();
+}
+
+/// A frame numbered `u64::MAX` (which would make every later frame look old), with good
+/// frames around it: the session ends with an error naming the server and the numbers
+/// rather than ignoring frames forever, and does not reconnect (the server is broken, not
+/// lost).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_poisoned_frame_number_ends_the_session_and_never_wedges_it() {
+    let mut script = good_join();
+    script.push(Say::Stream(key_frame(0)));
+    script.push(Say::Stream(key_frame(u64::MAX)));
+    for f in 1..4 {
+        script.push(Say::Stream(key_frame(f)));
+    }
+    let (addr, fp, accepted, task) = fakes(move |_, _| script.clone(), 2).await;
+    let s = bounded(Session::join(addr, fp, hello(), KeySource::None))
+        .await
+        .expect("joins");
+    let mut taken = Vec::new();
+    let err = loop {
+        match bounded(s.next_frame(true)).await {
+            Ok(Taken::Frame(f)) => taken.push(f.frame),
+            Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
+            Ok(Taken::Nothing) => {}
+            Err(e) => break format!("{e:#}"),
+        }
+        assert!(taken.len() <= 4, "only four good frames were sent");
+    };
+    for want in [
+        format!("the server at {addr}"),
+        format!("frame {}", u64::MAX),
+        "frame numbers rise by one".to_string(),
+    ] {
+        assert!(err.contains(&want), "{want:?} not in {err:?}");
+    }
+    assert!(
+        taken.windows(2).all(|w| w[0] < w[1]),
+        "frames in order: {taken:?}"
+    );
+    assert_eq!(accepted.load(Ordering::SeqCst), 1, "no reconnection");
+    assert!(
+        bounded(s.next_frame(true)).await.is_err(),
+        "the session stays ended"
+    );
+    task.abort();
+}
+
+/// A join with `w` as the welcome and a good colour map, then `frames` key frames.
+fn join_as(w: Welcome, frames: std::ops::Range<u64>) -> Vec<Say> {
+    let packed = packed_colors();
+    let mut out = vec![
+        Say::Msg(ServerMessage::Welcome(Welcome {
+            color_bytes: packed.len() as u32,
+            ..w
+        })),
+        Say::Msg(ServerMessage::ColorMap {
+            offset: 0,
+            data: packed,
+        }),
+    ];
+    out.extend(frames.map(|f| Say::Stream(key_frame(f))));
+    out
+}
+
+const TICKET: [u8; 16] = [7; 16];
+
+/// Short patience, for a fake that falls silent to make the viewer reconnect.
+const QUICK: Patience = Patience {
+    silence: Duration::from_secs(1),
+    reconnect_for: Duration::from_secs(10),
+};
+
+/// A driver's connection that goes silent after two frames (a lost path, for the
+/// viewer): what the fakes below say first.
+fn first_connection() -> Vec<Say> {
+    join_as(
+        Welcome {
+            vehicle: 3,
+            ticket: Some(TICKET),
+            ..welcome(0)
+        },
+        0..2,
+    )
+}
+
+/// The session, joined to a fake with short patience, once it has reconnected or ended;
+/// and the first frame of the new connection, or the error it ended with.
+async fn reconnected(addr: SocketAddr, fp: [u8; 32]) -> (Session, anyhow::Result<u64>) {
+    let s = bounded(Session::join_with(
+        addr,
+        fp,
+        hello(),
+        KeySource::None,
+        QUICK,
+    ))
+    .await
+    .expect("joins");
+    let mut changes = s.status_changes();
+    bounded(changes.wait_for(|st| st.gaps.reconnects > 0 || matches!(st.state, State::Ended(_))))
+        .await
+        .expect("the session is there");
+    // The core is the new connection's once the reconnection counts.
+    let end = loop {
+        match bounded(s.next_frame(true)).await {
+            Ok(Taken::Frame(f)) => break Ok(f.frame),
+            Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
+            Ok(Taken::Nothing) => {}
+            Err(e) => break Err(e),
+        }
+    };
+    (s, end)
+}
+
+/// After a silence the driver connects again presenting the ticket of its welcome; a
+/// server that still holds the vehicle says `resumed`, and the frames of the new
+/// connection (numbered from 0 again) are taken.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reconnection_presents_the_ticket_and_takes_the_vehicle_back() {
+    let (addr, fp, accepted, task) = fakes(
+        |n, hello| match (n, hello.resume) {
+            (0, None) => first_connection(),
+            (_, Some(TICKET)) => join_as(
+                Welcome {
+                    vehicle: 3,
+                    ticket: Some([8; 16]),
+                    resumed: true,
+                    ..welcome(0)
+                },
+                0..3,
+            ),
+            (n, resume) => vec![Say::Msg(ServerMessage::Refused(Reason::Protocol(format!(
+                "connection {n}: a hello presenting {resume:?}"
+            ))))],
+        },
+        2,
+    )
+    .await;
+    let (s, end) = reconnected(addr, fp).await;
+    let frame = end.unwrap_or_else(|e| panic!("the session ended: {e:#}"));
+    assert!(
+        frame < 3,
+        "frame {frame}: the new connection's, numbered from 0"
+    );
+    let status = s.status();
+    assert_eq!((status.gaps.reconnects, status.gaps.resumed), (1, 1));
+    assert!(status.welcome.resumed);
+    assert_eq!(s.vehicle(), 3);
+    assert_eq!(
+        status.welcome.ticket,
+        Some([8; 16]),
+        "the newest ticket kept"
+    );
+    assert_eq!(accepted.load(Ordering::SeqCst), 2);
+    task.abort();
+}
+
+/// A reconnection finding another terrain (here another colour map) ends the session:
+/// the scene drawn would no longer be the server's.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_reconnection_to_another_terrain_ends_the_session() {
+    let (addr, fp, _, task) = fakes(
+        |n, _| match n {
+            0 => first_connection(),
+            _ => {
+                let rgb = vec![9u8; (CELLS * CELLS * 3) as usize];
+                let mut other = Vec::new();
+                roam_protocol::colormap::encode(CELLS, &rgb, &mut other).expect("texels");
+                vec![
+                    Say::Msg(ServerMessage::Welcome(welcome(other.len()))),
+                    Say::Msg(ServerMessage::ColorMap {
+                        offset: 0,
+                        data: other,
+                    }),
+                ]
+            }
+        },
+        2,
+    )
+    .await;
+    let (_s, end) = reconnected(addr, fp).await;
+    let err = format!("{:#}", end.expect_err("another terrain"));
+    for want in [
+        &format!("lost the server at {addr}"),
+        "the server changed its terrain: another colour map",
+    ] {
+        assert!(err.contains(want), "{want:?} not in {err:?}");
+    }
+    task.abort();
+}
+
+/// A refusal on reconnecting (a full server) is final: no attempt after it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_full_server_on_reconnecting_is_not_tried_again() {
+    let (addr, fp, accepted, task) = fakes(
+        |n, _| match n {
+            0 => first_connection(),
+            _ => vec![Say::Msg(ServerMessage::Refused(Reason::Full {
+                viewers: 64,
+            }))],
+        },
+        3,
+    )
+    .await;
+    let (s, end) = reconnected(addr, fp).await;
+    let err = format!("{:#}", end.expect_err("refused"));
+    assert!(
+        err.contains("refused: the server is full (64 viewers)"),
+        "{err}"
+    );
+    assert_eq!(accepted.load(Ordering::SeqCst), 2, "no third attempt");
+    assert_eq!(s.status().gaps.reconnects, 0);
     task.abort();
 }

@@ -1,10 +1,13 @@
 //! `roam-relay`: a seeded lossy UDP relay ([`roam_tests::relay`]) for measuring a server
 //! and viewers over a bad link on one machine. The same settings apply each way. Its first
 //! line on stdout is `listening on ADDR`; it runs until Ctrl-C or SIGTERM, then prints what
-//! it forwarded and dropped to stderr.
+//! it forwarded and dropped to stderr. SIGUSR1 cuts the link (every datagram dropped, both
+//! ways, as a dropped Wi-Fi link) or restores it, and says which on stderr: to watch a
+//! viewer reconnect by hand.
 //!
 //! ```sh
 //! roam-relay --to 127.0.0.1:4433 --delay-ms 40 --loss 0.05 --seed 1
+//! kill -USR1 $(pidof roam-relay)   # cut; again to restore
 //! ```
 
 use std::io::Write;
@@ -69,11 +72,28 @@ async fn main() -> Result<()> {
         writeln!(out, "listening on {}", relay.addr()).context("writing to stdout")?;
         out.flush().context("writing to stdout")?;
     }
-    let mut term = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .context("listening for SIGTERM")?;
-    tokio::select! {
-        r = tokio::signal::ctrl_c() => r.context("listening for Ctrl-C")?,
-        _ = term.recv() => {}
+    use tokio::signal::unix::{SignalKind, signal};
+    let mut term = signal(SignalKind::terminate()).context("listening for SIGTERM")?;
+    let mut toggle = signal(SignalKind::user_defined1()).context("listening for SIGUSR1")?;
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
+    loop {
+        tokio::select! {
+            r = &mut ctrl_c => {
+                r.context("listening for Ctrl-C")?;
+                break;
+            }
+            _ = term.recv() => break,
+            Some(()) = toggle.recv() => {
+                if relay.is_cut() {
+                    relay.restore();
+                    eprintln!("roam-relay: restored");
+                } else {
+                    relay.cut();
+                    eprintln!("roam-relay: cut");
+                }
+            }
+        }
     }
     eprintln!("roam-relay: {}", relay.stats());
     Ok(())
