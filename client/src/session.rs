@@ -473,7 +473,7 @@ impl Session {
             false
         };
         self.link.end("quit".into());
-        self.link.close(0, b"quit");
+        self.link.close(close::BYE, b"quit");
         heard
     }
 }
@@ -484,7 +484,7 @@ impl Drop for Session {
         for t in &self.tasks {
             t.abort();
         }
-        self.link.close(0, b"bye");
+        self.link.close(close::BYE, b"bye");
     }
 }
 
@@ -530,7 +530,7 @@ impl Supervisor {
             let (why, silent) = match end {
                 End::Quit => return self.link.end("quit".into()),
                 End::Final(why) => {
-                    conn.close(0u32.into(), b"bye");
+                    conn.close(close::BYE.into(), b"bye");
                     return self.link.end(why);
                 }
                 End::Lost { why, silent } => (why, silent),
@@ -561,11 +561,11 @@ impl Supervisor {
                 Err(why) => return self.link.end(why),
             };
             if self.link.ended().is_some() {
-                joined.conn.close(0u32.into(), b"bye");
+                joined.conn.close(close::BYE.into(), b"bye");
                 return;
             }
             if let Err(why) = self.adopt(&joined) {
-                joined.conn.close(0u32.into(), b"bye");
+                joined.conn.close(close::BYE.into(), b"bye");
                 return self.link.end(why);
             }
         }
@@ -656,7 +656,7 @@ impl Supervisor {
                     return match self.terrain.differences(&found) {
                         None => Ok(Some(j)),
                         Some(d) => {
-                            j.conn.close(0u32.into(), b"another terrain");
+                            j.conn.close(close::BYE.into(), b"another terrain");
                             Err(lost(format!("the server changed its terrain: {d}")))
                         }
                     };
@@ -742,7 +742,7 @@ async fn attempt(
         }
     };
     match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn.clone(), hello)).await {
-        Ok(r) => r.inspect_err(|_| conn.close(0u32.into(), b"bye")),
+        Ok(r) => r.inspect_err(|_| conn.close(close::BYE.into(), b"bye")),
         Err(_) => {
             conn.close(0u32.into(), b"too slow");
             Err(JoinError::lost(format!(

@@ -250,7 +250,10 @@ async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
     // A viewer killed mid-stream (no goodbye) has its vehicle held for it to come back
     // to (`tests/tests/reconnect.rs` takes it back, and sees it freed after the hold).
     let stalled_vehicle = r.server.snapshot().vehicles.first().map(|v| v.id);
-    assert!(stalled_vehicle.is_some(), "the stalled driver has a vehicle");
+    assert!(
+        stalled_vehicle.is_some(),
+        "the stalled driver has a vehicle"
+    );
     stalled.close(0u32.into(), b"killed");
     drop(stalled);
     let mut world = r.server.watch();

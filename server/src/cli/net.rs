@@ -8,10 +8,10 @@ use anyhow::{Context, Result};
 use clap::Args;
 use roam_link::tls;
 use roam_server::net::{self, Options, Server};
-use roam_server::viewer::ViewerLimits;
-use std::time::Duration;
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
+use roam_server::viewer::ViewerLimits;
+use std::time::Duration;
 
 #[derive(Args)]
 pub struct ServeArgs {
@@ -64,7 +64,9 @@ fn seconds(text: &str) -> Result<f64, String> {
         .parse()
         .map_err(|_| format!("{text:?}: expected a number of seconds"))?;
     if !(s > 0.0 && s <= 86_400.0) {
-        return Err(format!("{text}: expected more than 0 and at most 86400 seconds"));
+        return Err(format!(
+            "{text}: expected more than 0 and at most 86400 seconds"
+        ));
     }
     Ok(s)
 }

@@ -135,7 +135,10 @@ async fn handshake(
         shared: shared.clone(),
     };
     if hello.version != VERSION {
-        let why = format!("protocol version {} (this server: {VERSION})", hello.version);
+        let why = format!(
+            "protocol version {} (this server: {VERSION})",
+            hello.version
+        );
         return refuse(&mut send, Reason::Version { server: VERSION }, &why).await;
     }
     if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
@@ -177,7 +180,10 @@ async fn handshake(
 /// Counts a connection that never said hello, and closes it with the reason.
 fn early(shared: &Shared, peer: SocketAddr, conn: Option<&quinn::Connection>, why: Early) {
     let (counter, text) = match &why {
-        Early::Deadline => (&shared.stats.timed_out, "no hello by the deadline".to_owned()),
+        Early::Deadline => (
+            &shared.stats.timed_out,
+            "no hello by the deadline".to_owned(),
+        ),
         Early::Evicted => (
             &shared.stats.evicted_closed,
             "evicted: too many connections without a hello".to_owned(),

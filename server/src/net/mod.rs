@@ -21,10 +21,10 @@ use tokio::sync::watch;
 
 use crate::Terrain;
 use crate::sim::world_core::Snapshot;
+use crate::terrain::variance::VarianceTree;
 use crate::viewer::admission::{Admission, PendingId};
 use roam_protocol::messages::Ticket;
 use stats::ServeStats;
-use crate::terrain::variance::VarianceTree;
 use world_loop::Inbound;
 
 /// How to run a server.

@@ -170,8 +170,12 @@ impl Sim {
                 };
                 let w = welcome(&self.terrain, vehicle, self.snapshot.tick);
                 server_control_send(v, now, &ServerMessage::Welcome(w));
-                let core =
-                    ViewerCore::for_hello(&self.terrain, self.height_step, &hello, ViewerLimits::default());
+                let core = ViewerCore::for_hello(
+                    &self.terrain,
+                    self.height_step,
+                    &hello,
+                    ViewerLimits::default(),
+                );
                 let rate = ViewerCore::frame_rate(&hello, ViewerLimits::default());
                 v.server.state = ServerState::Serving(Box::new(Serving {
                     core,
