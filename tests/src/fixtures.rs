@@ -1,9 +1,48 @@
-//! What the tests share: a small terrain ([`flat`]) and the seeded generator the relay and
-//! the simulated network draw every random choice from ([`SplitMix64`]).
+//! What the tests share: a small terrain ([`flat`]), the bundled real one ([`kossou`]), a
+//! server on loopback ([`serve`]), and the seeded generator the relay and the simulated
+//! network draw every random choice from ([`SplitMix64`]).
 
 use std::sync::Arc;
 
+use roam_link::tls;
+use roam_server::net::{Options, Server};
+use roam_server::terrain::variance::VarianceTree;
 use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
+
+/// A server running on loopback, and what a viewer needs to join it.
+pub struct Running {
+    pub server: Server,
+    pub token: String,
+    pub fingerprint: [u8; 32],
+}
+
+/// The token [`serve`] gives its servers.
+pub const TOKEN: &str = "test-token-0123456789";
+
+/// A server on `127.0.0.1:0` for `terrain`, with the default options as `tune` changes
+/// them (on the current tokio runtime).
+pub fn serve(terrain: Arc<Terrain>, tune: impl FnOnce(Options) -> Options) -> Running {
+    let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
+    let identity = tls::generate().expect("a certificate");
+    let options = tune(Options::new(
+        "127.0.0.1:0".parse().expect("valid"),
+        TOKEN.to_owned(),
+    ));
+    let token = options.token.clone();
+    let server = Server::start(terrain, Arc::new(vt), &identity, options).expect("listens");
+    let fingerprint = tls::parse_fingerprint(&identity.fingerprint()).expect("valid");
+    Running {
+        server,
+        token,
+        fingerprint,
+    }
+}
+
+/// The bundled data set (`data/kossou`, 1025² samples).
+pub fn kossou() -> Arc<Terrain> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/kossou");
+    Arc::new(roam_server::terrain::dataset::load(&dir, &mut |_, _| {}).expect("bundled"))
+}
 
 /// A 129² terrain, flat around the start and rough beyond: a vehicle at rest stays put
 /// until keys arrive (so a drive over the network can be compared with the same script

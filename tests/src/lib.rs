@@ -2,9 +2,11 @@
 //! UDP relay ([`relay`], and the `roam-relay` binary) to put between a server and viewers,
 //! and a simulated network ([`simnet`]) driving the server's and the viewer's sans-IO
 //! cores together with virtual time, no sockets; and the inputs and decoders of the
-//! fuzzing bench and test ([`fuzz`]).
+//! fuzzing bench and test ([`fuzz`]); a flood of junk connections ([`flood`], and the
+//! `roam-flood` binary).
 
 pub mod fixtures;
+pub mod flood;
 pub mod fuzz;
 pub mod relay;
 pub mod simnet;

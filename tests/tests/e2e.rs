@@ -1,56 +1,34 @@
 //! End to end: a real server and headless viewers over QUIC on `127.0.0.1:0`.
 
-use roam_tests::fixtures::flat;
+use roam_tests::fixtures::{self, Running, flat};
 use std::sync::Arc;
 use std::time::Duration;
 
 use roam_client::headless::{self, ViewerOptions, ViewerStats};
 use roam_client::session::{KeySource, Session, Taken};
-use roam_link::{tls, wire};
+use roam_link::wire;
 use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange, close};
 use roam_protocol::script;
 use roam_server::Terrain;
-use roam_server::net::{Options, Server};
+use roam_server::net::Options;
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::sim::{recording, replay};
-use roam_server::terrain::variance::VarianceTree;
 
 /// The tests here each run a server with a 100 Hz world thread and 60 Hz viewers: one at a
 /// time, so that on a 2-core machine none starves another of the CPU.
 static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
-struct Running {
-    server: Server,
-    token: String,
-    fingerprint: [u8; 32],
-}
-
 /// A server on `terrain`, recording into the directory `record` if given.
 fn start(terrain: Arc<Terrain>, record: Option<std::path::PathBuf>) -> Running {
-    let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
-    let identity = tls::generate().expect("a certificate");
-    let token = "test-token".to_owned();
-    let server = Server::start(
-        terrain,
-        Arc::new(vt),
-        &identity,
-        Options {
-            record: record.map(|dir| {
-                let files = RecordDir::new(dir, roam_server::net::world_loop::unix_seconds);
-                RecordOptions::new(files, session::DEFAULT_MAX_BYTES)
-            }),
-            ..Options::new("127.0.0.1:0".parse().expect("valid"), token.clone())
-        },
-    )
-    .expect("listens");
-    let fingerprint = tls::parse_fingerprint(&identity.fingerprint()).expect("valid");
-    Running {
-        server,
-        token,
-        fingerprint,
-    }
+    fixtures::serve(terrain, |o| Options {
+        record: record.map(|dir| {
+            let files = RecordDir::new(dir, roam_server::net::world_loop::unix_seconds);
+            RecordOptions::new(files, session::DEFAULT_MAX_BYTES)
+        }),
+        ..o
+    })
 }
 
 fn opts(r: &Running, role: Role, frames: u64) -> ViewerOptions {
@@ -293,9 +271,7 @@ async fn until(s: &Session, what: &str, ok: impl Fn(usize) -> bool) -> usize {
 async fn the_viewer_steers_the_servers_budget_and_camera() {
     let _turn = ONE_AT_A_TIME.lock().await;
     // Real terrain (the test terrain's 300 m of noise every 4 m leaves nothing to cull).
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/kossou");
-    let kossou = roam_server::terrain::dataset::load(&dir, &mut |_, _| {}).expect("bundled");
-    let r = start(Arc::new(kossou), None);
+    let r = start(fixtures::kossou(), None);
     let hello = driver_hello(&r, 4_000);
     let s = Session::join(r.server.addr, r.fingerprint, hello, KeySource::None)
         .await

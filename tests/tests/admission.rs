@@ -1,0 +1,169 @@
+//! Limits a token holder meets, against a real server on loopback: the 65th viewer is
+//! refused as full (and one leaving makes room), and eight viewers asking the most
+//! triangles at the most frames a second do not slow the world (no tick dropped: the
+//! world thread always finds a core, `net::Shared::makers`). Counts, not times: the rates
+//! are what `roam-flood` and `scripts/capacity.sh` print.
+
+use std::time::Duration;
+
+use roam_client::session::{KeySource, Session};
+use roam_link::wire;
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION};
+use roam_tests::fixtures::{self, Running, flat};
+
+/// The tests here load the CPU: one at a time.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+fn hello(r: &Running, role: Role, budget: u32, frame_rate: u16) -> Hello {
+    Hello {
+        version: VERSION,
+        role,
+        token: r.token.clone(),
+        viewport: [640, 360],
+        fov_y_deg: 60.0,
+        budget,
+        frame_rate,
+        resume: None,
+    }
+}
+
+/// A raw connection that said hello, its control stream kept open (dropping it would say
+/// goodbye), and the server's answer (a welcome or a refusal).
+struct Raw {
+    _endpoint: quinn::Endpoint,
+    conn: quinn::Connection,
+    _control: (quinn::SendStream, quinn::RecvStream),
+    answer: ServerMessage,
+}
+
+async fn say_hello(r: &Running, hello: &Hello) -> Raw {
+    let (endpoint, conn) = roam_client::join::connect(r.server.addr, r.fingerprint)
+        .await
+        .expect("connects");
+    let (mut send, mut recv) = conn.open_bi().await.expect("a control stream");
+    wire::write(&mut send, &ClientMessage::Hello(hello.clone()))
+        .await
+        .expect("the hello goes");
+    let answer = wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE)
+        .await
+        .expect("an answer");
+    Raw {
+        _endpoint: endpoint,
+        conn,
+        _control: (send, recv),
+        answer,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_65th_viewer_is_refused_as_full_and_a_leave_makes_room() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let r = fixtures::serve(flat(), |o| o);
+    // Drivers at the least budget and one frame a second: the server's limit is on
+    // viewers, whatever each costs.
+    let cheap = hello(&r, Role::Driver, messages::MIN_BUDGET, 1);
+    let mut viewers = Vec::new();
+    for k in 0..roam_server::net::MAX_VIEWERS {
+        let v = say_hello(&r, &cheap).await;
+        assert!(
+            matches!(v.answer, ServerMessage::Welcome(_)),
+            "viewer {k}: {:?}",
+            v.answer
+        );
+        viewers.push(v);
+    }
+    let extra = say_hello(&r, &cheap).await;
+    assert_eq!(
+        extra.answer,
+        ServerMessage::Refused(Reason::Full {
+            viewers: roam_server::net::MAX_VIEWERS as u32
+        })
+    );
+    let spectator = hello(&r, Role::Spectator { follow: None }, 2, 1);
+    let extra = say_hello(&r, &spectator).await;
+    assert!(matches!(
+        extra.answer,
+        ServerMessage::Refused(Reason::Full { .. })
+    ));
+    assert_eq!(r.server.counts().refused, 2);
+    // One leaves (with its goodbye code): the next is welcome.
+    let gone = viewers.pop().expect("64 of them");
+    gone.conn.close(messages::close::BYE.into(), b"bye");
+    let mut load = r.server.watch();
+    let mut answer = None;
+    for _ in 0..50 {
+        let v = say_hello(&r, &cheap).await;
+        if matches!(v.answer, ServerMessage::Welcome(_)) {
+            answer = Some(v);
+            break;
+        }
+        // Not yet seen to leave: wait for the world's next tick and ask again.
+        let _ = load.changed().await;
+    }
+    assert!(answer.is_some(), "a place after a leave");
+    r.server.shutdown().await.expect("stops");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn greedy_viewers_do_not_slow_the_world() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let r = fixtures::serve(fixtures::kossou(), |o| o);
+    let greedy = hello(&r, Role::Driver, messages::MAX_BUDGET, 240);
+    let mut sessions = Vec::new();
+    for _ in 0..8 {
+        let s = Session::join(
+            r.server.addr,
+            r.fingerprint,
+            greedy.clone(),
+            KeySource::None,
+        )
+        .await
+        .expect("joins");
+        sessions.push(s);
+    }
+    let start = r.server.snapshot().tick;
+    let stats = r.server.world_stats();
+    let dropped_before = stats.dropped();
+    // Each viewer takes frames (without decoding: the load under test is the server's)
+    // while the world makes 500 ticks.
+    let mut watch = r.server.watch();
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let takers: Vec<_> = sessions
+        .into_iter()
+        .map(|s| {
+            let mut stopped = stopped.clone();
+            tokio::spawn(async move {
+                let mut frames = 0u32;
+                loop {
+                    tokio::select! {
+                        f = s.next_frame(false) => match f {
+                            Ok(_) => frames += 1,
+                            Err(_) => break,
+                        },
+                        _ = stopped.wait_for(|&s| s) => break,
+                    }
+                }
+                s.quit().await;
+                frames
+            })
+        })
+        .collect();
+    tokio::time::timeout(
+        Duration::from_secs(120),
+        watch.wait_for(|s| s.tick >= start + 500),
+    )
+    .await
+    .expect("the world makes 500 ticks")
+    .expect("the world runs");
+    assert_eq!(
+        stats.dropped(),
+        dropped_before,
+        "no tick dropped under eight greedy viewers"
+    );
+    stop.send_replace(true);
+    for t in takers {
+        let frames = t.await.expect("a viewer's task");
+        assert!(frames > 0, "every greedy viewer is served");
+    }
+    r.server.shutdown().await.expect("stops");
+}
