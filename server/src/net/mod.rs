@@ -171,10 +171,14 @@ pub const MAX_LEVELS: u32 = 13;
 
 /// Whether `terrain` can be served: an error (before anything starts) if not.
 pub fn check_servable(terrain: &Terrain) -> Result<(), ServeError> {
-    let levels = terrain.heights.levels();
+    servable(terrain.heights.levels())
+}
+
+/// Whether a grid of `2^levels + 1` samples a side can be served.
+fn servable(levels: u32) -> Result<(), ServeError> {
     if levels > MAX_LEVELS {
         return Err(ServeError::TooLarge {
-            side: terrain.heights.side(),
+            side: (1u32 << levels.min(31)) + 1,
             max: (1 << MAX_LEVELS) + 1,
             levels: MAX_LEVELS,
         });
@@ -244,7 +248,11 @@ impl Server {
             stats: Arc::new(ServeStats::default()),
         });
         let accept = tokio::spawn(accept_loop(endpoint.clone(), shared.clone()));
-        let summary = tokio::spawn(summary_loop(shared.clone(), options.summary_every));
+        let summary = tokio::spawn(summary_loop(
+            shared.clone(),
+            world_stats.clone(),
+            options.summary_every,
+        ));
         Ok(Server {
             addr,
             snapshots,
@@ -327,7 +335,12 @@ fn makers() -> usize {
 
 /// Logs a summary every `every`: viewers, frames a second, CPU per frame, bytes out a
 /// second, the world's health and what admission turned away.
-async fn summary_loop(shared: Arc<Shared>, every: std::time::Duration) {
+async fn summary_loop(
+    shared: Arc<Shared>,
+    world: Arc<world_loop::WorldStats>,
+    every: std::time::Duration,
+) {
+    let mut last_ticks = (world.ticks(), world.dropped());
     let mut ticker = tokio::time::interval(every);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     ticker.tick().await;
@@ -351,8 +364,12 @@ async fn summary_loop(shared: Arc<Shared>, every: std::time::Duration) {
             (gate.admission.pending(), gate.admission.viewers())
         };
         let snap = shared.snapshots.borrow().clone();
+        let ticks = world.ticks();
+        let dropped = world.dropped();
         tracing::info!(
             viewers,
+            ticks_per_s = format_args!("{:.1}", (ticks - last_ticks.0) as f64 / seconds),
+            dropped_ticks = dropped - last_ticks.1,
             vehicles = snap.vehicles.len(),
             tick = snap.tick,
             fps = format_args!("{:.1}", s.frames_per_s),
@@ -366,6 +383,7 @@ async fn summary_loop(shared: Arc<Shared>, every: std::time::Duration) {
             "summary"
         );
         last = now;
+        last_ticks = (ticks, dropped);
     }
 }
 
@@ -377,4 +395,20 @@ pub fn random_token() -> String {
         .fill(&mut bytes)
         .expect("the system's random source works");
     bytes.iter().map(|b| format!("{b:02x}")).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn grids_past_8193_are_refused_with_the_reason() {
+        for levels in 1..=MAX_LEVELS {
+            assert!(servable(levels).is_ok(), "{levels} levels");
+        }
+        for (levels, side) in [(14, 16_385), (15, 32_769)] {
+            let e = servable(levels).expect_err("too large").to_string();
+            assert!(e.contains(&format!("{side}²")) && e.contains("8193²"), "{e}");
+        }
+    }
 }
