@@ -21,11 +21,15 @@ use roam_server::net::{self, Options, Server};
 )]
 struct Cli {
     /// The server's address, `HOST:PORT`.
-    #[arg(long, conflicts_with = "local", requires_all = ["token", "fingerprint"])]
+    #[arg(long, conflicts_with = "local", requires = "fingerprint")]
     connect: Option<SocketAddr>,
-    /// The join token the server printed.
-    #[arg(long, requires = "connect")]
+    /// The join token the server printed (visible to other users in `ps`: prefer
+    /// `--token-file` or the environment variable `ROAM_TOKEN`).
+    #[arg(long, requires = "connect", conflicts_with = "token_file")]
     token: Option<String>,
+    /// A file holding the join token (trailing whitespace ignored).
+    #[arg(long, requires = "connect")]
+    token_file: Option<PathBuf>,
     /// The SHA-256 fingerprint of the server's certificate, as it printed it.
     #[arg(long, requires = "connect")]
     fingerprint: Option<String>,
@@ -60,6 +64,10 @@ struct Cli {
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
     skip_decode: bool,
+    /// Frames a second each headless viewer asks for (the server serves at most its
+    /// `--max-fps`).
+    #[arg(long, default_value_t = 60, value_parser = clap::value_parser!(u16).range(1..))]
+    frame_rate: u16,
     /// Write the stats as JSON here (else to stdout).
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -216,6 +224,7 @@ fn run(cli: Cli) -> Result<()> {
                 frames: cli.frames,
                 inputs: script.clone(),
                 skip_decode: cli.skip_decode,
+                frame_rate: cli.frame_rate,
                 keep_last: cli.screenshot.is_some(),
                 stop: Some(stopped.clone()),
                 ..ViewerOptions::default()
@@ -288,7 +297,7 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
         }
         Some(addr) => {
             let fp = tls::parse_fingerprint(cli.fingerprint.as_deref().unwrap_or_default())?;
-            (None, *addr, cli.token.clone().unwrap_or_default(), fp)
+            (None, *addr, join_token(cli)?, fp)
         }
     })
 }
@@ -369,4 +378,22 @@ fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> R
         gpu.adapter.backend
     );
     Ok(())
+}
+
+/// The join token for `--connect`: `--token`, else `--token-file`, else `ROAM_TOKEN`.
+fn join_token(cli: &Cli) -> Result<String> {
+    if let Some(t) = &cli.token {
+        return Ok(t.clone());
+    }
+    if let Some(path) = &cli.token_file {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading the token file {}", path.display()))?;
+        return Ok(text.trim_end().to_owned());
+    }
+    std::env::var("ROAM_TOKEN").map_err(|_| {
+        anyhow::anyhow!(
+            "--connect needs the server's join token: --token-file FILE, the environment \
+             variable ROAM_TOKEN, or --token TOKEN"
+        )
+    })
 }

@@ -408,7 +408,10 @@ mod tests {
         }
         for (levels, side) in [(14, 16_385), (15, 32_769)] {
             let e = servable(levels).expect_err("too large").to_string();
-            assert!(e.contains(&format!("{side}²")) && e.contains("8193²"), "{e}");
+            assert!(
+                e.contains(&format!("{side}²")) && e.contains("8193²"),
+                "{e}"
+            );
         }
     }
 }

@@ -1,0 +1,44 @@
+#!/usr/bin/env bash
+# The figures of README's "Security and operations": what a junk flood costs a running
+# server while a real viewer joins through it (`roam-flood`, one JSON line), and whether
+# eight viewers asking the most triangles at the most frames a second slow the world
+# (one JSON line from the server's summary log: its ticks a second and dropped ticks).
+#
+#   PROFILE=measure scripts/operations.sh      (PROFILE=release by default)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+
+PROFILE=${PROFILE:-release}
+DATA=${DATA:-data/kossou}
+cargo build --profile "$PROFILE" -p roam-server -p roam-client -p roam-tests --bins >&2
+BIN_DIR="${CARGO_TARGET_DIR:-target}/$PROFILE"
+export BIN_DIR
+# shellcheck source=scripts/lib.sh
+source scripts/lib.sh
+
+# 1. 2,000 idle and 2,000 stalled junk connections; a viewer joins once 1,000 are open.
+start_server "$DATA"
+"$BIN_DIR/roam-flood" --connect "$addr" --fingerprint "$fingerprint" --token "$token" \
+    --pid "$server" --idle 2000 --stalled 2000 --frames 300
+stop_server
+
+# 2. Eight greedy viewers (2^20 triangles, 240 frames a second, not decoding) for 20 s.
+SERVE_ARGS="--log-every 2" start_server "$DATA"
+"$BIN_DIR/roam-client" --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
+    --headless --viewers 8 --budget 1048576 --frame-rate 240 --skip-decode --frames 100000 \
+    --stats "$state/greedy.json" >/dev/null 2>&1 &
+viewers=$!
+sleep 20
+kill -INT "$viewers" 2>/dev/null || true
+wait "$viewers" 2>/dev/null || true
+stop_server
+awk '/ summary /{
+        for (i = 1; i <= NF; i++) {
+            split($i, kv, "=");
+            if (kv[1] == "ticks_per_s" && kv[2] + 0 > 0) { n++; t = kv[2] + 0; if (min == "" || t < min) min = t; sum += t }
+            if (kv[1] == "dropped_ticks") dropped += kv[2];
+            if (kv[1] == "fps") { f = kv[2] + 0; if (f > fps) fps = f }
+        }
+    }
+    END { printf "{\"summaries\":%d,\"world_ticks_per_s_min\":%s,\"world_ticks_per_s_mean\":%.2f,\"dropped_ticks\":%d,\"frames_served_per_s_max\":%s}\n", n, min, sum / n, dropped, fps }' \
+    "$state/server.log"
