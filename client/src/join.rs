@@ -248,26 +248,22 @@ async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Ve
             welcome.color_cells,
         );
     }
-    // Grown as chunks come, not allocated at the size claimed.
+    // Grown as chunks come, in order, not allocated at the size claimed.
     let size = welcome.color_bytes as usize;
     let mut packed = Vec::new();
-    let mut got = 0usize;
-    while got < size {
+    while packed.len() < size {
         match wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await? {
             ServerMessage::ColorMap { offset, data } => {
-                let at = offset as usize;
-                let end = at
-                    .checked_add(data.len())
-                    .filter(|&e| e <= size)
-                    .ok_or_else(|| anyhow::anyhow!("a colour-map chunk past the end"))?;
-                if data.is_empty() {
-                    anyhow::bail!("an empty colour-map chunk");
+                if offset as usize != packed.len() {
+                    anyhow::bail!(
+                        "a colour-map chunk at byte {offset}, expected the next at {}",
+                        packed.len()
+                    );
                 }
-                if packed.len() < end {
-                    packed.resize(end, 0);
+                if data.is_empty() || packed.len() + data.len() > size {
+                    anyhow::bail!("a colour-map chunk past the end (or empty)");
                 }
-                packed[at..end].copy_from_slice(&data);
-                got += data.len();
+                packed.extend_from_slice(&data);
             }
             other => anyhow::bail!("expected the colour map, got {}", name(&other)),
         }

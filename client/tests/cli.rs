@@ -17,6 +17,8 @@ fn run(args: &[&str]) -> (Option<i32>, String, String) {
         // No display: the windowed mode must say how to run headless.
         .env_remove("DISPLAY")
         .env_remove("WAYLAND_DISPLAY")
+        // No token but the one given.
+        .env_remove("ROAM_TOKEN")
         .output()
         .expect("run roam-client");
     (
@@ -56,10 +58,33 @@ fn help_and_usage_errors() {
     assert!(err.contains("--connect"), "{err}");
     let (code, _, err) = run(&["--connect", "127.0.0.1:9", "--headless"]);
     assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("--fingerprint"), "{err}");
+    // No token from any source: says where one may come from (not a usage error: the
+    // environment is one of them).
+    let fp = "00".repeat(32);
+    let (code, _, err) = run(&[
+        "--connect",
+        "127.0.0.1:9",
+        "--fingerprint",
+        &fp,
+        "--headless",
+    ]);
+    assert_eq!(code, Some(1), "{err}");
     assert!(
-        err.contains("--token") && err.contains("--fingerprint"),
+        err.contains("--token-file") && err.contains("ROAM_TOKEN"),
         "{err}"
     );
+    let (code, _, err) = run(&[
+        "--connect",
+        "127.0.0.1:9",
+        "--fingerprint",
+        &fp,
+        "--token-file",
+        "/nonexistent/roam-token",
+        "--headless",
+    ]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("/nonexistent/roam-token"), "{err}");
     // The window without a display: how to run headless instead.
     let (code, _, err) = run(&["--local", "data/synth-65"]);
     assert_eq!(code, Some(1));

@@ -83,12 +83,14 @@ async fn junk_connections_are_closed_and_a_viewer_still_gets_in() {
         counts.retried > 0,
         "past the cap, connections were asked to prove their address: {counts:?}"
     );
-    // Each junk connection the server let in ended exactly one way, before any hello: at
-    // the deadline, evicted for a newer one, or failed; the rest were refused unhandshaken.
-    assert_eq!(
-        counts.timed_out + counts.evicted_closed + counts.failed + counts.refused_early,
-        4_000,
-        "{counts:?}"
+    // Each junk connection the server let in ended one way, before any hello: at the
+    // deadline, evicted for a newer one, or failed (a junk connection whose every packet
+    // a full socket buffer dropped after its Retry never came in at all); every close the
+    // junk saw from the server is among them.
+    let ended = counts.timed_out + counts.evicted_closed + counts.failed + counts.refused_early;
+    assert!(
+        ended <= 4_000 && ended >= out.closed_by_server as u64,
+        "{counts:?} {summary:?}"
     );
     assert_eq!(counts.joins, 1, "only the viewer said hello");
     assert_eq!(r.server.load().0, 0, "nothing left pending");

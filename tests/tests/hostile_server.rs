@@ -233,6 +233,11 @@ async fn a_malformed_welcome_or_colour_map_is_a_clear_error() {
     check(with(welcome(u32::MAX as usize), vec![]), "colour map is").await;
     check(
         with(welcome(n), vec![chunk((n - 1) as u32, vec![0; 10])]),
+        "expected the next at 0",
+    )
+    .await;
+    check(
+        with(welcome(n), vec![chunk(0, vec![0; n + 1])]),
         "past the end",
     )
     .await;

@@ -107,8 +107,21 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let token = args.token.resolve()?;
     tracing::info!("join token from {}", token.source);
     let token = token.as_str().to_owned();
-    let (terrain, vt, _) = super::tess::load(&args.dir)?;
+    // A data set too large to serve is refused before its variance tree is built.
+    let terrain = {
+        let mut p = super::progress::Progress::new("loading");
+        roam_server::terrain::dataset::load(&args.dir, &mut p.callback())?
+    };
     net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
+    let vt = {
+        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let mut p = super::progress::Progress::new("variance");
+        roam_server::terrain::variance::VarianceTree::build(
+            &terrain.heights,
+            threads,
+            &mut p.callback(),
+        )
+    };
     let identity = tls::load_or_create(&args.state_dir)?;
     let record_dir = args
         .record_dir

@@ -99,7 +99,10 @@ async fn handshake(
         r = tokio::time::timeout_at(deadline, async {
             incoming.accept().map_err(|e| e.to_string())?.await.map_err(|e| e.to_string())
         }) => match r {
-            Ok(Ok(conn)) => conn,
+            Ok(Ok(conn)) => {
+                shared.gate().admission.handshaken(pending.id);
+                conn
+            }
             Ok(Err(why)) => return early(&shared, peer, None, Early::Failed(why)),
             Err(_) => return early(&shared, peer, None, Early::Deadline),
         },
@@ -114,25 +117,21 @@ async fn handshake(
         _ = &mut evicted => return early(&shared, peer, Some(&conn), Early::Evicted),
     };
     let (mut send, recv, hello) = greeted;
-    // The hello is in: the connection is no longer pending, and counts as a viewer now,
-    // or is refused when the server is full.
-    let admitted = shared.gate().admission.hello(pending.id);
+    // The hello is in: the connection is no longer pending. Version and token first (a
+    // peer without the token never takes a seat), then a seat, or a refusal when full.
     drop(pending);
     let role = role_name(&hello.role);
     let refuse = async |send: &mut quinn::SendStream, reason: Reason, why: &str| {
-        tracing::info!(%peer, role, reason = why, "refused");
+        // One line per refusal, up to a bound per summary interval: a peer without the
+        // token can send hellos as fast as handshakes, and must not fill the disk.
+        if shared.stats.refusal_logged() {
+            tracing::info!(%peer, role, reason = why, "refused");
+        } else {
+            tracing::debug!(%peer, role, reason = why, "refused");
+        }
         shared.stats.add(&shared.stats.refused, 1);
         super::viewer::last_word(send, &ServerMessage::Refused(reason)).await;
         conn.close(close::REFUSED.into(), why.as_bytes());
-    };
-    if let Err(full) = admitted {
-        let reason = Reason::Full {
-            viewers: full.max as u32,
-        };
-        return refuse(&mut send, reason, &full.to_string()).await;
-    }
-    let seat = Seat {
-        shared: shared.clone(),
     };
     if hello.version != VERSION {
         let why = format!(
@@ -144,6 +143,24 @@ async fn handshake(
     if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
         return refuse(&mut send, Reason::WrongToken, "wrong token").await;
     }
+    // A driver coming back while its old connection still holds a seat (this server has
+    // not seen it die yet) may take one past the limit: the old one is about to go.
+    let replacing = hello.resume.is_some_and(|t| {
+        shared
+            .tickets()
+            .get(&t)
+            .is_some_and(|c| c.replace.as_ref().is_some_and(|r| !r.is_closed()))
+    });
+    let seated = shared.gate().admission.seat(replacing);
+    if let Err(full) = seated {
+        let reason = Reason::Full {
+            viewers: full.max as u32,
+        };
+        return refuse(&mut send, reason, &full.to_string()).await;
+    }
+    let seat = Seat {
+        shared: shared.clone(),
+    };
     let joined = match join(&shared, &hello).await {
         Ok(j) => j,
         Err(Refusal::Shutdown) => {
@@ -301,6 +318,15 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
                 replaced: Some(replaced),
             });
         }
+    }
+    // Held vehicles have no seat: without a bound, a driver that joins and drops over
+    // and over would fill the world with them. At the limit, the oldest held one goes.
+    let snap = shared.snapshots.borrow().clone();
+    if snap.vehicles.len() >= shared.max_vehicles
+        && let Some(&oldest) = snap.held.first()
+    {
+        shared.tickets().retain(|_, c| c.vehicle != oldest);
+        let _ = shared.world.send((Event::Leave(oldest), None));
     }
     let vehicle = ask(shared, Event::Join).await.map_err(|()| {
         if *shared.shutdown.borrow() {

@@ -94,13 +94,15 @@ pub struct Shared {
     snapshots: watch::Receiver<Arc<Snapshot>>,
     shutdown: watch::Receiver<bool>,
     hello_timeout: std::time::Duration,
+    /// Vehicles at most, held ones included ([`Options::max_viewers`]).
+    max_vehicles: usize,
     /// Admission, and how to evict each pending connection.
     gate: Mutex<Gate>,
     /// Drivers' tickets: the vehicle each names.
     tickets: Mutex<HashMap<Ticket, handshake::Claim>>,
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
-    makers: tokio::sync::Semaphore,
+    makers: Arc<tokio::sync::Semaphore>,
     stats: Arc<ServeStats>,
 }
 
@@ -239,12 +241,13 @@ impl Server {
             snapshots: snapshots.clone(),
             shutdown,
             hello_timeout: options.hello_timeout,
+            max_vehicles: options.max_viewers,
             gate: Mutex::new(Gate {
                 admission: Admission::new(options.max_pending, options.max_viewers),
                 evict: HashMap::new(),
             }),
             tickets: Mutex::new(HashMap::new()),
-            makers: tokio::sync::Semaphore::new(makers()),
+            makers: Arc::new(tokio::sync::Semaphore::new(makers())),
             stats: Arc::new(ServeStats::default()),
         });
         let accept = tokio::spawn(accept_loop(endpoint.clone(), shared.clone()));
@@ -382,6 +385,7 @@ async fn summary_loop(
             refused = s.refused,
             "summary"
         );
+        shared.stats.summarized();
         last = now;
         last_ticks = (ticks, dropped);
     }

@@ -32,7 +32,13 @@ pub struct ServeStats {
     pub timed_out: AtomicU64,
     /// Connections whose handshake failed or that sent something other than a hello.
     pub failed: AtomicU64,
+    /// Refusals logged at info since the last summary ([`REFUSALS_LOGGED`] at most).
+    refusals_logged: AtomicU64,
 }
+
+/// Refusals logged one line each between two summaries; the rest are counted (and logged
+/// at debug).
+pub const REFUSALS_LOGGED: u64 = 20;
 
 /// The counters at one moment.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize)]
@@ -53,6 +59,17 @@ pub struct Counts {
 impl ServeStats {
     pub fn add(&self, counter: &AtomicU64, n: u64) {
         counter.fetch_add(n, Ordering::Relaxed);
+    }
+
+    /// Whether the next refusal gets a line of its own (false past [`REFUSALS_LOGGED`]
+    /// since the last summary).
+    pub fn refusal_logged(&self) -> bool {
+        self.refusals_logged.fetch_add(1, Ordering::Relaxed) < REFUSALS_LOGGED
+    }
+
+    /// A summary was logged: refusals get lines of their own again.
+    pub fn summarized(&self) {
+        self.refusals_logged.store(0, Ordering::Relaxed);
     }
 
     pub fn counts(&self) -> Counts {

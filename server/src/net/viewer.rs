@@ -66,7 +66,9 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         mut joined,
     } = viewer;
     let (vehicle, driver) = (joined.vehicle, joined.driver);
-    let replaced = joined.replaced.take();
+    // Kept until the vehicle's hold is sent (below): a reconnection that replaces this
+    // one waits on it, so its resume reaches the world after the hold.
+    let mut replaced = joined.replaced.take();
     let mut answer = None;
     let mut leave = Leave {
         world: shared.world.clone(),
@@ -75,7 +77,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     };
     let started = std::time::Instant::now();
     if welcome(&mut send, &shared, &joined).await.is_err() {
-        leave.hold = true;
+        leave.hold = hold_after(&conn);
         return;
     }
     let control = Arc::new(Mutex::new(Mailbox::default()));
@@ -88,7 +90,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         end = frames(&conn, &shared, control, core, rate, (vehicle, driver), &mut sent) => {
             match end {
                 FramesEnd::ConnectionLost => {
-                    leave.hold = true;
+                    leave.hold = hold_after(&conn);
                     lost(&conn)
                 }
                 FramesEnd::VehicleLeft | FramesEnd::Failed(_) => {
@@ -103,22 +105,21 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                 }
             }
         }
-        _ = ctl => {
-            conn.close(close::BYE.into(), b"bye");
-            "goodbye".into()
+        goodbye = ctl => {
+            if goodbye.unwrap_or(false) || conn.close_reason().is_none() {
+                conn.close(close::BYE.into(), b"bye");
+                "goodbye".into()
+            } else {
+                leave.hold = hold_after(&conn);
+                lost(&conn)
+            }
         }
         _ = conn.closed() => {
-            // Closed by the viewer with its goodbye code: a leave; anything else (timed
-            // out, reset, a viewer that gave up on a path it thinks dead): held.
-            leave.hold = !matches!(
-                conn.close_reason(),
-                Some(quinn::ConnectionError::ApplicationClosed(c))
-                    if c.error_code == quinn::VarInt::from_u32(close::BYE)
-            );
+            leave.hold = hold_after(&conn);
             lost(&conn)
         }
-        Ok(done) = async move {
-            match replaced {
+        Ok(done) = async {
+            match replaced.as_mut() {
                 Some(rx) => rx.await,
                 None => std::future::pending().await,
             }
@@ -148,6 +149,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     );
     drop(leave);
     drop(seat);
+    drop(replaced);
     if let Some(done) = answer {
         let _ = done.send(()); // the vehicle's hold is on its way to the world
     }
@@ -226,12 +228,29 @@ async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: Vehicl
 
 /// Control messages into the mailbox until the viewer says goodbye or sends something
 /// that is not one.
-async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) {
+/// Returns whether the viewer said goodbye (or broke the protocol): `false` when the
+/// stream ended because the connection did.
+async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) -> bool {
     while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
         let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
         if c.push(msg) == Control::End {
-            return;
+            return true;
         }
+    }
+    false
+}
+
+/// Whether a driver whose connection ended gets its vehicle held: yes when the connection
+/// was lost (timed out, reset, a transport error, or closed by the viewer with any code
+/// but the goodbye's, as a viewer does that gave up on a path it thinks dead); no after a
+/// goodbye, or when this server closed it. One rule, whichever of the viewer's tasks
+/// noticed the end first (quinn records the reason before it wakes them).
+fn hold_after(conn: &quinn::Connection) -> bool {
+    use quinn::ConnectionError as E;
+    match conn.close_reason() {
+        None | Some(E::LocallyClosed) => false,
+        Some(E::ApplicationClosed(c)) => c.error_code != quinn::VarInt::from_u32(close::BYE),
+        Some(_) => true,
     }
 }
 
@@ -301,10 +320,17 @@ async fn frames(
         let (c, made) = if c.next_is_cheap(&scene, &state) {
             make(c)
         } else {
-            let Ok(_permit) = shared.makers.acquire().await else {
+            // The permit goes with the job: it is held until the job ends, even if this
+            // viewer's task is dropped while waiting for it.
+            let Ok(permit) = shared.makers.clone().acquire_owned().await else {
                 return FramesEnd::Failed("the server is shutting down");
             };
-            match tokio::task::spawn_blocking(move || make(c)).await {
+            match tokio::task::spawn_blocking(move || {
+                let _permit = permit;
+                make(c)
+            })
+            .await
+            {
                 Ok(r) => r,
                 Err(_) => return FramesEnd::Failed("the frame maker failed"),
             }

@@ -89,7 +89,7 @@ pub struct Snapshot {
     pub vehicles: Vec<Vehicle>,
     /// Per driver, the newest key state applied by this tick.
     pub applied: Vec<(VehicleId, u32)>,
-    /// The vehicles held for a driver whose connection dropped, by id.
+    /// The vehicles held for a driver whose connection dropped, the oldest hold first.
     pub held: Vec<VehicleId>,
 }
 
@@ -389,13 +389,14 @@ impl WorldCore {
         for id in expired {
             self.leave(id);
         }
-        let mut held: Vec<VehicleId> = self
+        // Oldest hold first (then by id): the net shell frees the oldest at its limit.
+        let mut held: Vec<(u64, VehicleId)> = self
             .drivers
             .iter()
-            .filter(|d| d.held_since.is_some())
-            .map(|d| d.id)
+            .filter_map(|d| d.held_since.map(|since| (since, d.id)))
             .collect();
         held.sort_unstable();
+        let held = held.into_iter().map(|(_, id)| id).collect();
         Snapshot {
             tick: now,
             vehicles: self.world.vehicles().to_vec(),

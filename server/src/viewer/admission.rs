@@ -11,11 +11,13 @@
 //!   it must prove it receives at the address it claims before the server spends a
 //!   handshake on it (a spoofed flood ends there, for the price of one stateless packet);
 //! - a validated peer is admitted and **the oldest pending connection is evicted**
-//!   ([`Verdict::AdmitEvicting`]): memory stays bounded by the cap, and a flood of peers
-//!   that handshake and then stall cannot keep a real viewer out, because a stalled
-//!   connection is the oldest long before a real viewer, which says hello within a round
-//!   trip of its handshake, is. (Refusing instead would let a flood that holds the cap
-//!   lock everyone out for the deadline, measured in `tests/tests/admission.rs`.)
+//!   ([`Verdict::AdmitEvicting`]), the oldest of those that finished their handshake and
+//!   still say nothing if there is one: memory stays bounded by the cap, and a flood of
+//!   peers that handshake and then stall cannot keep a real viewer out, because a real
+//!   viewer says hello within a round trip of its handshake, and is never the one evicted
+//!   while a silent one is pending (and a handshake slowed by a flood that saturates the
+//!   CPU is not counted against it). Refusing instead would let a flood that holds the cap
+//!   lock everyone out for the deadline (`tests/tests/flood.rs` joins through one).
 //!
 //! Every pending connection also has one deadline for handshake and hello together (the
 //! shell's timer): what the cap does not close, the deadline does.
@@ -53,7 +55,8 @@ pub struct Full {
 pub struct Admission {
     max_pending: usize,
     max_viewers: usize,
-    pending: VecDeque<PendingId>,
+    /// Oldest first, and whether each has finished its handshake.
+    pending: VecDeque<(PendingId, bool)>,
     next: PendingId,
     viewers: usize,
 }
@@ -101,9 +104,10 @@ impl Admission {
                 Verdict::Refuse
             };
         }
-        let evict = self
+        let k = self.pending.iter().position(|&(_, done)| done).unwrap_or(0);
+        let (evict, _) = self
             .pending
-            .pop_front()
+            .remove(k)
             .expect("the cap is at least 1, and reached");
         Verdict::AdmitEvicting {
             id: self.push(),
@@ -114,15 +118,29 @@ impl Admission {
     fn push(&mut self) -> PendingId {
         let id = self.next;
         self.next += 1;
-        self.pending.push_back(id);
+        self.pending.push_back((id, false));
         id
+    }
+
+    /// Pending connection `id` finished its TLS handshake (and waits for its hello).
+    pub fn handshaken(&mut self, id: PendingId) {
+        if let Some(p) = self.pending.iter_mut().find(|(p, _)| *p == id) {
+            p.1 = true;
+        }
     }
 
     /// Pending connection `id` said hello: it becomes a viewer, or is refused when the
     /// server is full. Either way it is no longer pending.
     pub fn hello(&mut self, id: PendingId) -> Result<(), Full> {
         self.gone(id);
-        if self.viewers >= self.max_viewers {
+        self.seat(false)
+    }
+
+    /// A viewer whose hello was accepted takes a seat, or is refused when the server is
+    /// full; `replacing` (a driver coming back whose old connection still holds a seat,
+    /// about to be closed) takes one regardless.
+    pub fn seat(&mut self, replacing: bool) -> Result<(), Full> {
+        if self.viewers >= self.max_viewers && !replacing {
             return Err(Full {
                 max: self.max_viewers,
             });
@@ -134,7 +152,7 @@ impl Admission {
     /// Pending connection `id` ended before its hello (deadline, eviction, error); an id
     /// no longer pending changes nothing.
     pub fn gone(&mut self, id: PendingId) {
-        if let Some(k) = self.pending.iter().position(|&p| p == id) {
+        if let Some(k) = self.pending.iter().position(|&(p, _)| p == id) {
             self.pending.remove(k);
         }
     }
@@ -157,6 +175,7 @@ mod tests {
             expect: Verdict,
         },
         Hello(PendingId, Result<(), Full>),
+        Handshaken(PendingId),
         Gone(PendingId),
         Left,
     }
@@ -171,6 +190,7 @@ mod tests {
                     expect,
                 } => assert_eq!(a.arrive(validated, may_retry), expect, "step {k}"),
                 Step::Hello(id, expect) => assert_eq!(a.hello(id), expect, "step {k}"),
+                Step::Handshaken(id) => a.handshaken(id),
                 Step::Gone(id) => a.gone(id),
                 Step::Left => a.left(),
             }
@@ -221,6 +241,37 @@ mod tests {
             ],
             2,
         );
+    }
+
+    #[test]
+    fn a_silent_handshaken_connection_is_evicted_before_one_still_handshaking() {
+        use Verdict::*;
+        check(
+            3,
+            64,
+            vec![
+                arrive(false, true, Admit(0)),
+                arrive(false, true, Admit(1)),
+                arrive(false, true, Admit(2)),
+                Step::Handshaken(1),
+                Step::Handshaken(2),
+                arrive(true, false, AdmitEvicting { id: 3, evict: 1 }),
+                arrive(true, false, AdmitEvicting { id: 4, evict: 2 }),
+                // None handshaken: the oldest.
+                arrive(true, false, AdmitEvicting { id: 5, evict: 0 }),
+            ],
+            3,
+        );
+    }
+
+    #[test]
+    fn a_driver_replacing_its_old_connection_is_seated_past_the_limit() {
+        let mut a = Admission::new(8, 1);
+        assert_eq!(a.seat(false), Ok(()));
+        assert_eq!(a.seat(false), Err(Full { max: 1 }));
+        assert_eq!(a.seat(true), Ok(()));
+        a.left();
+        assert_eq!(a.viewers(), 1);
     }
 
     #[test]
