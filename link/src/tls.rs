@@ -291,11 +291,14 @@ impl StateDir {
                 );
             }
             (true, cert_new) => {
-                // Interrupted before the first rename: what was there stands.
-                self.remove(KEY_NEW)?;
+                // Interrupted before the first rename: what was there stands. The
+                // certificate goes first: a crash between the two removals must not leave
+                // a lone certificate that looks like the key was already renamed.
                 if cert_new {
                     self.remove(CERT_NEW)?;
+                    self.sync()?;
                 }
+                self.remove(KEY_NEW)?;
                 self.sync()?;
                 tracing::warn!(
                     "{}: removed the files of an identity change interrupted before it took \
@@ -404,7 +407,8 @@ impl StateDir {
             .and_then(|()| self.sync());
         if let Err(e) = written {
             // Nothing took effect; the next start would remove these anyway.
-            for name in [KEY_NEW, CERT_NEW] {
+            // The certificate first (see `recover`).
+            for name in [CERT_NEW, KEY_NEW] {
                 let _best_effort = std::fs::remove_file(self.file(name));
             }
             return Err(e);

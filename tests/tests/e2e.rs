@@ -166,22 +166,29 @@ fn driver_hello(r: &Running, budget: u32) -> Hello {
 }
 
 /// A connection that says hello as a driver and then never reads a frame.
-async fn stalled_driver(r: &Running) -> (quinn::Endpoint, quinn::Connection) {
+async fn stalled_driver(
+    r: &Running,
+) -> (
+    quinn::Endpoint,
+    quinn::Connection,
+    (quinn::SendStream, quinn::RecvStream),
+) {
     let (endpoint, conn) = headless::connect(r.server.addr, r.fingerprint)
         .await
         .expect("connects");
-    let (mut send, _recv) = conn.open_bi().await.expect("a stream");
+    let (mut send, recv) = conn.open_bi().await.expect("a stream");
     wire::write(&mut send, &ClientMessage::Hello(driver_hello(r, 8_000)))
         .await
         .expect("sends");
-    (endpoint, conn)
+    // The control stream stays open (and unread): dropping it would stop the welcome.
+    (endpoint, conn, (send, recv))
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
     let _turn = ONE_AT_A_TIME.lock().await;
     let r = start(flat(), None);
-    let (_e1, stalled) = stalled_driver(&r).await;
+    let (_e1, stalled, _control) = stalled_driver(&r).await;
     // Someone sending garbage: datagrams, and streams of junk.
     // Garbage, each kind on a connection of its own (the server closes a connection at
     // its first junk, so one connection would test one junk): each is refused with the

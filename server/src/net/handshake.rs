@@ -259,7 +259,7 @@ pub(super) struct Joined {
 
 /// What a ticket names: the vehicle, and how to end the connection driving it now.
 pub(super) struct Claim {
-    vehicle: VehicleId,
+    pub(super) vehicle: VehicleId,
     replace: Option<oneshot::Sender<oneshot::Sender<()>>>,
 }
 

@@ -391,10 +391,10 @@ async fn summary_loop(
     }
 }
 
-/// A fresh random join token (16 hex digits).
+/// A fresh random join token (32 hex digits: 128 bits), for a server started in process.
 pub fn random_token() -> String {
     use ring::rand::SecureRandom;
-    let mut bytes = [0u8; 8];
+    let mut bytes = [0u8; 16];
     ring::rand::SystemRandom::new()
         .fill(&mut bytes)
         .expect("the system's random source works");

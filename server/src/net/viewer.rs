@@ -77,12 +77,14 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     };
     let started = std::time::Instant::now();
     if welcome(&mut send, &shared, &joined).await.is_err() {
+        // Lost on the way (held), or the viewer stopped its control stream (a leave).
         leave.hold = hold_after(&conn);
+        conn.close(close::PROTOCOL.into(), b"the welcome could not be sent");
         return;
     }
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
-    let ctl = tokio::spawn(read_control(recv, control.clone()));
+    let mut ctl = tokio::spawn(read_control(recv, control.clone()));
     let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
     let rate = ViewerCore::frame_rate(&hello, shared.limits);
     let mut sent = 0u64;
@@ -105,14 +107,9 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                 }
             }
         }
-        goodbye = ctl => {
-            if goodbye.unwrap_or(false) || conn.close_reason().is_none() {
-                conn.close(close::BYE.into(), b"bye");
-                "goodbye".into()
-            } else {
-                leave.hold = hold_after(&conn);
-                lost(&conn)
-            }
+        _ = &mut ctl => {
+            conn.close(close::BYE.into(), b"bye");
+            "goodbye".into()
         }
         _ = conn.closed() => {
             leave.hold = hold_after(&conn);
@@ -136,7 +133,12 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         }
     };
     keys.abort();
+    ctl.abort();
     let held = leave.hold && leave.vehicle.is_some();
+    if driver && !held {
+        // Gone for good: its ticket names nothing any more.
+        shared.tickets().retain(|_, c| c.vehicle != vehicle);
+    }
     tracing::info!(
         %peer,
         role = super::handshake::role_name(&hello.role),
@@ -228,16 +230,17 @@ async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: Vehicl
 
 /// Control messages into the mailbox until the viewer says goodbye or sends something
 /// that is not one.
-/// Returns whether the viewer said goodbye (or broke the protocol): `false` when the
-/// stream ended because the connection did.
-async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) -> bool {
+/// Ends when the viewer says goodbye (or breaks the protocol), and only then: a control
+/// stream that ends otherwise (finished without a goodbye, or because the connection
+/// did) leaves the end to the connection, so that one rule decides hold or leave.
+async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) {
     while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
         let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
         if c.push(msg) == Control::End {
-            return true;
+            return;
         }
     }
-    false
+    std::future::pending::<()>().await;
 }
 
 /// Whether a driver whose connection ended gets its vehicle held: yes when the connection
@@ -288,10 +291,12 @@ async fn frames(
         interval.tick().await;
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let Some(v) = snap.vehicles.iter().find(|v| v.id == vehicle) else {
-            if seen {
+            // A new driver's vehicle appears with the next tick; a spectator's was there
+            // when it joined.
+            if seen || !driver {
                 return FramesEnd::VehicleLeft;
             }
-            continue; // a new driver's vehicle appears with the next tick
+            continue;
         };
         seen = true;
         let mut c = core.take().expect("put back below");
