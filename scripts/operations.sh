@@ -2,7 +2,8 @@
 # The figures of README's "Security and operations": what a junk flood costs a running
 # server while a real viewer joins through it (`roam-flood`, one JSON line), and whether
 # eight viewers asking the most triangles at the most frames a second slow the world
-# (one JSON line from the server's summary log: its ticks a second and dropped ticks).
+# (one JSON line from the server's summary log: its ticks a second and dropped ticks),
+# and, as root, what a full recording disk does (one JSON line).
 #
 #   PROFILE=measure scripts/operations.sh      (PROFILE=release by default)
 set -euo pipefail
@@ -42,3 +43,32 @@ awk '/ summary /{
     }
     END { printf "{\"summaries\":%d,\"world_ticks_per_s_min\":%s,\"world_ticks_per_s_mean\":%.2f,\"dropped_ticks\":%d,\"frames_served_per_s_max\":%s}\n", n, min, sum / n, dropped, fps }' \
     "$state/server.log"
+
+# 3. (as root: it mounts a tmpfs) A recording disk that fills: a 16 KB tmpfs, one driver
+# changing keys every tick for 15 s, then a second driver. One JSON line: the world's
+# ticks a second and dropped ticks from the summaries, the error line, whether the second
+# driver joined (unrecorded), and whether the cut file replays.
+if ((EUID == 0)); then
+    rec=$(mktemp -d)
+    mount -t tmpfs -o size=16k tmpfs "$rec"
+    SERVE_ARGS="--log-every 3 --record-dir $rec" start_server "$DATA"
+    awk 'BEGIN { split("U UL UR D L R", k, " "); for (i = 0; i < 2000; i++) print "1 " k[i % 6 + 1] }' \
+        >"$state/keys.txt"
+    "$BIN_DIR/roam-client" --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
+        --headless --inputs "$state/keys.txt" --frames 900 --stats "$state/d1.json" >/dev/null 2>&1
+    "$BIN_DIR/roam-client" --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
+        --headless --frames 120 --stats "$state/d2.json" >/dev/null 2>&1 && second=true || second=false
+    stop_server
+    file=$(ls "$rec"/*.rec)
+    "$BIN_DIR/roam-server" replay "$file" --data "$DATA" >/dev/null 2>&1 && replays=true || replays=false
+    bytes=$(stat -c %s "$file")
+    umount "$rec"
+    awk -v second="$second" -v replays="$replays" -v bytes="$bytes" '
+        / summary /{ for (i = 1; i <= NF; i++) { split($i, kv, "=");
+            if (kv[1] == "ticks_per_s" && kv[2] + 0 > 0) { t = kv[2] + 0; if (min == "" || t < min) min = t }
+            if (kv[1] == "dropped_ticks") dropped += kv[2] } }
+        / ERROR / && /recording/ { errors++ }
+        /joined unrecorded/ { unrecorded++ }
+        END { printf "{\"world_ticks_per_s_min\":%s,\"dropped_ticks\":%d,\"recording_errors\":%d,\"joins_unrecorded\":%d,\"second_driver_served\":%s,\"file_bytes\":%d,\"file_replays\":%s}\n",
+              min, dropped, errors, unrecorded, second, bytes, replays }' "$state/server.log"
+fi
