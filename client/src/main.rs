@@ -68,6 +68,13 @@ struct Cli {
     /// `--max-fps`).
     #[arg(long, default_value_t = 60, value_parser = clap::value_parser!(u16).range(1..))]
     frame_rate: u16,
+    /// Seconds without a frame or message from the server before a headless viewer calls
+    /// the connection lost (and reconnects).
+    #[arg(long, default_value_t = 10.0, value_parser = seconds)]
+    silence: f64,
+    /// Seconds a headless viewer keeps trying to reconnect after a loss.
+    #[arg(long, default_value_t = 35.0, value_parser = seconds)]
+    reconnect_for: f64,
     /// Write the stats as JSON here (else to stdout).
     #[arg(long)]
     stats: Option<PathBuf>,
@@ -225,6 +232,10 @@ fn run(cli: Cli) -> Result<()> {
                 inputs: script.clone(),
                 skip_decode: cli.skip_decode,
                 frame_rate: cli.frame_rate,
+                patience: roam_client::session::Patience {
+                    silence: std::time::Duration::from_secs_f64(cli.silence),
+                    reconnect_for: std::time::Duration::from_secs_f64(cli.reconnect_for),
+                },
                 keep_last: cli.screenshot.is_some(),
                 stop: Some(stopped.clone()),
                 ..ViewerOptions::default()
@@ -396,4 +407,17 @@ fn join_token(cli: &Cli) -> Result<String> {
              variable ROAM_TOKEN, or --token TOKEN"
         )
     })
+}
+
+/// A number of seconds: more than 0 and at most an hour.
+fn seconds(text: &str) -> Result<f64, String> {
+    let s: f64 = text
+        .parse()
+        .map_err(|_| format!("{text:?}: expected a number of seconds"))?;
+    if !(s > 0.0 && s <= 3_600.0) {
+        return Err(format!(
+            "{text}: expected more than 0 and at most 3600 seconds"
+        ));
+    }
+    Ok(s)
 }

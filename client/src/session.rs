@@ -648,7 +648,13 @@ impl Supervisor {
             let attempt = attempt(&self.endpoint, self.addr, HANDSHAKE, hello);
             let result = tokio::select! {
                 r = attempt => r,
-                () = quit_asked(&mut self.outgoing) => return Ok(None),
+                () = quit_asked(&mut self.outgoing) => {
+                    // The attempt in flight may already have been welcomed (and the vehicle
+                    // resumed): close it with the goodbye code, so the server frees the
+                    // vehicle rather than holding it.
+                    self.endpoint.close(close::BYE.into(), b"quit");
+                    return Ok(None);
+                }
             };
             let last = match result {
                 Ok(j) => {
