@@ -32,8 +32,9 @@ enum Command {
     Check(cli::data::CheckArgs),
     /// Write a synthetic data set (seeded fBm) of any 2^N + 1 side.
     Generate(cli::data::GenerateArgs),
-    /// Build a data set from a PGM heightfield: copy it, derive a colour map, write a map file.
-    Import(cli::data::ImportArgs),
+    /// Build a data set from a heightfield (PGM, PNG, SRTM .hgt): fill voids, resample to
+    /// 2^N + 1, derive a colour map, write a map file.
+    Import(cli::import::ImportArgs),
     /// Tessellate once for a camera and write the mesh as a Wavefront OBJ.
     Mesh(cli::tess::MeshArgs),
     /// Time the tessellator along a fly-over path (or one fixed camera), and the physics.
@@ -55,7 +56,7 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Check(args) => cli::data::check(args),
         Command::Generate(args) => cli::data::generate(args),
-        Command::Import(args) => cli::data::import(args),
+        Command::Import(args) => cli::import::import(args),
         Command::Mesh(args) => cli::tess::mesh(args),
         Command::Bench(args) => cli::tess::bench(args),
         Command::Simulate(args) => cli::sim::simulate(args),

@@ -1,15 +1,12 @@
-//! `check`, `generate` and `import`: data-set commands.
+//! `check` and `generate`: data-set commands (`import` is in [`super::import`]).
 
 use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use roam_server::terrain::dataset::{self, Terrain};
+use roam_server::terrain::generate as gen_terrain;
 use roam_server::terrain::heightfield::levels_of_side;
-use roam_server::terrain::map::{MapParams, Start, normalize};
-use roam_server::terrain::{generate as gen_terrain, pnm};
-
-use super::progress::Progress;
 
 #[derive(Args)]
 pub struct CheckArgs {
@@ -27,52 +24,6 @@ pub struct GenerateArgs {
     /// Seed of the generator: the same seed always gives the same data set.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-}
-
-#[derive(Args)]
-pub struct ImportArgs {
-    /// Source heightfield (binary PGM, side 2^N + 1).
-    pub pgm: PathBuf,
-    /// Output directory (created if missing).
-    pub out: PathBuf,
-    /// World units between neighbouring samples (`hScale`).
-    #[arg(long, default_value_t = 1.0, allow_hyphen_values = true)]
-    pub h_scale: f64,
-    /// World units per sample value (`vScale`).
-    #[arg(long, default_value_t = 0.1, allow_hyphen_values = true)]
-    pub v_scale: f64,
-    /// World height of a water surface (`waterLevel`); cells below it are coloured as water.
-    #[arg(long, allow_hyphen_values = true)]
-    pub water_level: Option<f64>,
-    /// Vehicle start, world X (default: the map's centre).
-    #[arg(long, allow_hyphen_values = true)]
-    pub start_x: Option<f64>,
-    /// Vehicle start, world Z (default: the map's centre).
-    #[arg(long, allow_hyphen_values = true)]
-    pub start_z: Option<f64>,
-    /// Vehicle heading in degrees: 0 faces south (+Z), 90 east (+X).
-    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
-    pub heading: f64,
-    /// Direction towards the sun as X,Y,Z (normalised).
-    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true,
-          conflicts_with_all = ["sun_azimuth", "sun_elevation"])]
-    pub sun_dir: Option<[f64; 3]>,
-    /// Sun azimuth in compass degrees (0 north, 90 east, 180 south, 270 west); needs
-    /// --sun-elevation.
-    #[arg(long, requires = "sun_elevation", allow_hyphen_values = true)]
-    pub sun_azimuth: Option<f64>,
-    /// Sun elevation above the horizon in degrees; needs --sun-azimuth.
-    #[arg(long, requires = "sun_azimuth", allow_hyphen_values = true)]
-    pub sun_elevation: Option<f64>,
-    /// Sun colour as R,G,B (0..=255 each).
-    #[arg(long, value_parser = parse_rgb)]
-    pub sun_color: Option<[u8; 3]>,
-    /// Exponential fog density per world unit.
-    #[arg(long, allow_hyphen_values = true)]
-    pub fog_density: Option<f64>,
-    /// Fog colour as R,G,B (0..=255 each).
-    #[arg(long, value_parser = parse_rgb)]
-    pub fog_color: Option<[u8; 3]>,
 }
 
 /// `check DIR`: load and validate a data set, then describe it.
@@ -217,100 +168,13 @@ pub fn generate(args: GenerateArgs) -> Result<()> {
 }
 
 /// Writes a data set and prints what was written.
-fn save_and_describe(out: &std::path::Path, terrain: &Terrain) -> Result<()> {
+pub(super) fn save_and_describe(out: &std::path::Path, terrain: &Terrain) -> Result<()> {
     dataset::save(out, terrain).with_context(|| format!("writing {}", out.display()))?;
     say!("wrote {}", out.display());
     for line in describe(terrain) {
         say!("{line}");
     }
     Ok(())
-}
-
-/// `import PGM OUT`: copy a heightfield, derive a colour map and write a `map` file.
-pub fn import(args: ImportArgs) -> Result<()> {
-    let heights = {
-        let mut p = Progress::new("reading");
-        let total = std::fs::metadata(&args.pgm).map(|m| m.len()).unwrap_or(0);
-        let mut cb = p.callback();
-        pnm::read_pgm(&args.pgm, &mut |n| cb(n, total))
-            .map_err(|e| anyhow::anyhow!("{}: {e}", args.pgm.display()))?
-    };
-    let side = heights.side();
-    let mut map = MapParams::default_for_side(side);
-    map.h_scale = args.h_scale;
-    map.v_scale = args.v_scale;
-    map.water_level = args.water_level;
-    let centre = map.world_size(side) / 2.0;
-    map.start = Start {
-        x: args.start_x.unwrap_or(centre),
-        z: args.start_z.unwrap_or(centre),
-        heading_deg: args.heading,
-    };
-    if let Some(d) = args.sun_dir {
-        map.sun_dir = normalize(d)
-            .with_context(|| format!("--sun-dir: expected a non-zero direction, got {d:?}"))?;
-    }
-    if let (Some(az), Some(el)) = (args.sun_azimuth, args.sun_elevation) {
-        map.sun_dir = sun_from_angles(az, el)
-            .with_context(|| format!("--sun-azimuth/--sun-elevation: got {az}, {el}"))?;
-    }
-    if let Some(c) = args.sun_color {
-        map.sun_color = c;
-    }
-    if let Some(f) = args.fog_density {
-        map.fog_density = f;
-    }
-    if let Some(c) = args.fog_color {
-        map.fog_color = c;
-    }
-    map.validate_for_side(side)
-        .map_err(|e| anyhow::anyhow!("map parameters: {e}"))?;
-    let color = gen_terrain::colorize(&heights, &map);
-    let terrain = Terrain {
-        map,
-        heights,
-        color,
-    };
-    save_and_describe(&args.out, &terrain)
-}
-
-/// Unit vector towards a sun at compass `azimuth` (0 north = −Z, 90 east = +X) and
-/// `elevation` degrees above the horizon.
-fn sun_from_angles(azimuth: f64, elevation: f64) -> Option<[f64; 3]> {
-    if !(azimuth.is_finite() && (-90.0..=90.0).contains(&elevation)) {
-        return None;
-    }
-    let (az, el) = (azimuth.to_radians(), elevation.to_radians());
-    let d = [az.sin() * el.cos(), el.sin(), -az.cos() * el.cos()];
-    normalize(d)
-}
-
-/// `X,Y,Z` as three numbers.
-fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
-    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let [x, y, z] = parts[..] else {
-        return Err(format!("expected X,Y,Z (three numbers), got {s:?}"));
-    };
-    let num = |t: &str| {
-        t.parse::<f64>()
-            .map_err(|_| format!("expected a number, got {t:?}"))
-    };
-    Ok([num(x)?, num(y)?, num(z)?])
-}
-
-/// `R,G,B` as three integers 0..=255.
-fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
-    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
-    let [r, g, b] = parts[..] else {
-        return Err(format!(
-            "expected R,G,B (three integers 0..=255), got {s:?}"
-        ));
-    };
-    let byte = |t: &str| {
-        t.parse::<u8>()
-            .map_err(|_| format!("expected an integer 0..=255, got {t:?}"))
-    };
-    Ok([byte(r)?, byte(g)?, byte(b)?])
 }
 
 #[cfg(test)]

@@ -3,6 +3,7 @@
 
 pub mod data;
 pub mod identity;
+pub mod import;
 pub mod net;
 pub mod progress;
 pub mod sim;

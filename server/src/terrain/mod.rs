@@ -1,11 +1,16 @@
 //! The terrain: a data set on disk (`map`, `hf.pgm`, `color.ppm`) loaded into a `Terrain`,
-//! the synthetic generator, and the variance tree built once from the heights.
+//! the synthetic generator, the source readers and raster pipeline of `import`, and the
+//! variance tree built once from the heights.
 
 pub mod dataset;
 pub mod generate;
 pub mod heightfield;
+pub mod hgt;
 pub mod map;
+pub mod png16;
 pub mod pnm;
+pub mod raster;
+pub mod source;
 pub mod variance;
 
 pub use dataset::{ColorMap, DataError, Terrain};

@@ -1,0 +1,400 @@
+//! `import FILE OUT`: build a data set from a heightfield in any format `import` reads (PGM,
+//! 16-bit or Terrain-RGB PNG, SRTM `.hgt`), through the raster pipeline of
+//! [`roam_server::terrain::raster`]: fill voids, crop, pad and resample to `2^N + 1`,
+//! quantise to 16 bits. A PGM that is already a data-set heightfield is copied unchanged.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use roam_server::terrain::dataset::Terrain;
+use roam_server::terrain::heightfield::{Heightfield, levels_of_side};
+use roam_server::terrain::hgt;
+use roam_server::terrain::map::{MapParams, Start, normalize};
+use roam_server::terrain::png16::{self, PngOptions, RgbEncoding};
+use roam_server::terrain::raster::{Raster, default_side};
+use roam_server::terrain::source::{self, Format};
+use roam_server::terrain::{generate as gen_terrain, pnm};
+
+use super::data::save_and_describe;
+use super::progress::Progress;
+
+#[derive(Args)]
+pub struct ImportArgs {
+    /// Source heightfield, recognised by content: binary PGM (side 2^N + 1), PNG (16-bit
+    /// greyscale, or 8-bit RGB with --rgb-encoding) or SRTM .hgt (1201² or 3601²).
+    pub file: PathBuf,
+    /// Output directory (created if missing).
+    pub out: PathBuf,
+    /// World units (metres) between neighbouring source samples (`hScale` before any
+    /// resampling); overrides a .hgt tile's georeferencing [default: 1].
+    #[arg(long, allow_hyphen_values = true)]
+    pub h_scale: Option<f64>,
+    /// World units per sample value (`vScale`) [default: 0.1 for a PGM; otherwise chosen to
+    /// keep the heights' precision].
+    #[arg(long, allow_hyphen_values = true)]
+    pub v_scale: Option<f64>,
+    /// Samples per side of the data set, 2^N + 1 [default: the smallest that holds the
+    /// raster's longer side].
+    #[arg(long)]
+    pub side: Option<u32>,
+    /// Take the window of W × W source samples whose top-left sample is column X, row Y.
+    #[arg(long, value_parser = parse_crop, value_name = "X,Y,W")]
+    pub crop: Option<[u32; 3]>,
+    /// How an 8-bit RGB PNG encodes heights: `terrarium` or `mapbox` (Terrain-RGB).
+    #[arg(long, value_parser = parse_encoding)]
+    pub rgb_encoding: Option<RgbEncoding>,
+    /// Metres per step of a 16-bit PNG sample.
+    #[arg(long, default_value_t = 1.0, allow_hyphen_values = true)]
+    pub z_scale: f64,
+    /// Metres added to every 16-bit PNG sample.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub z_offset: f64,
+    /// World height of a water surface (`waterLevel`); cells below it are coloured as water.
+    #[arg(long, allow_hyphen_values = true)]
+    pub water_level: Option<f64>,
+    /// Vehicle start, world X (default: the map's centre).
+    #[arg(long, allow_hyphen_values = true)]
+    pub start_x: Option<f64>,
+    /// Vehicle start, world Z (default: the map's centre).
+    #[arg(long, allow_hyphen_values = true)]
+    pub start_z: Option<f64>,
+    /// Vehicle heading in degrees: 0 faces south (+Z), 90 east (+X).
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    pub heading: f64,
+    /// Direction towards the sun as X,Y,Z (normalised).
+    #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true,
+          conflicts_with_all = ["sun_azimuth", "sun_elevation"])]
+    pub sun_dir: Option<[f64; 3]>,
+    /// Sun azimuth in compass degrees (0 north, 90 east, 180 south, 270 west); needs
+    /// --sun-elevation.
+    #[arg(long, requires = "sun_elevation", allow_hyphen_values = true)]
+    pub sun_azimuth: Option<f64>,
+    /// Sun elevation above the horizon in degrees; needs --sun-azimuth.
+    #[arg(long, requires = "sun_azimuth", allow_hyphen_values = true)]
+    pub sun_elevation: Option<f64>,
+    /// Sun colour as R,G,B (0..=255 each).
+    #[arg(long, value_parser = parse_rgb)]
+    pub sun_color: Option<[u8; 3]>,
+    /// Exponential fog density per world unit.
+    #[arg(long, allow_hyphen_values = true)]
+    pub fog_density: Option<f64>,
+    /// Fog colour as R,G,B (0..=255 each).
+    #[arg(long, value_parser = parse_rgb)]
+    pub fog_color: Option<[u8; 3]>,
+}
+
+/// The heights and scales `import` settles on.
+struct Imported {
+    heights: Heightfield,
+    h_scale: f64,
+    v_scale: f64,
+}
+
+/// `import FILE OUT`: read any supported heightfield, derive a colour map and write a data
+/// set with a `map` file.
+pub fn import(args: ImportArgs) -> Result<()> {
+    let path = &args.file;
+    let format = source::detect(path)?;
+    if format != Format::Png
+        && (args.rgb_encoding.is_some() || args.z_scale != 1.0 || args.z_offset != 0.0)
+    {
+        bail!(
+            "{}: --rgb-encoding, --z-scale and --z-offset apply to PNG files only; this is {}",
+            path.display(),
+            describe_format(format)
+        );
+    }
+    if let Some(side) = args.side
+        && levels_of_side(u64::from(side)).is_none()
+    {
+        bail!("--side: expected 2^N + 1 (3, 5, 9, …, 32769), got {side}");
+    }
+    for (flag, v) in [
+        ("--h-scale", args.h_scale),
+        ("--v-scale", args.v_scale),
+        ("--z-scale", Some(args.z_scale)),
+        ("--z-offset", Some(args.z_offset)),
+    ] {
+        if let Some(v) = v
+            && (!v.is_finite() || (flag != "--z-offset" && v <= 0.0))
+        {
+            bail!("{flag}: expected a finite number > 0, got {v}");
+        }
+    }
+    let imported = match format {
+        Format::Pgm => import_pgm(&args)?,
+        Format::Hgt => {
+            let tile = {
+                let mut p = Progress::new("reading");
+                hgt::read(path, &mut p.callback())?
+            };
+            say!(
+                "format: SRTM .hgt ({}″ a sample), {} × {} samples",
+                tile.arcsec,
+                tile.raster.width(),
+                tile.raster.height()
+            );
+            let spacing = match (args.h_scale, tile.spacing(), tile.latitude) {
+                (Some(h), _, _) => {
+                    say!("sample spacing {h} m (from --h-scale)");
+                    (h, h)
+                }
+                (None, Some((dx, dy)), Some(lat)) => {
+                    say!(
+                        "geographic raster: {dx:.2} m a sample east–west, {dy:.2} m north–south \
+                         at latitude {lat}° (from the file name); resampled to square samples"
+                    );
+                    (dx, dy)
+                }
+                _ => {
+                    say!(
+                        "no latitude in the file name (expected like N07W006.hgt): sample \
+                         spacing 1 m; give --h-scale"
+                    );
+                    (1.0, 1.0)
+                }
+            };
+            pipeline(&args, tile.raster, spacing, args.v_scale)?
+        }
+        Format::Png => {
+            let options = PngOptions {
+                rgb: args.rgb_encoding,
+                z_scale: args.z_scale,
+                z_offset: args.z_offset,
+            };
+            let png = {
+                let mut p = Progress::new("reading");
+                png16::read(path, options, &mut p.callback())?
+            };
+            say!(
+                "format: {}, {} × {} samples",
+                png.kind,
+                png.raster.width(),
+                png.raster.height()
+            );
+            let h = args.h_scale.unwrap_or(1.0);
+            say!(
+                "sample spacing {h} m (from --h-scale{}; a PNG carries no georeferencing)",
+                if args.h_scale.is_none() {
+                    ", default"
+                } else {
+                    ""
+                }
+            );
+            pipeline(&args, png.raster, (h, h), args.v_scale)?
+        }
+    };
+    write(&args, imported)
+}
+
+fn describe_format(format: Format) -> &'static str {
+    match format {
+        Format::Pgm => "a PGM",
+        Format::Png => "a PNG",
+        Format::Hgt => "an SRTM .hgt tile",
+    }
+}
+
+/// A PGM: copied unchanged, unless `--crop` or another `--side` sends it through the
+/// pipeline (heights `sample × vScale`, the same `vScale` kept).
+fn import_pgm(args: &ImportArgs) -> Result<Imported> {
+    let path = &args.file;
+    let heights = {
+        let mut p = Progress::new("reading");
+        let total = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+        let mut cb = p.callback();
+        pnm::read_pgm(path, &mut |n| cb(n, total))
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?
+    };
+    let side = heights.side();
+    let (h_scale, v_scale) = (args.h_scale.unwrap_or(1.0), args.v_scale.unwrap_or(0.1));
+    say!("format: PGM, {side} × {side} samples");
+    if args.crop.is_none() && args.side.is_none_or(|s| s == side) {
+        say!("samples copied unchanged: hScale {h_scale}, vScale {v_scale}");
+        return Ok(Imported {
+            heights,
+            h_scale,
+            v_scale,
+        });
+    }
+    let samples = heights
+        .samples()
+        .iter()
+        .map(|&s| (f64::from(s) * v_scale) as f32)
+        .collect();
+    let raster = Raster::new(side, side, samples)?;
+    say!("sample spacing {h_scale} m (from --h-scale)");
+    pipeline(args, raster, (h_scale, h_scale), Some(v_scale))
+}
+
+/// Fill voids, crop, pad and resample, quantise; print what was done.
+fn pipeline(
+    args: &ImportArgs,
+    mut raster: Raster,
+    (dx, dy): (f64, f64),
+    v_scale: Option<f64>,
+) -> Result<Imported> {
+    let path = &args.file;
+    let total = raster.samples().len();
+    let filled = {
+        let mut p = Progress::new("filling");
+        raster
+            .fill_voids(&mut p.callback())
+            .with_context(|| format!("{}", path.display()))?
+    };
+    say!(
+        "voids filled: {filled} ({:.3} % of the samples)",
+        100.0 * filled as f64 / total as f64
+    );
+    if let Some([x, y, w]) = args.crop {
+        raster = raster.crop(x, y, w)?;
+        say!("cropped: {w} × {w} samples from column {x}, row {y}");
+    }
+    let (w, h) = (raster.width(), raster.height());
+    let side = args.side.unwrap_or_else(|| default_side(w.max(h)));
+    let (grid, h_scale) = {
+        let mut p = Progress::new("resampling");
+        raster.to_grid(dx, dy, side, &mut p.callback())?
+    };
+    if w == side && h == side && dx == dy {
+        say!("kept at {side} × {side} samples (already 2^N + 1)");
+    } else {
+        let pad = if w == h && dx == dy {
+            String::new()
+        } else {
+            "padded to a square with edge-extended heights, ".to_string()
+        };
+        say!("{w} × {h} samples {pad}resampled (bilinear) to {side} × {side}");
+    }
+    drop(raster);
+    let q = grid.quantise(v_scale)?;
+    say!("hScale {h_scale} m (world units, one a metre)");
+    if v_scale.is_some() {
+        say!("vScale {} m (given)", q.v_scale);
+    } else {
+        say!(
+            "vScale {} m (chosen to keep the heights' precision: {:.3} m over 65535 steps)",
+            q.v_scale,
+            q.max - q.min
+        );
+    }
+    say!(
+        "heights {:.3} .. {:.3} m; heights shifted by {:.3} m so the lowest is 0",
+        q.min,
+        q.max,
+        -q.min
+    );
+    Ok(Imported {
+        heights: q.heights,
+        h_scale,
+        v_scale: q.v_scale,
+    })
+}
+
+/// Derive the map and the colour map, and write the data set.
+fn write(args: &ImportArgs, imported: Imported) -> Result<()> {
+    let Imported {
+        heights,
+        h_scale,
+        v_scale,
+    } = imported;
+    let side = heights.side();
+    let mut map = MapParams::default_for_side(side);
+    map.h_scale = h_scale;
+    map.v_scale = v_scale;
+    map.water_level = args.water_level;
+    let centre = map.world_size(side) / 2.0;
+    map.start = Start {
+        x: args.start_x.unwrap_or(centre),
+        z: args.start_z.unwrap_or(centre),
+        heading_deg: args.heading,
+    };
+    if let Some(d) = args.sun_dir {
+        map.sun_dir = normalize(d)
+            .with_context(|| format!("--sun-dir: expected a non-zero direction, got {d:?}"))?;
+    }
+    if let (Some(az), Some(el)) = (args.sun_azimuth, args.sun_elevation) {
+        map.sun_dir = sun_from_angles(az, el)
+            .with_context(|| format!("--sun-azimuth/--sun-elevation: got {az}, {el}"))?;
+    }
+    if let Some(c) = args.sun_color {
+        map.sun_color = c;
+    }
+    if let Some(f) = args.fog_density {
+        map.fog_density = f;
+    }
+    if let Some(c) = args.fog_color {
+        map.fog_color = c;
+    }
+    map.validate_for_side(side)
+        .map_err(|e| anyhow::anyhow!("map parameters: {e}"))?;
+    let color = gen_terrain::colorize(&heights, &map);
+    let terrain = Terrain {
+        map,
+        heights,
+        color,
+    };
+    save_and_describe(Path::new(&args.out), &terrain)
+}
+
+/// Unit vector towards a sun at compass `azimuth` (0 north = −Z, 90 east = +X) and
+/// `elevation` degrees above the horizon.
+fn sun_from_angles(azimuth: f64, elevation: f64) -> Option<[f64; 3]> {
+    if !(azimuth.is_finite() && (-90.0..=90.0).contains(&elevation)) {
+        return None;
+    }
+    let (az, el) = (azimuth.to_radians(), elevation.to_radians());
+    let d = [az.sin() * el.cos(), el.sin(), -az.cos() * el.cos()];
+    normalize(d)
+}
+
+/// `X,Y,Z` as three numbers.
+fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, z] = parts[..] else {
+        return Err(format!("expected X,Y,Z (three numbers), got {s:?}"));
+    };
+    let num = |t: &str| {
+        t.parse::<f64>()
+            .map_err(|_| format!("expected a number, got {t:?}"))
+    };
+    Ok([num(x)?, num(y)?, num(z)?])
+}
+
+/// `R,G,B` as three integers 0..=255.
+fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [r, g, b] = parts[..] else {
+        return Err(format!(
+            "expected R,G,B (three integers 0..=255), got {s:?}"
+        ));
+    };
+    let byte = |t: &str| {
+        t.parse::<u8>()
+            .map_err(|_| format!("expected an integer 0..=255, got {t:?}"))
+    };
+    Ok([byte(r)?, byte(g)?, byte(b)?])
+}
+
+/// `X,Y,W` as three non-negative integers.
+fn parse_crop(s: &str) -> Result<[u32; 3], String> {
+    let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+    let [x, y, w] = parts[..] else {
+        return Err(format!("expected X,Y,W (three integers), got {s:?}"));
+    };
+    let int = |t: &str| {
+        t.parse::<u32>()
+            .map_err(|_| format!("expected an integer ≥ 0, got {t:?}"))
+    };
+    Ok([int(x)?, int(y)?, int(w)?])
+}
+
+/// `terrarium` or `mapbox`.
+fn parse_encoding(s: &str) -> Result<RgbEncoding, String> {
+    match s {
+        "terrarium" => Ok(RgbEncoding::Terrarium),
+        "mapbox" => Ok(RgbEncoding::Mapbox),
+        _ => Err(format!("expected terrarium or mapbox, got {s:?}")),
+    }
+}
