@@ -356,7 +356,7 @@ fn bad_files_say_what_is_wrong() {
             "cut.hgt",
             &voids[..1000],
             &[],
-            &["cut.hgt: not a PGM, PNG or SRTM .hgt file (GeoTIFF is not supported yet)"],
+            &["cut.hgt: not a PGM, PNG, GeoTIFF or SRTM .hgt file: no PGM, PNG or TIFF signature"],
         ),
         (
             "N01E001.hgt",

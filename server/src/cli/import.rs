@@ -1,5 +1,5 @@
 //! `import FILE OUT`: build a data set from a heightfield in any format `import` reads (PGM,
-//! 16-bit or Terrain-RGB PNG, SRTM `.hgt`), through the raster pipeline of
+//! 16-bit or Terrain-RGB PNG, SRTM `.hgt`, GeoTIFF), through the raster pipeline of
 //! [`roam_server::terrain::raster`]: fill voids, crop, pad and resample to `2^N + 1`,
 //! quantise to 16 bits. A PGM that is already a data-set heightfield is copied unchanged.
 
@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use roam_server::terrain::dataset::Terrain;
+use roam_server::terrain::geotiff::{self, Georef};
 use roam_server::terrain::heightfield::{Heightfield, levels_of_side};
 use roam_server::terrain::hgt;
 use roam_server::terrain::map::{MapParams, Start, normalize};
@@ -22,12 +23,13 @@ use super::progress::Progress;
 #[derive(Args)]
 pub struct ImportArgs {
     /// Source heightfield, recognised by content: binary PGM (side 2^N + 1), PNG (16-bit
-    /// greyscale, or 8-bit RGB with --rgb-encoding) or SRTM .hgt (1201² or 3601²).
+    /// greyscale, or 8-bit RGB with --rgb-encoding), GeoTIFF (one 16/32-bit integer or
+    /// 32/64-bit float sample a pixel) or SRTM .hgt (1201² or 3601²).
     pub file: PathBuf,
     /// Output directory (created if missing).
     pub out: PathBuf,
     /// World units (metres) between neighbouring source samples (`hScale` before any
-    /// resampling); overrides a .hgt tile's georeferencing [default: 1].
+    /// resampling); overrides a .hgt tile's or GeoTIFF's georeferencing [default: 1].
     #[arg(long, allow_hyphen_values = true)]
     pub h_scale: Option<f64>,
     /// World units per sample value (`vScale`) [default: 0.1 for a PGM; otherwise chosen to
@@ -184,6 +186,7 @@ pub fn import(args: ImportArgs) -> Result<()> {
             );
             pipeline(&args, png.raster, (h, h), args.v_scale)?
         }
+        Format::GeoTiff => import_geotiff(&args)?,
     };
     write(&args, imported)
 }
@@ -193,7 +196,53 @@ fn describe_format(format: Format) -> &'static str {
         Format::Pgm => "a PGM",
         Format::Png => "a PNG",
         Format::Hgt => "an SRTM .hgt tile",
+        Format::GeoTiff => "a GeoTIFF",
     }
+}
+
+/// A GeoTIFF: spacing from its georeferencing unless `--h-scale` is given, heights in
+/// metres (converted from feet when its vertical units say so).
+fn import_geotiff(args: &ImportArgs) -> Result<Imported> {
+    let tiff = {
+        let mut p = Progress::new("reading");
+        geotiff::read(&args.file, &mut p.callback())?
+    };
+    say!(
+        "format: {}, {} × {} samples",
+        tiff.kind,
+        tiff.raster.width(),
+        tiff.raster.height()
+    );
+    if let Some(n) = tiff.nodata {
+        say!("nodata value {n} (GDAL_NODATA): those samples are voids");
+    }
+    say!("heights {}", tiff.vertical);
+    let spacing = match (args.h_scale, &tiff.georef) {
+        (Some(h), _) => {
+            say!("sample spacing {h} m (from --h-scale)");
+            (h, h)
+        }
+        (None, Georef::Projected { dx, dy, unit }) => {
+            say!(
+                "projected raster: {dx} m a sample east–west, {dy} m north–south (from \
+                 ModelPixelScale, in {unit})"
+            );
+            (*dx, *dy)
+        }
+        (None, Georef::Geographic { dx, dy, latitude }) => {
+            say!(
+                "geographic raster: {dx:.2} m a sample east–west, {dy:.2} m north–south at \
+                 latitude {latitude:.4}° (from ModelPixelScale and ModelTiepoint); resampled \
+                 to square samples"
+            );
+            (*dx, *dy)
+        }
+        (None, Georef::Unknown(why)) => {
+            say!("no usable georeferencing ({why}): sample spacing 1 m; give --h-scale");
+            (1.0, 1.0)
+        }
+    };
+    pipeline(args, tiff.raster, spacing, args.v_scale)
 }
 
 /// A PGM: copied unchanged, unless `--crop` or another `--side` sends it through the

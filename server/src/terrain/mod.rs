@@ -4,6 +4,7 @@
 
 pub mod dataset;
 pub mod generate;
+pub mod geotiff;
 pub mod heightfield;
 pub mod hgt;
 pub mod map;

@@ -1,14 +1,15 @@
 //! Source files for `import`: which format a file holds (by content, never by its name),
 //! and the error every reader returns, naming the file and what is wrong with it.
 //!
-//! Detection reads the first bytes: `\x89PNG` is a PNG, `P5` a binary PGM; otherwise a file
-//! of exactly 1201² × 2 or 3601² × 2 bytes is an SRTM `.hgt` tile (they carry no header).
+//! Detection reads the first bytes: `\x89PNG` is a PNG, `P5` a binary PGM, `II*\0` /
+//! `MM\0*` (or BigTIFF's `II+\0` / `MM\0+`) a (Geo)TIFF; otherwise a file of exactly
+//! 1201² × 2 or 3601² × 2 bytes is an SRTM `.hgt` tile (they carry no header).
 
 use std::fmt;
 use std::io::Read;
 use std::path::{Path, PathBuf};
 
-use crate::terrain::hgt;
+use crate::terrain::{geotiff, hgt};
 
 /// Why a source file cannot be imported.
 #[derive(Debug)]
@@ -45,6 +46,8 @@ pub enum Format {
     Png,
     /// SRTM `.hgt`: 1201² or 3601² big-endian `i16`, −32768 a void.
     Hgt,
+    /// GeoTIFF (or plain TIFF): one greyscale integer or float sample a pixel.
+    GeoTiff,
 }
 
 /// The format of `path`, from its content and size.
@@ -66,14 +69,16 @@ pub fn detect(path: &Path) -> Result<Format, SourceError> {
         Ok(Format::Png)
     } else if magic.starts_with(b"P5") {
         Ok(Format::Pgm)
+    } else if geotiff::is_tiff(&magic) {
+        Ok(Format::GeoTiff)
     } else if hgt::side_of_len(meta.len()).is_some() {
         Ok(Format::Hgt)
     } else {
         Err(SourceError::new(
             path,
             format!(
-                "not a PGM, PNG or SRTM .hgt file (GeoTIFF is not supported yet): no PGM or \
-                 PNG signature, and {} bytes is not the size of a .hgt tile ({} or {})",
+                "not a PGM, PNG, GeoTIFF or SRTM .hgt file: no PGM, PNG or TIFF signature, \
+                 and {} bytes is not the size of a .hgt tile ({} or {})",
                 meta.len(),
                 hgt::len_of_side(hgt::SRTM3_SIDE),
                 hgt::len_of_side(hgt::SRTM1_SIDE)
