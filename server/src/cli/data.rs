@@ -8,6 +8,8 @@ use roam_server::terrain::dataset::{self, Terrain};
 use roam_server::terrain::generate as gen_terrain;
 use roam_server::terrain::heightfield::levels_of_side;
 
+use crate::cli::progress::Progress;
+
 #[derive(Args)]
 pub struct CheckArgs {
     /// Data-set directory (holding `map`, `hf.pgm`, `color.ppm`).
@@ -163,7 +165,12 @@ pub fn generate(args: GenerateArgs) -> Result<()> {
             args.side
         );
     }
-    let terrain = gen_terrain::synthetic(args.side, args.seed);
+    // Every core: the bytes do not depend on how many.
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let terrain = {
+        let mut p = Progress::new("generating");
+        gen_terrain::synthetic_with(args.side, args.seed, threads, &mut p.callback())
+    };
     save_and_describe(&args.out, &terrain)
 }
 

@@ -134,6 +134,19 @@ fn ridged(layer: u64, x: f64, z: f64, octaves: u32) -> f64 {
 /// Deterministic fBm terrain of `side = 2^N + 1` samples in `0 ..= MAX_SAMPLE`: rolling hills,
 /// ridged mountain ranges, valleys and flat lowland basins. Same `(side, seed)`, same samples.
 pub fn heights(side: u32, seed: u64) -> Result<Heightfield, ShapeError> {
+    heights_with(side, seed, 1, &mut |_, _| {})
+}
+
+/// [`heights`] on `threads` threads (the bytes do not depend on how many), reporting
+/// `progress(rows done, rows in all)` as it goes: each sample's noise is computed once and
+/// kept (8 bytes a sample while generating) for the shaping pass that needs the whole
+/// map's range.
+pub fn heights_with(
+    side: u32,
+    seed: u64,
+    threads: usize,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<Heightfield, ShapeError> {
     if crate::terrain::heightfield::levels_of_side(u64::from(side)).is_none() {
         return Err(ShapeError::Side {
             side: u64::from(side),
@@ -157,20 +170,56 @@ pub fn heights(side: u32, seed: u64) -> Result<Heightfield, ShapeError> {
         let hills = 0.05 * fbm(layers[4], u * 4.0, v * 4.0, hills_octaves, 0.55);
         t + 0.6 * mountains * r + hills
     };
-    // Pass 1: range, and the 25th percentile from at most 1025² evenly spread samples (all
-    // of them up to side 1025), so memory stays at the output's size for any side.
+    // Pass 1: every sample's noise, the range, and the 25th percentile from at most 1025²
+    // evenly spread samples (all of them up to side 1025). Rows go in slabs, each split
+    // among the threads; minimum, maximum and a sorted subset do not depend on the split.
+    let n = side as usize;
     let stride = ((side - 1) / 1024).max(1);
     let (mut lo, mut hi) = (f64::MAX, f64::MIN);
     let mut subset = Vec::new();
-    for z in 0..side {
-        for x in 0..side {
-            let h = raw(x, z);
-            lo = lo.min(h);
+    let mut noise = vec![0f64; n * n];
+    let threads = threads.max(1);
+    let slab = 64usize;
+    let rows_total = 2 * u64::from(side);
+    for z0 in (0..n).step_by(slab) {
+        let rows = slab.min(n - z0);
+        let per = rows.div_ceil(threads);
+        let parts: Vec<(f64, f64, Vec<f64>)> = std::thread::scope(|scope| {
+            let raw = &raw;
+            let handles: Vec<_> = noise[z0 * n..(z0 + rows) * n]
+                .chunks_mut(per * n)
+                .enumerate()
+                .map(|(k, part)| {
+                    let first = (z0 + k * per) as u32;
+                    scope.spawn(move || {
+                        let (mut lo, mut hi, mut picked) = (f64::MAX, f64::MIN, Vec::new());
+                        for (r, row) in part.chunks_mut(n).enumerate() {
+                            let z = first + r as u32;
+                            for (x, h) in row.iter_mut().enumerate() {
+                                let x = x as u32;
+                                *h = raw(x, z);
+                                lo = lo.min(*h);
+                                hi = hi.max(*h);
+                                if x % stride == 0 && z % stride == 0 {
+                                    picked.push(*h);
+                                }
+                            }
+                        }
+                        (lo, hi, picked)
+                    })
+                })
+                .collect();
+            handles
+                .into_iter()
+                .map(|h| h.join().expect("noise is plain arithmetic: it does not panic"))
+                .collect()
+        });
+        for (l, h, picked) in parts {
+            lo = lo.min(l);
             hi = hi.max(h);
-            if x % stride == 0 && z % stride == 0 {
-                subset.push(h);
-            }
+            subset.extend(picked);
         }
+        progress((z0 + rows) as u64, rows_total);
     }
     subset.sort_by(f64::total_cmp);
     // Flatten everything below the 25th percentile into near-level basins and plains, and
@@ -186,14 +235,18 @@ pub fn heights(side: u32, seed: u64) -> Result<Heightfield, ShapeError> {
     };
     let (s_lo, s_hi) = (shape(lo), shape(hi));
     let span = (s_hi - s_lo).max(1e-9);
-    // Pass 2: the same values again, shaped and quantised.
-    let mut samples = Vec::with_capacity(side as usize * side as usize);
-    for z in 0..side {
-        for x in 0..side {
-            let s = (shape(raw(x, z)) - s_lo) / span * f64::from(MAX_SAMPLE);
-            samples.push(s.round() as u16);
+    // Pass 2: the same values, shaped and quantised.
+    let mut samples = Vec::with_capacity(n * n);
+    for (z, row) in noise.chunks(n).enumerate() {
+        samples.extend(
+            row.iter()
+                .map(|&h| ((shape(h) - s_lo) / span * f64::from(MAX_SAMPLE)).round() as u16),
+        );
+        if z % slab == slab - 1 || z == n - 1 {
+            progress(u64::from(side) + z as u64 + 1, rows_total);
         }
     }
+    drop(noise);
     Heightfield::new(side, samples)
 }
 
@@ -385,7 +438,18 @@ pub fn colorize(heights: &Heightfield, map: &MapParams) -> ColorMap {
 /// the centre facing the highest summit. Panics only for a `side` that is not `2^N + 1`
 /// (a caller bug: check with [`crate::terrain::heightfield::levels_of_side`]).
 pub fn synthetic(side: u32, seed: u64) -> Terrain {
-    let heights = match heights(side, seed) {
+    synthetic_with(side, seed, 1, &mut |_, _| {})
+}
+
+/// [`synthetic`] with its heights made on `threads` threads, reporting progress (the same
+/// bytes).
+pub fn synthetic_with(
+    side: u32,
+    seed: u64,
+    threads: usize,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Terrain {
+    let heights = match heights_with(side, seed, threads, progress) {
         Ok(h) => h,
         Err(e) => panic!("synthetic: {e}"),
     };
