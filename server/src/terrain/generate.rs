@@ -211,7 +211,10 @@ pub fn heights_with(
                 .collect();
             handles
                 .into_iter()
-                .map(|h| h.join().expect("noise is plain arithmetic: it does not panic"))
+                .map(|h| {
+                    h.join()
+                        .expect("noise is plain arithmetic: it does not panic")
+                })
                 .collect()
         });
         for (l, h, picked) in parts {
@@ -544,5 +547,18 @@ mod tests {
         assert!(heights(64, 7).is_err());
         let t = synthetic(33, 1);
         assert!(t.validate().is_ok());
+    }
+
+    /// The bytes do not depend on the thread count, across several 64-row slabs, and the
+    /// progress reaches its total.
+    #[test]
+    fn threads_do_not_change_the_bytes() {
+        let one = heights(257, 3).unwrap();
+        for threads in [2, 3, 7] {
+            let mut last = (0, 0);
+            let many = heights_with(257, 3, threads, &mut |d, t| last = (d, t)).unwrap();
+            assert_eq!(many, one, "{threads} threads");
+            assert_eq!(last, (514, 514), "{threads} threads");
+        }
     }
 }
