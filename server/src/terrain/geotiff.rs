@@ -12,8 +12,12 @@
 //!   survey feet by `ProjLinearUnitsGeoKey`, metres when unsaid) or in degrees (2). A
 //!   geographic raster is converted with the convention `.hgt` tiles use
 //!   ([`hgt::METRES_PER_ARCSEC`] north–south, times the cosine of the latitude east–west),
-//!   at the latitude of the raster's centre from `ModelTiepointTag` (33922). Georeferencing
-//!   that is missing or not understood leaves the spacing to the caller, with the reason.
+//!   at the latitude of the raster's centre from `ModelTiepointTag` (33922). The tiepoint
+//!   names a pixel's corner, or its centre when `GTRasterTypeGeoKey` (1025) is 2
+//!   (`PixelIsPoint`, as in USGS SRTM GeoTIFFs: `n07_w006_3arc_v2.tif` ties pixel (0, 0) to
+//!   8°N, and its 1201 rows are centred on 7.5°N, not half a row further south).
+//!   Georeferencing that is missing or not understood leaves the spacing to the caller,
+//!   with the reason.
 //! - `VerticalUnitsGeoKey` (4099): feet and US survey feet are converted to metres; heights
 //!   are otherwise taken as metres.
 //!
@@ -45,6 +49,7 @@ const MODEL_PIXEL_SCALE: u16 = 33550;
 const MODEL_TIEPOINT: u16 = 33922;
 const GEO_KEY_DIRECTORY: u16 = 34735;
 const GT_MODEL_TYPE: u16 = 1024;
+const GT_RASTER_TYPE: u16 = 1025;
 const GEOG_ANGULAR_UNITS: u16 = 2054;
 const PROJ_LINEAR_UNITS: u16 = 3076;
 const VERTICAL_UNITS: u16 = 4099;
@@ -195,7 +200,13 @@ fn georef(
                         .into(),
                 );
             };
-            let latitude = y - (f64::from(height) / 2.0 - j) * sy;
+            // Raster coordinates count pixel corners; a PixelIsPoint tiepoint is a centre.
+            let centre_of_tie = if key(GT_RASTER_TYPE) == Some(2) {
+                0.5
+            } else {
+                0.0
+            };
+            let latitude = y - (f64::from(height) / 2.0 - j - centre_of_tie) * sy;
             if !latitude.is_finite() || latitude.abs() >= 90.0 {
                 return Georef::Unknown(format!(
                     "a geographic raster centred at latitude {latitude}°: expected one \
@@ -468,6 +479,18 @@ mod tests {
         assert!((latitude - 45.5).abs() < 1e-9, "{latitude}");
         assert!((dy - METRES_PER_ARCSEC).abs() < 1e-9, "{dy}");
         assert!((dx - METRES_PER_ARCSEC * 45.5f64.to_radians().cos()).abs() < 1e-9);
+        // The same tiepoint naming pixel (0, 0)'s centre: half a row further north.
+        let deg = Some(vec![1.0 / 3600.0, 1.0 / 3600.0, 0.0]);
+        let tie = Some(vec![0.0, 0.0, 0.0, 6.0, 46.0, 0.0]);
+        let Georef::Geographic { latitude, .. } =
+            georef(deg, tie, &keys(2, &[(GT_RASTER_TYPE, 2)]), 3600)
+        else {
+            panic!("expected a geographic raster");
+        };
+        assert!(
+            (latitude - (45.5 + 0.5 / 3600.0)).abs() < 1e-9,
+            "{latitude}"
+        );
         for (scale, keys, why) in [
             (None, keys(1, &[]), "no ModelPixelScaleTag"),
             (scale.clone(), vec![], "no GTModelTypeGeoKey"),
