@@ -381,4 +381,24 @@ mod tests {
         let t = axis_taps(4, 5, 0, 3, 1.0, 4);
         assert_eq!(t[3], vec![(1, 1.0)]);
     }
+
+    #[test]
+    fn progress_reaches_every_row() {
+        let image = RgbImage {
+            width: 600,
+            height: 600,
+            rgb: vec![[9, 8, 7]; 600 * 600],
+            kind: "test".into(),
+        };
+        let footprint = Footprint {
+            raster: (601, 601),
+            window: (0, 0, 601, 601),
+            step: (1.0, 1.0),
+            cells: 600,
+        };
+        let mut reports = Vec::new();
+        let map = resample(&image, &footprint, &mut |d, t| reports.push((d, t))).unwrap();
+        assert!(map.rgb().iter().all(|&p| p == [9, 8, 7]));
+        assert_eq!(reports, vec![(256, 600), (512, 600), (600, 600)]);
+    }
 }

@@ -25,7 +25,9 @@
 //! before any image data is decoded; a raster whose raw samples could not come out of a
 //! file this small (the file's size for an uncompressed one, [`MAX_EXPANSION`] times it for
 //! a compressed one) is refused as truncated or corrupt; and the decoder runs under an
-//! allocation limit of a 32769² raster of 8-byte samples.
+//! allocation limit of a 32769² raster of 8-byte samples. The image is decoded strip by
+//! strip (or tile by tile), each chunk converted to metres and placed as it comes: progress
+//! is reported per chunk, and besides the `f32` raster only one chunk is held at a time.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -385,53 +387,16 @@ pub fn read(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> Result<GeoTiff, 
         ),
     };
 
-    progress(0, 2);
-    let image = decoder
-        .read_image()
-        .map_err(|e| err(format!("TIFF data: {e}")))?;
-    progress(1, 2);
-    let count = width as usize * height as usize;
-    let void = |h: f64| !h.is_finite() || nodata == Some(h);
-    let metres = |h: f64| {
-        if void(h) {
-            f32::NAN
-        } else {
-            (h * z_factor) as f32
-        }
-    };
-    let samples: Vec<f32> = match image {
-        DecodingResult::U16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::I16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::U32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::I32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::F32(v) => {
-            // GDAL writes a float32 raster's nodata in full f64 precision.
-            let nodata32 = nodata.map(|n| n as f32);
-            v.into_iter()
-                .map(|s| {
-                    if Some(s) == nodata32 {
-                        f32::NAN
-                    } else {
-                        metres(f64::from(s))
-                    }
-                })
-                .collect()
-        }
-        DecodingResult::F64(v) => v.into_iter().map(metres).collect(),
-        _ => {
-            return Err(err(format!(
-                "TIFF data: decoded as another sample type than the tags' {}",
-                sample.name()
-            )));
-        }
-    };
-    if samples.len() != count {
-        return Err(err(format!(
-            "TIFF data: expected {count} samples, got {}",
-            samples.len()
-        )));
-    }
-    progress(2, 2);
+    let samples = read_chunks(
+        &mut decoder,
+        width,
+        height,
+        sample,
+        nodata,
+        z_factor,
+        progress,
+    )
+    .map_err(|m| err(format!("TIFF data: {m}")))?;
     let raster = Raster::new(width, height, samples).map_err(|e| err(e.to_string()))?;
     Ok(GeoTiff {
         raster,
@@ -443,6 +408,107 @@ pub fn read(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> Result<GeoTiff, 
         nodata,
         vertical,
     })
+}
+
+/// Decode the image strip by strip (or tile by tile) into metres, voids as `NaN`, placing
+/// each chunk's rows; `progress` gets `(chunks done, chunks)`.
+fn read_chunks<R: std::io::Read + std::io::Seek>(
+    decoder: &mut Decoder<R>,
+    width: u32,
+    height: u32,
+    sample: Sample,
+    nodata: Option<f64>,
+    z_factor: f64,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<Vec<f32>, String> {
+    let tiled = matches!(decoder.get_chunk_type(), ChunkType::Tile);
+    let (cw, ch) = decoder.chunk_dimensions();
+    if cw == 0 || ch == 0 {
+        return Err(format!(
+            "chunks of {cw} × {ch} pixels: expected at least 1 × 1"
+        ));
+    }
+    let across = if tiled { width.div_ceil(cw) } else { 1 };
+    let needed = u64::from(across) * u64::from(height.div_ceil(ch));
+    let listed = if tiled {
+        decoder.tile_count()
+    } else {
+        decoder.strip_count()
+    }
+    .map_err(|e| e.to_string())?;
+    if u64::from(listed) < needed {
+        return Err(format!(
+            "expected {needed} {} for {width} × {height} pixels, the file lists {listed}",
+            if tiled { "tiles" } else { "strips" }
+        ));
+    }
+    let count = width as usize * height as usize;
+    let mut out: Vec<f32> = Vec::new();
+    out.try_reserve_exact(count)
+        .map_err(|_| format!("cannot allocate {count} samples"))?;
+    out.resize(count, f32::NAN);
+    let void = |h: f64| !h.is_finite() || nodata == Some(h);
+    let metres = |h: f64| {
+        if void(h) {
+            f32::NAN
+        } else {
+            (h * z_factor) as f32
+        }
+    };
+    // GDAL writes a float32 raster's nodata in full f64 precision.
+    let nodata32 = nodata.map(|n| n as f32);
+    let needed = u32::try_from(needed).map_err(|_| format!("{needed} chunks: too many"))?;
+    for i in 0..needed {
+        let (dw, dh) = decoder.chunk_data_dimensions(i);
+        let (x0, y0) = ((i % across) * cw, (i / across) * ch);
+        let chunk = decoder.read_chunk(i).map_err(|e| e.to_string())?;
+        let values: Vec<f32> = match chunk {
+            DecodingResult::U16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::I16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::U32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::I32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::F32(v) => v
+                .into_iter()
+                .map(|s| {
+                    if Some(s) == nodata32 {
+                        f32::NAN
+                    } else {
+                        metres(f64::from(s))
+                    }
+                })
+                .collect(),
+            DecodingResult::F64(v) => v.into_iter().map(metres).collect(),
+            _ => {
+                return Err(format!(
+                    "decoded as another sample type than the tags' {}",
+                    sample.name()
+                ));
+            }
+        };
+        let (dw, dh) = (dw as usize, dh as usize);
+        if dw == 0 || dh == 0 {
+            continue;
+        }
+        if values.len() < dw * dh {
+            return Err(format!(
+                "chunk {i}: expected {dw} × {dh} samples, got {}",
+                values.len()
+            ));
+        }
+        // Clip to the image: a chunk never reaches past it, but the tags are outside data.
+        let (x0, y0) = (x0 as usize, y0 as usize);
+        let cols = dw.min((width as usize).saturating_sub(x0));
+        for (r, row) in values.chunks_exact(dw).take(dh).enumerate() {
+            let y = y0 + r;
+            if y >= height as usize {
+                break;
+            }
+            let start = y * width as usize + x0;
+            out[start..start + cols].copy_from_slice(&row[..cols]);
+        }
+        progress(u64::from(i) + 1, u64::from(needed));
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
