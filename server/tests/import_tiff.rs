@@ -300,6 +300,78 @@ fn tiff_claiming(width: u32, height: u32) -> Vec<u8> {
     out
 }
 
+/// A little-endian, uncompressed, tiled TIFF of `side²` 16-bit samples `s(x, y)` in tiles of
+/// 16 × 16; the padding past the image's edges holds 65535.
+fn tiled_tiff(side: u32, s: impl Fn(u32, u32) -> u16) -> Vec<u8> {
+    let across = side.div_ceil(16);
+    let tiles = across * across;
+    let tile_bytes = 16 * 16 * 2;
+    // Header, IFD (2 + 10 entries × 12 + 4), the two offset arrays, then the tiles.
+    let ifd_len = 2 + 10 * 12 + 4;
+    let offsets_at = 8 + ifd_len;
+    let counts_at = offsets_at + 4 * tiles;
+    let data_at = counts_at + 4 * tiles;
+    let entries: [(u16, u16, u32, u32); 10] = [
+        (256, 4, 1, side),
+        (257, 4, 1, side),
+        (258, 3, 1, 16),
+        (259, 3, 1, 1),
+        (262, 3, 1, 1),
+        (277, 3, 1, 1),
+        (322, 4, 1, 16),
+        (323, 4, 1, 16),
+        (324, 4, tiles, offsets_at),
+        (325, 4, tiles, counts_at),
+    ];
+    let mut out = b"II*\0".to_vec();
+    out.extend(8u32.to_le_bytes());
+    out.extend((entries.len() as u16).to_le_bytes());
+    for (tag, ty, count, value) in entries {
+        out.extend(tag.to_le_bytes());
+        out.extend(ty.to_le_bytes());
+        out.extend(count.to_le_bytes());
+        if ty == 3 {
+            out.extend((value as u16).to_le_bytes());
+            out.extend([0, 0]);
+        } else {
+            out.extend(value.to_le_bytes());
+        }
+    }
+    out.extend(0u32.to_le_bytes());
+    for t in 0..tiles {
+        out.extend((data_at + t * tile_bytes).to_le_bytes());
+    }
+    for _ in 0..tiles {
+        out.extend(tile_bytes.to_le_bytes());
+    }
+    for t in 0..tiles {
+        let (tx, ty) = (t % across * 16, t / across * 16);
+        for y in ty..ty + 16 {
+            for x in tx..tx + 16 {
+                let v = if x < side && y < side { s(x, y) } else { 65535 };
+                out.extend(v.to_le_bytes());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn tiles_are_placed_and_their_padding_dropped() {
+    let s = |x: u32, y: u32| (1000 + x * 7 + y * 3) as u16;
+    let (_dir, t) = import(
+        "tiled.tif",
+        &tiled_tiff(33, s),
+        &[],
+        0,
+        &[
+            "format: GeoTIFF, 16-bit unsigned integer samples, uncompressed, tiles, 33 × 33",
+            "kept at 33 × 33 samples",
+        ],
+    );
+    assert_heights(&t.unwrap(), 33, 1000.0, |x, y| f64::from(s(x, y)));
+}
+
 #[test]
 fn bad_tiffs_say_what_is_wrong() {
     let plain = Geo::default();

@@ -12,8 +12,12 @@
 //!   survey feet by `ProjLinearUnitsGeoKey`, metres when unsaid) or in degrees (2). A
 //!   geographic raster is converted with the convention `.hgt` tiles use
 //!   ([`hgt::METRES_PER_ARCSEC`] north–south, times the cosine of the latitude east–west),
-//!   at the latitude of the raster's centre from `ModelTiepointTag` (33922). Georeferencing
-//!   that is missing or not understood leaves the spacing to the caller, with the reason.
+//!   at the latitude of the raster's centre from `ModelTiepointTag` (33922). The tiepoint
+//!   names a pixel's corner, or its centre when `GTRasterTypeGeoKey` (1025) is 2
+//!   (`PixelIsPoint`, as in USGS SRTM GeoTIFFs: `n07_w006_3arc_v2.tif` ties pixel (0, 0) to
+//!   8°N, and its 1201 rows are centred on 7.5°N, not half a row further south).
+//!   Georeferencing that is missing or not understood leaves the spacing to the caller,
+//!   with the reason.
 //! - `VerticalUnitsGeoKey` (4099): feet and US survey feet are converted to metres; heights
 //!   are otherwise taken as metres.
 //!
@@ -21,7 +25,9 @@
 //! before any image data is decoded; a raster whose raw samples could not come out of a
 //! file this small (the file's size for an uncompressed one, [`MAX_EXPANSION`] times it for
 //! a compressed one) is refused as truncated or corrupt; and the decoder runs under an
-//! allocation limit of a 32769² raster of 8-byte samples.
+//! allocation limit of a 32769² raster of 8-byte samples. The image is decoded strip by
+//! strip (or tile by tile), each chunk converted to metres and placed as it comes: progress
+//! is reported per chunk, and besides the `f32` raster only one chunk is held at a time.
 
 use std::fs::File;
 use std::io::BufReader;
@@ -45,6 +51,7 @@ const MODEL_PIXEL_SCALE: u16 = 33550;
 const MODEL_TIEPOINT: u16 = 33922;
 const GEO_KEY_DIRECTORY: u16 = 34735;
 const GT_MODEL_TYPE: u16 = 1024;
+const GT_RASTER_TYPE: u16 = 1025;
 const GEOG_ANGULAR_UNITS: u16 = 2054;
 const PROJ_LINEAR_UNITS: u16 = 3076;
 const VERTICAL_UNITS: u16 = 4099;
@@ -195,7 +202,13 @@ fn georef(
                         .into(),
                 );
             };
-            let latitude = y - (f64::from(height) / 2.0 - j) * sy;
+            // Raster coordinates count pixel corners; a PixelIsPoint tiepoint is a centre.
+            let centre_of_tie = if key(GT_RASTER_TYPE) == Some(2) {
+                0.5
+            } else {
+                0.0
+            };
+            let latitude = y - (f64::from(height) / 2.0 - j - centre_of_tie) * sy;
             if !latitude.is_finite() || latitude.abs() >= 90.0 {
                 return Georef::Unknown(format!(
                     "a geographic raster centred at latitude {latitude}°: expected one \
@@ -374,53 +387,16 @@ pub fn read(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> Result<GeoTiff, 
         ),
     };
 
-    progress(0, 2);
-    let image = decoder
-        .read_image()
-        .map_err(|e| err(format!("TIFF data: {e}")))?;
-    progress(1, 2);
-    let count = width as usize * height as usize;
-    let void = |h: f64| !h.is_finite() || nodata == Some(h);
-    let metres = |h: f64| {
-        if void(h) {
-            f32::NAN
-        } else {
-            (h * z_factor) as f32
-        }
-    };
-    let samples: Vec<f32> = match image {
-        DecodingResult::U16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::I16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::U32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::I32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
-        DecodingResult::F32(v) => {
-            // GDAL writes a float32 raster's nodata in full f64 precision.
-            let nodata32 = nodata.map(|n| n as f32);
-            v.into_iter()
-                .map(|s| {
-                    if Some(s) == nodata32 {
-                        f32::NAN
-                    } else {
-                        metres(f64::from(s))
-                    }
-                })
-                .collect()
-        }
-        DecodingResult::F64(v) => v.into_iter().map(metres).collect(),
-        _ => {
-            return Err(err(format!(
-                "TIFF data: decoded as another sample type than the tags' {}",
-                sample.name()
-            )));
-        }
-    };
-    if samples.len() != count {
-        return Err(err(format!(
-            "TIFF data: expected {count} samples, got {}",
-            samples.len()
-        )));
-    }
-    progress(2, 2);
+    let samples = read_chunks(
+        &mut decoder,
+        width,
+        height,
+        sample,
+        nodata,
+        z_factor,
+        progress,
+    )
+    .map_err(|m| err(format!("TIFF data: {m}")))?;
     let raster = Raster::new(width, height, samples).map_err(|e| err(e.to_string()))?;
     Ok(GeoTiff {
         raster,
@@ -432,6 +408,107 @@ pub fn read(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> Result<GeoTiff, 
         nodata,
         vertical,
     })
+}
+
+/// Decode the image strip by strip (or tile by tile) into metres, voids as `NaN`, placing
+/// each chunk's rows; `progress` gets `(chunks done, chunks)`.
+fn read_chunks<R: std::io::Read + std::io::Seek>(
+    decoder: &mut Decoder<R>,
+    width: u32,
+    height: u32,
+    sample: Sample,
+    nodata: Option<f64>,
+    z_factor: f64,
+    progress: &mut dyn FnMut(u64, u64),
+) -> Result<Vec<f32>, String> {
+    let tiled = matches!(decoder.get_chunk_type(), ChunkType::Tile);
+    let (cw, ch) = decoder.chunk_dimensions();
+    if cw == 0 || ch == 0 {
+        return Err(format!(
+            "chunks of {cw} × {ch} pixels: expected at least 1 × 1"
+        ));
+    }
+    let across = if tiled { width.div_ceil(cw) } else { 1 };
+    let needed = u64::from(across) * u64::from(height.div_ceil(ch));
+    let listed = if tiled {
+        decoder.tile_count()
+    } else {
+        decoder.strip_count()
+    }
+    .map_err(|e| e.to_string())?;
+    if u64::from(listed) < needed {
+        return Err(format!(
+            "expected {needed} {} for {width} × {height} pixels, the file lists {listed}",
+            if tiled { "tiles" } else { "strips" }
+        ));
+    }
+    let count = width as usize * height as usize;
+    let mut out: Vec<f32> = Vec::new();
+    out.try_reserve_exact(count)
+        .map_err(|_| format!("cannot allocate {count} samples"))?;
+    out.resize(count, f32::NAN);
+    let void = |h: f64| !h.is_finite() || nodata == Some(h);
+    let metres = |h: f64| {
+        if void(h) {
+            f32::NAN
+        } else {
+            (h * z_factor) as f32
+        }
+    };
+    // GDAL writes a float32 raster's nodata in full f64 precision.
+    let nodata32 = nodata.map(|n| n as f32);
+    let needed = u32::try_from(needed).map_err(|_| format!("{needed} chunks: too many"))?;
+    for i in 0..needed {
+        let (dw, dh) = decoder.chunk_data_dimensions(i);
+        let (x0, y0) = ((i % across) * cw, (i / across) * ch);
+        let chunk = decoder.read_chunk(i).map_err(|e| e.to_string())?;
+        let values: Vec<f32> = match chunk {
+            DecodingResult::U16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::I16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::U32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::I32(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
+            DecodingResult::F32(v) => v
+                .into_iter()
+                .map(|s| {
+                    if Some(s) == nodata32 {
+                        f32::NAN
+                    } else {
+                        metres(f64::from(s))
+                    }
+                })
+                .collect(),
+            DecodingResult::F64(v) => v.into_iter().map(metres).collect(),
+            _ => {
+                return Err(format!(
+                    "decoded as another sample type than the tags' {}",
+                    sample.name()
+                ));
+            }
+        };
+        let (dw, dh) = (dw as usize, dh as usize);
+        if dw == 0 || dh == 0 {
+            continue;
+        }
+        if values.len() < dw * dh {
+            return Err(format!(
+                "chunk {i}: expected {dw} × {dh} samples, got {}",
+                values.len()
+            ));
+        }
+        // Clip to the image: a chunk never reaches past it, but the tags are outside data.
+        let (x0, y0) = (x0 as usize, y0 as usize);
+        let cols = dw.min((width as usize).saturating_sub(x0));
+        for (r, row) in values.chunks_exact(dw).take(dh).enumerate() {
+            let y = y0 + r;
+            if y >= height as usize {
+                break;
+            }
+            let start = y * width as usize + x0;
+            out[start..start + cols].copy_from_slice(&row[..cols]);
+        }
+        progress(u64::from(i) + 1, u64::from(needed));
+    }
+    Ok(out)
 }
 
 #[cfg(test)]
@@ -468,6 +545,18 @@ mod tests {
         assert!((latitude - 45.5).abs() < 1e-9, "{latitude}");
         assert!((dy - METRES_PER_ARCSEC).abs() < 1e-9, "{dy}");
         assert!((dx - METRES_PER_ARCSEC * 45.5f64.to_radians().cos()).abs() < 1e-9);
+        // The same tiepoint naming pixel (0, 0)'s centre: half a row further north.
+        let deg = Some(vec![1.0 / 3600.0, 1.0 / 3600.0, 0.0]);
+        let tie = Some(vec![0.0, 0.0, 0.0, 6.0, 46.0, 0.0]);
+        let Georef::Geographic { latitude, .. } =
+            georef(deg, tie, &keys(2, &[(GT_RASTER_TYPE, 2)]), 3600)
+        else {
+            panic!("expected a geographic raster");
+        };
+        assert!(
+            (latitude - (45.5 + 0.5 / 3600.0)).abs() < 1e-9,
+            "{latitude}"
+        );
         for (scale, keys, why) in [
             (None, keys(1, &[]), "no ModelPixelScaleTag"),
             (scale.clone(), vec![], "no GTModelTypeGeoKey"),

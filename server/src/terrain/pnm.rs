@@ -539,19 +539,93 @@ pub fn read_ppm(
     Ok(rgb)
 }
 
+/// Read an 8-bit RGB PPM of any size (at least 1 × 1, maxval 255), for `import --color`:
+/// returns its width, height and pixels, row-major. The data length is checked against the
+/// file's before the pixels are allocated. `progress` receives the bytes read so far.
+pub fn read_ppm_any(
+    path: &Path,
+    progress: &mut dyn FnMut(u64),
+) -> Result<(u32, u32, Vec<[u8; 3]>), PnmError> {
+    let mut f = open(path, Kind::Ppm, "a size ≥ 1")?;
+    let h = f.header;
+    for (field, got) in [("width", h.width), ("height", h.height)] {
+        if got == 0 {
+            return Err(format_err(field, "expected a size ≥ 1, got 0"));
+        }
+    }
+    if h.maxval != 255 {
+        return Err(format_err(
+            "maxval",
+            format!(
+                "expected 255 (8 bits a channel), got {}{}",
+                h.maxval,
+                if h.maxval > 255 {
+                    " (16-bit colour: convert it to 8 bits)"
+                } else {
+                    ""
+                }
+            ),
+        ));
+    }
+    check_length(&h, f.file_len)?;
+    let count = usize::try_from(u64::from(h.width) * u64::from(h.height))
+        .map_err(|_| format_err("width", "expected a smaller image"))?;
+    let mut rgb: Vec<[u8; 3]> = Vec::new();
+    rgb.try_reserve_exact(count)
+        .map_err(|_| format_err("data", format!("cannot allocate {count} pixels")))?;
+    rgb.resize(count, [0; 3]);
+    let mut last = 0;
+    for chunk in rgb.as_flattened_mut().chunks_mut(CHUNK * 16) {
+        f.fill(chunk)?;
+        f.report(&mut last, progress);
+    }
+    f.expect_end()?;
+    progress(f.reader.consumed);
+    Ok((h.width, h.height, rgb))
+}
+
 /// Write a heightfield as a 16-bit binary PGM (maxval 65535, big-endian).
 pub fn write_pgm(path: &Path, heights: &Heightfield) -> io::Result<()> {
+    write_pgm_with(path, heights, &mut |_, _| {})
+}
+
+/// [`write_pgm`], reporting `(samples written, samples)` every few MB.
+pub fn write_pgm_with(
+    path: &Path,
+    heights: &Heightfield,
+    progress: &mut dyn FnMut(u64, u64),
+) -> io::Result<()> {
     let mut w = BufWriter::with_capacity(CHUNK, File::create(path)?);
     write!(w, "P5\n{} {}\n65535\n", heights.side(), heights.side())?;
+    let total = heights.samples().len() as u64;
+    let mut done = 0;
     for chunk in heights.samples().chunks(CHUNK / 2) {
         let bytes: Vec<u8> = chunk.iter().flat_map(|s| s.to_be_bytes()).collect();
         w.write_all(&bytes)?;
+        done += chunk.len() as u64;
+        if done % (PROGRESS_STEP / 2) < chunk.len() as u64 {
+            progress(done, total);
+        }
     }
-    w.into_inner().map_err(|e| e.into_error())?.sync_all()
+    let file = w.into_inner().map_err(|e| e.into_error())?;
+    file.sync_all()?;
+    progress(total, total);
+    Ok(())
 }
 
 /// Write an 8-bit RGB binary PPM (maxval 255). `rgb` holds `width × height` pixels, row-major.
 pub fn write_ppm(path: &Path, width: u32, height: u32, rgb: &[[u8; 3]]) -> io::Result<()> {
+    write_ppm_with(path, width, height, rgb, &mut |_, _| {})
+}
+
+/// [`write_ppm`], reporting `(bytes written, bytes)` every few MB.
+pub fn write_ppm_with(
+    path: &Path,
+    width: u32,
+    height: u32,
+    rgb: &[[u8; 3]],
+    progress: &mut dyn FnMut(u64, u64),
+) -> io::Result<()> {
     if rgb.len() as u64 != u64::from(width) * u64::from(height) {
         return Err(io::Error::new(
             io::ErrorKind::InvalidInput,
@@ -564,8 +638,18 @@ pub fn write_ppm(path: &Path, width: u32, height: u32, rgb: &[[u8; 3]]) -> io::R
     }
     let mut w = BufWriter::with_capacity(CHUNK, File::create(path)?);
     write!(w, "P6\n{width} {height}\n255\n")?;
-    w.write_all(rgb.as_flattened())?;
-    w.into_inner().map_err(|e| e.into_error())?.sync_all()
+    let bytes = rgb.as_flattened();
+    let total = bytes.len() as u64;
+    let mut done = 0;
+    for chunk in bytes.chunks(PROGRESS_STEP as usize) {
+        w.write_all(chunk)?;
+        done += chunk.len() as u64;
+        progress(done, total);
+    }
+    let file = w.into_inner().map_err(|e| e.into_error())?;
+    file.sync_all()?;
+    progress(total, total);
+    Ok(())
 }
 
 #[cfg(test)]

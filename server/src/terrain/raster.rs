@@ -120,7 +120,7 @@ impl Raster {
 
     /// Fill every void smoothly from the valid samples (see the module header). Returns how
     /// many were filled; an error when every sample is a void. `progress` gets
-    /// `(levels done, levels)`.
+    /// `(samples of the pyramid's levels done, all of them)`.
     pub fn fill_voids(&mut self, progress: &mut dyn FnMut(u64, u64)) -> Result<usize, RasterError> {
         let voids = self.voids();
         if voids == 0 {
@@ -138,13 +138,21 @@ impl Raster {
             let next = top.halve();
             levels.push(next);
         }
-        let total = levels.len() as u64;
+        // Work is counted in samples of the levels filled, reported after every sweep.
+        let total: u64 = levels[..levels.len() - 1]
+            .iter()
+            .map(|l| l.v.len() as u64)
+            .sum();
+        let mut done = 0;
         for k in (0..levels.len() - 1).rev() {
             let (fine, coarse) = levels.split_at_mut(k + 1);
-            fine[k].fill_from(&coarse[0]);
+            let size = fine[k].v.len() as u64;
+            fine[k].fill_from(&coarse[0], &mut |sweeps| {
+                progress(done + size * sweeps / RELAX_SWEEPS as u64, total);
+            });
+            done += size;
             // The coarse level is no longer needed.
             coarse[0].v = Vec::new();
-            progress(total - k as u64, total);
         }
         self.samples = std::mem::take(&mut levels[0].v);
         Ok(voids)
@@ -343,8 +351,9 @@ impl Level {
         Level { w, h, v }
     }
 
-    /// Fill this level's voids from the (void-free) coarser level, then relax them.
-    fn fill_from(&mut self, coarse: &Level) {
+    /// Fill this level's voids from the (void-free) coarser level, then relax them;
+    /// `progress` gets the sweeps done.
+    fn fill_from(&mut self, coarse: &Level, progress: &mut dyn FnMut(u64)) {
         let holes: Vec<usize> = (0..self.v.len()).filter(|&i| self.v[i].is_nan()).collect();
         let at = |x: usize, y: usize| f64::from(coarse.v[y * coarse.w + x]);
         for &i in &holes {
@@ -358,7 +367,7 @@ impl Level {
             let bottom = at(x0, y1) + (at(x1, y1) - at(x0, y1)) * fx;
             self.v[i] = (top + (bottom - top) * fy) as f32;
         }
-        for _ in 0..RELAX_SWEEPS {
+        for sweep in 0..RELAX_SWEEPS {
             for &i in &holes {
                 let (x, y) = (i % self.w, i / self.w);
                 let (mut sum, mut n) = (0.0f64, 0u32);
@@ -382,6 +391,7 @@ impl Level {
                     self.v[i] = (sum / f64::from(n)) as f32;
                 }
             }
+            progress(sweep as u64 + 1);
         }
     }
 }
@@ -427,8 +437,21 @@ mod tests {
         // A void on the border too.
         r.samples[0] = f32::NAN;
         holes += 1;
-        assert_eq!(r.fill_voids(&mut none).unwrap(), holes);
+        let mut reports = Vec::new();
+        assert_eq!(
+            r.fill_voids(&mut |d, t| reports.push((d, t))).unwrap(),
+            holes
+        );
         assert_eq!(r.voids(), 0);
+        // Progress: one report a sweep a level, never backwards, ending at the total.
+        let total = reports[0].1;
+        assert!(
+            reports
+                .windows(2)
+                .all(|w| w[0].0 <= w[1].0 && w[1].1 == total)
+        );
+        assert_eq!(reports.last(), Some(&(total, total)));
+        assert_eq!(reports.len() % RELAX_SWEEPS, 0);
         let want = plane(50, 40);
         for (i, (&got, &exact)) in r.samples.iter().zip(&want.samples).enumerate() {
             // A plane is harmonic: the fill lands near it.
