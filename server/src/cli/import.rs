@@ -382,7 +382,7 @@ fn write(args: &ImportArgs, imported: Imported) -> Result<()> {
     let terrain = Terrain {
         map,
         heights,
-        color,
+        color: Some(color),
     };
     save_and_describe(Path::new(&args.out), &terrain)
 }

@@ -200,7 +200,7 @@ pub fn heights_with(
                                 *h = raw(x, z);
                                 lo = lo.min(*h);
                                 hi = hi.max(*h);
-                                if x % stride == 0 && z % stride == 0 {
+                                if x.is_multiple_of(stride) && z.is_multiple_of(stride) {
                                     picked.push(*h);
                                 }
                             }
@@ -211,7 +211,10 @@ pub fn heights_with(
                 .collect();
             handles
                 .into_iter()
-                .map(|h| h.join().expect("noise is plain arithmetic: it does not panic"))
+                .map(|h| {
+                    h.join()
+                        .expect("noise is plain arithmetic: it does not panic")
+                })
                 .collect()
         });
         for (l, h, picked) in parts {
@@ -481,7 +484,7 @@ pub fn synthetic_with(
     Terrain {
         map,
         heights,
-        color,
+        color: Some(color),
     }
 }
 
