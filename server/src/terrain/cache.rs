@@ -293,7 +293,16 @@ fn hash_file(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> io::Result<[u8;
 fn read_header(path: &Path, magic: &[u8; 8]) -> Result<Option<(File, u64, Vec<u8>)>, String> {
     let mut file = match File::open(path) {
         Ok(f) => f,
-        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(None),
+        // No file, or no `.cache` directory (missing, or something else by that name: the
+        // write will say so).
+        Err(e)
+            if matches!(
+                e.kind(),
+                io::ErrorKind::NotFound | io::ErrorKind::NotADirectory
+            ) =>
+        {
+            return Ok(None);
+        }
         Err(e) => return Err(format!("cannot open: {e}")),
     };
     let len = file

@@ -213,8 +213,9 @@ impl VarianceTree {
         self.size
     }
 
+    /// The stored codes, in slot order (what `.cache/variance.bin` holds after its header).
     #[inline]
-    pub(crate) fn codes(&self) -> &[u8] {
+    pub fn codes(&self) -> &[u8] {
         self.codes.as_slice()
     }
 
