@@ -10,9 +10,9 @@
 //! - `heights.bin`: magic `ROAMHGT\0`, [`VERSION`], side, the hash of the samples, the hash
 //!   of the `hf.pgm` bytes they came from, the sample count; then `side²` samples.
 //! - `heights.stamp`: magic `ROAMSTP\0`, [`VERSION`], the `hf.pgm` hash it vouches for, and
-//!   that file's length, mtime, ctime, inode and device when it was hashed, and when the
-//!   stamp was written. A stamp is its own small file so `heights.bin` is never written
-//!   after its rename (other processes map it).
+//!   that file's length, mtime, ctime, inode and device when it was hashed (the stamp's
+//!   own mtime says when it was written). A stamp is its own small file so `heights.bin` is
+//!   never written after its rename (other processes map it).
 //! - `variance.bin`: magic `ROAMVAR\0`, [`VERSION`], `side − 1`, the hash of the code table
 //!   (so a change of the table is a different cache), the hash of the heights it was built
 //!   from, the hash of the codes, their count; then the codes.
@@ -24,9 +24,10 @@
 //! - `hf.pgm` is not re-read when the stamp matches its length, mtime, ctime, inode and
 //!   device. Any write to a file sets its ctime, which no program can set back, so a
 //!   changed `hf.pgm` never matches; a copied data set (new inode) or a touched file is
-//!   re-hashed and, if its content is the same, only re-stamped. A stamp written less than
-//!   2 s after the file's ctime is "racy" (a write in the same clock tick would not show)
-//!   and is not trusted: the next start re-hashes and re-stamps it;
+//!   re-hashed and, if its content is the same, only re-stamped. A stamp written (its own
+//!   mtime) less than 2 s after the file's ctime is "racy" (a write in the same clock tick
+//!   would not show) and is not trusted: the next start re-hashes and re-stamps it. No
+//!   clock is read: both times are the file system's;
 //! - the samples and the codes are re-hashed on every open, so a corrupt file (bit rot, a
 //!   torn write after a crash) is rebuilt; this is also why nothing is `fsync`ed. The hash
 //!   is blake3 over 16 MiB pieces hashed on every core, then hashed together;
@@ -364,12 +365,6 @@ fn write_atomically(dir: &Path, name: &str, parts: &[&[u8]]) -> io::Result<()> {
     result
 }
 
-fn now_seconds() -> i64 {
-    std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs() as i64)
-}
-
 impl Cache {
     /// The cache of the data set in `dir` (`.cache/` is created when first written).
     pub(crate) fn new(dir: &Path, threads: usize) -> Cache {
@@ -575,7 +570,17 @@ impl Cache {
     /// Whether `heights.stamp` says `hf.pgm`, as it is now, has the content hashed
     /// `source_hash`.
     fn stamp_vouches(&self, source_hash: &[u8; 32], now: FileStamp) -> bool {
-        let Ok(Some((_, len, rest))) = read_header(&self.path(STAMP_FILE), STAMP_MAGIC) else {
+        let Ok(Some((file, len, rest))) = read_header(&self.path(STAMP_FILE), STAMP_MAGIC) else {
+            return false;
+        };
+        // When the stamp was written, by the file system's clock (no clock read here).
+        let Some(written) = file
+            .metadata()
+            .and_then(|m| m.modified())
+            .ok()
+            .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
+            .map(|d| d.as_secs() as i64)
+        else {
             return false;
         };
         if len != HEADER as u64 {
@@ -590,7 +595,6 @@ impl Cache {
             ino: f.u64(),
             dev: f.u64(),
         };
-        let written = f.i64();
         &hash == source_hash && stamp == now && written >= stamp.ctime.0 + RACY_SECONDS
     }
 
@@ -605,7 +609,6 @@ impl Cache {
         }
         b.extend_from_slice(&s.ino.to_le_bytes());
         b.extend_from_slice(&s.dev.to_le_bytes());
-        b.extend_from_slice(&now_seconds().to_le_bytes());
         b.resize(HEADER, 0);
         self.write(STAMP_FILE, &[&b]);
     }
