@@ -21,6 +21,10 @@ fn load(name: &str) -> Arc<Terrain> {
 
 fn scene(t: &Terrain, uniform_color: bool) -> Scene {
     let m = &t.map;
+    let color = t
+        .color
+        .as_ref()
+        .expect("dataset::load reads the colour map");
     Scene {
         levels: t.heights.levels(),
         h_scale: m.h_scale,
@@ -31,11 +35,11 @@ fn scene(t: &Terrain, uniform_color: bool) -> Scene {
         fog_density: 4.0 / t.world_size() as f32,
         fog_color: m.fog_color,
         water_level: m.water_level.map(|w| w as f32),
-        cells: t.color.cells(),
+        cells: color.cells(),
         colors: if uniform_color {
-            vec![120; t.color.rgb().len() * 3]
+            vec![120; color.rgb().len() * 3]
         } else {
-            t.color.rgb().iter().flatten().copied().collect()
+            color.rgb().iter().flatten().copied().collect()
         },
     }
 }

@@ -471,7 +471,7 @@ fn save_load_round_trip() {
 fn save_refuses_inconsistent_terrain() {
     let dir = TempDir::new("bad-save");
     let mut t = generate::synthetic(9, 1);
-    t.color = ColorMap::new(4, vec![[0; 3]; 16]).unwrap();
+    t.color = Some(ColorMap::new(4, vec![[0; 3]; 16]).unwrap());
     assert!(dataset::save(&dir.0, &t).is_err());
     let mut t = generate::synthetic(9, 1);
     t.map.start.x = -1.0;
@@ -523,7 +523,7 @@ fn bundled_kossou_loads() {
         (t.map.start.z / 92.0).round() as u32,
     );
     assert!(t.world_height(x, z) > water + 5.0);
-    assert_eq!(t.color, generate::colorize(&t.heights, &t.map));
+    assert_eq!(t.color, Some(generate::colorize(&t.heights, &t.map)));
 }
 
 #[test]

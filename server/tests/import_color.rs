@@ -235,7 +235,7 @@ fn every_image_kind_one_pixel_a_cell_is_copied() {
             ],
         )
         .unwrap();
-        assert!(t.color.rgb() == want.as_slice(), "{name}");
+        assert!(color(&t).rgb() == want.as_slice(), "{name}");
     }
 }
 
@@ -286,7 +286,7 @@ fn crop_and_padding_follow_the_heights() {
                     .sum();
                 ((sum + 2) / 4) as u8
             });
-            assert_eq!(t.color.get(x, z), want, "cell ({x}, {z})");
+            assert_eq!(color(&t).get(x, z), want, "cell ({x}, {z})");
         }
     }
     // A 40 × 20 raster (16-bit PNG heights) on a 65² grid with a 39 × 19 image: 0.61
@@ -314,15 +314,15 @@ fn crop_and_padding_follow_the_heights() {
     )
     .unwrap();
     for x in 0..64 {
-        let last = t.color.get(x, 63);
+        let last = color(&t).get(x, 63);
         assert_eq!(last[1], 18 * 13, "column {x}: the last image row");
         for z in 31..64 {
-            assert_eq!(t.color.get(x, z), last, "({x}, {z})");
+            assert_eq!(color(&t).get(x, z), last, "({x}, {z})");
         }
-        assert_eq!(t.color.get(x, 0)[2], 77);
+        assert_eq!(color(&t).get(x, 0)[2], 77);
         if x > 0 {
             assert!(
-                t.color.get(x, 0)[0] >= t.color.get(x - 1, 0)[0],
+                color(&t).get(x, 0)[0] >= color(&t).get(x - 1, 0)[0],
                 "a ramp across"
             );
         }
@@ -434,4 +434,11 @@ fn bad_images_say_what_is_wrong() {
         &["nope.png: cannot open"],
     );
     assert!(!Path::new(&dir.path("out")).exists());
+}
+
+/// The colour map of a data set read with `dataset::load` (which always reads it).
+fn color(t: &roam_server::terrain::dataset::Terrain) -> &roam_server::terrain::dataset::ColorMap {
+    t.color
+        .as_ref()
+        .expect("dataset::load reads the colour map")
 }

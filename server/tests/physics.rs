@@ -19,7 +19,7 @@ fn terrain(side: u32, v_scale: f64, f: impl Fn(u32, u32) -> u16) -> Terrain {
     Terrain {
         map,
         heights: Heightfield::new(side, samples).expect("a valid side"),
-        color: ColorMap::new(cells, vec![[0; 3]; (cells * cells) as usize]).expect("cells²"),
+        color: Some(ColorMap::new(cells, vec![[0; 3]; (cells * cells) as usize]).expect("cells²")),
     }
 }
 

@@ -64,7 +64,7 @@ pub fn flat() -> Arc<Terrain> {
     Arc::new(Terrain {
         map,
         heights: Heightfield::new(side, heights).expect("valid"),
-        color: ColorMap::new(128, vec![[90, 120, 60]; 128 * 128]).expect("cells²"),
+        color: Some(ColorMap::new(128, vec![[90, 120, 60]; 128 * 128]).expect("cells²")),
     })
 }
 

@@ -4,6 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::{Context, Result, bail};
 use clap::Args;
+use roam_server::terrain::cache::{self, Source};
 use roam_server::terrain::dataset::{self, Terrain};
 use roam_server::terrain::generate as gen_terrain;
 use roam_server::terrain::heightfield::levels_of_side;
@@ -28,25 +29,46 @@ pub struct GenerateArgs {
     pub seed: u64,
 }
 
-/// `check DIR`: load and validate a data set, then describe it.
+/// `check DIR`: validate a data set as `serve` opens it (through its cache, built on first
+/// use; the colour map's header checked, its pixels not read), then describe it.
 pub fn check(args: CheckArgs) -> Result<()> {
-    let (terrain, vt, build_ms) = super::tess::load(&args.dir)?;
-    for line in describe(&terrain) {
+    let opened = super::tess::open(&args.dir)?;
+    let (terrain, vt, report) = (&opened.terrain, &opened.variance, &opened.report);
+    for line in describe(terrain) {
         say!("{line}");
     }
     let samples = f64::from(terrain.heights.side()).powi(2);
+    let how = |s: Source| match s {
+        Source::Cached => "from the cache",
+        Source::Built => "built, cached",
+        Source::Memory => "built, in memory (cache not writable)",
+    };
     say!(
-        "variance tree: {:.2} bytes/sample ({} bytes), built in {build_ms:.0} ms",
-        vt.bytes_per_sample(),
-        thousands(vt.heap_bytes() as u64)
+        "cache: heights {}, variance tree {} ({}), opened in {:.0} ms",
+        how(report.heights),
+        how(report.variance),
+        args.dir.join(cache::CACHE_DIR).display(),
+        opened.ms
     );
-    let resident = terrain.heights.heap_bytes() + vt.heap_bytes();
     say!(
-        "resident: {:.2} bytes/sample ({} bytes: heights + variance tree; colour map {:.2} \
+        "variance tree: {:.2} bytes/sample ({} bytes), {}",
+        vt.bytes_per_sample(),
+        thousands(vt.bytes() as u64),
+        how(report.variance)
+    );
+    let resident = terrain.heights.bytes() + vt.bytes();
+    // The colour map, when loaded, takes 3 bytes a cell (8-bit RGB).
+    say!(
+        "resident: {:.2} bytes/sample ({} bytes: heights + variance tree{}; colour map {:.2} \
          bytes/cell aside)",
         resident as f64 / samples,
         thousands(resident as u64),
-        terrain.color.heap_bytes() as f64 / f64::from(terrain.color.cells()).powi(2).max(1.0)
+        if terrain.heights.is_mapped() && vt.is_mapped() {
+            ", mapped and shared between processes"
+        } else {
+            ""
+        },
+        3.0
     );
     if let Some(peak) = peak_rss_bytes() {
         say!(
@@ -99,18 +121,25 @@ pub fn describe(t: &Terrain) -> Vec<String> {
             f64::from(lo) * m.v_scale,
             f64::from(hi) * m.v_scale
         ),
-        format!("colour map: {0} × {0} cells", t.color.cells()),
+        format!(
+            "colour map: {0} × {0} cells{1}",
+            t.heights.size(),
+            if t.color.is_some() {
+                ""
+            } else {
+                " (header checked, pixels not read)"
+            }
+        ),
     ];
     if let Some(w) = m.water_level {
         let cells = u64::from(t.heights.size()).pow(2);
         let mut wet = 0u64;
-        for z in 0..t.heights.size() {
-            for x in 0..t.heights.size() {
-                let mean = (t.world_height(x, z)
-                    + t.world_height(x + 1, z)
-                    + t.world_height(x, z + 1)
-                    + t.world_height(x + 1, z + 1))
-                    / 4.0;
+        let rows: Vec<&[u16]> = t.heights.samples().chunks(side as usize).collect();
+        let h = |s: u16| m.v_scale * f64::from(s);
+        for pair in rows.windows(2) {
+            let (a, b) = (pair[0], pair[1]);
+            for x in 0..a.len() - 1 {
+                let mean = (h(a[x]) + h(a[x + 1]) + h(b[x]) + h(b[x + 1])) / 4.0;
                 wet += u64::from(mean < w);
             }
         }

@@ -439,7 +439,7 @@ fn write(args: &ImportArgs, imported: Imported, image: Option<RgbImage>) -> Resu
     let terrain = Terrain {
         map,
         heights,
-        color,
+        color: Some(color),
     };
     save(Path::new(&args.out), &terrain)
 }
@@ -494,12 +494,16 @@ fn save(out: &Path, terrain: &Terrain) -> Result<()> {
         .validate()
         .map_err(|e| anyhow::anyhow!("writing {}: {e}", out.display()))?;
     let context = || format!("writing {}", out.display());
+    let color = terrain
+        .color
+        .as_ref()
+        .with_context(|| format!("writing {}: no colour map to write", out.display()))?;
     fs::create_dir_all(out).with_context(context)?;
     {
         let mut p = Progress::new("writing");
         let heights = terrain.heights.samples().len() as u64 * 2;
-        let cells = terrain.color.cells();
-        let total = heights + terrain.color.rgb().len() as u64 * 3;
+        let cells = color.cells();
+        let total = heights + color.rgb().len() as u64 * 3;
         pnm::write_pgm_with(&out.join(HEIGHTS_FILE), &terrain.heights, &mut |d, _| {
             p.update(d * 2, total)
         })
@@ -508,7 +512,7 @@ fn save(out: &Path, terrain: &Terrain) -> Result<()> {
             &out.join(COLOR_FILE),
             cells,
             cells,
-            terrain.color.rgb(),
+            color.rgb(),
             &mut |d, _| p.update(heights + d, total),
         )
         .with_context(context)?;

@@ -107,21 +107,30 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let token = args.token.resolve()?;
     tracing::info!("join token from {}", token.source);
     let token = token.as_str().to_owned();
-    // A data set too large to serve is refused before its variance tree is built.
-    let terrain = {
-        let mut p = super::progress::Progress::new("loading");
-        roam_server::terrain::dataset::load(&args.dir, &mut p.callback())?
-    };
+    // Heights and variance tree from the data set's cache (built on first use).
+    let super::tess::Opened {
+        mut terrain,
+        variance: vt,
+        report,
+        ms,
+    } = super::tess::open(&args.dir)?;
+    tracing::info!(
+        "opened {} in {ms:.0} ms (heights {:?}, variance tree {:?})",
+        args.dir.display(),
+        report.heights,
+        report.variance
+    );
+    // A data set too large to serve is refused before its colour map is read.
     net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
-    let vt = {
-        let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-        let mut p = super::progress::Progress::new("variance");
-        roam_server::terrain::variance::VarianceTree::build(
-            &terrain.heights,
-            threads,
+    // The colour map is still sent whole to every viewer, so it is read here.
+    terrain.color = Some({
+        let mut p = super::progress::Progress::new("colour");
+        roam_server::terrain::dataset::load_color(
+            &args.dir,
+            terrain.heights.size(),
             &mut p.callback(),
-        )
-    };
+        )?
+    });
     let identity = tls::load_or_create(&args.state_dir)?;
     let record_dir = args
         .record_dir

@@ -6,6 +6,7 @@ use std::io::IsTerminal;
 use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use roam_server::terrain::cache::Stage;
 
 pub struct Progress {
     bar: ProgressBar,
@@ -52,5 +53,29 @@ impl Progress {
 impl Drop for Progress {
     fn drop(&mut self) {
         self.bar.finish_and_clear();
+    }
+}
+
+/// One bar per step of a library call that reports its stage (opening a data set's cache:
+/// hashing, converting, verifying, building the variance tree), each labelled by its stage.
+#[derive(Default)]
+pub struct Staged {
+    current: Option<(Stage, Progress)>,
+}
+
+impl Staged {
+    /// Report `done` of `total` units of `stage`; a new stage replaces the previous bar.
+    pub fn update(&mut self, stage: Stage, done: u64, total: u64) {
+        if self.current.as_ref().map(|(s, _)| *s) != Some(stage) {
+            self.current = Some((stage, Progress::new(stage.label())));
+        }
+        if let Some((_, bar)) = &mut self.current {
+            bar.update(done, total);
+        }
+    }
+
+    /// A callback for library code.
+    pub fn callback(&mut self) -> impl FnMut(Stage, u64, u64) + '_ {
+        move |stage, done, total| self.update(stage, done, total)
     }
 }

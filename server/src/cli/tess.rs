@@ -15,7 +15,8 @@ use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
 
-use super::progress::Progress;
+use super::progress::Staged;
+use roam_server::terrain::cache::CacheReport;
 
 /// Camera options shared by `mesh` and `bench`.
 #[derive(Args, Clone)]
@@ -92,20 +93,35 @@ fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
     Ok([num(x)?, num(y)?, num(z)?])
 }
 
-/// Loads a data set and builds its variance tree, with progress bars on a terminal.
-pub fn load(dir: &Path) -> Result<(Terrain, VarianceTree, f64)> {
-    let terrain = {
-        let mut p = Progress::new("loading");
-        dataset::load(dir, &mut p.callback())?
-    };
+/// What [`open`] gives: the terrain (without its colour map), the variance tree, what was
+/// done with the cache and how long the opening took.
+pub struct Opened {
+    pub terrain: Terrain,
+    pub variance: VarianceTree,
+    pub report: CacheReport,
+    pub ms: f64,
+}
+
+/// Opens a data set for serving from its cache (`dataset::open_cached`; built on first
+/// use), with progress bars on a terminal; why a cache file was rebuilt or not written is
+/// logged as a warning.
+pub fn open(dir: &Path) -> Result<Opened> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let started = Instant::now();
-    let vt = {
-        let mut p = Progress::new("variance");
-        VarianceTree::build(&terrain.heights, threads, &mut p.callback())
+    let (terrain, variance, report) = {
+        let mut p = Staged::default();
+        dataset::open_cached(dir, threads, &mut p.callback())?
     };
-    let build_ms = started.elapsed().as_secs_f64() * 1e3;
-    Ok((terrain, vt, build_ms))
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    for note in &report.notes {
+        tracing::warn!("{note}");
+    }
+    Ok(Opened {
+        terrain,
+        variance,
+        report,
+        ms,
+    })
 }
 
 fn scales(t: &Terrain) -> Scales {
@@ -116,7 +132,11 @@ fn scales(t: &Terrain) -> Scales {
 }
 
 pub fn mesh(args: MeshArgs) -> Result<()> {
-    let (terrain, vt, _) = load(&args.dir)?;
+    let Opened {
+        terrain,
+        variance: vt,
+        ..
+    } = open(&args.dir)?;
     let Some(eye) = args.camera.eye else {
         bail!("--eye X,Y,Z is required");
     };
@@ -170,7 +190,12 @@ fn write_obj(path: &Path, terrain: &Terrain, mesh: &Mesh) -> std::io::Result<()>
 }
 
 pub fn bench(args: BenchArgs) -> Result<()> {
-    let (terrain, vt, variance_build_ms) = load(&args.dir)?;
+    let Opened {
+        terrain,
+        variance: vt,
+        report: cache,
+        ms: variance_build_ms,
+    } = open(&args.dir)?;
     let frames = args.frames.max(1);
     let cameras: Vec<Camera> = match args.camera.eye {
         Some(eye) => vec![Camera {
@@ -210,7 +235,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let codec = codec_bench(&terrain, &vt, limits)?;
     let serve = serve_bench(&terrain, &vt, limits)?;
     let samples = f64::from(terrain.heights.side()).powi(2);
-    let resident = (terrain.heights.heap_bytes() + vt.heap_bytes()) as f64 / samples;
+    let resident = (terrain.heights.bytes() + vt.bytes()) as f64 / samples;
     let report = serde_json::json!({
         "data_set": args.dir.display().to_string(),
         "side": terrain.heights.side(),
@@ -222,6 +247,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "tessellate_ms_p99": quantile(&ms, 0.99),
         "variance_bytes_per_sample": vt.bytes_per_sample(),
         "variance_build_ms": variance_build_ms,
+        "variance_source": format!("{:?}", cache.variance).to_lowercase(),
         "screen_error_px_median": quantile(&err, 0.5),
         "screen_error_px_p99": quantile(&err, 0.99),
         "resident_bytes_per_sample": resident,

@@ -160,6 +160,11 @@ pub enum ServeError {
     #[error("the colour map codes to {0} bytes, more than a viewer takes")]
     ColorMap(usize),
     #[error(
+        "the data set was opened without its colour map (dataset::open_cached), which this \
+         server still sends whole: load it with dataset::load"
+    )]
+    NoColorMap,
+    #[error(
         "a grid of {side}² samples: this server serves at most {max}² (2^{levels} + 1), \
          the most a viewer holds; import it again with a smaller side"
     )]
@@ -198,11 +203,12 @@ impl Server {
     ) -> Result<Server, ServeError> {
         check_servable(&terrain)?;
         // Everything that can refuse the data set comes before the recording's first file.
+        let color = terrain.color.as_ref().ok_or(ServeError::NoColorMap)?;
         let mut color_map = Vec::new();
-        let rgb: Vec<u8> = terrain.color.rgb().iter().flatten().copied().collect();
-        roam_protocol::colormap::encode(terrain.color.cells(), &rgb, &mut color_map)
+        let rgb: Vec<u8> = color.rgb().iter().flatten().copied().collect();
+        roam_protocol::colormap::encode(color.cells(), &rgb, &mut color_map)
             .map_err(|e| ServeError::ColorMapShape(e.to_string()))?;
-        if color_map.len() > roam_protocol::colormap::max_len(terrain.color.cells()) {
+        if color_map.len() > roam_protocol::colormap::max_len(color.cells()) {
             return Err(ServeError::ColorMap(color_map.len()));
         }
         let config = tls::server_config(identity)?;

@@ -567,7 +567,7 @@ pub fn synthetic_with(
     Terrain {
         map,
         heights,
-        color,
+        color: Some(color),
     }
 }
 
@@ -639,7 +639,7 @@ mod tests {
         for threads in [2, 3] {
             let mut last = (0, 0);
             let c = colorize_with(&t.heights, &t.map, threads, &mut |d, n| last = (d, n));
-            assert_eq!(c, t.color, "{threads} threads");
+            assert_eq!(Some(c), t.color, "{threads} threads");
             assert_eq!(last, (1024, 1024), "{threads} threads");
         }
     }

@@ -2,18 +2,31 @@
 //!
 //! Row `i` (`z`) grows southwards, column `j` (`x`) eastwards; sample `(x, z)` is at index
 //! `z * side + x`. World height is `v_scale * sample`, kept by the data set, not here.
+//!
+//! The samples are a [`Backing`]: owned (`new`) or a read-only map of the data set's cache
+//! (`mapped`, see [`crate::terrain::cache`]); both read the same.
+
+use crate::terrain::backing::Backing;
 
 /// Largest supported exponent: side = 2^15 + 1 = 32769 keeps grid coordinates in `u16`.
 pub const MAX_LEVELS: u32 = 15;
 
 /// A validated square heightfield. Construction checks the shape, so every accessor can
 /// index without further checks.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug)]
 pub struct Heightfield {
     levels: u32,
     side: u32,
-    samples: Vec<u16>,
+    samples: Backing<u16>,
 }
+
+impl PartialEq for Heightfield {
+    fn eq(&self, other: &Self) -> bool {
+        self.side == other.side && self.samples() == other.samples()
+    }
+}
+
+impl Eq for Heightfield {}
 
 /// Why a grid of samples is not a heightfield.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
@@ -40,6 +53,11 @@ pub fn levels_of_side(side: u64) -> Option<u32> {
 
 impl Heightfield {
     pub fn new(side: u32, samples: Vec<u16>) -> Result<Self, ShapeError> {
+        Self::with_backing(side, Backing::Owned(samples))
+    }
+
+    /// A heightfield over samples owned or mapped; the shape is checked as in [`Self::new`].
+    pub fn with_backing(side: u32, samples: Backing<u16>) -> Result<Self, ShapeError> {
         let levels = levels_of_side(u64::from(side)).ok_or(ShapeError::Side {
             side: u64::from(side),
         })?;
@@ -73,30 +91,41 @@ impl Heightfield {
         self.side - 1
     }
 
+    #[inline]
     pub fn samples(&self) -> &[u16] {
-        &self.samples
+        self.samples.as_slice()
+    }
+
+    /// Whether the samples are a file's map (shared with other processes) or owned.
+    pub fn is_mapped(&self) -> bool {
+        self.samples.is_mapped()
     }
 
     /// Sample at column `x`, row `z`. Panics when out of range (a caller bug, not input).
     #[inline]
     pub fn get(&self, x: u32, z: u32) -> u16 {
-        self.samples[(z * self.side + x) as usize]
+        self.samples()[(z * self.side + x) as usize]
     }
 
     /// Smallest and largest sample.
     pub fn range(&self) -> (u16, u16) {
         let mut lo = u16::MAX;
         let mut hi = 0;
-        for &s in &self.samples {
+        for &s in self.samples() {
             lo = lo.min(s);
             hi = hi.max(s);
         }
         (lo, hi)
     }
 
-    /// Bytes held by the samples.
+    /// Bytes of the samples on the heap (0 when mapped).
     pub fn heap_bytes(&self) -> usize {
-        self.samples.capacity() * std::mem::size_of::<u16>()
+        self.samples.heap_bytes()
+    }
+
+    /// Bytes of the samples, on the heap or mapped: what they take once all are resident.
+    pub fn bytes(&self) -> usize {
+        self.samples.bytes()
     }
 }
 

@@ -1,7 +1,10 @@
 //! The terrain: a data set on disk (`map`, `hf.pgm`, `color.ppm`) loaded into a `Terrain`,
 //! the synthetic generator, the source readers and raster pipeline of `import`, and the
-//! variance tree built once from the heights.
+//! variance tree built once from the heights and kept in the data set's cache (`.cache/`,
+//! memory-mapped when served).
 
+pub mod backing;
+pub mod cache;
 pub mod colorimage;
 pub mod dataset;
 pub mod generate;
@@ -15,6 +18,7 @@ pub mod raster;
 pub mod source;
 pub mod variance;
 
+pub use cache::{CacheReport, Source};
 pub use dataset::{ColorMap, DataError, Terrain};
 pub use heightfield::{Heightfield, ShapeError};
 pub use map::{MapParams, Start};

@@ -505,8 +505,33 @@ pub fn read_ppm(
     size: u32,
     progress: &mut dyn FnMut(u64),
 ) -> Result<Vec<[u8; 3]>, PnmError> {
+    let mut f = open_ppm(path, size)?;
+    let count = usize::try_from(u64::from(size) * u64::from(size))
+        .map_err(|_| format_err("width", format!("expected a smaller image, got {size}")))?;
+    let mut rgb: Vec<[u8; 3]> = Vec::new();
+    rgb.try_reserve_exact(count)
+        .map_err(|_| format_err("data", format!("cannot allocate {count} pixels")))?;
+    rgb.resize(count, [0; 3]);
+    let mut last = 0;
+    for chunk in rgb.as_flattened_mut().chunks_mut(CHUNK * 16) {
+        f.fill(chunk)?;
+        f.report(&mut last, progress);
+    }
+    f.expect_end()?;
+    progress(f.reader.consumed);
+    Ok(rgb)
+}
+
+/// Check an RGB PPM's header as [`read_ppm`] does (`size × size`, maxval 255, the exact
+/// data length) without reading its pixels. Every byte is a valid 8-bit channel, so what
+/// `read_ppm` would still refuse is only a file that changes or fails while read.
+pub fn read_ppm_header(path: &Path, size: u32) -> Result<Header, PnmError> {
+    Ok(open_ppm(path, size)?.header)
+}
+
+fn open_ppm(path: &Path, size: u32) -> Result<Opened, PnmError> {
     let hint = format!("{size}");
-    let mut f = open(path, Kind::Ppm, &hint)?;
+    let f = open(path, Kind::Ppm, &hint)?;
     let h = f.header;
     for (field, got) in [("width", h.width), ("height", h.height)] {
         if got != size {
@@ -523,20 +548,7 @@ pub fn read_ppm(
         ));
     }
     check_length(&h, f.file_len)?;
-    let count = usize::try_from(u64::from(size) * u64::from(size))
-        .map_err(|_| format_err("width", format!("expected a smaller image, got {size}")))?;
-    let mut rgb: Vec<[u8; 3]> = Vec::new();
-    rgb.try_reserve_exact(count)
-        .map_err(|_| format_err("data", format!("cannot allocate {count} pixels")))?;
-    rgb.resize(count, [0; 3]);
-    let mut last = 0;
-    for chunk in rgb.as_flattened_mut().chunks_mut(CHUNK * 16) {
-        f.fill(chunk)?;
-        f.report(&mut last, progress);
-    }
-    f.expect_end()?;
-    progress(f.reader.consumed);
-    Ok(rgb)
+    Ok(f)
 }
 
 /// Read an 8-bit RGB PPM of any size (at least 1 × 1, maxval 255), for `import --color`:

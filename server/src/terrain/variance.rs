@@ -17,8 +17,13 @@
 //! - **Implicit.** No pointers: a diamond's slot is computed from its centre and level, with
 //!   each level's diamonds packed together so coarse levels stay dense in cache.
 //!
+//! - **Built once, kept beside the data set.** The codes are owned after a build, or a
+//!   read-only map of the data set's cache (`.cache/variance.bin`, see
+//!   [`crate::terrain::cache`]), validated against the heights' hash and this table.
+//!
 //! Errors are in sample units; multiply by the map's `vScale` for world units.
 
+use crate::terrain::backing::Backing;
 use crate::terrain::heightfield::Heightfield;
 use crate::tessellate::diamond::{Diamond, Shape, Triangle, Vertex};
 
@@ -29,7 +34,7 @@ const SMALLEST: f64 = 0.25;
 #[derive(Clone, Debug)]
 pub struct VarianceTree {
     size: u32,
-    codes: Vec<u8>,
+    codes: Backing<u8>,
     /// Offsets of each level's block in `codes`, indexed by `m` (`h = 2^m`); entry 0 unused.
     square_offset: Vec<usize>,
     rotated_offset: Vec<usize>,
@@ -115,11 +120,45 @@ impl VarianceTree {
         }
         VarianceTree {
             size,
-            codes,
+            codes: Backing::Owned(codes),
             square_offset,
             rotated_offset,
             table,
         }
+    }
+
+    /// A tree over codes built earlier for a heightfield of `size + 1` samples a side (kept
+    /// in a cache file), or why they cannot be: `size` not a power of two, or a count of
+    /// codes that is not [`Self::codes_len`].
+    pub fn from_codes(size: u32, codes: Backing<u8>) -> Result<VarianceTree, String> {
+        if size < 2 || !size.is_power_of_two() {
+            return Err(format!("size: expected a power of two ≥ 2, got {size}"));
+        }
+        let (square_offset, rotated_offset, total) = layout(size);
+        if codes.len() != total {
+            return Err(format!(
+                "expected {total} codes for a side of {}, got {}",
+                u64::from(size) + 1,
+                codes.len()
+            ));
+        }
+        Ok(VarianceTree {
+            size,
+            codes,
+            square_offset,
+            rotated_offset,
+            table: log_table(),
+        })
+    }
+
+    /// How many codes a tree over `size + 1` samples a side stores.
+    pub fn codes_len(size: u32) -> usize {
+        layout(size).2
+    }
+
+    /// Whether the codes are a file's map (shared with other processes) or owned.
+    pub fn is_mapped(&self) -> bool {
+        self.codes.is_mapped()
     }
 
     /// Error bound of the diamond centred at `(x, z)`, in sample units. Panics on a corner
@@ -129,7 +168,7 @@ impl VarianceTree {
         if d.m == 0 && d.shape != Shape::Square {
             finest(hf, &d)
         } else {
-            self.table[self.codes[self.slot(&d)] as usize]
+            self.table[self.codes()[self.slot(&d)] as usize]
         }
     }
 
@@ -147,15 +186,21 @@ impl VarianceTree {
         )
     }
 
-    /// Bytes of the stored codes and the table.
+    /// Bytes of the codes on the heap (0 when mapped) and the table.
     pub fn heap_bytes(&self) -> usize {
-        self.codes.capacity() + std::mem::size_of_val(&self.table)
+        self.codes.heap_bytes() + std::mem::size_of_val(&self.table)
     }
 
-    /// Stored bytes per heightfield sample.
+    /// Bytes of the codes, on the heap or mapped, and the table: what the tree takes once
+    /// all of it is resident.
+    pub fn bytes(&self) -> usize {
+        self.codes.bytes() + std::mem::size_of_val(&self.table)
+    }
+
+    /// Stored bytes per heightfield sample (owned or mapped).
     pub fn bytes_per_sample(&self) -> f64 {
         let side = f64::from(self.size + 1);
-        self.heap_bytes() as f64 / (side * side)
+        self.bytes() as f64 / (side * side)
     }
 
     /// The value of each code, in sample units (code 0 is exactly zero).
@@ -168,8 +213,10 @@ impl VarianceTree {
         self.size
     }
 
-    pub(crate) fn codes(&self) -> &[u8] {
-        &self.codes
+    /// The stored codes, in slot order (what `.cache/variance.bin` holds after its header).
+    #[inline]
+    pub fn codes(&self) -> &[u8] {
+        self.codes.as_slice()
     }
 
     pub(crate) fn square_offsets(&self) -> &[usize] {
@@ -365,7 +412,7 @@ pub fn row_span(t: &Triangle, z: u32) -> Option<(u32, u32)> {
 /// The code table: 0, then `SMALLEST · r^(q-1)`, with `r` (about 1.05) chosen so that code
 /// 255 reaches the largest possible error, a full 16-bit sample range. Fixed, so a code
 /// can be written as soon as its diamond is computed.
-fn log_table() -> [f32; 256] {
+pub(crate) fn log_table() -> [f32; 256] {
     const LARGEST: f64 = 65535.0;
     let r = (LARGEST / SMALLEST).powf(1.0 / 254.0);
     let mut table = [0f32; 256];

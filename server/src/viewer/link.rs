@@ -138,7 +138,7 @@ pub fn welcome(
         fog_color: m.fog_color,
         water_level: m.water_level.map(|v| v as f32),
         vehicle,
-        color_cells: terrain.color.cells(),
+        color_cells: terrain.heights.size(),
         color_bytes,
         tick,
         ticket: None,
