@@ -31,8 +31,6 @@ use crate::sim::world_core::{Event, Snapshot};
 use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{Scene, ViewerCore};
 
-/// Colour-map bytes per chunk.
-const CHUNK: usize = 64 << 10;
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
@@ -199,18 +197,13 @@ async fn welcome(
             &shared.terrain,
             joined.vehicle,
             tick,
-            shared.color_map.len() as u32,
+            // Interim (protocol 5 landed first): the tiles follow with the pyramid.
+            roam_protocol::ColorLayout::new(shared.terrain.color.cells(), 256, 8)
+                .expect("a served map's side is a power of two within the limit"),
             shared.limits,
         )
     };
     wire::write(send, &ServerMessage::Welcome(w)).await?;
-    for (k, chunk) in shared.color_map.chunks(CHUNK).enumerate() {
-        let msg = ServerMessage::ColorMap {
-            offset: (k * CHUNK) as u32,
-            data: chunk.to_vec(),
-        };
-        wire::write(send, &msg).await?;
-    }
     Ok(())
 }
 

@@ -211,7 +211,10 @@ pub fn heights_with(
                 .collect();
             handles
                 .into_iter()
-                .map(|h| h.join().expect("noise is plain arithmetic: it does not panic"))
+                .map(|h| {
+                    h.join()
+                        .expect("noise is plain arithmetic: it does not panic")
+                })
                 .collect()
         });
         for (l, h, picked) in parts {
