@@ -200,7 +200,7 @@ pub fn heights_with(
                                 *h = raw(x, z);
                                 lo = lo.min(*h);
                                 hi = hi.max(*h);
-                                if x % stride == 0 && z % stride == 0 {
+                                if x.is_multiple_of(stride) && z.is_multiple_of(stride) {
                                     picked.push(*h);
                                 }
                             }

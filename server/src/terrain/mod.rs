@@ -2,6 +2,7 @@
 //! the synthetic generator, the source readers and raster pipeline of `import`, and the
 //! variance tree built once from the heights.
 
+pub mod color_pyramid;
 pub mod dataset;
 pub mod generate;
 pub mod geotiff;
