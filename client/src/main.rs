@@ -254,7 +254,7 @@ fn run(cli: Cli) -> Result<()> {
         if let Some(path) = &cli.screenshot
             && lost.is_empty()
         {
-            screenshot(path, &all[0], &cli)?;
+            screenshot(path, &mut all[0], &cli)?;
         }
         write_report(&cli, &roam_client::stats::report(&all))?;
         match lost.as_slice() {
@@ -331,6 +331,10 @@ fn window(
         budget: cli.budget,
         frame_rate: 60,
         resume: None,
+        // Any device the window opens has wgpu's default limits (it asks for them).
+        color_window: roam_client::color_cache::window_for(
+            wgpu::Limits::default().max_texture_dimension_2d,
+        ),
     };
     let keys = if cli.spectate {
         KeySource::None
@@ -360,14 +364,18 @@ fn window(
 }
 
 /// Renders the first viewer's last frame offscreen, from its vehicle, into a PNG.
-fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> Result<()> {
+fn screenshot(path: &std::path::Path, v: &mut headless::ViewerStats, cli: &Cli) -> Result<()> {
     use roam_client::render::{self, Gpu, Renderer, View};
     let (Some(scene), Some(mesh), Some(vehicle)) = (&v.scene, &v.last_mesh, &v.last) else {
         bail!("no frame was decoded: nothing to render");
     };
+    let Some(mut colors) = v.colors.take() else {
+        bail!("no colour was kept: nothing to render");
+    };
     let gpu = Gpu::headless()?;
     let mut renderer = Renderer::new(&gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene.clone());
     renderer.set_mesh(&gpu, mesh);
+    renderer.update_colors(&gpu, &colors.drain(usize::MAX));
     let view = View {
         eye: [
             vehicle.x as f32,
