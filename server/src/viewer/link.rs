@@ -7,8 +7,7 @@
 use std::time::Instant;
 
 use roam_protocol::messages::{
-    self, ClientMessage, ColorLayout, Frame, KeyDatagram, VERSION, VehicleView, ViewChange,
-    Welcome,
+    self, ClientMessage, ColorLayout, Frame, KeyDatagram, VERSION, VehicleView, ViewChange, Welcome,
 };
 
 use super::{Event, Made, ViewerLimits};
