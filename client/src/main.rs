@@ -291,11 +291,21 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
                 threads,
                 &mut |_, _| {},
             );
+            // The colour tiles from the data set's cache (built and cached the first time).
+            let (pyramid, _) = roam_server::terrain::color_pyramid::ColorPyramid::open_or_build(
+                &dir,
+                &terrain.color,
+                roam_protocol::tiles::DEFAULT_TILE,
+                threads,
+                &mut |_, _| {},
+            )
+            .with_context(|| format!("the colour tiles of {}", dir.display()))?;
             let identity = tls::generate()?;
             let token = net::random_token();
             let server = Server::start(
                 Arc::new(terrain),
                 Arc::new(vt),
+                Arc::new(pyramid),
                 &identity,
                 Options::new(
                     "127.0.0.1:0".parse().expect("a valid address"),

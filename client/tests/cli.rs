@@ -156,6 +156,14 @@ fn local_headless_run_writes_stats() {
     }
     assert_eq!(report["frames"], 30);
     assert_eq!(report["decode_errors"], 0);
+    // synth-65: 64 cells, one colour tile, received before the first frame.
+    assert_eq!(report["color_tiles"], 1, "{report}");
+    assert_eq!(report["color_capacity"], 1, "{report}");
+    let color_bytes = report["color_bytes"].as_u64().unwrap_or(0);
+    assert!(
+        color_bytes > 16 && color_bytes <= 64 * 64 * 3 + (64 << 10),
+        "{report}"
+    );
     let _ = std::fs::remove_file(stats);
     let _ = std::fs::remove_file(inputs);
 }
