@@ -19,7 +19,8 @@
 //! [`ColorLayout::max_tile_bytes`] or one that does not decode to the tile's side.
 //!
 //! **Bounded.** At most one tile per slot: `Σ_l min(tiles_l, W)²` tiles, so never more than
-//! `levels × S²` texels (in RGBA, waiting to be uploaded), and the upload queue holds at
+//! `levels × S²` texels (in RGBA, waiting to be uploaded; plus the coarsest tile's RGB, at
+//! most `T² · 3` bytes, which a reconnection compares), and the upload queue holds at
 //! most one entry per slot (an entry is removed with its tile when a window moves). With
 //! [`Keep::Masks`] (a headless viewer that never draws) no texel is kept at all: tiles are
 //! decoded to check them, counted, and dropped. Uploaded texels are freed here (the GPU has
