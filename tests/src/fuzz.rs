@@ -302,8 +302,8 @@ impl Fuzz {
             fog_density: 0.0,
             fog_color: [200; 3],
             water_level: None,
-            cells: 0,
-            colors: Vec::new(),
+            color: roam_protocol::ColorLayout::new(1 << LEVELS, 256, 8)
+                .expect("a grid's cells, a valid tile and window"),
         };
         Fuzz {
             grid,
