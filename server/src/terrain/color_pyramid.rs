@@ -21,8 +21,10 @@
 //!   damaged cache is rebuilt with a warning; a directory that cannot be written keeps
 //!   the pyramid in memory. The payloads themselves are not hashed at open (hundreds of
 //!   megabytes at 16385²): each carries its own 64-bit check, which the viewer verifies.
-//! - Measured (release-like `measure` profile, 2 shared cores): see the figures in
-//!   `scripts/color_stream.sh`'s output recorded in README.md.
+//! - Measured (`measure` profile, 2 shared cores, T = 256, `roam-server color-bench`):
+//!   kossou (1024², 3 levels) 1.9 MB coded (1.39 MB whole: per-tile tables and the
+//!   coarser levels cost the rest) in 0.06 s; 4096² (5 levels) 28.6 MB in 0.68 s;
+//!   16384² (7 levels) 454 MB in 15.4 s. A mapped cache opens in under a millisecond.
 
 use std::fs;
 use std::io::{self, Write};
