@@ -1,6 +1,7 @@
 //! `roam-client --headless --bench`: the viewer's own costs per frame, measured on a real
 //! stream: decoding (with mesh emission), building the vertices, uploading them, and
-//! drawing a frame offscreen (waiting for the GPU to finish), at the window's size.
+//! drawing a frame offscreen (waiting for the GPU to finish), at the window's size. The
+//! upload includes the colour tiles that arrived (at most the window's per-frame number).
 
 use std::net::SocketAddr;
 use std::time::Instant;
@@ -12,6 +13,9 @@ use roam_protocol::stats::quantile;
 
 use crate::render::{Gpu, Renderer, TerrainVertices, Toggles, View};
 use crate::session::{KeySource, Session, Taken};
+
+/// Colour tiles uploaded a frame at most (as the window does).
+const MAX_UPLOADS: usize = crate::window::MAX_UPLOADS;
 
 /// What to measure.
 #[derive(Clone, Debug)]
@@ -41,6 +45,10 @@ pub async fn run(
         budget: opts.budget,
         frame_rate: 60,
         resume: None,
+        // The device opened below has wgpu's default limits (it asks for them).
+        color_window: crate::color_cache::window_for(
+            wgpu::Limits::default().max_texture_dimension_2d,
+        ),
     };
     let session = Session::join(
         addr,
@@ -86,6 +94,8 @@ pub async fn run(
         vertices.build(&session.scene, session.core().mesh());
         let t1 = Instant::now();
         renderer.upload(&gpu, &vertices);
+        let colors = session.colors().drain(MAX_UPLOADS);
+        renderer.update_colors(&gpu, &colors);
         gpu.queue.submit([]);
         wait(&gpu)?;
         let t2 = Instant::now();

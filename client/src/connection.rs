@@ -1,18 +1,25 @@
 //! One connection's tasks and words, with no clock (the session, [`crate::session`], bounds
 //! them in time): the frames read into the session's core (datagrams, and streams read to
 //! their end, each chunk news of the server), the server's control messages after the
-//! colour map (a goodbye ends the session), the goodbye said when the viewer quits, and
-//! how a connection ended ([`End`]: quit, lost, or for good).
+//! join (colour windows and tiles into the colour cache, each tile decoded outside its
+//! lock; a goodbye ends the session; a colour message the cache refuses ends it as the
+//! server's protocol error), the goodbye said when the viewer quits, and how a connection
+//! ended ([`End`]: quit, lost, or for good); one attempt to join (bounded by the session's
+//! timeouts), and the key sender.
 
+use std::net::SocketAddr;
 use std::sync::Arc;
+use std::time::{Duration, Instant};
 
+use anyhow::{Result, anyhow};
 use roam_link::wire;
-use roam_protocol::messages::{self, ClientMessage, Reason, ServerMessage, close};
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, close};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 
-use crate::join::{self, describe};
-use crate::session::Link;
+use crate::color_cache::{Keep, decode_tile};
+use crate::join::{self, JoinError, Joined, describe};
+use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Steps, lock, secs};
 
 /// The largest frame message read: a key frame at the largest budget is under 2 MiB, and
 /// 16 streams of this much bound what a server can make the viewer hold.
@@ -85,22 +92,41 @@ pub async fn goodbye(send: &mut quinn::SendStream) -> bool {
     matches!(said.await, Ok(true))
 }
 
-/// The server's control messages after the colour map: each is news of the server; a
-/// goodbye ends the session, anything else is not the protocol. Ends with the stream.
+/// The server's control messages after the join: each is news of the server; colour
+/// windows and tiles go to the colour cache; a goodbye ends the session, and so does
+/// anything else (not the protocol). Ends with the stream.
 pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mpsc::Sender<End>) {
-    let end = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
-        Ok(ServerMessage::Bye(reason)) => {
-            End::Final(format!("the server said goodbye: {}", describe(&reason)))
+    let mut rgb = Vec::new();
+    let end = loop {
+        let msg = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
+            Ok(m) => m,
+            // The stream or the connection ended: the connection tells why.
+            Err(wire::WireError::Closed | wire::WireError::Read(_)) => return,
+            Err(e) => break End::Final(format!("the server's control stream: {e}")),
+        };
+        link.heard();
+        let applied = match &msg {
+            ServerMessage::Bye(reason) => {
+                break End::Final(format!("the server said goodbye: {}", describe(reason)));
+            }
+            ServerMessage::ColorTile { level, x, z, data } => {
+                // Decoded without the lock: the render thread drains the cache meanwhile.
+                let layout = *lock(&link.colors).layout();
+                decode_tile(&layout, *level, *x, *z, data, &mut rgb)
+                    .and_then(|()| lock(&link.colors).put_decoded(*level, *x, *z, &rgb, data.len()))
+            }
+            ServerMessage::ColorWindow { .. } => lock(&link.colors).apply(&msg).map(|_| ()),
+            other => {
+                break End::Final(format!(
+                    "the server sent {} during the session",
+                    join::name(other)
+                ));
+            }
+        };
+        if let Err(e) = applied {
+            break End::Final(format!("the server broke the protocol: {e}"));
         }
-        Ok(other) => End::Final(format!(
-            "the server sent {} after the colour map",
-            join::name(&other)
-        )),
-        // The stream or the connection ended: the connection tells why.
-        Err(wire::WireError::Closed | wire::WireError::Read(_)) => return,
-        Err(e) => End::Final(format!("the server's control stream: {e}")),
     };
-    link.heard();
     let _ = ends.send(end).await;
 }
 
@@ -144,4 +170,76 @@ async fn read_stream(mut stream: quinn::RecvStream, link: Arc<Link>, epoch: u64)
         }
     }
     link.offer(epoch, &bytes);
+}
+
+/// One attempt to join: the handshake within `handshake`, the welcome and the coarsest
+/// colour tile within [`JOIN_TIMEOUT`].
+pub async fn attempt(
+    endpoint: &quinn::Endpoint,
+    addr: SocketAddr,
+    handshake: Duration,
+    hello: Hello,
+    keep: Keep,
+) -> Result<Joined, JoinError> {
+    let connecting = endpoint
+        .connect(addr, "roam")
+        .map_err(|e| JoinError::fatal(format!("connecting: {e}")))?;
+    let conn = match tokio::time::timeout(handshake, connecting).await {
+        Ok(Ok(conn)) => conn,
+        Ok(Err(e)) => {
+            let (lost, why) = join::ending(&e);
+            return Err(JoinError { lost, message: why });
+        }
+        Err(_) => {
+            return Err(JoinError::lost(format!(
+                "no handshake within {}",
+                secs(handshake)
+            )));
+        }
+    };
+    match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn.clone(), hello, keep)).await {
+        Ok(r) => r.inspect_err(|_| conn.close(close::BYE.into(), b"bye")),
+        Err(_) => {
+            conn.close(0u32.into(), b"too slow");
+            Err(JoinError::lost(format!(
+                "no welcome and coarsest colour tile within {} s",
+                JOIN_TIMEOUT.as_secs()
+            )))
+        }
+    }
+}
+
+/// Writes a control message, within [`CONTROL_TIMEOUT`].
+pub async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
+    tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
+        .await
+        .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
+    Ok(())
+}
+
+/// Sends a key datagram every 10 ms (the physics' step) with the step's keys from
+/// `steps`, on whichever connection is up: the core numbers the state and repeats the
+/// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
+/// are numbered) unsent. Ends with the session.
+pub async fn send_keys(link: Arc<Link>, mut steps: Steps) {
+    let mut tick = tokio::time::interval(Duration::from_millis(10));
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        if link.ended().is_some() {
+            return;
+        }
+        let datagram = {
+            let mut keys = lock(&link.keys);
+            let step = steps(&mut keys);
+            keys.key_datagram(step, Instant::now())
+        };
+        let conn = lock(&link.conn).clone();
+        let mut bytes = Vec::new();
+        if let Some(conn) = conn
+            && messages::encode(&datagram, &mut bytes).is_ok()
+        {
+            let _ = conn.send_datagram(bytes.into());
+        }
+    }
 }

@@ -53,8 +53,26 @@ use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
 /// Decoded frames kept as bases: the server codes against the newest one acknowledged, or
 /// its newest key frame while that is on its way, and never against a frame more than its
 /// logs' length (`roam_server::viewer::LOGS`, at most this many) before the frame it makes;
-/// frames are decoded in order, so such a base is never one dropped here.
+/// frames are decoded in order, so such a base is never one dropped here — on grids up to
+/// `2^14 + 1` (see [`bases_for`]).
 pub const BASES: usize = 32;
+
+/// What the bases may take together, bytes: a base is a split set of one bit per grid
+/// vertex (2 MiB at 4097², 32 MiB at 16385², 128 MiB at 32769²): 32 of 16385² fit.
+pub const BASES_BYTES: usize = 1100 << 20;
+
+/// The fewest bases kept whatever the grid: 8 frames, an acknowledgement's round trip of
+/// 130 ms at 60 frames a second.
+pub const MIN_BASES: usize = 8;
+
+/// Bases kept on `grid`: [`BASES`] up to `2^14 + 1` (1 GiB of bases at 16385²), fewer on
+/// a larger grid (8 at 32769²: 1 GiB beside the decoder's 2 GiB of heights). There, a
+/// frame coded against a base older than those (a round trip longer than 8 frames) is
+/// dropped and a key frame asked for, as for any base this viewer no longer has.
+pub fn bases_for(grid: &Grid) -> usize {
+    let cut = grid.vertices().div_ceil(8).max(1);
+    (BASES_BYTES / cut).clamp(MIN_BASES, BASES)
+}
 
 /// Frames in a row coded against a base newer than the newest frame taken (a key frame on
 /// its way) that the viewer passes over before it asks for a key frame: a second at 60 Hz.
@@ -234,6 +252,8 @@ pub struct ClientCore {
     newest_tick: Option<u64>,
     /// The most triangles the server serves ([`Welcome::max_budget`]).
     max_budget: u32,
+    /// Bases kept ([`bases_for`]).
+    max_bases: usize,
     mesh: mesh::Mesh,
     budget: u32,
     /// The largest budget asked for: frames tessellated before a cut may still come.
@@ -273,6 +293,7 @@ impl ClientCore {
             broken: None,
             newest_tick: None,
             max_budget: welcome.max_budget,
+            max_bases: bases_for(&grid),
             mesh: mesh::Mesh::default(),
             budget,
             limit: budget,
@@ -465,7 +486,7 @@ impl ClientCore {
                 });
             }
             self.bases.push_back((frame.frame, cut));
-            if self.bases.len() > BASES {
+            if self.bases.len() > self.max_bases {
                 self.bases.pop_front();
             }
         }
@@ -572,5 +593,21 @@ impl KeyCore {
             self.pending.pop_front();
         }
         out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bases_are_bounded_by_memory_on_the_largest_grids() {
+        let on = |levels| bases_for(&Grid::new(levels).expect("a grid of the protocol"));
+        assert_eq!(on(1), BASES);
+        assert_eq!(on(13), BASES);
+        assert_eq!(on(14), BASES);
+        assert_eq!(on(15), MIN_BASES);
+        let bytes = Grid::new(15).expect("a grid").vertices().div_ceil(8) * on(15);
+        assert!(bytes <= BASES_BYTES, "{bytes}");
     }
 }

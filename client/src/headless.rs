@@ -1,7 +1,10 @@
 //! A headless viewer: connects, plays an input script as key datagrams, decodes and checks
 //! every frame, acknowledges it, and measures what it got: reconnections and the longest
 //! time without frames included. A session lost for good midway still reports what it
-//! measured ([`measure`]), with the error beside.
+//! measured ([`measure`]), with the error beside. Colour tiles are decoded and checked,
+//! and kept only for a screenshot ([`Keep::Masks`] otherwise: a load generator of many
+//! viewers holds no texels); the window asked is the default one
+//! ([`roam_protocol::tiles::DEFAULT_WINDOW`]), as a viewer with a GPU asks.
 
 use std::net::SocketAddr;
 use std::time::Instant;
@@ -11,6 +14,7 @@ use roam_protocol::mesh;
 use roam_protocol::messages::{self, Hello, Role, VERSION};
 use roam_protocol::script::Script;
 
+use crate::color_cache::{ColorCache, Keep};
 use crate::session::{KeySource, Patience, Session, Taken};
 
 pub use crate::session::connect;
@@ -88,9 +92,15 @@ pub struct ViewerStats {
     pub last_tick: u64,
     /// The largest mesh received, triangles.
     pub max_triangles: usize,
-    /// With `keep_last`: the scene, and the last mesh decoded.
+    /// With `keep_last`: the scene, the last mesh decoded and the colour tiles resident.
     pub scene: Option<crate::render::Scene>,
     pub last_mesh: Option<mesh::Mesh>,
+    pub colors: Option<ColorCache>,
+    /// Colour tile bytes received (every connection's), and the tiles resident at the end
+    /// out of the most the viewer holds.
+    pub color_bytes: u64,
+    pub color_tiles: u32,
+    pub color_capacity: u32,
     /// Connections made again after one was lost, and of those the driver's that got its
     /// vehicle back.
     pub reconnects: u32,
@@ -143,12 +153,19 @@ pub async fn measure(
         budget: opts.budget,
         frame_rate: opts.frame_rate,
         resume: None,
+        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
     };
     let keys = match (&opts.role, &opts.inputs) {
         (Role::Driver, Some(script)) => KeySource::Script(script.clone()),
         _ => KeySource::None,
     };
-    let session = Session::join_with(addr, fingerprint, hello, keys, opts.patience).await?;
+    let keep = if opts.keep_last {
+        Keep::Texels
+    } else {
+        Keep::Masks
+    };
+    let session =
+        Session::join_keeping(addr, fingerprint, hello, keys, opts.patience, keep).await?;
     let mut stats = ViewerStats {
         scene: opts.keep_last.then(|| session.scene.clone()),
         ..ViewerStats::default()
@@ -164,9 +181,16 @@ pub async fn measure(
     stats.resumed = status.gaps.resumed;
     stats.gap_max_s = status.gaps.longest(Instant::now()).as_secs_f64();
     stats.budget_served = session.core().effective_budget();
+    stats.color_bytes = session.color_bytes();
+    {
+        let colors = session.colors();
+        stats.color_tiles = colors.resident();
+        stats.color_capacity = colors.capacity();
+    }
     if opts.keep_last && stats.max_triangles > 0 {
-        // The mesh of the last frame decoded.
+        // The mesh of the last frame decoded, and the colour it is drawn with.
         stats.last_mesh = Some(session.core().take_mesh());
+        stats.colors = Some(session.take_colors());
     }
     match ended {
         Ok(()) => {

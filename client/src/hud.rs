@@ -57,6 +57,12 @@ pub struct Numbers {
     pub triangles: usize,
     pub server_fps: f64,
     pub kb_per_s: f64,
+    /// Colour tile bytes a second and in all (MB), and the tiles resident out of the most
+    /// held.
+    pub color_kb_per_s: f64,
+    pub color_mb: f64,
+    pub color_tiles: u32,
+    pub color_capacity: u32,
     pub latency_ms: Option<f64>,
     pub decode_ms: Option<f64>,
     pub upload_ms: Option<f64>,
@@ -144,6 +150,10 @@ pub fn lines(n: &Numbers) -> Vec<String> {
         format!(
             "server {:.0} frames/s  {:.1} KB/s in",
             n.server_fps, n.kb_per_s
+        ),
+        format!(
+            "colour {:.1} KB/s in ({:.1} MB)  {}/{} tiles",
+            n.color_kb_per_s, n.color_mb, n.color_tiles, n.color_capacity
         ),
         format!(
             "decode {}  upload {}  input→frame {}",
@@ -327,6 +337,10 @@ mod tests {
                 ..Toggles::default()
             },
             connection: "connected".into(),
+            color_kb_per_s: 250.0,
+            color_mb: 3.25,
+            color_tiles: 40,
+            color_capacity: 449,
             ..Numbers::default()
         };
         let text = lines(&n).join("\n");
@@ -342,6 +356,7 @@ mod tests {
             "(fog off)",
             "[l] lighting",
             "connected",
+            "colour 250.0 KB/s in (3.2 MB)  40/449 tiles",
         ] {
             assert!(text.contains(want), "{want:?} missing from\n{text}");
         }

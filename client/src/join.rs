@@ -1,15 +1,25 @@
 //! Joining a server, once: the QUIC handshake (pinning the server's certificate), the
-//! hello, the welcome and the colour map (its announced sizes checked against the grid
-//! before anything is allocated); whether a reconnection found the same terrain; and what a
-//! connection's end means: **lost** (timed out, reset, a transport error: worth
+//! hello, the welcome (its colour layout checked against the grid and the window asked,
+//! [`ColorCache::new`]) and the coarsest colour tile, so that the first frame has a colour
+//! everywhere; the rest of the colour pyramid streams during the session
+//! ([`crate::connection::read_control`]). Also whether a reconnection found the same terrain;
+//! and what a connection's end means: **lost** (timed out, reset, a transport error: worth
 //! reconnecting) or **final** (the server closed it, refused the viewer, or broke the
 //! protocol). No clock here: the session ([`crate::session`]) bounds each step in time.
+//!
+//! Grid limit: the viewer takes any grid the protocol has (`2^15 + 1`,
+//! `roam_protocol::Grid::new`); it was `2^13 + 1` while the colour map came whole. Grid
+//! coordinates are `u16` (32768 fits) and world positions `f32` (32768 cells at 100 m are
+//! 3,277 km: `f32` steps of 0.25 m at the far edge). What grows with the grid is the frame
+//! decoder's state (the heights and each base's split set, [`crate::core::ClientCore`]).
 
 use std::net::SocketAddr;
 
 use anyhow::{Context, Result};
 use roam_link::{tls, wire};
 use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, Welcome};
+
+use crate::color_cache::{ColorCache, Keep};
 
 /// A client endpoint for `addr`'s address family that accepts only the certificate with
 /// SHA-256 `fingerprint`: one per session, reused by its reconnections (one UDP socket
@@ -118,18 +128,20 @@ impl std::fmt::Display for JoinError {
     }
 }
 
-/// A connection that has joined: its control stream, the welcome and the colour map.
+/// A connection that has joined: its control stream, the welcome and the colour cache
+/// holding (at least) the coarsest tile.
 pub struct Joined {
     pub conn: quinn::Connection,
     pub send: quinn::SendStream,
     pub recv: quinn::RecvStream,
     pub welcome: Welcome,
-    /// The decoded colour map (RGB texels).
-    pub colors: Vec<u8>,
+    pub colors: ColorCache,
 }
 
-/// Says `hello` on `conn` and reads the welcome and the colour map.
-pub async fn hello(conn: quinn::Connection, hello: Hello) -> Result<Joined, JoinError> {
+/// Says `hello` on `conn`, reads the welcome and the colour messages up to the coarsest
+/// tile, kept as `keep` says.
+pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<Joined, JoinError> {
+    let asked = hello.color_window;
     let (mut send, mut recv) = conn
         .open_bi()
         .await
@@ -158,7 +170,7 @@ pub async fn hello(conn: quinn::Connection, hello: Hello) -> Result<Joined, Join
             });
         }
     };
-    let colors = color_map(&mut recv, &welcome)
+    let colors = coarsest(&mut recv, &welcome, asked, keep)
         .await
         .map_err(|e| JoinError::on(&conn, format!("{e:#}")))?;
     Ok(Joined {
@@ -170,38 +182,48 @@ pub async fn hello(conn: quinn::Connection, hello: Hello) -> Result<Joined, Join
     })
 }
 
-/// A server message, named (a colour-map chunk's bytes are not spelled out).
+/// A server message, named (a colour tile's bytes are not spelled out).
 pub fn name(m: &ServerMessage) -> String {
     match m {
         ServerMessage::Welcome(_) => "a welcome".into(),
-        ServerMessage::ColorMap { offset, data } => {
-            format!("a colour-map chunk ({} bytes at {offset})", data.len())
+        ServerMessage::ColorWindow { level, x0, z0 } => {
+            format!("a colour window (level {level} at ({x0}, {z0}))")
+        }
+        ServerMessage::ColorTile { level, x, z, data } => {
+            format!(
+                "a colour tile ({} bytes, level {level} at ({x}, {z}))",
+                data.len()
+            )
         }
         ServerMessage::Refused(r) => format!("Refused({r:?})"),
         ServerMessage::Bye(r) => format!("Bye({r:?})"),
     }
 }
 
-/// The terrain a viewer draws, from its first welcome and colour map: what every
-/// reconnection must find again.
+/// The terrain a viewer draws, from its first welcome and coarsest colour tile: what every
+/// reconnection must find again (the finer tiles are not compared: they come later).
 #[derive(Clone, Debug, PartialEq)]
 pub struct TerrainId {
     levels: u8,
     h_scale: f64,
     v_scale: f64,
-    color_cells: u32,
-    /// SHA-256 of the decoded colour map.
+    /// The colour pyramid's cells, tile and levels (not the window: a server may offer
+    /// another).
+    color: (u32, u32, u8),
+    /// SHA-256 of the decoded coarsest colour tile.
     colors: Vec<u8>,
 }
 
 impl TerrainId {
-    pub fn of(welcome: &Welcome, colors: &[u8]) -> TerrainId {
+    /// The terrain of `welcome`, whose coarsest colour tile is `coarsest` (RGB).
+    pub fn of(welcome: &Welcome, coarsest: &[u8]) -> TerrainId {
+        let c = &welcome.color;
         TerrainId {
             levels: welcome.levels,
             h_scale: welcome.h_scale,
             v_scale: welcome.v_scale,
-            color_cells: welcome.color_cells,
-            colors: ring::digest::digest(&ring::digest::SHA256, colors)
+            color: (c.cells, c.tile, c.levels),
+            colors: ring::digest::digest(&ring::digest::SHA256, coarsest)
                 .as_ref()
                 .to_vec(),
         }
@@ -222,54 +244,42 @@ impl TerrainId {
                 other.h_scale, other.v_scale, self.h_scale, self.v_scale
             ));
         }
-        if self.color_cells != other.color_cells || self.colors != other.colors {
+        if self.color != other.color || self.colors != other.colors {
             out.push("another colour map".into());
         }
         (!out.is_empty()).then(|| out.join("; "))
     }
 }
 
-/// Receives the colour map that follows the welcome, after checking its announced sizes
-/// against the grid (nothing is allocated before).
-async fn color_map(recv: &mut quinn::RecvStream, welcome: &Welcome) -> Result<Vec<u8>> {
-    if welcome.levels > 13 {
+/// Reads the colour messages that follow the welcome until the coarsest level's tile is
+/// resident (the server sends it first; a few windows before it are taken too), after
+/// checking the welcome's layout against the grid and the window asked.
+async fn coarsest(
+    recv: &mut quinn::RecvStream,
+    welcome: &Welcome,
+    asked: u8,
+    keep: Keep,
+) -> Result<ColorCache> {
+    if roam_protocol::Grid::new(u32::from(welcome.levels)).is_none() {
         anyhow::bail!(
-            "the server's grid is 2^{} + 1: more than this viewer holds (2^13 + 1)",
-            welcome.levels
+            "Welcome.levels: a grid of 2^{} + 1, expected 1 ..= {}",
+            welcome.levels,
+            roam_protocol::bintree::MAX_LEVELS
         );
     }
-    let cells = 1u64 << welcome.levels;
-    let most = roam_protocol::colormap::max_len(cells as u32) as u64;
-    if u64::from(welcome.color_cells) != cells || u64::from(welcome.color_bytes) > most {
-        anyhow::bail!(
-            "the server's colour map is {} bytes of {} cells a side, expected {cells} cells \
-             in at most {most} bytes",
-            welcome.color_bytes,
-            welcome.color_cells,
-        );
-    }
-    // Grown as chunks come, in order, not allocated at the size claimed.
-    let size = welcome.color_bytes as usize;
-    let mut packed = Vec::new();
-    while packed.len() < size {
-        match wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await? {
-            ServerMessage::ColorMap { offset, data } => {
-                if offset as usize != packed.len() {
-                    anyhow::bail!(
-                        "a colour-map chunk at byte {offset}, expected the next at {}",
-                        packed.len()
-                    );
-                }
-                if data.is_empty() || packed.len() + data.len() > size {
-                    anyhow::bail!("a colour-map chunk past the end (or empty)");
-                }
-                packed.extend_from_slice(&data);
-            }
-            other => anyhow::bail!("expected the colour map, got {}", name(&other)),
+    let mut cache = ColorCache::new(welcome.color, welcome.levels, asked, keep)
+        .map_err(|e| anyhow::anyhow!("the server's welcome: {e}"))?;
+    // Nothing the server may send before the coarsest tile can be more than a message per
+    // slot and a window per level.
+    let most = cache.capacity() + u32::from(welcome.color.levels);
+    for _ in 0..=most {
+        let msg = wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await?;
+        match cache.apply(&msg) {
+            Ok(true) if cache.has_coarsest() => return Ok(cache),
+            Ok(true) => {}
+            Ok(false) => anyhow::bail!("expected the coarsest colour tile, got {}", name(&msg)),
+            Err(e) => anyhow::bail!("the server's colour: {e}"),
         }
     }
-    let mut color = Vec::new();
-    roam_protocol::colormap::decode(welcome.color_cells, &packed, &mut color)
-        .map_err(|e| anyhow::anyhow!("the server's colour map: {e}"))?;
-    Ok(color)
+    anyhow::bail!("the server sent {most} colour messages and not the coarsest tile")
 }

@@ -5,6 +5,7 @@
 
 pub mod bench;
 pub mod camera;
+pub mod color_cache;
 mod connection;
 pub mod core;
 pub mod headless;

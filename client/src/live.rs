@@ -13,6 +13,7 @@ use roam_protocol::messages::VehicleView;
 use tokio::sync::mpsc;
 
 use crate::camera::LocalGround;
+use crate::color_cache::ColorUpdate;
 use crate::render::TerrainVertices;
 use crate::session::{Session, Taken};
 
@@ -97,6 +98,15 @@ impl Shared {
     /// Bytes of frames received.
     pub fn bytes_in(&self) -> u64 {
         self.session.bytes_in()
+    }
+
+    /// At most `most` colour tiles to upload and every level's state
+    /// ([`crate::color_cache::ColorCache::drain`]), with the colour bytes received so far
+    /// and the tiles resident out of the most held.
+    pub fn colors(&self, most: usize) -> (ColorUpdate, u64, u32, u32) {
+        let bytes = self.session.color_bytes();
+        let mut c = self.session.colors();
+        (c.drain(most), bytes, c.resident(), c.capacity())
     }
 
     /// The vehicle the camera rides (another after a reconnection that did not get it back).

@@ -254,7 +254,7 @@ fn run(cli: Cli) -> Result<()> {
         if let Some(path) = &cli.screenshot
             && lost.is_empty()
         {
-            screenshot(path, &all[0], &cli)?;
+            screenshot(path, &mut all[0], &cli)?;
         }
         write_report(&cli, &roam_client::stats::report(&all))?;
         match lost.as_slice() {
@@ -283,19 +283,28 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
     Ok(match &cli.connect {
         None => {
             let dir = cli.local.clone().unwrap_or_else(bundled);
-            let terrain = roam_server::terrain::dataset::load(&dir, &mut |_, _| {})
-                .with_context(|| format!("loading {}", dir.display()))?;
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            let vt = roam_server::terrain::variance::VarianceTree::build(
-                &terrain.heights,
+            // Heights, variance tree and colour tiles from the data set's cache (built and
+            // cached the first time), as `roam-server serve` opens them.
+            let (terrain, vt, _) =
+                roam_server::terrain::dataset::open_cached(&dir, threads, &mut |_, _, _| {})
+                    .with_context(|| format!("loading {}", dir.display()))?;
+            let cells = terrain.heights.size();
+            let (pyramid, _) = roam_server::terrain::color_pyramid::ColorPyramid::open_or_load(
+                &dir,
+                cells,
+                roam_protocol::tiles::DEFAULT_TILE,
                 threads,
+                || roam_server::terrain::dataset::load_color(&dir, cells, &mut |_, _| {}),
                 &mut |_, _| {},
-            );
+            )
+            .with_context(|| format!("the colour tiles of {}", dir.display()))?;
             let identity = tls::generate()?;
             let token = net::random_token();
             let server = Server::start(
                 Arc::new(terrain),
                 Arc::new(vt),
+                Arc::new(pyramid),
                 &identity,
                 Options::new(
                     "127.0.0.1:0".parse().expect("a valid address"),
@@ -331,6 +340,10 @@ fn window(
         budget: cli.budget,
         frame_rate: 60,
         resume: None,
+        // Any device the window opens has wgpu's default limits (it asks for them).
+        color_window: roam_client::color_cache::window_for(
+            wgpu::Limits::default().max_texture_dimension_2d,
+        ),
     };
     let keys = if cli.spectate {
         KeySource::None
@@ -360,14 +373,18 @@ fn window(
 }
 
 /// Renders the first viewer's last frame offscreen, from its vehicle, into a PNG.
-fn screenshot(path: &std::path::Path, v: &headless::ViewerStats, cli: &Cli) -> Result<()> {
+fn screenshot(path: &std::path::Path, v: &mut headless::ViewerStats, cli: &Cli) -> Result<()> {
     use roam_client::render::{self, Gpu, Renderer, View};
     let (Some(scene), Some(mesh), Some(vehicle)) = (&v.scene, &v.last_mesh, &v.last) else {
         bail!("no frame was decoded: nothing to render");
     };
+    let Some(mut colors) = v.colors.take() else {
+        bail!("no colour was kept: nothing to render");
+    };
     let gpu = Gpu::headless()?;
     let mut renderer = Renderer::new(&gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene.clone());
     renderer.set_mesh(&gpu, mesh);
+    renderer.update_colors(&gpu, &colors.drain(usize::MAX));
     let view = View {
         eye: [
             vehicle.x as f32,

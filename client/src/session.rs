@@ -1,9 +1,10 @@
 //! The viewer's I/O: QUIC, tasks and the clock around the clock-free cores
-//! ([`ClientCore`] per connection, [`KeyCore`] and [`Gaps`] per session). It joins
-//! ([`crate::join`]: hello, welcome, the colour map checked against the grid before anything
-//! is allocated), then runs beside the caller: a **supervisor** that drives the connection
-//! (reading frames into the core, the server's control messages, writing the core's control
-//! messages in order) and reconnects when it is lost, and a **key sender** that sends a key
+//! ([`ClientCore`] and [`ColorCache`] per connection, [`KeyCore`] and [`Gaps`] per
+//! session). It joins ([`crate::join`]: hello, welcome, the colour layout checked against
+//! the grid, the coarsest colour tile), then runs beside the caller: a **supervisor** that
+//! drives the connection (reading frames into the core, the server's control messages —
+//! colour windows and tiles into the colour cache —, writing the core's control messages in
+//! order) and reconnects when it is lost, and a **key sender** that sends a key
 //! datagram every 10 ms (the physics' step) from the core's latch or a script. The window,
 //! the headless viewer and `--bench` take frames with [`Session::next_frame`].
 //!
@@ -19,7 +20,9 @@
 //! up with an error naming the server. The new connection starts a fresh [`ClientCore`]
 //! (frame numbers start again at 0) with the budget and view asked so far; the keys go on
 //! (their numbers keep rising, so a resumed vehicle's queue takes them as new). Its
-//! welcome must show the same terrain (grid, scales, colour map), else the session ends.
+//! welcome must show the same terrain (grid, scales, colour layout and coarsest tile), else
+//! the session ends. A new connection also starts a fresh colour cache: the server sends
+//! the colour pyramid again from its coarsest tile.
 //!
 //! Never reconnected after: a refusal (wrong token, version, a full server), the server
 //! closing the connection (a goodbye, shutting down), a frame the server could not have
@@ -34,27 +37,28 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
-use roam_link::wire;
 use roam_protocol::keys::{KeyStep, Keys};
-use roam_protocol::messages::{self, ClientMessage, Hello, Role, ViewChange, Welcome, close};
+use roam_protocol::messages::{self, Hello, Role, ViewChange, Welcome, close};
 use roam_protocol::script::Script;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 use tokio::task::JoinSet;
 
+use crate::color_cache::{ColorCache, Keep};
 pub use crate::connection::MAX_FRAME;
 use crate::connection::{
-    End, Outgoing, failed_write, goodbye, quit_asked, read_control, read_frames,
+    End, Outgoing, attempt, failed_write, goodbye, quit_asked, read_control, read_frames,
+    send_keys, write_control,
 };
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, Received, Taken};
-use crate::join::{self, JoinError, Joined, TerrainId};
+use crate::join::{self, Joined, TerrainId};
 pub use crate::join::{connect, describe};
 use crate::render::Scene;
 
 /// How long a control message may take to leave (a server that stops reading does not
 /// hold the viewer).
-const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
-/// How long the welcome and the colour map may take.
-const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
+pub(crate) const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
+/// How long the welcome and the coarsest colour tile may take.
+pub(crate) const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
 /// [`Patience::silence`] unless told otherwise.
 pub const SILENCE: Duration = Duration::from_secs(10);
 /// [`Patience::reconnect_for`] unless told otherwise: the server's hold (30 s) and a margin.
@@ -135,21 +139,26 @@ pub enum KeySource {
 }
 
 /// Each physics step's keys, taken from the core's latch or a script.
-type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
+pub(crate) type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
 
 /// What the tasks and the caller share.
 pub(crate) struct Link {
     /// The connection's frames; replaced with each connection.
     core: Mutex<ClientCore>,
+    /// The connection's colour tiles; replaced with each connection. Locked apart from
+    /// the frames (and never while a tile decodes): the render thread drains it.
+    pub(crate) colors: Mutex<ColorCache>,
+    /// Colour bytes of the connections before this one.
+    color_bytes_before: AtomicU64,
     /// Locked apart from the frames: a key state never waits on a decode. For the session.
-    keys: Mutex<KeyCore>,
+    pub(crate) keys: Mutex<KeyCore>,
     /// Woken when a frame is offered or the session ends.
     notify: Notify,
     /// Bumped (under the core's lock) with each connection: bytes of an older one are not
     /// offered to the new core.
     epoch: AtomicU64,
     /// The connection the keys go on; none while reconnecting.
-    conn: Mutex<Option<quinn::Connection>>,
+    pub(crate) conn: Mutex<Option<quinn::Connection>>,
     /// When the server was last heard (a frame's bytes, a control message, the welcome).
     heard: Mutex<Instant>,
     /// Frames offered, all connections together.
@@ -174,7 +183,7 @@ impl Link {
         self.notify.notify_one();
     }
 
-    fn ended(&self) -> Option<String> {
+    pub(crate) fn ended(&self) -> Option<String> {
         match &self.status.borrow().state {
             State::Ended(why) => Some(why.clone()),
             _ => None,
@@ -208,12 +217,12 @@ impl Link {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Seconds, as people read them.
-fn secs(d: Duration) -> String {
+pub(crate) fn secs(d: Duration) -> String {
     format!("{:.1} s", d.as_secs_f64())
 }
 
@@ -227,8 +236,9 @@ pub struct Session {
 }
 
 impl Session {
-    /// Connects, says hello, receives the welcome and the colour map, and starts the I/O
-    /// tasks; keys are sent from `keys`. Waits on the server as [`Patience::default`] says.
+    /// Connects, says hello, receives the welcome and the coarsest colour tile, and starts
+    /// the I/O tasks; keys are sent from `keys`. Waits on the server as
+    /// [`Patience::default`] says. Colour texels are kept for a renderer ([`Keep::Texels`]).
     pub async fn join(
         addr: SocketAddr,
         fingerprint: [u8; 32],
@@ -246,6 +256,19 @@ impl Session {
         keys: KeySource,
         patience: Patience,
     ) -> Result<Session> {
+        Session::join_keeping(addr, fingerprint, hello, keys, patience, Keep::Texels).await
+    }
+
+    /// As [`Session::join_with`], keeping colour texels as `keep` says ([`Keep::Masks`]: a
+    /// viewer that never draws).
+    pub async fn join_keeping(
+        addr: SocketAddr,
+        fingerprint: [u8; 32],
+        hello: Hello,
+        keys: KeySource,
+        patience: Patience,
+        keep: Keep,
+    ) -> Result<Session> {
         let endpoint = join::endpoint(addr, fingerprint)?;
         let conn = endpoint
             .connect(addr, "roam")
@@ -254,19 +277,25 @@ impl Session {
             .with_context(|| format!("connecting to {addr}"))?;
         let mut hello = hello;
         hello.budget = messages::clamp_budget(hello.budget);
-        let joined =
-            match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn, hello.clone())).await {
-                Ok(j) => j.map_err(|e| anyhow!("{e}"))?,
-                Err(_) => bail!(
-                    "the server sent no welcome and colour map within {} s",
-                    JOIN_TIMEOUT.as_secs()
-                ),
-            };
+        let joined = match tokio::time::timeout(
+            JOIN_TIMEOUT,
+            join::hello(conn, hello.clone(), keep),
+        )
+        .await
+        {
+            Ok(j) => j.map_err(|e| anyhow!("{e}"))?,
+            Err(_) => bail!(
+                "the server sent no welcome and coarsest colour tile within {} s",
+                JOIN_TIMEOUT.as_secs()
+            ),
+        };
         let mut joined = joined;
         let welcome = joined.welcome.clone();
         let core = ClientCore::new(&welcome, hello.budget)
             .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
-        let terrain = TerrainId::of(&welcome, &joined.colors);
+        let terrain = TerrainId::of(&welcome, joined.colors.coarsest());
+        let empty = joined.colors.fresh();
+        let colors = std::mem::replace(&mut joined.colors, empty);
         let scene = Scene {
             levels: u32::from(welcome.levels),
             h_scale: welcome.h_scale,
@@ -276,8 +305,7 @@ impl Session {
             fog_density: welcome.fog_density,
             fog_color: welcome.fog_color,
             water_level: welcome.water_level,
-            cells: welcome.color_cells,
-            colors: std::mem::take(&mut joined.colors),
+            color: welcome.color,
         };
         let (status, _) = watch::channel(Status {
             state: State::Connected,
@@ -286,6 +314,8 @@ impl Session {
         });
         let link = Arc::new(Link {
             core: Mutex::new(core),
+            colors: Mutex::new(colors),
+            color_bytes_before: AtomicU64::new(0),
             keys: Mutex::new(KeyCore::default()),
             notify: Notify::new(),
             epoch: AtomicU64::new(0),
@@ -302,6 +332,7 @@ impl Session {
             endpoint,
             hello: next_hello(hello, &welcome),
             patience,
+            keep,
             terrain,
             link: link.clone(),
             outgoing,
@@ -342,6 +373,25 @@ impl Session {
     /// briefly, never across an await.
     pub fn core(&self) -> MutexGuard<'_, ClientCore> {
         lock(&self.link.core)
+    }
+
+    /// The current connection's colour cache: held briefly (the renderer drains it), never
+    /// across an await.
+    pub fn colors(&self) -> MutexGuard<'_, ColorCache> {
+        lock(&self.link.colors)
+    }
+
+    /// The current connection's colour cache, taken (an empty one of the same layout left
+    /// in its place): for a renderer made after the session (a screenshot).
+    pub fn take_colors(&self) -> ColorCache {
+        let mut c = lock(&self.link.colors);
+        let empty = c.fresh();
+        std::mem::replace(&mut *c, empty)
+    }
+
+    /// Colour tile bytes received so far, every connection's.
+    pub fn color_bytes(&self) -> u64 {
+        self.link.color_bytes_before.load(Ordering::Relaxed) + self.colors().bytes()
     }
 
     /// Where the session stands, its gaps and its newest welcome.
@@ -509,6 +559,8 @@ struct Supervisor {
     /// The hello of the next connection (the newest ticket, the vehicle followed).
     hello: Hello,
     patience: Patience,
+    /// What the colour caches keep.
+    keep: Keep,
     /// The first connection's terrain: every later one must show it.
     terrain: TerrainId,
     link: Arc<Link>,
@@ -564,7 +616,7 @@ impl Supervisor {
                 joined.conn.close(close::BYE.into(), b"bye");
                 return;
             }
-            if let Err(why) = self.adopt(&joined) {
+            if let Err(why) = self.adopt(&mut joined) {
                 joined.conn.close(close::BYE.into(), b"bye");
                 return self.link.end(why);
             }
@@ -645,7 +697,7 @@ impl Supervisor {
             });
             // An attempt begun before the deadline has its whole handshake.
             let hello = self.hello_now();
-            let attempt = attempt(&self.endpoint, self.addr, HANDSHAKE, hello);
+            let attempt = attempt(&self.endpoint, self.addr, HANDSHAKE, hello, self.keep);
             let result = tokio::select! {
                 r = attempt => r,
                 () = quit_asked(&mut self.outgoing) => {
@@ -658,7 +710,7 @@ impl Supervisor {
             };
             let last = match result {
                 Ok(j) => {
-                    let found = TerrainId::of(&j.welcome, &j.colors);
+                    let found = TerrainId::of(&j.welcome, j.colors.coarsest());
                     return match self.terrain.differences(&found) {
                         None => Ok(Some(j)),
                         Some(d) => {
@@ -694,8 +746,8 @@ impl Supervisor {
     }
 
     /// Makes `joined` the session's connection: a fresh core (with the budget and the view
-    /// asked so far), the keys sent on it, the reconnection counted.
-    fn adopt(&mut self, joined: &Joined) -> Result<(), String> {
+    /// asked so far) and its colour cache, the keys sent on it, the reconnection counted.
+    fn adopt(&mut self, joined: &mut Joined) -> Result<(), String> {
         let welcome = joined.welcome.clone();
         {
             let mut core = lock(&self.link.core);
@@ -710,6 +762,14 @@ impl Supervisor {
             self.link.epoch.fetch_add(1, Ordering::AcqRel);
             *core = fresh;
         }
+        {
+            let mut colors = lock(&self.link.colors);
+            let joined_colors = std::mem::replace(&mut joined.colors, colors.fresh());
+            self.link
+                .color_bytes_before
+                .fetch_add(colors.bytes(), Ordering::Relaxed);
+            *colors = joined_colors;
+        }
         self.link.heard();
         *lock(&self.link.conn) = Some(joined.conn.clone());
         let driver = self.hello.role == Role::Driver;
@@ -720,76 +780,5 @@ impl Supervisor {
         });
         self.hello = next_hello(self.hello.clone(), &welcome);
         Ok(())
-    }
-}
-
-/// One attempt to join: the handshake within `handshake`, the welcome and the colour map
-/// within [`JOIN_TIMEOUT`].
-async fn attempt(
-    endpoint: &quinn::Endpoint,
-    addr: SocketAddr,
-    handshake: Duration,
-    hello: Hello,
-) -> Result<Joined, JoinError> {
-    let connecting = endpoint
-        .connect(addr, "roam")
-        .map_err(|e| JoinError::fatal(format!("connecting: {e}")))?;
-    let conn = match tokio::time::timeout(handshake, connecting).await {
-        Ok(Ok(conn)) => conn,
-        Ok(Err(e)) => {
-            let (lost, why) = join::ending(&e);
-            return Err(JoinError { lost, message: why });
-        }
-        Err(_) => {
-            return Err(JoinError::lost(format!(
-                "no handshake within {}",
-                secs(handshake)
-            )));
-        }
-    };
-    match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn.clone(), hello)).await {
-        Ok(r) => r.inspect_err(|_| conn.close(close::BYE.into(), b"bye")),
-        Err(_) => {
-            conn.close(0u32.into(), b"too slow");
-            Err(JoinError::lost(format!(
-                "no welcome and colour map within {} s",
-                JOIN_TIMEOUT.as_secs()
-            )))
-        }
-    }
-}
-
-/// Writes a control message, within [`CONTROL_TIMEOUT`].
-async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
-    tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
-        .await
-        .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
-    Ok(())
-}
-
-/// Sends a key datagram every 10 ms (the physics' step) with the step's keys from
-/// `steps`, on whichever connection is up: the core numbers the state and repeats the
-/// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
-/// are numbered) unsent. Ends with the session.
-async fn send_keys(link: Arc<Link>, mut steps: Steps) {
-    let mut tick = tokio::time::interval(Duration::from_millis(10));
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    loop {
-        tick.tick().await;
-        if link.ended().is_some() {
-            return;
-        }
-        let datagram = {
-            let mut keys = lock(&link.keys);
-            let step = steps(&mut keys);
-            keys.key_datagram(step, Instant::now())
-        };
-        let conn = lock(&link.conn).clone();
-        let mut bytes = Vec::new();
-        if let Some(conn) = conn
-            && messages::encode(&datagram, &mut bytes).is_ok()
-        {
-            let _ = conn.send_datagram(bytes.into());
-        }
     }
 }

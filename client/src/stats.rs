@@ -3,7 +3,10 @@
 //! viewer's), `resumed` (of those, the drivers' that got their vehicle back: equal to
 //! `reconnects` when every one did), `gap_ms_max` (the longest time between two frames,
 //! a reconnection's included), `budget_served_min` (the smallest budget served: asked, or
-//! the server's most if less) and `errors` (viewers whose session ended early).
+//! the server's most if less) and `errors` (viewers whose session ended early). The colour
+//! keys: `color_bytes` (colour tile bytes received, every viewer's), `color_tiles` (the
+//! fewest tiles resident at the end, of any viewer) and `color_capacity` (the most a
+//! viewer holds).
 
 use crate::headless::ViewerStats;
 
@@ -43,5 +46,8 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         "resumed": viewers.iter().map(|s| s.resumed).sum::<u32>(),
         "gap_ms_max": viewers.iter().map(|s| s.gap_max_s * 1e3).fold(0.0, f64::max),
         "errors": viewers.iter().filter(|s| s.error.is_some()).count(),
+        "color_bytes": viewers.iter().map(|s| s.color_bytes).sum::<u64>(),
+        "color_tiles": viewers.iter().map(|s| s.color_tiles).min().unwrap_or(0),
+        "color_capacity": viewers.iter().map(|s| s.color_capacity).max().unwrap_or(0),
     })
 }

@@ -22,6 +22,11 @@ use crate::live::{self, Command, Link, Shared};
 use crate::render::{Gpu, Marker, Renderer, Scene, Toggles, View};
 use crate::session::{Session, State};
 
+/// Colour tiles uploaded a display frame at most: 8 tiles of 256² are 2 MiB copied, a
+/// fraction of a frame even on a software adapter, and the server streams a few tiles a
+/// frame at its default rate (2 MB/s).
+pub const MAX_UPLOADS: usize = 8;
+
 /// How the window starts.
 #[derive(Clone, Debug)]
 pub struct Options {
@@ -71,6 +76,8 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
         frame_ms: Rate::default(),
         server_frames: Rate::default(),
         bytes: Rate::default(),
+        color_bytes: Rate::default(),
+        last_color_bytes: 0,
         decode_ms: Rate::default(),
         upload_ms: Rate::default(),
         last_bytes: 0,
@@ -134,6 +141,9 @@ struct App {
     frame_ms: Rate,
     server_frames: Rate,
     bytes: Rate,
+    /// Colour tile bytes, and the count last seen.
+    color_bytes: Rate,
+    last_color_bytes: u64,
     decode_ms: Rate,
     upload_ms: Rate,
     last_bytes: u64,
@@ -298,6 +308,14 @@ impl App {
         let bytes = self.shared.bytes_in();
         self.bytes.add(now, (bytes - self.last_bytes) as f64);
         self.last_bytes = bytes;
+        let (colors, color_bytes, color_tiles, color_capacity) = self.shared.colors(MAX_UPLOADS);
+        gfx.renderer.update_colors(&gfx.gpu, &colors);
+        // A reconnection starts counting again from the bytes before it: never negative.
+        self.color_bytes.add(
+            now,
+            color_bytes.saturating_sub(self.last_color_bytes) as f64,
+        );
+        self.last_color_bytes = color_bytes;
 
         let me = self.shared.vehicle();
         let followed = self.interpolators.get(&me).and_then(|i| i.sample(now));
@@ -404,6 +422,10 @@ impl App {
                 triangles: gfx.renderer.triangles(),
                 server_fps: self.server_frames.per_second(now),
                 kb_per_s: self.bytes.amount_per_second(now) / 1000.0,
+                color_kb_per_s: self.color_bytes.amount_per_second(now) / 1000.0,
+                color_mb: color_bytes as f64 / 1e6,
+                color_tiles,
+                color_capacity,
                 latency_ms: self.shared.latency_ms(),
                 decode_ms: self.decode_ms.mean(now),
                 upload_ms: self.upload_ms.mean(now),

@@ -117,9 +117,16 @@ fn local_headless_run_writes_stats() {
     let inputs =
         std::env::temp_dir().join(format!("roam-client-inputs-{}.txt", std::process::id()));
     std::fs::write(&inputs, "30 U\n20 UL\n").expect("write");
+    // A copy: the server caches its colour tiles in the data set's `.cache`.
+    let data = std::env::temp_dir().join(format!("roam-client-synth-65-{}", std::process::id()));
+    std::fs::create_dir_all(&data).expect("a temporary directory");
+    let source = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/synth-65");
+    for name in ["map", "hf.pgm", "color.ppm"] {
+        std::fs::copy(source.join(name), data.join(name)).expect("the bundled data set");
+    }
     let (code, out, err) = run(&[
         "--local",
-        "data/synth-65",
+        data.to_str().expect("UTF-8"),
         "--headless",
         "--frames",
         "30",
@@ -156,6 +163,15 @@ fn local_headless_run_writes_stats() {
     }
     assert_eq!(report["frames"], 30);
     assert_eq!(report["decode_errors"], 0);
+    // synth-65: 64 cells, one colour tile, received before the first frame.
+    assert_eq!(report["color_tiles"], 1, "{report}");
+    assert_eq!(report["color_capacity"], 1, "{report}");
+    let color_bytes = report["color_bytes"].as_u64().unwrap_or(0);
+    assert!(
+        color_bytes > 16 && color_bytes <= 64 * 64 * 3 + (64 << 10),
+        "{report}"
+    );
     let _ = std::fs::remove_file(stats);
     let _ = std::fs::remove_file(inputs);
+    let _ = std::fs::remove_dir_all(data);
 }

@@ -1,9 +1,12 @@
 //! The renderer on a software adapter (lavapipe where there is no GPU): fog, lighting,
-//! wireframe, the sky, and a reference image.
+//! wireframe, the sky, a reference image, and the colour clipmap (the finest resident
+//! level drawn where it is resident, a coarser one elsewhere).
 
 use std::sync::Arc;
 
+use roam_client::color_cache::ColorCache;
 use roam_client::render::{self, Gpu, Renderer, Scene, Toggles, View};
+use roam_protocol::tiles::ColorLayout;
 use roam_server::Terrain;
 use roam_server::terrain::dataset;
 use roam_server::terrain::variance::VarianceTree;
@@ -19,12 +22,8 @@ fn load(name: &str) -> Arc<Terrain> {
     Arc::new(dataset::load(&dir, &mut |_, _| {}).expect("bundled"))
 }
 
-fn scene(t: &Terrain, uniform_color: bool) -> Scene {
+fn scene(t: &Terrain) -> Scene {
     let m = &t.map;
-    let color = t
-        .color
-        .as_ref()
-        .expect("dataset::load reads the colour map");
     Scene {
         levels: t.heights.levels(),
         h_scale: m.h_scale,
@@ -35,13 +34,33 @@ fn scene(t: &Terrain, uniform_color: bool) -> Scene {
         fog_density: 4.0 / t.world_size() as f32,
         fog_color: m.fog_color,
         water_level: m.water_level.map(|w| w as f32),
-        cells: color.cells(),
-        colors: if uniform_color {
-            vec![120; color.rgb().len() * 3]
-        } else {
-            color.rgb().iter().flatten().copied().collect()
-        },
+        color: layout(t),
     }
+}
+
+/// The bundled map's colour layout as a server sends it (one tile of 256²).
+fn layout(t: &Terrain) -> ColorLayout {
+    ColorLayout::new(color(t).cells(), 256, 8).expect("a valid layout")
+}
+
+/// The colour map of a bundled data set (`dataset::load` always reads it).
+fn color(t: &Terrain) -> &roam_server::terrain::dataset::ColorMap {
+    t.color
+        .as_ref()
+        .expect("dataset::load reads the colour map")
+}
+
+/// A renderer with the terrain's whole colour map resident (or a uniform grey).
+fn renderer(gpu: &Gpu, t: &Terrain, uniform_color: bool, format: wgpu::TextureFormat) -> Renderer {
+    let rgb: Vec<u8> = if uniform_color {
+        vec![120; color(t).rgb().len() * 3]
+    } else {
+        color(t).rgb().iter().flatten().copied().collect()
+    };
+    let mut cache = ColorCache::whole(layout(t), &rgb).expect("the map's own texels");
+    let mut r = Renderer::new(gpu, format, scene(t));
+    r.update_colors(gpu, &cache.drain(usize::MAX));
+    r
 }
 
 /// The view from a point over the map's west edge, level, looking east across it, and the
@@ -104,7 +123,7 @@ fn gpu() -> Gpu {
 
 fn draw(gpu: &Gpu, t: &Terrain, uniform: bool, toggles: Toggles) -> Vec<[u8; 3]> {
     let (view, mesh) = view_and_mesh(t);
-    let mut r = Renderer::new(gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene(t, uniform));
+    let mut r = renderer(gpu, t, uniform, wgpu::TextureFormat::Rgba8UnormSrgb);
     r.set_mesh(gpu, &mesh);
     let rgba = render::render_offscreen(gpu, &mut r, SIZE, &view, toggles).expect("renders");
     rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect()
@@ -258,7 +277,7 @@ fn draw_view(
     markers: &[render::Marker],
     toggles: Toggles,
 ) -> Vec<[u8; 3]> {
-    let mut r = Renderer::new(gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene(t, false));
+    let mut r = renderer(gpu, t, false, wgpu::TextureFormat::Rgba8UnormSrgb);
     r.set_mesh(gpu, mesh);
     r.set_markers(markers);
     let rgba = render::render_offscreen(gpu, &mut r, SIZE, view, toggles).expect("renders");
@@ -362,7 +381,7 @@ fn a_target_that_does_not_encode_srgb_gets_the_same_picture() {
     let t = load("synth-257");
     let (view, mesh) = view_and_mesh(&t);
     let draw_as = |format| {
-        let mut r = Renderer::new(&gpu, format, scene(&t, false));
+        let mut r = renderer(&gpu, &t, false, format);
         r.set_mesh(&gpu, &mesh);
         render::render_offscreen(&gpu, &mut r, SIZE, &view, Toggles::default()).expect("renders")
     };
@@ -375,4 +394,88 @@ fn a_target_that_does_not_encode_srgb_gets_the_same_picture() {
         .sum::<f64>()
         / srgb.len() as f64;
     assert!(diff < 1.5, "mean difference {diff} per channel");
+}
+
+/// A flat map of 256 cells seen from straight above cell (32, 32), 40 cells up: about two
+/// pixels a cell, so level 0 is the one the screen asks for. Colour: 256 cells in tiles of
+/// 32 and a window of 2 (layers of 64²): levels of 8, 4, 2 and 1 tiles a side; each level
+/// gets flat tiles of its own colour, where `tiles` says.
+fn draw_clipmap(gpu: &Gpu, tiles: &[(u8, u32, u32, [u8; 3])]) -> Vec<[u8; 3]> {
+    let color = ColorLayout::new(256, 32, 2).expect("a valid layout");
+    assert_eq!(color.levels, 4);
+    let scene = Scene {
+        levels: 8,
+        h_scale: 1.0,
+        v_scale: 1.0,
+        sun_dir: [0.0, 1.0, 0.0],
+        sun_color: [255; 3],
+        fog_density: 0.0,
+        fog_color: [0; 3],
+        water_level: None,
+        color,
+    };
+    let mut cache = ColorCache::new(color, 8, 2, roam_client::color_cache::Keep::Texels)
+        .expect("the layout fits the grid");
+    for &(level, x, z, rgb) in tiles {
+        let side = color.tile_side(level) as usize;
+        let texels: Vec<u8> = std::iter::repeat_n(rgb, side * side).flatten().collect();
+        cache.put_tile(level, x, z, &texels).expect("in the window");
+    }
+    let mut r = Renderer::new(gpu, wgpu::TextureFormat::Rgba8UnormSrgb, scene);
+    r.update_colors(gpu, &cache.drain(usize::MAX));
+    let flat = roam_protocol::Mesh {
+        vertices: vec![[0, 0], [256, 0], [0, 256], [256, 256]],
+        heights: vec![0; 4],
+        indices: vec![0, 2, 1, 1, 2, 3],
+    };
+    r.set_mesh(gpu, &flat);
+    let view = View {
+        eye: [32.0, 40.0, 32.0],
+        yaw_deg: 0.0,
+        pitch_deg: -89.9,
+        fov_y_deg: 60.0,
+        time_s: 0.0,
+    };
+    let off = Toggles {
+        fog: false,
+        lighting: false,
+        wireframe: false,
+        water: false,
+        vehicles: false,
+        detail: false,
+    };
+    let rgba = render::render_offscreen(gpu, &mut r, SIZE, &view, off).expect("renders");
+    rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect()
+}
+
+#[test]
+fn the_finest_resident_colour_level_is_drawn_where_it_is_resident() {
+    const RED: [u8; 3] = [255, 0, 0];
+    const GREEN: [u8; 3] = [0, 255, 0];
+    const BLUE: [u8; 3] = [0, 0, 255];
+    let gpu = gpu();
+    let is = |img: &[[u8; 3]], c: [u8; 3]| -> Vec<bool> {
+        img.iter().map(|&p| dist(p, c) < 30.0).collect()
+    };
+    let count = |v: &[bool]| v.iter().filter(|&&b| b).count();
+    // Level 0's tile (0, 0) covers cells 0 .. 32; the coarsest level the whole map.
+    let fine = draw_clipmap(&gpu, &[(3, 0, 0, BLUE), (0, 0, 0, RED)]);
+    let (red, blue) = (is(&fine, RED), is(&fine, BLUE));
+    let total = fine.len();
+    assert!(count(&red) > total / 10, "{} red of {total}", count(&red));
+    assert!(count(&blue) > total / 5, "{} blue of {total}", count(&blue));
+    // Level 1's tile (0, 0) instead covers cells 0 .. 64: green wherever red was, and more.
+    let mid = draw_clipmap(&gpu, &[(3, 0, 0, BLUE), (1, 0, 0, GREEN)]);
+    let green = is(&mid, GREEN);
+    assert!(red.iter().zip(&green).all(|(&r, &g)| !r || g));
+    assert!(count(&green) > count(&red) + total / 10);
+    assert_eq!(count(&is(&mid, RED)), 0);
+    // Both: red where level 0 is resident, green around it, blue beyond.
+    let both = draw_clipmap(&gpu, &[(3, 0, 0, BLUE), (1, 0, 0, GREEN), (0, 0, 0, RED)]);
+    assert_eq!(is(&both, RED), red);
+    assert!(count(&is(&both, GREEN)) + count(&red) >= count(&green) - total / 100);
+    // Only the coarsest level: blue wherever the ground is.
+    let coarse = draw_clipmap(&gpu, &[(3, 0, 0, BLUE)]);
+    let ground = |img: &[[u8; 3]]| img.iter().filter(|p| **p != [0, 0, 0]).count();
+    assert!(count(&is(&coarse, BLUE)) >= ground(&fine) - total / 100);
 }

@@ -7,7 +7,7 @@
 //!
 //! - bincode (standard configuration) writes a string, a byte string and a list alike: a
 //!   varint length, then the items (a byte each for `u8`). Strings and bounded byte strings
-//!   (the join token, a reason, a colour-map chunk) are therefore read as a list of bytes,
+//!   (the join token, a reason, a colour tile) are therefore read as a list of bytes,
 //!   whose length the visitor sees (as the size hint) before one item is read: a claim past
 //!   the limit is refused there. Reading them as bincode strings would borrow (or, decoding
 //!   owned, allocate) the claimed bytes before the limit could be looked at.

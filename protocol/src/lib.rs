@@ -17,6 +17,7 @@ mod range;
 mod rans;
 pub mod script;
 pub mod stats;
+pub mod tiles;
 pub mod validate;
 
 pub use bintree::{BitSet, Grid};
@@ -26,3 +27,4 @@ pub use cut::{Cut, CutHash};
 pub use format::DecodeError;
 pub use keys::{KeyLatch, KeyStep, Keys};
 pub use mesh::Mesh;
+pub use tiles::ColorLayout;

@@ -12,8 +12,8 @@
 //!
 //! Every decode has a byte limit ([`Checked::MAX_BYTES`]), and every variable-length field
 //! one of its own: the join token [`MAX_TOKEN`] bytes, a reason [`MAX_REASON`], a key
-//! datagram [`KEY_HISTORY`] states, a frame [`MAX_VEHICLES`] vehicles, a colour-map chunk
-//! [`MAX_CHUNK`] bytes, a frame's mesh what the message holds. A length or count that
+//! datagram [`KEY_HISTORY`] states, a frame [`MAX_VEHICLES`] vehicles, a colour tile
+//! [`MAX_TILE_BYTES`] bytes, a frame's mesh what the message holds. A length or count that
 //! claims more than its limit is [`DecodeError::TooLong`], naming the field, before
 //! anything is allocated for it; a list reserves little until its items arrive (see
 //! `bounded`). Decoding borrows from the input, so no string or byte string is allocated
@@ -24,14 +24,18 @@ use serde::{Deserialize, Deserializer, Serialize};
 
 use crate::bounded;
 pub use crate::bounded::PREALLOC;
+pub use crate::tiles::{ColorLayout, MAX_TILE_BYTES, MAX_WINDOW};
 
 /// The protocol version this code speaks. 2: the colour map is sent compressed
 /// ([`crate::colormap`]). 3: a frame's mesh may be a change frame (mesh format 2,
 /// [`crate::changes`]). 4: a driver's welcome carries a resume ticket, and a hello may
 /// present one to take its vehicle back after a dropped connection ([`Hello::resume`]);
-/// a full server says so ([`Reason::Full`]).
-pub const VERSION: u16 = 4;
-/// The largest message (a frame with its mesh, or a colour-map chunk).
+/// a full server says so ([`Reason::Full`]). 5: the colour map is streamed by view as
+/// tiles of a pyramid ([`ColorLayout`], [`ServerMessage::ColorWindow`],
+/// [`ServerMessage::ColorTile`]) instead of whole; a hello says the window it can hold
+/// ([`Hello::color_window`]).
+pub const VERSION: u16 = 5;
+/// The largest message (a frame with its mesh).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.
 pub const MAX_DATAGRAM: usize = 256;
@@ -43,8 +47,6 @@ pub const KEY_HISTORY: usize = 8;
 pub const MAX_REASON: usize = 1024;
 /// The most vehicles a frame lists: one per vehicle id (`u16`).
 pub const MAX_VEHICLES: usize = 1 << 16;
-/// The largest colour-map chunk ([`ServerMessage::ColorMap`]), bytes.
-pub const MAX_CHUNK: usize = 64 << 10;
 /// The fewest and the most triangles a viewer may ask for: one limit, kept by both ends
 /// ([`clamp_budget`]).
 pub const MIN_BUDGET: u32 = 2;
@@ -98,6 +100,10 @@ pub struct Hello {
     /// The ticket of an earlier connection's welcome ([`Welcome::ticket`]): a driver whose
     /// connection dropped gets its vehicle back if the server still holds it.
     pub resume: Option<Ticket>,
+    /// The colour window (tiles a side per level) this viewer can hold, 1 ..=
+    /// [`MAX_WINDOW`]: the server uses the smaller of its own and this
+    /// ([`ColorLayout::window`]).
+    pub color_window: u8,
 }
 
 /// A driver's claim on its vehicle across a dropped connection: random, known only to the
@@ -121,10 +127,10 @@ pub struct Welcome {
     pub water_level: Option<f32>,
     /// The vehicle this viewer drives or follows.
     pub vehicle: u16,
-    /// The colour map, sent next as [`ServerMessage::ColorMap`] chunks: `cells × cells`
-    /// RGB texels, `bytes` compressed bytes in all.
-    pub color_cells: u32,
-    pub color_bytes: u32,
+    /// The colour map's tile pyramid: its coarsest level's single tile follows the
+    /// welcome, before the first frame; the other tiles stream as
+    /// [`ServerMessage::ColorWindow`] and [`ServerMessage::ColorTile`].
+    pub color: ColorLayout,
     /// The world's tick when the viewer joined.
     pub tick: u64,
     /// A driver's ticket, to present in the hello of a reconnection ([`Hello::resume`]).
@@ -192,10 +198,22 @@ pub struct ViewChange {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum ServerMessage {
     Welcome(Welcome),
-    /// Part of the compressed colour map, at byte `offset`.
-    ColorMap {
-        offset: u32,
-        #[serde(deserialize_with = "chunk")]
+    /// From now on the viewer keeps, of colour level `level`, the tiles `x0 .. x0 + W` ×
+    /// `z0 .. z0 + W` (`W` = [`ColorLayout::window`]) and drops the others. Only for
+    /// levels larger than a window ([`ColorLayout::windowed`]); a level's window starts
+    /// at `(0, 0)`.
+    ColorWindow {
+        level: u8,
+        x0: u32,
+        z0: u32,
+    },
+    /// Tile `(x, z)` of colour level `level`, coded by [`crate::colormap`] (its side is
+    /// [`ColorLayout::tile_side`]); always inside the level's current window.
+    ColorTile {
+        level: u8,
+        x: u32,
+        z: u32,
+        #[serde(deserialize_with = "tile")]
         data: Vec<u8>,
     },
     Refused(Reason),
@@ -339,8 +357,8 @@ fn reason<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
     bounded::string(d, "reason bytes", MAX_REASON)
 }
 
-fn chunk<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
-    bounded::list(d, "colour map chunk bytes", MAX_CHUNK)
+fn tile<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+    bounded::list(d, "colour tile bytes", MAX_TILE_BYTES)
 }
 
 fn vehicles<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<VehicleView>, D::Error> {

@@ -2,8 +2,8 @@
 
 use proptest::prelude::*;
 use roam_protocol::messages::{
-    self, ClientMessage, DecodeError, Frame, Hello, KeyDatagram, KeyState, Reason, Role,
-    ServerMessage, VehicleView, Welcome,
+    self, ClientMessage, ColorLayout, DecodeError, Frame, Hello, KeyDatagram, KeyState,
+    MAX_TILE_BYTES, Reason, Role, ServerMessage, VehicleView, Welcome,
 };
 
 fn round_trip<T>(msg: &T)
@@ -42,6 +42,7 @@ fn hello() -> Hello {
         budget: 65_536,
         frame_rate: 60,
         resume: None,
+        color_window: 8,
     }
 }
 
@@ -77,8 +78,7 @@ fn every_message_round_trips() {
         fog_color: [200, 210, 218],
         water_level: Some(28.5),
         vehicle: 0,
-        color_cells: 1024,
-        color_bytes: 123_456,
+        color: ColorLayout::new(1024, 256, 8).expect("a valid layout"),
         tick: 9_000,
         ticket: None,
         resumed: false,
@@ -91,8 +91,15 @@ fn every_message_round_trips() {
             water_level: None,
             ..welcome
         }),
-        ServerMessage::ColorMap {
-            offset: 4096,
+        ServerMessage::ColorWindow {
+            level: 1,
+            x0: 300,
+            z0: 7,
+        },
+        ServerMessage::ColorTile {
+            level: 2,
+            x: 127,
+            z: 128,
             data: vec![7; 1000],
         },
         ServerMessage::Refused(Reason::WrongToken),
@@ -200,9 +207,11 @@ fn limits() {
         }))
     };
     let reason = |n: usize| Reason::Protocol("r".repeat(n));
-    let chunk = |n: usize| {
-        encoded(&ServerMessage::ColorMap {
-            offset: 0,
+    let tile = |n: usize| {
+        encoded(&ServerMessage::ColorTile {
+            level: 0,
+            x: 0,
+            z: 0,
             data: vec![3; n],
         })
     };
@@ -260,22 +269,23 @@ fn limits() {
             TooLong("reason bytes", 1025, 1024),
         ),
         (
-            "a 64 KiB colour-map chunk",
+            "a colour tile of the largest payload",
             As::Server,
-            chunk(64 << 10),
+            tile(MAX_TILE_BYTES),
             Value,
         ),
         (
-            "a colour-map chunk of 64 KiB and a byte",
+            "a colour tile a byte longer",
             As::Server,
-            chunk((64 << 10) + 1),
-            TooLong("colour map chunk bytes", (64 << 10) + 1, 64 << 10),
+            tile(MAX_TILE_BYTES + 1),
+            TooLong("colour tile bytes", MAX_TILE_BYTES + 1, MAX_TILE_BYTES),
         ),
         (
-            "a colour-map chunk claiming 16 MiB",
+            "a colour tile claiming 16 MiB",
             As::Server,
-            claiming(&[1, 0], mb16, &[]),
-            TooLong("colour map chunk bytes", 16 << 20, 64 << 10),
+            // Variant 2 (a tile), level 0, x 0, z 0, then the payload's length.
+            claiming(&[2, 0, 0, 0], mb16, &[]),
+            TooLong("colour tile bytes", 16 << 20, MAX_TILE_BYTES),
         ),
         (
             "a frame claiming 65,537 vehicles",

@@ -46,6 +46,9 @@ enum Command {
     Replay(cli::sim::ReplayArgs),
     /// Serve the terrain to viewers over QUIC, the world at 100 Hz; stop with Ctrl-C.
     Serve(cli::net::ServeArgs),
+    /// Serve a data set in process and measure a driving viewer's colour stream: connect
+    /// to first frame, bytes before it, colour bytes a second; one JSON line.
+    ColorBench(cli::color_bench::ColorBenchArgs),
     /// Print the server's certificate fingerprint (made if absent); `--rotate` replaces it.
     Identity(cli::identity::IdentityArgs),
 }
@@ -62,6 +65,7 @@ fn main() -> ExitCode {
         Command::Simulate(args) => cli::sim::simulate(args),
         Command::Replay(args) => cli::sim::replay(args),
         Command::Serve(args) => cli::net::serve(args),
+        Command::ColorBench(args) => cli::color_bench::color_bench(args),
         Command::Identity(args) => cli::identity::identity(args),
     };
     match result {

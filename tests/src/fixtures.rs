@@ -1,11 +1,12 @@
 //! What the tests share: a small terrain ([`flat`]), the bundled real one ([`kossou`]), a
-//! server on loopback ([`serve`]), and the seeded generator the relay and the simulated
+//! server on loopback ([`serve`], [`serve_tiled`]), its colour pyramid ([`pyramid`]), and the seeded generator the relay and the simulated
 //! network draw every random choice from ([`SplitMix64`]).
 
 use std::sync::Arc;
 
 use roam_link::tls;
 use roam_server::net::{Options, Server};
+use roam_server::terrain::color_pyramid::ColorPyramid;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 
@@ -22,6 +23,16 @@ pub const TOKEN: &str = "test-token-0123456789";
 /// A server on `127.0.0.1:0` for `terrain`, with the default options as `tune` changes
 /// them (on the current tokio runtime).
 pub fn serve(terrain: Arc<Terrain>, tune: impl FnOnce(Options) -> Options) -> Running {
+    serve_tiled(terrain, roam_protocol::tiles::DEFAULT_TILE, tune)
+}
+
+/// [`serve`] with the colour map in tiles of `tile` texels a side.
+pub fn serve_tiled(
+    terrain: Arc<Terrain>,
+    tile: u32,
+    tune: impl FnOnce(Options) -> Options,
+) -> Running {
+    let pyramid = pyramid(&terrain, tile);
     let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
     let identity = tls::generate().expect("a certificate");
     let options = tune(Options::new(
@@ -29,13 +40,22 @@ pub fn serve(terrain: Arc<Terrain>, tune: impl FnOnce(Options) -> Options) -> Ru
         TOKEN.to_owned(),
     ));
     let token = options.token.clone();
-    let server = Server::start(terrain, Arc::new(vt), &identity, options).expect("listens");
+    let server =
+        Server::start(terrain, Arc::new(vt), pyramid, &identity, options).expect("listens");
     let fingerprint = tls::parse_fingerprint(&identity.fingerprint()).expect("valid");
     Running {
         server,
         token,
         fingerprint,
     }
+}
+
+/// `terrain`'s colour pyramid in tiles of `tile` texels, built in memory on two threads.
+pub fn pyramid(terrain: &Terrain, tile: u32) -> Arc<ColorPyramid> {
+    let color = (terrain.color.as_ref()).expect("the test terrains are loaded whole");
+    let p = ColorPyramid::build(color, tile, 2, &mut |_, _| {})
+        .expect("the test terrains' colour maps are powers of two");
+    Arc::new(p)
 }
 
 /// The bundled data set (`data/kossou`, 1025² samples).

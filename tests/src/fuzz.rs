@@ -160,13 +160,21 @@ pub fn seeds(grid: Grid) -> Vec<Vec<u8>> {
         budget: 65_536,
         frame_rate: 60,
         resume: Some([7; 16]),
+        color_window: 8,
     });
     let mut out = vec![
         encoded(&hello),
         encoded(&ClientMessage::Ack { frame: 99 }),
-        encoded(&ServerMessage::ColorMap {
-            offset: 0,
+        encoded(&ServerMessage::ColorTile {
+            level: 1,
+            x: 3,
+            z: 300,
             data: vec![1; 64],
+        }),
+        encoded(&ServerMessage::ColorWindow {
+            level: 0,
+            x0: 2,
+            z0: 1000,
         }),
         encoded(&frame(Some(2), vec![9; 40])),
         encoded(&KeyDatagram {
@@ -294,8 +302,8 @@ impl Fuzz {
             fog_density: 0.0,
             fog_color: [200; 3],
             water_level: None,
-            cells: 0,
-            colors: Vec::new(),
+            color: roam_protocol::ColorLayout::new(1 << LEVELS, 256, 8)
+                .expect("a grid's cells, a valid tile and window"),
         };
         Fuzz {
             grid,

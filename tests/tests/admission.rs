@@ -24,6 +24,7 @@ fn hello(r: &Running, role: Role, budget: u32, frame_rate: u16) -> Hello {
         budget,
         frame_rate,
         resume: None,
+        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
     }
 }
 

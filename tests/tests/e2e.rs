@@ -162,6 +162,7 @@ fn driver_hello(r: &Running, budget: u32) -> Hello {
         budget,
         frame_rate: 60,
         resume: None,
+        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
     }
 }
 

@@ -17,8 +17,8 @@ use std::collections::BTreeMap;
 
 use roam_link::wire::{self, READ_CHUNK, WireError};
 use roam_protocol::messages::{
-    self, ClientMessage, DecodeError, Frame, KEY_HISTORY, KeyDatagram, KeyState, MAX_CHUNK,
-    MAX_MESSAGE, MAX_REASON, MAX_TOKEN, MAX_VEHICLES, PREALLOC, ServerMessage,
+    self, ClientMessage, DecodeError, Frame, KEY_HISTORY, KeyDatagram, KeyState, MAX_MESSAGE,
+    MAX_REASON, MAX_TILE_BYTES, MAX_TOKEN, MAX_VEHICLES, PREALLOC, ServerMessage,
 };
 use roam_tests::fuzz::{COLOR_CELLS, Fuzz, HELLO_LIMIT, MAX_TRIANGLES, Stage};
 
@@ -108,8 +108,8 @@ fn bound(stage: Stage, bytes: &[u8], vertices: usize) -> usize {
     // A frame: its vehicles (48 bytes each in memory, at least 41 encoded) and its mesh,
     // copied from the input.
     let frame = PREALLOC + 3 * len * 48 / 41 + len + ERROR;
-    // A viewer's message: a reason or a colour-map chunk.
-    let server = list.min(PREALLOC.max(3 * MAX_CHUNK)) + ERROR;
+    // A viewer's message: a reason or a colour tile.
+    let server = list.min(PREALLOC.max(3 * MAX_TILE_BYTES)) + ERROR;
     match stage {
         // A hello (variant 0): its token. Others: a reason.
         Stage::ClientMessage if bytes.first() == Some(&0) => MAX_TOKEN + ERROR,
@@ -240,18 +240,18 @@ fn refused<T: serde::de::DeserializeOwned + messages::Checked + std::fmt::Debug>
 #[test]
 fn hostile_lengths_are_refused_before_allocating() {
     // A hello claiming a 16 MiB token: variant, version, role, then the token's length.
-    let mut hello = vec![0, 4, 0];
+    let mut hello = vec![0, messages::VERSION as u8, 0];
     hello.extend(claim(16 << 20));
     hello.extend_from_slice(b"abc");
     refused::<ClientMessage>(&hello, "join token bytes", 16 << 20, MAX_TOKEN, 1024);
     // A key datagram claiming 2^20 states.
     refused::<KeyDatagram>(&claim(1 << 20), "key states", 1 << 20, KEY_HISTORY, 1024);
-    // A colour-map chunk claiming 16 MiB: variant 1, offset 0, then its length.
-    let mut chunk = vec![1, 0];
-    chunk.extend(claim(16 << 20));
-    refused::<ServerMessage>(&chunk, "colour map chunk bytes", 16 << 20, MAX_CHUNK, 1024);
-    // A reason (variant 3, Bye; reason variant 4, Protocol) claiming a megabyte.
-    let mut bye = vec![3, 4];
+    // A colour tile claiming 16 MiB: variant 2, level 0, x 0, z 0, then its length.
+    let mut tile = vec![2, 0, 0, 0];
+    tile.extend(claim(16 << 20));
+    refused::<ServerMessage>(&tile, "colour tile bytes", 16 << 20, MAX_TILE_BYTES, 1024);
+    // A reason (variant 4, Bye; reason variant 4, Protocol) claiming a megabyte.
+    let mut bye = vec![4, 4];
     bye.extend(claim(1 << 20));
     refused::<ServerMessage>(&bye, "reason bytes", 1 << 20, MAX_REASON, 1024);
     // A frame claiming 2^24 vehicles: frame 3, no base, tick 77, then the count.
@@ -318,18 +318,20 @@ fn the_control_stream_refuses_long_claims_before_allocating() {
     let (r, peak) = read::<ServerMessage>(&short, MAX_MESSAGE);
     assert!(matches!(r, Err(WireError::Read(_))), "{r:?}");
     assert!(peak <= READ_CHUNK, "{peak} bytes");
-    // A colour-map chunk of 64 KiB, as the server sends them, reads back whole.
-    let chunk = ServerMessage::ColorMap {
-        offset: 7,
-        data: vec![5; MAX_CHUNK],
+    // A colour tile of the largest payload reads back whole.
+    let tile = ServerMessage::ColorTile {
+        level: 0,
+        x: 7,
+        z: 9,
+        data: vec![5; MAX_TILE_BYTES],
     };
     let mut framed = vec![0; 4];
-    messages::encode(&chunk, &mut framed).expect("a chunk encodes");
+    messages::encode(&tile, &mut framed).expect("a tile encodes");
     let len = (framed.len() - 4) as u32;
     framed[..4].copy_from_slice(&len.to_le_bytes());
     let (r, peak) = read::<ServerMessage>(&framed, MAX_MESSAGE);
-    assert_eq!(r.expect("a whole chunk reads"), chunk);
-    assert!(peak <= 4 * framed.len(), "{peak} bytes for a chunk");
+    assert_eq!(r.expect("a whole tile reads"), tile);
+    assert!(peak <= 4 * framed.len(), "{peak} bytes for a tile");
 }
 
 #[test]

@@ -56,9 +56,11 @@ async fn start() -> Running {
     let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
     let identity = tls::generate().expect("a certificate");
     let token = "a-test-token-of-some-length".to_owned();
+    let pyramid = roam_tests::fixtures::pyramid(&terrain, roam_protocol::tiles::DEFAULT_TILE);
     let server = Server::start(
         terrain,
         Arc::new(vt),
+        pyramid,
         &identity,
         Options {
             hold: HOLD,
@@ -88,6 +90,7 @@ async fn driver(r: &Running) -> Session {
         budget: 4_000,
         frame_rate: 60,
         resume: None,
+        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
     };
     let script = roam_protocol::script::parse(DRIVE).expect("a valid script");
     let addr: SocketAddr = r.relay.addr();

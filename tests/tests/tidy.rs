@@ -140,6 +140,7 @@ fn may_read_a_clock(f: &Path) -> bool {
         "server/src/cli/",
         "server/src/main.rs",
         "client/src/session.rs",
+        "client/src/connection.rs",
         "client/src/live.rs",
         "client/src/window.rs",
         "client/src/headless.rs",

@@ -1,13 +1,29 @@
 //! The renderer: the decoded mesh lit, fogged and coloured, with water and the other
 //! vehicles, over a sky, into any texture view (a window's surface or an offscreen
 //! texture: the same code).
+//!
+//! **Colour: a clipmap.** One `Rgba8UnormSrgb` 2D texture array, a layer per level of the
+//! colour pyramid, each `S × S` texels (`S = min(W·T, cells)`, see
+//! [`crate::color_cache`]), addressed toroidally: tiles are written where they land
+//! (`queue.write_texture`, one call per tile, [`Renderer::update_colors`]) and the sampler
+//! repeats, so the wrap costs nothing. Per level a uniform holds the window's origin and
+//! the mask of tiles drawn. The fragment shader takes the screen-space level of detail
+//! (the log2 of level-0 texels per pixel, from the derivatives of its cell coordinate) and
+//! draws the finest level at or above it whose texels under the bilinear footprint are all
+//! resident, down to the coarsest, which is resident from the join on. The texture needs
+//! `levels × S²` texels (7 × 2048² × 4 B = 112 MiB at 16385² and W = 8); a layout that
+//! does not fit the device (S past `max_texture_dimension_2d`, too many layers) is drawn
+//! grey rather than failing.
 
 mod math;
 mod pipelines;
 pub mod vertices;
 
 use anyhow::{Context, Result, anyhow};
+use roam_protocol::tiles::ColorLayout;
 use wgpu::util::DeviceExt;
+
+use crate::color_cache::{ColorUpdate, LevelState, MASK_WORDS, layer_side};
 
 pub use vertices::TerrainVertices;
 
@@ -23,9 +39,8 @@ pub struct Scene {
     pub fog_color: [u8; 3],
     /// World height of the water surface, if the map has one.
     pub water_level: Option<f32>,
-    /// `cells × cells` RGB texels, row 0 north.
-    pub cells: u32,
-    pub colors: Vec<u8>,
+    /// The colour pyramid's layout (the texels come by [`Renderer::update_colors`]).
+    pub color: ColorLayout,
 }
 
 impl Scene {
@@ -168,6 +183,36 @@ struct Instance {
 
 const _: () = assert!(std::mem::size_of::<Instance>().is_multiple_of(4));
 
+/// The most colour levels the shader takes (a 32768-cell map in tiles of 4 has 14).
+pub const MAX_COLOR_LEVELS: usize = 16;
+
+/// One colour level as the shader takes it.
+#[repr(C)]
+#[derive(Clone, Copy, Default, bytemuck::Pod, bytemuck::Zeroable)]
+struct ColorLevel {
+    /// Window origin x0, z0 (tiles), the level's side (texels), unused.
+    origin: [u32; 4],
+    /// Tiles drawn: bit `(z mod W)·W + (x mod W)`.
+    mask: [u32; MASK_WORDS],
+}
+
+/// The colour clipmap's uniform.
+#[repr(C)]
+#[derive(Clone, Copy, bytemuck::Pod, bytemuck::Zeroable)]
+struct ColorLevels {
+    /// Levels (0: no colour, grey), W, T, S.
+    info: [u32; 4],
+    level: [ColorLevel; MAX_COLOR_LEVELS],
+}
+
+/// Whether `layout`'s clipmap fits `limits` (and the shader's level count).
+fn fits(layout: &ColorLayout, limits: &wgpu::Limits) -> bool {
+    layout.check().is_ok()
+        && usize::from(layout.levels) <= MAX_COLOR_LEVELS
+        && layer_side(layout) <= limits.max_texture_dimension_2d
+        && u32::from(layout.levels) <= limits.max_texture_array_layers
+}
+
 /// A vertex buffer that grows as needed and is otherwise reused.
 struct Buffer {
     label: &'static str,
@@ -229,6 +274,11 @@ pub struct Renderer {
     format: wgpu::TextureFormat,
     /// The target format does not encode sRGB: the shader does.
     encode_srgb: bool,
+    /// The colour clipmap (a layer per level) and its uniform; `None` when the layout does
+    /// not fit the device (drawn grey).
+    colors: Option<wgpu::Texture>,
+    color_uniform: wgpu::Buffer,
+    color_levels: ColorLevels,
 }
 
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -250,54 +300,51 @@ fn srgb_to_linear(c: u8) -> f32 {
     }
 }
 
-/// The colour map as RGBA, halved until a side fits in `max`; grey if it is malformed.
-fn color_texels(scene: &Scene, max: u32) -> (u32, Vec<u8>) {
-    let (mut cells, mut rgb) = (scene.cells.max(1), scene.colors.clone());
-    if rgb.len() as u64 != u64::from(cells) * u64::from(cells) * 3 {
-        (cells, rgb) = (1, vec![128, 128, 128]);
-    }
-    while cells > max.max(1) {
-        let half = cells / 2;
-        let mut out = Vec::with_capacity((half * half * 3) as usize);
-        for z in 0..half {
-            for x in 0..half {
-                let i = ((2 * z * cells + 2 * x) * 3) as usize;
-                out.extend_from_slice(&rgb[i..i + 3]);
-            }
-        }
-        (cells, rgb) = (half, out);
-    }
-    let rgba = rgb
-        .chunks(3)
-        .flat_map(|c| [c[0], c[1], c[2], 255])
-        .collect();
-    (cells, rgba)
-}
-
 impl Renderer {
     /// A renderer drawing into textures of `format`.
     pub fn new(gpu: &Gpu, format: wgpu::TextureFormat, scene: Scene) -> Renderer {
         let device = &gpu.device;
-        let (cells, rgba) = color_texels(&scene, device.limits().max_texture_dimension_2d);
-        let texture = device.create_texture_with_data(
-            &gpu.queue,
-            &wgpu::TextureDescriptor {
-                label: Some("colour map"),
-                size: wgpu::Extent3d {
-                    width: cells,
-                    height: cells,
-                    depth_or_array_layers: 1,
-                },
-                mip_level_count: 1,
-                sample_count: 1,
-                dimension: wgpu::TextureDimension::D2,
-                format: wgpu::TextureFormat::Rgba8UnormSrgb,
-                usage: wgpu::TextureUsages::TEXTURE_BINDING,
-                view_formats: &[],
+        let layout = scene.color;
+        let fit = fits(&layout, &device.limits());
+        let (side, layers) = if fit {
+            (layer_side(&layout), u32::from(layout.levels))
+        } else {
+            (1, 1)
+        };
+        let texture = device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("colour clipmap"),
+            size: wgpu::Extent3d {
+                width: side,
+                height: side,
+                depth_or_array_layers: layers,
             },
-            wgpu::util::TextureDataOrder::LayerMajor,
-            &rgba,
-        );
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: wgpu::TextureFormat::Rgba8UnormSrgb,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        let mut color_levels = ColorLevels {
+            info: [0; 4],
+            level: [ColorLevel::default(); MAX_COLOR_LEVELS],
+        };
+        if fit {
+            color_levels.info = [
+                u32::from(layout.levels),
+                u32::from(layout.window),
+                layout.tile,
+                side,
+            ];
+            for l in 0..layout.levels {
+                color_levels.level[usize::from(l)].origin[2] = layout.side(l);
+            }
+        }
+        let color_uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("colour levels"),
+            contents: bytemuck::bytes_of(&color_levels),
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+        });
         let uniforms = device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("uniforms"),
             size: std::mem::size_of::<Uniforms>() as u64,
@@ -305,7 +352,7 @@ impl Renderer {
             mapped_at_creation: false,
         });
         let (pipelines, bind_group) =
-            pipelines::Pipelines::new(device, format, &uniforms, &texture);
+            pipelines::Pipelines::new(device, format, &uniforms, &texture, &color_uniform);
         let model_vertices = vertices::marker_model();
         let model = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("marker model"),
@@ -326,7 +373,65 @@ impl Renderer {
             scratch: TerrainVertices::default(),
             encode_srgb: !format.is_srgb(),
             format,
+            colors: fit.then_some(texture),
+            color_uniform,
+            color_levels,
         }
+    }
+
+    /// Writes a colour update ([`crate::color_cache::ColorCache::drain`]): each tile into
+    /// its layer, then every level's window and mask. Ignored when the layout did not fit.
+    pub fn update_colors(&mut self, gpu: &Gpu, update: &ColorUpdate) {
+        let Some(texture) = &self.colors else {
+            return;
+        };
+        let side = self.color_levels.info[3];
+        let layers = self.color_levels.info[0];
+        for u in &update.uploads {
+            // A cache of another layout is a caller's bug: never a wgpu validation panic.
+            let fits = u.layer < layers
+                && u.x + u.size <= side
+                && u.y + u.size <= side
+                && u.rgba.len() as u64 == u64::from(u.size) * u64::from(u.size) * 4;
+            if !fits {
+                continue;
+            }
+            gpu.queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d {
+                        x: u.x,
+                        y: u.y,
+                        z: u.layer,
+                    },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                &u.rgba,
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(u.size * 4),
+                    rows_per_image: Some(u.size),
+                },
+                wgpu::Extent3d {
+                    width: u.size,
+                    height: u.size,
+                    depth_or_array_layers: 1,
+                },
+            );
+        }
+        for (l, state) in update.levels.iter().take(layers as usize).enumerate() {
+            let LevelState { origin, drawn } = *state;
+            let level = &mut self.color_levels.level[l];
+            level.origin[0] = origin[0];
+            level.origin[1] = origin[1];
+            level.mask = drawn;
+        }
+        gpu.queue.write_buffer(
+            &self.color_uniform,
+            0,
+            bytemuck::bytes_of(&self.color_levels),
+        );
     }
 
     /// The format it draws into.
@@ -593,13 +698,7 @@ pub fn write_png(path: &std::path::Path, size: (u32, u32), rgba: &[u8]) -> Resul
 
 /// A plain scene for unit tests: overhead sun, no fog, no water.
 #[cfg(test)]
-pub(crate) fn test_scene(
-    levels: u32,
-    h_scale: f64,
-    v_scale: f64,
-    cells: u32,
-    colors: Vec<u8>,
-) -> Scene {
+pub(crate) fn test_scene(levels: u32, h_scale: f64, v_scale: f64) -> Scene {
     Scene {
         levels,
         h_scale,
@@ -609,8 +708,7 @@ pub(crate) fn test_scene(
         fog_density: 0.0,
         fog_color: [0; 3],
         water_level: None,
-        cells,
-        colors,
+        color: ColorLayout::new(1 << levels, 256, 8).expect("a valid layout"),
     }
 }
 
@@ -618,28 +716,22 @@ pub(crate) fn test_scene(
 mod tests {
     use super::*;
 
-    fn scene(cells: u32, colors: Vec<u8>) -> Scene {
-        test_scene(2, 1.0, 1.0, cells, colors)
-    }
-
     #[test]
-    fn a_colour_map_larger_than_the_gpu_allows_is_halved_until_it_fits() {
-        // 4 × 4 texels, each coded by its position.
-        let rgb: Vec<u8> = (0..16u8).flat_map(|i| [i, 100 + i, 200]).collect();
-        let check = |max: u32, cells: u32, first_row: &[u8]| {
-            let (c, rgba) = color_texels(&scene(4, rgb.clone()), max);
-            assert_eq!(c, cells, "max {max}");
-            assert_eq!(rgba.len(), (cells * cells * 4) as usize);
-            let reds: Vec<u8> = rgba.chunks(4).take(cells as usize).map(|p| p[0]).collect();
-            assert_eq!(reds, first_row, "max {max}");
-            assert!(rgba.chunks(4).all(|p| p[3] == 255));
-        };
-        check(8192, 4, &[0, 1, 2, 3]);
-        check(3, 2, &[0, 2]);
-        check(1, 1, &[0]);
-        // A map whose size does not match its cells is drawn grey, not trusted.
-        let (c, rgba) = color_texels(&scene(4, vec![1, 2, 3]), 8192);
-        assert_eq!((c, rgba), (1, vec![128, 128, 128, 255]));
+    fn a_layout_beyond_the_device_is_drawn_grey() {
+        let limits = wgpu::Limits::default();
+        let ok = ColorLayout::new(1 << 15, 256, 8).expect("a valid layout");
+        assert!(fits(&ok, &limits));
+        let wide = ColorLayout::new(1 << 15, 256, 16).expect("a valid layout");
+        assert!(!fits(&wide, &wgpu::Limits::downlevel_webgl2_defaults()));
+        let tiny = ColorLayout::new(1 << 15, 1, 1).expect("a valid layout");
+        assert_eq!(tiny.levels, 16);
+        assert!(fits(&tiny, &limits));
+        let odd = ColorLayout { levels: 17, ..tiny };
+        assert!(!fits(&odd, &limits));
+        assert_eq!(
+            std::mem::size_of::<ColorLevels>(),
+            16 + 48 * MAX_COLOR_LEVELS
+        );
     }
 
     #[test]

@@ -1,4 +1,5 @@
-//! The render pipelines and their shared bind group (uniforms, colour map, sampler).
+//! The render pipelines and their shared bind group (uniforms, the colour clipmap as a 2D
+//! array, its repeating sampler, the colour levels' uniform).
 
 use super::DEPTH;
 use super::vertices::Vertex;
@@ -24,13 +25,17 @@ impl Pipelines {
         format: wgpu::TextureFormat,
         uniforms: &wgpu::Buffer,
         colors: &wgpu::Texture,
+        color_levels: &wgpu::Buffer,
     ) -> (Pipelines, wgpu::BindGroup) {
         let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("roam"),
             source: wgpu::ShaderSource::Wgsl(include_str!("shader.wgsl").into()),
         });
         let sampler = device.create_sampler(&wgpu::SamplerDescriptor {
-            label: Some("colour map"),
+            label: Some("colour clipmap"),
+            // Toroidal addressing: a layer wraps.
+            address_mode_u: wgpu::AddressMode::Repeat,
+            address_mode_v: wgpu::AddressMode::Repeat,
             mag_filter: wgpu::FilterMode::Linear,
             min_filter: wgpu::FilterMode::Linear,
             ..Default::default()
@@ -53,7 +58,7 @@ impl Pipelines {
                     visibility: wgpu::ShaderStages::FRAGMENT,
                     ty: wgpu::BindingType::Texture {
                         sample_type: wgpu::TextureSampleType::Float { filterable: true },
-                        view_dimension: wgpu::TextureViewDimension::D2,
+                        view_dimension: wgpu::TextureViewDimension::D2Array,
                         multisampled: false,
                     },
                     count: None,
@@ -64,9 +69,22 @@ impl Pipelines {
                     ty: wgpu::BindingType::Sampler(wgpu::SamplerBindingType::Filtering),
                     count: None,
                 },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 3,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
             ],
         });
-        let view = colors.create_view(&wgpu::TextureViewDescriptor::default());
+        let view = colors.create_view(&wgpu::TextureViewDescriptor {
+            dimension: Some(wgpu::TextureViewDimension::D2Array),
+            ..Default::default()
+        });
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("scene"),
             layout: &layout,
@@ -82,6 +100,10 @@ impl Pipelines {
                 wgpu::BindGroupEntry {
                     binding: 2,
                     resource: wgpu::BindingResource::Sampler(&sampler),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: color_levels.as_entire_binding(),
                 },
             ],
         });

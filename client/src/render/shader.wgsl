@@ -2,7 +2,8 @@
 // an ambient term; fog: exp(-density * distance) towards the fog colour, which the sky
 // fades into at the horizon; wireframe: edges found from barycentrics (derived from the
 // vertex index, the mesh being drawn unindexed), so it works on every adapter. Depth is
-// reversed (1 near, 0 at infinity).
+// reversed (1 near, 0 at infinity). Colour: a clipmap, a texture-array layer per level of
+// the colour pyramid, addressed toroidally (see `color_at`).
 
 struct Uniforms {
     view_proj: mat4x4<f32>,
@@ -30,8 +31,76 @@ fn out(c: vec3<f32>) -> vec3<f32> {
 }
 
 @group(0) @binding(0) var<uniform> u: Uniforms;
-@group(0) @binding(1) var colors: texture_2d<f32>;
+@group(0) @binding(1) var colors: texture_2d_array<f32>;
 @group(0) @binding(2) var colors_sampler: sampler;
+
+struct ColorLevel {
+    // x0, z0: the window's origin (tiles); z: the level's side (texels)
+    origin: vec4<u32>,
+    // Tiles drawn: bit (z mod W)·W + (x mod W), 32 to a word
+    mask: array<vec4<u32>, 2>,
+};
+
+struct ColorLevels {
+    // x: levels (0: no colour), y: W (tiles), z: T (texels), w: S (texels a layer)
+    info: vec4<u32>,
+    level: array<ColorLevel, 16>,
+};
+
+@group(0) @binding(3) var<uniform> cl: ColorLevels;
+
+// Whether tile (tx, tz) of level l is in its window and drawn.
+fn tile_drawn(l: u32, tx: u32, tz: u32) -> bool {
+    let w = cl.info.y;
+    let o = cl.level[l].origin;
+    // Unsigned: a tile before the origin wraps to a large number.
+    if (tx - o.x >= w || tz - o.y >= w) {
+        return false;
+    }
+    let b = (tz % w) * w + (tx % w);
+    let word = cl.level[l].mask[b / 128u][(b / 32u) % 4u];
+    return ((word >> (b % 32u)) & 1u) == 1u;
+}
+
+// Whether the bilinear footprint at p (texels of level l, clamped inside it) is drawn:
+// the tiles of its lowest and highest texels in both axes.
+fn footprint_drawn(l: u32, p: vec2<f32>) -> bool {
+    let last = cl.level[l].origin.z - 1u;
+    let lo = vec2<u32>(max(p - 0.5, vec2<f32>(0.0)));
+    let hi = min(vec2<u32>(p + 0.5), vec2<u32>(last));
+    let t = cl.info.z;
+    let a = lo / t;
+    let b = hi / t;
+    return tile_drawn(l, a.x, a.y) && tile_drawn(l, b.x, a.y) && tile_drawn(l, a.x, b.y)
+        && tile_drawn(l, b.x, b.y);
+}
+
+// The ground's colour at level-0 cell coordinate `cell`: the finest level at or above the
+// screen-space level of detail (log2 of level-0 texels per pixel) whose footprint is
+// drawn, down to the coarsest; grey before any colour.
+fn color_at(cell: vec2<f32>) -> vec3<f32> {
+    // Derivatives first, in uniform control flow.
+    let d = max(length(dpdx(cell)), length(dpdy(cell)));
+    let levels = cl.info.x;
+    if (levels == 0u) {
+        return vec3<f32>(0.5);
+    }
+    let lod = max(log2(max(d, 1e-6)), 0.0);
+    var l = min(u32(lod), levels - 1u);
+    loop {
+        let side = f32(cl.level[l].origin.z);
+        let p = clamp(cell / f32(1u << l), vec2<f32>(0.5), vec2<f32>(side - 0.5));
+        if (footprint_drawn(l, p)) {
+            let uv = p / f32(cl.info.w);
+            return textureSampleLevel(colors, colors_sampler, uv, i32(l), 0.0).rgb;
+        }
+        if (l + 1u >= levels) {
+            break;
+        }
+        l += 1u;
+    }
+    return vec3<f32>(0.5);
+}
 
 fn fogged(c: vec3<f32>, dist: f32) -> vec3<f32> {
     if (u.params.y < 0.5) {
@@ -118,7 +187,8 @@ fn terrain_vs(
 
 @fragment
 fn terrain_fs(in: TerrainOut) -> @location(0) vec4<f32> {
-    var base = textureSample(colors, colors_sampler, in.world.xz / u.map.x).rgb;
+    let cells = f32(cl.level[0].origin.z);
+    var base = color_at(in.world.xz / u.map.x * cells);
     let dist = length(in.world - u.eye.xyz);
     if (u.map.w > 0.5) {
         base *= detail(in.world.xz, dist);

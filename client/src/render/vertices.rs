@@ -130,7 +130,7 @@ mod tests {
     use super::*;
 
     fn scene() -> Scene {
-        crate::render::test_scene(1, 10.0, 0.5, 1, vec![0; 3])
+        crate::render::test_scene(1, 10.0, 0.5)
     }
 
     #[test]

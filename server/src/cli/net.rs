@@ -1,4 +1,5 @@
-//! `serve`: the QUIC server.
+//! `serve`: the QUIC server. The colour pyramid is mapped from the data set's cache
+//! (`.cache/color-tiles.bin`), or built (with a progress bar) and cached there.
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -10,6 +11,7 @@ use roam_link::tls;
 use roam_server::net::{self, Options, Server};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
+use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
 use roam_server::viewer::ViewerLimits;
 use std::time::Duration;
 
@@ -56,6 +58,15 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = session::DEFAULT_MAX_BYTES,
           value_parser = clap::value_parser!(u64).range(session::MIN_MAX_BYTES..=session::MAX_MAX_BYTES))]
     pub record_max_bytes: u64,
+    /// Colour tile bytes a second at most, per viewer, after the coarsest tile.
+    #[arg(long, default_value_t = net::COLOR_RATE,
+          value_parser = clap::value_parser!(u64).range(1_000..))]
+    pub color_rate: u64,
+    /// Colour window offered: tiles a side kept per level (1 ..= 16); a viewer asking
+    /// less gets its own.
+    #[arg(long, default_value_t = roam_protocol::tiles::DEFAULT_WINDOW,
+          value_parser = clap::value_parser!(u8).range(1..=i64::from(roam_protocol::tiles::MAX_WINDOW)))]
+    pub color_window: u8,
 }
 
 /// A number of seconds: finite, positive and at most a day.
@@ -97,6 +108,8 @@ impl ServeArgs {
             hello_timeout: Duration::from_secs_f64(self.hello_timeout),
             hold: Duration::from_secs_f64(self.hold),
             summary_every: Duration::from_secs_f64(self.log_every),
+            color_rate: self.color_rate,
+            color_window: self.color_window,
             ..Options::new(self.listen, token)
         })
     }
@@ -109,7 +122,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let token = token.as_str().to_owned();
     // Heights and variance tree from the data set's cache (built on first use).
     let super::tess::Opened {
-        mut terrain,
+        terrain,
         variance: vt,
         report,
         ms,
@@ -122,15 +135,45 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     );
     // A data set too large to serve is refused before its colour map is read.
     net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
-    // The colour map is still sent whole to every viewer, so it is read here.
-    terrain.color = Some({
-        let mut p = super::progress::Progress::new("colour");
-        roam_server::terrain::dataset::load_color(
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    // The colour tiles from the cache; `color.ppm` is read only to build it.
+    let pyramid = {
+        let mut p = super::progress::Progress::new("colour tiles");
+        let cells = terrain.heights.size();
+        let (pyramid, outcome) = ColorPyramid::open_or_load(
             &args.dir,
-            terrain.heights.size(),
+            cells,
+            roam_protocol::tiles::DEFAULT_TILE,
+            threads,
+            || {
+                let mut p = super::progress::Progress::new("colour");
+                roam_server::terrain::dataset::load_color(&args.dir, cells, &mut p.callback())
+            },
             &mut p.callback(),
-        )?
-    });
+        )
+        .with_context(|| args.dir.display().to_string())?;
+        match outcome {
+            CacheOutcome::Mapped => {}
+            CacheOutcome::Built => tracing::info!("colour tiles cached"),
+            CacheOutcome::Rebuilt(why) => tracing::warn!("colour tile cache rebuilt: {why}"),
+            CacheOutcome::InMemory(why) => {
+                tracing::warn!("colour tiles kept in memory, not cached: {why}")
+            }
+        }
+        tracing::info!(
+            levels = pyramid.levels(),
+            kbytes = pyramid.coded_bytes() / 1000,
+            mapped = pyramid.is_mapped(),
+            "colour pyramid"
+        );
+        pyramid
+    };
+    // The recordings name the data set by its hash, colour included, as `replay` (which
+    // loads it whole) computes it.
+    let hash = {
+        let mut p = super::progress::Progress::new("hashing");
+        terrain.content_hash_in(&args.dir, &mut p.callback())?
+    };
     let identity = tls::load_or_create(&args.state_dir)?;
     let record_dir = args
         .record_dir
@@ -145,10 +188,13 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         let server = Server::start(
             Arc::new(terrain),
             Arc::new(vt),
+            Arc::new(pyramid),
             &identity,
             args.options(
                 token.clone(),
-                Some(RecordOptions::new(files, args.record_max_bytes)),
+                Some(
+                    RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash),
+                ),
             )?,
         )?;
         say!("listening on {} (UDP)", server.addr);

@@ -21,6 +21,7 @@ use tokio::sync::watch;
 
 use crate::Terrain;
 use crate::sim::world_core::Snapshot;
+use crate::terrain::color_pyramid::ColorPyramid;
 use crate::terrain::variance::VarianceTree;
 use crate::viewer::admission::{Admission, PendingId};
 use roam_protocol::messages::Ticket;
@@ -50,6 +51,12 @@ pub struct Options {
     pub hold: std::time::Duration,
     /// How often the summary line is logged.
     pub summary_every: std::time::Duration,
+    /// Colour tile bytes a second at most, per viewer (the coarsest tile, sent before the
+    /// first frame, is outside it).
+    pub color_rate: u64,
+    /// The colour window (tiles a side per level) offered; a viewer asking less gets its
+    /// own ([`roam_protocol::messages::Hello::color_window`]).
+    pub color_window: u8,
 }
 
 /// [`Options::max_viewers`] unless told otherwise.
@@ -60,6 +67,8 @@ pub const MAX_PENDING: usize = 256;
 pub const HELLO_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
 /// [`Options::hold`] unless told otherwise.
 pub const HOLD: std::time::Duration = std::time::Duration::from_secs(30);
+/// [`Options::color_rate`] unless told otherwise: 2 MB/s.
+pub const COLOR_RATE: u64 = 2_000_000;
 
 impl Options {
     /// Listening on `listen` for viewers with `token`, not recorded, with the default
@@ -75,6 +84,8 @@ impl Options {
             hello_timeout: HELLO_TIMEOUT,
             hold: HOLD,
             summary_every: std::time::Duration::from_secs(60),
+            color_rate: COLOR_RATE,
+            color_window: roam_protocol::tiles::DEFAULT_WINDOW,
         }
     }
 }
@@ -87,8 +98,11 @@ pub struct Shared {
     pub limits: crate::viewer::ViewerLimits,
     /// The heights' common step, for the mesh coder (computed once).
     pub height_step: u16,
-    /// The colour map, compressed once (`roam_protocol::colormap`) for every welcome.
-    pub color_map: Vec<u8>,
+    /// The colour map's tiles, coded once ([`crate::terrain::color_pyramid`]).
+    pub pyramid: Arc<ColorPyramid>,
+    /// [`Options::color_rate`] and [`Options::color_window`].
+    pub color_rate: u64,
+    pub color_window: u8,
     /// The world thread's one inbox: joins, leaves and key states.
     world: std::sync::mpsc::Sender<Inbound>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
@@ -155,26 +169,21 @@ pub enum ServeError {
     World(std::io::Error),
     #[error("the world thread panicked")]
     WorldPanicked,
-    #[error("the colour map: {0}")]
-    ColorMapShape(String),
-    #[error("the colour map codes to {0} bytes, more than a viewer takes")]
-    ColorMap(usize),
-    #[error(
-        "the data set was opened without its colour map (dataset::open_cached), which this \
-         server still sends whole: load it with dataset::load"
-    )]
-    NoColorMap,
+    #[error("the colour pyramid: {0}")]
+    ColorLayout(#[from] roam_protocol::tiles::LayoutError),
+    #[error("the colour pyramid is of a {got}² map, the terrain's colour map is {expected}²")]
+    ColorPyramid { got: u32, expected: u32 },
     #[error(
         "a grid of {side}² samples: this server serves at most {max}² (2^{levels} + 1), \
-         the most a viewer holds; import it again with a smaller side"
+         the protocol's largest colour map; import it again with a smaller side"
     )]
     TooLarge { side: u32, max: u32, levels: u32 },
 }
 
-/// The most levels a served data set may have: a grid of `2^13 + 1` samples a side, the
-/// most a viewer holds (its colour map is `2^13` texels a side, within every GPU's
-/// texture limit).
-pub const MAX_LEVELS: u32 = 13;
+/// The most levels a served data set may have: a grid of `2^15 + 1` samples a side, the
+/// protocol's largest colour map ([`roam_protocol::tiles::MAX_COLOR_CELLS`]; it streams as
+/// tiles, so no viewer ever holds it whole).
+pub const MAX_LEVELS: u32 = 15;
 
 /// Whether `terrain` can be served: an error (before anything starts) if not.
 pub fn check_servable(terrain: &Terrain) -> Result<(), ServeError> {
@@ -198,18 +207,18 @@ impl Server {
     pub fn start(
         terrain: Arc<Terrain>,
         variance: Arc<VarianceTree>,
+        pyramid: Arc<ColorPyramid>,
         identity: &tls::Identity,
         options: Options,
     ) -> Result<Server, ServeError> {
         check_servable(&terrain)?;
         // Everything that can refuse the data set comes before the recording's first file.
-        let color = terrain.color.as_ref().ok_or(ServeError::NoColorMap)?;
-        let mut color_map = Vec::new();
-        let rgb: Vec<u8> = color.rgb().iter().flatten().copied().collect();
-        roam_protocol::colormap::encode(color.cells(), &rgb, &mut color_map)
-            .map_err(|e| ServeError::ColorMapShape(e.to_string()))?;
-        if color_map.len() > roam_protocol::colormap::max_len(color.cells()) {
-            return Err(ServeError::ColorMap(color_map.len()));
+        let layout = pyramid.layout(options.color_window)?;
+        if layout.cells != terrain.heights.size() {
+            return Err(ServeError::ColorPyramid {
+                got: layout.cells,
+                expected: terrain.heights.size(),
+            });
         }
         let config = tls::server_config(identity)?;
         let endpoint = quinn::Endpoint::server(config, options.listen).map_err(|error| {
@@ -238,7 +247,9 @@ impl Server {
         let (stop, shutdown) = watch::channel(false);
         let shared = Arc::new(Shared {
             height_step: roam_protocol::height_step(terrain.heights.samples()),
-            color_map,
+            pyramid,
+            color_rate: options.color_rate,
+            color_window: options.color_window,
             terrain,
             variance,
             token: options.token,
@@ -385,6 +396,7 @@ async fn summary_loop(
             cpu_per_frame_us = format_args!("{:.0}", s.cpu_per_frame_us.unwrap_or(0.0)),
             make_us = format_args!("{:.0}", s.make_us.unwrap_or(0.0)),
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
+            color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
             pending,
             junk_closed = s.junk,
             retried = s.retried,
@@ -412,14 +424,14 @@ mod tests {
     use super::*;
 
     #[test]
-    fn grids_past_8193_are_refused_with_the_reason() {
+    fn grids_past_32769_are_refused_with_the_reason() {
         for levels in 1..=MAX_LEVELS {
             assert!(servable(levels).is_ok(), "{levels} levels");
         }
-        for (levels, side) in [(14, 16_385), (15, 32_769)] {
+        for (levels, side) in [(16, 65_537), (17, 131_073)] {
             let e = servable(levels).expect_err("too large").to_string();
             assert!(
-                e.contains(&format!("{side}²")) && e.contains("8193²"),
+                e.contains(&format!("{side}²")) && e.contains("32769²"),
                 "{e}"
             );
         }

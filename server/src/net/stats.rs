@@ -1,7 +1,7 @@
 //! What the server counts while it serves, and the periodic summary it logs from them:
 //! viewers, frames a second served, CPU per frame (the whole process's, from
-//! `/proc/self/stat`, over the frames served in the interval), bytes out a second, and
-//! what admission did with connections that never said hello.
+//! `/proc/self/stat`, over the frames served in the interval), bytes out a second (and the
+//! colour tiles' share of them), and what admission did with connections that never said hello.
 //!
 //! Counters are relaxed atomics: each is a plain count that nothing else is ordered by.
 
@@ -17,6 +17,10 @@ pub struct ServeStats {
     pub bytes_out: AtomicU64,
     /// Time spent making frames, nanoseconds.
     pub make_ns: AtomicU64,
+    /// Colour tile messages written to viewers' control streams, and their bytes (the
+    /// coarsest tile sent before the first frame included).
+    pub color_tiles: AtomicU64,
+    pub color_bytes: AtomicU64,
     /// Viewers welcomed.
     pub joins: AtomicU64,
     /// Hellos refused (token, version, full, nothing to follow).
@@ -46,6 +50,8 @@ pub struct Counts {
     pub frames: u64,
     pub bytes_out: u64,
     pub make_ns: u64,
+    pub color_tiles: u64,
+    pub color_bytes: u64,
     pub joins: u64,
     pub refused: u64,
     pub retried: u64,
@@ -78,6 +84,8 @@ impl ServeStats {
             frames: get(&self.frames),
             bytes_out: get(&self.bytes_out),
             make_ns: get(&self.make_ns),
+            color_tiles: get(&self.color_tiles),
+            color_bytes: get(&self.color_bytes),
             joins: get(&self.joins),
             refused: get(&self.refused),
             retried: get(&self.retried),
@@ -108,6 +116,8 @@ pub fn process_cpu() -> Option<Duration> {
 pub struct Summary {
     pub frames_per_s: f64,
     pub bytes_out_per_s: f64,
+    /// Colour tile bytes a second.
+    pub color_bytes_per_s: f64,
     /// Process CPU per frame served, microseconds (`None` without frames or a CPU clock).
     pub cpu_per_frame_us: Option<f64>,
     /// Time making a frame, microseconds, on average.
@@ -126,6 +136,7 @@ impl Summary {
         Summary {
             frames_per_s: frames as f64 / seconds,
             bytes_out_per_s: (b.bytes_out - a.bytes_out) as f64 / seconds,
+            color_bytes_per_s: (b.color_bytes - a.color_bytes) as f64 / seconds,
             cpu_per_frame_us: cpu.and_then(|c| per_frame(c.as_secs_f64() * 1e6)),
             make_us: per_frame((b.make_ns - a.make_ns) as f64 / 1e3),
             junk: (b.timed_out + b.evicted_closed + b.failed)
@@ -154,6 +165,7 @@ mod tests {
             bytes_out: 61_000,
             make_ns: 600_000_000,
             timed_out: 5,
+            color_bytes: 20_000,
             evicted_closed: 1,
             retried: 4,
             ..Counts::default()
@@ -161,6 +173,7 @@ mod tests {
         let s = Summary::between(&a, &b, 10.0, Some(Duration::from_millis(300)));
         assert_eq!(s.frames_per_s, 60.0);
         assert_eq!(s.bytes_out_per_s, 6_000.0);
+        assert_eq!(s.color_bytes_per_s, 2_000.0);
         assert_eq!(s.cpu_per_frame_us, Some(500.0));
         assert_eq!(s.make_us, Some(1_000.0));
         assert_eq!((s.junk, s.retried, s.refused), (3, 4, 0));

@@ -15,12 +15,22 @@
 //!   interval it still arrives, and the viewer decodes it and the frames after. It is reset
 //!   only once superseded by a newer key frame (or when the viewer asked for another),
 //!   unless acknowledged.
+//!
+//! The colour map streams on the control stream, at a priority below every frame's so
+//! that colour never delays a frame: the welcome, then the coarsest tile (before the
+//! first frame), then a task ([`stream_color`]) sending what the viewer's
+//! [`ColorScheduler`] picks for the followed vehicle's position, paced by a token bucket
+//! of [`super::Options::color_rate`] bytes a second (a burst of a quarter second, and at
+//! least the largest tile). A tile is written whole and awaited before the next, so the
+//! send buffer holds little more than a tile; the control stream's last word (a goodbye,
+//! a refusal) waits for the tile being written, so no message is ever cut.
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use roam_link::wire;
+use roam_protocol::ColorLayout;
 use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
 use tokio::sync::oneshot;
 
@@ -28,11 +38,10 @@ use super::Shared;
 use super::handshake::{Joined, MAX_CONTROL, Seat};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
+use crate::viewer::color::{ColorScheduler, ColorSend};
 use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{Scene, ViewerCore};
 
-/// Colour-map bytes per chunk.
-const CHUNK: usize = 64 << 10;
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
@@ -59,7 +68,7 @@ pub(super) struct Viewer {
 pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     let Viewer {
         conn,
-        mut send,
+        send,
         recv,
         hello,
         peer,
@@ -76,12 +85,29 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         hold: false,
     };
     let started = std::time::Instant::now();
-    if welcome(&mut send, &shared, &joined).await.is_err() {
+    // Colour never delays a frame (frames' priorities are their numbers, from 0).
+    let _ = send.set_priority(-1);
+    let layout = shared
+        .pyramid
+        .layout(shared.color_window.min(hello.color_window.max(1)))
+        .expect("the pyramid's layout was checked at start with a larger window");
+    let mut colors = ColorScheduler::new(layout);
+    let send = Arc::new(tokio::sync::Mutex::new(send));
+    let welcomed = welcome(
+        &mut *send.lock().await,
+        &shared,
+        &joined,
+        layout,
+        &mut colors,
+    )
+    .await;
+    if welcomed.is_err() {
         // Lost on the way (held), or the viewer stopped its control stream (a leave).
         leave.hold = hold_after(&conn);
         conn.close(close::PROTOCOL.into(), b"the welcome could not be sent");
         return;
     }
+    let color = tokio::spawn(stream_color(send.clone(), shared.clone(), colors, vehicle));
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let mut ctl = tokio::spawn(read_control(recv, control.clone()));
@@ -101,7 +127,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                         _ => "the vehicle followed has left",
                     };
                     let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
-                    last_word(&mut send, &bye).await;
+                    last_word(&mut *quiet(&send, &color).await, &bye).await;
                     conn.close(close::BYE.into(), why.as_bytes());
                     why.into()
                 }
@@ -127,13 +153,15 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
             "replaced by a reconnection".into()
         }
         _ = shared.shutting_down() => {
-            last_word(&mut send, &ServerMessage::Bye(Reason::Shutdown)).await;
+            let bye = ServerMessage::Bye(Reason::Shutdown);
+            last_word(&mut *quiet(&send, &color).await, &bye).await;
             conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
             "the server is shutting down".into()
         }
     };
     keys.abort();
     ctl.abort();
+    color.abort();
     let held = leave.hold && leave.vehicle.is_some();
     if driver && !held {
         // Gone for good: its ticket names nothing any more.
@@ -186,32 +214,106 @@ impl Drop for Leave {
     }
 }
 
+/// The control stream, once the colour task is stopped between two messages.
+async fn quiet<'a>(
+    send: &'a tokio::sync::Mutex<quinn::SendStream>,
+    color: &tokio::task::JoinHandle<()>,
+) -> tokio::sync::MutexGuard<'a, quinn::SendStream> {
+    let guard = send.lock().await;
+    // It waits for the lock or its next turn: never inside a write.
+    color.abort();
+    guard
+}
+
+/// The welcome, then the coarsest colour tile.
 async fn welcome(
     send: &mut quinn::SendStream,
     shared: &Shared,
     joined: &Joined,
+    layout: ColorLayout,
+    colors: &mut ColorScheduler,
 ) -> Result<(), wire::WireError> {
     let tick = shared.snapshots.borrow().tick;
     let w = Welcome {
         ticket: joined.ticket,
         resumed: joined.resumed,
-        ..link::welcome(
-            &shared.terrain,
-            joined.vehicle,
-            tick,
-            shared.color_map.len() as u32,
-            shared.limits,
-        )
+        ..link::welcome(&shared.terrain, joined.vehicle, tick, layout, shared.limits)
     };
     wire::write(send, &ServerMessage::Welcome(w)).await?;
-    for (k, chunk) in shared.color_map.chunks(CHUNK).enumerate() {
-        let msg = ServerMessage::ColorMap {
-            offset: (k * CHUNK) as u32,
-            data: chunk.to_vec(),
+    let first = colors.first();
+    write_color(send, shared, first).await
+}
+
+/// Writes one colour message (a tile's payload from the pyramid), counting it.
+async fn write_color(
+    send: &mut quinn::SendStream,
+    shared: &Shared,
+    m: ColorSend,
+) -> Result<(), wire::WireError> {
+    let msg = match m {
+        ColorSend::Window { level, x0, z0 } => ServerMessage::ColorWindow { level, x0, z0 },
+        ColorSend::Tile { level, x, z } => {
+            let Some(data) = shared.pyramid.tile(level, x, z) else {
+                unreachable!("the scheduler names tiles of the pyramid's own layout")
+            };
+            let stats = &shared.stats;
+            stats.add(&stats.color_tiles, 1);
+            stats.add(&stats.color_bytes, data.len() as u64);
+            ServerMessage::ColorTile {
+                level,
+                x,
+                z,
+                data: data.to_vec(),
+            }
+        }
+    };
+    wire::write(send, &msg).await
+}
+
+/// How often the colour task looks at the camera and its budget.
+const COLOR_TICK: Duration = Duration::from_millis(50);
+
+/// Streams colour tiles to the viewer following `vehicle`, as its scheduler picks them,
+/// within the byte rate; ends when the control stream fails.
+async fn stream_color(
+    send: Arc<tokio::sync::Mutex<quinn::SendStream>>,
+    shared: Arc<Shared>,
+    mut colors: ColorScheduler,
+    vehicle: VehicleId,
+) {
+    let rate = shared.color_rate as f64;
+    let largest = roam_protocol::colormap::max_len(colors.layout().tile) as f64;
+    let burst = (rate / 4.0).max(largest);
+    let h_scale = shared.terrain.map.h_scale;
+    let mut tokens = 0.0f64;
+    let mut last = tokio::time::Instant::now();
+    let mut tick = tokio::time::interval(COLOR_TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let pyramid = shared.pyramid.clone();
+    let cost =
+        move |level: u8, x: u32, z: u32| pyramid.tile(level, x, z).map_or(0, |t| t.len() as u64);
+    loop {
+        tick.tick().await;
+        let now = tokio::time::Instant::now();
+        tokens = (tokens + rate * now.duration_since(last).as_secs_f64()).min(burst);
+        last = now;
+        let camera = {
+            let snap = shared.snapshots.borrow();
+            snap.vehicles
+                .iter()
+                .find(|v| v.id == vehicle)
+                .map(|v| (v.state.x / h_scale, v.state.z / h_scale))
         };
-        wire::write(send, &msg).await?;
+        let Some(camera) = camera else { continue };
+        let (msgs, spent) = colors.step(camera, tokens as u64, &cost);
+        tokens -= spent as f64;
+        for m in msgs {
+            let mut s = send.lock().await;
+            if write_color(&mut s, &shared, m).await.is_err() {
+                return;
+            }
+        }
     }
-    Ok(())
 }
 
 /// Key datagrams to the world, through the driver's [`KeyGate`] (rate-limited; anything

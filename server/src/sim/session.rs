@@ -48,6 +48,10 @@ pub struct RecordOptions {
     pub files: Box<dyn RecordFiles>,
     /// A file is finished, and the next begun, before it would grow past this.
     pub max_bytes: u64,
+    /// The terrain's [`crate::Terrain::content_hash`], when the shell computed it (a
+    /// terrain opened without its colour map cannot: see
+    /// [`crate::Terrain::content_hash_in`]); `None`: the world core computes it.
+    pub terrain_hash: Option<[u8; 32]>,
 }
 
 impl RecordOptions {
@@ -55,6 +59,15 @@ impl RecordOptions {
         RecordOptions {
             files: Box::new(files),
             max_bytes,
+            terrain_hash: None,
+        }
+    }
+
+    /// These options with the terrain's hash given.
+    pub fn with_terrain_hash(self, hash: [u8; 32]) -> RecordOptions {
+        RecordOptions {
+            terrain_hash: Some(hash),
+            ..self
         }
     }
 }

@@ -249,11 +249,12 @@ impl WorldCore {
     pub fn new(terrain: Arc<Terrain>, record: Option<RecordOptions>) -> io::Result<WorldCore> {
         let world = World::new(terrain.clone());
         let recording = match record {
-            Some(options) => Some(SessionRecording::start(
-                options,
-                terrain.content_hash(),
-                &world,
-            )?),
+            Some(options) => {
+                let hash = options
+                    .terrain_hash
+                    .unwrap_or_else(|| terrain.content_hash());
+                Some(SessionRecording::start(options, hash, &world)?)
+            }
             None => None,
         };
         Ok(WorldCore {

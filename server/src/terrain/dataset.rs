@@ -90,9 +90,59 @@ impl Terrain {
 
     /// A hash of everything in the data set (heights, colours, map parameters), so a
     /// recording can tell whether it is replayed on the terrain it was made on. A terrain
-    /// opened without its colour map hashes only heights and map: that hash differs from
-    /// the loaded set's, so whoever records such a terrain must hash the colour too.
+    /// opened without its colour map ([`open_cached`]) hashes only heights and map: use
+    /// [`Terrain::content_hash_in`] for the data set's hash then.
     pub fn content_hash(&self) -> [u8; 32] {
+        let mut h = self.hash_heights();
+        if let Some(color) = &self.color {
+            h.update(color.rgb().as_flattened());
+        }
+        h.update(self.map.to_toml().as_bytes());
+        *h.finalize().as_bytes()
+    }
+
+    /// [`Terrain::content_hash`] of the data set in `dir` (the same bytes whether this
+    /// terrain holds its colour map or not): without one, the colour bytes are streamed from
+    /// `dir/color.ppm` (64 KiB at a time; 805 MB at 16385²) instead of read into memory.
+    pub fn content_hash_in(
+        &self,
+        dir: &Path,
+        progress: &mut dyn FnMut(u64, u64),
+    ) -> Result<[u8; 32], DataError> {
+        if self.color.is_some() {
+            return Ok(self.content_hash());
+        }
+        let mut h = self.hash_heights();
+        let path = dir.join(COLOR_FILE);
+        let cells = self.heights.size();
+        let header =
+            pnm::read_ppm_header(&path, cells).map_err(|e| DataError::from_pnm(&path, e))?;
+        let io = |action| {
+            let file = path.clone();
+            move |error| DataError::Io {
+                file,
+                action,
+                error,
+            }
+        };
+        let mut file = fs::File::open(&path).map_err(io("open"))?;
+        io::Seek::seek(&mut file, io::SeekFrom::Start(header.data_offset)).map_err(io("read"))?;
+        let total = u64::from(cells) * u64::from(cells) * 3;
+        let mut left = total;
+        let mut buf = vec![0u8; 1 << 16];
+        while left > 0 {
+            let n = (left.min(buf.len() as u64)) as usize;
+            io::Read::read_exact(&mut file, &mut buf[..n]).map_err(io("read"))?;
+            h.update(&buf[..n]);
+            left -= n as u64;
+            progress(total - left, total);
+        }
+        h.update(self.map.to_toml().as_bytes());
+        Ok(*h.finalize().as_bytes())
+    }
+
+    /// The hasher after the prefix and the heights.
+    fn hash_heights(&self) -> blake3::Hasher {
         let mut h = blake3::Hasher::new();
         h.update(b"roam data set v1");
         h.update(&self.heights.side().to_le_bytes());
@@ -103,11 +153,7 @@ impl Terrain {
             buf.extend(chunk.iter().flat_map(|s| s.to_le_bytes()));
             h.update(&buf);
         }
-        if let Some(color) = &self.color {
-            h.update(color.rgb().as_flattened());
-        }
-        h.update(self.map.to_toml().as_bytes());
-        *h.finalize().as_bytes()
+        h
     }
 
     /// World extent along X and Z.

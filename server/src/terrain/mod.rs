@@ -5,6 +5,7 @@
 
 pub mod backing;
 pub mod cache;
+pub mod color_pyramid;
 pub mod colorimage;
 pub mod dataset;
 pub mod generate;

@@ -7,7 +7,7 @@
 use std::time::Instant;
 
 use roam_protocol::messages::{
-    self, ClientMessage, Frame, KeyDatagram, VERSION, VehicleView, ViewChange, Welcome,
+    self, ClientMessage, ColorLayout, Frame, KeyDatagram, VERSION, VehicleView, ViewChange, Welcome,
 };
 
 use super::{Event, Made, ViewerLimits};
@@ -116,13 +116,13 @@ impl KeyGate {
 }
 
 /// The welcome for a viewer of `vehicle` on `terrain` at world tick `tick`, whose colour
-/// map follows in `color_bytes` bytes, served within `limits`. A driver's `ticket` and
+/// map streams as tiles of `color`, served within `limits`. A driver's `ticket` and
 /// whether it was resumed are the caller's to add.
 pub fn welcome(
     terrain: &Terrain,
     vehicle: VehicleId,
     tick: u64,
-    color_bytes: u32,
+    color: ColorLayout,
     limits: ViewerLimits,
 ) -> Welcome {
     let m = &terrain.map;
@@ -138,8 +138,7 @@ pub fn welcome(
         fog_color: m.fog_color,
         water_level: m.water_level.map(|v| v as f32),
         vehicle,
-        color_cells: terrain.heights.size(),
-        color_bytes,
+        color,
         tick,
         ticket: None,
         resumed: false,

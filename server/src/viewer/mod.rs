@@ -46,6 +46,7 @@ use crate::tessellate::{Coherent, Limits, Mode, Scales};
 
 pub mod admission;
 mod camera;
+pub mod color;
 pub mod link;
 
 pub use camera::apply_view;

@@ -93,7 +93,9 @@ impl Sim {
                                     client_offer(v, epoch + at, bytes);
                                 }
                             }
-                            Ok(ServerMessage::ColorMap { .. }) => {}
+                            Ok(
+                                ServerMessage::ColorTile { .. } | ServerMessage::ColorWindow { .. },
+                            ) => {}
                             Ok(ServerMessage::Refused(r) | ServerMessage::Bye(r)) => {
                                 v.client.closed = Some(format!("{r:?}"));
                             }

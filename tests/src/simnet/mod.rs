@@ -337,6 +337,7 @@ impl Sim {
             budget: messages::clamp_budget(budget),
             frame_rate: FRAME_RATE,
             resume: None,
+            color_window: roam_protocol::tiles::DEFAULT_WINDOW,
         };
         let mut v = Viewer {
             up: Wire::new(path.up, seed(1)),

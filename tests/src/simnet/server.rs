@@ -68,7 +68,13 @@ pub(super) struct ServerSide {
 }
 
 pub(super) fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64) -> Welcome {
-    roam_server::viewer::link::welcome(terrain, vehicle, tick, 0, ViewerLimits::default())
+    let color = roam_protocol::ColorLayout::new(
+        terrain.heights.size(),
+        roam_protocol::tiles::DEFAULT_TILE,
+        roam_protocol::tiles::DEFAULT_WINDOW,
+    )
+    .expect("the test terrains' colour maps are powers of two");
+    roam_server::viewer::link::welcome(terrain, vehicle, tick, color, ViewerLimits::default())
 }
 
 impl Sim {

@@ -1,0 +1,621 @@
+//! The viewer's colour cache, with no socket, task or clock: what the server's
+//! [`ServerMessage::ColorWindow`] and [`ServerMessage::ColorTile`] messages leave resident,
+//! per level of the colour pyramid ([`ColorLayout`]), and the texture uploads the renderer
+//! owes the GPU. The session feeds it from the control stream; the renderer drains it
+//! ([`ColorCache::drain`]) into its clipmap texture array.
+//!
+//! **Addressing.** Every level has a layer of `S × S` texels, `S = min(W·T, cells)` (W the
+//! window in tiles, T the tile side); texel `(u, v)` of level `l` lives at `(u mod S,
+//! v mod S)` of layer `l`, so tile `(x, z)` lands at `((x·T) mod S, (z·T) mod S)` and
+//! occupies *slot* `(z mod W)·W + (x mod W)`: the bit of the level's masks, and the index
+//! into its slots here. A level larger than a window keeps the `W × W` tiles from the
+//! origin the server last gave ([`ColorCache::apply_window`]; `(0, 0)` until then); a
+//! smaller level is held whole.
+//!
+//! **Checks.** Every message is checked before it changes anything, and a bad one is a
+//! [`ColorError`] naming the field: a level past the layout's, a window origin that does
+//! not keep the window inside its level (or a window for a level held whole), a tile
+//! outside its level or the level's current window, a payload longer than
+//! [`ColorLayout::max_tile_bytes`] or one that does not decode to the tile's side.
+//!
+//! **Bounded.** At most one tile per slot: `Σ_l min(tiles_l, W)²` tiles, so never more than
+//! `levels × S²` texels (in RGBA, waiting to be uploaded; plus the coarsest tile's RGB, at
+//! most `T² · 3` bytes, which a reconnection compares), and the upload queue holds at
+//! most one entry per slot (an entry is removed with its tile when a window moves). With
+//! [`Keep::Masks`] (a headless viewer that never draws) no texel is kept at all: tiles are
+//! decoded to check them, counted, and dropped. Uploaded texels are freed here (the GPU has
+//! them); the masks the shader reads ([`LevelState::drawn`]) only name tiles already
+//! handed to the renderer, so a tile never shows before its texels do.
+//!
+//! Decision: the renderer is fed by draining, not by reading a CPU copy of every layer:
+//! a window at W = 8 over a 16385² map holds 7 layers of 2048² texels (112 MiB in RGBA) —
+//! worth keeping on the GPU, not twice. The cost: a renderer made after a drain cannot
+//! be filled again (one renderer per session, as the window, the benchmark and the
+//! headless screenshot each have).
+
+use std::collections::VecDeque;
+
+use roam_protocol::colormap;
+use roam_protocol::messages::ServerMessage;
+use roam_protocol::tiles::{ColorLayout, MAX_WINDOW};
+
+/// The most window bits a level has: [`MAX_WINDOW`]², as `u32` words.
+pub const MASK_WORDS: usize = (MAX_WINDOW as usize * MAX_WINDOW as usize).div_ceil(32);
+
+/// What the cache keeps of a tile's texels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Keep {
+    /// Texels until the renderer takes them (a viewer that draws).
+    Texels,
+    /// Nothing: residency and counts only (a headless viewer that never draws).
+    Masks,
+}
+
+/// A message the cache refuses: the field, and what was wrong with it.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{field}: {message}")]
+pub struct ColorError {
+    /// The message and field, e.g. `ColorTile.level`.
+    pub field: &'static str,
+    pub message: String,
+}
+
+fn refuse(field: &'static str, message: String) -> ColorError {
+    ColorError { field, message }
+}
+
+/// One texture upload: `size × size` RGBA texels at `(x, y)` of layer `layer`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Upload {
+    pub layer: u32,
+    pub x: u32,
+    pub y: u32,
+    pub size: u32,
+    pub rgba: Vec<u8>,
+}
+
+/// What the shader needs of a level: the window's origin (tiles) and the tiles it may
+/// sample (bit `(z mod W)·W + (x mod W)`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct LevelState {
+    pub origin: [u32; 2],
+    pub drawn: [u32; MASK_WORDS],
+}
+
+/// What [`ColorCache::drain`] hands the renderer: uploads, then every level's state once
+/// they are written.
+#[derive(Clone, Debug, Default)]
+pub struct ColorUpdate {
+    pub uploads: Vec<Upload>,
+    pub levels: Vec<LevelState>,
+}
+
+#[derive(Clone, Debug)]
+struct Slot {
+    x: u32,
+    z: u32,
+    /// RGBA texels not yet taken by the renderer.
+    texels: Option<Vec<u8>>,
+    /// Handed to the renderer.
+    drawn: bool,
+}
+
+#[derive(Clone, Debug)]
+struct Level {
+    origin: (u32, u32),
+    slots: Vec<Option<Slot>>,
+}
+
+/// The resident colour tiles of one connection (a reconnection starts a fresh one).
+#[derive(Clone, Debug)]
+pub struct ColorCache {
+    layout: ColorLayout,
+    keep: Keep,
+    levels: Vec<Level>,
+    /// (level, slot) of tiles whose texels wait for the renderer, in arrival order.
+    queue: VecDeque<(u8, u16)>,
+    bytes: u64,
+    received: u64,
+    resident: u32,
+    scratch: Vec<u8>,
+    /// The coarsest level's tile (RGB): what a reconnection compares to know the map.
+    coarsest: Vec<u8>,
+}
+
+impl ColorCache {
+    /// An empty cache for `layout` (checked: see [`ColorLayout::check`]) on a grid of
+    /// `2^grid_levels + 1` samples, whose window was asked to be at most `asked` tiles.
+    pub fn new(
+        layout: ColorLayout,
+        grid_levels: u8,
+        asked: u8,
+        keep: Keep,
+    ) -> Result<ColorCache, ColorError> {
+        layout
+            .check()
+            .map_err(|e| refuse("Welcome.color", e.to_string()))?;
+        let cells = 1u64 << grid_levels.min(32);
+        if u64::from(layout.cells) != cells {
+            return Err(refuse(
+                "Welcome.color.cells",
+                format!(
+                    "{}, expected {cells} for a grid of 2^{grid_levels} + 1",
+                    layout.cells
+                ),
+            ));
+        }
+        if layout.window > asked {
+            return Err(refuse(
+                "Welcome.color.window",
+                format!("{} tiles, more than the {asked} asked for", layout.window),
+            ));
+        }
+        Ok(ColorCache::empty(layout, keep))
+    }
+
+    fn empty(layout: ColorLayout, keep: Keep) -> ColorCache {
+        let w = usize::from(layout.window);
+        ColorCache {
+            layout,
+            keep,
+            levels: (0..layout.levels)
+                .map(|_| Level {
+                    origin: (0, 0),
+                    slots: (0..w * w).map(|_| None).collect(),
+                })
+                .collect(),
+            queue: VecDeque::new(),
+            bytes: 0,
+            received: 0,
+            resident: 0,
+            scratch: Vec::new(),
+            coarsest: Vec::new(),
+        }
+    }
+
+    /// An empty cache of the same layout and keeping (what a cache handed away leaves).
+    pub fn fresh(&self) -> ColorCache {
+        ColorCache::empty(self.layout, self.keep)
+    }
+
+    /// The coarsest level's tile as received (RGB), empty before it.
+    pub fn coarsest(&self) -> &[u8] {
+        &self.coarsest
+    }
+
+    pub fn layout(&self) -> &ColorLayout {
+        &self.layout
+    }
+
+    /// Texels a side of every layer: `min(W·T, cells)`.
+    pub fn layer_side(&self) -> u32 {
+        layer_side(&self.layout)
+    }
+
+    /// Tile payload bytes received.
+    pub fn bytes(&self) -> u64 {
+        self.bytes
+    }
+
+    /// Tiles received (those dropped since included).
+    pub fn received(&self) -> u64 {
+        self.received
+    }
+
+    /// Tiles resident now.
+    pub fn resident(&self) -> u32 {
+        self.resident
+    }
+
+    /// The most tiles that can be resident: one per slot.
+    pub fn capacity(&self) -> u32 {
+        (0..self.layout.levels)
+            .map(|l| self.layout.window_tiles(l).pow(2))
+            .sum()
+    }
+
+    /// RGBA texels held, waiting for the renderer.
+    pub fn texels_held(&self) -> usize {
+        self.levels
+            .iter()
+            .flat_map(|l| &l.slots)
+            .flatten()
+            .filter_map(|s| s.texels.as_ref())
+            .map(|t| t.len() / 4)
+            .sum()
+    }
+
+    /// Uploads waiting.
+    pub fn queued(&self) -> usize {
+        self.queue.len()
+    }
+
+    /// Whether the coarsest level's single tile is resident (every point has a colour).
+    pub fn has_coarsest(&self) -> bool {
+        let last = self.layout.levels - 1;
+        self.resident_mask(last)[0] & 1 == 1
+    }
+
+    fn slot_of(&self, x: u32, z: u32) -> usize {
+        let w = u32::from(self.layout.window);
+        ((z % w) * w + (x % w)) as usize
+    }
+
+    /// Tiles of `level` resident (bit `(z mod W)·W + (x mod W)`).
+    pub fn resident_mask(&self, level: u8) -> [u32; MASK_WORDS] {
+        self.mask(level, |_| true)
+    }
+
+    /// Tiles of `level` handed to the renderer.
+    pub fn drawn_mask(&self, level: u8) -> [u32; MASK_WORDS] {
+        self.mask(level, |s| s.drawn)
+    }
+
+    fn mask(&self, level: u8, f: impl Fn(&Slot) -> bool) -> [u32; MASK_WORDS] {
+        let mut m = [0; MASK_WORDS];
+        if let Some(l) = self.levels.get(usize::from(level)) {
+            for (i, s) in l.slots.iter().enumerate() {
+                if s.as_ref().is_some_and(&f) {
+                    m[i / 32] |= 1 << (i % 32);
+                }
+            }
+        }
+        m
+    }
+
+    /// The window origin of `level`, in tiles.
+    pub fn origin(&self, level: u8) -> Option<(u32, u32)> {
+        self.levels.get(usize::from(level)).map(|l| l.origin)
+    }
+
+    /// Whether tile `(x, z)` of `level` is resident.
+    pub fn is_resident(&self, level: u8, x: u32, z: u32) -> bool {
+        let slot = self.slot_of(x, z);
+        self.levels
+            .get(usize::from(level))
+            .and_then(|l| l.slots[slot].as_ref())
+            .is_some_and(|s| (s.x, s.z) == (x, z))
+    }
+
+    /// A colour message from the server; anything else is not for the cache (`Ok(false)`).
+    pub fn apply(&mut self, msg: &ServerMessage) -> Result<bool, ColorError> {
+        match msg {
+            ServerMessage::ColorWindow { level, x0, z0 } => self.apply_window(*level, *x0, *z0)?,
+            ServerMessage::ColorTile { level, x, z, data } => {
+                self.apply_tile(*level, *x, *z, data)?
+            }
+            _ => return Ok(false),
+        }
+        Ok(true)
+    }
+
+    fn check_level(&self, field: &'static str, level: u8) -> Result<(), ColorError> {
+        if level >= self.layout.levels {
+            return Err(refuse(
+                field,
+                format!(
+                    "{level}, but the colour map has {} levels",
+                    self.layout.levels
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Level `level` keeps the tiles `x0 .. x0 + W` × `z0 .. z0 + W` from now on: the
+    /// others are dropped.
+    pub fn apply_window(&mut self, level: u8, x0: u32, z0: u32) -> Result<(), ColorError> {
+        self.check_level("ColorWindow.level", level)?;
+        let l = &self.layout;
+        if !l.windowed(level) {
+            return Err(refuse(
+                "ColorWindow.level",
+                format!(
+                    "{level}, which is held whole ({} tiles a side, window {})",
+                    l.tiles(level),
+                    l.window
+                ),
+            ));
+        }
+        if !l.origin_valid(level, x0, z0) {
+            return Err(refuse(
+                "ColorWindow.x0/z0",
+                format!(
+                    "({x0}, {z0}): the window of {} tiles leaves level {level} ({} tiles a \
+                     side)",
+                    l.window,
+                    l.tiles(level)
+                ),
+            ));
+        }
+        let origin = (x0, z0);
+        let layout = self.layout;
+        let lv = &mut self.levels[usize::from(level)];
+        lv.origin = origin;
+        let mut dropped = 0;
+        for (i, slot) in lv.slots.iter_mut().enumerate() {
+            if slot
+                .as_ref()
+                .is_some_and(|s| !layout.in_window(level, origin, s.x, s.z))
+            {
+                *slot = None;
+                dropped += 1;
+                self.queue.retain(|&q| q != (level, i as u16));
+            }
+        }
+        self.resident -= dropped;
+        Ok(())
+    }
+
+    /// Tile `(x, z)` of `level`, coded by [`colormap`]: decoded, checked, made resident.
+    pub fn apply_tile(&mut self, level: u8, x: u32, z: u32, data: &[u8]) -> Result<(), ColorError> {
+        self.check_tile("ColorTile", level, x, z)?;
+        let mut rgb = std::mem::take(&mut self.scratch);
+        let decoded = decode_tile(&self.layout, level, x, z, data, &mut rgb);
+        if decoded.is_ok() {
+            self.bytes += data.len() as u64;
+            self.put(level, x, z, &rgb);
+        }
+        self.scratch = rgb;
+        decoded
+    }
+
+    /// Tile `(x, z)` of `level` decoded by [`decode_tile`] (outside the lock the cache is
+    /// shared under) from `payload` bytes: checked against the window now, made resident.
+    pub fn put_decoded(
+        &mut self,
+        level: u8,
+        x: u32,
+        z: u32,
+        rgb: &[u8],
+        payload: usize,
+    ) -> Result<(), ColorError> {
+        self.check_tile("ColorTile", level, x, z)?;
+        let side = self.layout.tile_side(level) as usize;
+        if rgb.len() != side * side * 3 {
+            return Err(refuse(
+                "ColorTile.data",
+                format!("{} texel bytes, expected {side}² · 3", rgb.len()),
+            ));
+        }
+        self.bytes += payload as u64;
+        self.put(level, x, z, rgb);
+        Ok(())
+    }
+
+    /// Tile `(x, z)` of `level` from texels decoded elsewhere (`side² · 3` RGB bytes, row 0
+    /// north): a local map, a test. The same checks as [`Self::apply_tile`] but the
+    /// payload's.
+    pub fn put_tile(&mut self, level: u8, x: u32, z: u32, rgb: &[u8]) -> Result<(), ColorError> {
+        self.check_tile("put_tile", level, x, z)?;
+        let side = self.layout.tile_side(level) as usize;
+        if rgb.len() != side * side * 3 {
+            return Err(refuse(
+                "put_tile.rgb",
+                format!("{} bytes, expected {side}² · 3", rgb.len()),
+            ));
+        }
+        self.put(level, x, z, rgb);
+        Ok(())
+    }
+
+    fn check_tile(&self, what: &'static str, level: u8, x: u32, z: u32) -> Result<(), ColorError> {
+        let (level_field, xz_field) = match what {
+            "ColorTile" => ("ColorTile.level", "ColorTile.x/z"),
+            _ => ("put_tile.level", "put_tile.x/z"),
+        };
+        self.check_level(level_field, level)?;
+        let tiles = self.layout.tiles(level);
+        if x >= tiles || z >= tiles {
+            return Err(refuse(
+                xz_field,
+                format!("({x}, {z}), outside level {level} of {tiles} tiles a side"),
+            ));
+        }
+        let origin = self.levels[usize::from(level)].origin;
+        if !self.layout.in_window(level, origin, x, z) {
+            return Err(refuse(
+                xz_field,
+                format!(
+                    "({x}, {z}), outside level {level}'s window of {} tiles at ({}, {})",
+                    self.layout.window_tiles(level),
+                    origin.0,
+                    origin.1
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Makes tile `(x, z)` of `level` resident with these RGB texels (checked).
+    fn put(&mut self, level: u8, x: u32, z: u32, rgb: &[u8]) {
+        self.received += 1;
+        if level + 1 == self.layout.levels {
+            self.coarsest.clear();
+            self.coarsest.extend_from_slice(rgb);
+        }
+        let slot = self.slot_of(x, z);
+        let texels = (self.keep == Keep::Texels).then(|| {
+            rgb.chunks_exact(3)
+                .flat_map(|c| [c[0], c[1], c[2], 255])
+                .collect::<Vec<u8>>()
+        });
+        let lv = &mut self.levels[usize::from(level)];
+        let was = lv.slots[slot].replace(Slot {
+            x,
+            z,
+            texels,
+            drawn: false,
+        });
+        let queued = was.as_ref().is_some_and(|s| s.texels.is_some());
+        if was.is_none() {
+            self.resident += 1;
+        }
+        if self.keep == Keep::Texels && !queued {
+            self.queue.push_back((level, slot as u16));
+        }
+    }
+
+    /// Takes at most `most` uploads (oldest first: the server sends coarse levels first),
+    /// and every level's state once they are written.
+    pub fn drain(&mut self, most: usize) -> ColorUpdate {
+        let mut uploads = Vec::new();
+        let s = self.layer_side();
+        let t = self.layout.tile;
+        while uploads.len() < most {
+            let Some((level, slot)) = self.queue.pop_front() else {
+                break;
+            };
+            let size = self.layout.tile_side(level);
+            let Some(tile) = self.levels[usize::from(level)].slots[usize::from(slot)].as_mut()
+            else {
+                continue;
+            };
+            let Some(rgba) = tile.texels.take() else {
+                continue;
+            };
+            tile.drawn = true;
+            uploads.push(Upload {
+                layer: u32::from(level),
+                x: (tile.x * t) % s,
+                y: (tile.z * t) % s,
+                size,
+                rgba,
+            });
+        }
+        let levels = (0..self.layout.levels)
+            .map(|l| {
+                let (x0, z0) = self.levels[usize::from(l)].origin;
+                LevelState {
+                    origin: [x0, z0],
+                    drawn: self.drawn_mask(l),
+                }
+            })
+            .collect();
+        ColorUpdate { uploads, levels }
+    }
+}
+
+/// Decodes tile `(x, z)` of `level`'s payload into `rgb` (`side² · 3` bytes), checking
+/// what the layout alone decides (the level, the tile inside it, the payload's length and
+/// that it decodes to the tile's side); the window is [`ColorCache::put_decoded`]'s check.
+pub fn decode_tile(
+    layout: &ColorLayout,
+    level: u8,
+    x: u32,
+    z: u32,
+    data: &[u8],
+    rgb: &mut Vec<u8>,
+) -> Result<(), ColorError> {
+    if level >= layout.levels {
+        return Err(refuse(
+            "ColorTile.level",
+            format!("{level}, but the colour map has {} levels", layout.levels),
+        ));
+    }
+    let tiles = layout.tiles(level);
+    if x >= tiles || z >= tiles {
+        return Err(refuse(
+            "ColorTile.x/z",
+            format!("({x}, {z}), outside level {level} of {tiles} tiles a side"),
+        ));
+    }
+    let side = layout.tile_side(level);
+    let most = layout.max_tile_bytes(level);
+    if data.len() > most {
+        return Err(refuse(
+            "ColorTile.data",
+            format!(
+                "{} bytes for a tile of {side}² texels, at most {most}",
+                data.len()
+            ),
+        ));
+    }
+    colormap::decode(side, data, rgb).map_err(|e| {
+        refuse(
+            "ColorTile.data",
+            format!("tile ({x}, {z}) of level {level} ({side}² texels): {e}"),
+        )
+    })
+}
+
+/// Texels a side of every layer of `layout`: `min(W·T, cells)`.
+pub fn layer_side(layout: &ColorLayout) -> u32 {
+    (u32::from(layout.window) * layout.tile).min(layout.cells)
+}
+
+/// The window this device can hold: `W` tiles of [`roam_protocol::tiles::DEFAULT_TILE`]
+/// with `W·T` within `max_texture_side`, at most the default window (memory: a layer is
+/// `(W·T)²` texels, 16 MiB at W = 8).
+pub fn window_for(max_texture_side: u32) -> u8 {
+    let w = max_texture_side / roam_protocol::tiles::DEFAULT_TILE;
+    w.clamp(1, u32::from(roam_protocol::tiles::DEFAULT_WINDOW)) as u8
+}
+
+/// The colour pyramid of a `cells × cells` RGB map (row 0 north): level `l + 1` is the 2×2
+/// box average of level `l` (in sRGB bytes, rounded), down to `levels` levels.
+pub fn pyramid(cells: u32, rgb: &[u8], levels: u8) -> Vec<Vec<u8>> {
+    let mut out = vec![rgb.to_vec()];
+    let mut side = cells as usize;
+    for _ in 1..levels {
+        let prev = out.last().expect("level 0 is there");
+        let half = (side / 2).max(1);
+        let mut next = Vec::with_capacity(half * half * 3);
+        for z in 0..half {
+            for x in 0..half {
+                for c in 0..3 {
+                    let at = |dx: usize, dz: usize| {
+                        let (px, pz) = ((2 * x + dx).min(side - 1), (2 * z + dz).min(side - 1));
+                        u32::from(prev[(pz * side + px) * 3 + c])
+                    };
+                    next.push(((at(0, 0) + at(1, 0) + at(0, 1) + at(1, 1) + 2) / 4) as u8);
+                }
+            }
+        }
+        out.push(next);
+        side = half;
+    }
+    out
+}
+
+/// The texels of tile `(x, z)` of a level `side` texels a side in tiles of `t`.
+pub fn cut_tile(level: &[u8], side: u32, t: u32, x: u32, z: u32) -> Vec<u8> {
+    let (side, t) = (side as usize, t.min(side) as usize);
+    let mut out = Vec::with_capacity(t * t * 3);
+    for row in 0..t {
+        let start = ((z as usize * t + row) * side + x as usize * t) * 3;
+        out.extend_from_slice(&level[start..start + t * 3]);
+    }
+    out
+}
+
+impl ColorCache {
+    /// A cache holding every tile a viewer could hold of a whole `cells × cells` RGB map
+    /// (each window at `(0, 0)`): for tests and local rendering. An error if `rgb` is not
+    /// the layout's map.
+    pub fn whole(layout: ColorLayout, rgb: &[u8]) -> Result<ColorCache, ColorError> {
+        let grid = layout.cells.max(1).ilog2() as u8;
+        let mut cache = ColorCache::new(layout, grid, layout.window, Keep::Texels)?;
+        if rgb.len() as u64 != u64::from(layout.cells).pow(2) * 3 {
+            return Err(refuse(
+                "whole.rgb",
+                format!("{} bytes, expected {}² · 3", rgb.len(), layout.cells),
+            ));
+        }
+        for (l, texels) in pyramid(layout.cells, rgb, layout.levels).iter().enumerate() {
+            let l = l as u8;
+            let w = layout.window_tiles(l);
+            for z in 0..w {
+                for x in 0..w {
+                    let tile = cut_tile(texels, layout.side(l), layout.tile, x, z);
+                    cache.put_tile(l, x, z, &tile)?;
+                }
+            }
+        }
+        Ok(cache)
+    }
+}
+
+#[cfg(test)]
+#[path = "color_cache_tests.rs"]
+mod tests;

@@ -1,0 +1,203 @@
+//! Which colour tiles a viewer gets, and when: a pure per-viewer scheduler
+//! ([`ColorScheduler`]) over the pyramid's layout ([`ColorLayout`]). No clock and no
+//! socket: the net shell feeds it the camera's position and a byte allowance from its
+//! token bucket, and sends what it returns, in order, on the control stream.
+//!
+//! State: per level, the window origin the viewer was last told, and which tiles of the
+//! window were sent. Messages are ordered and reliable, so that is exactly what the viewer
+//! holds (a test replays the messages as a viewer would and compares).
+//!
+//! Decisions:
+//!
+//! - **Coarse first**: the coarsest level's single tile before anything (the shell sends
+//!   it before the first frame, whatever the budget: [`ColorScheduler::first`]), then
+//!   level by level towards the finest, and within a level the tiles nearest the camera
+//!   first (distance from the camera to the tile's centre, ties by row then column, so
+//!   the order is deterministic). A viewer always has a whole coarse picture before
+//!   detail, and detail where it looks from.
+//! - **Windows follow the camera with hysteresis**: a level's window is recentred on the
+//!   camera (clamped inside the level) only when the camera is more than
+//!   `max(0.75, W / 4)` tiles from the window's centre on an axis — 2 tiles at W = 8,
+//!   so a camera wandering around a tile edge never makes the window flap, and the
+//!   camera is always at least 2 tiles from the window's edge where that level is
+//!   drawn. Origins of levels that fit a window never move (and are never sent).
+//! - **Budget**: [`ColorScheduler::step`] returns tiles while their payloads fit the
+//!   allowance and stops at the first that does not (it never skips ahead to a smaller
+//!   tile: priority order is kept). Window messages cost nothing here (a few bytes).
+//! - "In front of the camera first" is not done: the heading is not known here and the
+//!   window is small (2048 texels at W = 8, T = 256); nearest first already gives the
+//!   ground under and around the vehicle first.
+
+use roam_protocol::ColorLayout;
+
+/// A colour message to send, without its payload (the shell takes it from the pyramid).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ColorSend {
+    /// The viewer now keeps level `level`'s tiles `x0 .. x0 + W` × `z0 .. z0 + W`.
+    Window { level: u8, x0: u32, z0: u32 },
+    /// Tile `(x, z)` of `level`.
+    Tile { level: u8, x: u32, z: u32 },
+}
+
+/// One viewer's colour streaming state.
+#[derive(Clone, Debug)]
+pub struct ColorScheduler {
+    layout: ColorLayout,
+    /// Per level: the window origin, in tiles.
+    origins: Vec<(u32, u32)>,
+    /// Per level: which tiles were sent (row-major over the level) and are still held.
+    sent: Vec<Vec<bool>>,
+}
+
+impl ColorScheduler {
+    /// A viewer that holds nothing yet; every window at `(0, 0)`.
+    pub fn new(layout: ColorLayout) -> ColorScheduler {
+        let levels = usize::from(layout.levels);
+        ColorScheduler {
+            layout,
+            origins: vec![(0, 0); levels],
+            sent: (0..layout.levels)
+                .map(|l| vec![false; (layout.tiles(l) as usize).pow(2)])
+                .collect(),
+        }
+    }
+
+    /// The layout scheduled for.
+    pub fn layout(&self) -> &ColorLayout {
+        &self.layout
+    }
+
+    /// The coarsest level's single tile (what the viewer gets before its first frame);
+    /// marked sent.
+    pub fn first(&mut self) -> ColorSend {
+        let level = self.layout.levels - 1;
+        self.sent[usize::from(level)][0] = true;
+        ColorSend::Tile { level, x: 0, z: 0 }
+    }
+
+    /// The messages for a camera at level-0 texel `(cx, cz)` with `allowance` bytes to
+    /// spend, `cost(level, x, z)` being a tile's payload bytes: windows moved, then tiles
+    /// in priority order while they fit. Returns them and the bytes spent.
+    pub fn step(
+        &mut self,
+        (cx, cz): (f64, f64),
+        allowance: u64,
+        cost: &dyn Fn(u8, u32, u32) -> u64,
+    ) -> (Vec<ColorSend>, u64) {
+        let mut out = Vec::new();
+        for level in 0..self.layout.levels {
+            if let Some((x0, z0)) = self.recentre(level, (cx, cz)) {
+                out.push(ColorSend::Window { level, x0, z0 });
+            }
+        }
+        let mut spent = 0;
+        for level in (0..self.layout.levels).rev() {
+            for (x, z) in self.unsent(level, (cx, cz)) {
+                let c = cost(level, x, z);
+                if spent + c > allowance {
+                    return (out, spent);
+                }
+                spent += c;
+                let n = self.layout.tiles(level);
+                self.sent[usize::from(level)][(z * n + x) as usize] = true;
+                out.push(ColorSend::Tile { level, x, z });
+            }
+        }
+        (out, spent)
+    }
+
+    /// Whether every tile of every window has been sent.
+    pub fn complete(&self) -> bool {
+        (0..self.layout.levels).all(|l| self.held_in(l).count() == self.window_count(l))
+    }
+
+    /// The tiles the viewer holds, as `(level, x, z)`: level by level, rows then columns.
+    pub fn held(&self) -> Vec<(u8, u32, u32)> {
+        (0..self.layout.levels)
+            .flat_map(|l| self.held_in(l).map(move |(x, z)| (l, x, z)))
+            .collect()
+    }
+
+    /// Level `level`'s window origin.
+    pub fn origin(&self, level: u8) -> (u32, u32) {
+        self.origins[usize::from(level)]
+    }
+
+    fn window_count(&self, level: u8) -> usize {
+        (self.layout.window_tiles(level) as usize).pow(2)
+    }
+
+    fn held_in(&self, level: u8) -> impl Iterator<Item = (u32, u32)> + '_ {
+        let n = self.layout.tiles(level);
+        self.sent[usize::from(level)]
+            .iter()
+            .enumerate()
+            .filter(|(_, s)| **s)
+            .map(move |(i, _)| (i as u32 % n, i as u32 / n))
+    }
+
+    /// The camera's position in tiles of `level`.
+    fn camera_tiles(&self, level: u8, (cx, cz): (f64, f64)) -> (f64, f64) {
+        let per = f64::from(self.layout.tile_side(level)) * f64::from(1u32 << level);
+        (cx / per, cz / per)
+    }
+
+    /// Moves `level`'s window when the camera has left its centre by more than the
+    /// hysteresis; the new origin, and the tiles outside it forgotten.
+    fn recentre(&mut self, level: u8, cam: (f64, f64)) -> Option<(u32, u32)> {
+        if !self.layout.windowed(level) {
+            return None;
+        }
+        let w = self.layout.window_tiles(level);
+        let room = self.layout.tiles(level) - w;
+        let (tx, tz) = self.camera_tiles(level, cam);
+        let (x0, z0) = self.origins[usize::from(level)];
+        let half = f64::from(w) / 2.0;
+        let slack = (f64::from(w) / 4.0).max(0.75);
+        // Recentre where the window can still move towards the camera.
+        let off = |t: f64, o: u32| {
+            let d = t - (f64::from(o) + half);
+            (d > slack && o < room) || (d < -slack && o > 0)
+        };
+        if !off(tx, x0) && !off(tz, z0) {
+            return None;
+        }
+        let place = |t: f64| ((t - half).round().max(0.0) as u32).min(room);
+        let origin = (place(tx), place(tz));
+        if origin == (x0, z0) {
+            return None;
+        }
+        self.origins[usize::from(level)] = origin;
+        let n = self.layout.tiles(level);
+        let layout = self.layout;
+        for (i, s) in self.sent[usize::from(level)].iter_mut().enumerate() {
+            let (x, z) = (i as u32 % n, i as u32 / n);
+            if *s && !layout.in_window(level, origin, x, z) {
+                *s = false;
+            }
+        }
+        Some(origin)
+    }
+
+    /// `level`'s window tiles not sent yet, nearest the camera first.
+    fn unsent(&self, level: u8, cam: (f64, f64)) -> Vec<(u32, u32)> {
+        let (x0, z0) = self.origins[usize::from(level)];
+        let (w, n) = (self.layout.window_tiles(level), self.layout.tiles(level));
+        let (tx, tz) = self.camera_tiles(level, cam);
+        let sent = &self.sent[usize::from(level)];
+        let mut tiles: Vec<(u32, u32)> = (z0..z0 + w)
+            .flat_map(|z| (x0..x0 + w).map(move |x| (x, z)))
+            .filter(|&(x, z)| !sent[(z * n + x) as usize])
+            .collect();
+        let d = |&(x, z): &(u32, u32)| {
+            let (dx, dz) = (f64::from(x) + 0.5 - tx, f64::from(z) + 0.5 - tz);
+            dx * dx + dz * dz
+        };
+        tiles.sort_by(|a, b| d(a).total_cmp(&d(b)).then((a.1, a.0).cmp(&(b.1, b.0))));
+        tiles
+    }
+}
+
+#[cfg(test)]
+#[path = "color_tests.rs"]
+mod tests;

@@ -1,0 +1,203 @@
+//! Tests of the colour scheduler: coarse first, within the budget, windows that follow the
+//! camera without flapping, and a belief of what the viewer holds that equals a replay of
+//! the messages.
+
+use std::collections::BTreeSet;
+
+use super::*;
+
+/// 256² texels in tiles of 16, windows of 4: levels of 16, 8, 4, 2 and 1 tiles a side
+/// (levels 0 and 1 windowed).
+fn layout() -> ColorLayout {
+    ColorLayout::new(256, 16, 4).expect("a valid layout")
+}
+
+fn cost(level: u8, x: u32, z: u32) -> u64 {
+    100 + u64::from(level) * 7 + u64::from(x + z)
+}
+
+/// What a viewer holds, from the messages alone (as the viewer keeps it).
+struct Replica {
+    layout: ColorLayout,
+    origins: Vec<(u32, u32)>,
+    held: BTreeSet<(u8, u32, u32)>,
+}
+
+impl Replica {
+    fn new(layout: ColorLayout) -> Replica {
+        Replica {
+            layout,
+            origins: vec![(0, 0); usize::from(layout.levels)],
+            held: BTreeSet::new(),
+        }
+    }
+
+    fn apply(&mut self, m: ColorSend) {
+        match m {
+            ColorSend::Window { level, x0, z0 } => {
+                assert!(self.layout.windowed(level), "{m:?}: a level held whole");
+                assert!(self.layout.origin_valid(level, x0, z0), "{m:?}");
+                self.origins[usize::from(level)] = (x0, z0);
+                let layout = self.layout;
+                self.held
+                    .retain(|&(l, x, z)| l != level || layout.in_window(l, (x0, z0), x, z));
+            }
+            ColorSend::Tile { level, x, z } => {
+                let origin = self.origins[usize::from(level)];
+                assert!(
+                    self.layout.in_window(level, origin, x, z),
+                    "{m:?} at {origin:?}"
+                );
+                assert!(self.held.insert((level, x, z)), "{m:?} sent twice");
+            }
+        }
+    }
+}
+
+#[test]
+fn the_coarsest_tile_comes_first_then_coarse_levels_before_fine() {
+    let mut s = ColorScheduler::new(layout());
+    assert_eq!(
+        s.first(),
+        ColorSend::Tile {
+            level: 4,
+            x: 0,
+            z: 0
+        }
+    );
+    let (msgs, spent) = s.step((10.0, 10.0), u64::MAX, &cost);
+    let levels: Vec<u8> = msgs
+        .iter()
+        .filter_map(|m| match m {
+            ColorSend::Tile { level, .. } => Some(*level),
+            ColorSend::Window { .. } => None,
+        })
+        .collect();
+    assert!(levels.windows(2).all(|w| w[0] >= w[1]), "{levels:?}");
+    // Level 3 (2×2), 2 (4×4), 1 and 0 (4×4 windows): 4 + 16 + 16 + 16.
+    assert_eq!(levels.len(), 52);
+    assert!(!levels.contains(&4));
+    assert_eq!(spent, msgs.iter().map(msg_cost).sum::<u64>());
+    assert!(s.complete());
+    // Within a level, nearest the camera first: at (10, 10) texels, level 0's tile (0, 0).
+    let first0 = msgs
+        .iter()
+        .find(|m| matches!(m, ColorSend::Tile { level: 0, .. }));
+    assert_eq!(
+        first0,
+        Some(&ColorSend::Tile {
+            level: 0,
+            x: 0,
+            z: 0
+        })
+    );
+    // Nothing more while the camera stays.
+    assert_eq!(s.step((10.0, 10.0), u64::MAX, &cost), (vec![], 0));
+}
+
+fn msg_cost(m: &ColorSend) -> u64 {
+    match *m {
+        ColorSend::Tile { level, x, z } => cost(level, x, z),
+        ColorSend::Window { .. } => 0,
+    }
+}
+
+#[test]
+fn the_budget_is_respected_and_used() {
+    let mut s = ColorScheduler::new(layout());
+    s.first();
+    let mut total = 0;
+    for allowance in [0, 99, 250, 1000, 333, 2000] {
+        let (msgs, spent) = s.step((128.0, 128.0), allowance, &cost);
+        assert!(spent <= allowance, "{spent} > {allowance}");
+        assert_eq!(spent, msgs.iter().map(msg_cost).sum::<u64>());
+        total += msgs.len();
+        // It stopped only because the next tile did not fit.
+        let mut probe = s.clone();
+        if let Some(next) = probe
+            .step((128.0, 128.0), u64::MAX, &cost)
+            .0
+            .iter()
+            .find(|m| matches!(m, ColorSend::Tile { .. }))
+        {
+            assert!(spent + msg_cost(next) > allowance, "{next:?} would fit");
+        }
+    }
+    assert!(total > 0);
+    assert!(!s.complete());
+}
+
+#[test]
+fn windows_follow_the_camera_with_hysteresis() {
+    let l = layout();
+    let mut s = ColorScheduler::new(l);
+    let mut replica = Replica::new(l);
+    replica.apply(s.first());
+    let mut moves = 0;
+    // Drive diagonally across the map, one texel a step.
+    for t in 0..256 {
+        let cam = (f64::from(t), f64::from(t) * 0.5);
+        let (msgs, _) = s.step(cam, 300, &cost);
+        moves += msgs
+            .iter()
+            .filter(|m| matches!(m, ColorSend::Window { level: 0, .. }))
+            .count();
+        for m in msgs {
+            replica.apply(m);
+        }
+        for level in 0..2 {
+            // The camera stays within the hysteresis (1 tile at W = 4) of its window's
+            // centre, unless the window is against the level's edge on that side.
+            let (x0, z0) = s.origin(level);
+            let per = 16.0 * f64::from(1u32 << level);
+            let room = l.tiles(level) - 4;
+            for (c, o) in [(cam.0 / per, x0), (cam.1 / per, z0)] {
+                let centre = f64::from(o) + 2.0;
+                let ok = (c - centre).abs() <= 1.0
+                    || (o == 0 && c < centre)
+                    || (o == room && c > centre);
+                assert!(ok, "level {level}: camera at tile {c}, window at {o}");
+            }
+        }
+    }
+    // Level 0 is 16 tiles a side, the window 4: it moved, but far fewer times than the
+    // camera crossed a tile edge (16 + 8 crossings).
+    assert!((3..=12).contains(&moves), "{moves} moves");
+    // A camera wandering around one spot (within 6 texels, 0.4 tile) moves no window.
+    s.step((200.0, 120.0), 0, &cost);
+    let before: Vec<_> = (0..2).map(|l| s.origin(l)).collect();
+    for k in 0..100 {
+        let wobble = f64::from(k % 5) * 3.0 - 6.0;
+        let (msgs, _) = s.step((200.0 + wobble, 120.0 - wobble), 0, &cost);
+        assert!(msgs.is_empty(), "{msgs:?}");
+    }
+    assert_eq!(before, (0..2).map(|l| s.origin(l)).collect::<Vec<_>>());
+}
+
+#[test]
+fn what_it_believes_the_viewer_holds_is_what_the_messages_give() {
+    for (cells, tile, window) in [(256, 16, 4), (512, 16, 3), (64, 16, 1), (16, 16, 8)] {
+        let l = ColorLayout::new(cells, tile, window).expect("a valid layout");
+        let mut s = ColorScheduler::new(l);
+        let mut replica = Replica::new(l);
+        replica.apply(s.first());
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut cam = (f64::from(cells) / 2.0, f64::from(cells) / 2.0);
+        for _ in 0..400 {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            // A wandering camera, sometimes jumping, with a varying allowance.
+            let jump = if rng.is_multiple_of(50) { 60.0 } else { 6.0 };
+            let step = |r: u64| (r % 1000) as f64 / 500.0 - 1.0;
+            cam.0 = (cam.0 + jump * step(rng)).clamp(0.0, f64::from(cells));
+            cam.1 = (cam.1 + jump * step(rng >> 20)).clamp(0.0, f64::from(cells));
+            let (msgs, _) = s.step(cam, rng >> 54, &cost);
+            for m in msgs {
+                replica.apply(m);
+            }
+            let held: BTreeSet<_> = s.held().into_iter().collect();
+            assert_eq!(held, replica.held, "{cells} {tile} {window}");
+        }
+    }
+}
