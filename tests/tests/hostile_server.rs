@@ -1,4 +1,4 @@
-//! A viewer against a hostile or broken server: every malformed welcome, colour map or
+//! A viewer against a hostile or broken server: every malformed welcome, colour tile or
 //! frame is a clear error or a dropped frame, never a panic or an outsized allocation; a
 //! server that welcomes and then says nothing is given up on (after one reconnection),
 //! never waited on forever; a frame number no server could send ends the session with
@@ -14,7 +14,7 @@ use roam_link::{tls, wire};
 use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION, Welcome,
 };
-use roam_protocol::{BitSet, Grid, MeshEncoder};
+use roam_protocol::{BitSet, ColorLayout, Grid, MeshEncoder};
 
 /// What the fake server sends after reading the hello.
 #[derive(Clone, Debug)]
@@ -28,15 +28,31 @@ enum Say {
 }
 
 const CELLS: u32 = 64;
+/// Tiles of 16 texels: levels of 64², 32² and 16², the last one tile.
+const TILE: u32 = 16;
 
-fn packed_colors() -> Vec<u8> {
-    let rgb: Vec<u8> = (0..CELLS * CELLS * 3).map(|i| (i % 251) as u8).collect();
+fn layout() -> ColorLayout {
+    ColorLayout::new(CELLS, TILE, 4).expect("a valid layout")
+}
+
+/// The coarsest level's one tile (16² texels), coded, with texels `fill(i)`.
+fn coarsest_tile(fill: impl Fn(u32) -> u8) -> Vec<u8> {
+    let rgb: Vec<u8> = (0..TILE * TILE * 3).map(fill).collect();
     let mut out = Vec::new();
-    roam_protocol::colormap::encode(CELLS, &rgb, &mut out).expect("texels of the right size");
+    roam_protocol::colormap::encode(TILE, &rgb, &mut out).expect("texels of the right size");
     out
 }
 
-fn welcome(color_bytes: usize) -> Welcome {
+fn packed_colors() -> Vec<u8> {
+    coarsest_tile(|i| (i % 251) as u8)
+}
+
+/// A colour tile message.
+fn tile(level: u8, x: u32, z: u32, data: Vec<u8>) -> Say {
+    Say::Msg(ServerMessage::ColorTile { level, x, z, data })
+}
+
+fn welcome() -> Welcome {
     Welcome {
         version: VERSION,
         levels: 6,
@@ -48,8 +64,7 @@ fn welcome(color_bytes: usize) -> Welcome {
         fog_color: [200; 3],
         water_level: None,
         vehicle: 0,
-        color_cells: CELLS,
-        color_bytes: color_bytes as u32,
+        color: layout(),
         tick: 0,
         ticket: None,
         resumed: false,
@@ -58,15 +73,11 @@ fn welcome(color_bytes: usize) -> Welcome {
     }
 }
 
-/// A welcome and a good colour map.
+/// A welcome and the coarsest colour tile.
 fn good_join() -> Vec<Say> {
-    let packed = packed_colors();
     vec![
-        Say::Msg(ServerMessage::Welcome(welcome(packed.len()))),
-        Say::Msg(ServerMessage::ColorMap {
-            offset: 0,
-            data: packed,
-        }),
+        Say::Msg(ServerMessage::Welcome(welcome())),
+        tile(2, 0, 0, packed_colors()),
     ]
 }
 
@@ -167,6 +178,7 @@ fn hello() -> Hello {
         budget: 4_000,
         frame_rate: 60,
         resume: None,
+        color_window: 8,
     }
 }
 
@@ -182,7 +194,7 @@ async fn check(script: Vec<Say>, want: &str) {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_malformed_welcome_or_colour_map_is_a_clear_error() {
+async fn a_malformed_welcome_or_colour_tile_is_a_clear_error() {
     let packed = packed_colors();
     let n = packed.len();
     let with = |w: Welcome, rest: Vec<Say>| {
@@ -190,7 +202,6 @@ async fn a_malformed_welcome_or_colour_map_is_a_clear_error() {
         v.extend(rest);
         v
     };
-    let chunk = |offset: u32, data: Vec<u8>| Say::Msg(ServerMessage::ColorMap { offset, data });
     check(
         vec![Say::Msg(ServerMessage::Refused(Reason::WrongToken))],
         "refused: wrong token",
@@ -210,47 +221,87 @@ async fn a_malformed_welcome_or_colour_map_is_a_clear_error() {
     check(
         with(
             Welcome {
-                levels: 14,
-                ..welcome(n)
+                levels: 16,
+                ..welcome()
             },
             vec![],
         ),
-        "more than this viewer holds",
+        "Welcome.levels",
     )
     .await;
+    // A colour map of another size than the grid's cells.
+    let other = ColorLayout::new(32, TILE, 4).expect("a valid layout");
     check(
         with(
             Welcome {
-                color_cells: 32,
-                ..welcome(n)
+                color: other,
+                ..welcome()
             },
             vec![],
         ),
-        "colour map is",
+        "Welcome.color.cells",
     )
     .await;
-    // Claims more bytes than any map of its size needs: refused before allocating.
-    check(with(welcome(u32::MAX as usize), vec![]), "colour map is").await;
+    // A layout whose level count does not follow from its cells and tile.
+    let mut bad = layout();
+    bad.levels = 9;
     check(
-        with(welcome(n), vec![chunk((n - 1) as u32, vec![0; 10])]),
-        "expected the next at 0",
+        with(
+            Welcome {
+                color: bad,
+                ..welcome()
+            },
+            vec![],
+        ),
+        "Welcome.color",
+    )
+    .await;
+    // A window wider than the viewer asked for.
+    let mut wide = layout();
+    wide.window = 9;
+    check(
+        with(
+            Welcome {
+                color: wide,
+                ..welcome()
+            },
+            vec![],
+        ),
+        "Welcome.color.window",
     )
     .await;
     check(
-        with(welcome(n), vec![chunk(0, vec![0; n + 1])]),
-        "past the end",
+        with(welcome(), vec![tile(3, 0, 0, packed.clone())]),
+        "ColorTile.level",
+    )
+    .await;
+    check(
+        with(welcome(), vec![tile(2, 1, 0, packed.clone())]),
+        "ColorTile.x/z",
+    )
+    .await;
+    // Longer than the protocol's largest tile: refused before it is allocated.
+    check(
+        with(welcome(), vec![tile(2, 0, 0, vec![0; 1 << 20])]),
+        "colour tile bytes: 1048576, at most",
+    )
+    .await;
+    // Within that, but longer than any tile of its side codes to: refused before decoding.
+    check(
+        with(welcome(), vec![tile(2, 0, 0, vec![0; 100_000])]),
+        "ColorTile.data: 100000 bytes for a tile of 16² texels",
     )
     .await;
     let mut damaged = packed.clone();
     damaged[n / 2] ^= 0x10;
     check(
-        with(welcome(n), vec![chunk(0, damaged)]),
-        "the server's colour map",
+        with(welcome(), vec![tile(2, 0, 0, damaged)]),
+        "ColorTile.data",
     )
     .await;
     check(
-        with(welcome(n), vec![Say::Msg(ServerMessage::Bye(Reason::Quit))]),
-        "expected the colour map",
+        with(welcome(), vec![Say::Msg(ServerMessage::Bye(Reason::Quit))]),
+        "expected the coarsest colour tile",
     )
     .await;
 }
@@ -280,7 +331,7 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
     let s = bounded(Session::join(addr, fp, hello(), KeySource::None))
         .await
         .expect("joins");
-    assert_eq!(s.scene.colors.len(), (CELLS * CELLS * 3) as usize);
+    assert!(s.colors().has_coarsest(), "the coarsest tile is resident");
     let mut dropped = 0;
     // Bounded: two streams, then the server hangs up and `wait` must say so.
     let ended = loop {
@@ -415,18 +466,11 @@ async fn a_poisoned_frame_number_ends_the_session_and_never_wedges_it() {
     task.abort();
 }
 
-/// A join with `w` as the welcome and a good colour map, then `frames` key frames.
+/// A join with `w` as the welcome and the coarsest colour tile, then `frames` key frames.
 fn join_as(w: Welcome, frames: std::ops::Range<u64>) -> Vec<Say> {
-    let packed = packed_colors();
     let mut out = vec![
-        Say::Msg(ServerMessage::Welcome(Welcome {
-            color_bytes: packed.len() as u32,
-            ..w
-        })),
-        Say::Msg(ServerMessage::ColorMap {
-            offset: 0,
-            data: packed,
-        }),
+        Say::Msg(ServerMessage::Welcome(w)),
+        tile(2, 0, 0, packed_colors()),
     ];
     out.extend(frames.map(|f| Say::Stream(key_frame(f))));
     out
@@ -447,7 +491,7 @@ fn first_connection() -> Vec<Say> {
         Welcome {
             vehicle: 3,
             ticket: Some(TICKET),
-            ..welcome(0)
+            ..welcome()
         },
         0..2,
     )
@@ -494,7 +538,7 @@ async fn a_reconnection_presents_the_ticket_and_takes_the_vehicle_back() {
                     vehicle: 3,
                     ticket: Some([8; 16]),
                     resumed: true,
-                    ..welcome(0)
+                    ..welcome()
                 },
                 0..3,
             ),
@@ -531,18 +575,10 @@ async fn a_reconnection_to_another_terrain_ends_the_session() {
     let (addr, fp, _, task) = fakes(
         |n, _| match n {
             0 => first_connection(),
-            _ => {
-                let rgb = vec![9u8; (CELLS * CELLS * 3) as usize];
-                let mut other = Vec::new();
-                roam_protocol::colormap::encode(CELLS, &rgb, &mut other).expect("texels");
-                vec![
-                    Say::Msg(ServerMessage::Welcome(welcome(other.len()))),
-                    Say::Msg(ServerMessage::ColorMap {
-                        offset: 0,
-                        data: other,
-                    }),
-                ]
-            }
+            _ => vec![
+                Say::Msg(ServerMessage::Welcome(welcome())),
+                tile(2, 0, 0, coarsest_tile(|_| 9)),
+            ],
         },
         2,
     )
