@@ -2,7 +2,7 @@
 //! (`.cache/color-tiles.bin`), or built (with a progress bar) and cached there.
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
@@ -12,6 +12,8 @@ use roam_server::net::{self, Options, Server};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
+use roam_server::terrain::dataset::Terrain;
+use roam_server::terrain::variance::VarianceTree;
 use roam_server::viewer::ViewerLimits;
 use std::time::Duration;
 
@@ -115,59 +117,77 @@ impl ServeArgs {
     }
 }
 
+/// A data set opened for serving: heights and variance tree mapped from its cache, the
+/// colour tiles mapped from theirs (each built on first use, with progress bars).
+pub struct Served {
+    pub terrain: Terrain,
+    pub variance: VarianceTree,
+    pub pyramid: ColorPyramid,
+}
+
+/// Opens `dir` as `serve` does: refused if it is too large to serve before anything but
+/// its headers is read; `color.ppm`'s pixels are read only to build the tile cache.
+pub fn open_served(dir: &Path) -> Result<Served> {
+    let super::tess::Opened {
+        terrain,
+        variance,
+        report,
+        ms,
+    } = super::tess::open(dir)?;
+    tracing::info!(
+        "opened {} in {ms:.0} ms (heights {:?}, variance tree {:?})",
+        dir.display(),
+        report.heights,
+        report.variance
+    );
+    net::check_servable(&terrain).with_context(|| dir.display().to_string())?;
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let mut p = super::progress::Progress::new("colour tiles");
+    let cells = terrain.heights.size();
+    let (pyramid, outcome) = ColorPyramid::open_or_load(
+        dir,
+        cells,
+        roam_protocol::tiles::DEFAULT_TILE,
+        threads,
+        || {
+            let mut p = super::progress::Progress::new("colour");
+            roam_server::terrain::dataset::load_color(dir, cells, &mut p.callback())
+        },
+        &mut p.callback(),
+    )
+    .with_context(|| dir.display().to_string())?;
+    drop(p);
+    match outcome {
+        CacheOutcome::Mapped => {}
+        CacheOutcome::Built => tracing::info!("colour tiles cached"),
+        CacheOutcome::Rebuilt(why) => tracing::warn!("colour tile cache rebuilt: {why}"),
+        CacheOutcome::InMemory(why) => {
+            tracing::warn!("colour tiles kept in memory, not cached: {why}")
+        }
+    }
+    tracing::info!(
+        levels = pyramid.levels(),
+        kbytes = pyramid.coded_bytes() / 1000,
+        mapped = pyramid.is_mapped(),
+        "colour pyramid"
+    );
+    Ok(Served {
+        terrain,
+        variance,
+        pyramid,
+    })
+}
+
 pub fn serve(args: ServeArgs) -> Result<()> {
     // The token first: a bad one fails before anything is loaded.
     let token = args.token.resolve()?;
     tracing::info!("join token from {}", token.source);
     let token = token.as_str().to_owned();
-    // Heights and variance tree from the data set's cache (built on first use).
-    let super::tess::Opened {
+    let Served {
         terrain,
         variance: vt,
-        report,
-        ms,
-    } = super::tess::open(&args.dir)?;
-    tracing::info!(
-        "opened {} in {ms:.0} ms (heights {:?}, variance tree {:?})",
-        args.dir.display(),
-        report.heights,
-        report.variance
-    );
-    // A data set too large to serve is refused before its colour map is read.
-    net::check_servable(&terrain).with_context(|| args.dir.display().to_string())?;
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    // The colour tiles from the cache; `color.ppm` is read only to build it.
-    let pyramid = {
-        let mut p = super::progress::Progress::new("colour tiles");
-        let cells = terrain.heights.size();
-        let (pyramid, outcome) = ColorPyramid::open_or_load(
-            &args.dir,
-            cells,
-            roam_protocol::tiles::DEFAULT_TILE,
-            threads,
-            || {
-                let mut p = super::progress::Progress::new("colour");
-                roam_server::terrain::dataset::load_color(&args.dir, cells, &mut p.callback())
-            },
-            &mut p.callback(),
-        )
-        .with_context(|| args.dir.display().to_string())?;
-        match outcome {
-            CacheOutcome::Mapped => {}
-            CacheOutcome::Built => tracing::info!("colour tiles cached"),
-            CacheOutcome::Rebuilt(why) => tracing::warn!("colour tile cache rebuilt: {why}"),
-            CacheOutcome::InMemory(why) => {
-                tracing::warn!("colour tiles kept in memory, not cached: {why}")
-            }
-        }
-        tracing::info!(
-            levels = pyramid.levels(),
-            kbytes = pyramid.coded_bytes() / 1000,
-            mapped = pyramid.is_mapped(),
-            "colour pyramid"
-        );
-        pyramid
-    };
+        pyramid,
+    } = open_served(&args.dir)?;
     // The recordings name the data set by its hash, colour included, as `replay` (which
     // loads it whole) computes it.
     let hash = {
