@@ -233,6 +233,10 @@ pub struct ClientCore {
     decoder: MeshDecoder,
     /// Cuts of recent frames: the bases the server may code against, oldest first.
     bases: VecDeque<(u64, Cut)>,
+    /// The last base let go, decoded into next: its memory is reused (a fresh cut is
+    /// `side² / 8` bytes of new pages to fault in, 33 MB a frame at 16385², which took
+    /// more than the decoding there).
+    spare: Option<Cut>,
     /// The newest frame taken.
     newest: Option<u64>,
     /// The newest frame offered and not yet taken, its size on the wire and arrival.
@@ -284,6 +288,7 @@ impl ClientCore {
             grid,
             decoder: MeshDecoder::new(grid),
             bases: VecDeque::new(),
+            spare: None,
             newest: None,
             waiting: None,
             key: None,
@@ -459,7 +464,7 @@ impl ClientCore {
                 },
                 None => None,
             };
-            let mut cut = Cut::default();
+            let mut cut = self.spare.take().unwrap_or_default();
             let info = match self
                 .decoder
                 .decode_cut(&frame.mesh, base, self.limit, &mut cut)
@@ -487,7 +492,7 @@ impl ClientCore {
             }
             self.bases.push_back((frame.frame, cut));
             if self.bases.len() > self.max_bases {
-                self.bases.pop_front();
+                self.spare = self.bases.pop_front().map(|(_, cut)| cut);
             }
         }
         self.awaiting_base = 0;
