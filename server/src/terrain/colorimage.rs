@@ -160,33 +160,10 @@ fn read_png(
             }
         }));
     };
-    let decode_err = |e: png::DecodingError| err(format!("PNG data: {e}"));
     let line = width as usize * step;
-    if reader.info().interlaced {
-        let size = reader
-            .output_buffer_size()
-            .ok_or_else(|| err("PNG too large to decode".into()))?;
-        let mut buf = Vec::new();
-        buf.try_reserve_exact(size)
-            .map_err(|_| err(format!("cannot allocate {size} bytes")))?;
-        buf.resize(size, 0);
-        reader.next_frame(&mut buf).map_err(decode_err)?;
-        for row in buf.chunks_exact(line).take(height as usize) {
-            convert(row, &mut rgb);
-        }
-        progress(u64::from(height), u64::from(height));
-    } else {
-        for y in 0..height {
-            let row = reader
-                .next_row()
-                .map_err(decode_err)?
-                .ok_or_else(|| err(format!("PNG data: expected {height} rows, got {y}")))?;
-            convert(&row.data()[..line], &mut rgb);
-            if y % 256 == 255 || y + 1 == height {
-                progress(u64::from(y) + 1, u64::from(height));
-            }
-        }
-    }
+    crate::terrain::png16::read_rows(&mut reader, line, height, &err, progress, |row| {
+        convert(row, &mut rgb)
+    })?;
     let kind = match color {
         ColorType::Grayscale => "greyscale",
         ColorType::GrayscaleAlpha => "greyscale + alpha",

@@ -172,34 +172,10 @@ pub fn read(
             }
         })),
     };
-    let decode_err = |e: png::DecodingError| err(format!("PNG data: {e}"));
     let line = width as usize * bytes_per_pixel as usize;
-    if reader.info().interlaced {
-        // Interlaced rows come in passes: decode the whole frame, then convert.
-        let size = reader
-            .output_buffer_size()
-            .ok_or_else(|| err("PNG too large to decode".into()))?;
-        let mut buf = Vec::new();
-        buf.try_reserve_exact(size)
-            .map_err(|_| err(format!("cannot allocate {size} bytes")))?;
-        buf.resize(size, 0);
-        reader.next_frame(&mut buf).map_err(decode_err)?;
-        for row in buf.chunks_exact(line).take(height as usize) {
-            convert(row, &mut samples);
-        }
-        progress(u64::from(height), u64::from(height));
-    } else {
-        for y in 0..height {
-            let row = reader
-                .next_row()
-                .map_err(decode_err)?
-                .ok_or_else(|| err(format!("PNG data: expected {height} rows, got {y}")))?;
-            convert(&row.data()[..line], &mut samples);
-            if y % 256 == 255 || y + 1 == height {
-                progress(u64::from(y) + 1, u64::from(height));
-            }
-        }
-    }
+    read_rows(&mut reader, line, height, &err, progress, |row| {
+        convert(row, &mut samples)
+    })?;
     let kind = match pixels {
         Pixels::Grey16 => "16-bit greyscale PNG".to_string(),
         Pixels::Rgb(enc, c) => format!(
@@ -213,6 +189,46 @@ pub fn read(
     };
     let raster = Raster::new(width, height, samples).map_err(|e| err(e.to_string()))?;
     Ok(Png { raster, kind })
+}
+
+/// Hands each of the image's `height` rows (`line` bytes) to `row` in order, reporting
+/// `progress(rows, height)`: interlaced images (rows in passes) are decoded whole first,
+/// the buffer reserved fallibly; others row by row.
+pub(crate) fn read_rows<R: std::io::BufRead + std::io::Seek>(
+    reader: &mut png::Reader<R>,
+    line: usize,
+    height: u32,
+    err: &dyn Fn(String) -> SourceError,
+    progress: &mut dyn FnMut(u64, u64),
+    mut row: impl FnMut(&[u8]),
+) -> Result<(), SourceError> {
+    let decode_err = |e: png::DecodingError| err(format!("PNG data: {e}"));
+    if reader.info().interlaced {
+        let size = reader
+            .output_buffer_size()
+            .ok_or_else(|| err("PNG too large to decode".into()))?;
+        let mut buf = Vec::new();
+        buf.try_reserve_exact(size)
+            .map_err(|_| err(format!("cannot allocate {size} bytes")))?;
+        buf.resize(size, 0);
+        reader.next_frame(&mut buf).map_err(decode_err)?;
+        for r in buf.chunks_exact(line).take(height as usize) {
+            row(r);
+        }
+        progress(u64::from(height), u64::from(height));
+    } else {
+        for y in 0..height {
+            let r = reader
+                .next_row()
+                .map_err(decode_err)?
+                .ok_or_else(|| err(format!("PNG data: expected {height} rows, got {y}")))?;
+            row(&r.data()[..line]);
+            if y % 256 == 255 || y + 1 == height {
+                progress(u64::from(y) + 1, u64::from(height));
+            }
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
