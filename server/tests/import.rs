@@ -8,7 +8,7 @@ use std::path::Path;
 
 mod common;
 
-use common::{TempDir, check};
+use common::{TempDir, check, png_claiming};
 use roam_server::terrain::dataset::{self, Terrain};
 
 /// A `.hgt` tile of `side²` big-endian samples from `h(x, y)`.
@@ -276,35 +276,6 @@ fn terrain_rgb_encodings() {
     );
 }
 
-/// A PNG signature and an IHDR chunk claiming `width × height`, with a valid CRC, and
-/// nothing after it.
-fn png_claiming(width: u32, height: u32) -> Vec<u8> {
-    let mut chunk = b"IHDR".to_vec();
-    chunk.extend(width.to_be_bytes());
-    chunk.extend(height.to_be_bytes());
-    chunk.extend([16, 0, 0, 0, 0]);
-    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
-    out.extend(13u32.to_be_bytes());
-    out.extend(&chunk);
-    out.extend(crc32(&chunk).to_be_bytes());
-    out
-}
-
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = !0u32;
-    for &b in bytes {
-        crc ^= u32::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 == 1 {
-                (crc >> 1) ^ 0xEDB8_8320
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    !crc
-}
-
 #[test]
 fn bad_files_say_what_is_wrong() {
     let rgb = png_bytes(2, 2, png::ColorType::Rgb, png::BitDepth::Eight, &[128; 12]);
@@ -342,13 +313,13 @@ fn bad_files_say_what_is_wrong() {
         ("cut.png", truncated, &[], &["cut.png: PNG"]),
         (
             "huge.png",
-            &png_claiming(100_000, 100_000)[..],
+            &png_claiming(100_000, 100_000, 16, 0)[..],
             &[],
             &["huge.png: PNG of 100000 × 100000 pixels: expected at most 32769 on each side"],
         ),
         (
             "big.png",
-            &png_claiming(30_000, 30_000)[..],
+            &png_claiming(30_000, 30_000, 16, 0)[..],
             &[],
             &["big.png: PNG of 30000 × 30000 pixels (1800030000 bytes raw) cannot fit in 33 bytes"],
         ),

@@ -10,7 +10,7 @@ use std::path::Path;
 
 mod common;
 
-use common::{TempDir, check, root};
+use common::{TempDir, check, png_claiming, root};
 use roam_server::terrain::colorimage::{Footprint, RgbImage, resample};
 use roam_server::terrain::dataset::{self, Terrain};
 
@@ -327,34 +327,6 @@ fn crop_and_padding_follow_the_heights() {
             );
         }
     }
-}
-
-/// A PNG signature and an IHDR of `width × height` at `depth` bits, colour type `color`.
-fn png_claiming(width: u32, height: u32, depth: u8, color: u8) -> Vec<u8> {
-    let mut chunk = b"IHDR".to_vec();
-    chunk.extend(width.to_be_bytes());
-    chunk.extend(height.to_be_bytes());
-    chunk.extend([depth, color, 0, 0, 0]);
-    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
-    out.extend(13u32.to_be_bytes());
-    out.extend(&chunk);
-    out.extend(crc32(&chunk).to_be_bytes());
-    out
-}
-
-fn crc32(bytes: &[u8]) -> u32 {
-    let mut crc = !0u32;
-    for &b in bytes {
-        crc ^= u32::from(b);
-        for _ in 0..8 {
-            crc = if crc & 1 == 1 {
-                (crc >> 1) ^ 0xEDB8_8320
-            } else {
-                crc >> 1
-            };
-        }
-    }
-    !crc
 }
 
 #[test]

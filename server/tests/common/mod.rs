@@ -113,3 +113,33 @@ pub fn diverged_recording(
     rec.finish(ticks, &world.digest())
         .expect("memory does not fail")
 }
+
+/// A PNG signature and an IHDR of `width × height` at `depth` bits, colour type `color`,
+/// nothing after it: a file that claims more than it holds.
+pub fn png_claiming(width: u32, height: u32, depth: u8, color: u8) -> Vec<u8> {
+    let mut chunk = b"IHDR".to_vec();
+    chunk.extend(width.to_be_bytes());
+    chunk.extend(height.to_be_bytes());
+    chunk.extend([depth, color, 0, 0, 0]);
+    let mut out = b"\x89PNG\r\n\x1a\n".to_vec();
+    out.extend(13u32.to_be_bytes());
+    out.extend(&chunk);
+    out.extend(crc32(&chunk).to_be_bytes());
+    out
+}
+
+/// The CRC-32 of a PNG chunk.
+pub fn crc32(bytes: &[u8]) -> u32 {
+    let mut crc = !0u32;
+    for &b in bytes {
+        crc ^= u32::from(b);
+        for _ in 0..8 {
+            crc = if crc & 1 == 1 {
+                (crc >> 1) ^ 0xEDB8_8320
+            } else {
+                crc >> 1
+            };
+        }
+    }
+    !crc
+}
