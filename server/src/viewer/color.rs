@@ -9,12 +9,17 @@
 //!
 //! Decisions:
 //!
-//! - **Coarse first**: the coarsest level's single tile before anything (the shell sends
-//!   it before the first frame, whatever the budget: [`ColorScheduler::first`]), then
-//!   level by level towards the finest, and within a level the tiles nearest the camera
-//!   first (distance from the camera to the tile's centre, ties by row then column, so
-//!   the order is deterministic). A viewer always has a whole coarse picture before
-//!   detail, and detail where it looks from.
+//! - **Coarse first, then ring by ring**: the coarsest level's single tile before
+//!   anything (the shell sends it before the first frame, whatever the budget:
+//!   [`ColorScheduler::first`]), then every level's window tiles in one order: by the
+//!   distance from the camera to the tile, in tiles of the tile's own level (0 for the
+//!   tile under the camera), ties to the coarser level, then by row and column (so the
+//!   order is deterministic). A tile's size on screen goes as one over that distance
+//!   whatever its level, so this sends what the viewer sees largest first: the tiles
+//!   under the vehicle at every level, coarsest first, before the far tiles of any
+//!   level. Sending whole levels coarse to fine instead left the ground near the vehicle
+//!   blurred for about 11 s at 16385² (the six coarser windows, 22 MB at 2 MB/s, before
+//!   level 0's first tile).
 //! - **Windows follow the camera with hysteresis**: a level's window is recentred on the
 //!   camera (clamped inside the level) only when the camera is more than
 //!   `max(0.75, W / 4)` tiles from the window's centre on an axis — 2 tiles at W = 8,
@@ -91,17 +96,15 @@ impl ColorScheduler {
             }
         }
         let mut spent = 0;
-        for level in (0..self.layout.levels).rev() {
-            for (x, z) in self.unsent(level, (cx, cz)) {
-                let c = cost(level, x, z);
-                if spent + c > allowance {
-                    return (out, spent);
-                }
-                spent += c;
-                let n = self.layout.tiles(level);
-                self.sent[usize::from(level)][(z * n + x) as usize] = true;
-                out.push(ColorSend::Tile { level, x, z });
+        for (level, x, z) in self.unsent((cx, cz)) {
+            let c = cost(level, x, z);
+            if spent + c > allowance {
+                return (out, spent);
             }
+            spent += c;
+            let n = self.layout.tiles(level);
+            self.sent[usize::from(level)][(z * n + x) as usize] = true;
+            out.push(ColorSend::Tile { level, x, z });
         }
         (out, spent)
     }
@@ -179,23 +182,35 @@ impl ColorScheduler {
         Some(origin)
     }
 
-    /// `level`'s window tiles not sent yet, nearest the camera first.
-    fn unsent(&self, level: u8, cam: (f64, f64)) -> Vec<(u32, u32)> {
-        let (x0, z0) = self.origins[usize::from(level)];
-        let (w, n) = (self.layout.window_tiles(level), self.layout.tiles(level));
-        let (tx, tz) = self.camera_tiles(level, cam);
-        let sent = &self.sent[usize::from(level)];
-        let mut tiles: Vec<(u32, u32)> = (z0..z0 + w)
-            .flat_map(|z| (x0..x0 + w).map(move |x| (x, z)))
-            .filter(|&(x, z)| !sent[(z * n + x) as usize])
-            .collect();
-        let d = |&(x, z): &(u32, u32)| {
-            let (dx, dz) = (f64::from(x) + 0.5 - tx, f64::from(z) + 0.5 - tz);
-            dx * dx + dz * dz
-        };
-        tiles.sort_by(|a, b| d(a).total_cmp(&d(b)).then((a.1, a.0).cmp(&(b.1, b.0))));
-        tiles
+    /// Every window's tiles not sent yet, in priority order (see the module's header).
+    fn unsent(&self, cam: (f64, f64)) -> Vec<(u8, u32, u32)> {
+        let mut tiles: Vec<(f64, u8, u32, u32)> = Vec::new();
+        for level in 0..self.layout.levels {
+            let (x0, z0) = self.origins[usize::from(level)];
+            let (w, n) = (self.layout.window_tiles(level), self.layout.tiles(level));
+            let (tx, tz) = self.camera_tiles(level, cam);
+            let sent = &self.sent[usize::from(level)];
+            for z in z0..z0 + w {
+                for x in x0..x0 + w {
+                    if !sent[(z * n + x) as usize] {
+                        tiles.push((tile_distance((tx, tz), x, z), level, x, z));
+                    }
+                }
+            }
+        }
+        tiles.sort_by(|a, b| {
+            (a.0.total_cmp(&b.0))
+                .then(b.1.cmp(&a.1))
+                .then((a.3, a.2).cmp(&(b.3, b.2)))
+        });
+        tiles.into_iter().map(|(_, l, x, z)| (l, x, z)).collect()
     }
+}
+
+/// Distance from `(tx, tz)` (in tiles) to the nearest point of tile `(x, z)`: 0 inside it.
+pub fn tile_distance((tx, tz): (f64, f64), x: u32, z: u32) -> f64 {
+    let gap = |t: f64, lo: u32| (f64::from(lo) - t).max(t - f64::from(lo + 1)).max(0.0);
+    gap(tx, x).hypot(gap(tz, z))
 }
 
 #[cfg(test)]

@@ -1,4 +1,4 @@
-//! Tests of the colour scheduler: coarse first, within the budget, windows that follow the
+//! Tests of the colour scheduler: coarsest first then ring by ring, within the budget, windows that follow the
 //! camera without flapping, and a belief of what the viewer holds that equals a replay of
 //! the messages.
 
@@ -55,8 +55,9 @@ impl Replica {
 }
 
 #[test]
-fn the_coarsest_tile_comes_first_then_coarse_levels_before_fine() {
-    let mut s = ColorScheduler::new(layout());
+fn the_coarsest_tile_comes_first_then_tiles_ring_by_ring() {
+    let l = layout();
+    let mut s = ColorScheduler::new(l);
     assert_eq!(
         s.first(),
         ColorSend::Tile {
@@ -65,34 +66,40 @@ fn the_coarsest_tile_comes_first_then_coarse_levels_before_fine() {
             z: 0
         }
     );
-    let (msgs, spent) = s.step((10.0, 10.0), u64::MAX, &cost);
-    let levels: Vec<u8> = msgs
+    let cam = (40.0, 24.0);
+    let (msgs, spent) = s.step(cam, u64::MAX, &cost);
+    let tiles: Vec<(u8, u32, u32)> = msgs
         .iter()
-        .filter_map(|m| match m {
-            ColorSend::Tile { level, .. } => Some(*level),
+        .filter_map(|m| match *m {
+            ColorSend::Tile { level, x, z } => Some((level, x, z)),
             ColorSend::Window { .. } => None,
         })
         .collect();
-    assert!(levels.windows(2).all(|w| w[0] >= w[1]), "{levels:?}");
     // Level 3 (2×2), 2 (4×4), 1 and 0 (4×4 windows): 4 + 16 + 16 + 16.
-    assert_eq!(levels.len(), 52);
-    assert!(!levels.contains(&4));
+    assert_eq!(tiles.len(), 52);
+    assert!(!tiles.iter().any(|t| t.0 == 4));
+    // Ordered by the distance to the camera in the tile's own tiles, ties coarser first.
+    let key = |&(level, x, z): &(u8, u32, u32)| {
+        let per = f64::from(l.tile_side(level) << level);
+        (
+            tile_distance((cam.0 / per, cam.1 / per), x, z),
+            -i32::from(level),
+        )
+    };
+    for pair in tiles.windows(2) {
+        let (a, b) = (key(&pair[0]), key(&pair[1]));
+        assert!(
+            a.0 < b.0 || (a.0 == b.0 && a.1 <= b.1),
+            "{pair:?}: {a:?} then {b:?}"
+        );
+    }
+    // First the tile under the camera at every level, coarsest first: at (40, 24)
+    // texels, tile (2, 1) of level 0 (16 texels), (1, 0) of level 1, (0, 0) above.
+    assert_eq!(tiles[..4], [(3, 0, 0), (2, 0, 0), (1, 1, 0), (0, 2, 1)]);
     assert_eq!(spent, msgs.iter().map(msg_cost).sum::<u64>());
     assert!(s.complete());
-    // Within a level, nearest the camera first: at (10, 10) texels, level 0's tile (0, 0).
-    let first0 = msgs
-        .iter()
-        .find(|m| matches!(m, ColorSend::Tile { level: 0, .. }));
-    assert_eq!(
-        first0,
-        Some(&ColorSend::Tile {
-            level: 0,
-            x: 0,
-            z: 0
-        })
-    );
     // Nothing more while the camera stays.
-    assert_eq!(s.step((10.0, 10.0), u64::MAX, &cost), (vec![], 0));
+    assert_eq!(s.step(cam, u64::MAX, &cost), (vec![], 0));
 }
 
 fn msg_cost(m: &ColorSend) -> u64 {
