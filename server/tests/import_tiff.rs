@@ -12,7 +12,9 @@ mod common;
 use common::{TempDir, check};
 use roam_server::terrain::dataset::{self, Terrain};
 use tiff::encoder::colortype::{self, ColorType};
-use tiff::encoder::{Compression, DeflateLevel, TiffEncoder, TiffValue};
+use tiff::encoder::{
+    Compression, DeflateLevel, TiffEncoder, TiffKind, TiffKindBig, TiffKindStandard, TiffValue,
+};
 use tiff::tags::Tag;
 
 /// The GeoTIFF tags a test file carries.
@@ -48,8 +50,22 @@ fn tiff_bytes<C: ColorType>(
 where
     [C::Inner]: TiffValue,
 {
+    tiff_of_kind::<C, TiffKindStandard>(width, height, data, compression, geo)
+}
+
+/// [`tiff_bytes`] as a classic TIFF or a BigTIFF (`K`).
+fn tiff_of_kind<C: ColorType, K: TiffKind>(
+    width: u32,
+    height: u32,
+    data: &[C::Inner],
+    compression: Compression,
+    geo: &Geo,
+) -> Vec<u8>
+where
+    [C::Inner]: TiffValue,
+{
     let mut cursor = Cursor::new(Vec::new());
-    let mut enc = TiffEncoder::new(&mut cursor)
+    let mut enc = TiffEncoder::<_, K>::new_generic(&mut cursor)
         .expect("TIFF header")
         .with_compression(compression);
     let mut image = enc.new_image::<C>(width, height).expect("TIFF image");
@@ -161,6 +177,29 @@ fn integer_samples_round_trip_with_projected_spacing() {
     assert!((t.map.h_scale - 3.048).abs() < 1e-9, "{}", t.map.h_scale);
     let lowest = f64::from(s(0, 32)) * 0.3048;
     assert_heights(&t, 33, lowest, |x, y| f64::from(s(x, y)) * 0.3048);
+}
+
+/// A BigTIFF (64-bit offsets, as GDAL writes past 4 GiB) reads as the classic TIFF of the
+/// same samples does.
+#[test]
+fn bigtiff_reads_as_tiff() {
+    let s = |x: u32, y: u32| (x * 613 + y * 211) as u16;
+    let data: Vec<u16> = (0..33 * 33).map(|i| s(i % 33, i / 33)).collect();
+    let compression = Compression::Deflate(DeflateLevel::Balanced);
+    let big = tiff_of_kind::<colortype::Gray16, TiffKindBig>(33, 33, &data, compression, &{
+        projected(10.0)
+    });
+    assert_eq!(&big[..4], b"II+\0", "a BigTIFF header");
+    let (_dir, t) = import(
+        "big.tif",
+        &big,
+        &[],
+        0,
+        &["16-bit unsigned integer samples", "hScale 10 m"],
+    );
+    let t = t.expect("imported");
+    let lowest = f64::from(data.iter().copied().min().expect("samples"));
+    assert_heights(&t, 33, lowest, |x, y| f64::from(s(x, y)));
 }
 
 #[test]
