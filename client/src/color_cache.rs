@@ -173,9 +173,15 @@ impl ColorCache {
         }
     }
 
-    /// An empty cache of the same layout and keeping (what a cache handed away leaves).
+    /// An empty cache of the same layout and keeping, at the same window origins (what a
+    /// cache handed away leaves: the server goes on sending for the windows it set, so
+    /// its later tiles must still be taken).
     pub fn fresh(&self) -> ColorCache {
-        ColorCache::empty(self.layout, self.keep)
+        let mut c = ColorCache::empty(self.layout, self.keep);
+        for (new, old) in c.levels.iter_mut().zip(&self.levels) {
+            new.origin = old.origin;
+        }
+        c
     }
 
     /// The coarsest level's tile as received (RGB), empty before it.

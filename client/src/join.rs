@@ -207,9 +207,10 @@ pub struct TerrainId {
     levels: u8,
     h_scale: f64,
     v_scale: f64,
-    /// The colour pyramid's cells, tile and levels (not the window: a server may offer
-    /// another).
-    color: (u32, u32, u8),
+    /// The colour pyramid's cells, tile, levels and window: the renderer's texture layers
+    /// and resident masks are laid out for the first connection's window, so a server
+    /// offering another one is another terrain for this session.
+    color: (u32, u32, u8, u8),
     /// SHA-256 of the decoded coarsest colour tile.
     colors: Vec<u8>,
 }
@@ -222,7 +223,7 @@ impl TerrainId {
             levels: welcome.levels,
             h_scale: welcome.h_scale,
             v_scale: welcome.v_scale,
-            color: (c.cells, c.tile, c.levels),
+            color: (c.cells, c.tile, c.levels, c.window),
             colors: ring::digest::digest(&ring::digest::SHA256, coarsest)
                 .as_ref()
                 .to_vec(),

@@ -107,7 +107,14 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         conn.close(close::PROTOCOL.into(), b"the welcome could not be sent");
         return;
     }
-    let color = tokio::spawn(stream_color(send.clone(), shared.clone(), colors, vehicle));
+    // Aborted when this task ends by any path, unwinding included: the colour task holds
+    // the shared state (the world's inbox) and never ends on its own.
+    let color = AbortOnDrop(tokio::spawn(stream_color(
+        send.clone(),
+        shared.clone(),
+        colors,
+        vehicle,
+    )));
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
     let mut ctl = tokio::spawn(read_control(recv, control.clone()));
@@ -127,7 +134,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                         _ => "the vehicle followed has left",
                     };
                     let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
-                    last_word(&mut *quiet(&send, &color).await, &bye).await;
+                    goodbye(&send, &color.0, &bye).await;
                     conn.close(close::BYE.into(), why.as_bytes());
                     why.into()
                 }
@@ -154,14 +161,14 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         }
         _ = shared.shutting_down() => {
             let bye = ServerMessage::Bye(Reason::Shutdown);
-            last_word(&mut *quiet(&send, &color).await, &bye).await;
+            goodbye(&send, &color.0, &bye).await;
             conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
             "the server is shutting down".into()
         }
     };
     keys.abort();
     ctl.abort();
-    color.abort();
+    drop(color);
     let held = leave.hold && leave.vehicle.is_some();
     if driver && !held {
         // Gone for good: its ticket names nothing any more.
@@ -212,6 +219,31 @@ impl Drop for Leave {
             let _ = self.world.send((event, None));
         }
     }
+}
+
+/// A task aborted when dropped.
+struct AbortOnDrop(tokio::task::JoinHandle<()>);
+
+impl Drop for AbortOnDrop {
+    fn drop(&mut self) {
+        self.0.abort();
+    }
+}
+
+/// How long a goodbye may wait for the control stream: a viewer that stopped reading it
+/// (flow control full, a colour tile half written) must not hold its seat and vehicle.
+const GOODBYE_WITHIN: Duration = Duration::from_secs(1);
+
+/// `bye` on the control stream once the colour task is stopped, within [`GOODBYE_WITHIN`]
+/// (the connection closes next, so a goodbye cut short loses nothing more).
+async fn goodbye(
+    send: &tokio::sync::Mutex<quinn::SendStream>,
+    color: &tokio::task::JoinHandle<()>,
+    bye: &ServerMessage,
+) {
+    let said = async { last_word(&mut *quiet(send, color).await, bye).await };
+    let _ = tokio::time::timeout(GOODBYE_WITHIN, said).await;
+    color.abort();
 }
 
 /// The control stream, once the colour task is stopped between two messages.

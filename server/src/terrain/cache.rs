@@ -143,9 +143,10 @@ pub(crate) struct Cache {
     pub(crate) notes: Vec<String>,
 }
 
-/// `hf.pgm`'s identity on disk when it was hashed.
+/// A source file's identity on disk (`hf.pgm` when it was hashed; `color.ppm` when its
+/// tiles were coded, see `color_pyramid`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct FileStamp {
+pub(crate) struct FileStamp {
     len: u64,
     mtime: (i64, i64),
     ctime: (i64, i64),
@@ -154,7 +155,28 @@ struct FileStamp {
 }
 
 impl FileStamp {
-    fn of(meta: &fs::Metadata) -> FileStamp {
+    /// One number for the whole stamp (a blake3 of its fields), to keep in a header.
+    pub(crate) fn digest(&self) -> u64 {
+        let mut h = blake3::Hasher::new();
+        h.update(&self.len.to_le_bytes());
+        for v in [self.mtime.0, self.mtime.1, self.ctime.0, self.ctime.1] {
+            h.update(&v.to_le_bytes());
+        }
+        h.update(&self.ino.to_le_bytes());
+        h.update(&self.dev.to_le_bytes());
+        let b = h.finalize();
+        u64::from_le_bytes(
+            b.as_bytes()[..8]
+                .try_into()
+                .expect("a blake3 hash is 32 bytes"),
+        )
+    }
+
+    pub(crate) fn len(&self) -> u64 {
+        self.len
+    }
+
+    pub(crate) fn of(meta: &fs::Metadata) -> FileStamp {
         #[cfg(unix)]
         {
             use std::os::unix::fs::MetadataExt;

@@ -12,7 +12,8 @@
 //! - The coded tiles of a data set are cached in `DIR/.cache/color-tiles.bin` and
 //!   memory-mapped (memmap2): a restart serves without coding anything, and the payloads
 //!   stay in the page cache, not the heap. The file: a header (magic, format version,
-//!   cells, tile, levels, `color.ppm`'s length and modification time, the tile count), a
+//!   cells, tile, levels, `color.ppm`'s length and a digest of its length, mtime, ctime,
+//!   inode and device (`cache::FileStamp`), the tile count), a
 //!   blake3 hash of the header and the index, the index ((offset, length) per tile,
 //!   levels finest first, rows then columns) and the payloads, back to back. It is
 //!   written to a temporary file and renamed (a torn write is never seen), and checked
@@ -35,6 +36,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use roam_protocol::colormap;
 use roam_protocol::tiles::{self, ColorLayout};
 
+use crate::terrain::cache::FileStamp;
 use crate::terrain::dataset::{COLOR_FILE, ColorMap};
 
 /// The cache's file name inside the data set's `.cache` folder.
@@ -42,8 +44,9 @@ pub const CACHE_FILE: &str = "color-tiles.bin";
 /// The data set's cache folder.
 pub const CACHE_DIR: &str = ".cache";
 const MAGIC: &[u8; 8] = b"roamCT\0\0";
-/// The cache's format version.
-const CACHE_VERSION: u32 = 1;
+/// The cache's format version. 2: the source's stamp is a digest of its length, mtime,
+/// ctime, inode and device (1 kept its mtime only).
+const CACHE_VERSION: u32 = 2;
 /// Header bytes: magic, version, cells, tile, levels, source length, source mtime, tiles.
 const HEADER: usize = 8 + 4 * 4 + 8 * 3;
 const HASH: usize = 32;
@@ -300,7 +303,11 @@ impl ColorPyramid {
         hasher.update(&index);
         head.extend_from_slice(hasher.finalize().as_bytes());
         head.extend_from_slice(&index);
-        let tmp = dir.join(format!("{CACHE_FILE}.{}.tmp", std::process::id()));
+        // Unique per process and per write: two builds of one data set in one process (or
+        // in two) never write into the same temporary file.
+        static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = WRITES.fetch_add(1, Ordering::Relaxed);
+        let tmp = dir.join(format!("{CACHE_FILE}.{}.{n}.tmp", std::process::id()));
         let written = (|| {
             let mut f = io::BufWriter::new(fs::File::create(&tmp)?);
             f.write_all(&head)?;
@@ -361,13 +368,14 @@ pub fn cache_path(dir: &Path) -> PathBuf {
 }
 
 /// A file's length and modification time (ns since the epoch), or `None`.
+/// `color.ppm`'s length and the digest of its stamp (length, mtime, ctime, inode, device:
+/// any write changes the ctime, which no program can set back, so a copy made with its
+/// times kept, `touch -r` or a restore is a new stamp). What is left is a rewrite within
+/// one tick of the file system's ctime after the tiles were coded (nanoseconds on ext4,
+/// XFS and btrfs); `heights.bin`'s stamp also closes that, at the cost of re-hashing.
 fn source_stamp(path: &Path) -> Option<(u64, u64)> {
-    let meta = fs::metadata(path).ok()?;
-    let mtime = meta.modified().ok()?;
-    let ns = mtime
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64);
-    Some((meta.len(), ns))
+    let stamp = FileStamp::of(&fs::metadata(path).ok()?);
+    Some((stamp.len(), stamp.digest()))
 }
 
 /// Where each level's tiles start in the index, and the count after the last.

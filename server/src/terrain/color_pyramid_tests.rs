@@ -173,6 +173,27 @@ fn a_damaged_or_stale_cache_is_rebuilt() {
         "{outcome:?}"
     );
     assert_eq!(open(&dir, &color).1, CacheOutcome::Mapped);
+    // So does one of the same length with its modification time set back (a copy keeping
+    // times, `touch -r`): its change time moved.
+    let mtime = fs::metadata(dir.join(COLOR_FILE))
+        .and_then(|m| m.modified())
+        .expect("a date");
+    let same_length = b"P6 anotheR stand-in";
+    assert_eq!(
+        fs::metadata(dir.join(COLOR_FILE)).map(|m| m.len()).ok(),
+        Some(same_length.len() as u64)
+    );
+    fs::write(dir.join(COLOR_FILE), same_length).expect("temp file");
+    fs::File::options()
+        .write(true)
+        .open(dir.join(COLOR_FILE))
+        .and_then(|f| f.set_modified(mtime))
+        .expect("set the date back");
+    let (_, outcome) = open(&dir, &color);
+    assert!(
+        matches!(&outcome, CacheOutcome::Rebuilt(why) if why.contains("stale")),
+        "{outcome:?}"
+    );
     let _ = fs::remove_dir_all(&dir);
 }
 
