@@ -83,13 +83,16 @@ async fn junk_connections_are_closed_and_a_viewer_still_gets_in() {
         counts.retried > 0,
         "past the cap, connections were asked to prove their address: {counts:?}"
     );
-    // Each junk connection the server let in ended one way, before any hello: at the
-    // deadline, evicted for a newer one, or failed (a junk connection whose every packet
-    // a full socket buffer dropped after its Retry never came in at all); every close the
-    // junk saw from the server is among them.
+    // Each connection the server let in and that never said hello ended one way (each
+    // handshake task counts once, in `early`): at the deadline, evicted for a newer one,
+    // or failed (a junk connection whose every packet a full socket buffer dropped after
+    // its Retry never came in at all); every close the junk saw from the server is among
+    // them. Not bounded by the 4,000 opened: the viewer's own connection attempts are
+    // counted here too when the flood ends one before its hello, and a loaded machine
+    // once counted 4,002.
     let ended = counts.timed_out + counts.evicted_closed + counts.failed + counts.refused_early;
     assert!(
-        ended <= 4_000 && ended >= out.closed_by_server as u64,
+        ended >= out.closed_by_server as u64,
         "{counts:?} {summary:?}"
     );
     assert_eq!(counts.joins, 1, "only the viewer said hello");

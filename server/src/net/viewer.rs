@@ -38,6 +38,7 @@ use super::Shared;
 use super::handshake::{Joined, MAX_CONTROL, Seat};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
+use crate::terrain::color_pyramid::TileError;
 use crate::viewer::color::{ColorScheduler, ColorSend};
 use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{Scene, ViewerCore};
@@ -285,8 +286,21 @@ async fn write_color(
     let msg = match m {
         ColorSend::Window { level, x0, z0 } => ServerMessage::ColorWindow { level, x0, z0 },
         ColorSend::Tile { level, x, z } => {
-            let Some(data) = shared.pyramid.tile(level, x, z) else {
-                unreachable!("the scheduler names tiles of the pyramid's own layout")
+            let data = match shared.pyramid.served_tile(level, x, z) {
+                Ok(data) => data,
+                Err(e) => {
+                    // Not sent: the viewer draws a coarser level there (the scheduler
+                    // counts it as held, so it is not asked for again).
+                    if e == (TileError::Damaged { first: true }) {
+                        tracing::error!(
+                            level,
+                            x,
+                            z,
+                            "colour tile not served: {e}; restart the server to rebuild it"
+                        );
+                    }
+                    return Ok(());
+                }
             };
             let stats = &shared.stats;
             stats.add(&stats.color_tiles, 1);

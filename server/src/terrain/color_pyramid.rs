@@ -20,8 +20,12 @@
 //!   before it is used: the hash, every entry inside the file, contiguous and within
 //!   `colormap::max_len` of its tile. A stale (another `color.ppm`, another tile size) or
 //!   damaged cache is rebuilt with a warning; a directory that cannot be written keeps
-//!   the pyramid in memory. The payloads themselves are not hashed at open (hundreds of
-//!   megabytes at 16385²): each carries its own 64-bit check, which the viewer verifies.
+//!   the pyramid in memory. The payloads are not hashed at open (hundreds of
+//!   megabytes at 16385², which would also make them all resident): each index entry
+//!   carries its payload's check, verified the first time the tile is served
+//!   ([`ColorPyramid::served_tile`]); a damaged tile is never sent (the viewer keeps
+//!   drawing a coarser level there) and is reported once. The coarsest tile, which every
+//!   viewer gets before its first frame, is verified at open.
 //! - Measured (`measure` profile, 2 shared cores, T = 256, `roam-server color-bench`):
 //!   kossou (1024², 3 levels) 1.9 MB coded (1.39 MB whole: per-tile tables and the
 //!   coarser levels cost the rest) in 0.06 s; 4096² (5 levels) 28.6 MB in 0.68 s;
@@ -31,7 +35,7 @@ use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
 
 use roam_protocol::colormap;
 use roam_protocol::tiles::{self, ColorLayout};
@@ -45,12 +49,25 @@ pub const CACHE_FILE: &str = "color-tiles.bin";
 pub const CACHE_DIR: &str = ".cache";
 const MAGIC: &[u8; 8] = b"roamCT\0\0";
 /// The cache's format version. 2: the source's stamp is a digest of its length, mtime,
-/// ctime, inode and device (1 kept its mtime only).
-const CACHE_VERSION: u32 = 2;
+/// ctime, inode and device (1 kept its mtime only). 3: each index entry carries its
+/// payload's check.
+const CACHE_VERSION: u32 = 3;
 /// Header bytes: magic, version, cells, tile, levels, source length, source mtime, tiles.
 const HEADER: usize = 8 + 4 * 4 + 8 * 3;
 const HASH: usize = 32;
-const ENTRY: usize = 12;
+/// An index entry: offset (u64), length (u32), check (u64: the payload's blake3, cut).
+const ENTRY: usize = 20;
+
+/// Why a tile is not served.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum TileError {
+    #[error("no such tile")]
+    Outside,
+    /// Its payload does not match its check (a damaged cache file); `first`: the first
+    /// time this tile was found so.
+    #[error("its payload does not match its check: the cache file is damaged")]
+    Damaged { first: bool },
+}
 
 /// Why a pyramid could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -75,8 +92,10 @@ pub struct ColorPyramid {
     tile: u32,
     levels: u8,
     /// Per tile (levels finest first, then rows, then columns): offset and length in
-    /// `payloads`.
-    index: Vec<(u64, u32)>,
+    /// `payloads`, and the payload's check ([`check_of`]).
+    index: Vec<(u64, u32, u64)>,
+    /// Per tile: 0 not verified against its check yet, 1 verified, 2 damaged.
+    verified: Vec<AtomicU8>,
     /// Where each level's tiles start in `index`.
     first: Vec<usize>,
     payloads: Payloads,
@@ -126,13 +145,14 @@ impl ColorPyramid {
         let mut index = Vec::with_capacity(total);
         let mut blob = Vec::with_capacity(coded.iter().map(Vec::len).sum());
         for c in coded {
-            index.push((blob.len() as u64, c.len() as u32));
+            index.push((blob.len() as u64, c.len() as u32, check_of(&c)));
             blob.extend_from_slice(&c);
         }
         Ok(ColorPyramid {
             cells: layout.cells,
             tile,
             levels: layout.levels,
+            verified: (0..index.len()).map(|_| AtomicU8::new(1)).collect(),
             index,
             first,
             payloads: Payloads::Memory(blob),
@@ -259,26 +279,35 @@ impl ColorPyramid {
                 .skip(first[usize::from(l)])
             {
                 let offset = u64::from_le_bytes(e[..8].try_into().expect("8"));
-                let len = u32::from_le_bytes(e[8..].try_into().expect("4"));
+                let len = u32::from_le_bytes(e[8..12].try_into().expect("4"));
+                let check = u64::from_le_bytes(e[12..].try_into().expect("8"));
                 if offset != end || len as usize > limit || len < 16 {
                     return Err(format!("index entry {} out of order or size", index.len()));
                 }
                 end += u64::from(len);
-                index.push((offset, len));
+                index.push((offset, len, check));
             }
         }
         if end != payload_len {
             return Err(format!("{payload_len} payload bytes, the index says {end}"));
         }
-        Ok(ColorPyramid {
+        let pyramid = ColorPyramid {
             cells,
             tile,
             levels: layout.levels,
+            verified: (0..index.len()).map(|_| AtomicU8::new(0)).collect(),
             index,
             first,
             payloads: Payloads::Mapped(map),
             base,
-        })
+        };
+        // The coarsest tile goes to every viewer before its first frame: checked now, so a
+        // damaged one is rebuilt rather than served. Others are checked when first served.
+        let coarsest = layout.levels - 1;
+        if let Err(e) = pyramid.served_tile(coarsest, 0, 0) {
+            return Err(format!("the coarsest tile: {e}"));
+        }
+        Ok(pyramid)
     }
 
     /// Writes the cache to `path` (a temporary file, then renamed).
@@ -294,9 +323,10 @@ impl ColorPyramid {
             head.extend_from_slice(&v.to_le_bytes());
         }
         let mut index = Vec::with_capacity(self.index.len() * ENTRY);
-        for &(offset, len) in &self.index {
+        for &(offset, len, check) in &self.index {
             index.extend_from_slice(&offset.to_le_bytes());
             index.extend_from_slice(&len.to_le_bytes());
+            index.extend_from_slice(&check.to_le_bytes());
         }
         let mut hasher = blake3::Hasher::new();
         hasher.update(&head);
@@ -346,9 +376,29 @@ impl ColorPyramid {
             return None;
         }
         let i = self.first[usize::from(level)] + (z * n + x) as usize;
-        let (offset, len) = self.index[i];
+        let (offset, len, _) = self.index[i];
         let start = offset as usize;
         self.payload_bytes().get(start..start + len as usize)
+    }
+
+    /// [`Self::tile`] for a viewer: its payload checked against the index the first time
+    /// (hundreds of megabytes at 16385² are not hashed at open; a tile is 20–40 µs).
+    pub fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
+        let data = self.tile(level, x, z).ok_or(TileError::Outside)?;
+        let layout = ColorLayout::new(self.cells, self.tile, 1).map_err(|_| TileError::Outside)?;
+        let i = self.first[usize::from(level)] + (z * layout.tiles(level) + x) as usize;
+        match self.verified[i].load(Ordering::Relaxed) {
+            1 => Ok(data),
+            2 => Err(TileError::Damaged { first: false }),
+            _ if check_of(data) == self.index[i].2 => {
+                self.verified[i].store(1, Ordering::Relaxed);
+                Ok(data)
+            }
+            _ => {
+                let first = self.verified[i].swap(2, Ordering::Relaxed) != 2;
+                Err(TileError::Damaged { first })
+            }
+        }
     }
 
     /// Coded bytes of all tiles.
@@ -360,6 +410,16 @@ impl ColorPyramid {
     pub fn is_mapped(&self) -> bool {
         matches!(self.payloads, Payloads::Mapped(_))
     }
+}
+
+/// A payload's check: its blake3 hash, cut to 64 bits.
+fn check_of(payload: &[u8]) -> u64 {
+    let h = blake3::hash(payload);
+    u64::from_le_bytes(
+        h.as_bytes()[..8]
+            .try_into()
+            .expect("a blake3 hash is 32 bytes"),
+    )
 }
 
 /// The cache's path for the data set in `dir`.

@@ -197,6 +197,50 @@ fn a_damaged_or_stale_cache_is_rebuilt() {
     let _ = fs::remove_dir_all(&dir);
 }
 
+/// A damaged tile payload (the header and index intact) is never served: found the first
+/// time the tile is asked for, reported once; a damaged coarsest tile (every viewer's
+/// first) is found at open and the cache rebuilt.
+#[test]
+fn a_damaged_tile_is_not_served() {
+    let dir = dataset("damaged-tile");
+    let color = map(64);
+    let path = cache_path(&dir);
+    let (built, _) = open(&dir, &color);
+    let good = fs::read(&path).expect("the cache was written");
+    // 64² in tiles of 16: 16 + 4 + 1 tiles; the payloads follow the index, finest first.
+    let base = HEADER + HASH + 21 * ENTRY;
+    let mut bytes = good.clone();
+    bytes[base + 20] ^= 0x40;
+    fs::write(&path, &bytes).expect("temp file");
+    let (p, outcome) = open(&dir, &color);
+    assert_eq!(outcome, CacheOutcome::Mapped, "header and index are intact");
+    assert_eq!(
+        p.served_tile(0, 0, 0),
+        Err(TileError::Damaged { first: true })
+    );
+    assert_eq!(
+        p.served_tile(0, 0, 0),
+        Err(TileError::Damaged { first: false })
+    );
+    assert_eq!(
+        p.served_tile(0, 1, 0),
+        Ok(built.tile(0, 1, 0).expect("a tile"))
+    );
+    assert_eq!(p.served_tile(0, 4, 0), Err(TileError::Outside));
+    // The coarsest tile's payload is the file's last bytes.
+    let mut bytes = good.clone();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 0x40;
+    fs::write(&path, &bytes).expect("temp file");
+    let (_, outcome) = open(&dir, &color);
+    assert!(
+        matches!(&outcome, CacheOutcome::Rebuilt(why) if why.contains("the coarsest tile")),
+        "{outcome:?}"
+    );
+    assert_eq!(fs::read(&path).expect("rewritten"), good);
+    let _ = fs::remove_dir_all(&dir);
+}
+
 #[test]
 fn an_unwritable_cache_folder_keeps_the_pyramid_in_memory() {
     let dir = dataset("unwritable");
