@@ -204,13 +204,15 @@ pub fn show(ctx: &egui::Context, n: &Numbers) {
         });
 }
 
-/// egui's state and renderer for a window.
+/// egui's state and renderer for a window (native: its input comes through winit).
+#[cfg(not(target_arch = "wasm32"))]
 pub struct Overlay {
     pub ctx: egui::Context,
     pub state: egui_winit::State,
     renderer: egui_wgpu::Renderer,
 }
 
+#[cfg(not(target_arch = "wasm32"))]
 impl Overlay {
     pub fn new(
         window: &winit::window::Window,

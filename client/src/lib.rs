@@ -3,16 +3,30 @@
 //! with [`camera`] and shows the [`hud`]; the headless viewer ([`headless`]) measures and
 //! renders offscreen with the same renderer.
 
-pub mod bench;
+//!
+//! The clock-free core ([`core`], [`color_cache`], [`camera`]), the [`render`]er and the
+//! [`hud`] also build for `wasm32` (the browser viewer's beginning, issue 15); the I/O
+//! modules (QUIC, the window, the headless runs) are native only.
+
 pub mod camera;
 pub mod color_cache;
-mod connection;
 pub mod core;
-pub mod headless;
 pub mod hud;
-pub mod join;
-pub mod live;
 pub mod render;
+
+#[cfg(not(target_arch = "wasm32"))]
+pub mod bench;
+#[cfg(not(target_arch = "wasm32"))]
+mod connection;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod headless;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod join;
+#[cfg(not(target_arch = "wasm32"))]
+pub mod live;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod session;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod stats;
+#[cfg(not(target_arch = "wasm32"))]
 pub mod window;

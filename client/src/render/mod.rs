@@ -19,7 +19,7 @@ mod math;
 mod pipelines;
 pub mod vertices;
 
-use anyhow::{Context, Result, anyhow};
+use anyhow::{Context, Result};
 use roam_protocol::tiles::ColorLayout;
 use wgpu::util::DeviceExt;
 
@@ -130,6 +130,7 @@ pub const NO_ADAPTER: &str = "without a GPU, install a software Vulkan driver: \
 
 impl Gpu {
     /// Any adapter, a software one (lavapipe) included; no window needed.
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn headless() -> Result<Gpu> {
         let instance =
             wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
@@ -139,17 +140,25 @@ impl Gpu {
             force_fallback_adapter: false,
             ..Default::default()
         }))
-        .map_err(|e| anyhow!("no GPU adapter ({e}); {NO_ADAPTER}"))?;
+        .map_err(|e| anyhow::anyhow!("no GPU adapter ({e}); {NO_ADAPTER}"))?;
         Gpu::open(&adapter)
     }
 
-    /// Opens `adapter`'s device.
+    /// Opens `adapter`'s device (blocking: native only).
+    #[cfg(not(target_arch = "wasm32"))]
     pub fn open(adapter: &wgpu::Adapter) -> Result<Gpu> {
-        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
-            label: Some("roam"),
-            ..Default::default()
-        }))
-        .context("opening the GPU device")?;
+        pollster::block_on(Gpu::open_async(adapter))
+    }
+
+    /// Opens `adapter`'s device: what a browser awaits (it cannot block).
+    pub async fn open_async(adapter: &wgpu::Adapter) -> Result<Gpu> {
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("roam"),
+                ..Default::default()
+            })
+            .await
+            .context("opening the GPU device")?;
         Ok(Gpu {
             adapter: adapter.get_info(),
             device,
