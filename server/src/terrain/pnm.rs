@@ -508,6 +508,16 @@ pub fn read_ppm(
     let mut f = open_ppm(path, size)?;
     let count = usize::try_from(u64::from(size) * u64::from(size))
         .map_err(|_| format_err("width", format!("expected a smaller image, got {size}")))?;
+    read_pixels(&mut f, count, progress)
+}
+
+/// The `count` RGB pixels after `f`'s header (checked against the file's length before),
+/// reserved fallibly and read in chunks, reporting the bytes read; nothing may follow them.
+fn read_pixels(
+    f: &mut Opened,
+    count: usize,
+    progress: &mut dyn FnMut(u64),
+) -> Result<Vec<[u8; 3]>, PnmError> {
     let mut rgb: Vec<[u8; 3]> = Vec::new();
     rgb.try_reserve_exact(count)
         .map_err(|_| format_err("data", format!("cannot allocate {count} pixels")))?;
@@ -582,17 +592,7 @@ pub fn read_ppm_any(
     check_length(&h, f.file_len)?;
     let count = usize::try_from(u64::from(h.width) * u64::from(h.height))
         .map_err(|_| format_err("width", "expected a smaller image"))?;
-    let mut rgb: Vec<[u8; 3]> = Vec::new();
-    rgb.try_reserve_exact(count)
-        .map_err(|_| format_err("data", format!("cannot allocate {count} pixels")))?;
-    rgb.resize(count, [0; 3]);
-    let mut last = 0;
-    for chunk in rgb.as_flattened_mut().chunks_mut(CHUNK * 16) {
-        f.fill(chunk)?;
-        f.report(&mut last, progress);
-    }
-    f.expect_end()?;
-    progress(f.reader.consumed);
+    let rgb = read_pixels(&mut f, count, progress)?;
     Ok((h.width, h.height, rgb))
 }
 
