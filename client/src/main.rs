@@ -295,7 +295,10 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
                 cells,
                 roam_protocol::tiles::DEFAULT_TILE,
                 threads,
-                || roam_server::terrain::dataset::load_color(&dir, cells, &mut |_, _| {}),
+                || {
+                    roam_server::terrain::dataset::load_color(&dir, cells, &mut |_, _| {})
+                        .map(std::borrow::Cow::Owned)
+                },
                 &mut |_, _| {},
             )
             .with_context(|| format!("the colour tiles of {}", dir.display()))?;

@@ -3,13 +3,10 @@
 //! z-scale), Terrarium and Mapbox Terrain-RGB PNGs, and bad files (clear errors, no panic).
 //! Every source file is written by the test into its own temp directory.
 
-use std::fs;
-use std::path::Path;
-
 mod common;
 
-use common::{TempDir, check, png_claiming};
-use roam_server::terrain::dataset::{self, Terrain};
+use common::{import_bytes as import, png_claiming};
+use roam_server::terrain::dataset::Terrain;
 
 /// A `.hgt` tile of `side²` big-endian samples from `h(x, y)`.
 fn hgt_bytes(side: u32, h: impl Fn(u32, u32) -> i16) -> Vec<u8> {
@@ -50,28 +47,6 @@ fn png16(width: u32, height: u32, s: impl Fn(u32, u32) -> u16) -> Vec<u8> {
         png::BitDepth::Sixteen,
         &data,
     )
-}
-
-/// Writes `bytes` as `name` in a fresh temp dir, runs `import FILE OUT extra…`, asserts the
-/// exit code and messages; returns the temp dir, the written data set (on success) and
-/// stdout.
-fn import(
-    name: &str,
-    bytes: &[u8],
-    extra: &[&str],
-    exit: i32,
-    expected: &[&str],
-) -> (TempDir, Option<Terrain>, String) {
-    let dir = TempDir::new(name);
-    let file = dir.path(name);
-    fs::write(&file, bytes).expect("write source");
-    let out = dir.path("out");
-    let mut args = vec!["import", file.to_str().unwrap(), out.to_str().unwrap()];
-    args.extend_from_slice(extra);
-    let stdout = check(&args, exit, expected);
-    let terrain = (exit == 0)
-        .then(|| dataset::load(Path::new(&out), &mut |_, _| {}).expect("load the data set"));
-    (dir, terrain, stdout)
 }
 
 /// The world height of sample `(x, z)` plus the shift `import` applied (its lowest height).

@@ -12,7 +12,7 @@ mod common;
 
 use common::{TempDir, check, png_claiming, root};
 use roam_server::terrain::colorimage::{Footprint, RgbImage, resample};
-use roam_server::terrain::dataset::{self, Terrain};
+use roam_server::terrain::dataset::Terrain;
 
 /// A `w × h` image of single-channel values (shown as `[v, v, v]`).
 fn grey(w: u32, h: u32, v: &[u8]) -> RgbImage {
@@ -165,19 +165,12 @@ fn import(
     expected: &[&str],
 ) -> Option<Terrain> {
     let dir = TempDir::new(image.0);
-    let (src, img, out) = (dir.path(source.0), dir.path(image.0), dir.path("out"));
+    let (src, img) = (dir.path(source.0), dir.path(image.0));
     fs::write(&src, source.1).expect("write the heights");
     fs::write(&img, image.1).expect("write the image");
-    let mut args = vec![
-        "import",
-        src.to_str().unwrap(),
-        out.to_str().unwrap(),
-        "--color",
-        img.to_str().unwrap(),
-    ];
+    let mut args = vec!["--color", img.to_str().expect("a UTF-8 temp path")];
     args.extend_from_slice(extra);
-    check(&args, exit, expected);
-    (exit == 0).then(|| dataset::load(&out, &mut |_, _| {}).expect("load the data set"))
+    common::import_file(&src, &dir.path("out"), &args, exit, expected).0
 }
 
 #[test]

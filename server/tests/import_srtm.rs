@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 
 mod common;
 
-use common::{TempDir, check, root};
-use roam_server::terrain::dataset::{self, Terrain};
+use common::{TempDir, root};
+use roam_server::terrain::dataset::Terrain;
 use tiff::decoder::{Decoder, DecodingResult};
 use tiff::encoder::{TiffEncoder, colortype};
 use tiff::tags::Tag;
@@ -87,12 +87,8 @@ impl Tile {
 /// Runs `import SOURCE OUT extra…` into a fresh temp dir; returns it, the data set and stdout.
 fn import(source: &Path, extra: &[&str], expected: &[&str]) -> (TempDir, Terrain, String) {
     let dir = TempDir::new("srtm");
-    let out = dir.path("out");
-    let mut args = vec!["import", source.to_str().unwrap(), out.to_str().unwrap()];
-    args.extend_from_slice(extra);
-    let stdout = check(&args, 0, expected);
-    let t = dataset::load(&out, &mut |_, _| {}).expect("load the data set");
-    (dir, t, stdout)
+    let (t, stdout) = common::import_file(source, &dir.path("out"), extra, 0, expected);
+    (dir, t.expect("imported"), stdout)
 }
 
 /// The number after `prefix` in `text`.

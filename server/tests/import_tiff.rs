@@ -3,14 +3,12 @@
 //! and bad files (clear errors naming the file, no panic, no allocation from the tags).
 //! Every file is written by the test, with the `tiff` crate's encoder or byte by byte.
 
-use std::fs;
 use std::io::Cursor;
-use std::path::Path;
 
 mod common;
 
-use common::{TempDir, check};
-use roam_server::terrain::dataset::{self, Terrain};
+use common::TempDir;
+use roam_server::terrain::dataset::Terrain;
 use tiff::encoder::colortype::{self, ColorType};
 use tiff::encoder::{
     Compression, DeflateLevel, TiffEncoder, TiffKind, TiffKindBig, TiffKindStandard, TiffValue,
@@ -92,8 +90,7 @@ where
     cursor.into_inner()
 }
 
-/// Writes `bytes` as `name` in a fresh temp dir, runs `import FILE OUT extra…`, asserts the
-/// exit code and messages; returns the temp dir and the written data set (on success).
+/// [`common::import_bytes`] without stdout.
 fn import(
     name: &str,
     bytes: &[u8],
@@ -101,15 +98,7 @@ fn import(
     exit: i32,
     expected: &[&str],
 ) -> (TempDir, Option<Terrain>) {
-    let dir = TempDir::new(name);
-    let file = dir.path(name);
-    fs::write(&file, bytes).expect("write source");
-    let out = dir.path("out");
-    let mut args = vec!["import", file.to_str().unwrap(), out.to_str().unwrap()];
-    args.extend_from_slice(extra);
-    check(&args, exit, expected);
-    let terrain = (exit == 0)
-        .then(|| dataset::load(Path::new(&out), &mut |_, _| {}).expect("load the data set"));
+    let (dir, terrain, _) = common::import_bytes(name, bytes, extra, exit, expected);
     (dir, terrain)
 }
 

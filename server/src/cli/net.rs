@@ -152,6 +152,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
         || {
             let mut p = super::progress::Progress::new("colour");
             roam_server::terrain::dataset::load_color(dir, cells, &mut p.callback())
+                .map(std::borrow::Cow::Owned)
         },
         &mut p.callback(),
     )

@@ -31,6 +31,7 @@
 //!   coarser levels cost the rest) in 0.06 s; 4096² (5 levels) 28.6 MB in 0.68 s;
 //!   16384² (7 levels) 454 MB in 15.4 s. A mapped cache opens in under a millisecond.
 
+use std::borrow::Cow;
 use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
@@ -174,7 +175,7 @@ impl ColorPyramid {
             color.cells(),
             tile,
             threads,
-            || Ok(color.clone()),
+            || Ok(Cow::Borrowed(color)),
             progress,
         )
     }
@@ -182,12 +183,12 @@ impl ColorPyramid {
     /// [`Self::open_or_build`] for a `cells × cells` colour map that `load` reads only when
     /// the cache cannot be used: a server with a valid cache never reads `color.ppm`'s
     /// pixels (805 MB at 16385²).
-    pub fn open_or_load(
+    pub fn open_or_load<'c>(
         dir: &Path,
         cells: u32,
         tile: u32,
         threads: usize,
-        load: impl FnOnce() -> Result<ColorMap, crate::terrain::dataset::DataError>,
+        load: impl FnOnce() -> Result<Cow<'c, ColorMap>, crate::terrain::dataset::DataError>,
         progress: &mut dyn FnMut(u64, u64),
     ) -> Result<(ColorPyramid, CacheOutcome), PyramidError> {
         let source = source_stamp(&dir.join(COLOR_FILE));

@@ -39,9 +39,6 @@ use crate::terrain::pnm;
 use crate::terrain::raster::MAX_SIDE;
 use crate::terrain::source::SourceError;
 
-/// Deflate's best compression ratio: no PNG can hold more raw bytes than this × its size.
-const MAX_INFLATE: u64 = 1032;
-
 /// A decoded colour image.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct RgbImage {
@@ -127,12 +124,7 @@ fn read_png(
         ColorType::Rgba => 4,
     };
     let raw = u64::from(height) * (1 + (u64::from(width) * channels * depth as u64).div_ceil(8));
-    if raw > file_len.saturating_mul(MAX_INFLATE) {
-        return Err(err(format!(
-            "PNG of {width} × {height} pixels ({raw} bytes raw) cannot fit in {file_len} bytes: \
-             the file is truncated or corrupt"
-        )));
-    }
+    crate::terrain::png16::raw_fits(width, height, raw, file_len).map_err(err)?;
     let mut reader = decoder
         .read_info()
         .map_err(|e| err(format!("PNG header: {e}")))?;

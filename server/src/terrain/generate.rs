@@ -408,7 +408,7 @@ pub fn colorize_with(
     // Valleys versus ridges, normalised by their RMS over the map.
     let radius = (cells / 256).clamp(2, 8);
     let total = 2 * u64::from(cells);
-    let row_sums = in_bands(cells, threads, |z0, z1| {
+    let row_sums = in_sub_bands(0, cells, threads, |z0, z1| {
         let mut hollows = Hollows::starting_at(heights, radius, z0);
         (z0..z1)
             .map(|_| hollows.next_row().iter().map(|t| t * t).sum::<f64>())
@@ -473,12 +473,6 @@ pub fn colorize_with(
         progress(u64::from(cells + b1), total);
     }
     ColorMap::new(cells, rgb).unwrap_or_else(|| unreachable!("cells² pixels were pushed"))
-}
-
-/// `f(z0, z1)` over rows `0 .. rows` split into `threads` contiguous bands, results in row
-/// order.
-fn in_bands<T: Send>(rows: u32, threads: usize, f: impl Fn(u32, u32) -> T + Sync) -> Vec<T> {
-    in_sub_bands(0, rows, threads, f)
 }
 
 /// `f(z0, z1)` over rows `first .. end` split into `threads` contiguous bands (scoped

@@ -145,12 +145,7 @@ pub fn read(
         Pixels::Rgb(_, c) => c as u64,
     };
     let raw = u64::from(height) * (1 + u64::from(width) * bytes_per_pixel);
-    if raw > file_len.saturating_mul(MAX_INFLATE) {
-        return Err(err(format!(
-            "PNG of {width} × {height} pixels ({raw} bytes raw) cannot fit in {file_len} bytes: \
-             the file is truncated or corrupt"
-        )));
-    }
+    raw_fits(width, height, raw, file_len).map_err(err)?;
     let mut reader = decoder
         .read_info()
         .map_err(|e| err(format!("PNG header: {e}")))?;
@@ -189,6 +184,18 @@ pub fn read(
     };
     let raster = Raster::new(width, height, samples).map_err(|e| err(e.to_string()))?;
     Ok(Png { raster, kind })
+}
+
+/// Whether `raw` bytes of decoded rows (filter bytes included) of a `width × height`
+/// PNG can come out of a file of `file_len` bytes, checked before allocating for them.
+pub(crate) fn raw_fits(width: u32, height: u32, raw: u64, file_len: u64) -> Result<(), String> {
+    if raw > file_len.saturating_mul(MAX_INFLATE) {
+        return Err(format!(
+            "PNG of {width} × {height} pixels ({raw} bytes raw) cannot fit in {file_len} bytes: \
+             the file is truncated or corrupt"
+        ));
+    }
+    Ok(())
 }
 
 /// Hands each of the image's `height` rows (`line` bytes) to `row` in order, reporting

@@ -114,6 +114,44 @@ pub fn diverged_recording(
         .expect("memory does not fail")
 }
 
+/// Runs `import SOURCE OUT extra…`, asserting the exit code and messages as [`check`]
+/// does; returns the data set written (on success) and stdout.
+pub fn import_file(
+    source: &Path,
+    out: &Path,
+    extra: &[&str],
+    exit: i32,
+    expected: &[&str],
+) -> (Option<roam_server::Terrain>, String) {
+    let mut args = vec![
+        "import",
+        source.to_str().expect("a UTF-8 temp path"),
+        out.to_str().expect("a UTF-8 temp path"),
+    ];
+    args.extend_from_slice(extra);
+    let stdout = check(&args, exit, expected);
+    let terrain = (exit == 0).then(|| {
+        roam_server::terrain::dataset::load(out, &mut |_, _| {}).expect("load the data set")
+    });
+    (terrain, stdout)
+}
+
+/// Writes `bytes` as `name` in a fresh temp dir and runs [`import_file`] on it into
+/// `out` there; returns the temp dir too.
+pub fn import_bytes(
+    name: &str,
+    bytes: &[u8],
+    extra: &[&str],
+    exit: i32,
+    expected: &[&str],
+) -> (TempDir, Option<roam_server::Terrain>, String) {
+    let dir = TempDir::new(name);
+    let file = dir.path(name);
+    fs::write(&file, bytes).expect("write source");
+    let (terrain, stdout) = import_file(&file, &dir.path("out"), extra, exit, expected);
+    (dir, terrain, stdout)
+}
+
 /// A PNG signature and an IHDR of `width × height` at `depth` bits, colour type `color`,
 /// nothing after it: a file that claims more than it holds.
 pub fn png_claiming(width: u32, height: u32, depth: u8, color: u8) -> Vec<u8> {
