@@ -103,14 +103,16 @@ impl Identity {
     }
 }
 
-fn sha256(bytes: &[u8]) -> [u8; 32] {
+/// The SHA-256 of `bytes` (a certificate's DER, for its fingerprint).
+pub fn sha256(bytes: &[u8]) -> [u8; 32] {
     let d = ring::digest::digest(&ring::digest::SHA256, bytes);
     let mut out = [0; 32];
     out.copy_from_slice(d.as_ref());
     out
 }
 
-fn hex(bytes: &[u8]) -> String {
+/// `bytes` in lowercase hex, two digits each.
+pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
@@ -497,6 +499,14 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     let quic = quinn::crypto::rustls::QuicServerConfig::try_from(tls)
         .map_err(|e| TlsError::Quic(e.to_string()))?;
     let mut config = quinn::ServerConfig::with_crypto(Arc::new(quic));
+    config.transport_config(Arc::new(server_transport()));
+    Ok(config)
+}
+
+/// The server's transport settings: one control stream from the viewer, no other stream
+/// from it, small receive windows (what the server's WebTransport endpoint starts from,
+/// adding the streams HTTP/3 needs).
+pub fn server_transport() -> quinn::TransportConfig {
     // A viewer opens one control stream and sends small messages and key datagrams: a
     // peer cannot make the server buffer more than that.
     let mut t = quinn::TransportConfig::default();
@@ -519,8 +529,7 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     // server buffers per viewer (the colour map at connect would otherwise sit whole in
     // the send buffer: tens of MB for a 4097² map), and is still 50 MB/s at a 40 ms RTT.
     t.send_window(2 << 20);
-    config.transport_config(Arc::new(t));
-    Ok(config)
+    t
 }
 
 /// A viewer's QUIC configuration: it accepts only the certificate with this SHA-256.
@@ -540,6 +549,16 @@ pub fn client_config(fingerprint: [u8; 32]) -> Result<quinn::ClientConfig, TlsEr
     let mut config = quinn::ClientConfig::new(Arc::new(quic));
     config.transport_config(transport(true));
     Ok(config)
+}
+
+/// A TLS verifier that accepts only the certificate with this SHA-256 (and still checks
+/// its signatures): what a browser's `serverCertificateHashes` does, for tests of the
+/// server's HTTPS and WebTransport.
+pub fn pinned_verifier(fingerprint: [u8; 32]) -> Arc<dyn ServerCertVerifier> {
+    Arc::new(Pinned {
+        fingerprint,
+        provider: provider(),
+    })
 }
 
 /// Accepts the one certificate whose SHA-256 is pinned, and still checks its signatures.
