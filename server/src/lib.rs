@@ -8,5 +8,6 @@ pub mod sim;
 pub mod terrain;
 pub mod tessellate;
 pub mod viewer;
+pub mod web;
 
 pub use terrain::{ColorMap, DataError, Heightfield, MapParams, ShapeError, Start, Terrain};
