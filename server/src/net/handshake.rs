@@ -6,6 +6,12 @@
 //! reason and logged with the peer's address; junk that never says hello is closed at the
 //! deadline (or evicted) and only counted (one log line per junk connection would let a
 //! flood fill the disk).
+//!
+//! A browser's connection ([`Via::Web`], on the `--web` endpoint) is admitted the same
+//! way, by the same gate; after its QUIC handshake and within the same deadline come
+//! HTTP/3's settings and the WebTransport `CONNECT` (to [`crate::web::SESSION_PATH`], any
+//! other path answered 404), and from there on the protocol is the native one
+//! ([`super::link`]).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -15,8 +21,10 @@ use roam_protocol::messages::{ClientMessage, Hello, Reason, Role, ServerMessage,
 use roam_protocol::messages::{VERSION, close};
 use tokio::sync::oneshot;
 use tokio::time::Instant;
+use web_transport_quinn as wt;
 
 use super::Shared;
+use super::link::{Conn, RecvStream, SendStream, Via, Web};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::Event;
 use crate::viewer::admission::{PendingId, Verdict};
@@ -26,7 +34,7 @@ pub const MAX_CONTROL: usize = 4096;
 
 /// A new connection: admitted (its handshake runs on a task of its own), asked to retry
 /// from a proven address, or refused, as [`crate::viewer::admission`] decides.
-pub(super) fn arrive(incoming: quinn::Incoming, shared: &Arc<Shared>) {
+pub(super) fn arrive(incoming: quinn::Incoming, shared: &Arc<Shared>, via: Via) {
     let mut gate = shared.gate();
     let verdict = gate
         .admission
@@ -60,7 +68,7 @@ pub(super) fn arrive(incoming: quinn::Incoming, shared: &Arc<Shared>) {
         id,
         shared: shared.clone(),
     };
-    tokio::spawn(handshake(incoming, pending, evicted, shared.clone()));
+    tokio::spawn(handshake(incoming, via, pending, evicted, shared.clone()));
 }
 
 /// A connection counted as pending until dropped.
@@ -89,13 +97,14 @@ enum Early {
 
 async fn handshake(
     incoming: quinn::Incoming,
+    via: Via,
     pending: Pending,
     mut evicted: oneshot::Receiver<()>,
     shared: Arc<Shared>,
 ) {
     let peer = incoming.remote_address();
     let deadline = Instant::now() + shared.hello_timeout;
-    let conn = tokio::select! {
+    let quic = tokio::select! {
         r = tokio::time::timeout_at(deadline, async {
             incoming.accept().map_err(|e| e.to_string())?.await.map_err(|e| e.to_string())
         }) => match r {
@@ -103,35 +112,52 @@ async fn handshake(
                 shared.gate().admission.handshaken(pending.id);
                 conn
             }
-            Ok(Err(why)) => return early(&shared, peer, None, Early::Failed(why)),
-            Err(_) => return early(&shared, peer, None, Early::Deadline),
+            Ok(Err(why)) => return early(&shared, peer, via, None, Early::Failed(why)),
+            Err(_) => return early(&shared, peer, via, None, Early::Deadline),
         },
-        _ = &mut evicted => return early(&shared, peer, None, Early::Evicted),
+        _ = &mut evicted => return early(&shared, peer, via, None, Early::Evicted),
+    };
+    let conn = match via {
+        Via::Quic => Conn::Quic(quic),
+        Via::Web => {
+            let raw = Some(Conn::Quic(quic.clone()));
+            tokio::select! {
+                r = tokio::time::timeout_at(deadline, web_session(quic)) => match r {
+                    Ok(Ok(session)) => Conn::Web(Box::new(Web::new(session))),
+                    Ok(Err(why)) => {
+                        return early(&shared, peer, via, raw.as_ref(), Early::Failed(why));
+                    }
+                    Err(_) => return early(&shared, peer, via, raw.as_ref(), Early::Deadline),
+                },
+                _ = &mut evicted => return early(&shared, peer, via, raw.as_ref(), Early::Evicted),
+            }
+        }
     };
     let greeted = tokio::select! {
         r = tokio::time::timeout_at(deadline, greet(&conn)) => match r {
             Ok(Ok(g)) => g,
-            Ok(Err(why)) => return early(&shared, peer, Some(&conn), Early::Failed(why)),
-            Err(_) => return early(&shared, peer, Some(&conn), Early::Deadline),
+            Ok(Err(why)) => return early(&shared, peer, via, Some(&conn), Early::Failed(why)),
+            Err(_) => return early(&shared, peer, via, Some(&conn), Early::Deadline),
         },
-        _ = &mut evicted => return early(&shared, peer, Some(&conn), Early::Evicted),
+        _ = &mut evicted => return early(&shared, peer, via, Some(&conn), Early::Evicted),
     };
     let (mut send, recv, hello) = greeted;
     // The hello is in: the connection is no longer pending. Version and token first (a
     // peer without the token never takes a seat), then a seat, or a refusal when full.
     drop(pending);
     let role = role_name(&hello.role);
-    let refuse = async |send: &mut quinn::SendStream, reason: Reason, why: &str| {
+    let refuse = async |send: &mut SendStream, reason: Reason, why: &str| {
         // One line per refusal, up to a bound per summary interval: a peer without the
         // token can send hellos as fast as handshakes, and must not fill the disk.
+        let via = via.name();
         if shared.stats.refusal_logged() {
-            tracing::info!(%peer, role, reason = why, "refused");
+            tracing::info!(%peer, via, role, reason = why, "refused");
         } else {
-            tracing::debug!(%peer, role, reason = why, "refused");
+            tracing::debug!(%peer, via, role, reason = why, "refused");
         }
         shared.stats.add(&shared.stats.refused, 1);
         super::viewer::last_word(send, &ServerMessage::Refused(reason)).await;
-        conn.close(close::REFUSED.into(), why.as_bytes());
+        conn.close(close::REFUSED, why.as_bytes());
     };
     if hello.version != VERSION {
         let why = format!(
@@ -164,7 +190,7 @@ async fn handshake(
     let joined = match join(&shared, &hello).await {
         Ok(j) => j,
         Err(Refusal::Shutdown) => {
-            conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
+            conn.close(close::SHUTDOWN, b"the server is shutting down");
             return;
         }
         Err(Refusal::Unavailable(why)) => {
@@ -173,6 +199,7 @@ async fn handshake(
     };
     tracing::info!(
         %peer,
+        via = via.name(),
         role,
         vehicle = joined.vehicle,
         resumed = joined.resumed,
@@ -195,7 +222,7 @@ async fn handshake(
 }
 
 /// Counts a connection that never said hello, and closes it with the reason.
-fn early(shared: &Shared, peer: SocketAddr, conn: Option<&quinn::Connection>, why: Early) {
+fn early(shared: &Shared, peer: SocketAddr, via: Via, conn: Option<&Conn>, why: Early) {
     let (counter, text) = match &why {
         Early::Deadline => (
             &shared.stats.timed_out,
@@ -208,20 +235,44 @@ fn early(shared: &Shared, peer: SocketAddr, conn: Option<&quinn::Connection>, wh
         Early::Failed(e) => (&shared.stats.failed, e.clone()),
     };
     shared.stats.add(counter, 1);
-    tracing::debug!(%peer, reason = %text, "closed before its hello");
+    tracing::debug!(%peer, via = via.name(), reason = %text, "closed before its hello");
     if let Some(conn) = conn {
         let code = match why {
             Early::Failed(_) => close::PROTOCOL,
             _ => close::REFUSED,
         };
-        conn.close(code.into(), text.as_bytes());
+        conn.close(code, text.as_bytes());
     }
 }
 
+/// How long a refused WebTransport request's answer (404) is given to arrive before the
+/// connection closes.
+const REJECT_GRACE: std::time::Duration = std::time::Duration::from_millis(250);
+
+/// HTTP/3's settings and the WebTransport `CONNECT` on a new web connection: a session
+/// on [`crate::web::SESSION_PATH`], or why not (another path is answered 404).
+async fn web_session(conn: quinn::Connection) -> Result<wt::Session, String> {
+    let request = wt::Request::accept(conn.clone())
+        .await
+        .map_err(|e| format!("no WebTransport request: {e}"))?;
+    let path = request.url.path().to_owned();
+    if path != crate::web::SESSION_PATH {
+        let _ = request.reject(http::StatusCode::NOT_FOUND).await;
+        let _ = tokio::time::timeout(REJECT_GRACE, conn.closed()).await;
+        let shown: String = path.chars().take(64).collect();
+        return Err(format!(
+            "a WebTransport session for {shown:?}, not {:?}",
+            crate::web::SESSION_PATH
+        ));
+    }
+    request
+        .ok()
+        .await
+        .map_err(|e| format!("answering the WebTransport request: {e}"))
+}
+
 /// The viewer's control stream and its hello.
-async fn greet(
-    conn: &quinn::Connection,
-) -> Result<(quinn::SendStream, quinn::RecvStream, Hello), String> {
+async fn greet(conn: &Conn) -> Result<(SendStream, RecvStream, Hello), String> {
     let (send, mut recv) = conn
         .accept_bi()
         .await

@@ -6,10 +6,16 @@
 //! viewer ──hello/acks/budget (control stream)──► viewer task ──frames (a uni stream each)──► viewer
 //!        ──key datagrams──────────────────────► world thread (100 Hz) ──snapshot (latest)──┘
 //! ```
+//!
+//! With [`Options::web`], browsers come too: the page over HTTPS and WebTransport sessions
+//! on a second endpoint ([`web`]), admitted and served by the same code as native viewers
+//! ([`link`] hides which), in the same world, under the same limits.
 
 mod handshake;
+pub mod link;
 pub mod stats;
 pub mod viewer;
+pub mod web;
 pub mod world_loop;
 
 use std::collections::HashMap;
@@ -57,6 +63,8 @@ pub struct Options {
     /// The colour window (tiles a side per level) offered; a viewer asking less gets its
     /// own ([`roam_protocol::messages::Hello::color_window`]).
     pub color_window: u8,
+    /// The browser viewer (`serve --web`): its page over HTTPS and WebTransport.
+    pub web: Option<web::WebOptions>,
 }
 
 /// [`Options::max_viewers`] unless told otherwise.
@@ -86,6 +94,7 @@ impl Options {
             summary_every: std::time::Duration::from_secs(60),
             color_rate: COLOR_RATE,
             color_window: roam_protocol::tiles::DEFAULT_WINDOW,
+            web: None,
         }
     }
 }
@@ -153,6 +162,7 @@ pub struct Server {
     world_inbox: Option<std::sync::mpsc::Sender<Inbound>>,
     shared: Arc<Shared>,
     summary: tokio::task::JoinHandle<()>,
+    web: Option<web::Running>,
 }
 
 /// Why the server could not start or stop cleanly.
@@ -178,6 +188,12 @@ pub enum ServeError {
          the protocol's largest colour map; import it again with a smaller side"
     )]
     TooLarge { side: u32, max: u32, levels: u32 },
+    #[error("{}", crate::web::NOT_BUILT)]
+    NoPage,
+    #[error("the browser viewer's certificate: {0}")]
+    WebCert(#[from] crate::web::cert::CertError),
+    #[error("the browser viewer's TLS: {0}")]
+    WebTls(String),
 }
 
 /// The most levels a served data set may have: a grid of `2^15 + 1` samples a side, the
@@ -231,6 +247,7 @@ impl Server {
             addr: options.listen,
             error,
         })?;
+        let web = options.web.map(web::bind).transpose()?;
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world_stats = Arc::new(world_loop::WorldStats::default());
@@ -267,6 +284,7 @@ impl Server {
             makers: Arc::new(tokio::sync::Semaphore::new(makers())),
             stats: Arc::new(ServeStats::default()),
         });
+        let web = web.map(|w| w.start(shared.clone()));
         let accept = tokio::spawn(accept_loop(endpoint.clone(), shared.clone()));
         let summary = tokio::spawn(summary_loop(
             shared.clone(),
@@ -284,7 +302,19 @@ impl Server {
             world_inbox: Some(inbox),
             shared,
             summary,
+            web,
         })
+    }
+
+    /// The browser viewer's address (HTTPS over TCP; WebTransport over UDP, same port),
+    /// when served.
+    pub fn web_addr(&self) -> Option<SocketAddr> {
+        self.web.as_ref().map(|w| w.addr)
+    }
+
+    /// The SHA-256 of the browser viewer's certificate now (it changes when renewed).
+    pub fn web_certificate(&self) -> Option<[u8; 32]> {
+        self.web.as_ref().map(|w| w.certs.current().sha256)
     }
 
     /// What the server has counted so far.
@@ -324,11 +354,21 @@ impl Server {
             roam_protocol::messages::close::SHUTDOWN.into(),
             b"the server is shutting down",
         );
+        if let Some(web) = &mut self.web {
+            web.stop();
+            web.endpoint.close(
+                roam_protocol::messages::close::SHUTDOWN.into(),
+                b"the server is shutting down",
+            );
+        }
         self.accept.abort();
         let _ = self.accept.await;
         self.summary.abort();
         let _ = self.summary.await;
         self.endpoint.wait_idle().await;
+        if let Some(web) = &self.web {
+            web.endpoint.wait_idle().await;
+        }
         // Connections are closed; viewer tasks (and a tessellation in flight) end shortly
         // and drop their senders (the last of them in `shared`), and then the world
         // thread sees the channel close.
@@ -344,7 +384,7 @@ impl Server {
 
 async fn accept_loop(endpoint: quinn::Endpoint, shared: Arc<Shared>) {
     while let Some(incoming) = endpoint.accept().await {
-        handshake::arrive(incoming, &shared);
+        handshake::arrive(incoming, &shared, link::Via::Quic);
     }
 }
 

@@ -24,6 +24,9 @@
 //! least the largest tile). A tile is written whole and awaited before the next, so the
 //! send buffer holds little more than a tile; the control stream's last word (a goodbye,
 //! a refusal) waits for the tile being written, so no message is ever cut.
+//!
+//! A browser's WebTransport session is served by the same code, through [`super::link`]'s
+//! [`Conn`]: only the logs' `via` tells them apart.
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -36,6 +39,7 @@ use tokio::sync::oneshot;
 
 use super::Shared;
 use super::handshake::{Joined, MAX_CONTROL, Seat};
+use super::link::{Conn, DatagramError, RecvStream, SendStream};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
 use crate::terrain::color_pyramid::TileError;
@@ -48,17 +52,17 @@ const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
 /// Sends a last message (a refusal, a goodbye) and gives it a moment to arrive before the
 /// connection closes (closing drops what is unsent).
-pub(super) async fn last_word(send: &mut quinn::SendStream, msg: &ServerMessage) {
-    if wire::write(send, msg).await.is_ok() && send.finish().is_ok() {
+pub(super) async fn last_word(send: &mut SendStream, msg: &ServerMessage) {
+    if send.write_msg(msg).await.is_ok() && send.finish() {
         let _ = tokio::time::timeout(Duration::from_millis(250), send.stopped()).await;
     }
 }
 
 /// A viewer past its hello ([`super::handshake`]).
 pub(super) struct Viewer {
-    pub conn: quinn::Connection,
-    pub send: quinn::SendStream,
-    pub recv: quinn::RecvStream,
+    pub conn: Conn,
+    pub send: SendStream,
+    pub recv: RecvStream,
     pub hello: Hello,
     pub peer: SocketAddr,
     pub joined: Joined,
@@ -87,7 +91,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     };
     let started = std::time::Instant::now();
     // Colour never delays a frame (frames' priorities are their numbers, from 0).
-    let _ = send.set_priority(-1);
+    send.set_priority(-1);
     let layout = shared
         .pyramid
         .layout(shared.color_window.min(hello.color_window.max(1)))
@@ -104,8 +108,8 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     .await;
     if welcomed.is_err() {
         // Lost on the way (held), or the viewer stopped its control stream (a leave).
-        leave.hold = hold_after(&conn);
-        conn.close(close::PROTOCOL.into(), b"the welcome could not be sent");
+        leave.hold = conn.hold_after();
+        conn.close(close::PROTOCOL, b"the welcome could not be sent");
         return;
     }
     // Aborted when this task ends by any path, unwinding included: the colour task holds
@@ -126,7 +130,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         end = frames(&conn, &shared, control, core, rate, (vehicle, driver), &mut sent) => {
             match end {
                 FramesEnd::ConnectionLost => {
-                    leave.hold = hold_after(&conn);
+                    leave.hold = conn.hold_after();
                     lost(&conn)
                 }
                 FramesEnd::VehicleLeft | FramesEnd::Failed(_) => {
@@ -136,17 +140,17 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                     };
                     let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
                     goodbye(&send, &color.0, &bye).await;
-                    conn.close(close::BYE.into(), why.as_bytes());
+                    conn.close(close::BYE, why.as_bytes());
                     why.into()
                 }
             }
         }
         _ = &mut ctl => {
-            conn.close(close::BYE.into(), b"bye");
+            conn.close(close::BYE, b"bye");
             "goodbye".into()
         }
         _ = conn.closed() => {
-            leave.hold = hold_after(&conn);
+            leave.hold = conn.hold_after();
             lost(&conn)
         }
         Ok(done) = async {
@@ -157,13 +161,13 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         } => {
             leave.hold = true;
             answer = Some(done);
-            conn.close(close::BYE.into(), b"replaced by a reconnection");
+            conn.close(close::BYE, b"replaced by a reconnection");
             "replaced by a reconnection".into()
         }
         _ = shared.shutting_down() => {
             let bye = ServerMessage::Bye(Reason::Shutdown);
             goodbye(&send, &color.0, &bye).await;
-            conn.close(close::SHUTDOWN.into(), b"the server is shutting down");
+            conn.close(close::SHUTDOWN, b"the server is shutting down");
             "the server is shutting down".into()
         }
     };
@@ -177,6 +181,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     }
     tracing::info!(
         %peer,
+        via = conn.via().name(),
         role = super::handshake::role_name(&hello.role),
         vehicle,
         reason = %why,
@@ -194,7 +199,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
 }
 
 /// Why a connection ended, as the logs say it.
-fn lost(conn: &quinn::Connection) -> String {
+fn lost(conn: &Conn) -> String {
     match conn.close_reason() {
         Some(e) => format!("connection lost: {e}"),
         None => "connection lost".into(),
@@ -238,7 +243,7 @@ const GOODBYE_WITHIN: Duration = Duration::from_secs(1);
 /// `bye` on the control stream once the colour task is stopped, within [`GOODBYE_WITHIN`]
 /// (the connection closes next, so a goodbye cut short loses nothing more).
 async fn goodbye(
-    send: &tokio::sync::Mutex<quinn::SendStream>,
+    send: &tokio::sync::Mutex<SendStream>,
     color: &tokio::task::JoinHandle<()>,
     bye: &ServerMessage,
 ) {
@@ -249,9 +254,9 @@ async fn goodbye(
 
 /// The control stream, once the colour task is stopped between two messages.
 async fn quiet<'a>(
-    send: &'a tokio::sync::Mutex<quinn::SendStream>,
+    send: &'a tokio::sync::Mutex<SendStream>,
     color: &tokio::task::JoinHandle<()>,
-) -> tokio::sync::MutexGuard<'a, quinn::SendStream> {
+) -> tokio::sync::MutexGuard<'a, SendStream> {
     let guard = send.lock().await;
     // It waits for the lock or its next turn: never inside a write.
     color.abort();
@@ -260,7 +265,7 @@ async fn quiet<'a>(
 
 /// The welcome, then the coarsest colour tile.
 async fn welcome(
-    send: &mut quinn::SendStream,
+    send: &mut SendStream,
     shared: &Shared,
     joined: &Joined,
     layout: ColorLayout,
@@ -272,14 +277,14 @@ async fn welcome(
         resumed: joined.resumed,
         ..link::welcome(&shared.terrain, joined.vehicle, tick, layout, shared.limits)
     };
-    wire::write(send, &ServerMessage::Welcome(w)).await?;
+    send.write_msg(&ServerMessage::Welcome(w)).await?;
     let first = colors.first();
     write_color(send, shared, first).await
 }
 
 /// Writes one colour message (a tile's payload from the pyramid), counting it.
 async fn write_color(
-    send: &mut quinn::SendStream,
+    send: &mut SendStream,
     shared: &Shared,
     m: ColorSend,
 ) -> Result<(), wire::WireError> {
@@ -313,7 +318,7 @@ async fn write_color(
             }
         }
     };
-    wire::write(send, &msg).await
+    send.write_msg(&msg).await
 }
 
 /// How often the colour task looks at the camera and its budget.
@@ -322,7 +327,7 @@ const COLOR_TICK: Duration = Duration::from_millis(50);
 /// Streams colour tiles to the viewer following `vehicle`, as its scheduler picks them,
 /// within the byte rate; ends when the control stream fails.
 async fn stream_color(
-    send: Arc<tokio::sync::Mutex<quinn::SendStream>>,
+    send: Arc<tokio::sync::Mutex<SendStream>>,
     shared: Arc<Shared>,
     mut colors: ColorScheduler,
     vehicle: VehicleId,
@@ -364,9 +369,9 @@ async fn stream_color(
 
 /// Key datagrams to the world, through the driver's [`KeyGate`] (rate-limited; anything
 /// that is not a key datagram is ignored). A spectator's are read and dropped.
-async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: VehicleId, driver: bool) {
+async fn read_keys(conn: Conn, shared: Arc<Shared>, vehicle: VehicleId, driver: bool) {
     let mut gate = KeyGate::new(vehicle);
-    while let Ok(bytes) = conn.read_datagram().await {
+    while let Some(bytes) = conn.read_datagram().await {
         if let Some(event) = gate.admit(&bytes, std::time::Instant::now())
             && driver
             && shared.world.send((event, None)).is_err()
@@ -381,7 +386,7 @@ async fn read_keys(conn: quinn::Connection, shared: Arc<Shared>, vehicle: Vehicl
 /// Ends when the viewer says goodbye (or breaks the protocol), and only then: a control
 /// stream that ends otherwise (finished without a goodbye, or because the connection
 /// did) leaves the end to the connection, so that one rule decides hold or leave.
-async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>) {
+async fn read_control(mut recv: RecvStream, control: Arc<Mutex<Mailbox>>) {
     while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
         let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
         if c.push(msg) == Control::End {
@@ -389,20 +394,6 @@ async fn read_control(mut recv: quinn::RecvStream, control: Arc<Mutex<Mailbox>>)
         }
     }
     std::future::pending::<()>().await;
-}
-
-/// Whether a driver whose connection ended gets its vehicle held: yes when the connection
-/// was lost (timed out, reset, a transport error, or closed by the viewer with any code
-/// but the goodbye's, as a viewer does that gave up on a path it thinks dead); no after a
-/// goodbye, or when this server closed it. One rule, whichever of the viewer's tasks
-/// noticed the end first (quinn records the reason before it wakes them).
-fn hold_after(conn: &quinn::Connection) -> bool {
-    use quinn::ConnectionError as E;
-    match conn.close_reason() {
-        None | Some(E::LocallyClosed) => false,
-        Some(E::ApplicationClosed(c)) => c.error_code != quinn::VarInt::from_u32(close::BYE),
-        Some(_) => true,
-    }
 }
 
 /// Why a viewer's frames stopped.
@@ -417,7 +408,7 @@ enum FramesEnd {
 }
 
 async fn frames(
-    conn: &quinn::Connection,
+    conn: &Conn,
     shared: &Arc<Shared>,
     control: Arc<Mutex<Mailbox>>,
     core: ViewerCore,
@@ -426,7 +417,7 @@ async fn frames(
     sent: &mut u64,
 ) -> FramesEnd {
     let mut core = Some(core);
-    let mut bytes_out = conn.stats().udp_tx.bytes;
+    let mut bytes_out = conn.quic().stats().udp_tx.bytes;
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
     interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     // The newest change frame sent on a stream, and the newest key frame (kept apart: it
@@ -492,7 +483,7 @@ async fn frames(
         stats.add(&stats.make_ns, started.elapsed().as_nanos() as u64);
         stats.add(&stats.frames, 1);
         *sent += 1;
-        let tx = conn.stats().udp_tx.bytes;
+        let tx = conn.quic().stats().udp_tx.bytes;
         stats.add(&stats.bytes_out, tx.saturating_sub(bytes_out));
         bytes_out = tx;
         let acked = c.acked();
@@ -525,7 +516,7 @@ async fn frames(
                 .max_datagram_size()
                 .is_some_and(|max| bytes.len() <= max)
         {
-            let stats = conn.stats();
+            let stats = conn.quic().stats();
             loss.update(stats.path.lost_packets, stats.path.sent_packets);
             if loss.repeat(bytes.len()) {
                 // A second copy in a packet of its own, a few milliseconds later (a lost
@@ -538,29 +529,27 @@ async fn frames(
             }
             match conn.send_datagram(bytes.clone().into()) {
                 Ok(()) => continue,
-                Err(quinn::SendDatagramError::ConnectionLost(_)) => {
-                    return FramesEnd::ConnectionLost;
-                }
+                Err(DatagramError::Lost) => return FramesEnd::ConnectionLost,
                 // Not allowed or too large after all: the stream takes it.
-                Err(_) => {}
+                Err(DatagramError::Refused) => {}
             }
         }
-        let Ok(mut stream) = conn.open_uni().await else {
+        let Some(mut stream) = conn.open_uni().await else {
             return FramesEnd::ConnectionLost;
         };
         // Newer frames first, and a key frame before all: the frames after it need it.
-        let _ = stream.set_priority(if key { i32::MAX } else { frame as i32 });
+        stream.set_priority(if key { i32::MAX } else { frame as i32 });
         let (cancel, cancelled) = oneshot::channel::<()>();
         let task = tokio::spawn(async move {
             tokio::select! {
                 r = stream.write_all(&bytes) => {
-                    if r.is_ok() && stream.finish().is_ok() {
+                    if r.is_ok() && stream.finish() {
                         return Some(stream);
                     }
                     None
                 }
                 _ = cancelled => {
-                    let _ = stream.reset(0u32.into());
+                    stream.reset(0);
                     None
                 }
             }
@@ -583,7 +572,7 @@ struct Sending {
     /// Resets the stream while it is still being written.
     cancel: oneshot::Sender<()>,
     /// Writes the frame; the stream once it is all handed to quinn.
-    task: tokio::task::JoinHandle<Option<quinn::SendStream>>,
+    task: tokio::task::JoinHandle<Option<SendStream>>,
     frame: u64,
 }
 
@@ -597,7 +586,7 @@ impl Sending {
         if !self.task.is_finished() {
             let _ = self.cancel.send(());
         } else if let Ok(Some(mut stream)) = self.task.await {
-            let _ = stream.reset(0u32.into());
+            stream.reset(0);
         }
     }
 }
