@@ -1,7 +1,14 @@
 //! `serve`: the QUIC server. The colour pyramid is mapped from the data set's cache
 //! (`.cache/color-tiles.bin`), or built (with a progress bar) and cached there.
+//!
+//! With `--web ADDR`, the browser viewer too (`net::web`): the page built into this binary
+//! (refused at once if there is none) over HTTPS, WebTransport beside it. Its certificate
+//! is made and renewed by the server, for `localhost`, the loopback addresses, `ADDR`'s
+//! address, this machine's LAN address and host name; or `--web-cert`/`--web-key` give one
+//! browsers trust. The page's address printed carries the token in its fragment
+//! (`#token=`): the one printed URL with a `#`.
 
-use std::net::SocketAddr;
+use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
@@ -15,6 +22,7 @@ use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
 use roam_server::terrain::dataset::Terrain;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::viewer::ViewerLimits;
+use roam_server::web::{Page, cert};
 use std::time::Duration;
 
 #[derive(Args)]
@@ -69,6 +77,17 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = roam_protocol::tiles::DEFAULT_WINDOW,
           value_parser = clap::value_parser!(u8).range(1..=i64::from(roam_protocol::tiles::MAX_WINDOW)))]
     pub color_window: u8,
+    /// Also serve the browser viewer on this address: its page over HTTPS (TCP) and
+    /// WebTransport (UDP, the same port).
+    #[arg(long, value_name = "ADDR")]
+    pub web: Option<SocketAddr>,
+    /// The browser viewer's certificate chain (PEM), one browsers trust (with --web-key).
+    /// Without it, a certificate is made, renewed every 6 days, and pinned by the page.
+    #[arg(long, value_name = "PEM", requires = "web_key", requires = "web")]
+    pub web_cert: Option<PathBuf>,
+    /// The private key (PEM) of --web-cert.
+    #[arg(long, value_name = "PEM", requires = "web_cert", requires = "web")]
+    pub web_key: Option<PathBuf>,
 }
 
 /// A number of seconds: finite, positive and at most a day.
@@ -179,8 +198,104 @@ pub fn open_served(dir: &Path) -> Result<Served> {
     })
 }
 
+/// The browser viewer's options for `--web ADDR`, `--web-cert` and `--web-key`, and the
+/// host its page's address names.
+fn web_options(args: &ServeArgs, listen: SocketAddr) -> Result<(net::web::WebOptions, String)> {
+    let page = Page::embedded();
+    anyhow::ensure!(page.is_built(), "{}", roam_server::web::NOT_BUILT);
+    let lan = listen
+        .ip()
+        .is_unspecified()
+        .then(|| lan_address(listen.ip()))
+        .flatten();
+    let hostname = hostname();
+    let cert = match (&args.web_cert, &args.web_key) {
+        (Some(cert), Some(key)) => load_pem(cert, key)?,
+        _ => net::web::WebCert::Made {
+            names: cert::subject_names(listen.ip(), lan, hostname.as_deref()),
+        },
+    };
+    let host = if !listen.ip().is_unspecified() {
+        listen.ip().to_string()
+    } else if let Some(ip) = lan {
+        ip.to_string()
+    } else {
+        hostname.unwrap_or_else(|| "localhost".into())
+    };
+    let options = net::web::WebOptions {
+        listen,
+        page: Arc::new(page),
+        cert,
+    };
+    Ok((options, host))
+}
+
+/// This machine's address on its LAN for `listen`'s family (IPv4 first for `[::]`): the
+/// source address of a route out, found by connecting a UDP socket (no packet is sent).
+fn lan_address(listen: IpAddr) -> Option<IpAddr> {
+    let routes: &[(&str, &str)] = match listen {
+        IpAddr::V4(_) => &[("0.0.0.0:0", "192.0.2.1:9")],
+        IpAddr::V6(_) => &[("0.0.0.0:0", "192.0.2.1:9"), ("[::]:0", "[2001:db8::1]:9")],
+    };
+    routes.iter().find_map(|(bind, to)| {
+        let socket = std::net::UdpSocket::bind(bind).ok()?;
+        socket.connect(to).ok()?;
+        let ip = socket.local_addr().ok()?.ip();
+        (!ip.is_unspecified() && !ip.is_loopback()).then_some(ip)
+    })
+}
+
+/// This machine's host name, if the kernel says one.
+fn hostname() -> Option<String> {
+    let name = std::fs::read_to_string("/proc/sys/kernel/hostname").ok()?;
+    let name = name.trim();
+    (!name.is_empty() && name != "(none)").then(|| name.to_owned())
+}
+
+/// A certificate chain and its key from PEM files, checked to match.
+fn load_pem(cert: &Path, key: &Path) -> Result<net::web::WebCert> {
+    use rustls::pki_types::pem::PemObject;
+    use rustls::pki_types::{CertificateDer, PrivateKeyDer};
+    let read = |flag: &str, path: &Path| {
+        std::fs::read(path).with_context(|| format!("{flag} {}: reading it", path.display()))
+    };
+    let bytes = read("--web-cert", cert)?;
+    let chain = CertificateDer::pem_slice_iter(&bytes)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| {
+            anyhow::anyhow!(
+                "--web-cert {}: not a PEM certificate chain: {e}",
+                cert.display()
+            )
+        })?;
+    anyhow::ensure!(
+        !chain.is_empty(),
+        "--web-cert {}: no CERTIFICATE in it",
+        cert.display()
+    );
+    let bytes = read("--web-key", key)?;
+    let key_der = PrivateKeyDer::from_pem_slice(&bytes)
+        .map_err(|e| anyhow::anyhow!("--web-key {}: not a PEM private key: {e}", key.display()))?;
+    cert::CertStore::given(chain.clone(), key_der.clone_key()).with_context(|| {
+        format!(
+            "--web-cert {} with --web-key {}",
+            cert.display(),
+            key.display()
+        )
+    })?;
+    Ok(net::web::WebCert::Given {
+        chain,
+        key: key_der,
+    })
+}
+
 pub fn serve(args: ServeArgs) -> Result<()> {
-    // The token first: a bad one fails before anything is loaded.
+    // The page and the certificate files first, then the token: each fails before
+    // anything is loaded.
+    let web = args
+        .web
+        .map(|listen| web_options(&args, listen))
+        .transpose()?;
     let token = args.token.resolve()?;
     tracing::info!("join token from {}", token.source);
     let token = token.as_str().to_owned();
@@ -204,6 +319,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         .with_context(|| format!("creating {}", record_dir.display()))?;
     let files = RecordDir::new(&record_dir, net::world_loop::unix_seconds);
     let made = files.made();
+    let web_host = web.as_ref().map(|(_, host)| host.clone());
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
         let server = Server::start(
@@ -211,12 +327,16 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             Arc::new(vt),
             Arc::new(pyramid),
             &identity,
-            args.options(
-                token.clone(),
-                Some(
-                    RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash),
-                ),
-            )?,
+            Options {
+                web: web.map(|(options, _)| options),
+                ..args.options(
+                    token.clone(),
+                    Some(
+                        RecordOptions::new(files, args.record_max_bytes)
+                            .with_terrain_hash(hash),
+                    ),
+                )?
+            },
         )?;
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
@@ -231,6 +351,22 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             "connect with: roam-client --connect {host} --token {token} --fingerprint {} --headless",
             identity.fingerprint()
         );
+        if let (Some(addr), Some(host)) = (server.web_addr(), &web_host) {
+            say!("browser viewer on {addr} (HTTPS over TCP, WebTransport over UDP)");
+            if let Some(sha) = server.web_certificate() {
+                let how = if args.web_cert.is_some() {
+                    "given"
+                } else {
+                    "made here, renewed every 6 days; browsers warn about it once, \
+                     and the page pins it by this hash"
+                };
+                say!("browser certificate SHA-256 {} ({how})", tls::hex(&sha));
+            }
+            say!(
+                "or open in a browser: {}",
+                roam_server::web::page_url(host, addr.port(), &token)
+            );
+        }
         tokio::signal::ctrl_c()
             .await
             .context("waiting for Ctrl-C")?;
