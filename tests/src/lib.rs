@@ -3,10 +3,12 @@
 //! and a simulated network ([`simnet`]) driving the server's and the viewer's sans-IO
 //! cores together with virtual time, no sockets; and the inputs and decoders of the
 //! fuzzing bench and test ([`fuzz`]); a flood of junk connections ([`flood`], and the
-//! `roam-flood` binary).
+//! `roam-flood` binary); a server with the browser viewer and a WebTransport client
+//! speaking as the page does ([`web`]).
 
 pub mod fixtures;
 pub mod flood;
 pub mod fuzz;
 pub mod relay;
 pub mod simnet;
+pub mod web;
