@@ -21,9 +21,7 @@ use crate::color_cache::{Keep, decode_tile};
 use crate::join::{self, JoinError, Joined, describe};
 use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Steps, lock, secs};
 
-/// The largest frame message read: a key frame at the largest budget is under 2 MiB, and
-/// 16 streams of this much bound what a server can make the viewer hold.
-pub const MAX_FRAME: usize = 8 << 20;
+pub use crate::core::MAX_FRAME;
 
 /// What the control writer is asked to do.
 pub enum Outgoing {

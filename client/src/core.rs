@@ -42,7 +42,9 @@
 //! do the [`Gaps`], which count reconnections and measure the time without frames.
 
 use std::collections::VecDeque;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use web_time::Instant;
 
 use roam_protocol::keys::{KeyLatch, KeyStep, Keys};
 use roam_protocol::messages::{
@@ -88,6 +90,10 @@ pub const MAX_FRAME_JUMP: u64 = 1 << 16;
 /// Frame numbers from here on are refused whatever came before (the largest integer a
 /// double holds exactly: no server gets there at any frame rate).
 pub const MAX_FRAME_NUMBER: u64 = 1 << 53;
+
+/// The largest frame message read: a key frame at the largest budget is under 2 MiB, and
+/// 16 streams of this much bound what a server can make the viewer hold.
+pub const MAX_FRAME: usize = 8 << 20;
 
 /// A frame taken.
 #[derive(Clone, Debug)]

@@ -17,9 +17,11 @@ use std::net::SocketAddr;
 
 use anyhow::{Context, Result};
 use roam_link::{tls, wire};
-use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, Welcome};
+use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome};
 
 use crate::color_cache::{ColorCache, Keep};
+use crate::joining::{Joining, welcome_of};
+pub use crate::joining::{describe, name};
 
 /// A client endpoint for `addr`'s address family that accepts only the certificate with
 /// SHA-256 `fingerprint`: one per session, reused by its reconnections (one UDP socket
@@ -47,18 +49,6 @@ pub async fn connect(
         .await
         .with_context(|| format!("connecting to {addr}"))?;
     Ok((endpoint, conn))
-}
-
-/// Why a connection ended or was refused, in words.
-pub fn describe(reason: &Reason) -> String {
-    match reason {
-        Reason::WrongToken => "wrong token".into(),
-        Reason::Version { server } => format!("the server speaks protocol version {server}"),
-        Reason::Shutdown => "the server is shutting down".into(),
-        Reason::Quit => "quit".into(),
-        Reason::Protocol(s) | Reason::Unavailable(s) => s.clone(),
-        Reason::Full { viewers } => format!("the server is full ({viewers} viewers)"),
-    }
 }
 
 /// How a connection ended: `lost` when it is worth connecting again (the path or the
@@ -150,16 +140,7 @@ pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<
         .await
         .map_err(|e| JoinError::on(&conn, format!("sending the hello: {e}")))?;
     let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
-        Ok(ServerMessage::Welcome(w)) => w,
-        Ok(ServerMessage::Refused(reason)) => {
-            return Err(JoinError::fatal(format!("refused: {}", describe(&reason))));
-        }
-        Ok(other) => {
-            return Err(JoinError::fatal(format!(
-                "expected a welcome, got {}",
-                name(&other)
-            )));
-        }
+        Ok(msg) => welcome_of(msg).map_err(JoinError::fatal)?,
         Err(e) => {
             return Err(match conn.close_reason() {
                 Some(why) => JoinError::on(
@@ -180,24 +161,6 @@ pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<
         welcome,
         colors,
     })
-}
-
-/// A server message, named (a colour tile's bytes are not spelled out).
-pub fn name(m: &ServerMessage) -> String {
-    match m {
-        ServerMessage::Welcome(_) => "a welcome".into(),
-        ServerMessage::ColorWindow { level, x0, z0 } => {
-            format!("a colour window (level {level} at ({x0}, {z0}))")
-        }
-        ServerMessage::ColorTile { level, x, z, data } => {
-            format!(
-                "a colour tile ({} bytes, level {level} at ({x}, {z}))",
-                data.len()
-            )
-        }
-        ServerMessage::Refused(r) => format!("Refused({r:?})"),
-        ServerMessage::Bye(r) => format!("Bye({r:?})"),
-    }
 }
 
 /// The terrain a viewer draws, from its first welcome and coarsest colour tile: what every
@@ -253,34 +216,18 @@ impl TerrainId {
 }
 
 /// Reads the colour messages that follow the welcome until the coarsest level's tile is
-/// resident (the server sends it first; a few windows before it are taken too), after
-/// checking the welcome's layout against the grid and the window asked.
+/// resident ([`Joining`]).
 async fn coarsest(
     recv: &mut quinn::RecvStream,
     welcome: &Welcome,
     asked: u8,
     keep: Keep,
 ) -> Result<ColorCache> {
-    if roam_protocol::Grid::new(u32::from(welcome.levels)).is_none() {
-        anyhow::bail!(
-            "Welcome.levels: a grid of 2^{} + 1, expected 1 ..= {}",
-            welcome.levels,
-            roam_protocol::bintree::MAX_LEVELS
-        );
-    }
-    let mut cache = ColorCache::new(welcome.color, welcome.levels, asked, keep)
-        .map_err(|e| anyhow::anyhow!("the server's welcome: {e}"))?;
-    // Nothing the server may send before the coarsest tile can be more than a message per
-    // slot and a window per level.
-    let most = cache.capacity() + u32::from(welcome.color.levels);
-    for _ in 0..=most {
+    let mut joining = Joining::new(welcome, asked, keep).map_err(anyhow::Error::msg)?;
+    loop {
         let msg = wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await?;
-        match cache.apply(&msg) {
-            Ok(true) if cache.has_coarsest() => return Ok(cache),
-            Ok(true) => {}
-            Ok(false) => anyhow::bail!("expected the coarsest colour tile, got {}", name(&msg)),
-            Err(e) => anyhow::bail!("the server's colour: {e}"),
+        if let Some(cache) = joining.apply(&msg).map_err(anyhow::Error::msg)? {
+            return Ok(cache);
         }
     }
-    anyhow::bail!("the server sent {most} colour messages and not the coarsest tile")
 }

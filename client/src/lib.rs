@@ -9,9 +9,11 @@
 //! modules (QUIC, the window, the headless runs) are native only.
 
 pub mod camera;
+pub mod cockpit;
 pub mod color_cache;
 pub mod core;
 pub mod hud;
+pub mod joining;
 pub mod render;
 
 #[cfg(not(target_arch = "wasm32"))]

@@ -52,6 +52,7 @@ use crate::connection::{
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, Received, Taken};
 use crate::join::{self, Joined, TerrainId};
 pub use crate::join::{connect, describe};
+use crate::joining::next_hello;
 use crate::render::Scene;
 
 /// How long a control message may take to leave (a server that stops reading does not
@@ -296,17 +297,7 @@ impl Session {
         let terrain = TerrainId::of(&welcome, joined.colors.coarsest());
         let empty = joined.colors.fresh();
         let colors = std::mem::replace(&mut joined.colors, empty);
-        let scene = Scene {
-            levels: u32::from(welcome.levels),
-            h_scale: welcome.h_scale,
-            v_scale: welcome.v_scale,
-            sun_dir: welcome.sun_dir,
-            sun_color: welcome.sun_color,
-            fog_density: welcome.fog_density,
-            fog_color: welcome.fog_color,
-            water_level: welcome.water_level,
-            color: welcome.color,
-        };
+        let scene = Scene::of(&welcome);
         let (status, _) = watch::channel(Status {
             state: State::Connected,
             gaps: Gaps::default(),
@@ -536,20 +527,6 @@ impl Drop for Session {
         }
         self.link.close(close::BYE, b"bye");
     }
-}
-
-/// The hello of the next connection after `welcome`: a driver presents its ticket, a
-/// spectator asks for the vehicle it followed.
-fn next_hello(mut hello: Hello, welcome: &Welcome) -> Hello {
-    match hello.role {
-        Role::Driver => hello.resume = welcome.ticket,
-        Role::Spectator { .. } => {
-            hello.role = Role::Spectator {
-                follow: Some(welcome.vehicle),
-            }
-        }
-    }
-    hello
 }
 
 /// The connection's life and the reconnections: owns the control stream's writing end.

@@ -1,14 +1,10 @@
 //! The window: winit events in, key states out to the network task, and every display
 //! frame the newest mesh drawn from the interpolated vehicle, with the HUD over it.
 
-use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
-use roam_protocol::keys::Keys;
-use roam_protocol::messages::ViewChange;
-use roam_protocol::messages::{MAX_BUDGET, MIN_BUDGET};
 use tokio::sync::mpsc;
 use winit::application::ApplicationHandler;
 use winit::event::{ElementState, KeyEvent, WindowEvent};
@@ -16,10 +12,10 @@ use winit::event_loop::{ActiveEventLoop, EventLoop};
 use winit::keyboard::{Key, NamedKey};
 use winit::window::{Window, WindowId};
 
-use crate::camera::{Interpolator, LocalGround, Rig};
-use crate::hud::{Numbers, Overlay, Rate};
+use crate::cockpit::{self, Action, Cockpit, Framed};
+use crate::hud::{Numbers, Overlay};
 use crate::live::{self, Command, Link, Shared};
-use crate::render::{Gpu, Marker, Renderer, Scene, Toggles, View};
+use crate::render::{Gpu, Renderer, Scene, Toggles};
 use crate::session::{Session, State};
 
 /// Colour tiles uploaded a display frame at most: 8 tiles of 256² are 2 MiB copied, a
@@ -60,29 +56,14 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
     let budget = session.core().budget();
     let (shared, commands, task) = live::spawn(runtime.handle(), session);
     let mut app = App {
-        toggles: opts.toggles,
+        cockpit: Cockpit::new(budget, opts.toggles, opts.fov_y_deg),
         opts,
         scene: Some(scene),
         shared,
         commands,
         gfx: None,
-        hud_shown: true,
-        budget: f64::from(budget),
-        interpolators: HashMap::new(),
-        rig: Rig::default(),
-        ground: LocalGround::default(),
         clock: Instant::now(),
-        frames: Rate::default(),
-        frame_ms: Rate::default(),
-        server_frames: Rate::default(),
-        bytes: Rate::default(),
-        color_bytes: Rate::default(),
-        last_color_bytes: 0,
-        decode_ms: Rate::default(),
-        upload_ms: Rate::default(),
-        last_bytes: 0,
         drawn: 0,
-        told: None,
         occluded: false,
         rest_until: 0.0,
         error: None,
@@ -128,29 +109,11 @@ struct App {
     shared: Arc<Shared>,
     commands: mpsc::UnboundedSender<Command>,
     gfx: Option<Gfx>,
-    toggles: Toggles,
-    hud_shown: bool,
-    /// Kept unrounded so ×√2 then ÷√2 comes back exactly.
-    budget: f64,
-    /// Every vehicle in view, replayed smoothly.
-    interpolators: HashMap<u16, Interpolator>,
-    rig: Rig,
-    ground: LocalGround,
+    /// Keys, toggles, vehicles, camera and rates ([`crate::cockpit`]).
+    cockpit: Cockpit,
     clock: Instant,
-    frames: Rate,
-    frame_ms: Rate,
-    server_frames: Rate,
-    bytes: Rate,
-    /// Colour tile bytes, and the count last seen.
-    color_bytes: Rate,
-    last_color_bytes: u64,
-    decode_ms: Rate,
-    upload_ms: Rate,
-    last_bytes: u64,
     /// Frames presented with terrain.
     drawn: u64,
-    /// The camera last told to the server, and when.
-    told: Option<(f64, ViewChange)>,
     /// The window is hidden (minimised, covered): nothing is drawn.
     occluded: bool,
     /// No surface texture was to be had: no drawing until then (local seconds).
@@ -193,27 +156,13 @@ impl App {
         })?;
         let gpu = Gpu::open(&adapter)?;
         let size = window.inner_size();
-        let mut config = surface
-            .get_default_config(&adapter, size.width.max(1), size.height.max(1))
-            .context("the window's surface does not work with this adapter")?;
-        // Drawn through an sRGB view, so the shader's linear colours are encoded on write:
-        // the surface's own sRGB format, or an sRGB view of the one it has.
-        let caps = surface.get_capabilities(&adapter);
-        if let Some(f) = caps.formats.iter().find(|f| f.is_srgb()) {
-            config.format = *f;
-        }
-        // Without sRGB views either, the renderer encodes in its shaders.
-        let views = adapter
-            .get_downlevel_capabilities()
-            .flags
-            .contains(wgpu::DownlevelFlags::SURFACE_VIEW_FORMATS);
-        let mut view_format = config.format;
-        if views && config.format.add_srgb_suffix() != config.format {
-            view_format = config.format.add_srgb_suffix();
-            config.view_formats = vec![view_format];
-        }
-        config.present_mode = wgpu::PresentMode::AutoVsync;
-        surface.configure(&gpu.device, &config);
+        let (config, view_format) = crate::render::configure_surface(
+            &surface,
+            &adapter,
+            &gpu.device,
+            (size.width, size.height),
+        )
+        .context("the window's surface")?;
         let renderer = Renderer::new(&gpu, view_format, scene);
         let overlay = Overlay::new(&window, &gpu.device, view_format);
         Ok(Gfx {
@@ -229,14 +178,16 @@ impl App {
     }
 
     fn key(&mut self, event_loop: &ActiveEventLoop, event: &KeyEvent) {
-        let drive = match &event.logical_key {
-            Key::Named(NamedKey::ArrowUp) => Some(Keys::UP),
-            Key::Named(NamedKey::ArrowDown) => Some(Keys::DOWN),
-            Key::Named(NamedKey::ArrowLeft) => Some(Keys::LEFT),
-            Key::Named(NamedKey::ArrowRight) => Some(Keys::RIGHT),
-            _ => None,
+        let name = match &event.logical_key {
+            Key::Named(NamedKey::ArrowUp) => "ArrowUp",
+            Key::Named(NamedKey::ArrowDown) => "ArrowDown",
+            Key::Named(NamedKey::ArrowLeft) => "ArrowLeft",
+            Key::Named(NamedKey::ArrowRight) => "ArrowRight",
+            Key::Named(NamedKey::Escape) => "Escape",
+            Key::Character(c) => c.as_str(),
+            _ => return,
         };
-        if let Some(k) = drive {
+        if let Some(k) = cockpit::drive_keys(name) {
             match event.state {
                 ElementState::Pressed if !event.repeat => self.shared.key_down(k),
                 ElementState::Released => self.shared.key_up(k),
@@ -247,33 +198,13 @@ impl App {
         if event.state != ElementState::Pressed || event.repeat {
             return;
         }
-        let t = &mut self.toggles;
-        match &event.logical_key {
-            Key::Named(NamedKey::Escape) => self.quit(event_loop),
-            Key::Character(c) => match c.as_str() {
-                "q" | "Q" => self.quit(event_loop),
-                "f" | "F" => t.fog = !t.fog,
-                "l" | "L" => t.lighting = !t.lighting,
-                "w" | "W" => t.wireframe = !t.wireframe,
-                "r" | "R" => t.water = !t.water,
-                "v" | "V" => t.vehicles = !t.vehicles,
-                "d" | "D" => t.detail = !t.detail,
-                "h" | "H" => self.hud_shown = !self.hud_shown,
-                "+" | "=" => self.set_budget(self.budget * std::f64::consts::SQRT_2),
-                "-" | "_" => self.set_budget(self.budget / std::f64::consts::SQRT_2),
-                _ => {}
-            },
-            _ => {}
+        match self.cockpit.press(name) {
+            Action::Quit => self.quit(event_loop),
+            Action::Budget(b) => {
+                let _ = self.commands.send(Command::Budget(b));
+            }
+            Action::None => {}
         }
-    }
-
-    /// The budget is kept unrounded here (so `+` then `-` returns to where it was) and
-    /// sent rounded; the session clamps it with the protocol's limit and owns it.
-    fn set_budget(&mut self, b: f64) {
-        self.budget = b.clamp(f64::from(MIN_BUDGET), f64::from(MAX_BUDGET));
-        let _ = self
-            .commands
-            .send(Command::Budget(self.budget.round() as u32));
     }
 
     fn quit(&mut self, event_loop: &ActiveEventLoop) {
@@ -290,90 +221,28 @@ impl App {
         if let Some(a) = self.shared.take_arrived() {
             let started = Instant::now();
             gfx.renderer.upload(&gfx.gpu, &a.terrain);
-            self.upload_ms
-                .add(now, started.elapsed().as_secs_f64() * 1e3);
-            self.decode_ms.add(now, a.decode_ms);
-            self.server_frames.add(now, 1.0);
+            let upload_ms = started.elapsed().as_secs_f64() * 1e3;
+            self.cockpit.costs(now, a.decode_ms, upload_ms);
             let at = now - a.at.elapsed().as_secs_f64();
-            for v in &a.vehicles {
-                self.interpolators
-                    .entry(v.id)
-                    .or_default()
-                    .push(at, a.tick, *v);
-            }
-            let present: std::collections::HashSet<u16> = a.vehicles.iter().map(|v| v.id).collect();
-            self.interpolators.retain(|id, _| present.contains(id));
-            self.ground = a.ground;
+            self.cockpit.arrived(now, at, a.tick, &a.vehicles, a.ground);
         }
-        let bytes = self.shared.bytes_in();
-        self.bytes.add(now, (bytes - self.last_bytes) as f64);
-        self.last_bytes = bytes;
         let (colors, color_bytes, color_tiles, color_capacity) = self.shared.colors(MAX_UPLOADS);
         gfx.renderer.update_colors(&gfx.gpu, &colors);
-        // A reconnection starts counting again from the bytes before it: never negative.
-        self.color_bytes.add(
-            now,
-            color_bytes.saturating_sub(self.last_color_bytes) as f64,
-        );
-        self.last_color_bytes = color_bytes;
-
+        self.cockpit
+            .received(now, self.shared.bytes_in(), color_bytes);
         let me = self.shared.vehicle();
-        let followed = self.interpolators.get(&me).and_then(|i| i.sample(now));
-        let markers: Vec<Marker> = self
-            .interpolators
-            .iter()
-            .filter(|(id, _)| **id != me)
-            .filter_map(|(id, i)| {
-                let v = i.sample(now)?;
-                Some(Marker {
-                    pos: [v.x as f32, v.y as f32, v.z as f32],
-                    heading_deg: v.heading as f32,
-                    color: Marker::color_of(*id),
-                })
-            })
-            .collect();
-        gfx.renderer.set_markers(&markers);
-        let ground = &self.ground;
         let size = (gfx.config.width, gfx.config.height);
-        let view = match &followed {
-            Some(v) => {
-                let pose = self.rig.update(now, v, |x, z| ground.height(x, z));
-                // The server tessellates for this camera, told when it has moved enough.
-                let change = ViewChange {
-                    pitch_deg: pose.pitch_deg as f32,
-                    eye_above: (pose.eye[1] - v.y) as f32,
-                    viewport: [size.0, size.1],
-                };
-                let moved = self.told.is_none_or(|(at, t)| {
-                    now - at >= 0.1
-                        && ((t.pitch_deg - change.pitch_deg).abs() > 0.5
-                            || (t.eye_above - change.eye_above).abs() > 0.5
-                            || t.viewport != change.viewport)
-                });
-                if moved {
-                    let _ = self.commands.send(Command::View(change));
-                    self.told = Some((now, change));
-                }
-                View {
-                    eye: pose.eye.map(|c| c as f32),
-                    yaw_deg: pose.yaw_deg as f32,
-                    pitch_deg: pose.pitch_deg as f32,
-                    fov_y_deg: self.opts.fov_y_deg,
-                    time_s: now as f32,
-                }
-            }
-            // Before the first frame: above the map's centre, looking across it.
-            None => {
-                let c = gfx.renderer.scene().world_size() / 2.0;
-                View {
-                    eye: [c, 500.0, c],
-                    yaw_deg: 0.0,
-                    pitch_deg: -10.0,
-                    fov_y_deg: self.opts.fov_y_deg,
-                    time_s: now as f32,
-                }
-            }
-        };
+        let world_size = gfx.renderer.scene().world_size();
+        let Framed {
+            view,
+            markers,
+            followed,
+            tell,
+        } = self.cockpit.frame(now, me, size, world_size);
+        gfx.renderer.set_markers(&markers);
+        if let Some(change) = tell {
+            let _ = self.commands.send(Command::View(change));
+        }
 
         let started = Instant::now();
         let frame = match gfx.surface.get_current_texture() {
@@ -410,30 +279,18 @@ impl App {
             ..Default::default()
         });
         gfx.renderer
-            .render(&gfx.gpu, &target, size, &view, self.toggles);
-        let numbers = self.hud_shown.then(|| {
+            .render(&gfx.gpu, &target, size, &view, self.cockpit.toggles);
+        let numbers = self.cockpit.hud_shown.then(|| {
             let link = self.shared.link();
             let status = self.shared.status();
             let reconnecting = matches!(status.state, State::Reconnecting { .. });
-            let (speed, heading) = followed.map_or((0.0, 0.0), |v| (v.speed, v.heading));
             Numbers {
-                fps: self.frames.per_second(now),
-                frame_ms: self.frame_ms.mean(now),
                 triangles: gfx.renderer.triangles(),
-                server_fps: self.server_frames.per_second(now),
-                kb_per_s: self.bytes.amount_per_second(now) / 1000.0,
-                color_kb_per_s: self.color_bytes.amount_per_second(now) / 1000.0,
                 color_mb: color_bytes as f64 / 1e6,
                 color_tiles,
                 color_capacity,
                 latency_ms: self.shared.latency_ms(),
-                decode_ms: self.decode_ms.mean(now),
-                upload_ms: self.upload_ms.mean(now),
-                speed,
-                heading_deg: heading,
-                budget: self.budget.round() as u32,
                 max_budget: status.welcome.max_budget,
-                toggles: self.toggles,
                 connected: link == Link::Connected && !reconnecting,
                 reconnecting_s: status
                     .gaps
@@ -458,15 +315,15 @@ impl App {
                     (Link::Ended(why), _) => format!("disconnected: {why}"),
                 },
                 adapter: format!("{} ({:?})", gfx.gpu.adapter.name, gfx.gpu.adapter.backend),
+                ..self.cockpit.numbers(now, followed.as_ref())
             }
         });
         gfx.overlay
             .paint(&gfx.gpu, &gfx.window, &target, size, numbers.as_ref());
         gfx.window.pre_present_notify();
         gfx.gpu.queue.present(frame);
-        self.frame_ms
-            .add(now, started.elapsed().as_secs_f64() * 1e3);
-        self.frames.add(now, 1.0);
+        self.cockpit
+            .drawn(now, started.elapsed().as_secs_f64() * 1e3);
         if gfx.renderer.triangles() > 0 {
             self.drawn += 1;
             if self.drawn == 1 {

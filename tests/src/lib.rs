@@ -6,6 +6,7 @@
 //! `roam-flood` binary); a server with the browser viewer and a WebTransport client
 //! speaking as the page does ([`web`]).
 
+pub mod browser;
 pub mod fixtures;
 pub mod flood;
 pub mod fuzz;

@@ -44,6 +44,21 @@ pub struct Scene {
 }
 
 impl Scene {
+    /// The scene a server's welcome describes.
+    pub fn of(welcome: &roam_protocol::messages::Welcome) -> Scene {
+        Scene {
+            levels: u32::from(welcome.levels),
+            h_scale: welcome.h_scale,
+            v_scale: welcome.v_scale,
+            sun_dir: welcome.sun_dir,
+            sun_color: welcome.sun_color,
+            fog_density: welcome.fog_density,
+            fog_color: welcome.fog_color,
+            water_level: welcome.water_level,
+            color: welcome.color,
+        }
+    }
+
     /// The map's side in world units.
     pub fn world_size(&self) -> f32 {
         self.h_scale as f32 * (1u64 << self.levels.min(30)) as f32
@@ -124,6 +139,37 @@ pub struct Gpu {
     pub adapter: wgpu::AdapterInfo,
 }
 
+/// Configures `surface` (a window's, a canvas') at `size` to be drawn through an sRGB view,
+/// so the shader's linear colours are encoded on write: the surface's own sRGB format, or
+/// an sRGB view of the one it has; without sRGB views either, the renderer encodes in its
+/// shaders. Returns the configuration and the format to draw through.
+pub fn configure_surface(
+    surface: &wgpu::Surface<'_>,
+    adapter: &wgpu::Adapter,
+    device: &wgpu::Device,
+    size: (u32, u32),
+) -> Result<(wgpu::SurfaceConfiguration, wgpu::TextureFormat)> {
+    let mut config = surface
+        .get_default_config(adapter, size.0.max(1), size.1.max(1))
+        .context("the surface does not work with this adapter")?;
+    let caps = surface.get_capabilities(adapter);
+    if let Some(f) = caps.formats.iter().find(|f| f.is_srgb()) {
+        config.format = *f;
+    }
+    let views = adapter
+        .get_downlevel_capabilities()
+        .flags
+        .contains(wgpu::DownlevelFlags::SURFACE_VIEW_FORMATS);
+    let mut view_format = config.format;
+    if views && config.format.add_srgb_suffix() != config.format {
+        view_format = config.format.add_srgb_suffix();
+        config.view_formats = vec![view_format];
+    }
+    config.present_mode = wgpu::PresentMode::AutoVsync;
+    surface.configure(device, &config);
+    Ok((config, view_format))
+}
+
 /// What to say when no adapter is found.
 pub const NO_ADAPTER: &str = "without a GPU, install a software Vulkan driver: \
      apt-get install mesa-vulkan-drivers libvulkan1";
@@ -150,11 +196,18 @@ impl Gpu {
         pollster::block_on(Gpu::open_async(adapter))
     }
 
-    /// Opens `adapter`'s device: what a browser awaits (it cannot block).
+    /// Opens `adapter`'s device: what a browser awaits (it cannot block). In a browser
+    /// the device asks for the adapter's own limits: WebGL2 has less than wgpu's defaults.
     pub async fn open_async(adapter: &wgpu::Adapter) -> Result<Gpu> {
+        let required_limits = if cfg!(target_arch = "wasm32") {
+            adapter.limits()
+        } else {
+            wgpu::Limits::default()
+        };
         let (device, queue) = adapter
             .request_device(&wgpu::DeviceDescriptor {
                 label: Some("roam"),
+                required_limits,
                 ..Default::default()
             })
             .await

@@ -73,6 +73,9 @@ pub const MAX_VIEWERS: usize = 64;
 pub const MAX_PENDING: usize = 256;
 /// [`Options::hello_timeout`] unless told otherwise.
 pub const HELLO_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(5);
+/// How long a shutdown waits for browsers to close their sessions after the goodbye (the
+/// endpoint waits a little longer, for the viewer tasks' own closes).
+const WEB_CLOSE_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 /// [`Options::hold`] unless told otherwise.
 pub const HOLD: std::time::Duration = std::time::Duration::from_secs(30);
 /// [`Options::color_rate`] unless told otherwise: 2 MB/s.
@@ -356,6 +359,10 @@ impl Server {
         );
         if let Some(web) = &mut self.web {
             web.stop();
+            // A web session's close goes as a capsule the browser answers by closing the
+            // connection (web_transport_quinn::Session::close): wait for that (bounded),
+            // else the browser sees only "connection lost" and reconnects to nothing.
+            let _ = tokio::time::timeout(WEB_CLOSE_WAIT * 2, web.endpoint.wait_idle()).await;
             web.endpoint.close(
                 roam_protocol::messages::close::SHUTDOWN.into(),
                 b"the server is shutting down",

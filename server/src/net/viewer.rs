@@ -167,6 +167,11 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         _ = shared.shutting_down() => {
             let bye = ServerMessage::Bye(Reason::Shutdown);
             goodbye(&send, &color.0, &bye).await;
+            if conn.via() == super::link::Via::Web {
+                // A browser closes its session on the goodbye; closed from here first, a
+                // busy page may see only "connection lost" (and try to reconnect).
+                let _ = tokio::time::timeout(super::WEB_CLOSE_WAIT, conn.closed()).await;
+            }
             conn.close(close::SHUTDOWN, b"the server is shutting down");
             "the server is shutting down".into()
         }

@@ -1,0 +1,172 @@
+//! The browser viewer in a real browser: headless Chromium opens the page a test server
+//! serves with `--web` (the page `scripts/build-web` built), joins over WebTransport with
+//! the token from the URL's fragment, drives a script, decodes every frame against the
+//! frame's own check (a mesh differing from the server's by one height or split fails it,
+//! and counts as a decode error), and posts its numbers and a screenshot read back from
+//! the canvas. Both GPU paths run: WebGPU and WebGL2 (SwiftShader, no GPU needed). A wrong
+//! token is refused with a message on the page.
+
+use std::time::Duration;
+
+use roam_server::net::web::{WebCert, WebOptions};
+use roam_tests::browser::{Browser, GpuPath, Image, built_page, reports};
+use roam_tests::fixtures::{self, Running};
+use serde_json::Value;
+
+/// A bound on the wait for the page's report: a regression fails, never hangs (a page on
+/// SwiftShader takes seconds).
+const REPORT_WITHIN: Duration = Duration::from_secs(150);
+
+/// Frames the page decodes before it reports.
+const FRAMES: u64 = 90;
+
+/// A drive: throttle, then a long left turn (it lasts the whole test).
+const SCRIPT: &str = "150 U\n3000 UL\n";
+
+fn serve() -> Running {
+    fixtures::serve(fixtures::kossou(), |o| roam_server::net::Options {
+        web: Some(WebOptions {
+            listen: "127.0.0.1:0".parse().expect("an address"),
+            page: built_page(),
+            cert: WebCert::Made {
+                names: vec!["localhost".into(), "127.0.0.1".into()],
+            },
+        }),
+        ..o
+    })
+}
+
+/// Opens the page on `running` with `token`, the GPU path and a script, and returns what
+/// it reported (its numbers, or the error it showed).
+async fn open(running: &Running, token: &str, gpu: GpuPath) -> Value {
+    let (report, mut reports) = reports().await;
+    let web = running.server.web_addr().expect("serving --web");
+    let url = format!(
+        "https://127.0.0.1:{}/#token={token}&gpu={}&frames={FRAMES}&report=http://{report}/report&script={}",
+        web.port(),
+        gpu.option(),
+        SCRIPT.replace('\n', "%0A").replace(' ', "%20"),
+    );
+    let _browser = Browser::open(&url, gpu);
+    let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
+        .await
+        .unwrap_or_else(|_| panic!("no report from the page within {REPORT_WITHIN:?} ({gpu:?})"))
+        .expect("the report endpoint runs");
+    serde_json::from_str(&body).expect("the page reports JSON")
+}
+
+/// The page joined, drove, decoded every frame and drew sky above terrain.
+fn check_drive(running: &Running, r: &Value, gpu: GpuPath, backend: &str) {
+    assert!(r.get("error").is_none(), "the page failed ({gpu:?}): {r}");
+    let numbers = {
+        let mut n = r.clone();
+        n["png"] = Value::from("…");
+        n
+    };
+    println!("{gpu:?}: {numbers}");
+    assert_eq!(r["backend"], backend, "{numbers}");
+    assert!(r["frames"].as_u64() >= Some(FRAMES), "{numbers}");
+    assert_eq!(
+        r["decode_errors"], 0,
+        "every frame decodes to the server's mesh: {numbers}"
+    );
+    assert!(r["triangles"].as_u64() > Some(1000), "{numbers}");
+    assert!(r["fps"].as_f64() > Some(0.0), "{numbers}");
+    assert!(r["first_frame_ms"].as_f64() > Some(0.0), "{numbers}");
+    // The script drove the page's vehicle (the world's own record of it).
+    let vehicle = r["vehicle"].as_u64().expect("the vehicle") as u16;
+    let snap = running.server.snapshot();
+    let v = snap
+        .vehicles
+        .iter()
+        .find(|v| v.id == vehicle)
+        .expect("the page's vehicle is in the world");
+    assert!(
+        v.state.speed > 1.0,
+        "the script drove the vehicle: {:?}",
+        v.state
+    );
+
+    let image = Image::from_data_url(r["png"].as_str().expect("a screenshot"))
+        .expect("the screenshot is a PNG");
+    let dir = std::path::Path::new(env!("CARGO_TARGET_TMPDIR"));
+    image.write_png(&dir.join(format!("browser-{}.png", gpu.option())));
+    assert!(
+        image.width >= 100 && image.height >= 100,
+        "{}×{}",
+        image.width,
+        image.height
+    );
+    let h = image.height;
+    let (sky, sky_spread) = image.band(0, h / 10);
+    let (ground, _) = image.band(h * 3 / 4, h);
+    // Sky: blue over red, smooth. Terrain (the start faces land): far from the sky's
+    // colour, and green over blue.
+    assert!(sky[2] > sky[0] + 25.0, "the top is sky-blue: {sky:?}");
+    assert!(sky_spread < 25.0, "the sky is smooth: {sky_spread}");
+    let apart = (0..3)
+        .map(|c| (sky[c] - ground[c]).powi(2))
+        .sum::<f64>()
+        .sqrt();
+    assert!(apart > 30.0, "the bottom is not sky: {sky:?} vs {ground:?}");
+    assert!(
+        ground[1] > ground[2] + 10.0,
+        "the bottom is land: {ground:?}"
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_drives_over_webgpu() {
+    let running = serve();
+    let r = open(&running, &running.token.clone(), GpuPath::WebGpu).await;
+    check_drive(&running, &r, GpuPath::WebGpu, "BrowserWebGpu");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_drives_over_webgl2() {
+    let running = serve();
+    let r = open(&running, &running.token.clone(), GpuPath::WebGl2).await;
+    check_drive(&running, &r, GpuPath::WebGl2, "Gl");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wrong_token_is_refused_with_a_message_on_the_page() {
+    let running = serve();
+    let r = open(&running, "not-the-token", GpuPath::WebGl2).await;
+    let error = r["error"]
+        .as_str()
+        .unwrap_or_else(|| panic!("an error: {r}"));
+    assert!(error.contains("wrong token"), "{error}");
+    assert_eq!(running.server.counts().refused, 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_says_why_when_the_server_goes_away() {
+    let running = serve();
+    let (report, mut reports) = reports().await;
+    let web = running.server.web_addr().expect("serving --web");
+    let url = format!(
+        "https://127.0.0.1:{}/#token={}&gpu=webgl&frames=10&report=http://{report}/report",
+        web.port(),
+        running.token,
+    );
+    let _browser = Browser::open(&url, GpuPath::WebGl2);
+    let next = async |reports: &mut tokio::sync::mpsc::UnboundedReceiver<String>| -> Value {
+        let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
+            .await
+            .expect("a report from the page in time")
+            .expect("the report endpoint runs");
+        serde_json::from_str(&body).expect("the page reports JSON")
+    };
+    // Reports until the numbers (the page may say "connected" before them).
+    let mut first = next(&mut reports).await;
+    while first.get("frames").is_none() {
+        assert!(first.get("error").is_none(), "{first}");
+        first = next(&mut reports).await;
+    }
+    running.server.shutdown().await.expect("the server stops");
+    let said = next(&mut reports).await;
+    assert_eq!(said["state"], "ended", "{said}");
+    let message = said["message"].as_str().expect("a message");
+    assert!(message.contains("shutting down"), "{message}");
+}

@@ -1,0 +1,463 @@
+//! The page's display: the GPU (WebGPU where the browser has it, WebGL2 otherwise) drawing
+//! into the canvas with the native viewer's [`Renderer`], one display frame per
+//! `requestAnimationFrame` — the newest frame taken from the core and decoded (latest frame
+//! wins), the colour tiles uploaded, the [`Cockpit`] riding the vehicle — the keys (the
+//! window's, by the same names), a key datagram every 10 ms, and the HUD as text over the
+//! canvas. For tests it posts its results once `frames` frames are decoded: frames a
+//! second, decode errors, load to first frame, and the canvas read back in the same task
+//! as the draw (later it may read as zeros).
+
+use std::cell::RefCell;
+use std::rc::Rc;
+
+use roam_client::camera::LocalGround;
+use roam_client::cockpit::{self, Action, Cockpit};
+use roam_client::core::Taken;
+use roam_client::hud::{self, Numbers};
+use roam_client::render::{Gpu, Renderer, Scene, TerrainVertices, Toggles};
+use wasm_bindgen::JsCast;
+use wasm_bindgen::prelude::*;
+use web_sys::{HtmlCanvasElement, KeyboardEvent};
+use web_time::Instant;
+
+use crate::net::{Shared, State};
+use crate::page::{self, Options};
+
+/// Colour tiles uploaded a display frame at most (as the window).
+const MAX_UPLOADS: usize = 8;
+/// Radius of the ground kept for the camera's look-ahead, world units (as the window).
+const GROUND_RADIUS: f32 = 600.0;
+
+/// What the browser says when it has neither GPU API.
+pub const NO_GPU: &str = "This browser offers neither WebGPU nor WebGL2, which the viewer \
+    draws with. Use a current Chrome, Edge or Firefox, and check that hardware acceleration \
+    is on (chrome://gpu).";
+
+/// The canvas and what draws into it.
+pub struct Gfx {
+    canvas: HtmlCanvasElement,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    view_format: wgpu::TextureFormat,
+    pub gpu: Gpu,
+}
+
+impl Gfx {
+    /// Opens the GPU on the canvas: `gpu` is `webgpu`, `webgl` or empty (either).
+    pub async fn open(canvas: HtmlCanvasElement, gpu: &str) -> Result<Gfx, String> {
+        let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
+        desc.backends = match gpu {
+            "webgpu" => wgpu::Backends::BROWSER_WEBGPU,
+            "webgl" => wgpu::Backends::GL,
+            _ => wgpu::Backends::BROWSER_WEBGPU | wgpu::Backends::GL,
+        };
+        let instance = wgpu::util::new_instance_with_webgpu_detection(desc).await;
+        let surface = instance
+            .create_surface(wgpu::SurfaceTarget::Canvas(canvas.clone()))
+            .map_err(|e| format!("{NO_GPU} ({e})"))?;
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                compatible_surface: Some(&surface),
+                force_fallback_adapter: false,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| format!("{NO_GPU} ({e})"))?;
+        let gpu = Gpu::open_async(&adapter)
+            .await
+            .map_err(|e| format!("opening the GPU: {e:#}"))?;
+        let size = pixel_size(&canvas);
+        let (config, view_format) =
+            roam_client::render::configure_surface(&surface, &adapter, &gpu.device, size)
+                .map_err(|e| format!("{e:#}"))?;
+        Ok(Gfx {
+            canvas,
+            surface,
+            config,
+            view_format,
+            gpu,
+        })
+    }
+
+    /// The adapter as the HUD and the test report name it.
+    pub fn adapter(&self) -> String {
+        format!("{} ({:?})", self.gpu.adapter.name, self.gpu.adapter.backend)
+    }
+
+    /// The canvas follows its size on the page (in device pixels).
+    fn fit(&mut self) {
+        let (w, h) = pixel_size(&self.canvas);
+        if (w, h) != (self.config.width, self.config.height) {
+            self.canvas.set_width(w);
+            self.canvas.set_height(h);
+            self.config.width = w;
+            self.config.height = h;
+            self.surface.configure(&self.gpu.device, &self.config);
+        }
+    }
+}
+
+/// The canvas' size on the page in device pixels.
+pub fn pixel_size(canvas: &HtmlCanvasElement) -> (u32, u32) {
+    let ratio = page::window().device_pixel_ratio().max(1.0);
+    let w = (f64::from(canvas.client_width()) * ratio).round() as u32;
+    let h = (f64::from(canvas.client_height()) * ratio).round() as u32;
+    (w.clamp(1, 4096), h.clamp(1, 4096))
+}
+
+struct App {
+    gfx: Gfx,
+    renderer: Renderer,
+    live: Shared,
+    cockpit: Cockpit,
+    options: Options,
+    driver: bool,
+    clock: Instant,
+    terrain: TerrainVertices,
+    /// Frames taken and decoded.
+    decoded: u64,
+    first_frame_ms: Option<f64>,
+    hud_at: f64,
+    reported: bool,
+    said: Option<State>,
+}
+
+/// Starts the display, the keys and the key sender; they run as long as the page.
+pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(), String> {
+    let budget = live.borrow().core.budget();
+    let renderer = Renderer::new(&gfx.gpu, gfx.view_format, scene);
+    let app = Rc::new(RefCell::new(App {
+        gfx,
+        renderer,
+        cockpit: Cockpit::new(budget, Toggles::default(), 60.0),
+        driver: !options.spectator,
+        live,
+        options,
+        clock: Instant::now(),
+        terrain: TerrainVertices::default(),
+        decoded: 0,
+        first_frame_ms: None,
+        hud_at: 0.0,
+        reported: false,
+        said: None,
+    }));
+    keys(&app)?;
+    if app.borrow().driver {
+        let live = app.borrow().live.clone();
+        let tick = Closure::<dyn FnMut()>::new(move || {
+            let mut l = live.borrow_mut();
+            if !l.ended() {
+                l.send_keys();
+            }
+        });
+        page::window()
+            .set_interval_with_callback_and_timeout_and_arguments_0(
+                tick.as_ref().unchecked_ref(),
+                10,
+            )
+            .map_err(|e| format!("starting the key timer: {e:?}"))?;
+        tick.forget(); // it runs as long as the page
+    }
+    animate(app);
+    Ok(())
+}
+
+/// Key presses and releases on the page, by the window's names.
+fn keys(app: &Rc<RefCell<App>>) -> Result<(), String> {
+    let window = page::window();
+    let down = {
+        let app = app.clone();
+        Closure::<dyn FnMut(KeyboardEvent)>::new(move |e: KeyboardEvent| {
+            let name = e.key();
+            let mut a = app.borrow_mut();
+            if let Some(k) = cockpit::drive_keys(&name) {
+                e.prevent_default(); // the arrows do not scroll the page
+                if !e.repeat() && a.driver {
+                    a.live.borrow_mut().keys.key_down(k);
+                }
+                return;
+            }
+            if e.repeat() || e.ctrl_key() || e.meta_key() || e.alt_key() {
+                return;
+            }
+            match a.cockpit.press(&name) {
+                Action::Quit => a.live.borrow_mut().quit(),
+                Action::Budget(b) => {
+                    let mut l = a.live.borrow_mut();
+                    l.core.set_budget(b);
+                    l.flush();
+                }
+                Action::None => {}
+            }
+        })
+    };
+    let up = {
+        let app = app.clone();
+        Closure::<dyn FnMut(KeyboardEvent)>::new(move |e: KeyboardEvent| {
+            if let Some(k) = cockpit::drive_keys(&e.key()) {
+                app.borrow().live.borrow_mut().keys.key_up(k);
+            }
+        })
+    };
+    let blur = {
+        let app = app.clone();
+        Closure::<dyn FnMut()>::new(move || {
+            app.borrow().live.borrow_mut().keys.keys_released();
+        })
+    };
+    let fail = |e: JsValue| format!("listening to the keys: {e:?}");
+    window
+        .add_event_listener_with_callback("keydown", down.as_ref().unchecked_ref())
+        .map_err(fail)?;
+    window
+        .add_event_listener_with_callback("keyup", up.as_ref().unchecked_ref())
+        .map_err(fail)?;
+    window
+        .add_event_listener_with_callback("blur", blur.as_ref().unchecked_ref())
+        .map_err(fail)?;
+    // They listen as long as the page.
+    down.forget();
+    up.forget();
+    blur.forget();
+    Ok(())
+}
+
+/// One display frame per animation frame, as long as the page.
+fn animate(app: Rc<RefCell<App>>) {
+    let next: Rc<RefCell<Option<Closure<dyn FnMut()>>>> = Rc::new(RefCell::new(None));
+    let again = next.clone();
+    *next.borrow_mut() = Some(Closure::new(move || {
+        app.borrow_mut().frame();
+        if let Some(f) = again.borrow().as_ref() {
+            let _ = page::window().request_animation_frame(f.as_ref().unchecked_ref());
+        }
+    }));
+    if let Some(f) = next.borrow().as_ref() {
+        let _ = page::window().request_animation_frame(f.as_ref().unchecked_ref());
+    }
+}
+
+impl App {
+    fn frame(&mut self) {
+        let now = self.clock.elapsed().as_secs_f64();
+        self.take(now);
+        self.status();
+        self.gfx.fit();
+        let (colors, color_bytes, tiles, capacity, bytes_in, me) = {
+            let mut l = self.live.borrow_mut();
+            let update = l.colors.drain(MAX_UPLOADS);
+            let (resident, capacity) = (l.colors.resident(), l.colors.capacity());
+            (
+                update,
+                l.color_bytes(),
+                resident,
+                capacity,
+                l.bytes_in(),
+                l.welcome.vehicle,
+            )
+        };
+        self.renderer.update_colors(&self.gfx.gpu, &colors);
+        self.cockpit.received(now, bytes_in, color_bytes);
+        let size = (self.gfx.config.width, self.gfx.config.height);
+        let framed = self
+            .cockpit
+            .frame(now, me, size, self.renderer.scene().world_size());
+        self.renderer.set_markers(&framed.markers);
+        if let Some(change) = framed.tell {
+            let mut l = self.live.borrow_mut();
+            l.core.set_view(change);
+            l.flush();
+        }
+        let started = Instant::now();
+        let texture = match self.gfx.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(f)
+            | wgpu::CurrentSurfaceTexture::Suboptimal(f) => f,
+            _ => {
+                self.gfx
+                    .surface
+                    .configure(&self.gfx.gpu.device, &self.gfx.config);
+                return;
+            }
+        };
+        let target = texture.texture.create_view(&wgpu::TextureViewDescriptor {
+            format: Some(self.gfx.view_format),
+            ..Default::default()
+        });
+        self.renderer.render(
+            &self.gfx.gpu,
+            &target,
+            size,
+            &framed.view,
+            self.cockpit.toggles,
+        );
+        self.gfx.gpu.queue.present(texture);
+        self.cockpit
+            .drawn(now, started.elapsed().as_secs_f64() * 1e3);
+        if self.renderer.triangles() > 0 && self.first_frame_ms.is_none() {
+            self.first_frame_ms = Some(page::since_load_ms());
+            page::say("", false);
+        }
+        if now - self.hud_at >= 0.25 {
+            self.hud_at = now;
+            let n = self.numbers(
+                now,
+                framed.followed.as_ref(),
+                (color_bytes, tiles, capacity),
+            );
+            page::hud(self.cockpit.hud_shown.then(|| hud::lines(&n)).as_deref());
+        }
+        if !self.reported && self.decoded >= self.options.frames {
+            self.reported = true;
+            self.report(now, framed.followed);
+        }
+    }
+
+    /// The newest frame, decoded into the vertices and uploaded.
+    fn take(&mut self, now: f64) {
+        let mut l = self.live.borrow_mut();
+        if !l.core.has_frame() || l.ended() {
+            return;
+        }
+        let started = Instant::now();
+        let taken = l.core.take(true);
+        l.flush();
+        match taken {
+            Ok(Taken::Frame(r)) => {
+                if let Some(seq) = r.input_seq {
+                    let _ = l.keys.applied(seq, r.arrived);
+                }
+                l.gaps.frame(r.arrived);
+                self.terrain.build(self.renderer.scene(), l.core.mesh());
+                drop(l);
+                let decode_ms = started.elapsed().as_secs_f64() * 1e3;
+                let ground = match r.vehicles.iter().find(|v| v.id == self.me()) {
+                    Some(v) => LocalGround::near(
+                        &self.terrain.corners,
+                        v.x as f32,
+                        v.z as f32,
+                        GROUND_RADIUS,
+                    ),
+                    None => LocalGround::default(),
+                };
+                let uploading = Instant::now();
+                self.renderer.upload(&self.gfx.gpu, &self.terrain);
+                let upload_ms = uploading.elapsed().as_secs_f64() * 1e3;
+                self.cockpit.costs(now, decode_ms, upload_ms);
+                let at = now - r.arrived.elapsed().as_secs_f64();
+                self.cockpit.arrived(now, at, r.tick, &r.vehicles, ground);
+                self.decoded += 1;
+            }
+            Ok(Taken::Nothing) => {}
+            Ok(Taken::Dropped(_)) => l.dropped += 1,
+            Err(broken) => l.end(format!(
+                "the server sent a frame it could not have: {broken}"
+            )),
+        }
+    }
+
+    fn me(&self) -> u16 {
+        self.live.borrow().welcome.vehicle
+    }
+
+    /// The message line follows the session's state.
+    fn status(&mut self) {
+        let state = self.live.borrow().state.clone();
+        if self.said.as_ref() == Some(&state) {
+            return;
+        }
+        let (text, error) = match &state {
+            State::Connected if self.first_frame_ms.is_none() => {
+                ("joined; waiting for the first frame…".to_owned(), false)
+            }
+            State::Connected => (String::new(), false),
+            State::Reconnecting { why, attempts } => (
+                format!("{why} — reconnecting (attempt {})…", attempts + 1),
+                true,
+            ),
+            State::Ended(why) if why == "quit" => (
+                "You left the server. Reload the page to join again.".to_owned(),
+                false,
+            ),
+            State::Ended(why) => (
+                format!("Disconnected: {why}. Reload the page to try again."),
+                true,
+            ),
+        };
+        page::say(&text, error);
+        // A test hears every change after the first.
+        if let (Some(url), Some(_)) = (self.options.report.clone(), &self.said) {
+            let kind = match state {
+                State::Connected => "connected",
+                State::Reconnecting { .. } => "reconnecting",
+                State::Ended(_) => "ended",
+            };
+            let body = serde_json::json!({ "state": kind, "message": text }).to_string();
+            wasm_bindgen_futures::spawn_local(async move { page::post(&url, &body).await });
+        }
+        self.said = Some(state);
+    }
+
+    fn numbers(
+        &mut self,
+        now: f64,
+        followed: Option<&roam_protocol::messages::VehicleView>,
+        color: (u64, u32, u32),
+    ) -> Numbers {
+        let l = self.live.borrow();
+        let reconnecting = match &l.state {
+            State::Reconnecting { .. } => l.gaps.current(Instant::now()).map(|g| g.as_secs_f64()),
+            _ => None,
+        };
+        let host = page::window().location().host().unwrap_or_default();
+        Numbers {
+            triangles: self.renderer.triangles(),
+            color_mb: color.0 as f64 / 1e6,
+            color_tiles: color.1,
+            color_capacity: color.2,
+            max_budget: l.welcome.max_budget,
+            connected: l.state == State::Connected,
+            reconnecting_s: reconnecting,
+            reconnects: l.gaps.reconnects,
+            resumed: l.gaps.resumed,
+            connection: match &l.state {
+                State::Ended(why) => format!("disconnected: {why}"),
+                _ => format!(
+                    "connected to {host} · vehicle #{} · {}",
+                    l.welcome.vehicle,
+                    if self.driver { "driving" } else { "watching" }
+                ),
+            },
+            adapter: self.gfx.adapter(),
+            ..self.cockpit.numbers(now, followed)
+        }
+    }
+
+    /// Posts the test's results: the numbers, and the canvas as a PNG (read back now, in
+    /// the task that drew it).
+    fn report(&mut self, now: f64, followed: Option<roam_protocol::messages::VehicleView>) {
+        let Some(url) = self.options.report.clone() else {
+            return;
+        };
+        let png = self.gfx.canvas.to_data_url().unwrap_or_default();
+        let n = self.cockpit.numbers(now, followed.as_ref());
+        let l = self.live.borrow();
+        let body = serde_json::json!({
+            "frames": self.decoded,
+            "decode_errors": l.dropped,
+            "fps": n.fps,
+            "server_fps": n.server_fps,
+            "first_frame_ms": self.first_frame_ms,
+            "adapter": self.gfx.adapter(),
+            "backend": format!("{:?}", self.gfx.gpu.adapter.backend),
+            "triangles": self.renderer.triangles(),
+            "vehicle": l.welcome.vehicle,
+            "speed": n.speed,
+            "color_tiles": l.colors.resident(),
+            "size": [self.gfx.config.width, self.gfx.config.height],
+            "png": png,
+        })
+        .to_string();
+        wasm_bindgen_futures::spawn_local(async move { page::post(&url, &body).await });
+    }
+}

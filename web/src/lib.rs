@@ -1,0 +1,100 @@
+//! roam-web: the browser viewer. The native viewer's clock-free core, colour cache,
+//! cockpit and renderer (`roam-client`), compiled to WebAssembly with wasm-bindgen, over
+//! WebTransport ([`net`]) into a canvas ([`app`]); only the I/O and the canvas differ from
+//! the window. `roam-server serve --web ADDR` serves the page (`web/static/index.html` and
+//! what `scripts/build-web` makes) and takes its sessions.
+//!
+//! The page learns everything from its own address: the token from the URL's fragment
+//! (never sent to the server in a request), the WebTransport port and the certificate
+//! hashes from `/webtransport.json` on its own origin ([`page`]). It says clearly what is
+//! wrong when the browser lacks WebTransport or both GPU APIs, when the token is refused,
+//! and when the connection drops (and reconnects as the native viewer does).
+//!
+//! Natively this crate is empty: `cargo test --workspace` builds none of it.
+#![cfg(target_arch = "wasm32")]
+
+mod app;
+mod net;
+mod page;
+
+use roam_protocol::messages::{Hello, Role, VERSION};
+use wasm_bindgen::prelude::*;
+
+/// What the page says when the browser has no WebTransport.
+const NO_WEBTRANSPORT: &str = "This browser has no WebTransport, which the viewer talks to \
+    the server with. Use a current Chrome, Edge or Firefox (Safari has none yet).";
+
+#[wasm_bindgen(start)]
+pub fn main() {
+    wasm_bindgen_futures::spawn_local(async {
+        let options = page::Options::parse(&page::window().location().hash().unwrap_or_default());
+        if let Err(why) = run(options.clone()).await {
+            page::say(&why, true);
+            if let Some(url) = options.report {
+                let body = serde_json::json!({ "error": why }).to_string();
+                page::post(&url, &body).await;
+            }
+        }
+    });
+}
+
+async fn run(options: page::Options) -> Result<(), String> {
+    if !net::has_webtransport() {
+        return Err(NO_WEBTRANSPORT.into());
+    }
+    if options.token.is_empty() {
+        return Err(
+            "No token in this page's address: open the link roam-server printed \
+                    (it ends in #token=…)."
+                .into(),
+        );
+    }
+    page::say("opening the GPU…", false);
+    let canvas = page::canvas()?;
+    let gfx = app::Gfx::open(canvas.clone(), &options.gpu).await?;
+    page::say("connecting…", false);
+    let endpoint = page::endpoint().await?;
+    let size = app::pixel_size(&canvas);
+    let budget = options.budget.unwrap_or(65_536);
+    let hello = Hello {
+        version: VERSION,
+        role: if options.spectator {
+            Role::Spectator { follow: None }
+        } else {
+            Role::Driver
+        },
+        token: options.token.clone(),
+        viewport: [size.0, size.1],
+        fov_y_deg: 60.0,
+        budget,
+        frame_rate: 60,
+        resume: None,
+        color_window: roam_client::color_cache::window_for(
+            gfx.gpu.device.limits().max_texture_dimension_2d,
+        ),
+    };
+    let mut joined = net::join(&endpoint, hello.clone()).await.map_err(|e| {
+        if e.message.contains("wrong token") {
+            format!(
+                "The server refused this viewer: wrong token. Open the link roam-server \
+                 printed, with its #token=…, again ({})",
+                e.message
+            )
+        } else {
+            format!("Could not join the server: {}", e.message)
+        }
+    })?;
+    let script = match &options.script {
+        Some(text) => {
+            let script = roam_protocol::script::parse(text).map_err(|e| format!("script: {e}"))?;
+            let mut steps: Vec<_> = script.steps().collect();
+            steps.reverse();
+            Some(steps)
+        }
+        None => None,
+    };
+    let live = net::live(&mut joined, budget, script)?;
+    let scene = roam_client::render::Scene::of(&joined.welcome);
+    wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), endpoint, hello, joined));
+    app::start(gfx, scene, live, options)
+}

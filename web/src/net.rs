@@ -1,0 +1,643 @@
+//! The page's I/O: a WebTransport session to the server (HTTP/3, QUIC underneath) carrying
+//! exactly the native protocol — the control stream the page opens (the hello, then the
+//! welcome, colour windows and tiles, the page's budget and view), frames as datagrams or
+//! a stream each, key datagrams every 10 ms — around the viewer's clock-free cores
+//! ([`ClientCore`], [`KeyCore`], [`ColorCache`]: the native viewer's own). Everything runs
+//! on the page's one thread: tasks are `spawn_local`, the state is one [`Live`] behind a
+//! `RefCell`, never borrowed across an `await`.
+//!
+//! Reconnecting follows the native viewer ([`roam_client::session`]): a connection lost
+//! (the browser says so, or 10 s without a word from the server) is made again with the
+//! driver's ticket after 100 ms, doubling to 2 s, for 35 s; a refusal, the server's
+//! goodbye, or a frame the server could not have sent ends the session for good, with
+//! the reason on the page.
+
+use std::cell::RefCell;
+use std::rc::Rc;
+
+use bytes::Bytes;
+use futures_channel::mpsc::{self, UnboundedReceiver, UnboundedSender};
+use futures_util::StreamExt;
+use roam_client::color_cache::{ColorCache, Keep, decode_tile};
+use roam_client::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
+use roam_client::joining::{self, Joining, describe};
+use roam_protocol::keys::{KeyStep, Keys};
+use roam_protocol::messages::{
+    self, Checked, ClientMessage, Hello, Reason, ServerMessage, Welcome, close,
+};
+use serde::de::DeserializeOwned;
+use wasm_bindgen_futures::spawn_local;
+use web_time::{Duration, Instant};
+use web_transport_wasm::{ClientBuilder, RecvStream, SendStream, Session};
+
+use crate::page::{self, Endpoint};
+
+/// After the welcome, this long without a word from the server: the connection is lost.
+const SILENCE: Duration = Duration::from_secs(10);
+/// How long after a loss to keep trying (the server holds a vehicle 30 s).
+const RECONNECT_FOR: Duration = Duration::from_secs(35);
+/// How long a loss waits for a goodbye that may be behind it, milliseconds.
+const GOODBYE_GRACE_MS: i32 = 300;
+/// A join (handshake, welcome, coarsest tile) at most, milliseconds.
+const JOIN_MS: i32 = 30_000;
+
+/// Where the session stands, for the page.
+#[derive(Clone, Debug, PartialEq)]
+pub enum State {
+    Connected,
+    Reconnecting { why: String, attempts: u32 },
+    Ended(String),
+}
+
+/// What the tasks and the display share.
+pub struct Live {
+    pub core: ClientCore,
+    pub keys: KeyCore,
+    pub colors: ColorCache,
+    pub welcome: Welcome,
+    pub state: State,
+    pub gaps: Gaps,
+    /// Bumped with each connection: bytes of an older one are not offered to the new core.
+    epoch: u64,
+    heard: Instant,
+    session: Option<Session>,
+    control: Option<UnboundedSender<ClientMessage>>,
+    /// A script's steps, last first; `None`: the keys pressed on the page.
+    script: Option<Vec<KeyStep>>,
+    /// Frame and colour bytes of the connections before this one.
+    pub bytes_before: u64,
+    pub color_bytes_before: u64,
+    /// Frames that could not be decoded (a key frame was asked for).
+    pub dropped: u64,
+}
+
+pub type Shared = Rc<RefCell<Live>>;
+
+impl Live {
+    /// Sends the core's control messages, in order.
+    pub fn flush(&mut self) {
+        while let Some(msg) = self.core.poll_control() {
+            if let Some(tx) = &self.control {
+                let _ = tx.unbounded_send(msg);
+            }
+        }
+    }
+
+    /// The session ends with `why` (the first reason stands).
+    pub fn end(&mut self, why: String) {
+        if !matches!(self.state, State::Ended(_)) {
+            self.state = State::Ended(why);
+        }
+        if let Some(s) = self.session.take() {
+            s.close(close::BYE, "bye");
+        }
+        self.control = None;
+    }
+
+    pub fn ended(&self) -> bool {
+        matches!(self.state, State::Ended(_))
+    }
+
+    pub fn bytes_in(&self) -> u64 {
+        self.bytes_before + self.core.bytes_in()
+    }
+
+    pub fn color_bytes(&self) -> u64 {
+        self.color_bytes_before + self.colors.bytes()
+    }
+
+    fn offer(&mut self, epoch: u64, bytes: &[u8]) {
+        if epoch == self.epoch {
+            self.heard = Instant::now();
+            self.core.offer(bytes, Instant::now());
+        }
+    }
+
+    /// One physics step's key datagram, sent on the connection that is up (numbered and
+    /// repeated by the core, so a lost one costs nothing).
+    pub fn send_keys(&mut self) {
+        let step = match &mut self.script {
+            Some(steps) => steps.pop().unwrap_or(KeyStep {
+                held: Keys::NONE,
+                pressed: Keys::NONE,
+            }),
+            None => self.keys.take_keys(),
+        };
+        let datagram = self.keys.key_datagram(step, Instant::now());
+        let mut bytes = Vec::new();
+        if let Some(s) = &self.session
+            && messages::encode(&datagram, &mut bytes).is_ok()
+        {
+            let _ = s.try_send_datagram(&bytes);
+        }
+    }
+
+    /// Says goodbye (the server frees the vehicle at once) and closes.
+    pub fn quit(&mut self) {
+        if let Some(tx) = &self.control {
+            let _ = tx.unbounded_send(ClientMessage::Bye(Reason::Quit));
+        }
+        self.state = State::Ended("quit".into());
+        self.control = None; // the writer sends the goodbye, finishes and closes
+    }
+}
+
+/// Why a join failed, and whether another attempt may succeed.
+#[derive(Debug)]
+pub struct JoinError {
+    pub lost: bool,
+    pub message: String,
+}
+
+/// A connection that has joined.
+pub struct Joined {
+    session: Session,
+    send: SendStream,
+    recv: Reader,
+    pub welcome: Welcome,
+    pub colors: ColorCache,
+}
+
+/// Length-prefixed messages (a `u32` length, little-endian, then the message) read from a
+/// stream: a length past the limit is refused before anything is kept.
+struct Reader {
+    stream: RecvStream,
+    buf: Vec<u8>,
+}
+
+impl Reader {
+    /// Until `n` bytes are buffered; `false` at the stream's end.
+    async fn fill(&mut self, n: usize) -> Result<bool, String> {
+        while self.buf.len() < n {
+            match self.stream.read(n - self.buf.len()).await {
+                Ok(Some(chunk)) => self.buf.extend_from_slice(&chunk),
+                Ok(None) => return Ok(false),
+                Err(e) => return Err(format!("reading the control stream: {e}")),
+            }
+        }
+        Ok(true)
+    }
+
+    /// The next message; `None` when the stream ends between messages.
+    async fn message<T: DeserializeOwned + Checked>(&mut self) -> Result<Option<T>, String> {
+        if !self.fill(4).await? {
+            return if self.buf.is_empty() {
+                Ok(None)
+            } else {
+                Err("the control stream ended inside a message's length".into())
+            };
+        }
+        let len = u32::from_le_bytes([self.buf[0], self.buf[1], self.buf[2], self.buf[3]]) as usize;
+        if len > messages::MAX_MESSAGE {
+            return Err(format!(
+                "a message of {len} bytes, more than the {} allowed",
+                messages::MAX_MESSAGE
+            ));
+        }
+        if !self.fill(4 + len).await? {
+            return Err("the control stream ended inside a message".into());
+        }
+        let msg = messages::decode(&self.buf[4..4 + len]).map_err(|e| format!("decoding: {e}"));
+        self.buf.drain(..4 + len);
+        msg.map(Some)
+    }
+}
+
+async fn write(send: &mut SendStream, msg: &ClientMessage) -> Result<(), String> {
+    let mut buf = vec![0u8; 4];
+    messages::encode(msg, &mut buf).map_err(|e| e.to_string())?;
+    let len = (buf.len() - 4) as u32;
+    buf[..4].copy_from_slice(&len.to_le_bytes());
+    send.write(&buf).await.map_err(|e| e.to_string())
+}
+
+/// Whether the browser has WebTransport at all.
+pub fn has_webtransport() -> bool {
+    js_sys::Reflect::has(&page::window(), &"WebTransport".into()).unwrap_or(false)
+}
+
+/// How a session's end reads, and whether it is worth connecting again: a close by the
+/// server on purpose (a goodbye, a refusal, shutting down) is final.
+fn ending(e: &web_transport_wasm::Error) -> (bool, String) {
+    match e {
+        web_transport_wasm::Error::Session { code, reason } => {
+            let purpose = match *code {
+                close::SHUTDOWN => "the server is shutting down",
+                close::REFUSED => "the server refused this viewer",
+                close::PROTOCOL => "the server saw a protocol error",
+                close::BYE => "the server said goodbye",
+                _ => "",
+            };
+            if purpose.is_empty() {
+                (
+                    true,
+                    format!("the connection was lost: code {code} {reason}"),
+                )
+            } else {
+                (false, format!("{purpose}: {reason}"))
+            }
+        }
+        other => (true, format!("the connection was lost: {other}")),
+    }
+}
+
+/// Connects, says `hello`, and reads the welcome and the coarsest colour tile.
+pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError> {
+    let lost = |message: String| JoinError {
+        lost: true,
+        message,
+    };
+    let fatal = |message: String| JoinError {
+        lost: false,
+        message,
+    };
+    let url = endpoint.url().map_err(fatal)?;
+    let url = url::Url::parse(&url).map_err(|e| fatal(format!("the address {url}: {e}")))?;
+    let hashes = endpoint.hashes().map_err(fatal)?;
+    let builder = ClientBuilder::new().with_unreliable(true);
+    let client = if hashes.is_empty() {
+        builder.with_system_roots()
+    } else {
+        builder.with_server_certificate_hashes(hashes)
+    };
+    let session = client
+        .connect(url.clone())
+        .await
+        .map_err(|e| lost(format!("connecting to {url}: {e}")))?;
+    let on = |session: &Session, message: String| {
+        // The session's own end says more than a stream's error.
+        JoinError {
+            lost: true,
+            message: format!("{message} ({})", session.url()),
+        }
+    };
+    let asked = hello.color_window;
+    let (mut send, recv) = session
+        .open_bi()
+        .await
+        .map_err(|e| on(&session, format!("opening the control stream: {e}")))?;
+    write(&mut send, &ClientMessage::Hello(hello))
+        .await
+        .map_err(|e| on(&session, format!("sending the hello: {e}")))?;
+    let mut recv = Reader {
+        stream: recv,
+        buf: Vec::new(),
+    };
+    let first = recv.message::<ServerMessage>().await;
+    let welcome = match first {
+        Ok(Some(msg)) => joining::welcome_of(msg).map_err(fatal)?,
+        Ok(None) | Err(_) => {
+            // Closed by the server: its close says why (a refusal comes as a message).
+            let why = match first {
+                Err(e) => e,
+                _ => "the server closed the control stream".into(),
+            };
+            return Err(on(&session, format!("reading the welcome: {why}")));
+        }
+    };
+    let mut joining = Joining::new(&welcome, asked, Keep::Texels).map_err(fatal)?;
+    let colors = loop {
+        let msg = match recv.message::<ServerMessage>().await {
+            Ok(Some(m)) => m,
+            Ok(None) => return Err(on(&session, "the control stream ended".into())),
+            Err(e) => return Err(on(&session, e)),
+        };
+        if let Some(cache) = joining.apply(&msg).map_err(fatal)? {
+            break cache;
+        }
+    };
+    Ok(Joined {
+        session,
+        send,
+        recv,
+        welcome,
+        colors,
+    })
+}
+
+/// The first connection's state.
+pub fn live(
+    joined: &mut Joined,
+    budget: u32,
+    script: Option<Vec<KeyStep>>,
+) -> Result<Shared, String> {
+    let core = ClientCore::new(&joined.welcome, budget)
+        .ok_or_else(|| format!("a grid of 2^{} + 1", joined.welcome.levels))?;
+    let fresh = joined.colors.fresh();
+    Ok(Rc::new(RefCell::new(Live {
+        core,
+        keys: KeyCore::default(),
+        colors: std::mem::replace(&mut joined.colors, fresh),
+        welcome: joined.welcome.clone(),
+        state: State::Connected,
+        gaps: Gaps::default(),
+        epoch: 0,
+        heard: Instant::now(),
+        session: None,
+        control: None,
+        script,
+        bytes_before: 0,
+        color_bytes_before: 0,
+        dropped: 0,
+    })))
+}
+
+/// How a connection ended.
+enum End {
+    Lost(String),
+    Final(String),
+}
+
+/// Runs the session: the connection `joined`, then each reconnection, until it ends.
+pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joined: Joined) {
+    let first = (joined.welcome.clone(), joined.colors.coarsest().to_vec());
+    let mut hello = joining::next_hello(hello, &joined.welcome);
+    let mut silences = 0;
+    loop {
+        let end = serve(&live, joined).await;
+        let why = match end {
+            End::Final(why) => {
+                live.borrow_mut().end(why);
+                return;
+            }
+            End::Lost(why) => why,
+        };
+        if live.borrow().ended() {
+            return;
+        }
+        let silent = why.contains("silent");
+        silences = if silent { silences + 1 } else { 0 };
+        if silences > 1 {
+            live.borrow_mut().end(format!(
+                "{why}, again after reconnecting: the server is stuck"
+            ));
+            return;
+        }
+        match reconnect(&live, &endpoint, &hello, &why, &first).await {
+            Ok(j) => {
+                hello = joining::next_hello(hello, &j.welcome);
+                joined = j;
+            }
+            Err(why) => {
+                live.borrow_mut().end(why);
+                return;
+            }
+        }
+    }
+}
+
+/// Connects again until one joins (showing the same terrain) or time runs out.
+async fn reconnect(
+    live: &Shared,
+    endpoint: &Endpoint,
+    hello: &Hello,
+    why: &str,
+    first: &(Welcome, Vec<u8>),
+) -> Result<Joined, String> {
+    let started = Instant::now();
+    live.borrow_mut().gaps.lost(started);
+    let mut pause = 100;
+    let mut attempts = 0;
+    loop {
+        {
+            let mut l = live.borrow_mut();
+            if l.ended() {
+                return Err("quit".into());
+            }
+            l.state = State::Reconnecting {
+                why: why.to_owned(),
+                attempts,
+            };
+        }
+        page::sleep(pause).await;
+        attempts += 1;
+        let joined = with_timeout(join(endpoint, hello.clone()), JOIN_MS).await;
+        match joined {
+            Some(Ok(j)) => {
+                let (w, c) = (&j.welcome, j.colors.coarsest());
+                let same = w.levels == first.0.levels
+                    && (w.h_scale, w.v_scale) == (first.0.h_scale, first.0.v_scale)
+                    && w.color == first.0.color
+                    && c == first.1.as_slice();
+                if !same {
+                    return Err("the server came back with another terrain".into());
+                }
+                return Ok(j);
+            }
+            Some(Err(e)) if !e.lost => return Err(e.message),
+            Some(Err(_)) | None => {}
+        }
+        if started.elapsed() >= RECONNECT_FOR {
+            return Err(format!(
+                "{why}; no reconnection within {} s",
+                RECONNECT_FOR.as_secs()
+            ));
+        }
+        pause = (pause * 2).min(2000);
+    }
+}
+
+/// `fut`, or `None` after `ms`.
+async fn with_timeout<T>(fut: impl std::future::Future<Output = T>, ms: i32) -> Option<T> {
+    use futures_util::future::{Either, select};
+    let fut = std::pin::pin!(fut);
+    let timer = std::pin::pin!(page::sleep(ms));
+    match select(fut, timer).await {
+        Either::Left((v, _)) => Some(v),
+        Either::Right(_) => None,
+    }
+}
+
+/// Serves one connection: its readers and writer, until it ends.
+async fn serve(live: &Shared, joined: Joined) -> End {
+    let Joined {
+        session,
+        send,
+        recv,
+        welcome,
+        colors,
+    } = joined;
+    let (control, outgoing) = mpsc::unbounded();
+    let (ends, mut ended) = mpsc::unbounded::<End>();
+    let epoch = {
+        let mut l = live.borrow_mut();
+        let reconnected = l.epoch > 0 || l.session.is_some();
+        if reconnected {
+            // A fresh core and colour cache; the counts go on.
+            l.bytes_before += l.core.bytes_in();
+            l.color_bytes_before += l.colors.bytes();
+            let budget = l.core.budget();
+            match ClientCore::new(&welcome, budget) {
+                Some(core) => l.core = core,
+                None => return End::Final("the server's grid changed".into()),
+            }
+            l.colors = colors;
+            l.gaps
+                .reconnected(welcome.ticket.is_some() && welcome.resumed);
+        }
+        l.epoch += 1;
+        l.welcome = welcome;
+        l.session = Some(session.clone());
+        l.control = Some(control);
+        l.state = State::Connected;
+        l.heard = Instant::now();
+        l.flush();
+        l.epoch
+    };
+    spawn_local(write_control(send, outgoing, session.clone()));
+    spawn_local(read_control(recv, live.clone(), epoch, ends.clone()));
+    spawn_local(read_datagrams(session.clone(), live.clone(), epoch));
+    spawn_local(read_streams(session.clone(), live.clone(), epoch));
+    {
+        let (session, ends) = (session.clone(), ends.clone());
+        spawn_local(async move {
+            let e = session.closed().await;
+            let (lost, why) = ending(&e);
+            let _ = ends.unbounded_send(if lost {
+                End::Lost(why)
+            } else {
+                End::Final(why)
+            });
+        });
+    }
+    spawn_local(watch_silence(live.clone(), epoch, ends));
+    let mut end = ended
+        .next()
+        .await
+        .unwrap_or_else(|| End::Lost("the connection's tasks ended".into()));
+    if matches!(end, End::Lost(_)) {
+        // A goodbye read just before the connection closed says more than the loss (a
+        // busy page may see the close first): give the control reader a moment.
+        if let Some(Some(fin @ End::Final(_))) = with_timeout(ended.next(), GOODBYE_GRACE_MS).await
+        {
+            end = fin;
+        }
+    }
+    let mut l = live.borrow_mut();
+    if l.epoch == epoch {
+        l.session = None;
+        l.control = None;
+    }
+    session.close(close::BYE, "bye");
+    end
+}
+
+/// Lost when the server says nothing for [`SILENCE`] (checked twice a second).
+async fn watch_silence(live: Shared, epoch: u64, ends: UnboundedSender<End>) {
+    loop {
+        page::sleep(500).await;
+        let l = live.borrow();
+        if l.epoch != epoch || l.ended() {
+            return;
+        }
+        if l.heard.elapsed() >= SILENCE {
+            let _ = ends.unbounded_send(End::Lost(format!(
+                "the server was silent for {} s",
+                SILENCE.as_secs()
+            )));
+            return;
+        }
+    }
+}
+
+/// Writes the core's control messages in order; a goodbye finishes the stream and closes
+/// the session once the server has had a moment to hear it.
+async fn write_control(
+    mut send: SendStream,
+    mut outgoing: UnboundedReceiver<ClientMessage>,
+    session: Session,
+) {
+    while let Some(msg) = outgoing.next().await {
+        let bye = matches!(msg, ClientMessage::Bye(_));
+        if write(&mut send, &msg).await.is_err() {
+            return;
+        }
+        if bye {
+            let _ = send.finish();
+            let _ = with_timeout(session.closed(), 1000).await;
+            session.close(close::BYE, "bye");
+            return;
+        }
+    }
+}
+
+/// The server's control messages after the join: colour windows and tiles into the colour
+/// cache; a goodbye (or anything else) ends the session.
+async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: UnboundedSender<End>) {
+    let mut rgb = Vec::new();
+    let end = loop {
+        let msg = match recv.message::<ServerMessage>().await {
+            Ok(Some(m)) => m,
+            // The stream or the session ended: the session tells why.
+            Ok(None) => return,
+            Err(e) if e.starts_with("reading") => return,
+            Err(e) => break End::Final(format!("the server's control stream: {e}")),
+        };
+        let mut l = live.borrow_mut();
+        if l.epoch != epoch {
+            return;
+        }
+        l.heard = Instant::now();
+        let applied = match &msg {
+            ServerMessage::Bye(reason) => {
+                break End::Final(format!("the server said goodbye: {}", describe(reason)));
+            }
+            ServerMessage::ColorTile { level, x, z, data } => {
+                let layout = *l.colors.layout();
+                decode_tile(&layout, *level, *x, *z, data, &mut rgb)
+                    .and_then(|()| l.colors.put_decoded(*level, *x, *z, &rgb, data.len()))
+            }
+            ServerMessage::ColorWindow { .. } => l.colors.apply(&msg).map(|_| ()),
+            other => {
+                break End::Final(format!(
+                    "the server sent {} during the session",
+                    joining::name(other)
+                ));
+            }
+        };
+        if let Err(e) = applied {
+            break End::Final(format!("the server broke the protocol: {e}"));
+        }
+    };
+    let _ = ends.unbounded_send(end);
+}
+
+async fn read_datagrams(session: Session, live: Shared, epoch: u64) {
+    while let Ok(bytes) = session.recv_datagram().await {
+        let mut l = live.borrow_mut();
+        if l.epoch != epoch {
+            return;
+        }
+        l.offer(epoch, &bytes);
+    }
+}
+
+async fn read_streams(session: Session, live: Shared, epoch: u64) {
+    while let Ok(stream) = session.accept_uni().await {
+        if live.borrow().epoch != epoch {
+            return;
+        }
+        spawn_local(read_stream(stream, live.clone(), epoch));
+    }
+}
+
+/// One frame's stream, read to its end (at most [`MAX_FRAME`] bytes) and offered; every
+/// chunk is news of the server (a large frame on a slow link is not silence).
+async fn read_stream(mut stream: RecvStream, live: Shared, epoch: u64) {
+    let mut bytes: Vec<u8> = Vec::new();
+    loop {
+        match stream.read(MAX_FRAME).await {
+            Ok(Some(chunk)) => {
+                live.borrow_mut().heard = Instant::now();
+                if bytes.len() + chunk.len() > MAX_FRAME {
+                    stream.stop(0);
+                    return;
+                }
+                bytes.extend_from_slice(&chunk);
+            }
+            Ok(None) => break,
+            Err(_) => return,
+        }
+    }
+    live.borrow_mut().offer(epoch, &Bytes::from(bytes));
+}

@@ -1,0 +1,181 @@
+//! The page around the viewer: its options (from the URL's fragment, which a browser
+//! never sends to the server), its elements (the canvas, the message line, the HUD), the
+//! server's WebTransport address and certificate hashes (`/webtransport.json`, from the
+//! page's own origin), timers as futures, and the results a test asks to be posted.
+
+use std::collections::HashMap;
+
+use wasm_bindgen::JsCast;
+use wasm_bindgen::prelude::*;
+use wasm_bindgen_futures::JsFuture;
+use web_sys::{HtmlCanvasElement, HtmlElement};
+
+/// What the page was asked to do: `#token=…&role=spectator&gpu=webgl&budget=…`, and for
+/// tests `script=…` (a key script, URL-encoded), `report=URL` (where to post the results)
+/// and `frames=N` (after how many decoded frames).
+#[derive(Clone, Debug, Default)]
+pub struct Options {
+    pub token: String,
+    pub spectator: bool,
+    /// `webgpu`, `webgl` or empty (WebGPU where the browser has it, else WebGL2).
+    pub gpu: String,
+    pub budget: Option<u32>,
+    pub script: Option<String>,
+    pub report: Option<String>,
+    pub frames: u64,
+}
+
+impl Options {
+    /// The options in a URL fragment (with or without its `#`).
+    pub fn parse(fragment: &str) -> Options {
+        let fields: HashMap<String, String> = fragment
+            .trim_start_matches('#')
+            .split('&')
+            .filter_map(|kv| {
+                let (k, v) = kv.split_once('=')?;
+                let v = js_sys::decode_uri_component(&v.replace('+', " ")).ok()?;
+                Some((k.to_owned(), String::from(v)))
+            })
+            .collect();
+        let get = |k: &str| fields.get(k).cloned().filter(|v| !v.is_empty());
+        Options {
+            token: get("token").unwrap_or_default(),
+            spectator: get("role").is_some_and(|r| r == "spectator"),
+            gpu: get("gpu").unwrap_or_default(),
+            budget: get("budget").and_then(|b| b.parse().ok()),
+            script: get("script"),
+            report: get("report"),
+            frames: get("frames").and_then(|f| f.parse().ok()).unwrap_or(300),
+        }
+    }
+}
+
+pub fn window() -> web_sys::Window {
+    web_sys::window().expect("a page runs in a window")
+}
+
+fn document() -> web_sys::Document {
+    window().document().expect("a window has a document")
+}
+
+/// The page's element `id`, of type `T`.
+pub fn element<T: JsCast>(id: &str) -> Result<T, String> {
+    document()
+        .get_element_by_id(id)
+        .ok_or_else(|| format!("the page has no #{id}"))?
+        .dyn_into::<T>()
+        .map_err(|_| format!("#{id} is not the element expected"))
+}
+
+pub fn canvas() -> Result<HtmlCanvasElement, String> {
+    element("view")
+}
+
+/// Shows `text` on the message line (`error` in red), or hides the line when empty.
+pub fn say(text: &str, error: bool) {
+    if let Ok(m) = element::<HtmlElement>("message") {
+        m.set_text_content(Some(text));
+        let style = m.style();
+        let _ = style.set_property("display", if text.is_empty() { "none" } else { "block" });
+        let _ = m.set_class_name(if error { "error" } else { "" });
+    }
+}
+
+/// Writes the HUD's lines (or hides it).
+pub fn hud(lines: Option<&[String]>) {
+    if let Ok(h) = element::<HtmlElement>("hud") {
+        match lines {
+            Some(l) => {
+                h.set_text_content(Some(&l.join("\n")));
+                let _ = h.style().set_property("display", "block");
+            }
+            None => {
+                let _ = h.style().set_property("display", "none");
+            }
+        }
+    }
+}
+
+/// Milliseconds since the page began to load.
+pub fn since_load_ms() -> f64 {
+    window().performance().map_or(0.0, |p| p.now())
+}
+
+/// Resolves after `ms` milliseconds.
+pub async fn sleep(ms: i32) {
+    let promise = js_sys::Promise::new(&mut |resolve, _| {
+        let _ = window().set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms);
+    });
+    let _ = JsFuture::from(promise).await;
+}
+
+/// Where the server takes WebTransport sessions, and the certificate hashes to accept.
+#[derive(Clone, Debug, serde::Deserialize)]
+pub struct Endpoint {
+    pub path: String,
+    pub port: u16,
+    /// SHA-256 of each certificate, lowercase hex (empty: a certificate the browser trusts).
+    pub certificate_hashes: Vec<String>,
+}
+
+impl Endpoint {
+    /// The session's URL on the page's own host.
+    pub fn url(&self) -> Result<String, String> {
+        let host = window()
+            .location()
+            .hostname()
+            .map_err(|_| "the page's address has no host".to_owned())?;
+        let host = if host.contains(':') && !host.starts_with('[') {
+            format!("[{host}]")
+        } else {
+            host
+        };
+        Ok(format!("https://{host}:{}{}", self.port, self.path))
+    }
+
+    /// The hashes as bytes.
+    pub fn hashes(&self) -> Result<Vec<Vec<u8>>, String> {
+        self.certificate_hashes
+            .iter()
+            .map(|h| {
+                let bytes: Option<Vec<u8>> = (0..h.len())
+                    .step_by(2)
+                    .map(|i| u8::from_str_radix(h.get(i..i + 2)?, 16).ok())
+                    .collect();
+                bytes
+                    .filter(|b| b.len() == 32)
+                    .ok_or_else(|| format!("certificate_hashes: {h:?} is not a SHA-256 in hex"))
+            })
+            .collect()
+    }
+}
+
+/// Fetches `/webtransport.json` from the page's origin.
+pub async fn endpoint() -> Result<Endpoint, String> {
+    let fail = |e: JsValue| format!("fetching /webtransport.json: {e:?}");
+    let response: web_sys::Response = JsFuture::from(window().fetch_with_str("/webtransport.json"))
+        .await
+        .map_err(fail)?
+        .dyn_into()
+        .map_err(fail)?;
+    if !response.ok() {
+        return Err(format!(
+            "fetching /webtransport.json: HTTP {}",
+            response.status()
+        ));
+    }
+    let text = JsFuture::from(response.text().map_err(fail)?)
+        .await
+        .map_err(fail)?
+        .as_string()
+        .unwrap_or_default();
+    serde_json::from_str(&text).map_err(|e| format!("/webtransport.json: {e}"))
+}
+
+/// Posts `body` (JSON) to `url`, for a test (as text/plain: no CORS preflight).
+pub async fn post(url: &str, body: &str) {
+    let init = web_sys::RequestInit::new();
+    init.set_method("POST");
+    init.set_body(&JsValue::from_str(body));
+    let _ = JsFuture::from(window().fetch_with_str_and_init(url, &init)).await;
+}
