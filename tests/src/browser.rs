@@ -45,6 +45,8 @@ pub fn built_page() -> Arc<Page> {
 pub enum GpuPath {
     WebGpu,
     WebGl2,
+    /// A browser with both GPU APIs off (`--disable-3d-apis`): the page must say so.
+    Neither,
 }
 
 impl GpuPath {
@@ -53,6 +55,7 @@ impl GpuPath {
         match self {
             GpuPath::WebGpu => "webgpu",
             GpuPath::WebGl2 => "webgl",
+            GpuPath::Neither => "",
         }
     }
 
@@ -67,6 +70,7 @@ impl GpuPath {
                 "--enable-unsafe-swiftshader",
             ],
             GpuPath::WebGl2 => &["--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+            GpuPath::Neither => &["--disable-3d-apis"],
         }
     }
 }

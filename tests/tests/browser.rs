@@ -4,7 +4,8 @@
 //! frame's own check (a mesh differing from the server's by one height or split fails it,
 //! and counts as a decode error), and posts its numbers and a screenshot read back from
 //! the canvas. Both GPU paths run: WebGPU and WebGL2 (SwiftShader, no GPU needed). A wrong
-//! token is refused with a message on the page.
+//! token, a browser without either GPU API and a server shutting down are said on the
+//! page.
 
 use std::time::Duration;
 
@@ -138,6 +139,17 @@ async fn a_wrong_token_is_refused_with_a_message_on_the_page() {
         .unwrap_or_else(|| panic!("an error: {r}"));
     assert!(error.contains("wrong token"), "{error}");
     assert_eq!(running.server.counts().refused, 1);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_browser_without_a_gpu_api_is_told_so_on_the_page() {
+    let running = serve();
+    let r = open(&running, &running.token.clone(), GpuPath::Neither).await;
+    let error = r["error"]
+        .as_str()
+        .unwrap_or_else(|| panic!("an error: {r}"));
+    assert!(error.contains("neither WebGPU nor WebGL2"), "{error}");
+    assert_eq!(running.server.counts().joins, 0, "it never joined");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -206,7 +206,19 @@ fn keys(app: &Rc<RefCell<App>>) -> Result<(), String> {
             app.borrow().live.borrow_mut().keys.keys_released();
         })
     };
+    // Leaving the page says goodbye (the close code tells the server to free the vehicle
+    // rather than hold it for a reconnection).
+    let hide = {
+        let app = app.clone();
+        Closure::<dyn FnMut()>::new(move || {
+            app.borrow().live.borrow_mut().leave();
+        })
+    };
     let fail = |e: JsValue| format!("listening to the keys: {e:?}");
+    window
+        .add_event_listener_with_callback("pagehide", hide.as_ref().unchecked_ref())
+        .map_err(fail)?;
+    hide.forget();
     window
         .add_event_listener_with_callback("keydown", down.as_ref().unchecked_ref())
         .map_err(fail)?;

@@ -132,6 +132,16 @@ impl Live {
         }
     }
 
+    /// The page is going away: the session closes at once with the goodbye's code (no
+    /// time to write a message).
+    pub fn leave(&mut self) {
+        if let Some(s) = self.session.take() {
+            s.close(close::BYE, "the page was closed");
+        }
+        self.state = State::Ended("quit".into());
+        self.control = None;
+    }
+
     /// Says goodbye (the server frees the vehicle at once) and closes.
     pub fn quit(&mut self) {
         if let Some(tx) = &self.control {
