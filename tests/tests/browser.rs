@@ -182,3 +182,55 @@ async fn the_page_says_why_when_the_server_goes_away() {
     let message = said["message"].as_str().expect("a message");
     assert!(message.contains("shutting down"), "{message}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
+    use roam_tests::relay::{LinkConfig, Relay};
+    let running = serve();
+    let web = running.server.web_addr().expect("serving --web");
+    // The page's WebTransport goes through a relay the test can cut (`port=`); the page
+    // itself still loads from the server.
+    let relay = Relay::start(web, LinkConfig::default())
+        .await
+        .expect("the relay starts");
+    let (report, mut reports) = reports().await;
+    let url = format!(
+        "https://127.0.0.1:{}/#token={}&gpu=webgl&frames=10&silence=1.5&port={}&report=http://{report}/report",
+        web.port(),
+        running.token,
+        relay.addr().port(),
+    );
+    let _browser = Browser::open(&url, GpuPath::WebGl2);
+    let next = async |reports: &mut tokio::sync::mpsc::UnboundedReceiver<String>| -> Value {
+        let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
+            .await
+            .expect("a report from the page in time")
+            .expect("the report endpoint runs");
+        serde_json::from_str(&body).expect("the page reports JSON")
+    };
+    let mut first = next(&mut reports).await;
+    while first.get("frames").is_none() {
+        assert!(first.get("error").is_none(), "{first}");
+        first = next(&mut reports).await;
+    }
+    let vehicle = first["vehicle"].clone();
+    relay.cut();
+    let lost = next(&mut reports).await;
+    assert_eq!(lost["state"], "reconnecting", "{lost}");
+    assert!(
+        lost["message"]
+            .as_str()
+            .is_some_and(|m| m.contains("silent")),
+        "{lost}"
+    );
+    relay.restore();
+    let back = next(&mut reports).await;
+    assert_eq!(back["state"], "connected", "{back}");
+    assert_eq!(back["reconnects"], 1, "{back}");
+    assert_eq!(
+        back["resumed"], 1,
+        "the driver got its vehicle back: {back}"
+    );
+    assert_eq!(back["vehicle"], vehicle, "{back}");
+    assert_eq!(running.server.counts().joins, 2);
+}

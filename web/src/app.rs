@@ -404,7 +404,15 @@ impl App {
                 State::Reconnecting { .. } => "reconnecting",
                 State::Ended(_) => "ended",
             };
-            let body = serde_json::json!({ "state": kind, "message": text }).to_string();
+            let l = self.live.borrow();
+            let body = serde_json::json!({
+                "state": kind,
+                "message": text,
+                "vehicle": l.welcome.vehicle,
+                "reconnects": l.gaps.reconnects,
+                "resumed": l.gaps.resumed,
+            })
+            .to_string();
             wasm_bindgen_futures::spawn_local(async move { page::post(&url, &body).await });
         }
         self.said = Some(state);

@@ -53,7 +53,10 @@ async fn run(options: page::Options) -> Result<(), String> {
     let canvas = page::canvas()?;
     let gfx = app::Gfx::open(canvas.clone(), &options.gpu).await?;
     page::say("connecting…", false);
-    let endpoint = page::endpoint().await?;
+    let mut endpoint = page::endpoint().await?;
+    if let Some(port) = options.port {
+        endpoint.port = port;
+    }
     let size = app::pixel_size(&canvas);
     let budget = options.budget.unwrap_or(65_536);
     let hello = Hello {
@@ -93,7 +96,10 @@ async fn run(options: page::Options) -> Result<(), String> {
         }
         None => None,
     };
-    let live = net::live(&mut joined, budget, script)?;
+    let silence = options
+        .silence_s
+        .map_or(net::SILENCE, web_time::Duration::from_secs_f64);
+    let live = net::live(&mut joined, budget, script, silence)?;
     let scene = roam_client::render::Scene::of(&joined.welcome);
     wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), endpoint, hello, joined));
     app::start(gfx, scene, live, options)

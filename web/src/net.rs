@@ -32,12 +32,14 @@ use web_transport_wasm::{ClientBuilder, RecvStream, SendStream, Session};
 
 use crate::page::{self, Endpoint};
 
-/// After the welcome, this long without a word from the server: the connection is lost.
-const SILENCE: Duration = Duration::from_secs(10);
+/// [`Live::silence`] unless told otherwise.
+pub const SILENCE: Duration = Duration::from_secs(10);
 /// How long after a loss to keep trying (the server holds a vehicle 30 s).
 const RECONNECT_FOR: Duration = Duration::from_secs(35);
 /// How long a loss waits for a goodbye that may be behind it, milliseconds.
 const GOODBYE_GRACE_MS: i32 = 300;
+/// A connection's handshake at most, milliseconds (the next attempt starts afresh).
+const HANDSHAKE_MS: i32 = 5_000;
 /// A join (handshake, welcome, coarsest tile) at most, milliseconds.
 const JOIN_MS: i32 = 30_000;
 
@@ -69,6 +71,8 @@ pub struct Live {
     pub color_bytes_before: u64,
     /// Frames that could not be decoded (a key frame was asked for).
     pub dropped: u64,
+    /// After the welcome, this long without a word from the server: the connection is lost.
+    silence: Duration,
 }
 
 pub type Shared = Rc<RefCell<Live>>;
@@ -270,9 +274,9 @@ pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError
     } else {
         builder.with_server_certificate_hashes(hashes)
     };
-    let session = client
-        .connect(url.clone())
+    let session = with_timeout(client.connect(url.clone()), HANDSHAKE_MS)
         .await
+        .ok_or_else(|| lost(format!("connecting to {url}: no handshake within 5 s")))?
         .map_err(|e| lost(format!("connecting to {url}: {e}")))?;
     let on = |session: &Session, message: String| {
         // The session's own end says more than a stream's error.
@@ -330,6 +334,7 @@ pub fn live(
     joined: &mut Joined,
     budget: u32,
     script: Option<Vec<KeyStep>>,
+    silence: Duration,
 ) -> Result<Shared, String> {
     let core = ClientCore::new(&joined.welcome, budget)
         .ok_or_else(|| format!("a grid of 2^{} + 1", joined.welcome.levels))?;
@@ -349,6 +354,7 @@ pub fn live(
         bytes_before: 0,
         color_bytes_before: 0,
         dropped: 0,
+        silence,
     })))
 }
 
@@ -360,7 +366,12 @@ enum End {
 
 /// Runs the session: the connection `joined`, then each reconnection, until it ends.
 pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joined: Joined) {
-    let first = (joined.welcome.clone(), joined.colors.coarsest().to_vec());
+    // The first connection's terrain, which every later one must show (its colour cache
+    // went to `live`).
+    let first = (
+        joined.welcome.clone(),
+        live.borrow().colors.coarsest().to_vec(),
+    );
     let mut hello = joining::next_hello(hello, &joined.welcome);
     let mut silences = 0;
     loop {
@@ -528,22 +539,27 @@ async fn serve(live: &Shared, joined: Joined) -> End {
         l.session = None;
         l.control = None;
     }
-    session.close(close::BYE, "bye");
+    match &end {
+        End::Final(_) => session.close(close::BYE, "bye"),
+        // Not a goodbye: the server holds the vehicle for the reconnection (should this
+        // close reach it through a path that came back).
+        End::Lost(_) => session.close(0, "lost; reconnecting"),
+    }
     end
 }
 
-/// Lost when the server says nothing for [`SILENCE`] (checked twice a second).
+/// Lost when the server says nothing for [`Live::silence`] (checked ten times a second).
 async fn watch_silence(live: Shared, epoch: u64, ends: UnboundedSender<End>) {
     loop {
-        page::sleep(500).await;
+        page::sleep(100).await;
         let l = live.borrow();
         if l.epoch != epoch || l.ended() {
             return;
         }
-        if l.heard.elapsed() >= SILENCE {
+        if l.heard.elapsed() >= l.silence {
             let _ = ends.unbounded_send(End::Lost(format!(
-                "the server was silent for {} s",
-                SILENCE.as_secs()
+                "the server was silent for {:.1} s",
+                l.silence.as_secs_f64()
             )));
             return;
         }

@@ -10,9 +10,11 @@ use wasm_bindgen::prelude::*;
 use wasm_bindgen_futures::JsFuture;
 use web_sys::{HtmlCanvasElement, HtmlElement};
 
-/// What the page was asked to do: `#token=…&role=spectator&gpu=webgl&budget=…`, and for
-/// tests `script=…` (a key script, URL-encoded), `report=URL` (where to post the results)
-/// and `frames=N` (after how many decoded frames).
+/// What the page was asked to do: `#token=…&role=spectator&gpu=webgl&budget=…`, `port=N`
+/// (the WebTransport port, when a forwarded one differs from the server's own), and for
+/// tests `script=…` (a key script, URL-encoded), `report=URL` (where to post the results),
+/// `frames=N` (after how many decoded frames) and `silence=S` (seconds without a word from
+/// the server before the connection counts as lost; 10 unless told).
 #[derive(Clone, Debug, Default)]
 pub struct Options {
     pub token: String,
@@ -23,6 +25,8 @@ pub struct Options {
     pub script: Option<String>,
     pub report: Option<String>,
     pub frames: u64,
+    pub port: Option<u16>,
+    pub silence_s: Option<f64>,
 }
 
 impl Options {
@@ -46,6 +50,10 @@ impl Options {
             script: get("script"),
             report: get("report"),
             frames: get("frames").and_then(|f| f.parse().ok()).unwrap_or(300),
+            port: get("port").and_then(|p| p.parse().ok()),
+            silence_s: get("silence")
+                .and_then(|s| s.parse().ok())
+                .filter(|s: &f64| s.is_finite() && *s > 0.0),
         }
     }
 }
