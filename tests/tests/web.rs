@@ -340,3 +340,32 @@ async fn a_web_driver_closing_without_a_goodbye_is_held_and_with_one_freed() {
     }
     r.server.shutdown().await.expect("stops");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_server_without_the_page_refuses_web_naming_the_command_that_builds_it() {
+    use roam_server::net::web::{WebCert, WebOptions};
+    use roam_server::net::{Options, Server};
+    let terrain = flat();
+    let pyramid = roam_tests::fixtures::pyramid(&terrain, roam_protocol::tiles::DEFAULT_TILE);
+    let vt =
+        roam_server::terrain::variance::VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
+    let identity = roam_link::tls::generate().expect("a certificate");
+    let mut options = Options::new("127.0.0.1:0".parse().expect("valid"), "t".repeat(16));
+    options.web = Some(WebOptions {
+        listen: "127.0.0.1:0".parse().expect("valid"),
+        page: std::sync::Arc::new(roam_server::web::Page::from_files([])),
+        cert: WebCert::Made {
+            names: vec!["localhost".into()],
+        },
+    });
+    let Err(e) = Server::start(
+        terrain,
+        std::sync::Arc::new(vt),
+        pyramid,
+        &identity,
+        options,
+    ) else {
+        panic!("a server without a page started with --web");
+    };
+    assert!(e.to_string().contains("scripts/build-web"), "{e}");
+}
