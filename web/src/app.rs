@@ -121,6 +121,8 @@ struct App {
     hud_at: f64,
     reported: bool,
     said: Option<State>,
+    /// Recent key change → frame showing it, milliseconds.
+    latencies: std::collections::VecDeque<f64>,
 }
 
 /// Starts the display, the keys and the key sender; they run as long as the page.
@@ -141,6 +143,7 @@ pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(
         hud_at: 0.0,
         reported: false,
         said: None,
+        latencies: std::collections::VecDeque::new(),
     }));
     keys(&app)?;
     if app.borrow().driver {
@@ -277,9 +280,7 @@ impl App {
             .frame(now, me, size, self.renderer.scene().world_size());
         self.renderer.set_markers(&framed.markers);
         if let Some(change) = framed.tell {
-            let mut l = self.live.borrow_mut();
-            l.core.set_view(change);
-            l.flush();
+            self.live.borrow_mut().set_view(change);
         }
         let started = Instant::now();
         let texture = match self.gfx.surface.get_current_texture() {
@@ -337,7 +338,11 @@ impl App {
         match taken {
             Ok(Taken::Frame(r)) => {
                 if let Some(seq) = r.input_seq {
-                    let _ = l.keys.applied(seq, r.arrived);
+                    let applied = l.keys.applied(seq, r.arrived);
+                    self.latencies.extend(applied);
+                    while self.latencies.len() > 64 {
+                        self.latencies.pop_front();
+                    }
                 }
                 l.gaps.frame(r.arrived);
                 self.terrain.build(self.renderer.scene(), l.core.mesh());
@@ -440,9 +445,17 @@ impl App {
             reconnecting_s: reconnecting,
             reconnects: l.gaps.reconnects,
             resumed: l.gaps.resumed,
+            latency_ms: {
+                let mut v: Vec<f64> = self.latencies.iter().copied().collect();
+                v.sort_by(f64::total_cmp);
+                v.get(v.len() / 2).copied()
+            },
             connection: match &l.state {
                 State::Ended(why) => format!("disconnected: {why}"),
-                _ => format!(
+                State::Reconnecting { why, attempts } => {
+                    format!("to {host} · {why} · attempt {}", attempts + 1)
+                }
+                State::Connected => format!(
                     "connected to {host} · vehicle #{} · {}",
                     l.welcome.vehicle,
                     if self.driver { "driving" } else { "watching" }

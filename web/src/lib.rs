@@ -26,6 +26,12 @@ const NO_WEBTRANSPORT: &str = "This browser has no WebTransport, which the viewe
 
 #[wasm_bindgen(start)]
 pub fn main() {
+    // A panic aborts the page's one thread: say so on the page rather than freeze.
+    std::panic::set_hook(Box::new(|info| {
+        let text = format!("The viewer stopped on an internal error: {info}. Reload the page.");
+        web_sys::console::error_1(&text.clone().into());
+        page::say(&text, true);
+    }));
     wasm_bindgen_futures::spawn_local(async {
         let options = page::Options::parse(&page::window().location().hash().unwrap_or_default());
         if let Err(why) = run(options.clone()).await {
@@ -102,5 +108,5 @@ async fn run(options: page::Options) -> Result<(), String> {
     let live = net::live(&mut joined, budget, script, silence)?;
     let scene = roam_client::render::Scene::of(&joined.welcome);
     wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), endpoint, hello, joined));
-    app::start(gfx, scene, live, options)
+    app::start(gfx, scene, live.clone(), options).inspect_err(|e| live.borrow_mut().end(e.clone()))
 }

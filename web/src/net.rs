@@ -23,7 +23,7 @@ use roam_client::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
 use roam_client::joining::{self, Joining, describe};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{
-    self, Checked, ClientMessage, Hello, Reason, ServerMessage, Welcome, close,
+    self, Checked, ClientMessage, Hello, Reason, ServerMessage, ViewChange, Welcome, close,
 };
 use serde::de::DeserializeOwned;
 use wasm_bindgen_futures::spawn_local;
@@ -36,6 +36,8 @@ use crate::page::{self, Endpoint};
 pub const SILENCE: Duration = Duration::from_secs(10);
 /// How long after a loss to keep trying (the server holds a vehicle 30 s).
 const RECONNECT_FOR: Duration = Duration::from_secs(35);
+/// Frame streams read at once, at most: each may hold [`MAX_FRAME`] bytes.
+const MAX_STREAMS: usize = 16;
 /// How long a loss waits for a goodbye that may be behind it, milliseconds.
 const GOODBYE_GRACE_MS: i32 = 300;
 /// A connection's handshake at most, milliseconds (the next attempt starts afresh).
@@ -73,18 +75,32 @@ pub struct Live {
     pub dropped: u64,
     /// After the welcome, this long without a word from the server: the connection is lost.
     silence: Duration,
+    /// The newest camera told, for the next connection.
+    view: Option<ViewChange>,
+    /// Frame streams being read now (at most [`MAX_STREAMS`]).
+    streams: usize,
 }
 
 pub type Shared = Rc<RefCell<Live>>;
 
 impl Live {
     /// Sends the core's control messages, in order.
+    /// (While reconnecting they wait in the core; the newest view and the budget go to
+    /// the next connection anyway.)
     pub fn flush(&mut self) {
+        let Some(tx) = &self.control else {
+            return;
+        };
         while let Some(msg) = self.core.poll_control() {
-            if let Some(tx) = &self.control {
-                let _ = tx.unbounded_send(msg);
-            }
+            let _ = tx.unbounded_send(msg);
         }
+    }
+
+    /// Tells the server the camera (this connection and the next).
+    pub fn set_view(&mut self, view: ViewChange) {
+        self.view = Some(view);
+        self.core.set_view(view);
+        self.flush();
     }
 
     /// The session ends with `why` (the first reason stands).
@@ -255,12 +271,11 @@ fn ending(e: &web_transport_wasm::Error) -> (bool, String) {
     }
 }
 
-/// Connects, says `hello`, and reads the welcome and the coarsest colour tile.
+/// Connects, says `hello`, and reads the welcome and the coarsest colour tile: the
+/// handshake within [`HANDSHAKE_MS`], the rest within [`JOIN_MS`]. A session that does not
+/// join is closed (the goodbye's code when it was refused or broke the protocol; else 0,
+/// so that a vehicle it took back stays held for the next attempt).
 pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError> {
-    let lost = |message: String| JoinError {
-        lost: true,
-        message,
-    };
     let fatal = |message: String| JoinError {
         lost: false,
         message,
@@ -276,57 +291,95 @@ pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError
     };
     let session = with_timeout(client.connect(url.clone()), HANDSHAKE_MS)
         .await
-        .ok_or_else(|| lost(format!("connecting to {url}: no handshake within 5 s")))?
-        .map_err(|e| lost(format!("connecting to {url}: {e}")))?;
-    let on = |session: &Session, message: String| {
-        // The session's own end says more than a stream's error.
-        JoinError {
+        .ok_or_else(|| JoinError {
             lost: true,
-            message: format!("{message} ({})", session.url()),
+            message: format!("connecting to {url}: no handshake within 5 s"),
+        })?
+        .map_err(|e| JoinError {
+            lost: true,
+            message: format!("connecting to {url}: {e}"),
+        })?;
+    let joined = match with_timeout(greet(&session, hello), JOIN_MS).await {
+        Some(r) => r,
+        None => Err(JoinError {
+            lost: true,
+            message: format!(
+                "no welcome and coarsest colour tile within {} s",
+                JOIN_MS / 1000
+            ),
+        }),
+    };
+    match joined {
+        Ok((send, recv, welcome, colors)) => Ok(Joined {
+            session,
+            send,
+            recv,
+            welcome,
+            colors,
+        }),
+        Err(e) => {
+            session.close(if e.lost { 0 } else { close::BYE }, "did not join");
+            Err(e)
         }
+    }
+}
+
+/// The hello on a new session, the welcome and the colour messages up to the coarsest tile.
+async fn greet(
+    session: &Session,
+    hello: Hello,
+) -> Result<(SendStream, Reader, Welcome, ColorCache), JoinError> {
+    let fatal = |message: String| JoinError {
+        lost: false,
+        message,
     };
     let asked = hello.color_window;
-    let (mut send, recv) = session
-        .open_bi()
-        .await
-        .map_err(|e| on(&session, format!("opening the control stream: {e}")))?;
-    write(&mut send, &ClientMessage::Hello(hello))
-        .await
-        .map_err(|e| on(&session, format!("sending the hello: {e}")))?;
+    let (mut send, recv) = match session.open_bi().await {
+        Ok(streams) => streams,
+        Err(e) => return Err(failed_on(session, format!("opening the control stream: {e}")).await),
+    };
+    if let Err(e) = write(&mut send, &ClientMessage::Hello(hello)).await {
+        return Err(failed_on(session, format!("sending the hello: {e}")).await);
+    }
     let mut recv = Reader {
         stream: recv,
         buf: Vec::new(),
     };
-    let first = recv.message::<ServerMessage>().await;
-    let welcome = match first {
+    let welcome = match recv.message::<ServerMessage>().await {
         Ok(Some(msg)) => joining::welcome_of(msg).map_err(fatal)?,
-        Ok(None) | Err(_) => {
-            // Closed by the server: its close says why (a refusal comes as a message).
-            let why = match first {
-                Err(e) => e,
-                _ => "the server closed the control stream".into(),
-            };
-            return Err(on(&session, format!("reading the welcome: {why}")));
-        }
+        Ok(None) => return Err(failed_on(session, "the control stream ended".into()).await),
+        Err(e) => return Err(failed_on(session, format!("reading the welcome: {e}")).await),
     };
     let mut joining = Joining::new(&welcome, asked, Keep::Texels).map_err(fatal)?;
-    let colors = loop {
+    loop {
         let msg = match recv.message::<ServerMessage>().await {
             Ok(Some(m)) => m,
-            Ok(None) => return Err(on(&session, "the control stream ended".into())),
-            Err(e) => return Err(on(&session, e)),
+            Ok(None) => return Err(failed_on(session, "the control stream ended".into()).await),
+            Err(e) => return Err(failed_on(session, e).await),
         };
         if let Some(cache) = joining.apply(&msg).map_err(fatal)? {
-            break cache;
+            return Ok((send, recv, welcome, cache));
         }
-    };
-    Ok(Joined {
-        session,
-        send,
-        recv,
-        welcome,
-        colors,
-    })
+    }
+}
+
+/// A join step that failed on `session`: the session's own end, if it comes within a
+/// moment (a refusal's close may overtake its message), says what happened and whether to
+/// try again; else the connection was lost.
+async fn failed_on(session: &Session, message: String) -> JoinError {
+    match with_timeout(session.closed(), GOODBYE_GRACE_MS).await {
+        Some(e) => {
+            let (lost, why) = ending(&e);
+            JoinError {
+                lost,
+                message: format!("{message} ({why})"),
+            }
+        }
+        None => JoinError {
+            lost: true,
+            message,
+        },
+    }
 }
 
 /// The first connection's state.
@@ -355,6 +408,8 @@ pub fn live(
         color_bytes_before: 0,
         dropped: 0,
         silence,
+        view: None,
+        streams: 0,
     })))
 }
 
@@ -373,7 +428,9 @@ pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joine
         live.borrow().colors.coarsest().to_vec(),
     );
     let mut hello = joining::next_hello(hello, &joined.welcome);
-    let mut silences = 0;
+    // Frame bytes at the last silence: a second silence with none between is a stuck
+    // server (as the native viewer's rule).
+    let mut silent_at: Option<u64> = None;
     loop {
         let end = serve(&live, joined).await;
         let why = match end {
@@ -386,13 +443,23 @@ pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joine
         if live.borrow().ended() {
             return;
         }
-        let silent = why.contains("silent");
-        silences = if silent { silences + 1 } else { 0 };
-        if silences > 1 {
-            live.borrow_mut().end(format!(
-                "{why}, again after reconnecting: the server is stuck"
-            ));
-            return;
+        let bytes = live.borrow().bytes_in();
+        if why.contains("silent") {
+            if silent_at == Some(bytes) {
+                live.borrow_mut().end(format!(
+                    "{why}, again after reconnecting with no frame between: the server is stuck"
+                ));
+                return;
+            }
+            silent_at = Some(bytes);
+        }
+        // The budget and viewport asked now, not at the page's load.
+        {
+            let l = live.borrow();
+            hello.budget = l.core.budget();
+            if let Some(v) = l.view {
+                hello.viewport = v.viewport;
+            }
         }
         match reconnect(&live, &endpoint, &hello, &why, &first).await {
             Ok(j) => {
@@ -417,7 +484,7 @@ async fn reconnect(
 ) -> Result<Joined, String> {
     let started = Instant::now();
     live.borrow_mut().gaps.lost(started);
-    let mut pause = 100;
+    let mut pause = 0;
     let mut attempts = 0;
     loop {
         {
@@ -430,18 +497,44 @@ async fn reconnect(
                 attempts,
             };
         }
-        page::sleep(pause).await;
+        if pause > 0 {
+            page::sleep(pause).await;
+        }
         attempts += 1;
-        let joined = with_timeout(join(endpoint, hello.clone()), JOIN_MS).await;
+        let left = RECONNECT_FOR.saturating_sub(started.elapsed()).as_millis() as i32;
+        let joined = with_timeout(join(endpoint, hello.clone()), left.clamp(1, JOIN_MS)).await;
+        if live.borrow().ended() {
+            // Quit (or the page closed) meanwhile: nothing comes back.
+            if let Some(Ok(j)) = joined {
+                j.session.close(close::BYE, "quit");
+            }
+            return Err("quit".into());
+        }
         match joined {
             Some(Ok(j)) => {
                 let (w, c) = (&j.welcome, j.colors.coarsest());
-                let same = w.levels == first.0.levels
-                    && (w.h_scale, w.v_scale) == (first.0.h_scale, first.0.v_scale)
-                    && w.color == first.0.color
-                    && c == first.1.as_slice();
-                if !same {
-                    return Err("the server came back with another terrain".into());
+                let mut differs = Vec::new();
+                if w.levels != first.0.levels {
+                    differs.push(format!(
+                        "a grid of 2^{} + 1, was 2^{} + 1",
+                        w.levels, first.0.levels
+                    ));
+                }
+                if (w.h_scale, w.v_scale) != (first.0.h_scale, first.0.v_scale) {
+                    differs.push(format!(
+                        "scales {} × {}, were {} × {}",
+                        w.h_scale, w.v_scale, first.0.h_scale, first.0.v_scale
+                    ));
+                }
+                if w.color != first.0.color || c != first.1.as_slice() {
+                    differs.push("another colour map".into());
+                }
+                if !differs.is_empty() {
+                    j.session.close(close::BYE, "another terrain");
+                    return Err(format!(
+                        "the server came back with another terrain: {}",
+                        differs.join("; ")
+                    ));
                 }
                 return Ok(j);
             }
@@ -454,7 +547,7 @@ async fn reconnect(
                 RECONNECT_FOR.as_secs()
             ));
         }
-        pause = (pause * 2).min(2000);
+        pause = (pause * 2).clamp(100, 2000);
     }
 }
 
@@ -482,6 +575,10 @@ async fn serve(live: &Shared, joined: Joined) -> End {
     let (ends, mut ended) = mpsc::unbounded::<End>();
     let epoch = {
         let mut l = live.borrow_mut();
+        if l.ended() {
+            session.close(close::BYE, "quit");
+            return End::Final("quit".into());
+        }
         let reconnected = l.epoch > 0 || l.session.is_some();
         if reconnected {
             // A fresh core and colour cache; the counts go on.
@@ -490,7 +587,14 @@ async fn serve(live: &Shared, joined: Joined) -> End {
             let budget = l.core.budget();
             match ClientCore::new(&welcome, budget) {
                 Some(core) => l.core = core,
-                None => return End::Final("the server's grid changed".into()),
+                None => {
+                    session.close(close::BYE, "another grid");
+                    return End::Final("the server's grid changed".into());
+                }
+            }
+            // The camera told so far goes to the new connection too.
+            if let Some(view) = l.view {
+                l.core.set_view(view);
             }
             l.colors = colors;
             l.gaps
@@ -639,11 +743,23 @@ async fn read_datagrams(session: Session, live: Shared, epoch: u64) {
 }
 
 async fn read_streams(session: Session, live: Shared, epoch: u64) {
-    while let Ok(stream) = session.accept_uni().await {
-        if live.borrow().epoch != epoch {
+    while let Ok(mut stream) = session.accept_uni().await {
+        let mut l = live.borrow_mut();
+        if l.epoch != epoch {
             return;
         }
-        spawn_local(read_stream(stream, live.clone(), epoch));
+        // A bound on what a server can make the page hold (as the native viewer's).
+        if l.streams >= MAX_STREAMS {
+            stream.stop(0);
+            continue;
+        }
+        l.streams += 1;
+        drop(l);
+        let live = live.clone();
+        spawn_local(async move {
+            read_stream(stream, live.clone(), epoch).await;
+            live.borrow_mut().streams -= 1;
+        });
     }
 }
 
