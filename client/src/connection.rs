@@ -17,8 +17,9 @@ use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage,
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 
-use crate::color_cache::{Keep, decode_tile};
-use crate::join::{self, JoinError, Joined, describe};
+use crate::color_cache::Keep;
+use crate::join::{self, JoinError, Joined};
+use crate::joining::take_control;
 use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Steps, lock, secs};
 
 pub use crate::core::MAX_FRAME;
@@ -103,26 +104,8 @@ pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mp
             Err(e) => break End::Final(format!("the server's control stream: {e}")),
         };
         link.heard();
-        let applied = match &msg {
-            ServerMessage::Bye(reason) => {
-                break End::Final(format!("the server said goodbye: {}", describe(reason)));
-            }
-            ServerMessage::ColorTile { level, x, z, data } => {
-                // Decoded without the lock: the render thread drains the cache meanwhile.
-                let layout = *lock(&link.colors).layout();
-                decode_tile(&layout, *level, *x, *z, data, &mut rgb)
-                    .and_then(|()| lock(&link.colors).put_decoded(*level, *x, *z, &rgb, data.len()))
-            }
-            ServerMessage::ColorWindow { .. } => lock(&link.colors).apply(&msg).map(|_| ()),
-            other => {
-                break End::Final(format!(
-                    "the server sent {} during the session",
-                    join::name(other)
-                ));
-            }
-        };
-        if let Err(e) = applied {
-            break End::Final(format!("the server broke the protocol: {e}"));
+        if let Err(why) = take_control(&msg, &mut rgb, || lock(&link.colors)) {
+            break End::Final(why);
         }
     };
     let _ = ends.send(end).await;

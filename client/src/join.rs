@@ -21,7 +21,7 @@ use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome
 
 use crate::color_cache::{ColorCache, Keep};
 use crate::joining::{Joining, welcome_of};
-pub use crate::joining::{describe, name};
+pub use crate::joining::{TerrainId, describe, name};
 
 /// A client endpoint for `addr`'s address family that accepts only the certificate with
 /// SHA-256 `fingerprint`: one per session, reused by its reconnections (one UDP socket
@@ -161,58 +161,6 @@ pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<
         welcome,
         colors,
     })
-}
-
-/// The terrain a viewer draws, from its first welcome and coarsest colour tile: what every
-/// reconnection must find again (the finer tiles are not compared: they come later).
-#[derive(Clone, Debug, PartialEq)]
-pub struct TerrainId {
-    levels: u8,
-    h_scale: f64,
-    v_scale: f64,
-    /// The colour pyramid's cells, tile, levels and window: the renderer's texture layers
-    /// and resident masks are laid out for the first connection's window, so a server
-    /// offering another one is another terrain for this session.
-    color: (u32, u32, u8, u8),
-    /// SHA-256 of the decoded coarsest colour tile.
-    colors: Vec<u8>,
-}
-
-impl TerrainId {
-    /// The terrain of `welcome`, whose coarsest colour tile is `coarsest` (RGB).
-    pub fn of(welcome: &Welcome, coarsest: &[u8]) -> TerrainId {
-        let c = &welcome.color;
-        TerrainId {
-            levels: welcome.levels,
-            h_scale: welcome.h_scale,
-            v_scale: welcome.v_scale,
-            color: (c.cells, c.tile, c.levels, c.window),
-            colors: ring::digest::digest(&ring::digest::SHA256, coarsest)
-                .as_ref()
-                .to_vec(),
-        }
-    }
-
-    /// What differs from `self` in `other`, in words; `None` when nothing does.
-    pub fn differences(&self, other: &TerrainId) -> Option<String> {
-        let mut out = Vec::new();
-        if self.levels != other.levels {
-            out.push(format!(
-                "a grid of 2^{} + 1, was 2^{} + 1",
-                other.levels, self.levels
-            ));
-        }
-        if (self.h_scale, self.v_scale) != (other.h_scale, other.v_scale) {
-            out.push(format!(
-                "scales {} × {}, were {} × {}",
-                other.h_scale, other.v_scale, self.h_scale, self.v_scale
-            ));
-        }
-        if self.color != other.color || self.colors != other.colors {
-            out.push("another colour map".into());
-        }
-        (!out.is_empty()).then(|| out.join("; "))
-    }
 }
 
 /// Reads the colour messages that follow the welcome until the coarsest level's tile is

@@ -1,7 +1,8 @@
 //! What joining a server means, without the I/O: the welcome checked against the
 //! protocol's grids, the colour messages that follow it taken up to the coarsest tile
-//! ([`Joining`]), the next connection's hello ([`next_hello`]), and how the server's
-//! refusals and messages read in words. Shared by the native viewer ([`crate::join`], over
+//! ([`Joining`]), the terrain every reconnection must find again ([`TerrainId`]), the next
+//! connection's hello ([`next_hello`]), what a server message means during the session
+//! ([`take_control`]), and how the server's refusals and messages read in words. Shared by the native viewer ([`crate::join`], over
 //! QUIC) and the browser viewer (`roam-web`, over WebTransport), which differ only in how
 //! the bytes travel.
 
@@ -94,6 +95,86 @@ impl Joining {
             Err(e) => Err(format!("the server's colour: {e}")),
         }
     }
+}
+
+/// The terrain a viewer draws, from its first welcome and coarsest colour tile: what every
+/// reconnection must find again (the finer tiles are not compared: they come later).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TerrainId {
+    levels: u8,
+    h_scale: f64,
+    v_scale: f64,
+    /// The colour pyramid's cells, tile, levels and window: the renderer's texture layers
+    /// and resident masks are laid out for the first connection's window, so a server
+    /// offering another one is another terrain for this session.
+    color: (u32, u32, u8, u8),
+    /// The decoded coarsest colour tile (one tile: at most 256² RGB texels).
+    colors: Vec<u8>,
+}
+
+impl TerrainId {
+    /// The terrain of `welcome`, whose coarsest colour tile is `coarsest` (RGB).
+    pub fn of(welcome: &Welcome, coarsest: &[u8]) -> TerrainId {
+        let c = &welcome.color;
+        TerrainId {
+            levels: welcome.levels,
+            h_scale: welcome.h_scale,
+            v_scale: welcome.v_scale,
+            color: (c.cells, c.tile, c.levels, c.window),
+            colors: coarsest.to_vec(),
+        }
+    }
+
+    /// What differs from `self` in `other`, in words; `None` when nothing does.
+    pub fn differences(&self, other: &TerrainId) -> Option<String> {
+        let mut out = Vec::new();
+        if self.levels != other.levels {
+            out.push(format!(
+                "a grid of 2^{} + 1, was 2^{} + 1",
+                other.levels, self.levels
+            ));
+        }
+        if (self.h_scale, self.v_scale) != (other.h_scale, other.v_scale) {
+            out.push(format!(
+                "scales {} × {}, were {} × {}",
+                other.h_scale, other.v_scale, self.h_scale, self.v_scale
+            ));
+        }
+        if self.color != other.color || self.colors != other.colors {
+            out.push("another colour map".into());
+        }
+        (!out.is_empty()).then(|| out.join("; "))
+    }
+}
+
+/// Takes a server message that comes during the session: colour windows and tiles into the
+/// colour cache, which `colors` lends (twice for a tile: it decodes into `rgb` in between,
+/// without the cache, which the display drains meanwhile). `Err` with the reason when the
+/// message ends the session: a goodbye, anything else not colour, or colour the cache
+/// refuses.
+pub fn take_control<C: std::ops::DerefMut<Target = ColorCache>>(
+    msg: &ServerMessage,
+    rgb: &mut Vec<u8>,
+    mut colors: impl FnMut() -> C,
+) -> Result<(), String> {
+    let taken = match msg {
+        ServerMessage::Bye(reason) => {
+            return Err(format!("the server said goodbye: {}", describe(reason)));
+        }
+        ServerMessage::ColorTile { level, x, z, data } => {
+            let layout = *colors().layout();
+            crate::color_cache::decode_tile(&layout, *level, *x, *z, data, rgb)
+                .and_then(|()| colors().put_decoded(*level, *x, *z, rgb, data.len()))
+        }
+        ServerMessage::ColorWindow { .. } => colors().apply(msg).map(|_| ()),
+        other => {
+            return Err(format!(
+                "the server sent {} during the session",
+                name(other)
+            ));
+        }
+    };
+    taken.map_err(|e| format!("the server broke the protocol: {e}"))
 }
 
 /// The hello of the connection after one welcomed with `welcome`: a driver presents its

@@ -108,9 +108,5 @@ pub async fn write<T: Serialize>(send: &mut quinn::SendStream, msg: &T) -> Resul
 /// One message as it goes on a stream (its length, then its bytes): for a writer that is
 /// not a [`quinn::SendStream`] (the server's WebTransport streams).
 pub fn frame<T: Serialize>(msg: &T) -> Result<Vec<u8>, WireError> {
-    let mut buf = vec![0u8; 4];
-    messages::encode(msg, &mut buf)?;
-    let len = (buf.len() - 4) as u32;
-    buf[..4].copy_from_slice(&len.to_le_bytes());
-    Ok(buf)
+    Ok(messages::frame(msg)?)
 }

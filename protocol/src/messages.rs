@@ -298,6 +298,15 @@ pub fn encode<T: Serialize>(msg: &T, out: &mut Vec<u8>) -> Result<(), EncodeErro
     Ok(())
 }
 
+/// One message as it goes on a stream: its length (`u32`, little-endian), then its bytes.
+pub fn frame<T: Serialize>(msg: &T) -> Result<Vec<u8>, EncodeError> {
+    let mut buf = vec![0u8; 4];
+    encode(msg, &mut buf)?;
+    let len = (buf.len() - 4) as u32;
+    buf[..4].copy_from_slice(&len.to_le_bytes());
+    Ok(buf)
+}
+
 /// Decodes a whole message from `bytes` (nothing may follow it). Strings and byte
 /// strings are read from the slice itself, and every length is checked against its
 /// field's limit before anything is allocated for it.

@@ -13,6 +13,7 @@ use roam_server::net::web::{WebCert, WebOptions};
 use roam_tests::browser::{Browser, GpuPath, Image, built_page, reports};
 use roam_tests::fixtures::{self, Running};
 use serde_json::Value;
+use tokio::sync::mpsc::UnboundedReceiver;
 
 /// A bound on the wait for the page's report: a regression fails, never hangs (a page on
 /// SwiftShader takes seconds).
@@ -49,12 +50,26 @@ async fn open(running: &Running, token: &str, gpu: GpuPath) -> (Value, Browser) 
         SCRIPT.replace('\n', "%0A").replace(' ', "%20"),
     );
     let browser = Browser::open(&url, gpu);
+    (next(&mut reports).await, browser)
+}
+
+/// The page's next report.
+async fn next(reports: &mut UnboundedReceiver<String>) -> Value {
     let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
         .await
-        .unwrap_or_else(|_| panic!("no report from the page within {REPORT_WITHIN:?} ({gpu:?})"))
+        .unwrap_or_else(|_| panic!("no report from the page within {REPORT_WITHIN:?}"))
         .expect("the report endpoint runs");
-    let report = serde_json::from_str(&body).expect("the page reports JSON");
-    (report, browser)
+    serde_json::from_str(&body).expect("the page reports JSON")
+}
+
+/// The page's numbers, after any state report before them (an error fails).
+async fn numbers(reports: &mut UnboundedReceiver<String>) -> Value {
+    let mut r = next(reports).await;
+    while r.get("frames").is_none() {
+        assert!(r.get("error").is_none(), "{r}");
+        r = next(reports).await;
+    }
+    r
 }
 
 /// The page joined, drove, decoded every frame and drew sky above terrain.
@@ -164,19 +179,7 @@ async fn the_page_says_why_when_the_server_goes_away() {
         running.token,
     );
     let _browser = Browser::open(&url, GpuPath::WebGl2);
-    let next = async |reports: &mut tokio::sync::mpsc::UnboundedReceiver<String>| -> Value {
-        let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
-            .await
-            .expect("a report from the page in time")
-            .expect("the report endpoint runs");
-        serde_json::from_str(&body).expect("the page reports JSON")
-    };
-    // Reports until the numbers (the page may say "connected" before them).
-    let mut first = next(&mut reports).await;
-    while first.get("frames").is_none() {
-        assert!(first.get("error").is_none(), "{first}");
-        first = next(&mut reports).await;
-    }
+    numbers(&mut reports).await;
     running.server.shutdown().await.expect("the server stops");
     let said = next(&mut reports).await;
     assert_eq!(said["state"], "ended", "{said}");
@@ -202,18 +205,7 @@ async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
         relay.addr().port(),
     );
     let _browser = Browser::open(&url, GpuPath::WebGl2);
-    let next = async |reports: &mut tokio::sync::mpsc::UnboundedReceiver<String>| -> Value {
-        let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
-            .await
-            .expect("a report from the page in time")
-            .expect("the report endpoint runs");
-        serde_json::from_str(&body).expect("the page reports JSON")
-    };
-    let mut first = next(&mut reports).await;
-    while first.get("frames").is_none() {
-        assert!(first.get("error").is_none(), "{first}");
-        first = next(&mut reports).await;
-    }
+    let first = numbers(&mut reports).await;
     let vehicle = first["vehicle"].clone();
     relay.cut();
     let lost = next(&mut reports).await;

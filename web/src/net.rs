@@ -18,9 +18,9 @@ use std::rc::Rc;
 use bytes::Bytes;
 use futures_channel::mpsc::{self, UnboundedReceiver, UnboundedSender};
 use futures_util::StreamExt;
-use roam_client::color_cache::{ColorCache, Keep, decode_tile};
+use roam_client::color_cache::{ColorCache, Keep};
 use roam_client::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
-use roam_client::joining::{self, Joining, describe};
+use roam_client::joining::{self, Joining, TerrainId};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{
     self, Checked, ClientMessage, Hello, Reason, ServerMessage, ViewChange, Welcome, close,
@@ -234,10 +234,7 @@ impl Reader {
 }
 
 async fn write(send: &mut SendStream, msg: &ClientMessage) -> Result<(), String> {
-    let mut buf = vec![0u8; 4];
-    messages::encode(msg, &mut buf).map_err(|e| e.to_string())?;
-    let len = (buf.len() - 4) as u32;
-    buf[..4].copy_from_slice(&len.to_le_bytes());
+    let buf = messages::frame(msg).map_err(|e| e.to_string())?;
     send.write(&buf).await.map_err(|e| e.to_string())
 }
 
@@ -423,10 +420,7 @@ enum End {
 pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joined: Joined) {
     // The first connection's terrain, which every later one must show (its colour cache
     // went to `live`).
-    let first = (
-        joined.welcome.clone(),
-        live.borrow().colors.coarsest().to_vec(),
-    );
+    let first = TerrainId::of(&joined.welcome, live.borrow().colors.coarsest());
     let mut hello = joining::next_hello(hello, &joined.welcome);
     // Frame bytes at the last silence: a second silence with none between is a stuck
     // server (as the native viewer's rule).
@@ -480,7 +474,7 @@ async fn reconnect(
     endpoint: &Endpoint,
     hello: &Hello,
     why: &str,
-    first: &(Welcome, Vec<u8>),
+    first: &TerrainId,
 ) -> Result<Joined, String> {
     let started = Instant::now();
     live.borrow_mut().gaps.lost(started);
@@ -512,28 +506,11 @@ async fn reconnect(
         }
         match joined {
             Some(Ok(j)) => {
-                let (w, c) = (&j.welcome, j.colors.coarsest());
-                let mut differs = Vec::new();
-                if w.levels != first.0.levels {
-                    differs.push(format!(
-                        "a grid of 2^{} + 1, was 2^{} + 1",
-                        w.levels, first.0.levels
-                    ));
-                }
-                if (w.h_scale, w.v_scale) != (first.0.h_scale, first.0.v_scale) {
-                    differs.push(format!(
-                        "scales {} × {}, were {} × {}",
-                        w.h_scale, w.v_scale, first.0.h_scale, first.0.v_scale
-                    ));
-                }
-                if w.color != first.0.color || c != first.1.as_slice() {
-                    differs.push("another colour map".into());
-                }
-                if !differs.is_empty() {
+                let found = TerrainId::of(&j.welcome, j.colors.coarsest());
+                if let Some(differs) = first.differences(&found) {
                     j.session.close(close::BYE, "another terrain");
                     return Err(format!(
-                        "the server came back with another terrain: {}",
-                        differs.join("; ")
+                        "the server came back with another terrain: {differs}"
                     ));
                 }
                 return Ok(j);
@@ -703,30 +680,16 @@ async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: Unbounde
             Err(e) if e.starts_with("reading") => return,
             Err(e) => break End::Final(format!("the server's control stream: {e}")),
         };
-        let mut l = live.borrow_mut();
-        if l.epoch != epoch {
-            return;
+        {
+            let mut l = live.borrow_mut();
+            if l.epoch != epoch {
+                return;
+            }
+            l.heard = Instant::now();
         }
-        l.heard = Instant::now();
-        let applied = match &msg {
-            ServerMessage::Bye(reason) => {
-                break End::Final(format!("the server said goodbye: {}", describe(reason)));
-            }
-            ServerMessage::ColorTile { level, x, z, data } => {
-                let layout = *l.colors.layout();
-                decode_tile(&layout, *level, *x, *z, data, &mut rgb)
-                    .and_then(|()| l.colors.put_decoded(*level, *x, *z, &rgb, data.len()))
-            }
-            ServerMessage::ColorWindow { .. } => l.colors.apply(&msg).map(|_| ()),
-            other => {
-                break End::Final(format!(
-                    "the server sent {} during the session",
-                    joining::name(other)
-                ));
-            }
-        };
-        if let Err(e) = applied {
-            break End::Final(format!("the server broke the protocol: {e}"));
+        let colors = || std::cell::RefMut::map(live.borrow_mut(), |l| &mut l.colors);
+        if let Err(why) = joining::take_control(&msg, &mut rgb, colors) {
+            break End::Final(why);
         }
     };
     let _ = ends.unbounded_send(end);
