@@ -18,10 +18,20 @@ export BIN_DIR
 source scripts/lib.sh
 
 # 1. 2,000 idle and 2,000 stalled junk connections; a viewer joins once 1,000 are open.
-start_server "$DATA"
+# Then, from the server's summary log (one a second; the wait lets the last one come), the
+# longest any connection stayed pending before its hello or the server's close of it,
+# against the deadline (5 s by default): what the server did, where the flood's
+# `junk_close_ms_max_by_end` is what the junk heard, and when.
+SERVE_ARGS="--log-every 1" start_server "$DATA"
 "$BIN_DIR/roam-flood" --connect "$addr" --fingerprint "$fingerprint" --token "$token" \
     --pid "$server" --idle 2000 --stalled 2000 --frames 300
+sleep 1.5
 stop_server
+awk '/ summary /{ for (i = 1; i <= NF; i++) { split($i, kv, "=");
+        if (kv[1] == "pending_longest_ms" && kv[2] + 0 > max) max = kv[2] + 0 } }
+    END { printf "{\"server_pending_longest_ms\":%d,\"hello_deadline_ms\":5000}\n", max }' \
+    "$state/server.log"
+rm -rf "$state"
 
 # 2. Eight greedy viewers (2^20 triangles, 240 frames a second, not decoding) for 20 s.
 SERVE_ARGS="--log-every 2" start_server "$DATA"

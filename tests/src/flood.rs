@@ -33,10 +33,10 @@ pub struct Flood {
 /// How the junk connections ended.
 #[derive(Clone, Debug, Default, PartialEq, Eq, serde::Serialize)]
 pub struct Outcome {
-    /// Per connection the server closed after its handshake, milliseconds from the
-    /// handshake to the close.
+    /// Per connection whose handshake finished, how it ended and the milliseconds from
+    /// the handshake to that end.
     #[serde(skip)]
-    pub closed_after_ms: Vec<u64>,
+    pub closed_after_ms: Vec<(Ending, u64)>,
     /// Opened (handshake attempted).
     pub opened: usize,
     /// The handshake completed.
@@ -52,7 +52,46 @@ pub struct Outcome {
     pub other: usize,
 }
 
+/// How one junk connection ended, as its side of QUIC saw it.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Ending {
+    /// The server's application close: [`Outcome::closed_by_server`].
+    ClosedByServer,
+    /// A transport close (the server dropped it unfinished): [`Outcome::refused`].
+    Refused,
+    /// A stateless reset (the server had already forgotten it: a close this side never
+    /// heard): also [`Outcome::refused`].
+    Reset,
+    /// Its idle timeout or our patience ran out: [`Outcome::never_closed`].
+    NeverClosed,
+    /// [`Outcome::other`].
+    Other,
+}
+
+impl Ending {
+    /// The name of its count in [`Outcome`].
+    pub fn name(self) -> &'static str {
+        match self {
+            Ending::ClosedByServer => "closed_by_server",
+            Ending::Refused => "refused",
+            Ending::Reset => "reset",
+            Ending::NeverClosed => "never_closed",
+            Ending::Other => "other",
+        }
+    }
+}
+
 impl Outcome {
+    fn ended(&mut self, e: Ending) {
+        let n = match e {
+            Ending::ClosedByServer => &mut self.closed_by_server,
+            Ending::Refused | Ending::Reset => &mut self.refused,
+            Ending::NeverClosed => &mut self.never_closed,
+            Ending::Other => &mut self.other,
+        };
+        *n += 1;
+    }
+
     fn add(&mut self, o: &Outcome) {
         self.opened += o.opened;
         self.handshaken += o.handshaken;
@@ -102,7 +141,7 @@ pub async fn run(
             let conn = match connecting {
                 Ok(c) => tokio::time::timeout(patience, c).await,
                 Err(_) => {
-                    o.other = 1;
+                    o.ended(Ending::Other);
                     return o;
                 }
             };
@@ -110,11 +149,11 @@ pub async fn run(
             let conn = match conn {
                 Ok(Ok(conn)) => conn,
                 Ok(Err(e)) => {
-                    classify(&e, &mut o);
+                    o.ended(ending(&e));
                     return o;
                 }
                 Err(_) => {
-                    o.never_closed = 1;
+                    o.ended(Ending::NeverClosed);
                     return o;
                 }
             };
@@ -129,13 +168,12 @@ pub async fn run(
                 let _ = send.write_all(&partial).await;
                 _stream = Some(send);
             }
-            match tokio::time::timeout(patience, conn.closed()).await {
-                Ok(e) => {
-                    classify(&e, &mut o);
-                    o.closed_after_ms = vec![handshaken.elapsed().as_millis() as u64];
-                }
-                Err(_) => o.never_closed = 1,
-            }
+            let end = match tokio::time::timeout(patience, conn.closed()).await {
+                Ok(e) => ending(&e),
+                Err(_) => Ending::NeverClosed,
+            };
+            o.ended(end);
+            o.closed_after_ms = vec![(end, handshaken.elapsed().as_millis() as u64)];
             o
         });
     }
@@ -147,13 +185,14 @@ pub async fn run(
     Ok(total)
 }
 
-fn classify(e: &quinn::ConnectionError, o: &mut Outcome) {
+fn ending(e: &quinn::ConnectionError) -> Ending {
     use quinn::ConnectionError as E;
     match e {
-        E::ApplicationClosed(_) => o.closed_by_server = 1,
-        E::ConnectionClosed(_) | E::Reset => o.refused = 1,
-        E::TimedOut => o.never_closed = 1,
-        _ => o.other = 1,
+        E::ApplicationClosed(_) => Ending::ClosedByServer,
+        E::ConnectionClosed(_) => Ending::Refused,
+        E::Reset => Ending::Reset,
+        E::TimedOut => Ending::NeverClosed,
+        _ => Ending::Other,
     }
 }
 

@@ -5,7 +5,12 @@
 //! driver's ticket, or a vehicle to follow. Every refusal is said to the viewer with its
 //! reason and logged with the peer's address; junk that never says hello is closed at the
 //! deadline (or evicted) and only counted (one log line per junk connection would let a
-//! flood fill the disk).
+//! flood fill the disk). An evicted connection still in its TLS handshake is finished in
+//! the background, by the same deadline, and closed with its reason: dropped unfinished, it
+//! would end with a bare transport close, which a peer whose side of the handshake is done
+//! and that sends nothing hears only if that one packet arrives. Every close is made by the
+//! deadline (the summary's `pending_longest_ms`); when the peer hears it is up to the
+//! network (`roam-flood`'s `junk_close_ms_max_by_end`).
 //!
 //! A browser's connection ([`Via::Web`], on the `--web` endpoint) is admitted the same
 //! way, by the same gate; after its QUIC handshake and within the same deadline come
@@ -66,6 +71,7 @@ pub(super) fn arrive(incoming: quinn::Incoming, shared: &Arc<Shared>, via: Via) 
     drop(gate);
     let pending = Pending {
         id,
+        since: Instant::now(),
         shared: shared.clone(),
     };
     tokio::spawn(handshake(incoming, via, pending, evicted, shared.clone()));
@@ -74,11 +80,16 @@ pub(super) fn arrive(incoming: quinn::Incoming, shared: &Arc<Shared>, via: Via) 
 /// A connection counted as pending until dropped.
 struct Pending {
     id: PendingId,
+    since: Instant,
     shared: Arc<Shared>,
 }
 
 impl Drop for Pending {
     fn drop(&mut self) {
+        let ms = self.since.elapsed().as_millis();
+        self.shared
+            .stats
+            .pending_ended(u64::try_from(ms).unwrap_or(u64::MAX));
         let mut gate = self.shared.gate();
         gate.admission.gone(self.id);
         gate.evict.remove(&self.id);
@@ -104,18 +115,25 @@ async fn handshake(
 ) {
     let peer = incoming.remote_address();
     let deadline = Instant::now() + shared.hello_timeout;
+    let mut connecting = match incoming.accept() {
+        Ok(c) => c,
+        Err(e) => return early(&shared, peer, via, None, Early::Failed(e.to_string())),
+    };
     let quic = tokio::select! {
-        r = tokio::time::timeout_at(deadline, async {
-            incoming.accept().map_err(|e| e.to_string())?.await.map_err(|e| e.to_string())
-        }) => match r {
+        r = tokio::time::timeout_at(deadline, &mut connecting) => match r {
             Ok(Ok(conn)) => {
                 shared.gate().admission.handshaken(pending.id);
                 conn
             }
-            Ok(Err(why)) => return early(&shared, peer, via, None, Early::Failed(why)),
+            Ok(Err(why)) => return early(&shared, peer, via, None, Early::Failed(why.to_string())),
             Err(_) => return early(&shared, peer, via, None, Early::Deadline),
         },
-        _ = &mut evicted => return early(&shared, peer, via, None, Early::Evicted),
+        _ = &mut evicted => {
+            // Its place is given up now; the handshake itself is finished (within the
+            // same deadline) only to say why, as an application close the peer reads.
+            tokio::spawn(close_unfinished(connecting, deadline));
+            return early(&shared, peer, via, None, Early::Evicted);
+        }
     };
     let conn = match via {
         Via::Quic => Conn::Quic(quic),
@@ -242,6 +260,21 @@ fn early(shared: &Shared, peer: SocketAddr, via: Via, conn: Option<&Conn>, why: 
             _ => close::REFUSED,
         };
         conn.close(code, text.as_bytes());
+    }
+}
+
+/// An evicted connection caught mid-handshake: dropped there, it would end with a bare
+/// transport close that a peer whose side of the handshake is done may never see (it
+/// waits out its idle timeout, 10 s, twice the deadline). Finished (by the deadline at the
+/// latest) and closed with [`close::REFUSED`] instead, it is told at once. It holds no
+/// place in the admission gate while it finishes, so it costs no more than the handshake
+/// the flood already made the server do.
+async fn close_unfinished(connecting: quinn::Connecting, deadline: Instant) {
+    if let Ok(Ok(conn)) = tokio::time::timeout_at(deadline, connecting).await {
+        conn.close(
+            close::REFUSED.into(),
+            b"evicted: too many connections without a hello",
+        );
     }
 }
 

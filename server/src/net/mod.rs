@@ -433,6 +433,7 @@ async fn summary_loop(
         let snap = shared.snapshots.borrow().clone();
         let ticks = world.ticks();
         let dropped = world.dropped();
+        let pending_longest_ms = shared.stats.summarized();
         tracing::info!(
             viewers,
             ticks_per_s = format_args!("{:.1}", (ticks - last_ticks.0) as f64 / seconds),
@@ -445,12 +446,12 @@ async fn summary_loop(
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
             color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
             pending,
+            pending_longest_ms,
             junk_closed = s.junk,
             retried = s.retried,
             refused = s.refused,
             "summary"
         );
-        shared.stats.summarized();
         last = now;
         last_ticks = (ticks, dropped);
     }

@@ -36,6 +36,10 @@ pub struct ServeStats {
     pub timed_out: AtomicU64,
     /// Connections whose handshake failed or that sent something other than a hello.
     pub failed: AtomicU64,
+    /// The longest a connection stayed pending (from its first packet to its hello, or to
+    /// the server's close of it), milliseconds: since the start, and since the last summary.
+    pub pending_longest_ms: AtomicU64,
+    pending_longest_ms_lately: AtomicU64,
     /// Refusals logged at info since the last summary ([`REFUSALS_LOGGED`] at most).
     refusals_logged: AtomicU64,
 }
@@ -60,6 +64,7 @@ pub struct Counts {
     pub evicted_closed: u64,
     pub timed_out: u64,
     pub failed: u64,
+    pub pending_longest_ms: u64,
 }
 
 impl ServeStats {
@@ -73,9 +78,18 @@ impl ServeStats {
         self.refusals_logged.fetch_add(1, Ordering::Relaxed) < REFUSALS_LOGGED
     }
 
-    /// A summary was logged: refusals get lines of their own again.
-    pub fn summarized(&self) {
+    /// A connection stops being pending after `ms`: it said hello, or was closed.
+    pub fn pending_ended(&self, ms: u64) {
+        self.pending_longest_ms.fetch_max(ms, Ordering::Relaxed);
+        self.pending_longest_ms_lately
+            .fetch_max(ms, Ordering::Relaxed);
+    }
+
+    /// A summary is being logged: refusals get lines of their own again. Returns the
+    /// longest pending time since the last one, and starts that over.
+    pub fn summarized(&self) -> u64 {
         self.refusals_logged.store(0, Ordering::Relaxed);
+        self.pending_longest_ms_lately.swap(0, Ordering::Relaxed)
     }
 
     pub fn counts(&self) -> Counts {
@@ -94,6 +108,7 @@ impl ServeStats {
             evicted_closed: get(&self.evicted_closed),
             timed_out: get(&self.timed_out),
             failed: get(&self.failed),
+            pending_longest_ms: get(&self.pending_longest_ms),
         }
     }
 }
@@ -179,6 +194,19 @@ mod tests {
         assert_eq!((s.junk, s.retried, s.refused), (3, 4, 0));
         let idle = Summary::between(&b, &b, 10.0, None);
         assert_eq!((idle.cpu_per_frame_us, idle.make_us), (None, None));
+    }
+
+    #[test]
+    fn the_longest_pending_time_is_kept_and_started_over_at_each_summary() {
+        let s = ServeStats::default();
+        s.pending_ended(40);
+        s.pending_ended(5_000);
+        s.pending_ended(70);
+        assert_eq!(s.summarized(), 5_000);
+        s.pending_ended(30);
+        assert_eq!(s.summarized(), 30);
+        assert_eq!(s.summarized(), 0);
+        assert_eq!(s.counts().pending_longest_ms, 5_000);
     }
 
     #[test]

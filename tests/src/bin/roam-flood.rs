@@ -2,7 +2,8 @@
 //! connections that finish the handshake and send nothing and `--stalled` that stall inside
 //! their hello ([`roam_tests::flood`]); once `--after` of them are open, a real viewer joins
 //! and takes `--frames` frames. Prints one JSON object: the junk's fate (and how long after
-//! its handshake the server closed it), the viewer's time to its first frame and its frames
+//! its handshake the server closed it: the median, the slowest, and the slowest by how it
+//! ended, since a close lost in the flood is heard late, by a reset or an idle timeout), the viewer's time to its first frame and its frames
 //! per second, and the server's resident memory before, at its peak and after (sampled
 //! from `/proc/PID/status` every 50 ms when `--pid` is given).
 //!
@@ -107,12 +108,20 @@ async fn main() -> Result<()> {
     let seconds = started.elapsed().as_secs_f64();
     sampler.abort();
     let peak = *peak.lock().unwrap_or_else(|e| e.into_inner());
-    let mut close_ms: Vec<f64> = out.closed_after_ms.iter().map(|&m| m as f64).collect();
+    let mut close_ms: Vec<f64> = out.closed_after_ms.iter().map(|&(_, m)| m as f64).collect();
     close_ms.sort_by(f64::total_cmp);
+    // The slowest close by how it ended: a late one that ended by a timeout is a close
+    // this side never heard, not one the server made late.
+    let mut slowest = std::collections::BTreeMap::new();
+    for &(end, ms) in &out.closed_after_ms {
+        let m = slowest.entry(end.name()).or_insert(0u64);
+        *m = (*m).max(ms);
+    }
     let report = serde_json::json!({
         "junk": out,
         "junk_close_ms_median": quantile(&close_ms, 0.5),
         "junk_close_ms_max": close_ms.last(),
+        "junk_close_ms_max_by_end": slowest,
         "junk_per_second": (cli.idle + cli.stalled) as f64 / seconds,
         "viewer_first_frame_ms": viewer.first_frame_s * 1e3,
         "viewer_fps": viewer.frames as f64 / viewer.streaming_s.max(1e-9),
