@@ -76,7 +76,10 @@ impl Session {
             && let Some(d) = self.drivers.last_mut()
         {
             d.2 = true;
-            core.handle(Event::Hold(d.0));
+            core.handle(Event::Hold {
+                vehicle: d.0,
+                silent: 0,
+            });
         }
         if t % 500 == 280 {
             for d in self.drivers.iter_mut().filter(|d| d.2) {

@@ -276,6 +276,11 @@ pub struct Fuzz {
     /// Scratch: a change frame's header on random bytes, a framed input.
     forced: Vec<u8>,
     framed: Vec<u8>,
+    /// The terrain's heights, for the random key frames.
+    heights: Vec<u16>,
+    /// Scratch: a random split set, a random key frame.
+    split: BitSet,
+    key: Vec<u8>,
 }
 
 impl Fuzz {
@@ -324,6 +329,9 @@ impl Fuzz {
             texels: Vec::new(),
             forced: Vec::new(),
             framed: Vec::new(),
+            split: BitSet::new(grid.vertices()),
+            heights,
+            key: Vec::new(),
         }
     }
 
@@ -360,7 +368,7 @@ impl Fuzz {
         run(Stage::KeyDatagram, input, &mut || {
             messages::decode::<KeyDatagram>(input).is_ok()
         });
-        self.frame(input, run);
+        self.frame(n, input, run);
         // The control stream: the input behind its length, a random length, or one of up
         // to 32 MiB (mostly within the viewer's limit, and far more than the input).
         let claimed = match n % 4 {
@@ -420,26 +428,50 @@ impl Fuzz {
         });
     }
 
-    /// A frame: decoded, then its mesh decoded and built into vertices.
-    fn frame(&mut self, input: &[u8], run: &mut Runner) {
+    /// A frame: decoded, then its mesh decoded and built into vertices. Random bytes seldom
+    /// decode as a frame, so every input brings a frame's mesh all the same: the frame's
+    /// own, else (odd `n`) a random key frame with, every other time, one bit flipped (most
+    /// decode, so the vertex build sees tens of thousands of meshes), else the input as a
+    /// mesh against the base or as a key frame.
+    fn frame(&mut self, n: usize, input: &[u8], run: &mut Runner) {
         let mut frame = None;
-        if !run(Stage::Frame, input, &mut || {
+        run(Stage::Frame, input, &mut || {
             frame = messages::decode::<Frame>(input).ok();
             frame.is_some()
-        }) {
-            return;
-        }
-        let Some(frame) = frame else { return };
-        let base = frame.base.map(|_| &self.cut_base);
+        });
+        let (mesh, against_base): (&[u8], bool) = match &frame {
+            Some(f) => (&f.mesh, f.base.is_some()),
+            None if n % 2 == 1 => {
+                self.random_key_frame();
+                (&self.key, false)
+            }
+            None => (input, n.is_multiple_of(4)),
+        };
+        let base = against_base.then_some(&self.cut_base);
         let (dec, cut) = (&mut self.frame_dec, &mut self.cut);
-        if !run(Stage::FrameMesh, &frame.mesh, &mut || {
-            dec.decode_cut(&frame.mesh, base, MAX_TRIANGLES, cut)
-                .is_ok()
+        if !run(Stage::FrameMesh, mesh, &mut || {
+            dec.decode_cut(mesh, base, MAX_TRIANGLES, cut).is_ok()
         }) {
             return;
         }
         self.view
-            .build(&self.grid, &cut.split, dec.heights(), &frame.mesh, run);
+            .build(&self.grid, &cut.split, dec.heights(), mesh, run);
+    }
+
+    /// A key frame of a random split set into `self.key`, one bit flipped half the time.
+    fn random_key_frame(&mut self) {
+        let rng = &mut self.rng;
+        self.split.reset(self.grid.vertices());
+        let splits = below(rng, 64) as u32;
+        random_splits(self.grid, &mut self.split, rng, splits);
+        self.key.clear();
+        MeshEncoder::new(self.grid)
+            .encode(&self.split, &self.heights, None, &mut self.key)
+            .expect("a closed split set of this grid encodes");
+        if below(rng, 2) == 0 && !self.key.is_empty() {
+            let i = below(rng, self.key.len());
+            self.key[i] ^= 1 << below(rng, 8);
+        }
     }
 }
 

@@ -1,5 +1,7 @@
 //! Limits a token holder meets, against a real server on loopback: the 65th viewer is
-//! refused as full (and one leaving makes room), and eight viewers asking the most
+//! refused as full (and one leaving makes room), a viewer asking more triangles and frames
+//! than `--max-budget` and `--max-fps` gets those (its frames counted against the world's
+//! ticks, both paced by the server's clock), and eight viewers asking the most
 //! triangles at the most frames a second do not slow the world (no tick dropped: the
 //! world thread always finds a core, `net::Shared::makers`). Counts, not times: the rates
 //! are what `roam-flood` and `scripts/capacity.sh` print.
@@ -166,5 +168,50 @@ async fn greedy_viewers_do_not_slow_the_world() {
         let frames = t.await.expect("a viewer's task");
         assert!(frames > 0, "every greedy viewer is served");
     }
+    r.server.shutdown().await.expect("stops");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_viewer_asking_more_than_the_caps_is_served_the_caps() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    const MAX_BUDGET: u32 = 4_096;
+    const MAX_FPS: u16 = 20;
+    let r = fixtures::serve(fixtures::kossou(), |o| roam_server::net::Options {
+        limits: roam_server::viewer::ViewerLimits {
+            max_budget: MAX_BUDGET,
+            max_fps: MAX_FPS,
+        },
+        ..o
+    });
+    let stats = r.server.world_stats();
+    let (start, dropped_before) = (r.server.snapshot().tick, stats.dropped());
+    let got = roam_client::headless::run(
+        r.server.addr,
+        r.fingerprint,
+        roam_client::headless::ViewerOptions {
+            token: r.token.clone(),
+            budget: messages::MAX_BUDGET,
+            frame_rate: 240,
+            frames: 30,
+            ..Default::default()
+        },
+    )
+    .await
+    .expect("the viewer is served");
+    let ticks = r.server.snapshot().tick - start + (stats.dropped() - dropped_before);
+    assert_eq!(got.budget_served, MAX_BUDGET);
+    assert!(
+        got.max_triangles <= MAX_BUDGET as usize && got.max_triangles > MAX_BUDGET as usize / 2,
+        "{} triangles",
+        got.max_triangles
+    );
+    // Frames are paced by the server's clock, as the world's ticks are: at 20 a second
+    // against 100 ticks, at most one frame per 5 ticks (and a few at the edges). Asked
+    // 240, an uncapped server would make 12 times as many.
+    let made = got.last_frame - got.first_frame.expect("frames came") + 1;
+    assert!(
+        made * 5 <= ticks + 15,
+        "{made} frames in {ticks} ticks: more than {MAX_FPS} a second"
+    );
     r.server.shutdown().await.expect("stops");
 }

@@ -6,11 +6,12 @@
 //! reason and logged with the peer's address; junk that never says hello is closed at the
 //! deadline (or evicted) and only counted (one log line per junk connection would let a
 //! flood fill the disk). An evicted connection still in its TLS handshake is finished in
-//! the background, by the same deadline, and closed with its reason: dropped unfinished, it
-//! would end with a bare transport close, which a peer whose side of the handshake is done
-//! and that sends nothing hears only if that one packet arrives. Every close is made by the
-//! deadline (the summary's `pending_longest_ms`); when the peer hears it is up to the
-//! network (`roam-flood`'s `junk_close_ms_max_by_end`).
+//! the background (at most the pending cap of them at once), by the same deadline, and
+//! closed with its reason: dropped unfinished, it would end with a bare transport close,
+//! which a peer whose side of the handshake is done and that sends nothing hears only if
+//! that one packet arrives. Every close is made by the deadline (the summary's
+//! `pending_longest_ms`); when the peer hears it is up to the network (`roam-flood`'s
+//! `junk_close_ms_max_by_end`).
 //!
 //! A browser's connection ([`Via::Web`], on the `--web` endpoint) is admitted the same
 //! way, by the same gate; after its QUIC handshake and within the same deadline come
@@ -131,7 +132,12 @@ async fn handshake(
         _ = &mut evicted => {
             // Its place is given up now; the handshake itself is finished (within the
             // same deadline) only to say why, as an application close the peer reads.
-            tokio::spawn(close_unfinished(connecting, deadline));
+            if let Ok(room) = shared.unfinished.clone().try_acquire_owned() {
+                tokio::spawn(async move {
+                    close_unfinished(connecting, deadline).await;
+                    drop(room);
+                });
+            }
             return early(&shared, peer, via, None, Early::Evicted);
         }
     };
@@ -267,8 +273,8 @@ fn early(shared: &Shared, peer: SocketAddr, via: Via, conn: Option<&Conn>, why: 
 /// transport close that a peer whose side of the handshake is done may never see (it
 /// waits out its idle timeout, 10 s, twice the deadline). Finished (by the deadline at the
 /// latest) and closed with [`close::REFUSED`] instead, it is told at once. It holds no
-/// place in the admission gate while it finishes, so it costs no more than the handshake
-/// the flood already made the server do.
+/// place in the admission gate while it finishes; at most `max_pending` are finished at
+/// once (`Shared::unfinished`), the rest are dropped as before.
 async fn close_unfinished(connecting: quinn::Connecting, deadline: Instant) {
     if let Ok(Ok(conn)) = tokio::time::timeout_at(deadline, connecting).await {
         conn.close(

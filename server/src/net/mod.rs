@@ -129,6 +129,10 @@ pub struct Shared {
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
     makers: Arc<tokio::sync::Semaphore>,
+    /// Evicted connections being finished only to be closed with their reason, at most
+    /// [`Options::max_pending`] at once (past that, one is dropped unfinished): the cap
+    /// bounds the handshakes in flight at twice itself, whatever the rate of arrivals.
+    unfinished: Arc<tokio::sync::Semaphore>,
     stats: Arc<ServeStats>,
 }
 
@@ -285,6 +289,7 @@ impl Server {
             }),
             tickets: Mutex::new(HashMap::new()),
             makers: Arc::new(tokio::sync::Semaphore::new(makers())),
+            unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),
         });
         let web = web.map(|w| w.start(shared.clone()));

@@ -87,9 +87,13 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     let mut leave = Leave {
         world: shared.world.clone(),
         vehicle: driver.then_some(vehicle),
-        hold: false,
+        hold: None,
     };
     let started = std::time::Instant::now();
+    // When a key datagram last came: a driver sends one every 10 ms, so the time since is
+    // how long its link has been silent when the connection is found dead.
+    let heard = Arc::new(Mutex::new(started));
+    let silent = || heard.lock().unwrap_or_else(|e| e.into_inner()).elapsed();
     // Colour never delays a frame (frames' priorities are their numbers, from 0).
     send.set_priority(-1);
     let layout = shared
@@ -108,7 +112,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     .await;
     if welcomed.is_err() {
         // Lost on the way (held), or the viewer stopped its control stream (a leave).
-        leave.hold = conn.hold_after();
+        leave.hold = conn.hold_after().then(silent);
         conn.close(close::PROTOCOL, b"the welcome could not be sent");
         return;
     }
@@ -121,7 +125,12 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         vehicle,
     )));
     let control = Arc::new(Mutex::new(Mailbox::default()));
-    let keys = tokio::spawn(read_keys(conn.clone(), shared.clone(), vehicle, driver));
+    let keys = tokio::spawn(read_keys(
+        conn.clone(),
+        shared.clone(),
+        (vehicle, driver),
+        heard.clone(),
+    ));
     let mut ctl = tokio::spawn(read_control(recv, control.clone()));
     let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
     let rate = ViewerCore::frame_rate(&hello, shared.limits);
@@ -130,7 +139,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         end = frames(&conn, &shared, control, core, rate, (vehicle, driver), &mut sent) => {
             match end {
                 FramesEnd::ConnectionLost => {
-                    leave.hold = conn.hold_after();
+                    leave.hold = conn.hold_after().then(silent);
                     lost(&conn)
                 }
                 FramesEnd::VehicleLeft | FramesEnd::Failed(_) => {
@@ -150,7 +159,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
             "goodbye".into()
         }
         _ = conn.closed() => {
-            leave.hold = conn.hold_after();
+            leave.hold = conn.hold_after().then(silent);
             lost(&conn)
         }
         Ok(done) = async {
@@ -159,7 +168,8 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                 None => std::future::pending().await,
             }
         } => {
-            leave.hold = true;
+            // The driver is back on a new connection: held only for the handover.
+            leave.hold = Some(std::time::Duration::ZERO);
             answer = Some(done);
             conn.close(close::BYE, b"replaced by a reconnection");
             "replaced by a reconnection".into()
@@ -179,7 +189,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     keys.abort();
     ctl.abort();
     drop(color);
-    let held = leave.hold && leave.vehicle.is_some();
+    let held = leave.hold.is_some() && leave.vehicle.is_some();
     if driver && !held {
         // Gone for good: its ticket names nothing any more.
         shared.tickets().retain(|_, c| c.vehicle != vehicle);
@@ -212,20 +222,23 @@ fn lost(conn: &Conn) -> String {
 }
 
 /// Tells the world a driver left, however the connection ended: a goodbye frees its
-/// vehicle, a lost connection has it held ([`Event::Hold`]).
+/// vehicle, a lost connection has it held ([`Event::Hold`]), the hold counted from when
+/// its link fell silent (`hold`: how long before the end that was).
 struct Leave {
     world: std::sync::mpsc::Sender<super::world_loop::Inbound>,
     vehicle: Option<VehicleId>,
-    hold: bool,
+    hold: Option<std::time::Duration>,
 }
 
 impl Drop for Leave {
     fn drop(&mut self) {
         if let Some(vehicle) = self.vehicle {
-            let event = if self.hold {
-                Event::Hold(vehicle)
-            } else {
-                Event::Leave(vehicle)
+            let event = match self.hold {
+                Some(silent) => Event::Hold {
+                    vehicle,
+                    silent: super::world_loop::hold_ticks(silent),
+                },
+                None => Event::Leave(vehicle),
             };
             let _ = self.world.send((event, None));
         }
@@ -374,10 +387,17 @@ async fn stream_color(
 
 /// Key datagrams to the world, through the driver's [`KeyGate`] (rate-limited; anything
 /// that is not a key datagram is ignored). A spectator's are read and dropped.
-async fn read_keys(conn: Conn, shared: Arc<Shared>, vehicle: VehicleId, driver: bool) {
+async fn read_keys(
+    conn: Conn,
+    shared: Arc<Shared>,
+    (vehicle, driver): (VehicleId, bool),
+    heard: Arc<Mutex<std::time::Instant>>,
+) {
     let mut gate = KeyGate::new(vehicle);
     while let Some(bytes) = conn.read_datagram().await {
-        if let Some(event) = gate.admit(&bytes, std::time::Instant::now())
+        let now = std::time::Instant::now();
+        *heard.lock().unwrap_or_else(|e| e.into_inner()) = now;
+        if let Some(event) = gate.admit(&bytes, now)
             && driver
             && shared.world.send((event, None)).is_err()
         {

@@ -105,7 +105,10 @@ pub fn run(
             // The viewer went away while joining (no vehicle left behind) or resuming
             // (held again, for a later try).
             core.handle(if resume {
-                Event::Hold(id)
+                Event::Hold {
+                    vehicle: id,
+                    silent: 0,
+                }
             } else {
                 Event::Leave(id)
             });

@@ -19,6 +19,10 @@
 //!   rotated (a header larger than the cap gives files of one change each, not a loop).
 //! - Where files come from is injected ([`RecordFiles`]): a directory in the server, a
 //!   writer that fails after N bytes in the tests.
+//! - **Written on the world thread**, at least once a second (about 64 KiB at most at a time):
+//!   errors are handled as above, but a write that blocks (a hung network mount) holds the
+//!   world up. A writer thread would take that away at the cost of errors arriving late
+//!   and the cut point known only there; not done: the README asks for a local disk.
 
 use std::fmt;
 use std::io;

@@ -75,7 +75,9 @@ pub enum Event {
     },
     /// A driver's connection dropped (not a goodbye): its vehicle stays, waiting, until
     /// resumed or until the hold runs out (then it leaves). Its queued keys are dropped.
-    Hold(VehicleId),
+    /// The hold counts from `silent` ticks ago: a link that fell silent is seen dead only
+    /// at its idle timeout, and the driver's time to come back runs from the silence.
+    Hold { vehicle: VehicleId, silent: u64 },
     /// A held vehicle's driver is back: [`WorldCore::handle`] gives the vehicle back
     /// (driven again, its queue empty and unprimed), or `None` when it is not held (freed,
     /// or never held).
@@ -316,12 +318,12 @@ impl WorldCore {
                 }
                 None
             }
-            Event::Hold(vehicle) => {
-                let tick = self.world.tick();
+            Event::Hold { vehicle, silent } => {
+                let since = self.world.tick().saturating_sub(silent);
                 if let Some(d) = self.driver(vehicle)
                     && d.held_since.is_none()
                 {
-                    d.hold(tick);
+                    d.hold(since);
                 }
                 None
             }
@@ -452,6 +454,11 @@ mod tests {
             .with_hold(hold)
     }
 
+    /// `vehicle`'s connection dropped just now.
+    fn hold(vehicle: VehicleId) -> Event {
+        Event::Hold { vehicle, silent: 0 }
+    }
+
     /// `vehicle`'s key states `seqs`, Up held, in one datagram.
     fn up(vehicle: VehicleId, seqs: std::ops::RangeInclusive<u32>) -> Event {
         Event::Keys {
@@ -498,7 +505,7 @@ mod tests {
         for _ in 0..3 {
             c.tick();
         }
-        c.handle(Event::Hold(a));
+        c.handle(hold(a));
         let held = state(&c, a).expect("still there");
         assert!(held.speed > 0.0, "it was moving");
         // Keys for a held vehicle are not taken; it waits, its state unchanged.
@@ -528,7 +535,7 @@ mod tests {
             let mut c = core(500);
             let id = c.handle(Event::Join).expect("a vehicle");
             drive(&mut c, id, 0..=10);
-            c.handle(Event::Hold(id));
+            c.handle(hold(id));
             for _ in 0..20 {
                 c.tick();
             }
@@ -551,8 +558,8 @@ mod tests {
         let mut c = core(30);
         let a = c.handle(Event::Join).expect("a vehicle");
         c.tick();
-        c.handle(Event::Hold(a));
-        c.handle(Event::Hold(a)); // a second hold does not restart it
+        c.handle(hold(a));
+        c.handle(hold(a)); // a second hold does not restart it
         for _ in 0..29 {
             assert_eq!(c.tick().held, [a]);
         }
@@ -568,11 +575,46 @@ mod tests {
     }
 
     #[test]
+    fn a_hold_counts_from_when_the_link_fell_silent() {
+        let mut c = core(30);
+        let a = c.handle(Event::Join).expect("a vehicle");
+        let b = c.handle(Event::Join).expect("a vehicle");
+        for _ in 0..50 {
+            c.tick();
+        }
+        // Silent for 20 of its 30 ticks already: 10 left. Silent past the hold: freed at
+        // the next tick.
+        c.handle(Event::Hold {
+            vehicle: a,
+            silent: 20,
+        });
+        c.handle(Event::Hold {
+            vehicle: b,
+            silent: 40,
+        });
+        assert_eq!(c.tick().held, [a]);
+        for _ in 0..8 {
+            assert_eq!(c.tick().held, [a]);
+        }
+        let s = c.tick();
+        assert!(s.vehicles.is_empty() && s.held.is_empty(), "{s:?}");
+        // Silent for longer than the world has run: held from its first tick.
+        let mut young = core(30);
+        let d = young.handle(Event::Join).expect("a vehicle");
+        young.tick();
+        young.handle(Event::Hold {
+            vehicle: d,
+            silent: 1_000,
+        });
+        assert_eq!(young.tick().held, [d], "held from tick 0, 30 ticks");
+    }
+
+    #[test]
     fn a_leave_frees_a_held_vehicle_at_once() {
         let mut c = core(3000);
         let a = c.handle(Event::Join).expect("a vehicle");
         c.tick();
-        c.handle(Event::Hold(a));
+        c.handle(hold(a));
         c.handle(Event::Leave(a));
         let s = c.tick();
         assert!(s.vehicles.is_empty() && s.held.is_empty());
