@@ -37,9 +37,8 @@ pub struct ServeStats {
     /// Connections whose handshake failed or that sent something other than a hello.
     pub failed: AtomicU64,
     /// The longest a connection stayed pending (from its first packet to its hello, or to
-    /// the server's close of it), milliseconds: since the start, and since the last summary.
-    pub pending_longest_ms: AtomicU64,
-    pending_longest_ms_lately: AtomicU64,
+    /// the server's close of it) since the last summary, milliseconds.
+    pending_longest_ms: AtomicU64,
     /// Refusals logged at info since the last summary ([`REFUSALS_LOGGED`] at most).
     refusals_logged: AtomicU64,
 }
@@ -64,7 +63,6 @@ pub struct Counts {
     pub evicted_closed: u64,
     pub timed_out: u64,
     pub failed: u64,
-    pub pending_longest_ms: u64,
 }
 
 impl ServeStats {
@@ -81,15 +79,13 @@ impl ServeStats {
     /// A connection stops being pending after `ms`: it said hello, or was closed.
     pub fn pending_ended(&self, ms: u64) {
         self.pending_longest_ms.fetch_max(ms, Ordering::Relaxed);
-        self.pending_longest_ms_lately
-            .fetch_max(ms, Ordering::Relaxed);
     }
 
     /// A summary is being logged: refusals get lines of their own again. Returns the
     /// longest pending time since the last one, and starts that over.
     pub fn summarized(&self) -> u64 {
         self.refusals_logged.store(0, Ordering::Relaxed);
-        self.pending_longest_ms_lately.swap(0, Ordering::Relaxed)
+        self.pending_longest_ms.swap(0, Ordering::Relaxed)
     }
 
     pub fn counts(&self) -> Counts {
@@ -108,7 +104,6 @@ impl ServeStats {
             evicted_closed: get(&self.evicted_closed),
             timed_out: get(&self.timed_out),
             failed: get(&self.failed),
-            pending_longest_ms: get(&self.pending_longest_ms),
         }
     }
 }
@@ -206,7 +201,6 @@ mod tests {
         s.pending_ended(30);
         assert_eq!(s.summarized(), 30);
         assert_eq!(s.summarized(), 0);
-        assert_eq!(s.counts().pending_longest_ms, 5_000);
     }
 
     #[test]

@@ -3,9 +3,10 @@
 //! their hello ([`roam_tests::flood`]); once `--after` of them are open, a real viewer joins
 //! and takes `--frames` frames. Prints one JSON object: the junk's fate (and how long after
 //! its handshake the server closed it: the median, the slowest, and the slowest by how it
-//! ended, since a close lost in the flood is heard late, by a reset or an idle timeout), the viewer's time to its first frame and its frames
-//! per second, and the server's resident memory before, at its peak and after (sampled
-//! from `/proc/PID/status` every 50 ms when `--pid` is given).
+//! ended, since a close lost in the flood is heard late, by a reset or an idle timeout),
+//! the viewer's time to its first frame and its frames per second, and the server's
+//! resident memory before, at its peak and after (sampled from `/proc/PID/status` every
+//! 50 ms when `--pid` is given).
 //!
 //! ```sh
 //! roam-server serve data/kossou --listen 127.0.0.1:4433 --token-file T &
