@@ -6,7 +6,9 @@ use roam_server::Heightfield;
 use roam_server::terrain::variance::{VarianceTree, triangle_error};
 use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::diamond::{Diamond, Triangle};
-use roam_server::tessellate::{Coherent, Limits, Mesh, Scales, Tessellator, measured_error};
+use roam_server::tessellate::{
+    Coherent, Limits, Mesh, Scales, Scratch, Tessellator, measured_error,
+};
 
 /// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
 fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
@@ -222,6 +224,7 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
     let (mut gx, mut gz, mut yaw) = (x * size, z * size, yaw);
     let (mut pitch, mut budget) = (-10.0, case.budget);
     let (mut a, mut b) = (Coherent::new(hf.side()), Coherent::new(hf.side()));
+    let pool = Scratch::new(hf.side());
     let (mut mesh, mut scratch) = (Mesh::default(), Mesh::default());
     let mut t = Tessellator::new(hf.side());
     let mut ratios = Vec::new();
@@ -245,8 +248,10 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
             budget,
             threshold_px: case.threshold,
         };
-        let mode = a.frame(&hf, &vt, scales(), &cam, limits, false);
-        if b.frame(&hf, &vt, scales(), &cam, limits, false) != mode || a.changes() != b.changes() {
+        let mode = a.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
+        if b.frame(&hf, &vt, scales(), &cam, limits, false, &pool) != mode
+            || a.changes() != b.changes()
+        {
             return Err(fail("the same path gave other changes".into()));
         }
         for &c in a.changes() {
@@ -262,7 +267,7 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
             return Err(fail("the change logs do not add up to the cut".into()));
         }
         a.audit(&hf, &vt, scales(), &cam, limits).map_err(&fail)?;
-        a.mesh(&mut mesh);
+        a.mesh(&pool, &mut mesh);
         check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| fail(e.to_string()))?;
         if mesh.triangle_count() != a.triangles() as usize || a.triangles() > budget.max(2) {
             return Err(fail(format!(

@@ -14,25 +14,32 @@ use roam_server::sim::physics::{Keys, VehicleState};
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::terrain::generate;
 use roam_server::terrain::variance::VarianceTree;
-use roam_server::tessellate::{Mesh, Mode};
+use roam_server::tessellate::{Mesh, Mode, Scratch};
 use roam_server::viewer::{Event, LOGS, Made, Scene, ViewerCore};
 
 struct Fixture {
     terrain: Arc<Terrain>,
     variance: VarianceTree,
+    scratch: Scratch,
 }
 
 impl Fixture {
     fn new(side: u32, seed: u64) -> Fixture {
         let terrain = Arc::new(generate::synthetic(side, seed));
         let variance = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
-        Fixture { terrain, variance }
+        let scratch = Scratch::new(terrain.heights.side());
+        Fixture {
+            terrain,
+            variance,
+            scratch,
+        }
     }
 
     fn scene(&self) -> Scene<'_> {
         Scene {
             terrain: &self.terrain,
             variance: &self.variance,
+            scratch: &self.scratch,
         }
     }
 
@@ -147,9 +154,9 @@ impl Viewer {
 }
 
 /// The server's mesh for the core's cut now.
-fn server_mesh(core: &mut ViewerCore) -> Mesh {
+fn server_mesh(core: &ViewerCore, scene: &Scene) -> Mesh {
     let mut m = Mesh::default();
-    core.mesh(&mut m);
+    core.mesh(scene.scratch, &mut m);
     m
 }
 
@@ -194,7 +201,7 @@ fn a_lossy_drive_decodes_exactly_frame_for_frame() {
             assert!(made.triangles <= budget, "over budget at frame {k}");
             keys += usize::from(made.base.is_none());
             changes += made.changes;
-            let expected = server_mesh(&mut core);
+            let expected = server_mesh(&core, &scene);
             // Key frames are never lost (the shell sends them reliably), only late.
             if made.base.is_none() || !rng.chance(loss) {
                 wire.push((made, expected));
@@ -346,7 +353,7 @@ fn frames_coded_against_the_pending_key_frame_decode_once_it_arrives() {
     let mut made = Vec::new();
     for state in &drive[..10] {
         let m = core.make_frame(&scene, state);
-        made.push((m, server_mesh(&mut core)));
+        made.push((m, server_mesh(&core, &scene)));
     }
     let (key, key_mesh) = &made[0];
     assert_eq!(key.base, None);
@@ -382,7 +389,7 @@ fn frames_coded_against_the_pending_key_frame_decode_once_it_arrives() {
     assert_eq!(core.pending_key(), None);
     let next = core.make_frame(&scene, &drive[10]);
     assert_eq!(next.base, Some(6));
-    let want = server_mesh(&mut core);
+    let want = server_mesh(&core, &scene);
     same(&viewer.decode(&next), &want, next.frame);
 }
 
@@ -463,4 +470,77 @@ fn budget_view_and_jumps_steer_the_cut() {
     }));
     let down = core.make_frame(&scene, &bounced);
     assert!(down.triangles < before, "{} !< {before}", down.triangles);
+}
+
+/// A frame begun in line (on the server's async workers) is made there only when it is
+/// cheap: an update of at most `INLINE_CHANGES` changes coded as a change frame. A
+/// rebuild (the first frame, a jump), a larger update and a key frame (asked for, or a
+/// base the logs no longer reach) are left unfinished for a blocking thread. Either way
+/// the frames are the very ones `make_frame` makes, byte for byte.
+#[test]
+fn frames_begun_in_line_leave_rebuilds_and_key_frames_unfinished() {
+    let fx = Fixture::new(257, 5);
+    let scene = fx.scene();
+    let drive = fx.drive(40);
+    let (mut twostep, mut oneshot) = (fx.core(16_000), fx.core(16_000));
+    let mut inline = 0;
+    // `cheap`: whether the frame must be made in line (`None`: either).
+    let mut check = |k: usize, state: &VehicleState, events: &[Event], cheap: Option<bool>| {
+        for &e in events {
+            twostep.handle(e);
+            oneshot.handle(e);
+        }
+        let begun = twostep.begin_frame(&scene, state);
+        let inline_made = begun.is_some();
+        if let Some(cheap) = cheap {
+            assert_eq!(inline_made, cheap, "frame {k}: made in line");
+        }
+        assert_eq!(
+            twostep.unfinished(),
+            !inline_made,
+            "frame {k}: left unfinished"
+        );
+        let made = begun.unwrap_or_else(|| twostep.finish_frame(&scene));
+        assert!(!twostep.unfinished());
+        let want = oneshot.make_frame(&scene, state);
+        assert_eq!(made, want, "frame {k}: the same frame either way");
+        if inline_made {
+            assert!(made.base.is_some(), "frame {k}: a key frame made in line");
+            assert!(made.changes <= roam_server::viewer::INLINE_CHANGES);
+            inline += 1;
+        }
+        made
+    };
+    // The first frame rebuilds and is a key frame.
+    let first = check(0, &drive[0], &[], Some(false));
+    assert_eq!((first.mode, first.base), (Mode::Rebuild, None));
+    assert!(first.triangles > 12_000, "{} triangles", first.triangles);
+    // Acknowledged: the frames of a drive are cheap updates, but for a sharp turn's.
+    let mut last = first.frame;
+    for (k, state) in drive.iter().enumerate().take(20).skip(1) {
+        last = check(k, state, &[Event::Acked(last)], None).frame;
+    }
+    // A key frame asked for: the update is cheap, its coding is not.
+    let key = check(20, &drive[20], &[Event::KeyFrame], Some(false));
+    assert_eq!((key.mode, key.base), (Mode::Update, None));
+    last = check(21, &drive[21], &[Event::Acked(key.frame)], None).frame;
+    // A budget cut by a quarter (within the jump's ×2) is an update of thousands of merges, within
+    // its bound but past INLINE_CHANGES: left for the blocking thread, which goes on from
+    // where the first step stopped.
+    let halved = check(
+        22,
+        &drive[22],
+        &[Event::Acked(last), Event::Budget(12_000)],
+        Some(false),
+    );
+    assert_eq!(halved.mode, Mode::Update);
+    assert!(halved.changes > roam_server::viewer::INLINE_CHANGES);
+    assert!(halved.triangles <= 12_000);
+    // A jump across the map rebuilds.
+    let mut far = drive[23];
+    far.x = fx.terrain.map.h_scale * 20.0;
+    far.z = fx.terrain.map.h_scale * 230.0;
+    let jumped = check(23, &far, &[Event::Acked(halved.frame)], Some(false));
+    assert_eq!(jumped.mode, Mode::Rebuild);
+    assert!(inline >= 15, "{inline} of 20 driving frames made in line");
 }

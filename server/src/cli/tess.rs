@@ -394,9 +394,11 @@ fn serve_bench(
         [flyover::WIDTH, flyover::HEIGHT],
         limits.budget,
     );
+    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side());
     let scene = Scene {
         terrain,
         variance: vt,
+        scratch: &pool,
     };
     let grid = Grid::new(levels).expect("data sets have 1 ..= 15 levels");
     let mut decoder = MeshDecoder::new(grid);
@@ -420,7 +422,7 @@ fn serve_bench(
         let b = made.base.map(|_| &base);
         decoder.decode_cut(&made.payload, b, u32::MAX, &mut cut)?;
         mesh::emit(&grid, &cut.split, decoder.heights(), &mut viewer);
-        core.mesh(&mut served);
+        core.mesh(&pool, &mut served);
         if viewer.indices != served.indices {
             bail!(
                 "frame {k}: the viewer's mesh differs from the server's: a codec bug \

@@ -129,6 +129,9 @@ pub struct Shared {
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
     makers: Arc<tokio::sync::Semaphore>,
+    /// The from-scratch tessellators the frame makers borrow (the one map-sized state of
+    /// the serving path, at most one per blocking frame maker).
+    scratch: crate::tessellate::Scratch,
     /// Evicted connections being finished only to be closed with their reason, at most
     /// [`Options::max_pending`] at once (past that, one is dropped unfinished): the cap
     /// bounds the handshakes in flight at twice itself, whatever the rate of arrivals.
@@ -270,6 +273,7 @@ impl Server {
         };
         let (stop, shutdown) = watch::channel(false);
         let shared = Arc::new(Shared {
+            scratch: crate::tessellate::Scratch::new(terrain.heights.side()),
             height_step: roam_protocol::height_step(terrain.heights.samples()),
             pyramid,
             color_rate: options.color_rate,

@@ -467,41 +467,42 @@ async fn frames(
         for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
             c.handle(event);
         }
-        let (shared2, state) = (shared.clone(), v.state);
-        let make = move |mut c: ViewerCore| {
-            let scene = Scene {
-                terrain: &shared2.terrain,
-                variance: &shared2.variance,
-            };
-            let made = c.make_frame(&scene, &state);
-            (c, made)
-        };
         let scene = Scene {
             terrain: &shared.terrain,
             variance: &shared.variance,
+            scratch: &shared.scratch,
         };
-        // An update is a fraction of a millisecond: made in line. A rebuild or a key frame
-        // (milliseconds at large budgets) goes to a blocking thread, so it never holds up
-        // the other viewers' tasks.
+        // A frame is begun in line: an update of a few changes coded as a change frame is
+        // made there (microseconds). Anything heavier (more changes, a rebuild, a key
+        // frame's coding: milliseconds at large budgets) is left unfinished and finished on
+        // a blocking thread, so it never holds up the other viewers' tasks.
         // At most one fewer blocking frame maker than cores ([`Shared::makers`]): the
         // world thread always finds a core, whatever the viewers ask for.
         let started = std::time::Instant::now();
-        let (c, made) = if c.next_is_cheap(&scene, &state) {
-            make(c)
-        } else {
-            // The permit goes with the job: it is held until the job ends, even if this
-            // viewer's task is dropped while waiting for it.
-            let Ok(permit) = shared.makers.clone().acquire_owned().await else {
-                return FramesEnd::Failed("the server is shutting down");
-            };
-            match tokio::task::spawn_blocking(move || {
-                let _permit = permit;
-                make(c)
-            })
-            .await
-            {
-                Ok(r) => r,
-                Err(_) => return FramesEnd::Failed("the frame maker failed"),
+        let (c, made) = match c.begin_frame(&scene, &v.state) {
+            Some(made) => (c, made),
+            None => {
+                // The permit goes with the job: it is held until the job ends, even if
+                // this viewer's task is dropped while waiting for it.
+                let Ok(permit) = shared.makers.clone().acquire_owned().await else {
+                    return FramesEnd::Failed("the server is shutting down");
+                };
+                let shared2 = shared.clone();
+                match tokio::task::spawn_blocking(move || {
+                    let _permit = permit;
+                    let scene = Scene {
+                        terrain: &shared2.terrain,
+                        variance: &shared2.variance,
+                        scratch: &shared2.scratch,
+                    };
+                    let made = c.finish_frame(&scene);
+                    (c, made)
+                })
+                .await
+                {
+                    Ok(r) => r,
+                    Err(_) => return FramesEnd::Failed("the frame maker failed"),
+                }
             }
         };
         let stats = &shared.stats;

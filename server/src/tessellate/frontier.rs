@@ -85,6 +85,16 @@ impl<T: Copy> PosSet<T> {
     }
 
     /// The value beside `pos`, if it is a member.
+    #[inline]
+    pub fn get(&self, pos: u32) -> Option<&T> {
+        if self.table.is_empty() {
+            return None;
+        }
+        let (k, at) = self.table[self.find(pos)];
+        (k == pos).then(|| &self.data[at as usize])
+    }
+
+    /// The same, to change.
     pub fn get_mut(&mut self, pos: u32) -> Option<&mut T> {
         if self.table.is_empty() {
             return None;

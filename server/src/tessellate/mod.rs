@@ -44,8 +44,10 @@ mod evaluate;
 mod frontier;
 mod lanes;
 pub mod queue;
+mod scratch;
 
-pub use coherent::{Coherent, CoherentStats, Mode, measured_error};
+pub use coherent::{Coherent, CoherentStats, Mode, Step, measured_error};
+pub use scratch::Scratch;
 
 use lanes::F4;
 
@@ -118,9 +120,6 @@ pub struct Tessellator {
     /// Largest priority left below the threshold, per lane.
     dropped: F4,
     stats: Stats,
-    /// `active_list` no longer lists the split set (the frame-coherent tessellator changed
-    /// it): the next reset clears the whole bitset.
-    stale: bool,
     /// Run the x86-64-v3 build of the hot loops: decided once, in `new` (the CPU has it)
     /// and `set_portable`.
     #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
@@ -263,7 +262,6 @@ impl Tessellator {
             triangles: 0,
             dropped: F4::splat(0.0),
             stats: Stats::default(),
-            stale: false,
             v3: has_v3(),
         }
     }
@@ -321,12 +319,6 @@ impl Tessellator {
     fn set_active(&mut self, x: u32, z: u32) {
         let i = (z * self.side + x) as usize;
         self.active[i >> 6] |= 1 << (i & 63);
-    }
-
-    #[inline(always)]
-    fn clear_active(&mut self, x: u32, z: u32) {
-        let i = (z * self.side + x) as usize;
-        self.active[i >> 6] &= !(1 << (i & 63));
     }
 
     /// Tessellates the heightfield for `camera` into `out` (its buffers are reused).
@@ -441,72 +433,10 @@ impl Tessellator {
         camera: &Camera,
         limits: Limits,
     ) -> Frame<'a> {
-        let planes = camera.frustum();
-        let grid = |i: usize| {
-            let p = &planes[i + 1];
-            (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h, p.d)
-        };
-        let plane = |i: usize| {
-            let (a, b, c, _) = grid(i);
-            let l = |v: f64| F4::splat(v as f32);
-            Plane {
-                a: l(a),
-                b: l(b),
-                c: l(c),
-                abs_b: l(b.abs()),
-            }
-        };
-        // A square of half-size h reaches h·(|a| + |c|) across a plane, a rotated diamond
-        // h·max(|a|, |c|).
-        let offsets_scalar: [[f32; 4]; 32] = std::array::from_fn(|k| {
-            let (square, h) = (k >= 16, f64::from(1u32 << (k % 16)));
-            std::array::from_fn(|i| {
-                let (a, _, c, d) = grid(i);
-                let extent = if square {
-                    a.abs() + c.abs()
-                } else {
-                    a.abs().max(c.abs())
-                };
-                (d + h * extent) as f32
-            })
-        });
-        let plane_offsets = offsets_scalar.map(|o| o.map(F4::splat));
-        let mut square_offset = [0; 16];
-        let mut rotated_offset = [0; 16];
-        for (m, (so, ro)) in variance
-            .square_offsets()
-            .iter()
-            .zip(variance.rotated_offsets())
-            .enumerate()
-        {
-            square_offset[m] = *so;
-            rotated_offset[m] = *ro;
-        }
-        Frame {
-            heights: hf.samples(),
-            codes: variance.codes(),
-            table: variance.table(),
-            square_offset,
-            rotated_offset,
-            side: self.side,
-            size: self.size,
-            planes: std::array::from_fn(plane),
-            plane_offsets,
-            offsets_scalar,
-            eye_x: F4::splat((camera.eye[0] / scales.h) as f32),
-            eye_z: F4::splat((camera.eye[2] / scales.h) as f32),
-            eye_y: F4::splat(camera.eye[1] as f32),
-            hs: F4::splat(scales.h as f32),
-            hs_scalar: scales.h as f32,
-            vs: F4::splat(scales.v as f32),
-            px: F4::splat((scales.v * camera.pixels_per_radian()) as f32),
-            threshold: F4::splat(limits.threshold_px),
-        }
+        Frame::new(hf, variance, scales, camera, limits)
     }
-
     fn reset(&mut self) {
-        if self.stale || self.active_list.len() > self.active.len() / 2 {
-            self.stale = false;
+        if self.active_list.len() > self.active.len() / 2 {
             // Dense: clearing every word (a memset) beats a store per split diamond.
             self.active.fill(0);
         } else {
@@ -638,5 +568,78 @@ impl Tessellator {
             let (x, z) = unpack(e as u32);
             !self.is_active(x, z)
         })
+    }
+}
+
+impl<'a> Frame<'a> {
+    /// The frame's constants for `camera` over this map (`hf`'s side, `variance`'s size).
+    fn new(
+        hf: &'a Heightfield,
+        variance: &'a VarianceTree,
+        scales: Scales,
+        camera: &Camera,
+        limits: Limits,
+    ) -> Frame<'a> {
+        let planes = camera.frustum();
+        let grid = |i: usize| {
+            let p = &planes[i + 1];
+            (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h, p.d)
+        };
+        let plane = |i: usize| {
+            let (a, b, c, _) = grid(i);
+            let l = |v: f64| F4::splat(v as f32);
+            Plane {
+                a: l(a),
+                b: l(b),
+                c: l(c),
+                abs_b: l(b.abs()),
+            }
+        };
+        // A square of half-size h reaches h·(|a| + |c|) across a plane, a rotated diamond
+        // h·max(|a|, |c|).
+        let offsets_scalar: [[f32; 4]; 32] = std::array::from_fn(|k| {
+            let (square, h) = (k >= 16, f64::from(1u32 << (k % 16)));
+            std::array::from_fn(|i| {
+                let (a, _, c, d) = grid(i);
+                let extent = if square {
+                    a.abs() + c.abs()
+                } else {
+                    a.abs().max(c.abs())
+                };
+                (d + h * extent) as f32
+            })
+        });
+        let plane_offsets = offsets_scalar.map(|o| o.map(F4::splat));
+        let mut square_offset = [0; 16];
+        let mut rotated_offset = [0; 16];
+        for (m, (so, ro)) in variance
+            .square_offsets()
+            .iter()
+            .zip(variance.rotated_offsets())
+            .enumerate()
+        {
+            square_offset[m] = *so;
+            rotated_offset[m] = *ro;
+        }
+        Frame {
+            heights: hf.samples(),
+            codes: variance.codes(),
+            table: variance.table(),
+            square_offset,
+            rotated_offset,
+            side: hf.side(),
+            size: hf.size(),
+            planes: std::array::from_fn(plane),
+            plane_offsets,
+            offsets_scalar,
+            eye_x: F4::splat((camera.eye[0] / scales.h) as f32),
+            eye_z: F4::splat((camera.eye[2] / scales.h) as f32),
+            eye_y: F4::splat(camera.eye[1] as f32),
+            hs: F4::splat(scales.h as f32),
+            hs_scalar: scales.h as f32,
+            vs: F4::splat(scales.v as f32),
+            px: F4::splat((scales.v * camera.pixels_per_radian()) as f32),
+            threshold: F4::splat(limits.threshold_px),
+        }
     }
 }

@@ -27,10 +27,18 @@
 //! frame is never a base (only acknowledged frames and the pending key frame are), so it
 //! cannot corrupt a later one; the viewer checks every frame against the cut's hash.
 //!
-//! **Memory** follows the cut and the frames in flight: the tessellator's state (a bit
-//! per grid vertex, the frontiers and queues sized by the cut), and the logs of the last
-//! [`LOGS`] frames; no split set of any base is stored. The one map-sized buffer is the
-//! tessellator's bitset (a bit per grid vertex), which key frames are coded from in place.
+//! **Memory** follows the cut and the frames in flight: the cut, its frontiers and queues
+//! (all sized by the cut), and the logs of the last [`LOGS`] frames; no split set of any
+//! base is stored, and nothing is sized by the map. What needs a bitset over the map (a
+//! rebuild from scratch, a key frame's coding) borrows a tessellator from the server's
+//! [`Scratch`], one per blocking frame maker, shared by every viewer.
+//!
+//! **Two steps**: [`ViewerCore::begin_frame`] makes a frame when it is cheap (an update
+//! of at most [`INLINE_CHANGES`] changes coded as a change frame) and otherwise stops
+//! before the heavy part (more changes, a rebuild, a key frame's coding), which
+//! [`ViewerCore::finish_frame`] does: the shell makes the first on its async workers and
+//! the second on a blocking thread, so nothing heavy runs on the workers whatever the
+//! budget.
 
 use std::collections::VecDeque;
 
@@ -42,7 +50,7 @@ use crate::sim::physics::{VehicleState, altitude};
 use crate::terrain::heightfield::Heightfield;
 use crate::terrain::variance::VarianceTree;
 use crate::tessellate::camera::Camera;
-use crate::tessellate::{Coherent, Limits, Mode, Scales};
+use crate::tessellate::{Coherent, Limits, Mode, Scales, Scratch, Step};
 
 pub mod admission;
 mod camera;
@@ -51,9 +59,10 @@ pub mod link;
 
 pub use camera::apply_view;
 
-/// The largest budget whose updates [`ViewerCore::next_is_cheap`] calls cheap: about
-/// half a millisecond a frame at 65,536 triangles on `kossou`.
-const CHEAP_BUDGET: u32 = 1 << 17;
+/// The most changes (splits and merges, forced ones included) [`ViewerCore::begin_frame`]
+/// makes before it leaves the rest to [`ViewerCore::finish_frame`]: a driving frame makes
+/// 1 to 50, a degree of turning a few hundred; a thousand cost about 0.2 ms.
+pub const INLINE_CHANGES: u32 = 1024;
 
 /// Frames whose change logs are kept: a base older than this (the acknowledged frame, or a
 /// key frame still pending) gets a key frame. Half a second at 60 Hz, so that a key frame
@@ -78,11 +87,13 @@ pub enum Event {
     View(ViewChange),
 }
 
-/// What the core needs of the world: the terrain it tessellates, shared by every viewer.
+/// What the core needs of the world: the terrain it tessellates and the from-scratch
+/// tessellators it borrows, shared by every viewer.
 #[derive(Clone, Copy)]
 pub struct Scene<'a> {
     pub terrain: &'a Terrain,
     pub variance: &'a VarianceTree,
+    pub scratch: &'a Scratch,
 }
 
 impl Scene<'_> {
@@ -96,6 +107,19 @@ impl Scene<'_> {
             v: self.terrain.map.v_scale,
         }
     }
+}
+
+/// What [`ViewerCore::begin_frame`] left to [`ViewerCore::finish_frame`].
+#[derive(Clone, Copy, Debug)]
+enum Left {
+    /// The cut (more changes, or a rebuild), then the payload.
+    Cut,
+    /// The key frame's coding; the frame is logged.
+    Key {
+        frame: u64,
+        mode: Mode,
+        changes: u32,
+    },
 }
 
 /// One frame to send.
@@ -171,8 +195,8 @@ pub struct ViewerCore {
     /// for another, or a newer key frame supersedes it.
     pending_key: Option<u64>,
     key_requested: bool,
-    /// A budget or view change arrived since the last frame (it may rebuild the cut).
-    steered: bool,
+    /// What [`Self::begin_frame`] left to [`Self::finish_frame`].
+    left: Option<Left>,
     next: u64,
     /// Scratch: the composed change list.
     changes: Vec<u32>,
@@ -230,7 +254,7 @@ impl ViewerCore {
             acked: None,
             pending_key: None,
             key_requested: false,
-            steered: false,
+            left: None,
             next: 0,
             changes: Vec::new(),
         }
@@ -238,10 +262,7 @@ impl ViewerCore {
 
     pub fn handle(&mut self, event: Event) {
         match event {
-            Event::Budget(b) => {
-                self.budget = self.caps.budget(b);
-                self.steered = true;
-            }
+            Event::Budget(b) => self.budget = self.caps.budget(b),
             // Only frames made can be acknowledged; a later ack wins. An ack of the pending
             // key frame, or of a frame after it (decoded against it), ends its wait.
             Event::Acked(f) if f < self.next => {
@@ -254,30 +275,8 @@ impl ViewerCore {
                 self.acked = None;
                 self.pending_key = None;
             }
-            Event::View(v) => {
-                self.steered |= self.view != Some(v);
-                self.view = Some(v);
-            }
+            Event::View(v) => self.view = Some(v),
         }
-    }
-
-    /// Whether the next frame, at `vehicle`, should be cheap: the last one updated the cut,
-    /// the camera has not jumped, nothing asks for a key frame or may move the camera by more
-    /// than a step, a base is at hand and the budget is moderate. The shell may then make it in line rather than hand it to a
-    /// blocking thread (two context switches and a wait for the scheduler per frame).
-    pub fn next_is_cheap(&self, scene: &Scene, vehicle: &VehicleState) -> bool {
-        let limits = Limits {
-            budget: self.budget,
-            threshold_px: 0.0,
-        };
-        self.coherent.mode() == Mode::Update
-            && !self.key_requested
-            && !self.steered
-            && self.budget <= CHEAP_BUDGET
-            && self.delta_base().is_some()
-            && !self
-                .coherent
-                .jumped(&self.camera_at(scene, vehicle), limits, scene.scales())
     }
 
     pub fn budget(&self) -> u32 {
@@ -318,8 +317,8 @@ impl ViewerCore {
     }
 
     /// The mesh of the cut now, as the viewer rebuilds it from the frames.
-    pub fn mesh(&mut self, out: &mut crate::tessellate::Mesh) {
-        self.coherent.mesh(out);
+    pub fn mesh(&self, scratch: &Scratch, out: &mut crate::tessellate::Mesh) {
+        self.coherent.mesh(scratch, out);
     }
 
     /// Bytes of per-viewer state currently reserved.
@@ -333,7 +332,7 @@ impl ViewerCore {
             + self.changes.capacity() * 4
     }
 
-    /// Makes the next frame for a camera at `vehicle`.
+    /// Makes the next frame for a camera at `vehicle`, whatever it costs.
     pub fn make_frame(&mut self, scene: &Scene, vehicle: &VehicleState) -> Made {
         let camera = self.camera_at(scene, vehicle);
         self.make_frame_at(scene, &camera)
@@ -341,21 +340,83 @@ impl ViewerCore {
 
     /// Makes the next frame for `camera` (the view change is the caller's to apply).
     pub fn make_frame_at(&mut self, scene: &Scene, camera: &Camera) -> Made {
+        match self.begin_at(scene, camera, u32::MAX, false) {
+            Some(made) => made,
+            None => self.finish_frame(scene),
+        }
+    }
+
+    /// Makes the next frame for a camera at `vehicle` if it is cheap: `None` when heavy
+    /// work is left (more than [`INLINE_CHANGES`] changes, a rebuild, a key frame), which
+    /// [`Self::finish_frame`] must then do before anything else.
+    pub fn begin_frame(&mut self, scene: &Scene, vehicle: &VehicleState) -> Option<Made> {
+        let camera = self.camera_at(scene, vehicle);
+        self.begin_at(scene, &camera, INLINE_CHANGES, true)
+    }
+
+    /// Whether [`Self::begin_frame`] left work for [`Self::finish_frame`].
+    pub fn unfinished(&self) -> bool {
+        self.left.is_some()
+    }
+
+    /// Finishes the frame [`Self::begin_frame`] left.
+    pub fn finish_frame(&mut self, scene: &Scene) -> Made {
+        match self.left.take() {
+            Some(Left::Cut) => {
+                let mode = self.coherent.finish(
+                    scene.heights(),
+                    scene.variance,
+                    scene.scales(),
+                    scene.scratch,
+                );
+                self.coded(scene, mode, false)
+                    .expect("a frame not made in line is always made")
+            }
+            Some(Left::Key {
+                frame,
+                mode,
+                changes,
+            }) => self.key_frame(scene, frame, mode, changes),
+            None => panic!("finish_frame without an unfinished frame: a caller bug"),
+        }
+    }
+
+    /// The cut for `camera` within `most` changes, then its payload; `None` (with
+    /// `left` set) when heavy work is left and `inline` says not to do it.
+    fn begin_at(
+        &mut self,
+        scene: &Scene,
+        camera: &Camera,
+        most: u32,
+        inline: bool,
+    ) -> Option<Made> {
         let limits = Limits {
             budget: self.budget,
             threshold_px: 0.0,
         };
-        let mode = self.coherent.frame(
+        let step = self.coherent.begin(
             scene.heights(),
             scene.variance,
             scene.scales(),
             camera,
             limits,
             false,
+            most,
         );
+        match step {
+            Step::Done(mode) => self.coded(scene, mode, inline),
+            Step::Unfinished => {
+                self.left = Some(Left::Cut);
+                None
+            }
+        }
+    }
+
+    /// Logs the cut's changes as a new frame and codes it: a change frame against the
+    /// base, or a key frame (left for later when `inline`).
+    fn coded(&mut self, scene: &Scene, mode: Mode, inline: bool) -> Option<Made> {
         let frame = self.next;
         self.next += 1;
-        self.steered = false;
         let log = self.log_changes(scene.heights());
         let changes = log.len() as u32;
         self.logs.push_back((frame, log));
@@ -364,20 +425,39 @@ impl ViewerCore {
         }
         let mut payload = Vec::new();
         let base = self.delta_base().filter(|_| !self.key_requested);
-        let coded = base.is_some_and(|b| self.encode_changes(scene, b, &mut payload));
-        let base = if coded {
-            base
-        } else {
-            payload.clear();
-            self.encode_key(scene, &mut payload);
-            self.key_requested = false;
-            // Supersedes any older pending key frame.
-            self.pending_key = Some(frame);
-            None
-        };
+        if let Some(base) = base
+            && self.encode_changes(scene, base, &mut payload)
+        {
+            return Some(Made {
+                frame,
+                base: Some(base),
+                payload,
+                mode,
+                changes,
+                triangles: self.coherent.triangles(),
+            });
+        }
+        if inline {
+            self.left = Some(Left::Key {
+                frame,
+                mode,
+                changes,
+            });
+            return None;
+        }
+        Some(self.key_frame(scene, frame, mode, changes))
+    }
+
+    /// Codes the cut as frame `frame`'s key frame.
+    fn key_frame(&mut self, scene: &Scene, frame: u64, mode: Mode, changes: u32) -> Made {
+        let mut payload = Vec::new();
+        self.encode_key(scene, &mut payload);
+        self.key_requested = false;
+        // Supersedes any older pending key frame.
+        self.pending_key = Some(frame);
         Made {
             frame,
-            base,
+            base: None,
             payload,
             mode,
             changes,
@@ -450,11 +530,13 @@ impl ViewerCore {
             .is_ok()
     }
 
-    /// Codes the whole cut as a key frame (from the tessellator's own bitset: no copy).
+    /// Codes the whole cut as a key frame (from a borrowed tessellator's bitset).
     fn encode_key(&mut self, scene: &Scene, out: &mut Vec<u8>) {
         let encoder = &mut self.key_encoder;
         self.coherent
-            .with_split_set(|split| encoder.encode(split, scene.heights().samples(), None, out))
+            .with_split_set(scene.scratch, |split| {
+                encoder.encode(split, scene.heights().samples(), None, out)
+            })
             .expect("the tessellator's cuts are closed under parent");
     }
 }

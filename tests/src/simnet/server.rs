@@ -284,6 +284,7 @@ impl Sim {
         let scene = Scene {
             terrain: &self.terrain,
             variance: &self.variance,
+            scratch: &self.scratch,
         };
         let made = s.core.make_frame(&scene, &veh.state);
         let acked = s.core.acked();

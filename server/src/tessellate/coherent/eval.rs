@@ -52,8 +52,11 @@ pub(super) const PRIORITY_TOLERANCE: f32 = 0.02;
 pub(super) struct Entry {
     pub fixed: Fixed,
     pub prio: f32,
-    /// Bit 0 wanted, 1 under the eye, 2 dropped (as in [`Lanes`]).
+    /// Bit 0 wanted, 1 under the eye, 2 dropped (as in [`Lanes`]); bit 3 is the
+    /// frame's own mark (taken for evaluation).
     pub flags: u8,
+    /// Names this evaluation in the queue and schedules (older entries are stale).
+    pub stamp: u32,
     /// Due when the eye's travel reaches `due_moved` or its turning `due_turned`.
     pub due_moved: f64,
     pub due_turned: f64,
@@ -66,6 +69,7 @@ impl Entry {
             fixed,
             prio: 0.0,
             flags: 0,
+            stamp: 0,
             due_moved: f64::NEG_INFINITY,
             due_turned: f64::NEG_INFINITY,
         }
@@ -74,15 +78,16 @@ impl Entry {
     /// Keeps lane `i` of an evaluation made at these odometer readings.
     pub fn keep(&mut self, l: &Lanes, i: usize, moved: f64, turned: f64) {
         self.prio = l.prio[i];
-        self.flags = super::lane_flags(l, i);
+        self.flags = lane_flags(l, i);
         let (m, t) = l.slack[i];
         self.due_moved = moved + f64::from(m);
         self.due_turned = turned + f64::from(t);
     }
+}
 
-    pub fn due(&self, moved: f64, turned: f64) -> bool {
-        moved >= self.due_moved || turned >= self.due_turned
-    }
+/// Lane `i`'s verdicts as [`Entry`] flags.
+fn lane_flags(l: &Lanes, i: usize) -> u8 {
+    (l.wanted >> i & 1) as u8 | ((l.under >> i & 1) as u8) << 1 | ((l.dropped >> i & 1) as u8) << 2
 }
 
 impl Coherent {
