@@ -1,0 +1,140 @@
+//! The server-wide colour budget: frames first, colour in what is left.
+//!
+//! Each viewer's colour task ([`super::viewer`]'s `stream_color`) paces its tiles with a
+//! token bucket; this decides the bucket's rate, and whether it may send now:
+//!
+//! - **One total, shared equally.** [`super::Options::color_total`] bytes a second for
+//!   every viewer together, split equally among the viewers that still want tiles (their
+//!   windows not yet full), each at most [`super::Options::color_rate`]. A viewer whose
+//!   windows are full stops counting, so the others' shares grow. Before, each viewer had
+//!   its own 2 MB/s, so N joiners cost N times the colour: 40 joining at once were sent
+//!   their whole colour maps (76.8 MB on `data/kossou`) in the first 5 s, which swamped
+//!   the server's core and the viewers' (the longest frame gap of a joiner after its first
+//!   frame: 6.4 s, `/tmp/join.sh storm40` on the old build, a shared 2-core machine).
+//! - **Frames first.** A viewer's frame that starts more than [`LATE`] after its tick was
+//!   due (the core is busy: making frames, joining viewers, sending) stops every colour
+//!   task for [`BACK_OFF`]: colour never competes with frames that are already behind.
+//!
+//! The decisions take the time as a parameter (the shell passes its clock), so they are
+//! tested without one.
+
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::time::{Duration, Instant};
+
+/// A frame starting later than this after its tick was due counts as behind.
+pub const LATE: Duration = Duration::from_millis(8);
+/// Colour waits this long after the last frame that was behind.
+pub const BACK_OFF: Duration = Duration::from_millis(250);
+
+/// The colour budget every viewer's colour task shares.
+#[derive(Debug)]
+pub struct ColorBudget {
+    /// Bytes a second for one viewer at most ([`super::Options::color_rate`]).
+    per_viewer: u64,
+    /// Bytes a second for all together ([`super::Options::color_total`]).
+    total: u64,
+    /// Viewers that still want tiles.
+    wanting: AtomicUsize,
+    /// When a frame was last behind: nanoseconds after `epoch`, plus one (0: never).
+    late_at: AtomicU64,
+    epoch: Instant,
+}
+
+impl ColorBudget {
+    pub fn new(per_viewer: u64, total: u64, epoch: Instant) -> ColorBudget {
+        ColorBudget {
+            per_viewer,
+            total,
+            wanting: AtomicUsize::new(0),
+            late_at: AtomicU64::new(0),
+            epoch,
+        }
+    }
+
+    /// Bytes a second for one viewer that wants tiles, now: an equal share of the total,
+    /// at most the per-viewer rate.
+    pub fn rate(&self) -> f64 {
+        let n = self.wanting.load(Ordering::Relaxed).max(1);
+        (self.total as f64 / n as f64).min(self.per_viewer as f64)
+    }
+
+    /// Viewers counted as wanting tiles.
+    pub fn wanting(&self) -> usize {
+        self.wanting.load(Ordering::Relaxed)
+    }
+
+    /// A viewer starts or stops wanting tiles (its windows not full, or full again).
+    pub fn set_wanting(&self, was: bool, now: bool) {
+        match (was, now) {
+            (false, true) => {
+                self.wanting.fetch_add(1, Ordering::Relaxed);
+            }
+            (true, false) => {
+                self.wanting.fetch_sub(1, Ordering::Relaxed);
+            }
+            _ => {}
+        }
+    }
+
+    /// A frame whose tick was due at `due` starts at `now`: behind if later than [`LATE`].
+    pub fn frame_started(&self, due: Instant, now: Instant) {
+        if now.saturating_duration_since(due) > LATE {
+            let ns = now.saturating_duration_since(self.epoch).as_nanos();
+            let ns = u64::try_from(ns).unwrap_or(u64::MAX - 1) + 1;
+            self.late_at.fetch_max(ns, Ordering::Relaxed);
+        }
+    }
+
+    /// Whether colour must wait at `now`: a frame was behind less than [`BACK_OFF`] ago.
+    pub fn frames_first(&self, now: Instant) -> bool {
+        let late = self.late_at.load(Ordering::Relaxed);
+        if late == 0 {
+            return false;
+        }
+        let at = self.epoch + Duration::from_nanos(late - 1);
+        now.saturating_duration_since(at) < BACK_OFF
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_total_is_shared_equally_by_the_viewers_that_want_tiles() {
+        let b = ColorBudget::new(2_000_000, 4_000_000, Instant::now());
+        assert_eq!(b.rate(), 2_000_000.0, "nobody wanting: one viewer's rate");
+        b.set_wanting(false, true);
+        assert_eq!(b.rate(), 2_000_000.0, "one viewer: its own cap");
+        for _ in 0..39 {
+            b.set_wanting(false, true);
+        }
+        assert_eq!(b.wanting(), 40);
+        assert_eq!(b.rate(), 100_000.0, "40 share 4 MB/s");
+        b.set_wanting(true, true);
+        b.set_wanting(false, false);
+        assert_eq!(b.wanting(), 40, "no change, no count");
+        for _ in 0..38 {
+            b.set_wanting(true, false);
+        }
+        assert_eq!(b.rate(), 2_000_000.0, "two left: each at its cap");
+    }
+
+    #[test]
+    fn a_late_frame_holds_colour_back_for_a_while() {
+        let t0 = Instant::now();
+        let ms = |n| t0 + Duration::from_millis(n);
+        let b = ColorBudget::new(2_000_000, 4_000_000, t0);
+        assert!(!b.frames_first(ms(0)));
+        b.frame_started(ms(100), ms(100) + LATE);
+        assert!(!b.frames_first(ms(110)), "on time (at the bound)");
+        b.frame_started(ms(100), ms(109));
+        assert!(b.frames_first(ms(109)));
+        assert!(b.frames_first(ms(109) + BACK_OFF - Duration::from_nanos(1)));
+        assert!(!b.frames_first(ms(109) + BACK_OFF));
+        // An older late frame reported after a newer one does not shorten the wait.
+        b.frame_started(ms(500), ms(520));
+        b.frame_started(ms(400), ms(420));
+        assert!(b.frames_first(ms(520) + BACK_OFF / 2));
+    }
+}
