@@ -15,16 +15,23 @@
 //!   colour to a trickle (1/16 of its rate, so colour never stops for good on a busy
 //!   core) for [`BACK_OFF`]: colour does not compete with frames that are already behind.
 //!
-//! Measured (server pinned to CPU 0, 40 viewers of 32,768 triangles at 60 Hz joining at
-//! once, each driving, `data/kossou`; on a 2-core machine shared with other builds, so
-//! the server ran at real-time priority, `chrt -r 10`, old and new back to back): the
-//! longest frame gap of any joiner after its first frame went from 3.66 s to 1.13 s, the
-//! slowest first frame from 1.78 s to 0.36 s, the colour sent in the first 5 s from
-//! 76.8 MB to 8 MB. With 20 driving and 10 joining: the 20's longest gap 425 → 300 ms, the
-//! 10's 216 → 126 ms. What is left is the frames themselves: at 30–40 viewers that machine's
-//! core was saturated by frames alone (500–670 µs of CPU a frame against about 270 µs on a
-//! quiet one), acknowledgements fell more than 32 frames behind, and key frames (over 100
-//! in 5 s, made one at a time on the one blocking maker) followed.
+//! Measured (server pinned to CPU 0, viewers of 32,768 triangles at 60 Hz, each driving,
+//! `data/kossou`; on a 2-core machine shared with other builds, so server and load
+//! generator ran at real-time priority, `chrt -r 10`, old and new back to back; the
+//! longest frame gap of a viewer after its first frame, and the slowest first frame):
+//!
+//! | join | old | new |
+//! | --- | --- | --- |
+//! | 40 at once | gap 3.66–3.70 s, first 1.33–1.78 s | gap 1.13–2.16 s, first 0.23–0.36 s |
+//! | 20 at once | gap 384 ms, first 336 ms | gap 130 ms, first 143 ms |
+//! | 10 while 20 drive | the 20: 425–694 ms; the 10: 154–216 ms | the 20: 141–517 ms; the 10: 126–205 ms |
+//!
+//! The colour sent in the first 5 s of the 40: 76.8 MB before, 8 MB now. What is left is
+//! the frames themselves: that machine's core spent 500–670 µs of CPU a frame (about 270
+//! on a quiet one), so 40 viewers at 60 Hz saturated it with frames alone, their
+//! acknowledgements fell more than 32 frames behind and key frames followed (83–113 in
+//! 5 s, made one at a time on the one blocking maker); the first key frames of joiners
+//! queue there too, ahead of a driving viewer's rebuild.
 //!
 //! The decisions take the time as a parameter (the shell passes its clock), so they are
 //! tested without one.
