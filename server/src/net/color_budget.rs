@@ -24,7 +24,8 @@
 //! | --- | --- | --- |
 //! | 40 at once | gap 3.66–3.70 s, first 1.33–1.78 s | gap 1.13–2.16 s, first 0.23–0.36 s |
 //! | 20 at once | gap 384 ms, first 336 ms | gap 130 ms, first 143 ms |
-//! | 10 while 20 drive | the 20: 425–694 ms; the 10: 154–216 ms | the 20: 141–517 ms; the 10: 126–205 ms |
+//! | 10 while 20 drive: the 20 | 425–694 ms | 141–517 ms |
+//! | 10 while 20 drive: the 10 | 154–216 ms | 126–205 ms |
 //!
 //! The colour sent in the first 5 s of the 40: 76.8 MB before, 8 MB now. What is left is
 //! the frames themselves: that machine's core spent 500–670 µs of CPU a frame (about 270
