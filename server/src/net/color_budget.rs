@@ -10,10 +10,15 @@
 //!   its own 2 MB/s, so N joiners cost N times the colour: 40 joining at once were sent
 //!   their whole colour maps (76.8 MB on `data/kossou`) in the first 5 s (15.3 MB/s),
 //!   which swamped the server's core and the viewers'.
+//! - **Spread, not at once.** Each tile also comes out of one server-wide bucket filled at
+//!   the total and holding at most [`BURST`] of it (or the largest tile): with a
+//!   per-viewer share alone, every joiner's bucket filled at the same pace and all sent a
+//!   tile in the same instant (20 joining at once: the longest gap after the first frame
+//!   was 112 ms at a total of 1 MB/s, against 54 ms with no colour at all).
 //! - **Frames first.** A viewer's frame that starts more than [`LATE`] after its tick was
-//!   due (the core is busy: making frames, joining viewers, sending) cuts every viewer's
-//!   colour to a trickle (1/16 of its rate, so colour never stops for good on a busy
-//!   core) for [`BACK_OFF`]: colour does not compete with frames that are already behind.
+//!   due (the core is busy: making frames, joining viewers, sending) slows the server-wide
+//!   bucket to a trickle ([`TRICKLE`], so colour never stops for good on a busy core) for
+//!   [`BACK_OFF`]: colour does not compete with frames that are already behind.
 //!
 //! Measured (server pinned to CPU 0, viewers of 32,768 triangles at 60 Hz, each driving,
 //! `data/kossou`; on a 2-core machine shared with other builds, so server and load
@@ -37,6 +42,7 @@
 //! The decisions take the time as a parameter (the shell passes its clock), so they are
 //! tested without one.
 
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
@@ -44,6 +50,11 @@ use std::time::{Duration, Instant};
 pub const LATE: Duration = Duration::from_millis(8);
 /// Colour trickles for this long after the last frame that was behind.
 pub const BACK_OFF: Duration = Duration::from_millis(250);
+/// The share of the total that colour goes at while frames are behind.
+pub const TRICKLE: f64 = 1.0 / 16.0;
+/// The server-wide bucket holds this much of the total at most (and at least the largest
+/// tile): tiles go out spread, not all viewers' at once.
+pub const BURST: Duration = Duration::from_millis(50);
 
 /// The colour budget every viewer's colour task shares.
 #[derive(Debug)]
@@ -57,6 +68,8 @@ pub struct ColorBudget {
     /// When a frame was last behind: nanoseconds after `epoch`, plus one (0: never).
     late_at: AtomicU64,
     epoch: Instant,
+    /// The server-wide bucket: its bytes, and when it was last filled.
+    bucket: Mutex<(f64, Option<Instant>)>,
 }
 
 impl ColorBudget {
@@ -67,6 +80,7 @@ impl ColorBudget {
             wanting: AtomicUsize::new(0),
             late_at: AtomicU64::new(0),
             epoch,
+            bucket: Mutex::new((0.0, None)),
         }
     }
 
@@ -75,6 +89,32 @@ impl ColorBudget {
     pub fn rate(&self) -> f64 {
         let n = self.wanting.load(Ordering::Relaxed).max(1);
         (self.total as f64 / n as f64).min(self.per_viewer as f64)
+    }
+
+    /// A viewer with `own` bytes in its own bucket sends at `now`: `pick(allowance)`
+    /// chooses what to send within the allowance (its own bytes, and no more than the
+    /// server-wide bucket holds) and returns the bytes chosen, which both buckets lose
+    /// (the caller takes them from its own). Returns them. The server-wide bucket fills at
+    /// the total, a trickle of it while frames are behind, up to [`BURST`] of it or
+    /// `largest` (a tile), whichever is more.
+    pub fn spend(
+        &self,
+        now: Instant,
+        largest: u64,
+        own: u64,
+        pick: impl FnOnce(u64) -> u64,
+    ) -> u64 {
+        let behind = self.frames_first(now);
+        let mut b = self.bucket.lock().unwrap_or_else(|e| e.into_inner());
+        let rate = self.total as f64 * if behind { TRICKLE } else { 1.0 };
+        let burst = (self.total as f64 * BURST.as_secs_f64()).max(largest as f64);
+        let since =
+            b.1.map_or(Duration::ZERO, |t| now.saturating_duration_since(t));
+        b.0 = (b.0 + rate * since.as_secs_f64()).min(burst);
+        b.1 = Some(b.1.map_or(now, |t| t.max(now)));
+        let spent = pick(own.min(b.0 as u64));
+        b.0 -= spent as f64;
+        spent
     }
 
     /// Viewers counted as wanting tiles.
@@ -137,6 +177,32 @@ mod tests {
             b.set_wanting(true, false);
         }
         assert_eq!(b.rate(), 2_000_000.0, "two left: each at its cap");
+    }
+
+    #[test]
+    fn the_server_wide_bucket_spreads_tiles_and_trickles_while_frames_are_behind() {
+        let t0 = Instant::now();
+        let ms = |n| t0 + Duration::from_millis(n);
+        // 1 MB/s for all: 50 kB at most in the bucket, or the largest tile (20 kB here).
+        let b = ColorBudget::new(2_000_000, 1_000_000, t0);
+        assert_eq!(
+            b.spend(ms(0), 20_000, 1_000_000, |a| a),
+            0,
+            "empty at first"
+        );
+        // A second later it holds its burst only; a viewer's own bytes bound it too.
+        assert_eq!(b.spend(ms(1_000), 20_000, 30_000, |a| a), 30_000);
+        assert_eq!(b.spend(ms(1_000), 20_000, 1_000_000, |a| a), 20_000);
+        // What the picker does not take stays.
+        assert_eq!(b.spend(ms(1_010), 20_000, 1_000_000, |_| 0), 0);
+        assert_eq!(b.spend(ms(1_010), 20_000, 1_000_000, |a| a), 10_000);
+        // Frames behind: a sixteenth of the rate (270 ms at 62.5 kB/s).
+        b.frame_started(ms(1_100), ms(1_120));
+        assert_eq!(b.spend(ms(1_280), 20_000, 1_000_000, |a| a), 16_875);
+        // Never less than the largest tile in the bucket, so every tile can go.
+        let small = ColorBudget::new(2_000_000, 100_000, t0);
+        assert_eq!(small.spend(ms(0), 20_000, 1_000_000, |a| a), 0);
+        assert_eq!(small.spend(ms(10_000), 20_000, 1_000_000, |a| a), 20_000);
     }
 
     #[test]

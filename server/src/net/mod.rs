@@ -14,6 +14,7 @@
 pub mod color_budget;
 mod handshake;
 pub mod link;
+pub mod makers;
 pub mod stats;
 pub mod viewer;
 pub mod web;
@@ -139,7 +140,8 @@ pub struct Shared {
     tickets: Mutex<HashMap<Ticket, handshake::Claim>>,
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
-    makers: Arc<tokio::sync::Semaphore>,
+    /// Streaming viewers' frames before joining viewers' first ones ([`makers`]).
+    makers: Arc<makers::Makers>,
     /// Evicted connections being finished only to be closed with their reason, at most
     /// [`Options::max_pending`] at once (past that, one is dropped unfinished): the cap
     /// bounds the handshakes in flight at twice itself, whatever the rate of arrivals.
@@ -305,7 +307,7 @@ impl Server {
                 evict: HashMap::new(),
             }),
             tickets: Mutex::new(HashMap::new()),
-            makers: Arc::new(tokio::sync::Semaphore::new(makers())),
+            makers: Arc::new(makers::Makers::new(makers())),
             unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),
         });

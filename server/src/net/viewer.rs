@@ -359,10 +359,6 @@ async fn write_color(
     send.write_msg(&msg).await
 }
 
-/// The share of its rate a viewer's colour goes at while frames are behind
-/// ([`super::color_budget`]).
-const TRICKLE: f64 = 1.0 / 16.0;
-
 /// How often the colour task looks at the camera and its budget.
 const COLOR_TICK: Duration = Duration::from_millis(50);
 
@@ -394,12 +390,6 @@ async fn stream_color(
         let now = tokio::time::Instant::now();
         let rate = shared.color.rate();
         let burst = (rate / 4.0).max(largest);
-        // While frames are behind, a trickle: colour never stops for good on a busy core.
-        let rate = if shared.color.frames_first(now.into_std()) {
-            rate * TRICKLE
-        } else {
-            rate
-        };
         tokens = (tokens + rate * now.duration_since(last).as_secs_f64()).min(burst);
         last = now;
         let camera = {
@@ -410,7 +400,15 @@ async fn stream_color(
                 .map(|v| (v.state.x / h_scale, v.state.z / h_scale))
         };
         let Some(camera) = camera else { continue };
-        let (msgs, spent) = colors.step(camera, tokens as u64, &cost);
+        let mut msgs = Vec::new();
+        let spent =
+            shared
+                .color
+                .spend(now.into_std(), largest as u64, tokens as u64, |allowance| {
+                    let (m, spent) = colors.step(camera, allowance, &cost);
+                    msgs = m;
+                    spent
+                });
         tokens -= spent as f64;
         want.set(!colors.complete());
         for m in msgs {
@@ -585,7 +583,7 @@ async fn frames(
         } else {
             // The permit goes with the job: it is held until the job ends, even if this
             // viewer's task is dropped while waiting for it.
-            let Ok(permit) = shared.makers.clone().acquire_owned().await else {
+            let Ok(permit) = shared.makers.acquire(*sent == 0).await else {
                 return FramesEnd::Failed("the server is shutting down");
             };
             match tokio::task::spawn_blocking(move || {
