@@ -22,22 +22,22 @@
 //!
 //! Measured (server pinned to CPU 0, viewers of 32,768 triangles at 60 Hz, each driving,
 //! `data/kossou`; on a 2-core machine shared with other builds, so server and load
-//! generator ran at real-time priority, `chrt -r 10`, old and new back to back; the
-//! longest frame gap of a viewer after its first frame, and the slowest first frame):
+//! generator ran at real-time priority, `chrt -r 10`, back to back; the longest frame gap
+//! of a viewer after its first frame; "shares" is the per-viewer share alone, "now" adds
+//! the server-wide bucket and [`super::makers`]' order):
 //!
-//! | join | old | new |
-//! | --- | --- | --- |
-//! | 40 at once | gap 3.66–3.70 s, first 1.33–1.78 s | gap 1.13–2.16 s, first 0.23–0.36 s |
-//! | 20 at once | gap 384 ms, first 336 ms | gap 130 ms, first 143 ms |
-//! | 10 while 20 drive: the 20 | 425–694 ms | 141–517 ms |
-//! | 10 while 20 drive: the 10 | 154–216 ms | 126–205 ms |
+//! | join | old | shares | now |
+//! | --- | --- | --- | --- |
+//! | 20 at once | 384 ms | 125–130 ms | 35–43 ms |
+//! | 10 while 20 drive: the 20 | 425–694 ms | 141–517 ms | 72–100 ms |
+//! | 10 while 20 drive: the 10 | 154–216 ms | 126–205 ms | 49–108 ms |
+//! | 40 at once | 3.66–3.70 s | 1.13–2.16 s | 1.09 s |
 //!
-//! The colour sent in the first 5 s of the 40: 76.8 MB before, 8 MB now. What is left is
-//! the frames themselves: that machine's core spent 500–670 µs of CPU a frame (about 270
-//! on a quiet one), so 40 viewers at 60 Hz saturated it with frames alone, their
-//! acknowledgements fell more than 32 frames behind and key frames followed (83–113 in
-//! 5 s, made one at a time on the one blocking maker); the first key frames of joiners
-//! queue there too, ahead of a driving viewer's rebuild.
+//! The colour sent in the first 5 s of the 40: 76.8 MB before, 8 MB now. What is left at
+//! 40 is the frames themselves: that machine's core spent 450–600 µs of CPU a frame (about
+//! 270 on a quiet one), so 40 viewers at 60 Hz saturated it with frames alone, their
+//! acknowledgements fell more than 32 frames behind and key frames followed (80–150 in
+//! 5 s, one at a time on the one blocking maker).
 //!
 //! The decisions take the time as a parameter (the shell passes its clock), so they are
 //! tested without one.

@@ -10,8 +10,10 @@
 //! viewer, which is the longest gap after the first frame a join storm showed (110–130 ms
 //! with 20, 1.1–2.2 s with 40 on that loaded machine, where acknowledgements then fell
 //! behind and more key frames followed). A driving viewer's rebuild waited the same way.
-//! Now a waiting frame of a viewer that has a frame out goes before every first frame; first
-//! frames go in the order they asked.
+//! Now a waiting frame of a viewer that has a frame out goes before every first frame;
+//! first frames go in the order they asked. Each second frame then waited 1–14 ms; with
+//! the colour spread too ([`super::color_budget`]), 20 joining at once had their longest
+//! gap after the first frame at 35–43 ms.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
