@@ -174,8 +174,8 @@ mod tests {
             let _ = asked_rx.await;
             tokio::task::yield_now().await;
         }
-        let gone = m.acquire(false);
-        let gone = tokio::spawn(gone);
+        let m2 = m.clone();
+        let gone = tokio::spawn(async move { m2.acquire(false).await.map(drop) });
         tokio::task::yield_now().await;
         gone.abort();
         let _ = gone.await;
