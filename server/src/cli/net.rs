@@ -72,6 +72,12 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = net::COLOR_RATE,
           value_parser = clap::value_parser!(u64).range(1_000..))]
     pub color_rate: u64,
+    /// Colour tile bytes a second at most, every viewer together: shared equally by the
+    /// viewers still getting tiles (each at most --color-rate), and slowed to a trickle
+    /// while frames are behind.
+    #[arg(long, default_value_t = net::COLOR_TOTAL,
+          value_parser = clap::value_parser!(u64).range(1_000..))]
+    pub color_total: u64,
     /// Colour window offered: tiles a side kept per level (1 ..= 16); a viewer asking
     /// less gets its own.
     #[arg(long, default_value_t = roam_protocol::tiles::DEFAULT_WINDOW,
@@ -130,6 +136,7 @@ impl ServeArgs {
             hold: Duration::from_secs_f64(self.hold),
             summary_every: Duration::from_secs_f64(self.log_every),
             color_rate: self.color_rate,
+            color_total: self.color_total,
             color_window: self.color_window,
             ..Options::new(self.listen, token)
         })

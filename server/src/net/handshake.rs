@@ -409,15 +409,9 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
             });
         }
     }
-    // Held vehicles have no seat: without a bound, a driver that joins and drops over
-    // and over would fill the world with them. At the limit, the oldest held one goes.
-    let snap = shared.snapshots.borrow().clone();
-    if snap.vehicles.len() >= shared.max_vehicles
-        && let Some(&oldest) = snap.held.first()
-    {
-        shared.tickets().retain(|_, c| c.vehicle != oldest);
-        let _ = shared.world.send((Event::Leave(oldest), None));
-    }
+    // At the limit, the world frees the oldest held vehicle before it seats this one
+    // ([`crate::sim::world_core::WorldCore::with_limit`]): decided there, in the order the
+    // joins arrive, so two at once free two distinct vehicles.
     let vehicle = ask(shared, Event::Join).await.map_err(|()| {
         if *shared.shutdown.borrow() {
             Refusal::Shutdown
@@ -427,6 +421,11 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
     })?;
     let ticket = random_ticket();
     let mut tickets = shared.tickets();
+    // The freed vehicles' tickets name nothing now. Taken before this join's own ticket
+    // goes in: a vehicle freed before this join was answered is never this one.
+    for freed in shared.world_stats.take_evicted() {
+        tickets.retain(|_, c| c.vehicle != freed);
+    }
     // A ticket names one vehicle, and a vehicle has one ticket (ids are reused).
     tickets.retain(|_, c| c.vehicle != vehicle);
     tickets.insert(

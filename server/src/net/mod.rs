@@ -11,8 +11,10 @@
 //! on a second endpoint ([`web`]), admitted and served by the same code as native viewers
 //! ([`link`] hides which), in the same world, under the same limits.
 
+pub mod color_budget;
 mod handshake;
 pub mod link;
+pub mod makers;
 pub mod stats;
 pub mod viewer;
 pub mod web;
@@ -33,6 +35,8 @@ use crate::viewer::admission::{Admission, PendingId};
 use roam_protocol::messages::Ticket;
 use stats::ServeStats;
 use world_loop::Inbound;
+
+pub use handshake::MAX_CONTROL;
 
 /// How to run a server.
 pub struct Options {
@@ -60,6 +64,10 @@ pub struct Options {
     /// Colour tile bytes a second at most, per viewer (the coarsest tile, sent before the
     /// first frame, is outside it).
     pub color_rate: u64,
+    /// Colour tile bytes a second at most, every viewer together: shared equally by the
+    /// viewers still wanting tiles, and sent only while no frame is behind
+    /// ([`color_budget`]).
+    pub color_total: u64,
     /// The colour window (tiles a side per level) offered; a viewer asking less gets its
     /// own ([`roam_protocol::messages::Hello::color_window`]).
     pub color_window: u8,
@@ -80,6 +88,8 @@ const WEB_CLOSE_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 pub const HOLD: std::time::Duration = std::time::Duration::from_secs(30);
 /// [`Options::color_rate`] unless told otherwise: 2 MB/s.
 pub const COLOR_RATE: u64 = 2_000_000;
+/// [`Options::color_total`] unless told otherwise: 4 MB/s.
+pub const COLOR_TOTAL: u64 = 4_000_000;
 
 impl Options {
     /// Listening on `listen` for viewers with `token`, not recorded, with the default
@@ -96,6 +106,7 @@ impl Options {
             hold: HOLD,
             summary_every: std::time::Duration::from_secs(60),
             color_rate: COLOR_RATE,
+            color_total: COLOR_TOTAL,
             color_window: roam_protocol::tiles::DEFAULT_WINDOW,
             web: None,
         }
@@ -112,23 +123,25 @@ pub struct Shared {
     pub height_step: u16,
     /// The colour map's tiles, coded once ([`crate::terrain::color_pyramid`]).
     pub pyramid: Arc<ColorPyramid>,
-    /// [`Options::color_rate`] and [`Options::color_window`].
-    pub color_rate: u64,
+    /// The colour budget every viewer shares ([`Options::color_rate`] and
+    /// [`Options::color_total`]), and [`Options::color_window`].
+    pub color: color_budget::ColorBudget,
     pub color_window: u8,
     /// The world thread's one inbox: joins, leaves and key states.
     world: std::sync::mpsc::Sender<Inbound>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     shutdown: watch::Receiver<bool>,
     hello_timeout: std::time::Duration,
-    /// Vehicles at most, held ones included ([`Options::max_viewers`]).
-    max_vehicles: usize,
+    /// The world thread's counts, and the held vehicles it freed at its limit.
+    world_stats: Arc<world_loop::WorldStats>,
     /// Admission, and how to evict each pending connection.
     gate: Mutex<Gate>,
     /// Drivers' tickets: the vehicle each names.
     tickets: Mutex<HashMap<Ticket, handshake::Claim>>,
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
-    makers: Arc<tokio::sync::Semaphore>,
+    /// Streaming viewers' frames before joining viewers' first ones ([`makers`]).
+    makers: Arc<makers::Makers>,
     /// The from-scratch tessellators the frame makers borrow (the one map-sized state of
     /// the serving path, at most one per blocking frame maker).
     scratch: crate::tessellate::Scratch,
@@ -264,7 +277,9 @@ impl Server {
         let world = {
             let core = crate::sim::world_core::WorldCore::new(terrain.clone(), options.record)
                 .map_err(ServeError::World)?
-                .with_hold(world_loop::hold_ticks(options.hold));
+                .with_hold(world_loop::hold_ticks(options.hold))
+                // Vehicles at most, held ones included.
+                .with_limit(options.max_viewers);
             let stats = world_stats.clone();
             std::thread::Builder::new()
                 .name("roam-world".into())
@@ -276,7 +291,11 @@ impl Server {
             scratch: crate::tessellate::Scratch::new(terrain.heights.side()),
             height_step: roam_protocol::height_step(terrain.heights.samples()),
             pyramid,
-            color_rate: options.color_rate,
+            color: color_budget::ColorBudget::new(
+                options.color_rate,
+                options.color_total,
+                std::time::Instant::now(),
+            ),
             color_window: options.color_window,
             terrain,
             variance,
@@ -286,13 +305,13 @@ impl Server {
             snapshots: snapshots.clone(),
             shutdown,
             hello_timeout: options.hello_timeout,
-            max_vehicles: options.max_viewers,
+            world_stats: world_stats.clone(),
             gate: Mutex::new(Gate {
                 admission: Admission::new(options.max_pending, options.max_viewers),
                 evict: HashMap::new(),
             }),
             tickets: Mutex::new(HashMap::new()),
-            makers: Arc::new(tokio::sync::Semaphore::new(makers())),
+            makers: Arc::new(makers::Makers::new(makers())),
             unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),
         });
@@ -443,6 +462,7 @@ async fn summary_loop(
         let ticks = world.ticks();
         let dropped = world.dropped();
         let pending_longest_ms = shared.stats.summarized();
+        let late_ms_max = shared.stats.late_longest_us() as f64 / 1e3;
         tracing::info!(
             viewers,
             ticks_per_s = format_args!("{:.1}", (ticks - last_ticks.0) as f64 / seconds),
@@ -452,6 +472,8 @@ async fn summary_loop(
             fps = format_args!("{:.1}", s.frames_per_s),
             cpu_per_frame_us = format_args!("{:.0}", s.cpu_per_frame_us.unwrap_or(0.0)),
             make_us = format_args!("{:.0}", s.make_us.unwrap_or(0.0)),
+            key_frames = now.1.key_frames - last.1.key_frames,
+            late_ms_max = format_args!("{late_ms_max:.1}"),
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
             color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
             pending,

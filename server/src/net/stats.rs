@@ -1,6 +1,6 @@
 //! What the server counts while it serves, and the periodic summary it logs from them:
 //! viewers, frames a second served, CPU per frame (the whole process's, from
-//! `/proc/self/stat`, over the frames served in the interval), bytes out a second (and the
+//! [`process_cpu`], over the frames served in the interval), bytes out a second (and the
 //! colour tiles' share of them), and what admission did with connections that never said hello.
 //!
 //! Counters are relaxed atomics: each is a plain count that nothing else is ordered by.
@@ -17,6 +17,8 @@ pub struct ServeStats {
     pub bytes_out: AtomicU64,
     /// Time spent making frames, nanoseconds.
     pub make_ns: AtomicU64,
+    /// Key frames among the frames.
+    pub key_frames: AtomicU64,
     /// Colour tile messages written to viewers' control streams, and their bytes (the
     /// coarsest tile sent before the first frame included).
     pub color_tiles: AtomicU64,
@@ -41,6 +43,9 @@ pub struct ServeStats {
     pending_longest_ms: AtomicU64,
     /// Refusals logged at info since the last summary ([`REFUSALS_LOGGED`] at most).
     refusals_logged: AtomicU64,
+    /// The latest a frame started after its tick was due since the last summary,
+    /// microseconds (the core was busy: [`super::color_budget`] holds colour back then).
+    late_longest_us: AtomicU64,
 }
 
 /// Refusals logged one line each between two summaries; the rest are counted (and logged
@@ -53,6 +58,7 @@ pub struct Counts {
     pub frames: u64,
     pub bytes_out: u64,
     pub make_ns: u64,
+    pub key_frames: u64,
     pub color_tiles: u64,
     pub color_bytes: u64,
     pub joins: u64,
@@ -81,11 +87,22 @@ impl ServeStats {
         self.pending_longest_ms.fetch_max(ms, Ordering::Relaxed);
     }
 
+    /// A frame started `late` after its tick was due.
+    pub fn frame_late(&self, late: Duration) {
+        let us = u64::try_from(late.as_micros()).unwrap_or(u64::MAX);
+        self.late_longest_us.fetch_max(us, Ordering::Relaxed);
+    }
+
     /// A summary is being logged: refusals get lines of their own again. Returns the
     /// longest pending time since the last one, and starts that over.
     pub fn summarized(&self) -> u64 {
         self.refusals_logged.store(0, Ordering::Relaxed);
         self.pending_longest_ms.swap(0, Ordering::Relaxed)
+    }
+
+    /// The latest a frame started since the last call (microseconds), started over.
+    pub fn late_longest_us(&self) -> u64 {
+        self.late_longest_us.swap(0, Ordering::Relaxed)
     }
 
     pub fn counts(&self) -> Counts {
@@ -94,6 +111,7 @@ impl ServeStats {
             frames: get(&self.frames),
             bytes_out: get(&self.bytes_out),
             make_ns: get(&self.make_ns),
+            key_frames: get(&self.key_frames),
             color_tiles: get(&self.color_tiles),
             color_bytes: get(&self.color_bytes),
             joins: get(&self.joins),
@@ -108,17 +126,25 @@ impl ServeStats {
     }
 }
 
-/// The process's CPU time so far (user and system), from `/proc/self/stat` (in clock
-/// ticks of 1/100 s, Linux's fixed `USER_HZ` for that file); `None` where there is none.
+/// The process's CPU time so far (user and system, every thread), from
+/// `clock_gettime(CLOCK_PROCESS_CPUTIME_ID)`: nanoseconds, no file read (the summary task
+/// runs on the async runtime, whose workers must not block on I/O), and no assumption on
+/// the kernel's clock tick (`/proc/self/stat`, read before, counts in ticks of
+/// `sysconf(_SC_CLK_TCK)`, which was taken to be 100). `None` where there is no such clock.
 pub fn process_cpu() -> Option<Duration> {
-    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
-    // The command name (field 2) may hold spaces: count fields after its `)`.
-    let rest = &stat[stat.rfind(')')? + 1..];
-    let mut fields = rest.split_whitespace();
-    // After `)`: state is field 3, so utime (14) and stime (15) are the 12th and 13th.
-    let utime: u64 = fields.nth(11)?.parse().ok()?;
-    let stime: u64 = fields.next()?.parse().ok()?;
-    Some(Duration::from_millis((utime + stime) * 10))
+    let mut t = libc::timespec {
+        tv_sec: 0,
+        tv_nsec: 0,
+    };
+    // SAFETY: `t` is a valid, writable timespec for the call's duration; the call writes
+    // only it.
+    let r = unsafe { libc::clock_gettime(libc::CLOCK_PROCESS_CPUTIME_ID, &mut t) };
+    if r != 0 {
+        return None;
+    }
+    let secs = u64::try_from(t.tv_sec).ok()?;
+    let nanos = u32::try_from(t.tv_nsec).ok()?;
+    Some(Duration::new(secs, nanos))
 }
 
 /// One summary line's figures, from the counts at the start and end of an interval.
@@ -203,15 +229,43 @@ mod tests {
         assert_eq!(s.summarized(), 0);
     }
 
+    /// The process's CPU time (user and system) from `getrusage`, microseconds.
+    fn rusage_cpu() -> Duration {
+        // SAFETY: an all-zero `rusage` is a valid value of the plain C struct.
+        let mut u: libc::rusage = unsafe { std::mem::zeroed() };
+        // SAFETY: `u` is a valid, writable rusage for the call's duration.
+        let r = unsafe { libc::getrusage(libc::RUSAGE_SELF, &mut u) };
+        assert_eq!(r, 0, "getrusage(RUSAGE_SELF) works on Linux");
+        let us = |t: libc::timeval| t.tv_sec as u64 * 1_000_000 + t.tv_usec as u64;
+        Duration::from_micros(us(u.ru_utime) + us(u.ru_stime))
+    }
+
     #[test]
-    fn this_process_has_used_some_cpu() {
+    fn the_cpu_time_agrees_with_getrusage_to_the_microsecond() {
         // Linux only: the CI and every supported server run it.
         let mut x = 0u64;
-        for i in 0..50_000_000u64 {
+        for i in 0..20_000_000u64 {
             x = x.wrapping_add(std::hint::black_box(i * i));
         }
         std::hint::black_box(x);
-        let cpu = process_cpu().expect("/proc/self/stat is readable on Linux");
-        assert!(cpu > Duration::ZERO, "{cpu:?}");
+        // getrusage's figure (whole microseconds, user and system each) lies between two
+        // readings taken around it. Clock ticks (the old `/proc/self/stat` reading, in
+        // 10 ms steps) are up to 20 ms behind it.
+        let before = process_cpu().expect("CLOCK_PROCESS_CPUTIME_ID exists on Linux");
+        let rusage = rusage_cpu();
+        let after = process_cpu().expect("CLOCK_PROCESS_CPUTIME_ID exists on Linux");
+        assert!(before > Duration::ZERO, "{before:?}");
+        let slack = Duration::from_micros(2);
+        assert!(
+            before <= rusage + slack && rusage <= after + slack,
+            "{before:?} <= {rusage:?} <= {after:?}"
+        );
+        // Nanoseconds: three readings are not all whole clock ticks.
+        let tick = Duration::from_millis(10).as_nanos();
+        let readings = [before, after, process_cpu().expect("as above")];
+        assert!(
+            readings.iter().any(|r| r.as_nanos() % tick != 0),
+            "{readings:?}"
+        );
     }
 }

@@ -20,10 +20,21 @@
 //! that colour never delays a frame: the welcome, then the coarsest tile (before the
 //! first frame), then a task ([`stream_color`]) sending what the viewer's
 //! [`ColorScheduler`] picks for the followed vehicle's position, paced by a token bucket
-//! of [`super::Options::color_rate`] bytes a second (a burst of a quarter second, and at
-//! least the largest tile). A tile is written whole and awaited before the next, so the
-//! send buffer holds little more than a tile; the control stream's last word (a goodbye,
-//! a refusal) waits for the tile being written, so no message is ever cut.
+//! whose rate is the viewer's share of the server-wide colour budget
+//! ([`super::color_budget`]: [`super::Options::color_total`] shared equally by the viewers
+//! still wanting tiles, each at most [`super::Options::color_rate`]), cut to a trickle
+//! while any viewer's frame starts behind its tick (frames first); a burst of a quarter
+//! second, and at least the largest tile. A tile is written whole and awaited before the
+//! next, so the send buffer holds little more than a tile; the control stream's last word
+//! (a goodbye, a refusal) waits for the tile being written, so no message is ever cut.
+//!
+//! The control stream is read into a [`Mailbox`] until a goodbye. A message that is not
+//! one (undecodable, longer than [`MAX_CONTROL`], or cut short by the stream's end) closes
+//! the connection with [`close::PROTOCOL`], the reason in the "left" log line with the
+//! peer's address, and frees a driver's vehicle; before, the reader parked forever and the
+//! viewer's acks, budget changes and goodbye were never read again. A control stream that
+//! merely ends (finished between messages, reset, or with the connection) still leaves the
+//! end to the connection, so one rule ([`Conn::hold_after`]) decides hold or leave.
 //!
 //! A browser's WebTransport session is served by the same code, through [`super::link`]'s
 //! [`Conn`]: only the logs' `via` tells them apart.
@@ -154,10 +165,19 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                 }
             }
         }
-        _ = &mut ctl => {
-            conn.close(close::BYE, b"bye");
-            "goodbye".into()
-        }
+        end = &mut ctl => match end {
+            Ok(ControlEnd::Broken(why)) => {
+                // Its vehicle goes (no hold: the viewer is not coming back with this); the
+                // "left" line below names the peer and the reason.
+                conn.close(close::PROTOCOL, why.as_bytes());
+                why
+            }
+            // A goodbye (a read task that panicked ends the same way).
+            Ok(ControlEnd::Goodbye) | Err(_) => {
+                conn.close(close::BYE, b"bye");
+                "goodbye".into()
+            }
+        },
         _ = conn.closed() => {
             leave.hold = conn.hold_after().then(silent);
             lost(&conn)
@@ -350,9 +370,7 @@ async fn stream_color(
     mut colors: ColorScheduler,
     vehicle: VehicleId,
 ) {
-    let rate = shared.color_rate as f64;
     let largest = roam_protocol::colormap::max_len(colors.layout().tile) as f64;
-    let burst = (rate / 4.0).max(largest);
     let h_scale = shared.terrain.map.h_scale;
     let mut tokens = 0.0f64;
     let mut last = tokio::time::Instant::now();
@@ -361,9 +379,17 @@ async fn stream_color(
     let pyramid = shared.pyramid.clone();
     let cost =
         move |level: u8, x: u32, z: u32| pyramid.tile(level, x, z).map_or(0, |t| t.len() as u64);
+    // Counted among the viewers sharing the budget while its windows are not full.
+    let mut want = Wanting {
+        shared: shared.clone(),
+        on: false,
+    };
+    want.set(true);
     loop {
         tick.tick().await;
         let now = tokio::time::Instant::now();
+        let rate = shared.color.rate();
+        let burst = (rate / 4.0).max(largest);
         tokens = (tokens + rate * now.duration_since(last).as_secs_f64()).min(burst);
         last = now;
         let camera = {
@@ -374,14 +400,42 @@ async fn stream_color(
                 .map(|v| (v.state.x / h_scale, v.state.z / h_scale))
         };
         let Some(camera) = camera else { continue };
-        let (msgs, spent) = colors.step(camera, tokens as u64, &cost);
+        let mut msgs = Vec::new();
+        let spent =
+            shared
+                .color
+                .spend(now.into_std(), largest as u64, tokens as u64, |allowance| {
+                    let (m, spent) = colors.step(camera, allowance, &cost);
+                    msgs = m;
+                    spent
+                });
         tokens -= spent as f64;
+        want.set(!colors.complete());
         for m in msgs {
             let mut s = send.lock().await;
             if write_color(&mut s, &shared, m).await.is_err() {
                 return;
             }
         }
+    }
+}
+
+/// A viewer's place among those sharing the colour budget, given up when dropped.
+struct Wanting {
+    shared: Arc<Shared>,
+    on: bool,
+}
+
+impl Wanting {
+    fn set(&mut self, on: bool) {
+        self.shared.color.set_wanting(self.on, on);
+        self.on = on;
+    }
+}
+
+impl Drop for Wanting {
+    fn drop(&mut self) {
+        self.set(false);
     }
 }
 
@@ -406,19 +460,53 @@ async fn read_keys(
     }
 }
 
-/// Control messages into the mailbox until the viewer says goodbye or sends something
-/// that is not one.
-/// Ends when the viewer says goodbye (or breaks the protocol), and only then: a control
-/// stream that ends otherwise (finished without a goodbye, or because the connection
-/// did) leaves the end to the connection, so that one rule decides hold or leave.
-async fn read_control(mut recv: RecvStream, control: Arc<Mutex<Mailbox>>) {
-    while let Ok(msg) = wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
-        let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
-        if c.push(msg) == Control::End {
-            return;
+/// How a viewer's control stream ended, as far as [`read_control`] decides.
+#[derive(Debug, PartialEq, Eq)]
+enum ControlEnd {
+    /// A goodbye (or what only starts a connection: a second hello).
+    Goodbye,
+    /// A message that is not one: too long, undecodable, or cut short by the stream's end.
+    Broken(String),
+}
+
+/// Control messages into the mailbox until the viewer says goodbye or breaks the protocol,
+/// and only then: a control stream that ends otherwise (finished between two messages,
+/// reset, or ended with the connection) leaves the end to the connection, so that one rule
+/// ([`Conn::hold_after`]) decides hold or leave.
+async fn read_control(mut recv: RecvStream, control: Arc<Mutex<Mailbox>>) -> ControlEnd {
+    loop {
+        match wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
+            Ok(msg) => {
+                let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
+                if c.push(msg) == Control::End {
+                    return ControlEnd::Goodbye;
+                }
+            }
+            Err(e) => match broken(&e) {
+                Some(why) => return ControlEnd::Broken(why),
+                None => break,
+            },
         }
     }
-    std::future::pending::<()>().await;
+    std::future::pending().await
+}
+
+/// Why a control-stream read error breaks the protocol; `None` when the stream merely
+/// ended (finished between messages, reset by the viewer, or the connection gone).
+fn broken(e: &wire::WireError) -> Option<String> {
+    use quinn::ReadExactError;
+    match e {
+        wire::WireError::TooLong { .. } | wire::WireError::Decode(_) => {
+            Some(format!("a control message that is not one: {e}"))
+        }
+        wire::WireError::Read(ReadExactError::FinishedEarly(n)) => Some(format!(
+            "a control message cut short: the stream finished {n} bytes into it"
+        )),
+        wire::WireError::Closed
+        | wire::WireError::Read(ReadExactError::ReadError(_))
+        | wire::WireError::Write(_)
+        | wire::WireError::Encode(_) => None,
+    }
 }
 
 /// Why a viewer's frames stopped.
@@ -452,7 +540,11 @@ async fn frames(
     let mut seen = false;
     let mut loss = LossMeter::default();
     loop {
-        interval.tick().await;
+        let due = interval.tick().await.into_std();
+        // Frames first: one that starts behind holds every viewer's colour back.
+        let now = std::time::Instant::now();
+        shared.color.frame_started(due, now);
+        shared.stats.frame_late(now.saturating_duration_since(due));
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let Some(v) = snap.vehicles.iter().find(|v| v.id == vehicle) else {
             // A new driver's vehicle appears with the next tick; a spectator's was there
@@ -484,7 +576,7 @@ async fn frames(
             None => {
                 // The permit goes with the job: it is held until the job ends, even if
                 // this viewer's task is dropped while waiting for it.
-                let Ok(permit) = shared.makers.clone().acquire_owned().await else {
+                let Ok(permit) = shared.makers.acquire(*sent == 0).await else {
                     return FramesEnd::Failed("the server is shutting down");
                 };
                 let shared2 = shared.clone();
@@ -517,6 +609,7 @@ async fn frames(
         core = Some(c);
         let frame = made.frame;
         let key = made.base.is_none();
+        stats.add(&stats.key_frames, u64::from(key));
         let msg = frame_message(&shared.terrain, &snap, made, vehicle, driver);
         let mut bytes = Vec::new();
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {

@@ -38,6 +38,9 @@ pub struct WorldStats {
     ticks: AtomicU64,
     dropped: AtomicU64,
     late: AtomicU64,
+    /// Held vehicles joins freed at the limit ([`WorldCore::take_evicted`]), put here
+    /// before the join that freed them is answered, for the shell to forget their tickets.
+    evicted: std::sync::Mutex<Vec<VehicleId>>,
 }
 
 impl WorldStats {
@@ -54,6 +57,11 @@ impl WorldStats {
     /// Ticks made that started more than one tick after they were due.
     pub fn late(&self) -> u64 {
         self.late.load(Ordering::Relaxed)
+    }
+
+    /// The held vehicles joins freed since the last call.
+    pub fn take_evicted(&self) -> Vec<VehicleId> {
+        std::mem::take(&mut *self.evicted.lock().unwrap_or_else(|e| e.into_inner()))
     }
 }
 
@@ -99,6 +107,11 @@ pub fn run(
     let handle = |core: &mut WorldCore, (event, reply): Inbound| {
         let resume = matches!(event, Event::Resume(_));
         let answer = core.handle(event);
+        let evicted = core.take_evicted();
+        if !evicted.is_empty() {
+            let mut list = stats.evicted.lock().unwrap_or_else(|e| e.into_inner());
+            list.extend(evicted);
+        }
         if let (Some(id), Some(reply)) = (answer, reply)
             && reply.send(id).is_err()
         {

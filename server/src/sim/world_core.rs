@@ -9,7 +9,8 @@
 //! **A tick, in order:**
 //!
 //! 1. Events that arrived since the last tick have been handled in arrival order (joins
-//!    take the lowest free start slot and the next free id; leaves free both; key states
+//!    take the lowest free start slot and the next free id, at the limit first freeing
+//!    the oldest held vehicle ([`WorldCore::with_limit`]); leaves free both; key states
 //!    are queued per driver by sequence number, repeats and stale ones dropped; a hold
 //!    clears its driver's queue and keys, a resume makes a held vehicle driven again).
 //! 2. Each driver takes its steps for the tick, one physics step per key state, in order
@@ -242,6 +243,10 @@ pub struct WorldCore {
     next_id: VehicleId,
     inputs: Inputs,
     hold_ticks: u64,
+    /// Vehicles at most before a join frees the oldest held one ([`WorldCore::with_limit`]).
+    limit: usize,
+    /// Held vehicles a join freed, since [`WorldCore::take_evicted`].
+    evicted: Vec<VehicleId>,
 }
 
 impl WorldCore {
@@ -267,6 +272,8 @@ impl WorldCore {
             next_id: 0,
             inputs: Inputs::new(),
             hold_ticks: HOLD_TICKS,
+            limit: usize::MAX,
+            evicted: Vec::new(),
         })
     }
 
@@ -274,6 +281,22 @@ impl WorldCore {
     pub fn with_hold(mut self, ticks: u64) -> WorldCore {
         self.hold_ticks = ticks;
         self
+    }
+
+    /// Held vehicles have no seat: without a bound, a driver that joins and drops over and
+    /// over would fill the world with them. With `limit` vehicles (or more) in the world, a
+    /// [`Event::Join`] first frees the oldest held one, as a [`Event::Leave`] would (no
+    /// bound unless told). Decided here, where joins come one at a time in order: two joins
+    /// at once free two distinct vehicles, and held ones never take the world past it.
+    pub fn with_limit(mut self, limit: usize) -> WorldCore {
+        self.limit = limit;
+        self
+    }
+
+    /// The held vehicles joins freed since the last call, oldest first (the shell forgets
+    /// their drivers' tickets).
+    pub fn take_evicted(&mut self) -> Vec<VehicleId> {
+        std::mem::take(&mut self.evicted)
     }
 
     pub fn world(&self) -> &World {
@@ -350,6 +373,16 @@ impl WorldCore {
     }
 
     fn join(&mut self) -> Option<VehicleId> {
+        if self.drivers.len() >= self.limit
+            && let Some((_, oldest)) = self
+                .drivers
+                .iter()
+                .filter_map(|d| d.held_since.map(|since| (since, d.id)))
+                .min()
+        {
+            self.leave(oldest);
+            self.evicted.push(oldest);
+        }
         // The next id not in use (ids wrap after 65,536 joins).
         let drivers = &self.drivers;
         let id = free_id(&mut self.next_id, |id| drivers.iter().any(|d| d.id == id))?;
@@ -392,7 +425,7 @@ impl WorldCore {
         for id in expired {
             self.leave(id);
         }
-        // Oldest hold first (then by id): the net shell frees the oldest at its limit.
+        // Oldest hold first (then by id), the order a join at the limit frees them in.
         let mut held: Vec<(u64, VehicleId)> = self
             .drivers
             .iter()
@@ -619,6 +652,41 @@ mod tests {
         let s = c.tick();
         assert!(s.vehicles.is_empty() && s.held.is_empty());
         assert_eq!(c.handle(Event::Resume(a)), None);
+    }
+
+    #[test]
+    fn joins_at_the_limit_free_distinct_held_vehicles_oldest_first() {
+        let mut c = core(3000).with_limit(3);
+        let a = c.handle(Event::Join).expect("a vehicle");
+        let b = c.handle(Event::Join).expect("a vehicle");
+        let d = c.handle(Event::Join).expect("a vehicle");
+        c.tick();
+        c.handle(hold(b));
+        c.tick();
+        c.handle(hold(a));
+        assert_eq!(c.tick().held, [b, a]);
+        assert!(c.take_evicted().is_empty());
+        // Two joins in the same tick (as two viewers joining at once arrive): each frees
+        // a held vehicle of its own, the oldest hold first.
+        let e = c.handle(Event::Join).expect("a vehicle");
+        let f = c.handle(Event::Join).expect("a vehicle");
+        assert_eq!(c.take_evicted(), [b, a]);
+        let s = c.tick();
+        assert!(s.held.is_empty(), "{:?}", s.held);
+        assert_eq!(c.drivers(), [d, e, f]);
+        assert_eq!(s.vehicles.len(), 3);
+        assert_eq!(c.handle(Event::Resume(a)), None, "freed");
+        // At the limit with nothing held, a join (a driver replacing its own connection
+        // takes a seat past the limit for a moment) frees no driven vehicle.
+        let g = c.handle(Event::Join).expect("a vehicle");
+        assert!(c.take_evicted().is_empty());
+        assert_eq!(c.drivers(), [d, e, f, g]);
+        // Without a limit, held vehicles stay until their hold runs out.
+        let mut open = core(3000);
+        let h = open.handle(Event::Join).expect("a vehicle");
+        open.handle(hold(h));
+        open.handle(Event::Join).expect("a vehicle");
+        assert_eq!(open.tick().held, [h]);
     }
 
     #[test]

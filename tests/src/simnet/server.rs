@@ -293,7 +293,7 @@ impl Sim {
         let key = made.base.is_none();
         let triangles = made.triangles as usize;
         let mut mesh = Mesh::default();
-        s.core.mesh(&mut mesh);
+        s.core.mesh(&self.scratch, &mut mesh);
         s.made.push_back(MadeFrame {
             frame,
             key,

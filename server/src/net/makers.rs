@@ -1,0 +1,196 @@
+//! The blocking frame makers' permits ([`super::Shared::makers`]): at most one fewer than
+//! the cores at once, handed out **streaming viewers first, joining ones after**.
+//!
+//! A viewer's first frame is a key frame from scratch (several milliseconds at 32,768
+//! triangles), and so far its second frame is not cheap either (made on a blocking
+//! thread too). With one FIFO queue, 20 viewers joining at once queued 20 first key
+//! frames, and each viewer's second frame waited behind the key frames of all those
+//! that joined after it: seen in the server (one core, `data/kossou`, 32,768 triangles,
+//! every second frame timed), 16 to 151 ms, growing by one key frame (7.5 ms there) per
+//! viewer, which is the longest gap after the first frame a join storm showed (110–130 ms
+//! with 20, 1.1–2.2 s with 40 on that loaded machine, where acknowledgements then fell
+//! behind and more key frames followed). A driving viewer's rebuild waited the same way.
+//! Now a waiting frame of a viewer that has a frame out goes before every first frame;
+//! first frames go in the order they asked. Each second frame then waited 1–14 ms; with
+//! the colour spread too ([`super::color_budget`]), 20 joining at once had their longest
+//! gap after the first frame at 35–43 ms.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use tokio::sync::oneshot;
+
+/// The permits, and who waits for one.
+#[derive(Debug)]
+pub struct Makers {
+    state: Mutex<State>,
+}
+
+#[derive(Debug)]
+struct State {
+    free: usize,
+    /// Frames of viewers already streaming, in the order they asked.
+    streaming: VecDeque<oneshot::Sender<()>>,
+    /// Joining viewers' first frames, in the order they asked.
+    joining: VecDeque<oneshot::Sender<()>>,
+}
+
+/// Never returned: the pool is never closed (kept for the caller's shutdown path).
+#[derive(Debug)]
+pub struct Closed;
+
+/// A maker's permit, handed to the next waiter when dropped.
+#[derive(Debug)]
+pub struct Permit {
+    makers: Arc<Makers>,
+}
+
+impl Drop for Permit {
+    fn drop(&mut self) {
+        self.makers.release();
+    }
+}
+
+impl Makers {
+    pub fn new(permits: usize) -> Makers {
+        Makers {
+            state: Mutex::new(State {
+                free: permits,
+                streaming: VecDeque::new(),
+                joining: VecDeque::new(),
+            }),
+        }
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// A permit: at once if one is free, else when one is released, a viewer already
+    /// streaming before any `first` frame.
+    pub async fn acquire(self: &Arc<Self>, first: bool) -> Result<Permit, Closed> {
+        let rx = {
+            let mut s = self.lock();
+            if s.free > 0 {
+                s.free -= 1;
+                return Ok(Permit {
+                    makers: self.clone(),
+                });
+            }
+            let (tx, rx) = oneshot::channel();
+            if first {
+                s.joining.push_back(tx);
+            } else {
+                s.streaming.push_back(tx);
+            }
+            rx
+        };
+        // A waiter dropped after it was handed the permit gives it on (its guard).
+        let mut waiting = Waiting {
+            makers: self.clone(),
+            rx: Some(rx),
+        };
+        let rx = waiting.rx.as_mut().expect("set above, taken only below");
+        let handed = rx.await.is_ok();
+        waiting.rx = None;
+        if handed {
+            Ok(Permit {
+                makers: self.clone(),
+            })
+        } else {
+            // Its sender is only dropped unsent when the pool is dropped: not while a
+            // viewer task holds `Shared`.
+            Err(Closed)
+        }
+    }
+
+    /// A permit comes back: to the first live waiter (streaming ones first), else free.
+    fn release(&self) {
+        let mut s = self.lock();
+        loop {
+            let next = match s.streaming.pop_front() {
+                Some(tx) => tx,
+                None => match s.joining.pop_front() {
+                    Some(tx) => tx,
+                    None => {
+                        s.free += 1;
+                        return;
+                    }
+                },
+            };
+            if next.send(()).is_ok() {
+                return;
+            }
+            // That waiter is gone: the next one.
+        }
+    }
+
+    /// Permits free now.
+    pub fn free(&self) -> usize {
+        self.lock().free
+    }
+}
+
+/// A waiter's receiver: dropped while still waiting, a permit already sent to it is
+/// released.
+struct Waiting {
+    makers: Arc<Makers>,
+    rx: Option<oneshot::Receiver<()>>,
+}
+
+impl Drop for Waiting {
+    fn drop(&mut self) {
+        if let Some(mut rx) = self.rx.take()
+            && rx.try_recv().is_ok()
+        {
+            self.makers.release();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn streaming_viewers_go_before_joining_ones_and_permits_are_never_lost() {
+        let m = Arc::new(Makers::new(1));
+        let held = m.acquire(true).await.expect("free");
+        assert_eq!(m.free(), 0);
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let mut tasks = Vec::new();
+        // Two joiners ask first, then a streaming viewer, then one that gives up.
+        for (name, first) in [("join a", true), ("join b", true), ("stream", false)] {
+            let (m, order) = (m.clone(), order.clone());
+            let (asked, asked_rx) = oneshot::channel();
+            tasks.push(tokio::spawn(async move {
+                let fut = m.acquire(first);
+                let _ = asked.send(());
+                let p = fut.await.expect("open");
+                order.lock().expect("not poisoned").push(name);
+                drop(p);
+            }));
+            // Each is queued before the next asks (they run on this runtime's thread).
+            let _ = asked_rx.await;
+            tokio::task::yield_now().await;
+        }
+        let m2 = m.clone();
+        let gone = tokio::spawn(async move { m2.acquire(false).await.map(drop) });
+        tokio::task::yield_now().await;
+        gone.abort();
+        let _ = gone.await;
+        drop(held);
+        for t in tasks {
+            t.await.expect("a waiter");
+        }
+        assert_eq!(
+            *order.lock().expect("not poisoned"),
+            ["stream", "join a", "join b"]
+        );
+        assert_eq!(
+            m.free(),
+            1,
+            "the permit is back, the aborted waiter skipped"
+        );
+    }
+}
