@@ -43,6 +43,11 @@ struct Cli {
     /// Input script to drive with (the format of `roam-server simulate`).
     #[arg(long)]
     inputs: Option<PathBuf>,
+    /// Play --inputs again each time it ends, each viewer of --viewers from another of its
+    /// lines (so they do not all turn at once), for 20 times the run's length at
+    /// --frame-rate: a load generator keeps driving the whole run.
+    #[arg(long, requires = "inputs")]
+    loop_inputs: bool,
     /// Frames to receive per viewer.
     #[arg(long, default_value_t = 300)]
     frames: u64,
@@ -165,6 +170,7 @@ fn run(cli: Cli) -> Result<()> {
             ("--screenshot", cli.screenshot.is_some()),
             ("--stats", cli.stats.is_some()),
             ("--inputs", cli.inputs.is_some()),
+            ("--loop-inputs", cli.loop_inputs),
             ("--skip-decode", cli.skip_decode),
             ("--viewers", cli.viewers != 1),
             ("--bench", cli.bench),
@@ -223,13 +229,19 @@ fn run(cli: Cli) -> Result<()> {
         // Ctrl-C stops the viewers, which say goodbye and report what they measured.
         let stopped = roam_client::session::ctrl_c();
         let mut tasks = Vec::new();
-        for _ in 0..cli.viewers.max(1) {
+        // Ticks of driving that cover the run 20 times over at the asked rate.
+        let drive_ticks = cli.frames.saturating_mul(100 * 20) / u64::from(cli.frame_rate);
+        for i in 0..cli.viewers.max(1) {
+            let inputs = match &script {
+                Some(s) if cli.loop_inputs => Some(looped(s, i as usize, drive_ticks)),
+                other => other.clone(),
+            };
             let opts = ViewerOptions {
                 token: token.clone(),
                 role: cli.role(),
                 budget: cli.budget,
                 frames: cli.frames,
-                inputs: script.clone(),
+                inputs,
                 skip_decode: cli.skip_decode,
                 frame_rate: cli.frame_rate,
                 patience: roam_client::session::Patience {
@@ -263,6 +275,30 @@ fn run(cli: Cli) -> Result<()> {
             [first, ..] => bail!("{} viewers ended early; the first: {first}", lost.len()),
         }
     })
+}
+
+/// `script` from its segment `start` (modulo their count) on, played again from its first
+/// each time it ends, for at least `ticks` ticks (at most the longest script).
+fn looped(
+    script: &roam_protocol::script::Script,
+    start: usize,
+    ticks: u64,
+) -> roam_protocol::script::Script {
+    let segments = &script.segments;
+    let mut out = roam_protocol::script::Script::default();
+    if segments.is_empty() {
+        return out;
+    }
+    let want = ticks.clamp(1, roam_protocol::script::MAX_TICKS);
+    let mut total = 0;
+    for &(n, keys) in segments.iter().cycle().skip(start % segments.len()) {
+        if total >= want {
+            break;
+        }
+        out.segments.push((n, keys));
+        total += n;
+    }
+    out
 }
 
 /// Writes a JSON report to `--stats`, or stdout.
