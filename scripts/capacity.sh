@@ -10,6 +10,8 @@
 #   - frames_per_second_min: the slowest viewer's frames taken a second (>= 55 counts as
 #     served at 60 Hz); frames_sent_per_second_min: the slowest viewer's frames the server
 #     made a second (from the frame numbers); frames_lost: made and not taken;
+#   - join_errors: viewers that could not join (the others are measured), errors: viewers
+#     whose session ended early;
 #   - gap_ms_max: the longest time between two frames, after each viewer's first;
 #   - server_cpu_us_per_frame: the server's CPU time over the run ÷ frames taken (all
 #     viewers), µs;
@@ -89,6 +91,7 @@ def merge(reports):
         "frames_sent": sum(r["frames_sent"] for r in reports),
         "frames_lost": sum(r["frames_lost"] for r in reports),
         "errors": sum(r["errors"] for r in reports),
+        "join_errors": sum(r.get("join_errors", 0) for r in reports),
         "reconnects": sum(r["reconnects"] for r in reports),
         "frames_per_second_min": min(r["frames_per_second_min"] for r in reports),
         "frames_sent_per_second_min": min(r["frames_sent_per_second_min"] for r in reports),

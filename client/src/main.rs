@@ -254,9 +254,15 @@ fn run(cli: Cli) -> Result<()> {
             };
             tasks.push(tokio::spawn(headless::measure(addr, fingerprint, opts)));
         }
+        // A viewer that could not join (refused, or its handshake past the server's
+        // deadline in a crowd joining at once) is counted, not measured; the others are.
         let mut all = Vec::new();
+        let mut unjoined = Vec::new();
         for t in tasks {
-            all.push(t.await.context("a viewer task")??);
+            match t.await.context("a viewer task")? {
+                Ok(stats) => all.push(stats),
+                Err(e) => unjoined.push(format!("{e:#}")),
+            }
         }
         if let Some(server) = server {
             server.shutdown().await?;
@@ -265,10 +271,21 @@ fn run(cli: Cli) -> Result<()> {
         let lost: Vec<String> = all.iter().filter_map(|s| s.error.clone()).collect();
         if let Some(path) = &cli.screenshot
             && lost.is_empty()
+            && unjoined.is_empty()
         {
             screenshot(path, &mut all[0], &cli)?;
         }
-        write_report(&cli, &roam_client::stats::report(&all))?;
+        let mut report = roam_client::stats::report(&all);
+        report["join_errors"] = unjoined.len().into();
+        write_report(&cli, &report)?;
+        match unjoined.as_slice() {
+            [] => {}
+            [one] => bail!("{one}"),
+            [first, ..] => bail!(
+                "{} viewers could not join; the first: {first}",
+                unjoined.len()
+            ),
+        }
         match lost.as_slice() {
             [] => Ok(()),
             [one] => bail!("{one}"),
@@ -476,4 +493,46 @@ fn seconds(text: &str) -> Result<f64, String> {
         ));
     }
     Ok(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::looped;
+    use roam_protocol::keys::Keys;
+    use roam_protocol::script::{Script, parse};
+
+    /// The capacity drive (`scripts/capacity.sh`).
+    const CAPACITY_DRIVE: &str = include_str!("../../scripts/capacity-drive.txt");
+
+    #[test]
+    fn the_capacity_drive_drives_as_a_person_does() {
+        let drive = parse(CAPACITY_DRIVE).expect("scripts/capacity-drive.txt parses");
+        assert!(drive.ticks() >= 3_000, "at least 30 s: {}", drive.ticks());
+        let has = |k: Keys| drive.segments.iter().any(|&(_, keys)| keys.contains(k));
+        assert!(has(Keys::LEFT) && has(Keys::RIGHT), "turns both ways");
+        assert!(has(Keys::UP) && has(Keys::DOWN), "throttle and brake");
+        assert!(
+            drive.segments.iter().any(|&(_, keys)| keys == Keys::NONE),
+            "and coasting"
+        );
+    }
+
+    #[test]
+    fn a_looped_script_starts_at_its_line_and_covers_the_run() {
+        let script = parse("100 U\n50 UL\n30 -\n").expect("valid");
+        // 1,800 frames at 60 Hz, 20 times over: 60,000 ticks.
+        let drive = looped(&script, 1, 60_000);
+        assert!(drive.ticks() >= 60_000 && drive.ticks() < 60_000 + 100);
+        assert_eq!(
+            drive.segments[0], script.segments[1],
+            "from its second line"
+        );
+        assert_eq!(
+            drive.segments[2], script.segments[0],
+            "then again from the first"
+        );
+        // Viewer 4 of a 3-line script starts at line 1 again.
+        assert_eq!(looped(&script, 4, 1).segments, vec![script.segments[1]]);
+        assert_eq!(looped(&Script::default(), 0, 100), Script::default());
+    }
 }

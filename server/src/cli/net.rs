@@ -351,6 +351,9 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let web_host = web.as_ref().map(|(_, host)| host.clone());
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
+        // Timed apart: `Server::start` scans every height for the codec's height step
+        // (`roam_protocol::height_step`), most of a warm start at 16385² and more.
+        let started = std::time::Instant::now();
         let server = Server::start(
             Arc::new(terrain),
             Arc::new(vt),
@@ -367,6 +370,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 )?
             },
         )?;
+        tracing::info!(
+            "server started in {:.0} ms",
+            started.elapsed().as_secs_f64() * 1e3
+        );
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
         let first = made.list().first().map(|p| p.display().to_string());
