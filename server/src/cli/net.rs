@@ -332,7 +332,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         )?;
         let ms = started.elapsed().as_secs_f64() * 1e3;
         match source {
-            HashSource::Cached => tracing::info!("data set hash cached ({ms:.0} ms)"),
+            HashSource::Cached => tracing::info!("data set hash cached in {ms:.0} ms"),
             HashSource::Computed(why) => {
                 tracing::info!("data set hash computed in {ms:.0} ms ({why})")
             }
