@@ -14,6 +14,12 @@
 //!   set's cache (built on first use, see [`crate::terrain::cache`]), `color.ppm`'s header
 //!   checked as `load` checks it but its pixels not read (`Terrain::color` is `None`; the
 //!   colour is served another way). `map` is parsed by the same code, as strictly.
+//!
+//! The data set's hash (what recordings name, [`Terrain::content_hash`]) needs every height
+//! and every colour: [`content_hash_cached`] keeps it in `.cache/content.hash`, keyed by
+//! the heights' hash, the `map` parameters' hash and `color.ppm`'s stamp, so a warm
+//! `serve` reads neither `hf.pgm` nor `color.ppm`. Measured at 16385² (2 shared cores,
+//! busy): computed 1.4 s (some 15 s at a higher load), from the cache under 1 ms.
 
 use std::fs;
 use std::io;
