@@ -50,7 +50,7 @@ impl FileStamp {
     pub(crate) const BYTES: usize = 56;
 
     /// The fields, little-endian: length, mtime, ctime (seconds, nanoseconds), inode, device.
-    pub(crate) fn to_bytes(&self) -> [u8; Self::BYTES] {
+    pub(crate) fn to_bytes(self) -> [u8; Self::BYTES] {
         let mut b = [0u8; Self::BYTES];
         let fields = [
             self.len,
