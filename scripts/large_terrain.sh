@@ -5,7 +5,9 @@
 #     opening it (`.cache/`: heights, variance tree);
 #   - serve_to_listening_s: `roam-server serve` started to its `listening on` line (cache
 #     warm: the second start; the first start, which builds the colour tiles, is
-#     serve_first_to_listening_s);
+#     serve_first_to_listening_s); of the warm start, from its log: serve_open_ms (heights
+#     and variance tree through the cache), serve_hash_ms (the data set's hash, cached in
+#     `.cache/content.hash`), serve_server_start_ms (`Server::start`);
 #   - rss_mb_one_viewer / peak_rss_mb: the server's resident memory with one headless
 #     viewer driving for 600 frames (VmRSS as it leaves, VmHWM);
 #   - first_frame_after_join_ms, frames_per_second: from the viewer's stats.
@@ -67,12 +69,18 @@ for data in "$@"; do
     "$BIN_DIR/roam-client" --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
         --headless --frames 600 --stats "$stats" --inputs "$state/drive.txt" >/dev/null 2>&1 ||
         { echo "error: the viewer failed" >&2; exit 1; }
+    # Where the warm start went, from its log: the data set opened (heights, variance
+    # tree), its hash for the recordings, `Server::start`.
+    ms_of() { sed -n "s/.*$1 \([0-9]*\) ms.*/\1/p" "$state/server.log" | head -1; }
+    open_ms=$(ms_of "opened .* in")
+    hash_ms=$(ms_of "data set hash [a-z]* in")
+    start_ms=$(ms_of "server started in")
     rss_kb=$(awk '/^VmRSS:/ {print $2}' "/proc/$server/status")
     hwm_kb=$(awk '/^VmHWM:/ {print $2}' "/proc/$server/status")
     python3 - "$data" "$generate_s" "$check_cold_s" "$check_warm_s" "$first" "$warm" \
-        "$rss_kb" "$hwm_kb" "$stats" <<'EOF'
+        "$rss_kb" "$hwm_kb" "$stats" "${open_ms:-null}" "${hash_ms:-null}" "${start_ms:-null}" <<'EOF'
 import json, sys
-data, gen, cold, warm_check, first, warm, rss, hwm, stats = sys.argv[1:]
+data, gen, cold, warm_check, first, warm, rss, hwm, stats, open_ms, hash_ms, start_ms = sys.argv[1:]
 s = json.load(open(stats))
 num = lambda v: None if v == "null" else round(float(v), 3)
 print(json.dumps({
@@ -82,6 +90,9 @@ print(json.dumps({
     "check_warm_s": num(warm_check),
     "serve_first_to_listening_s": num(first),
     "serve_to_listening_s": num(warm),
+    "serve_open_ms": num(open_ms),
+    "serve_hash_ms": num(hash_ms),
+    "serve_server_start_ms": num(start_ms),
     "rss_mb_one_viewer": round(int(rss) / 1024, 1),
     "peak_rss_mb": round(int(hwm) / 1024, 1),
     "first_frame_after_join_ms": s.get("first_frame_after_join_ms_max"),

@@ -13,7 +13,7 @@ start_server() {
     server=$!
     trap 'stop_server; rm -rf "$state"' EXIT
     for _ in $(seq 1 1200); do
-        grep -q '^connect with:' "$log" && break
+        grep -qs '^connect with:' "$log" && break
         kill -0 $server 2>/dev/null || { cat "$log" >&2; exit 1; }
         sleep 0.1
     done

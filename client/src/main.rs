@@ -43,6 +43,11 @@ struct Cli {
     /// Input script to drive with (the format of `roam-server simulate`).
     #[arg(long)]
     inputs: Option<PathBuf>,
+    /// Play --inputs again each time it ends, each viewer of --viewers from another of its
+    /// lines (so they do not all turn at once), for 20 times the run's length at
+    /// --frame-rate: a load generator keeps driving the whole run.
+    #[arg(long, requires = "inputs")]
+    loop_inputs: bool,
     /// Frames to receive per viewer.
     #[arg(long, default_value_t = 300)]
     frames: u64,
@@ -165,6 +170,7 @@ fn run(cli: Cli) -> Result<()> {
             ("--screenshot", cli.screenshot.is_some()),
             ("--stats", cli.stats.is_some()),
             ("--inputs", cli.inputs.is_some()),
+            ("--loop-inputs", cli.loop_inputs),
             ("--skip-decode", cli.skip_decode),
             ("--viewers", cli.viewers != 1),
             ("--bench", cli.bench),
@@ -223,13 +229,19 @@ fn run(cli: Cli) -> Result<()> {
         // Ctrl-C stops the viewers, which say goodbye and report what they measured.
         let stopped = roam_client::session::ctrl_c();
         let mut tasks = Vec::new();
-        for _ in 0..cli.viewers.max(1) {
+        // Ticks of driving that cover the run 20 times over at the asked rate.
+        let drive_ticks = cli.frames.saturating_mul(100 * 20) / u64::from(cli.frame_rate);
+        for i in 0..cli.viewers.max(1) {
+            let inputs = match &script {
+                Some(s) if cli.loop_inputs => Some(looped(s, i as usize, drive_ticks)),
+                other => other.clone(),
+            };
             let opts = ViewerOptions {
                 token: token.clone(),
                 role: cli.role(),
                 budget: cli.budget,
                 frames: cli.frames,
-                inputs: script.clone(),
+                inputs,
                 skip_decode: cli.skip_decode,
                 frame_rate: cli.frame_rate,
                 patience: roam_client::session::Patience {
@@ -242,9 +254,15 @@ fn run(cli: Cli) -> Result<()> {
             };
             tasks.push(tokio::spawn(headless::measure(addr, fingerprint, opts)));
         }
+        // A viewer that could not join (refused, or its handshake past the server's
+        // deadline in a crowd joining at once) is counted, not measured; the others are.
         let mut all = Vec::new();
+        let mut unjoined = Vec::new();
         for t in tasks {
-            all.push(t.await.context("a viewer task")??);
+            match t.await.context("a viewer task")? {
+                Ok(stats) => all.push(stats),
+                Err(e) => unjoined.push(format!("{e:#}")),
+            }
         }
         if let Some(server) = server {
             server.shutdown().await?;
@@ -253,16 +271,51 @@ fn run(cli: Cli) -> Result<()> {
         let lost: Vec<String> = all.iter().filter_map(|s| s.error.clone()).collect();
         if let Some(path) = &cli.screenshot
             && lost.is_empty()
+            && unjoined.is_empty()
         {
             screenshot(path, &mut all[0], &cli)?;
         }
-        write_report(&cli, &roam_client::stats::report(&all))?;
+        let mut report = roam_client::stats::report(&all);
+        report["join_errors"] = unjoined.len().into();
+        write_report(&cli, &report)?;
+        match unjoined.as_slice() {
+            [] => {}
+            [one] => bail!("{one}"),
+            [first, ..] => bail!(
+                "{} viewers could not join; the first: {first}",
+                unjoined.len()
+            ),
+        }
         match lost.as_slice() {
             [] => Ok(()),
             [one] => bail!("{one}"),
             [first, ..] => bail!("{} viewers ended early; the first: {first}", lost.len()),
         }
     })
+}
+
+/// `script` from its segment `start` (modulo their count) on, played again from its first
+/// each time it ends, for at least `ticks` ticks (at most the longest script).
+fn looped(
+    script: &roam_protocol::script::Script,
+    start: usize,
+    ticks: u64,
+) -> roam_protocol::script::Script {
+    let segments = &script.segments;
+    let mut out = roam_protocol::script::Script::default();
+    if segments.is_empty() {
+        return out;
+    }
+    let want = ticks.clamp(1, roam_protocol::script::MAX_TICKS);
+    let mut total = 0;
+    for &(n, keys) in segments.iter().cycle().skip(start % segments.len()) {
+        if total >= want {
+            break;
+        }
+        out.segments.push((n, keys));
+        total += n;
+    }
+    out
 }
 
 /// Writes a JSON report to `--stats`, or stdout.
@@ -440,4 +493,46 @@ fn seconds(text: &str) -> Result<f64, String> {
         ));
     }
     Ok(s)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::looped;
+    use roam_protocol::keys::Keys;
+    use roam_protocol::script::{Script, parse};
+
+    /// The capacity drive (`scripts/capacity.sh`).
+    const CAPACITY_DRIVE: &str = include_str!("../../scripts/capacity-drive.txt");
+
+    #[test]
+    fn the_capacity_drive_drives_as_a_person_does() {
+        let drive = parse(CAPACITY_DRIVE).expect("scripts/capacity-drive.txt parses");
+        assert!(drive.ticks() >= 3_000, "at least 30 s: {}", drive.ticks());
+        let has = |k: Keys| drive.segments.iter().any(|&(_, keys)| keys.contains(k));
+        assert!(has(Keys::LEFT) && has(Keys::RIGHT), "turns both ways");
+        assert!(has(Keys::UP) && has(Keys::DOWN), "throttle and brake");
+        assert!(
+            drive.segments.iter().any(|&(_, keys)| keys == Keys::NONE),
+            "and coasting"
+        );
+    }
+
+    #[test]
+    fn a_looped_script_starts_at_its_line_and_covers_the_run() {
+        let script = parse("100 U\n50 UL\n30 -\n").expect("valid");
+        // 1,800 frames at 60 Hz, 20 times over: 60,000 ticks.
+        let drive = looped(&script, 1, 60_000);
+        assert!(drive.ticks() >= 60_000 && drive.ticks() < 60_000 + 100);
+        assert_eq!(
+            drive.segments[0], script.segments[1],
+            "from its second line"
+        );
+        assert_eq!(
+            drive.segments[2], script.segments[0],
+            "then again from the first"
+        );
+        // Viewer 4 of a 3-line script starts at line 1 again.
+        assert_eq!(looped(&script, 4, 1).segments, vec![script.segments[1]]);
+        assert_eq!(looped(&Script::default(), 0, 100), Script::default());
+    }
 }

@@ -7,6 +7,15 @@
 //! keys: `color_bytes` (colour tile bytes received, every viewer's), `color_tiles` (the
 //! fewest tiles resident at the end, of any viewer) and `color_capacity` (the most a
 //! viewer holds).
+//!
+//! The load generator's keys (`scripts/capacity.sh` reads them): `frames_per_second_min`
+//! (the slowest viewer's frames taken a second, from its first frame to its last),
+//! `frames_sent_per_second_min` (the slowest viewer's frames the server made a second over
+//! the same span: the frame numbers say how many were made), `frames_sent` and
+//! `frames_lost` (made and not taken: lost on the way, or superseded by a newer frame
+//! before the viewer took it; every viewer's), `gap_ms_max` (after each viewer's first
+//! frame: joining is `first_frame_after_join_ms_max`), `streaming_s_max` (the longest
+//! first-to-last-frame span).
 
 use crate::headless::ViewerStats;
 
@@ -23,10 +32,12 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         .iter()
         .map(|s| s.frames.saturating_sub(1) as f64 / s.streaming_s.max(1e-9))
         .collect();
+    // Over the same span as `fps` (before: over the whole session, joining included).
     let made: Vec<f64> = viewers
         .iter()
-        .map(|s| s.made() as f64 / s.seconds.max(1e-9))
+        .map(|s| s.made().saturating_sub(1) as f64 / s.streaming_s.max(1e-9))
         .collect();
+    let sent: u64 = viewers.iter().map(|s| s.made()).sum();
     let latencies = all(&|s| s.latencies_ms.clone());
     serde_json::json!({
         "viewers": viewers.len(),
@@ -34,6 +45,9 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         "frames_per_second": fps.iter().sum::<f64>() / fps.len().max(1) as f64,
         "frames_per_second_min": fps.iter().copied().fold(f64::INFINITY, f64::min),
         "frames_sent_per_second_min": made.iter().copied().fold(f64::INFINITY, f64::min),
+        "frames_sent": sent,
+        "frames_lost": sent.saturating_sub(frames),
+        "streaming_s_max": viewers.iter().map(|s| s.streaming_s).fold(0.0, f64::max),
         "first_frame_after_join_ms_max": viewers.iter().map(|s| s.first_frame_s * 1e3).fold(0.0, f64::max),
         "wire_bytes_per_triangle_first": quantile(&all(&|s| s.first.into_iter().collect()), 0.5),
         "wire_bytes_per_triangle_steady": quantile(&all(&|s| s.steady.clone()), 0.5),

@@ -1,7 +1,8 @@
 //! The data set's cache (`DIR/.cache/`): what `dataset::open_cached` maps equals what
 //! `dataset::load` and `VarianceTree::build` make, byte for byte; a changed `hf.pgm`, and a
 //! truncated, corrupt or foreign cache file, are rebuilt with the reason; a data set whose
-//! cache cannot be written is served from memory.
+//! cache cannot be written is served from memory; `serve`'s open trusts only files re-hashed
+//! whole since they last changed.
 
 use std::fs;
 use std::path::{Path, PathBuf};
@@ -75,19 +76,20 @@ fn assert_same_as_load(dir: &Path, terrain: &Terrain, vt: &VarianceTree) {
     assert_eq!(vt.codes(), built.codes());
 }
 
-fn report(heights: Source, variance: Source) -> CacheReport {
-    CacheReport {
-        heights,
-        variance,
-        notes: vec![],
-    }
+/// What a report says, less the heights' hash (checked where it matters).
+fn report(heights: Source, variance: Source) -> (Source, Source, Vec<String>) {
+    (heights, variance, vec![])
+}
+
+fn said(r: &CacheReport) -> (Source, Source, Vec<String>) {
+    (r.heights, r.variance, r.notes.clone())
 }
 
 #[test]
 fn round_trip_equals_the_in_memory_build() {
     let dir = data_set("round-trip", 3);
     let (terrain, vt, got, stages) = open_staged(&dir.0);
-    assert_eq!(got, report(Source::Built, Source::Built));
+    assert_eq!(said(&got), report(Source::Built, Source::Built));
     assert_eq!(
         stages,
         [
@@ -114,7 +116,7 @@ fn round_trip_equals_the_in_memory_build() {
     // Opened again: mapped from the cache, the same bytes, no notes; nothing converted or
     // built. (hf.pgm is hashed again when the stamp is within 2 s of its ctime.)
     let (again, vt2, got, stages) = open_staged(&dir.0);
-    assert_eq!(got, report(Source::Cached, Source::Cached));
+    assert_eq!(said(&got), report(Source::Cached, Source::Cached));
     assert!(
         stages.ends_with(&[Stage::Verifying])
             && !stages.contains(&Stage::Converting)
@@ -134,7 +136,7 @@ fn a_changed_heightfield_is_never_served_from_a_stale_cache() {
     let bytes = fs::read(dir.0.join(dataset::HEIGHTS_FILE)).expect("hf.pgm");
     fs::write(dir.0.join(dataset::HEIGHTS_FILE), &bytes).expect("rewrite hf.pgm");
     let (_, _, got) = open(&dir.0);
-    assert_eq!(got, report(Source::Cached, Source::Cached));
+    assert_eq!(said(&got), report(Source::Cached, Source::Cached));
 
     // Other heights of the same size: rebuilt, with the reason.
     let other = generate::synthetic(SIDE, 4);
@@ -226,7 +228,10 @@ fn damaged_cache_files_are_rebuilt_with_the_reason() {
         );
         assert_same_as_load(&dir.0, &terrain, &vt);
         // And the next open trusts the rebuilt files.
-        assert_eq!(open(&dir.0).2, report(Source::Cached, Source::Cached));
+        assert_eq!(
+            said(&open(&dir.0).2),
+            report(Source::Cached, Source::Cached)
+        );
     }
 }
 
@@ -280,4 +285,74 @@ fn open_cached_refuses_what_load_refuses() {
         assert_eq!(got, want, "{file}");
         fs::write(dir.0.join(file), good).expect("restore the file");
     }
+}
+
+/// Opens as `serve` does ([`cache::Verify::Stamps`]); the stages reported, each once.
+fn open_trusting(dir: &Path) -> (CacheReport, Vec<Stage>) {
+    let mut stages = Vec::new();
+    let (terrain, vt, report) =
+        dataset::open_cached_with(dir, 2, cache::Verify::Stamps, &mut |stage, _, _| {
+            if stages.last() != Some(&stage) {
+                stages.push(stage);
+            }
+        })
+        .expect("the data set opens");
+    assert_same_as_load(dir, &terrain, &vt);
+    (report, stages)
+}
+
+/// Dates `verified.stamp` a minute ahead, as an open at least 2 s after the files were
+/// written would have (a stamp within 2 s of a file's ctime is not trusted).
+fn age(path: &Path) {
+    fs::File::options()
+        .write(true)
+        .open(path)
+        .expect("the file exists")
+        .set_modified(std::time::SystemTime::now() + std::time::Duration::from_secs(60))
+        .expect("set its mtime");
+}
+
+#[test]
+fn files_re_hashed_since_they_last_changed_are_trusted_by_their_stamps() {
+    let dir = data_set("stamps", 8);
+    open(&dir.0);
+    // Built just now: re-hashed whole (and stamped) by the next open.
+    let (got, stages) = open_trusting(&dir.0);
+    assert_eq!(said(&got), report(Source::Cached, Source::Cached));
+    assert!(stages.contains(&Stage::Verifying), "{stages:?}");
+    let verified = dir.cache(cache::VERIFIED_FILE);
+    assert!(verified.is_file(), "verified.stamp written");
+    // Stamped within 2 s of the files' change: not trusted yet.
+    let (_, stages) = open_trusting(&dir.0);
+    assert!(stages.contains(&Stage::Verifying), "{stages:?}");
+    age(&verified);
+    let (got, stages) = open_trusting(&dir.0);
+    assert_eq!(said(&got), report(Source::Cached, Source::Cached));
+    // (hf.pgm itself is hashed again while its stamp is within 2 s of its ctime.)
+    assert!(
+        !stages.contains(&Stage::Verifying),
+        "no cache file re-hashed: {stages:?}"
+    );
+    // `check` re-hashes everything whatever the stamps say.
+    let (_, _, _, stages) = open_staged(&dir.0);
+    assert!(stages.contains(&Stage::Verifying), "{stages:?}");
+    // A damaged file is a new file (a new inode and ctime): re-hashed, found, rebuilt.
+    age(&verified);
+    damage(&dir.cache(cache::HEIGHTS_FILE), &|b| b[500] ^= 1);
+    let (got, _) = open_trusting(&dir.0);
+    assert_eq!(got.heights, Source::Built, "{:?}", got.notes);
+    assert!(
+        got.notes[0].contains("corrupt: the samples do not match their hash"),
+        "{:?}",
+        got.notes
+    );
+    age(&verified);
+    damage(&dir.cache(cache::VARIANCE_FILE), &|b| b[200] ^= 0x40);
+    let (got, _) = open_trusting(&dir.0);
+    assert_eq!(got.variance, Source::Built, "{:?}", got.notes);
+    assert!(
+        got.notes[0].contains("corrupt: the codes do not match their hash"),
+        "{:?}",
+        got.notes
+    );
 }

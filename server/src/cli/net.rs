@@ -19,7 +19,7 @@ use roam_server::net::{self, Options, Server};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
-use roam_server::terrain::dataset::Terrain;
+use roam_server::terrain::dataset::{HashSource, Terrain};
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::viewer::ViewerLimits;
 use roam_server::web::{Page, cert};
@@ -149,17 +149,30 @@ pub struct Served {
     pub terrain: Terrain,
     pub variance: VarianceTree,
     pub pyramid: ColorPyramid,
+    /// What the cache did (its `heights_hash` keys the data set's cached hash).
+    pub report: roam_server::terrain::cache::CacheReport,
 }
 
 /// Opens `dir` as `serve` does: refused if it is too large to serve before anything but
 /// its headers is read; `color.ppm`'s pixels are read only to build the tile cache.
 pub fn open_served(dir: &Path) -> Result<Served> {
-    let super::tess::Opened {
-        terrain,
-        variance,
-        report,
-        ms,
-    } = super::tess::open(dir)?;
+    // The cache files re-hashed whole since they last changed are trusted (`check`
+    // re-hashes everything).
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let started = std::time::Instant::now();
+    let (terrain, variance, report) = {
+        let mut p = super::progress::Staged::default();
+        roam_server::terrain::dataset::open_cached_with(
+            dir,
+            threads,
+            roam_server::terrain::cache::Verify::Stamps,
+            &mut p.callback(),
+        )?
+    };
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    for note in &report.notes {
+        tracing::warn!("{note}");
+    }
     tracing::info!(
         "opened {} in {ms:.0} ms (heights {:?}, variance tree {:?})",
         dir.display(),
@@ -167,7 +180,6 @@ pub fn open_served(dir: &Path) -> Result<Served> {
         report.variance
     );
     net::check_servable(&terrain).with_context(|| dir.display().to_string())?;
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let mut p = super::progress::Progress::new("colour tiles");
     let cells = terrain.heights.size();
     let (pyramid, outcome) = ColorPyramid::open_or_load(
@@ -202,6 +214,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
         terrain,
         variance,
         pyramid,
+        report,
     })
 }
 
@@ -310,12 +323,28 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         terrain,
         variance: vt,
         pyramid,
+        report,
     } = open_served(&args.dir)?;
     // The recordings name the data set by its hash, colour included, as `replay` (which
-    // loads it whole) computes it.
+    // loads it whole) computes it; cached in `.cache/content.hash`, so a warm start reads
+    // neither `hf.pgm` nor `color.ppm`.
     let hash = {
+        let started = std::time::Instant::now();
         let mut p = super::progress::Progress::new("hashing");
-        terrain.content_hash_in(&args.dir, &mut p.callback())?
+        let (hash, source) = roam_server::terrain::dataset::content_hash_cached(
+            &args.dir,
+            &terrain,
+            &report,
+            &mut p.callback(),
+        )?;
+        let ms = started.elapsed().as_secs_f64() * 1e3;
+        match source {
+            HashSource::Cached => tracing::info!("data set hash cached in {ms:.0} ms"),
+            HashSource::Computed(why) => {
+                tracing::info!("data set hash computed in {ms:.0} ms ({why})")
+            }
+        }
+        hash
     };
     let identity = tls::load_or_create(&args.state_dir)?;
     let record_dir = args
@@ -329,6 +358,9 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let web_host = web.as_ref().map(|(_, host)| host.clone());
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
+        // Timed apart: `Server::start` scans every height for the codec's height step
+        // (`roam_protocol::height_step`), most of a warm start at 16385² and more.
+        let started = std::time::Instant::now();
         let server = Server::start(
             Arc::new(terrain),
             Arc::new(vt),
@@ -345,6 +377,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
                 )?
             },
         )?;
+        tracing::info!(
+            "server started in {:.0} ms",
+            started.elapsed().as_secs_f64() * 1e3
+        );
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
         let first = made.list().first().map(|p| p.display().to_string());

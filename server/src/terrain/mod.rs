@@ -17,6 +17,7 @@ pub mod png16;
 pub mod pnm;
 pub mod raster;
 pub mod source;
+pub(crate) mod stamp;
 pub mod variance;
 
 pub use cache::{CacheReport, Source};
