@@ -122,13 +122,19 @@ pub(crate) fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32, step: i32) -
 /// heightfield's quantization, which the coder divides out of every residual. Real data
 /// often has one: SRTM heights are whole metres, 100 samples apart in `kossou`.
 pub fn height_step(heights: &[u16]) -> u16 {
-    let gcd = heights.iter().fold(0u16, |g, &h| {
-        let (mut a, mut b) = (g, h);
+    let mut gcd = 0u16;
+    // Once 1, the divisor stays 1: most real maps get there within a few samples, so a
+    // 32769² map is not read whole (a server's start waited seconds on this scan).
+    for &h in heights {
+        let (mut a, mut b) = (gcd, h);
         while b != 0 {
             (a, b) = (b, a % b);
         }
-        a
-    });
+        gcd = a;
+        if gcd == 1 {
+            break;
+        }
+    }
     gcd.max(1)
 }
 
