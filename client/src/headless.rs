@@ -189,7 +189,7 @@ pub async fn measure(
     }
     if opts.keep_last && stats.max_triangles > 0 {
         // The mesh of the last frame decoded, and the colour it is drawn with.
-        stats.last_mesh = Some(session.core().take_mesh());
+        stats.last_mesh = Some(session.core().mesh());
         stats.colors = Some(session.take_colors());
     }
     match ended {
@@ -212,6 +212,7 @@ async fn frames(
 ) -> Result<()> {
     let mut stop = opts.stop.clone();
     let mut connection = 0;
+    let mut terrain = crate::render::TerrainVertices::default();
     while stats.frames < opts.frames {
         let taken = tokio::select! {
             t = session.next_frame(!opts.skip_decode) => t?,
@@ -243,6 +244,10 @@ async fn frames(
         if opts.skip_decode {
             continue;
         }
+        // The vertices, as a viewer with a window builds them (the slots the frame
+        // changed); nothing uploads them here.
+        session.core().update_vertices(&session.scene, &mut terrain);
+        terrain.forget_changes();
         let tris = r.triangles;
         if tris > opts.budget.max(2) as usize {
             bail!(
@@ -255,7 +260,7 @@ async fn frames(
             // Checked on a copy: the core's lock is not held while checking.
             let (m, size) = {
                 let core = session.core();
-                (core.mesh().clone(), core.grid().size())
+                (core.mesh(), core.grid().size())
             };
             roam_protocol::validate::check_mesh(&m.vertices, &m.indices, size)
                 .map_err(|e| anyhow!("frame {}: not a conforming mesh: {e}", r.frame))?;

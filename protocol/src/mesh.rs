@@ -216,13 +216,34 @@ impl LiveMesh {
         self.triangles.iter().copied().filter(|t| *t != NO_TRIANGLE)
     }
 
-    /// The slots rewritten since the last call, each once, and forgets them.
-    pub fn take_dirty(&mut self, mut f: impl FnMut(u32)) {
+    /// Appends to `out` the slots rewritten since the last call, each once, and forgets
+    /// them.
+    pub fn take_dirty(&mut self, out: &mut Vec<u32>) {
         for &s in &self.dirty {
             self.is_dirty[s as usize] = false;
-            f(s);
         }
-        self.dirty.clear();
+        out.append(&mut self.dirty);
+    }
+
+    /// The protocol's [`Mesh`] of these triangles (vertices row-major, as [`emit`] lays
+    /// them out; triangles in slot order), with heights from `height` (0 for a vertex it
+    /// does not hold): O(cut), for checks and screenshots.
+    pub fn to_mesh(&self, grid: &Grid, height: impl Fn(u32) -> Option<u16>) -> Mesh {
+        let mut used: Vec<u32> = self.triangles().flatten().collect();
+        used.sort_unstable();
+        used.dedup();
+        let rank = |i: u32| used.binary_search(&i).unwrap_or(0) as u32;
+        Mesh {
+            vertices: used
+                .iter()
+                .map(|&i| {
+                    let (x, z) = grid.coords(i);
+                    [x as u16, z as u16]
+                })
+                .collect(),
+            heights: used.iter().map(|&i| height(i).unwrap_or(0)).collect(),
+            indices: self.triangles().flatten().map(rank).collect(),
+        }
     }
 
     /// Bytes held.

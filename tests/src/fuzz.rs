@@ -22,8 +22,8 @@ use roam_protocol::messages::{
     self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
 };
 use roam_protocol::{
-    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Grid, Mesh, MeshDecoder, MeshEncoder, colormap,
-    mesh,
+    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Follower, Grid, LiveMesh, Mesh, MeshDecoder,
+    MeshEncoder, colormap, mesh,
 };
 
 use crate::fixtures::SplitMix64;
@@ -60,6 +60,10 @@ pub enum Stage {
     /// A mesh that decoded (a frame's, a key frame's or a change frame's) emitted
     /// (`mesh::emit`) and built into vertices (`TerrainVertices::build`).
     Vertices,
+    /// The frame's mesh as [`Stage::FrameMesh`] has it, through the viewer's decoder
+    /// (`Follower::decode`, holding the same base), which must agree with the reference;
+    /// a mesh that decodes goes on through its `LiveMesh` and `TerrainVertices::update`.
+    FollowMesh,
     /// `MeshDecoder::decode` as a key frame.
     KeyMesh,
     /// `MeshDecoder::decode` as a delta on an empty base.
@@ -271,6 +275,14 @@ pub struct Fuzz {
     frame_dec: MeshDecoder,
     cut_base: Cut,
     cut: Cut,
+    /// The viewer's decoder holding `cut_base` as frame 0, its mesh and vertices, and the
+    /// key frame that gives it the base again once it has let it go.
+    follower: Follower,
+    live: LiveMesh,
+    live_vertices: TerrainVertices,
+    base_key: Vec<u8>,
+    /// Frames the follower decoded (numbered from 1).
+    followed: u64,
     view: View,
     texels: Vec<u8>,
     /// Scratch: a change frame's header on random bytes, a framed input.
@@ -321,6 +333,11 @@ impl Fuzz {
             frame_dec: holding_base(),
             cut_base,
             cut: Cut::default(),
+            follower: following(grid, &key),
+            live: LiveMesh::new(&grid),
+            live_vertices: TerrainVertices::default(),
+            base_key: key.clone(),
+            followed: 0,
             view: View {
                 mesh: Mesh::default(),
                 scene,
@@ -449,13 +466,58 @@ impl Fuzz {
         };
         let base = against_base.then_some(&self.cut_base);
         let (dec, cut) = (&mut self.frame_dec, &mut self.cut);
-        if !run(Stage::FrameMesh, mesh, &mut || {
+        let decoded = run(Stage::FrameMesh, mesh, &mut || {
             dec.decode_cut(mesh, base, MAX_TRIANGLES, cut).is_ok()
-        }) {
+        });
+        self.follow(
+            mesh,
+            against_base,
+            decoded.then(|| (cut.triangles, cut.hash)),
+            run,
+        );
+        if !decoded {
             return;
         }
         self.view
             .build(&self.grid, &cut.split, dec.heights(), mesh, run);
+    }
+
+    /// `mesh` through the viewer's decoder against frame 0 (or as a key frame), as
+    /// [`Stage::FollowMesh`]: it must decode where the reference did (`want`: its
+    /// triangles and hash), and fail where it failed.
+    fn follow(
+        &mut self,
+        mesh: &[u8],
+        against_base: bool,
+        want: Option<(u32, u64)>,
+        run: &mut Runner,
+    ) {
+        if !self.follower.has_base(0) {
+            self.follower = following(self.grid, &self.base_key);
+            self.live = LiveMesh::new(&self.grid);
+        }
+        self.followed += 1;
+        let frame = self.followed;
+        let (f, live, vertices, grid, scene) = (
+            &mut self.follower,
+            &mut self.live,
+            &mut self.live_vertices,
+            &self.grid,
+            &self.view.scene,
+        );
+        let got = run(Stage::FollowMesh, mesh, &mut || {
+            let got = f
+                .decode(frame, mesh, against_base.then_some(0), MAX_TRIANGLES)
+                .is_ok();
+            if got {
+                live.update(grid, f.toggled(), |i| f.contains(i));
+                vertices.update(scene, live, |i| f.height(i));
+                vertices.forget_changes();
+            }
+            got && live.triangle_count() == f.triangles() as usize
+        });
+        let got = got.then(|| (self.follower.triangles(), self.follower.hash()));
+        assert_eq!(got, want, "the viewer's decoder and the reference disagree");
     }
 
     /// A key frame of a random split set into `self.key`, one bit flipped half the time.
@@ -470,6 +532,15 @@ impl Fuzz {
             self.key[i] ^= 1 << below(rng, 8);
         }
     }
+}
+
+/// A viewer's decoder that has decoded `key` as frame 0, keeping every base the server
+/// may code against.
+fn following(grid: Grid, key: &[u8]) -> Follower {
+    let mut f = Follower::new(grid, roam_client::core::BASES);
+    f.decode(0, key, None, u32::MAX)
+        .expect("the key frame just encoded decodes");
+    f
 }
 
 /// What a viewer makes of a decoded mesh.
