@@ -114,6 +114,9 @@ impl Both {
             "the live mesh is emit's"
         );
         assert_eq!(self.live.triangle_count(), cut.triangles as usize);
+        let m = self.live.to_mesh(&grid, |i| self.follower.height(i));
+        roam_protocol::validate::check_mesh(&m.vertices, &m.indices, grid.size())
+            .expect("the live mesh is a conforming tessellation");
         self.bases.push_back((frame, cut));
         if self.bases.len() > self.kept {
             self.bases.pop_front();
