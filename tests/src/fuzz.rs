@@ -275,14 +275,8 @@ pub struct Fuzz {
     frame_dec: MeshDecoder,
     cut_base: Cut,
     cut: Cut,
-    /// The viewer's decoder holding `cut_base` as frame 0, its mesh and vertices, and the
-    /// key frame that gives it the base again once it has let it go.
-    follower: Follower,
-    live: LiveMesh,
-    live_vertices: TerrainVertices,
-    base_key: Vec<u8>,
-    /// Frames the follower decoded (numbered from 1).
-    followed: u64,
+    /// The viewer's decoder holding `cut_base` as frame 0.
+    following: Following,
     view: View,
     texels: Vec<u8>,
     /// Scratch: a change frame's header on random bytes, a framed input.
@@ -333,11 +327,13 @@ impl Fuzz {
             frame_dec: holding_base(),
             cut_base,
             cut: Cut::default(),
-            follower: following(grid, &key),
-            live: LiveMesh::new(&grid),
-            live_vertices: TerrainVertices::default(),
-            base_key: key.clone(),
-            followed: 0,
+            following: Following {
+                follower: following(grid, &key),
+                live: LiveMesh::new(&grid),
+                vertices: TerrainVertices::default(),
+                base_key: key.clone(),
+                followed: 0,
+            },
             view: View {
                 mesh: Mesh::default(),
                 scene,
@@ -469,55 +465,14 @@ impl Fuzz {
         let decoded = run(Stage::FrameMesh, mesh, &mut || {
             dec.decode_cut(mesh, base, MAX_TRIANGLES, cut).is_ok()
         });
-        self.follow(
-            mesh,
-            against_base,
-            decoded.then(|| (cut.triangles, cut.hash)),
-            run,
-        );
+        let want = decoded.then(|| (cut.triangles, cut.hash));
+        self.following
+            .feed(&self.grid, &self.view.scene, mesh, against_base, want, run);
         if !decoded {
             return;
         }
         self.view
             .build(&self.grid, &cut.split, dec.heights(), mesh, run);
-    }
-
-    /// `mesh` through the viewer's decoder against frame 0 (or as a key frame), as
-    /// [`Stage::FollowMesh`]: it must decode where the reference did (`want`: its
-    /// triangles and hash), and fail where it failed.
-    fn follow(
-        &mut self,
-        mesh: &[u8],
-        against_base: bool,
-        want: Option<(u32, u64)>,
-        run: &mut Runner,
-    ) {
-        if !self.follower.has_base(0) {
-            self.follower = following(self.grid, &self.base_key);
-            self.live = LiveMesh::new(&self.grid);
-        }
-        self.followed += 1;
-        let frame = self.followed;
-        let (f, live, vertices, grid, scene) = (
-            &mut self.follower,
-            &mut self.live,
-            &mut self.live_vertices,
-            &self.grid,
-            &self.view.scene,
-        );
-        let got = run(Stage::FollowMesh, mesh, &mut || {
-            let got = f
-                .decode(frame, mesh, against_base.then_some(0), MAX_TRIANGLES)
-                .is_ok();
-            if got {
-                live.update(grid, f.toggled(), |i| f.contains(i));
-                vertices.update(scene, live, |i| f.height(i));
-                vertices.forget_changes();
-            }
-            got && live.triangle_count() == f.triangles() as usize
-        });
-        let got = got.then(|| (self.follower.triangles(), self.follower.hash()));
-        assert_eq!(got, want, "the viewer's decoder and the reference disagree");
     }
 
     /// A key frame of a random split set into `self.key`, one bit flipped half the time.
@@ -531,6 +486,53 @@ impl Fuzz {
             let i = below(rng, self.key.len());
             self.key[i] ^= 1 << below(rng, 8);
         }
+    }
+}
+
+/// The viewer's decoder holding a base as frame 0, its mesh and vertices, and the key
+/// frame that gives it the base again once it has let it go.
+struct Following {
+    follower: Follower,
+    live: LiveMesh,
+    vertices: TerrainVertices,
+    base_key: Vec<u8>,
+    /// Frames the follower decoded (numbered from 1).
+    followed: u64,
+}
+
+impl Following {
+    /// `mesh` through the viewer's decoder against frame 0 (or as a key frame), as
+    /// [`Stage::FollowMesh`]: it must decode where the reference did (`want`: its
+    /// triangles and hash), and fail where it failed.
+    fn feed(
+        &mut self,
+        grid: &Grid,
+        scene: &Scene,
+        mesh: &[u8],
+        against_base: bool,
+        want: Option<(u32, u64)>,
+        run: &mut Runner,
+    ) {
+        if !self.follower.has_base(0) {
+            self.follower = following(*grid, &self.base_key);
+            self.live = LiveMesh::new(grid);
+        }
+        self.followed += 1;
+        let frame = self.followed;
+        let (f, live, vertices) = (&mut self.follower, &mut self.live, &mut self.vertices);
+        let got = run(Stage::FollowMesh, mesh, &mut || {
+            let got = f
+                .decode(frame, mesh, against_base.then_some(0), MAX_TRIANGLES)
+                .is_ok();
+            if got {
+                live.update(grid, f.toggled(), |i| f.contains(i));
+                vertices.update(scene, live, |i| f.height(i));
+                vertices.forget_changes();
+            }
+            got && live.triangle_count() == f.triangles() as usize
+        });
+        let got = got.then(|| (self.follower.triangles(), self.follower.hash()));
+        assert_eq!(got, want, "the viewer's decoder and the reference disagree");
     }
 }
 
