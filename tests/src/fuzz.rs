@@ -466,7 +466,7 @@ impl Fuzz {
         let decoded = run(Stage::FrameMesh, mesh, &mut || {
             dec.decode_cut(mesh, base, MAX_TRIANGLES, cut).is_ok()
         });
-        let want = decoded.then(|| (cut.triangles, cut.hash));
+        let want = decoded.then_some((cut.triangles, cut.hash));
         self.following
             .feed(&self.grid, &self.view.scene, mesh, against_base, want, run);
         if !decoded {
