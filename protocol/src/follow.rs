@@ -23,10 +23,13 @@
 //! sent): the reference decoder took 8.6 frames/s at 32769² and 52 at 16385² on an idle
 //! machine (it copied, counted and walked a bitset of one bit per grid vertex each frame,
 //! and kept up to 32 of them). At 16385², the same server and drive, on a 2-core machine
-//! shared with three builds (load 9): before, 11.0–13.8 frames/s taken, 7.7 s of CPU for
-//! 200 frames, 1.11 GB peak RSS; with this decoder, its `LiveMesh` and the vertex build
-//! slot by slot, 35.5–44.6 frames/s (the viewer got a quarter of a core), 4.2 s of CPU for
-//! 600 frames, 33–37 MB peak RSS (the colour tiles, the cut and 32 bases).
+//! shared with three builds (load 10–12; server and viewer at nice −10): before,
+//! 11.0–16.4 frames/s taken of 47–59 sent, 39–41 ms of CPU a frame taken, 1.11 GB peak
+//! RSS; with this decoder, its `LiveMesh` and the vertex build slot by slot (and the
+//! headless viewer's every-60th full check off its frame loop), 55.5–57.1 frames/s taken,
+//! every frame the loaded server sent (55.3–56.8), 6.1–6.6 ms of CPU a frame (the colour
+//! tiles and the check included: the decoding, mesh and vertices are under 5 % of the
+//! viewer's profile), 33.5–33.8 MB peak RSS (the colour tiles, the cut and 32 bases).
 
 use std::collections::VecDeque;
 
