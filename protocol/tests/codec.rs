@@ -221,7 +221,11 @@ fn heights_on_a_step_are_coded_in_steps() {
     assert_eq!(roam_protocol::height_step(&h), 100);
     assert_eq!(roam_protocol::height_step(&[0, 0]), 1, "no step: 1");
     assert_eq!(roam_protocol::height_step(&[6, 9, 15]), 3);
-    assert_eq!(roam_protocol::height_step(&[4, 6, 5, 10]), 1, "1 once reached");
+    assert_eq!(
+        roam_protocol::height_step(&[4, 6, 5, 10]),
+        1,
+        "1 once reached"
+    );
     assert_eq!(roam_protocol::height_step(&[0, 8, 0, 12]), 4);
     let set = split_set(&grid, &[(5, 9), (40, 33), (60, 2), (17, 50)]);
     let (mut plain, mut stepped) = (Vec::new(), Vec::new());
