@@ -103,7 +103,9 @@ pub struct Stats {
     pub forcing: u32,
 }
 
-/// Per-viewer tessellation state. Build one per heightfield size and reuse it.
+/// Split-only tessellation state for one map size (a bit per grid vertex, and pools):
+/// build one per heightfield size and reuse it. Serving keeps no one per viewer: the
+/// viewers' [`Coherent`] cuts borrow them from a shared [`Scratch`].
 pub struct Tessellator {
     side: u32,
     size: u32,
