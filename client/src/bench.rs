@@ -91,11 +91,9 @@ pub async fn run(
         };
         frames += 1;
         let t0 = Instant::now();
-        session
-            .core()
-            .update_vertices(&session.scene, &mut vertices);
+        vertices.build(&session.scene, session.core().mesh());
         let t1 = Instant::now();
-        renderer.upload_dirty(&gpu, &mut vertices);
+        renderer.upload(&gpu, &vertices);
         let colors = session.colors().drain(MAX_UPLOADS);
         renderer.update_colors(&gpu, &colors);
         gpu.queue.submit([]);
