@@ -202,6 +202,9 @@ pub(super) struct Schedule {
     len: usize,
 }
 
+/// Entries a schedule's emptied bucket keeps room for.
+const KEEP_CAPACITY: usize = 256;
+
 impl Default for Schedule {
     fn default() -> Self {
         Schedule {
@@ -285,10 +288,13 @@ impl Schedule {
             for &(at, e) in &moved {
                 self.put(at, e);
             }
-            // The bucket keeps its memory for later.
-            let mut moved = moved;
-            moved.clear();
-            self.buckets[b] = moved;
+            // A small bucket keeps its memory for later; a large one gives it back (its
+            // entries went to lower buckets: kept, every bucket's peak would stay held).
+            if moved.capacity() <= KEEP_CAPACITY {
+                let mut moved = moved;
+                moved.clear();
+                self.buckets[b] = moved;
+            }
         }
     }
 
