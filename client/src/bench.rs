@@ -91,9 +91,11 @@ pub async fn run(
         };
         frames += 1;
         let t0 = Instant::now();
-        vertices.build(&session.scene, session.core().mesh());
+        session
+            .core()
+            .update_vertices(&session.scene, &mut vertices);
         let t1 = Instant::now();
-        renderer.upload(&gpu, &vertices);
+        renderer.upload_dirty(&gpu, &mut vertices);
         let colors = session.colors().drain(MAX_UPLOADS);
         renderer.update_colors(&gpu, &colors);
         gpu.queue.submit([]);

@@ -21,6 +21,12 @@
 //! against a base this viewer had and no longer has (or never decoded) is dropped and a key
 //! frame asked for at once.
 //!
+//! **Decoding follows the cut** (issue 22): the bases are a [`Follower`] (the current cut
+//! in a map sized by the cut, and the diamonds each recent frame toggled), and the mesh a
+//! [`LiveMesh`] (a slot of triangles per split diamond), so a frame costs what it changed.
+//! Before, each base was a bitset over the grid (128 MiB at 32769²), copied, counted and
+//! walked every frame: 8.6 frames/s taken of 60 at 32769², 52 at 16385².
+//!
 //! The core has two halves, [`ClientCore`] (frames) and [`KeyCore`] (keys), so the I/O can
 //! lock them apart: a key state must leave every 10 ms even while a frame is being
 //! decoded. With one lock, a decode preempted on a loaded machine held the key sender past
@@ -50,31 +56,17 @@ use roam_protocol::keys::{KeyLatch, KeyStep, Keys};
 use roam_protocol::messages::{
     self, ClientMessage, Frame, KeyDatagram, KeyState, VehicleView, ViewChange, Welcome,
 };
-use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
+use roam_protocol::{Follower, Grid, LiveMesh, mesh};
+
+use crate::render::{Scene, TerrainVertices};
 
 /// Decoded frames kept as bases: the server codes against the newest one acknowledged, or
 /// its newest key frame while that is on its way, and never against a frame more than its
 /// logs' length (`roam_server::viewer::LOGS`, at most this many) before the frame it makes;
-/// frames are decoded in order, so such a base is never one dropped here — on grids up to
-/// `2^14 + 1` (see [`bases_for`]).
+/// frames are decoded in order, so such a base is never one dropped here. A base is not a
+/// copy of its cut but the diamonds each frame since toggled ([`Follower`]): on every grid,
+/// the bases together hold what the frames since the oldest changed.
 pub const BASES: usize = 32;
-
-/// What the bases may take together, bytes: a base is a split set of one bit per grid
-/// vertex (2 MiB at 4097², 32 MiB at 16385², 128 MiB at 32769²): 32 of 16385² fit.
-pub const BASES_BYTES: usize = 1100 << 20;
-
-/// The fewest bases kept whatever the grid: 8 frames, an acknowledgement's round trip of
-/// 130 ms at 60 frames a second.
-pub const MIN_BASES: usize = 8;
-
-/// Bases kept on `grid`: [`BASES`] up to `2^14 + 1` (1 GiB of bases at 16385²), fewer on
-/// a larger grid (8 at 32769²: 1 GiB beside the decoder's 2 GiB of heights). There, a
-/// frame coded against a base older than those (a round trip longer than 8 frames) is
-/// dropped and a key frame asked for, as for any base this viewer no longer has.
-pub fn bases_for(grid: &Grid) -> usize {
-    let cut = grid.vertices().div_ceil(8).max(1);
-    (BASES_BYTES / cut).clamp(MIN_BASES, BASES)
-}
 
 /// Frames in a row coded against a base newer than the newest frame taken (a key frame on
 /// its way) that the viewer passes over before it asks for a key frame: a second at 60 Hz.
@@ -236,13 +228,10 @@ type Offered = (Frame, usize, Instant);
 /// One joined viewer's state.
 pub struct ClientCore {
     grid: Grid,
-    decoder: MeshDecoder,
-    /// Cuts of recent frames: the bases the server may code against, oldest first.
-    bases: VecDeque<(u64, Cut)>,
-    /// The last base let go, decoded into next: its memory is reused (a fresh cut is
-    /// `side² / 8` bytes of new pages to fault in, 33 MB a frame at 16385², which took
-    /// more than the decoding there).
-    spare: Option<Cut>,
+    /// The current cut and the bases the server may code against.
+    cut: Follower,
+    /// The current cut's triangles, slot by diamond.
+    live: LiveMesh,
     /// The newest frame taken.
     newest: Option<u64>,
     /// The newest frame offered and not yet taken, its size on the wire and arrival.
@@ -262,9 +251,6 @@ pub struct ClientCore {
     newest_tick: Option<u64>,
     /// The most triangles the server serves ([`Welcome::max_budget`]).
     max_budget: u32,
-    /// Bases kept ([`bases_for`]).
-    max_bases: usize,
-    mesh: mesh::Mesh,
     budget: u32,
     /// The largest budget asked for: frames tessellated before a cut may still come.
     limit: u32,
@@ -292,9 +278,8 @@ impl ClientCore {
         let budget = messages::clamp_budget(budget);
         Some(ClientCore {
             grid,
-            decoder: MeshDecoder::new(grid),
-            bases: VecDeque::new(),
-            spare: None,
+            cut: Follower::new(grid, BASES),
+            live: LiveMesh::new(&grid),
             newest: None,
             waiting: None,
             key: None,
@@ -304,8 +289,6 @@ impl ClientCore {
             broken: None,
             newest_tick: None,
             max_budget: welcome.max_budget,
-            max_bases: bases_for(&grid),
-            mesh: mesh::Mesh::default(),
             budget,
             limit: budget,
             outbox: VecDeque::new(),
@@ -317,14 +300,34 @@ impl ClientCore {
         &self.grid
     }
 
-    /// The newest decoded mesh.
-    pub fn mesh(&self) -> &mesh::Mesh {
-        &self.mesh
+    /// The newest decoded mesh, as the protocol lays one out (vertices row-major,
+    /// triangles in slot order): made on each call, O(cut), for checks and screenshots.
+    pub fn mesh(&self) -> mesh::Mesh {
+        let cut = &self.cut;
+        self.live.to_mesh(&self.grid, |i| cut.height(i))
     }
 
-    /// Takes the newest decoded mesh, leaving an empty one.
-    pub fn take_mesh(&mut self) -> mesh::Mesh {
-        std::mem::take(&mut self.mesh)
+    /// The newest decoded cut, with its bases.
+    pub fn cut(&self) -> &Follower {
+        &self.cut
+    }
+
+    /// The newest decoded mesh's triangles, slot by diamond.
+    pub fn live_mesh(&self) -> &LiveMesh {
+        &self.live
+    }
+
+    /// Brings `terrain` up to date with the newest decoded mesh on `scene`'s scales:
+    /// rewrites the slots the frames decoded since its last update changed (all of them
+    /// the first time). One `terrain` follows a core: the slots rewritten are forgotten.
+    pub fn update_vertices(&mut self, scene: &Scene, terrain: &mut TerrainVertices) {
+        let cut = &self.cut;
+        terrain.update(scene, &mut self.live, |i| cut.height(i));
+    }
+
+    /// Bytes the decoder and the mesh hold (the cut, the bases' logs, the slots).
+    pub fn decoder_bytes(&self) -> usize {
+        self.cut.bytes() + self.live.bytes()
     }
 
     /// The budget asked for.
@@ -399,10 +402,7 @@ impl ClientCore {
         match waiting {
             Some(w) if w.0.frame > key.0.frame => {
                 // Without decoding no base is needed: the newest frame goes.
-                let needs_key = decode
-                    && w.0
-                        .base
-                        .is_some_and(|b| !self.bases.iter().any(|(f, _)| *f == b));
+                let needs_key = decode && w.0.base.is_some_and(|b| !self.cut.has_base(b));
                 if !needs_key {
                     return Some(w); // the key frame is superseded
                 }
@@ -448,32 +448,25 @@ impl ClientCore {
         }
         let mut triangles = 0;
         if decode {
-            let base = match frame.base {
-                Some(b) => match self.bases.iter().find(|(f, _)| *f == b) {
-                    Some((_, cut)) => Some(cut),
-                    // Coded against a frame not taken yet (a key frame still on its way):
-                    // not an error, unless it is too long coming.
-                    None if self.newest.is_none_or(|n| b > n)
-                        && self.awaiting_base < AWAIT_BASE =>
-                    {
-                        self.awaiting_base += 1;
-                        return Ok(Taken::Nothing);
-                    }
-                    None => {
-                        self.awaiting_base = 0;
-                        self.request_key_frame();
-                        return Ok(Taken::Dropped(format!(
-                            "frame {}: coded against frame {b}, which this viewer does not have",
-                            frame.frame
-                        )));
-                    }
-                },
-                None => None,
-            };
-            let mut cut = self.spare.take().unwrap_or_default();
+            if let Some(b) = frame.base
+                && !self.cut.has_base(b)
+            {
+                // Coded against a frame not taken yet (a key frame still on its way): not
+                // an error, unless it is too long coming.
+                if self.newest.is_none_or(|n| b > n) && self.awaiting_base < AWAIT_BASE {
+                    self.awaiting_base += 1;
+                    return Ok(Taken::Nothing);
+                }
+                self.awaiting_base = 0;
+                self.request_key_frame();
+                return Ok(Taken::Dropped(format!(
+                    "frame {}: coded against frame {b}, which this viewer does not have",
+                    frame.frame
+                )));
+            }
             let info = match self
-                .decoder
-                .decode_cut(&frame.mesh, base, self.limit, &mut cut)
+                .cut
+                .decode(frame.frame, &frame.mesh, frame.base, self.limit)
             {
                 Ok(info) => info,
                 Err(e) => {
@@ -482,23 +475,16 @@ impl ClientCore {
                     return Ok(Taken::Dropped(format!("frame {}: {e}", frame.frame)));
                 }
             };
-            mesh::emit(
-                &self.grid,
-                &cut.split,
-                self.decoder.heights(),
-                &mut self.mesh,
-            );
-            triangles = self.mesh.triangle_count();
+            let cut = &self.cut;
+            self.live
+                .update(&self.grid, cut.toggled(), |i| cut.contains(i));
+            triangles = self.live.triangle_count();
             if triangles != info.triangles as usize {
                 return Err(Broken::Inconsistent {
                     frame: frame.frame,
                     emitted: triangles,
                     header: info.triangles,
                 });
-            }
-            self.bases.push_back((frame.frame, cut));
-            if self.bases.len() > self.max_bases {
-                self.spare = self.bases.pop_front().map(|(_, cut)| cut);
             }
         }
         self.awaiting_base = 0;
@@ -604,21 +590,5 @@ impl KeyCore {
             self.pending.pop_front();
         }
         out
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn bases_are_bounded_by_memory_on_the_largest_grids() {
-        let on = |levels| bases_for(&Grid::new(levels).expect("a grid of the protocol"));
-        assert_eq!(on(1), BASES);
-        assert_eq!(on(13), BASES);
-        assert_eq!(on(14), BASES);
-        assert_eq!(on(15), MIN_BASES);
-        let bytes = Grid::new(15).expect("a grid").vertices().div_ceil(8) * on(15);
-        assert!(bytes <= BASES_BYTES, "{bytes}");
     }
 }

@@ -14,7 +14,7 @@ use tokio::sync::mpsc;
 
 use crate::camera::LocalGround;
 use crate::color_cache::ColorUpdate;
-use crate::render::TerrainVertices;
+use crate::render::{TerrainUpdate, TerrainVertices};
 use crate::session::{Session, Taken};
 
 /// What the render thread asks of the network task.
@@ -34,10 +34,12 @@ pub struct Arrived {
     pub frame: u64,
     pub tick: u64,
     pub vehicles: Vec<VehicleView>,
-    pub terrain: TerrainVertices,
+    /// What changed in the terrain's vertices since the frame before was left: the render
+    /// thread applies it to its copy ([`crate::render::Renderer::apply`]).
+    pub terrain: TerrainUpdate,
     /// The drawn ground around the followed vehicle, for the camera.
     pub ground: LocalGround,
-    /// Decoding, emitting and building the vertices, milliseconds.
+    /// Decoding, following the mesh and rewriting the vertices it changed, milliseconds.
     pub decode_ms: f64,
     pub at: Instant,
 }
@@ -177,6 +179,8 @@ async fn run(
     shared: Arc<Shared>,
     mut commands: mpsc::UnboundedReceiver<Command>,
 ) {
+    // The vertices, kept up to date frame by frame (the slots each frame changed).
+    let mut terrain = TerrainVertices::default();
     let ended = loop {
         let event = tokio::select! {
             c = commands.recv() => Event::Command(c),
@@ -201,8 +205,8 @@ async fn run(
             Event::Frame(Ok(Taken::Frame(r))) => r,
         };
         let started = Instant::now();
-        let mut terrain = TerrainVertices::default();
-        terrain.build(&session.scene, session.core().mesh());
+        session.core().update_vertices(&session.scene, &mut terrain);
+        let update = terrain.take_update();
         let me = session.vehicle();
         let ground = match r.vehicles.iter().find(|v| v.id == me) {
             Some(v) => LocalGround::near(&terrain.corners, v.x as f32, v.z as f32, GROUND_RADIUS),
@@ -217,11 +221,20 @@ async fn run(
             }
         }
         shared.frames.fetch_add(1, Ordering::Relaxed);
-        *lock(&shared.arrived) = Some(Arrived {
+        let mut arrived = lock(&shared.arrived);
+        // A frame the render thread has not taken yet: its changes go with this one's.
+        let update = match arrived.take() {
+            Some(older) => older
+                .terrain
+                .then(update)
+                .unwrap_or_else(|| terrain.full_update()),
+            None => update,
+        };
+        *arrived = Some(Arrived {
             frame: r.frame,
             tick: r.tick,
             vehicles: r.vehicles,
-            terrain,
+            terrain: update,
             ground,
             decode_ms: (r.decode_s + (now - started).as_secs_f64()) * 1e3,
             at: r.arrived,

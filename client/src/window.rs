@@ -220,7 +220,7 @@ impl App {
         };
         if let Some(a) = self.shared.take_arrived() {
             let started = Instant::now();
-            gfx.renderer.upload(&gfx.gpu, &a.terrain);
+            gfx.renderer.apply(&gfx.gpu, &a.terrain);
             let upload_ms = started.elapsed().as_secs_f64() * 1e3;
             self.cockpit.costs(now, a.decode_ms, upload_ms);
             let at = now - a.at.elapsed().as_secs_f64();

@@ -72,7 +72,7 @@ use crate::range;
 
 /// The payload format of a change frame.
 pub const CHANGES_FORMAT: u8 = format::CHANGES;
-const HEADER: usize = 26;
+pub(crate) const HEADER: usize = 26;
 
 /// Spreads the low 16 bits of `v` to the even bits.
 #[inline]
@@ -101,7 +101,7 @@ fn morton(x: u32, z: u32) -> u32 {
 }
 
 #[inline]
-fn unmorton(key: u32) -> (u32, u32) {
+pub(crate) fn unmorton(key: u32) -> (u32, u32) {
     (compact(key), compact(key >> 1))
 }
 
@@ -117,7 +117,7 @@ fn encode_gap(rc: &mut range::Encoder, m: &mut ChangeModels, gap: u32) {
     }
 }
 
-fn decode_gap(rc: &mut range::Decoder, m: &mut ChangeModels) -> u32 {
+pub(crate) fn decode_gap(rc: &mut range::Decoder, m: &mut ChangeModels) -> u32 {
     let class = rc.tree(&mut m.class, 5);
     let mut gap = 1u32 << class;
     if class >= 1 {

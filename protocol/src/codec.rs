@@ -48,7 +48,7 @@ use crate::range::{self, Prob};
 
 /// The payload format this code writes and reads.
 pub const FORMAT: u8 = format::MESH;
-const HEADER: usize = 22;
+pub(crate) const HEADER: usize = 22;
 const DEPTHS: usize = 2 * crate::bintree::MAX_LEVELS as usize;
 /// Height residual contexts: one per depth.
 const CONTEXTS: usize = DEPTHS;
@@ -71,7 +71,7 @@ pub enum EncodeError {
 
 /// Adaptive probabilities of one frame.
 pub(crate) struct Models {
-    split: [[Prob; 2]; DEPTHS],
+    pub(crate) split: [[Prob; 2]; DEPTHS],
     zero: [Prob; CONTEXTS],
     sign: [Prob; CONTEXTS],
     /// Bit length of the residual's magnitude, minus one (0 ..= 16): a 5-bit tree.
@@ -118,6 +118,21 @@ pub(crate) fn predict(grid: &Grid, heights: &[u16], x: u32, z: u32, step: i32) -
     (sum + step) / (2 * step) * step
 }
 
+/// [`predict`] with heights looked up by `height` (a grid index's height, `None` when the
+/// viewer does not hold it): `None` when a hypotenuse end's height is not held.
+#[inline]
+pub(crate) fn predict_by(
+    grid: &Grid,
+    x: u32,
+    z: u32,
+    step: i32,
+    height: impl Fn(u32) -> Option<u16>,
+) -> Option<i32> {
+    let [(ax, az), (bx, bz)] = grid.hypotenuse(x, z);
+    let sum = i32::from(height(grid.index(ax, az))?) + i32::from(height(grid.index(bx, bz))?);
+    Some((sum + step) / (2 * step) * step)
+}
+
 /// The largest step every height is a multiple of (1 when there is none): the
 /// heightfield's quantization, which the coder divides out of every residual. Real data
 /// often has one: SRTM heights are whole metres, 100 samples apart in `kossou`.
@@ -139,7 +154,7 @@ pub fn height_step(heights: &[u16]) -> u16 {
 }
 
 /// The candidates of depth 0: the root alone.
-fn start_at_root(grid: &Grid, list: &mut Vec<u32>) {
+pub(crate) fn start_at_root(grid: &Grid, list: &mut Vec<u32>) {
     let (x, z) = grid.root();
     list.clear();
     list.push(grid.index(x, z));
@@ -148,9 +163,19 @@ fn start_at_root(grid: &Grid, list: &mut Vec<u32>) {
 /// The candidates of the next depth: children of this depth's split diamonds, each listed
 /// by its lowest-index parent once all its parents are split.
 fn next_candidates(grid: &Grid, list: &[u32], split: &BitSet, next: &mut Vec<u32>) {
+    next_candidates_by(grid, list, |i| split.contains(i), next);
+}
+
+/// [`next_candidates`] over any split set: `split(i)` says whether diamond `i` is split.
+pub(crate) fn next_candidates_by(
+    grid: &Grid,
+    list: &[u32],
+    split: impl Fn(u32) -> bool,
+    next: &mut Vec<u32>,
+) {
     next.clear();
     for &i in list {
-        if !split.contains(i) {
+        if !split(i) {
             continue;
         }
         let (x, z) = grid.coords(i);
@@ -160,7 +185,7 @@ fn next_candidates(grid: &Grid, list: &[u32], split: &BitSet, next: &mut Vec<u32
             for (px, pz) in grid.parents(cx, cz).into_iter().flatten() {
                 let p = grid.index(px, pz);
                 owner = owner.min(p);
-                all &= split.contains(p);
+                all &= split(p);
             }
             if all && owner == i {
                 next.push(grid.index(cx, cz));
@@ -173,23 +198,31 @@ fn next_candidates(grid: &Grid, list: &[u32], split: &BitSet, next: &mut Vec<u32
 /// split diamond's index and height in coding order. It is there to catch a frame decoded
 /// against the wrong base, or damage the range coder let through, not to resist forgery
 /// (QUIC's encryption does that), so it is cheap: a few cycles a vertex.
-struct Check(u64);
+pub(crate) struct Check(u64);
 
 impl Check {
     fn new(grid: &Grid, heights: &[u16]) -> Check {
+        Check::of_corners(
+            grid.corners()
+                .map(|(x, z)| heights[grid.index(x, z) as usize]),
+        )
+    }
+
+    /// The check's start: the four corners' heights, row-major.
+    pub(crate) fn of_corners(corners: [u16; 4]) -> Check {
         let mut c = Check(0x243f_6a88_85a3_08d3);
-        for (x, z) in grid.corners() {
-            c.add(u64::from(heights[grid.index(x, z) as usize]));
+        for h in corners {
+            c.add(u64::from(h));
         }
         c
     }
 
     #[inline]
-    fn add(&mut self, v: u64) {
+    pub(crate) fn add(&mut self, v: u64) {
         self.0 = (self.0.rotate_left(23) ^ v).wrapping_mul(0x9e37_79b9_7f4a_7c15);
     }
 
-    fn value(&self) -> u64 {
+    pub(crate) fn value(&self) -> u64 {
         let mut h = self.0;
         h ^= h >> 33;
         h = h.wrapping_mul(0xff51_afd7_ed55_8ccd);

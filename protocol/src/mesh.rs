@@ -9,6 +9,7 @@
 //! above.
 
 use crate::bintree::{BitSet, Grid};
+use crate::diamonds::DiamondMap;
 
 /// Triangles over grid vertices, with heights.
 #[derive(Clone, Debug, Default, PartialEq, Eq)]
@@ -148,4 +149,227 @@ pub fn emit(grid: &Grid, split: &BitSet, heights: &[u16], out: &mut Mesh) {
             }
         }
     }
+}
+
+/// No triangle in this place of a [`LiveMesh`] slot.
+pub const NO_TRIANGLE: [u32; 3] = [u32::MAX; 3];
+
+/// Triangle places per slot: a split diamond's four children.
+pub const SLOT_TRIANGLES: usize = 4;
+
+/// The triangles of a cut kept up to date change by change: each split diamond owns a
+/// *slot* of four triangle places (its children that are leaves; [`NO_TRIANGLE`] in the
+/// others), slots freed by merged diamonds are reused, and the slots rewritten since the
+/// last [`LiveMesh::take_dirty`] are listed, so a vertex buffer laid out by slot is
+/// rewritten where the frame changed it and nowhere else. The root diamond is always slot
+/// 0 (the two root triangles while it is not split).
+///
+/// Toggling diamond `d` changes the triangles of `d` and of its parents (whose children
+/// are leaves or not by `d`'s state), nothing else: [`LiveMesh::update`] costs
+/// O(toggles). The triangles are those [`emit`] writes, as grid indices, in slot order
+/// rather than row-major.
+#[derive(Clone, Debug, Default)]
+pub struct LiveMesh {
+    slot_of: DiamondMap<u32>,
+    /// Each slot's diamond (`u32::MAX`: free).
+    owner: Vec<u32>,
+    free: Vec<u32>,
+    /// [`SLOT_TRIANGLES`] per slot, grid indices, counter-clockwise seen from above.
+    triangles: Vec<[u32; 3]>,
+    count: usize,
+    dirty: Vec<u32>,
+    is_dirty: Vec<bool>,
+    /// Scratch: the diamonds to rewrite.
+    affected: DiamondMap<()>,
+}
+
+impl LiveMesh {
+    /// The mesh of the empty cut of `grid`: the two root triangles.
+    pub fn new(grid: &Grid) -> LiveMesh {
+        let mut live = LiveMesh::default();
+        let (x, z) = grid.root();
+        live.owner.push(grid.index(x, z));
+        live.triangles.resize(SLOT_TRIANGLES, NO_TRIANGLE);
+        live.is_dirty.push(false);
+        live.write(grid, 0, |_| false);
+        live
+    }
+
+    /// Triangles in the mesh.
+    pub fn triangle_count(&self) -> usize {
+        self.count
+    }
+
+    /// Slots in use or free: the vertex buffer's extent is this many slots.
+    pub fn slots(&self) -> usize {
+        self.owner.len()
+    }
+
+    /// A slot's triangle places.
+    pub fn slot(&self, slot: u32) -> &[[u32; 3]] {
+        let at = slot as usize * SLOT_TRIANGLES;
+        &self.triangles[at..at + SLOT_TRIANGLES]
+    }
+
+    /// The triangles, in slot order.
+    pub fn triangles(&self) -> impl Iterator<Item = [u32; 3]> + '_ {
+        self.triangles.iter().copied().filter(|t| *t != NO_TRIANGLE)
+    }
+
+    /// Appends to `out` the slots rewritten since the last call, each once, and forgets
+    /// them.
+    pub fn take_dirty(&mut self, out: &mut Vec<u32>) {
+        for &s in &self.dirty {
+            self.is_dirty[s as usize] = false;
+        }
+        out.append(&mut self.dirty);
+    }
+
+    /// The protocol's [`Mesh`] of these triangles (vertices row-major, as [`emit`] lays
+    /// them out; triangles in slot order), with heights from `height` (0 for a vertex it
+    /// does not hold): O(cut), for checks and screenshots.
+    pub fn to_mesh(&self, grid: &Grid, height: impl Fn(u32) -> Option<u16>) -> Mesh {
+        let mut used: Vec<u32> = self.triangles().flatten().collect();
+        used.sort_unstable();
+        used.dedup();
+        let rank = |i: u32| used.binary_search(&i).unwrap_or(0) as u32;
+        Mesh {
+            vertices: used
+                .iter()
+                .map(|&i| {
+                    let (x, z) = grid.coords(i);
+                    [x as u16, z as u16]
+                })
+                .collect(),
+            heights: used.iter().map(|&i| height(i).unwrap_or(0)).collect(),
+            indices: self.triangles().flatten().map(rank).collect(),
+        }
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        self.slot_of.bytes()
+            + self.affected.bytes()
+            + 4 * (self.owner.capacity() + self.free.capacity() + self.dirty.capacity())
+            + 12 * self.triangles.capacity()
+            + self.is_dirty.capacity()
+    }
+
+    /// Follows a cut whose diamonds `toggled` changed state (each listed once): `split(i)`
+    /// says whether diamond `i` is split now.
+    pub fn update(
+        &mut self,
+        grid: &Grid,
+        toggled: impl Iterator<Item = u32>,
+        split: impl Fn(u32) -> bool,
+    ) {
+        let mut affected = std::mem::take(&mut self.affected);
+        affected.clear();
+        for d in toggled {
+            affected.insert(d, ());
+            let (x, z) = grid.coords(d);
+            for (px, pz) in grid.parents(x, z).into_iter().flatten() {
+                affected.insert(grid.index(px, pz), ());
+            }
+        }
+        let root = self.owner[0];
+        for (d, ()) in affected.iter() {
+            if d == root {
+                self.write(grid, 0, &split);
+            } else if split(d) {
+                let slot = match self.slot_of.get(d) {
+                    Some(s) => s,
+                    None => {
+                        let s = self.free.pop().unwrap_or_else(|| {
+                            self.owner.push(u32::MAX);
+                            self.is_dirty.push(false);
+                            self.triangles
+                                .resize(self.owner.len() * SLOT_TRIANGLES, NO_TRIANGLE);
+                            self.owner.len() as u32 - 1
+                        });
+                        self.owner[s as usize] = d;
+                        self.slot_of.insert(d, s);
+                        s
+                    }
+                };
+                self.write(grid, slot, &split);
+            } else if let Some(slot) = self.slot_of.remove(d) {
+                self.owner[slot as usize] = u32::MAX;
+                self.set(slot, [NO_TRIANGLE; SLOT_TRIANGLES]);
+                self.free.push(slot);
+            }
+        }
+        self.affected = affected;
+    }
+
+    /// Writes `slot`'s places, marking it dirty.
+    fn set(&mut self, slot: u32, places: [[u32; 3]; SLOT_TRIANGLES]) {
+        let at = slot as usize * SLOT_TRIANGLES;
+        for (old, new) in self.triangles[at..at + SLOT_TRIANGLES]
+            .iter_mut()
+            .zip(places)
+        {
+            self.count -= usize::from(*old != NO_TRIANGLE);
+            self.count += usize::from(new != NO_TRIANGLE);
+            *old = new;
+        }
+        if !self.is_dirty[slot as usize] {
+            self.is_dirty[slot as usize] = true;
+            self.dirty.push(slot);
+        }
+    }
+
+    /// Writes the leaf children of `slot`'s diamond (split, or the unsplit root).
+    fn write(&mut self, grid: &Grid, slot: u32, split: impl Fn(u32) -> bool) {
+        let i = self.owner[slot as usize];
+        if slot == 0 && !split(i) {
+            let [nw, ne, sw, se] = grid.corners().map(|(x, z)| grid.index(x, z));
+            self.set(0, [[ne, nw, se], [sw, se, nw], NO_TRIANGLE, NO_TRIANGLE]);
+            return;
+        }
+        let (corner, leaf) = children(grid, i, &split);
+        let mut places = [NO_TRIANGLE; SLOT_TRIANGLES];
+        for j in 0..4 {
+            if let (Some(a), Some(b), true) = (corner[j], corner[(j + 1) & 3], leaf[j]) {
+                places[j] = [i, a, b];
+            }
+        }
+        self.set(slot, places);
+    }
+}
+
+/// A split diamond's four corners (`None` off the map) in [`emit`]'s order, and whether
+/// each child (between corner `j` and `j + 1`) is a leaf.
+fn children(grid: &Grid, i: u32, split: impl Fn(u32) -> bool) -> ([Option<u32>; 4], [bool; 4]) {
+    let s = i64::from(grid.size());
+    let (x, z) = grid.coords(i);
+    let (m, square) = grid.classify(x, z);
+    let (h, k) = (1i64 << m, (1i64 << m) / 2);
+    let (xi, zi) = (i64::from(x), i64::from(z));
+    let at = |(cx, cz): (i64, i64)| {
+        (cx >= 0 && cz >= 0 && cx <= s && cz <= s).then(|| grid.index(cx as u32, cz as u32))
+    };
+    let (corner, mid) = if square {
+        (
+            [
+                (xi + h, zi - h),
+                (xi - h, zi - h),
+                (xi - h, zi + h),
+                (xi + h, zi + h),
+            ],
+            [(xi, zi - h), (xi - h, zi), (xi, zi + h), (xi + h, zi)],
+        )
+    } else {
+        (
+            [(xi + h, zi), (xi, zi - h), (xi - h, zi), (xi, zi + h)],
+            [
+                (xi + k, zi - k),
+                (xi - k, zi - k),
+                (xi - k, zi + k),
+                (xi + k, zi + k),
+            ],
+        )
+    };
+    let leaf = mid.map(|c| (!square && m == 0) || at(c).is_none_or(|c| !split(c)));
+    (corner.map(at), leaf)
 }

@@ -22,8 +22,8 @@ use roam_protocol::messages::{
     self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
 };
 use roam_protocol::{
-    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Grid, Mesh, MeshDecoder, MeshEncoder, colormap,
-    mesh,
+    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Follower, Grid, LiveMesh, Mesh, MeshDecoder,
+    MeshEncoder, colormap, mesh,
 };
 
 use crate::fixtures::SplitMix64;
@@ -60,6 +60,10 @@ pub enum Stage {
     /// A mesh that decoded (a frame's, a key frame's or a change frame's) emitted
     /// (`mesh::emit`) and built into vertices (`TerrainVertices::build`).
     Vertices,
+    /// The frame's mesh as [`Stage::FrameMesh`] has it, through the viewer's decoder
+    /// (`Follower::decode`, holding the same base), which must agree with the reference;
+    /// a mesh that decodes goes on through its `LiveMesh` and `TerrainVertices::update`.
+    FollowMesh,
     /// `MeshDecoder::decode` as a key frame.
     KeyMesh,
     /// `MeshDecoder::decode` as a delta on an empty base.
@@ -271,6 +275,8 @@ pub struct Fuzz {
     frame_dec: MeshDecoder,
     cut_base: Cut,
     cut: Cut,
+    /// The viewer's decoder holding `cut_base` as frame 0.
+    following: Following,
     view: View,
     texels: Vec<u8>,
     /// Scratch: a change frame's header on random bytes, a framed input.
@@ -298,6 +304,7 @@ impl Fuzz {
             assert_eq!(cut, cut_base, "the key frame decodes to its cut");
             dec
         };
+        let (follower, live) = following(grid, &key);
         let scene = Scene {
             levels: LEVELS,
             h_scale: 30.0,
@@ -321,6 +328,13 @@ impl Fuzz {
             frame_dec: holding_base(),
             cut_base,
             cut: Cut::default(),
+            following: Following {
+                follower,
+                live,
+                vertices: TerrainVertices::default(),
+                base_key: key.clone(),
+                followed: 0,
+            },
             view: View {
                 mesh: Mesh::default(),
                 scene,
@@ -449,9 +463,13 @@ impl Fuzz {
         };
         let base = against_base.then_some(&self.cut_base);
         let (dec, cut) = (&mut self.frame_dec, &mut self.cut);
-        if !run(Stage::FrameMesh, mesh, &mut || {
+        let decoded = run(Stage::FrameMesh, mesh, &mut || {
             dec.decode_cut(mesh, base, MAX_TRIANGLES, cut).is_ok()
-        }) {
+        });
+        let want = decoded.then_some((cut.triangles, cut.hash));
+        self.following
+            .feed(&self.grid, &self.view.scene, mesh, against_base, want, run);
+        if !decoded {
             return;
         }
         self.view
@@ -470,6 +488,82 @@ impl Fuzz {
             self.key[i] ^= 1 << below(rng, 8);
         }
     }
+}
+
+/// The viewer's decoder holding a base as frame 0, its mesh and vertices, and the key
+/// frame that gives it the base again once it has let it go.
+struct Following {
+    follower: Follower,
+    live: LiveMesh,
+    vertices: TerrainVertices,
+    base_key: Vec<u8>,
+    /// Frames the follower decoded (numbered from 1).
+    followed: u64,
+}
+
+impl Following {
+    /// `mesh` through the viewer's decoder against frame 0 (or as a key frame), as
+    /// [`Stage::FollowMesh`]: it must decode where the reference did (`want`: its
+    /// triangles and hash), and fail where it failed.
+    fn feed(
+        &mut self,
+        grid: &Grid,
+        scene: &Scene,
+        mesh: &[u8],
+        against_base: bool,
+        want: Option<(u32, u64)>,
+        run: &mut Runner,
+    ) {
+        if !self.follower.has_base(0) {
+            (self.follower, self.live) = following(*grid, &self.base_key);
+        }
+        self.followed += 1;
+        let frame = self.followed;
+        let (f, live, vertices) = (&mut self.follower, &mut self.live, &mut self.vertices);
+        let got = run(Stage::FollowMesh, mesh, &mut || {
+            let got = f
+                .decode(frame, mesh, against_base.then_some(0), MAX_TRIANGLES)
+                .is_ok();
+            if got {
+                live.update(grid, f.toggled(), |i| f.contains(i));
+                vertices.update(scene, live, |i| f.height(i));
+                vertices.forget_changes();
+            }
+            got && live.triangle_count() == f.triangles() as usize
+        });
+        let got = got.then(|| (self.follower.triangles(), self.follower.hash()));
+        // The reference's heights are one array over the grid, which a format-1 frame that
+        // fails leaves written: a later frame against the base may then fail there only.
+        // A reference holding nothing but the base must agree.
+        let want = match (got, want) {
+            (Some(_), None) => reference(*grid, &self.base_key, mesh, against_base),
+            _ => want,
+        };
+        assert_eq!(got, want, "the viewer's decoder and the reference disagree");
+    }
+}
+
+/// A viewer's decoder that has decoded `key` as frame 0, keeping every base the server
+/// may code against, and its mesh.
+fn following(grid: Grid, key: &[u8]) -> (Follower, LiveMesh) {
+    let mut f = Follower::new(grid, roam_client::core::BASES);
+    f.decode(0, key, None, u32::MAX)
+        .expect("the key frame just encoded decodes");
+    let mut live = LiveMesh::new(&grid);
+    live.update(&grid, f.toggled(), |i| f.contains(i));
+    (f, live)
+}
+
+/// `mesh` decoded by a fresh reference decoder holding the cut of `key` (against it, or
+/// as a key frame): its triangles and hash, if it decodes.
+fn reference(grid: Grid, key: &[u8], mesh: &[u8], against_base: bool) -> Option<(u32, u64)> {
+    let mut dec = MeshDecoder::new(grid);
+    let (mut base, mut cut) = (Cut::default(), Cut::default());
+    dec.decode_cut(key, None, u32::MAX, &mut base)
+        .expect("the key frame just encoded decodes");
+    dec.decode_cut(mesh, against_base.then_some(&base), MAX_TRIANGLES, &mut cut)
+        .ok()
+        .map(|_| (cut.triangles, cut.hash))
 }
 
 /// What a viewer makes of a decoded mesh.

@@ -125,6 +125,9 @@ fn bound(stage: Stage, bytes: &[u8], vertices: usize) -> usize {
         Stage::FrameMesh | Stage::KeyMesh | Stage::DeltaMesh | Stage::ChangeMesh => {
             PER_VERTEX * vertices
         }
+        // The decoder's maps and lists (as the others'), its log of the frame, the live
+        // mesh's slots (64 bytes a diamond) and their vertices (240 bytes a slot).
+        Stage::FollowMesh => (PER_VERTEX + 2 * 64 + 2 * 240) * vertices,
         // The mesh (4 + 2 bytes a vertex, 12 a triangle) and its vertices (12 + 12 + 20 a
         // vertex, 60 a triangle), each at most doubled; the triangles at most the limit
         // the decoder was given, and at most two per grid vertex.
@@ -206,7 +209,7 @@ fn every_decoder_takes_fuzzed_inputs_within_its_limits() {
     // least 20,000 times (most of the random key frames, flipped bit or not).
     let built = &tally[&Stage::Vertices];
     assert!(built.inputs >= 20_000, "{} meshes built", built.inputs);
-    assert_eq!(tally.len(), 12, "every stage ran");
+    assert_eq!(tally.len(), 13, "every stage ran");
 }
 
 /// The varint bincode writes for a length: one byte below 251, else a marker and the

@@ -345,7 +345,8 @@ impl App {
                     }
                 }
                 l.gaps.frame(r.arrived);
-                self.terrain.build(self.renderer.scene(), l.core.mesh());
+                l.core
+                    .update_vertices(self.renderer.scene(), &mut self.terrain);
                 drop(l);
                 let decode_ms = started.elapsed().as_secs_f64() * 1e3;
                 let ground = match r.vehicles.iter().find(|v| v.id == self.me()) {
@@ -358,7 +359,7 @@ impl App {
                     None => LocalGround::default(),
                 };
                 let uploading = Instant::now();
-                self.renderer.upload(&self.gfx.gpu, &self.terrain);
+                self.renderer.upload_dirty(&self.gfx.gpu, &mut self.terrain);
                 let upload_ms = uploading.elapsed().as_secs_f64() * 1e3;
                 self.cockpit.costs(now, decode_ms, upload_ms);
                 let at = now - r.arrived.elapsed().as_secs_f64();

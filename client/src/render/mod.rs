@@ -27,7 +27,8 @@ use wgpu::util::DeviceExt;
 use crate::color_cache::{ColorUpdate, LevelState, MASK_WORDS, layer_side};
 
 pub use gpu::{Gpu, NO_ADAPTER, configure_surface};
-pub use vertices::TerrainVertices;
+use vertices::Vertex;
+pub use vertices::{TerrainUpdate, TerrainVertices};
 
 /// What does not change during a session: the map's scales, sun, fog, water and colours.
 #[derive(Clone, Debug)]
@@ -226,6 +227,20 @@ impl Buffer {
         self.count = count as u32;
     }
 
+    /// Writes `bytes` at `offset` (bytes) of a buffer of `count` vertices in all; false
+    /// when the buffer is too small (the caller writes the whole instead).
+    fn write_at(&mut self, gpu: &Gpu, offset: u64, bytes: &[u8], count: usize) -> bool {
+        let need = (count * std::mem::size_of::<Vertex>()) as u64;
+        match &self.buffer {
+            Some(b) if b.size() >= need => {
+                gpu.queue.write_buffer(b, offset, bytes);
+                self.count = count as u32;
+                true
+            }
+            _ => false,
+        }
+    }
+
     fn slice(&self) -> Option<(wgpu::BufferSlice<'_>, u32)> {
         let b = self.buffer.as_ref().filter(|_| self.count > 0)?;
         Some((b.slice(..), self.count))
@@ -244,8 +259,10 @@ pub struct Renderer {
     markers: Vec<Marker>,
     depth: Option<(wgpu::Texture, wgpu::TextureView, (u32, u32))>,
     scene: Scene,
-    /// Scratch for [`Renderer::set_mesh`].
+    /// The terrain drawn, as built by [`Renderer::set_mesh`] or kept by
+    /// [`Renderer::apply`].
     scratch: TerrainVertices,
+    terrain_triangles: usize,
     /// The format drawn into.
     format: wgpu::TextureFormat,
     /// The target format does not encode sRGB: the shader does.
@@ -347,6 +364,7 @@ impl Renderer {
             depth: None,
             scene,
             scratch: TerrainVertices::default(),
+            terrain_triangles: 0,
             encode_srgb: !format.is_srgb(),
             format,
             colors: fit.then_some(texture),
@@ -421,7 +439,7 @@ impl Renderer {
 
     /// Triangles of the terrain drawn.
     pub fn triangles(&self) -> usize {
-        self.terrain.count as usize / 3
+        self.terrain_triangles
     }
 
     /// Replaces the terrain drawn with `mesh` from the codec (grid vertices, heights,
@@ -440,6 +458,34 @@ impl Renderer {
             bytemuck::cast_slice(&terrain.corners),
             terrain.corners.len(),
         );
+        self.terrain_triangles = terrain.triangles();
+    }
+
+    /// Uploads what changed in `terrain` since its last upload (the slots a frame
+    /// rewrote, [`TerrainVertices::take_ranges`]), or the whole when the buffer has no
+    /// room for it.
+    pub fn upload_dirty(&mut self, gpu: &Gpu, terrain: &mut TerrainVertices) {
+        let len = terrain.corners.len();
+        let mut whole = false;
+        let buffer = &mut self.terrain;
+        terrain.take_ranges(|first, corners| {
+            let offset = (first * std::mem::size_of::<Vertex>()) as u64;
+            whole |= !buffer.write_at(gpu, offset, bytemuck::cast_slice(corners), len);
+        });
+        if whole {
+            self.terrain
+                .write(gpu, bytemuck::cast_slice(&terrain.corners), len);
+        }
+        self.terrain_triangles = terrain.triangles();
+    }
+
+    /// Applies `update` (from the network thread's vertices) to the copy drawn, and
+    /// uploads what it changed.
+    pub fn apply(&mut self, gpu: &Gpu, update: &TerrainUpdate) {
+        let mut copy = std::mem::take(&mut self.scratch);
+        copy.apply(update);
+        self.upload_dirty(gpu, &mut copy);
+        self.scratch = copy;
     }
 
     /// The vehicles to show (besides the one the camera rides).

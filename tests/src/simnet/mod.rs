@@ -253,7 +253,7 @@ pub struct Sim {
     viewers: Vec<Viewer>,
 }
 
-/// A 64-bit FNV-1a of a mesh's vertices and indices.
+/// A 64-bit FNV-1a of a mesh: its vertices in order, its triangles as a set.
 fn mesh_hash(vertices: &[[u16; 2]], indices: &[u32]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
     let mut eat = |bytes: &[u8]| {
@@ -267,8 +267,18 @@ fn mesh_hash(vertices: &[[u16; 2]], indices: &[u32]) -> u64 {
         eat(&v[0].to_le_bytes());
         eat(&v[1].to_le_bytes());
     }
+    // The triangles as a set: each rotated to start at its least index, then sorted (the
+    // viewer keeps them in slot order, the server's tessellator row-major).
+    let mut triangles: Vec<[u32; 3]> = indices
+        .chunks_exact(3)
+        .map(|t| {
+            let k = (0..3).min_by_key(|&k| t[k]).unwrap_or(0);
+            [t[k], t[(k + 1) % 3], t[(k + 2) % 3]]
+        })
+        .collect();
+    triangles.sort_unstable();
     eat(&(indices.len() as u64).to_le_bytes());
-    for i in indices {
+    for i in triangles.iter().flatten() {
         eat(&i.to_le_bytes());
     }
     h
