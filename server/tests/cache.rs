@@ -304,11 +304,16 @@ fn open_trusting(dir: &Path) -> (CacheReport, Vec<Stage>) {
 /// Dates `verified.stamp` a minute ahead, as an open at least 2 s after the files were
 /// written would have (a stamp within 2 s of a file's ctime is not trusted).
 fn age(path: &Path) {
-    fs::File::options()
+    let file = fs::File::options()
         .write(true)
         .open(path)
-        .expect("the file exists")
-        .set_modified(std::time::SystemTime::now() + std::time::Duration::from_secs(60))
+        .expect("the file exists");
+    // A minute after its own mtime (no clock read: the tests keep to the I/O shells' rule).
+    let written = file
+        .metadata()
+        .and_then(|m| m.modified())
+        .expect("an mtime");
+    file.set_modified(written + std::time::Duration::from_secs(60))
         .expect("set its mtime");
 }
 
