@@ -110,32 +110,10 @@ pub fn emit(grid: &Grid, split: &BitSet, heights: &[u16], out: &mut Mesh) {
     for i in split.iter() {
         let (x, z) = grid.coords(i);
         let (m, square) = grid.classify(x, z);
-        let (h, k) = (1i64 << m, (1i64 << m) / 2);
-        let (xi, zi) = (i64::from(x), i64::from(z));
         let on =
             |(cx, cz): (i64, i64)| cx >= 0 && cz >= 0 && cx <= i64::from(s) && cz <= i64::from(s);
         let idx = |(cx, cz): (i64, i64)| grid.index(cx as u32, cz as u32);
-        let (corner, mid) = if square {
-            (
-                [
-                    (xi + h, zi - h),
-                    (xi - h, zi - h),
-                    (xi - h, zi + h),
-                    (xi + h, zi + h),
-                ],
-                [(xi, zi - h), (xi - h, zi), (xi, zi + h), (xi + h, zi)],
-            )
-        } else {
-            (
-                [(xi + h, zi), (xi, zi - h), (xi - h, zi), (xi, zi + h)],
-                [
-                    (xi + k, zi - k),
-                    (xi - k, zi - k),
-                    (xi - k, zi + k),
-                    (xi + k, zi + k),
-                ],
-            )
-        };
+        let (corner, mid) = layout(x, z, m, square);
         let rc = ranks.rank(i);
         // A corner off the map (a rotated diamond on the edge) stands in for itself; the
         // children next to it are off the map too and are skipped.
@@ -338,18 +316,16 @@ impl LiveMesh {
     }
 }
 
-/// A split diamond's four corners (`None` off the map) in [`emit`]'s order, and whether
-/// each child (between corner `j` and `j + 1`) is a leaf.
-fn children(grid: &Grid, i: u32, split: impl Fn(u32) -> bool) -> ([Option<u32>; 4], [bool; 4]) {
-    let s = i64::from(grid.size());
-    let (x, z) = grid.coords(i);
-    let (m, square) = grid.classify(x, z);
+/// A grid position that may lie off the map.
+type Point = (i64, i64);
+
+/// The diamond centred at `(x, z)` (level `m`, square or not): its four corners in
+/// [`emit`]'s order, and the midpoint of each edge between corner `j` and `j + 1` (the
+/// centre of the child there), in grid coordinates that may lie off the map.
+fn layout(x: u32, z: u32, m: u32, square: bool) -> ([Point; 4], [Point; 4]) {
     let (h, k) = (1i64 << m, (1i64 << m) / 2);
     let (xi, zi) = (i64::from(x), i64::from(z));
-    let at = |(cx, cz): (i64, i64)| {
-        (cx >= 0 && cz >= 0 && cx <= s && cz <= s).then(|| grid.index(cx as u32, cz as u32))
-    };
-    let (corner, mid) = if square {
+    if square {
         (
             [
                 (xi + h, zi - h),
@@ -369,7 +345,19 @@ fn children(grid: &Grid, i: u32, split: impl Fn(u32) -> bool) -> ([Option<u32>; 
                 (xi + k, zi + k),
             ],
         )
+    }
+}
+
+/// A split diamond's four corners (`None` off the map) in [`emit`]'s order, and whether
+/// each child (between corner `j` and `j + 1`) is a leaf.
+fn children(grid: &Grid, i: u32, split: impl Fn(u32) -> bool) -> ([Option<u32>; 4], [bool; 4]) {
+    let s = i64::from(grid.size());
+    let (x, z) = grid.coords(i);
+    let (m, square) = grid.classify(x, z);
+    let at = |(cx, cz): (i64, i64)| {
+        (cx >= 0 && cz >= 0 && cx <= s && cz <= s).then(|| grid.index(cx as u32, cz as u32))
     };
+    let (corner, mid) = layout(x, z, m, square);
     let leaf = mid.map(|c| (!square && m == 0) || at(c).is_none_or(|c| !split(c)));
     (corner.map(at), leaf)
 }

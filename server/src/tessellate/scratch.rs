@@ -32,15 +32,6 @@ impl Scratch {
         }
     }
 
-    pub fn side(&self) -> u32 {
-        self.side
-    }
-
-    /// Tessellators made so far and now idle in the pool.
-    pub fn idle(&self) -> usize {
-        self.pool.lock().unwrap_or_else(|e| e.into_inner()).len()
-    }
-
     /// Runs `f` with a tessellator of the pool (a new one when all are lent), and puts it
     /// back.
     pub(crate) fn with<R>(&self, f: impl FnOnce(&mut Tessellator) -> R) -> R {

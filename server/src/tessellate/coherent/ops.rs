@@ -110,28 +110,36 @@ impl Coherent {
 
     /// Keeps lane `i` of an evaluation beside split candidate `pos`, and queues it.
     pub(super) fn keep_split(&mut self, l: &Lanes, i: usize, pos: u32) {
-        let stamp = self.next_stamp();
-        let (moved, turned) = (self.moved, self.turned);
-        let Some(e) = self.splits.cands.get_mut(pos) else {
-            return;
-        };
-        e.keep(l, i, moved, turned);
-        e.stamp = stamp;
-        let e = *e;
-        queue_split(&mut self.splits, &e, pos);
+        self.keep(l, i, pos, false);
     }
 
     /// Keeps lane `i` of an evaluation beside merge candidate `pos`, and queues it.
     pub(super) fn keep_merge(&mut self, l: &Lanes, i: usize, pos: u32) {
+        self.keep(l, i, pos, true);
+    }
+
+    /// Keeps lane `i` of an evaluation beside `pos` in the merge or split frontier, under a
+    /// new stamp, and queues and schedules it.
+    fn keep(&mut self, l: &Lanes, i: usize, pos: u32, merges: bool) {
         let stamp = self.next_stamp();
         let (moved, turned) = (self.moved, self.turned);
-        let Some(e) = self.merges.cands.get_mut(pos) else {
+        let fr = if merges {
+            &mut self.merges
+        } else {
+            &mut self.splits
+        };
+        let Some(e) = fr.cands.get_mut(pos) else {
             return;
         };
         e.keep(l, i, moved, turned);
         e.stamp = stamp;
         let e = *e;
-        queue_merge(&mut self.merges, &e, pos);
+        if merges {
+            push_merge(&mut fr.queue, &e, pos);
+        } else {
+            push_split(&mut fr.queue, &e, pos);
+        }
+        schedule(fr, &e, pos);
     }
 
     /// Evaluates again the frontier diamonds whose evaluations are due (four at a time),
@@ -173,11 +181,7 @@ impl Coherent {
             });
             let lanes = self.evaluate(f, d, chunk.len());
             for (i, &p) in chunk.iter().enumerate() {
-                if merges {
-                    self.keep_merge(&lanes, i, p);
-                } else {
-                    self.keep_split(&lanes, i, p);
-                }
+                self.keep(&lanes, i, p, merges);
             }
             self.stats.evaluated += chunk.len() as u32;
         }
@@ -428,18 +432,6 @@ fn take_due(
 
 /// An [`Entry`] flag: taken for evaluation this frame (cleared when it is kept).
 const DUE: u8 = 8;
-
-/// Queues a split candidate's kept evaluation and schedules it.
-fn queue_split(fr: &mut Frontier, e: &Entry, pos: u32) {
-    push_split(&mut fr.queue, e, pos);
-    schedule(fr, e, pos);
-}
-
-/// Queues a merge candidate's kept evaluation and schedules it.
-fn queue_merge(fr: &mut Frontier, e: &Entry, pos: u32) {
-    push_merge(&mut fr.queue, e, pos);
-    schedule(fr, e, pos);
-}
 
 fn schedule(fr: &mut Frontier, e: &Entry, pos: u32) {
     let s = Stamped {
