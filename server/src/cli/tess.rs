@@ -267,6 +267,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "serve_wire_bytes_per_triangle_steady": serve.bytes_per_triangle_steady,
         "serve_rebuilds": serve.rebuilds,
         "serve_viewer_heap_bytes": serve.viewer_bytes,
+        "serve_viewer_heap_parts": serve.viewer_parts,
         "serve_evaluated_per_frame_median": serve.evaluated_median,
         "last_frame": {
             "evaluated": tess.stats().evaluated,
@@ -371,6 +372,8 @@ struct ServeFigures {
     rebuilds: usize,
     evaluated_median: f64,
     viewer_bytes: usize,
+    /// Where the cut's bytes go (`Coherent::heap_parts`).
+    viewer_parts: Vec<serde_json::Value>,
 }
 
 fn serve_bench(
@@ -462,5 +465,11 @@ fn serve_bench(
         rebuilds,
         evaluated_median: quantile(&evaluated, 0.5),
         viewer_bytes: core.heap_bytes(),
+        viewer_parts: core
+            .cut()
+            .heap_parts()
+            .into_iter()
+            .map(|(part, bytes, entries)| serde_json::json!({"part": part, "bytes": bytes, "entries": entries}))
+            .collect(),
     })
 }

@@ -277,6 +277,31 @@ impl Coherent {
             + (self.old.capacity() + self.new.capacity()) * 4
     }
 
+    /// Where the per-viewer bytes go: `(part, bytes reserved, entries)`.
+    pub fn heap_parts(&self) -> Vec<(&'static str, usize, usize)> {
+        let f = |name, f: &Frontier| {
+            [
+                (name, f.cands.heap_bytes(), f.cands.len()),
+                ("queue", f.queue.heap_bytes(), f.queue.len()),
+                ("due_moved", f.due_moved.heap_bytes(), f.due_moved.len()),
+                ("due_turned", f.due_turned.heap_bytes(), f.due_turned.len()),
+            ]
+        };
+        let mut v = vec![("split", self.split.heap_bytes(), self.split.len())];
+        v.extend(f("split_cands", &self.splits));
+        v.extend(f("merge_cands", &self.merges));
+        v.push((
+            "scratch",
+            (self.chain.capacity()
+                + self.log.capacity()
+                + self.old.capacity()
+                + self.new.capacity())
+                * 4,
+            0,
+        ));
+        v
+    }
+
     /// Brings the cut up to date for `camera`: split and merge, or rebuild from scratch
     /// (on a tessellator borrowed from `scratch`) on a jump, a bounded update that did not
     /// finish, or when `rebuild` says so.
