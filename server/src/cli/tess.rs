@@ -77,6 +77,11 @@ pub struct BenchArgs {
     /// Print one JSON object instead of text.
     #[arg(long)]
     pub json: bool,
+    /// The serving figures' drive, an input script (`<ticks> <keys>` lines, as
+    /// `simulate --inputs` reads), instead of the built-in one; e.g.
+    /// `scripts/capacity-drive.txt`.
+    #[arg(long, value_name = "FILE")]
+    pub drive: Option<PathBuf>,
 }
 
 fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
@@ -233,10 +238,21 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let terrain = std::sync::Arc::new(terrain);
     let vehicle_steps_per_second = super::sim::bench_physics(&terrain);
     let codec = codec_bench(&terrain, &vt, limits)?;
-    let serve = serve_bench(&terrain, &vt, limits)?;
+    let script = match &args.drive {
+        Some(path) => {
+            let text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading the drive {}", path.display()))?;
+            roam_protocol::script::parse(&text)
+                .with_context(|| format!("the drive {}", path.display()))?
+        }
+        None => roam_protocol::script::parse(roam_protocol::script::DRIVE_SCRIPT)
+            .expect("the built-in drive is a valid script"),
+    };
+    let serve = serve_bench(&terrain, &vt, limits, &script)?;
+    let many = serve_many_bench(&terrain, &vt, limits, &script);
     let samples = f64::from(terrain.heights.side()).powi(2);
     let resident = (terrain.heights.bytes() + vt.bytes()) as f64 / samples;
-    let report = serde_json::json!({
+    let mut report = serde_json::json!({
         "data_set": args.dir.display().to_string(),
         "side": terrain.heights.side(),
         "budget": args.budget,
@@ -277,6 +293,18 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             "forcing": tess.stats().forcing,
         },
     });
+    // Added apart: one `json!` of every key passes the macro's recursion limit.
+    let more = report.as_object_mut().expect("built as an object above");
+    for (k, v) in [
+        ("serve_popped_per_frame_median", serde_json::json!(serve.popped_median)),
+        ("serve_many_viewers", serde_json::json!(MANY_VIEWERS)),
+        ("serve_many_frame_us_median", serde_json::json!(many.median)),
+        ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
+        ("serve_many_frame_us_p90", serde_json::json!(many.p90)),
+        ("serve_many_frame_us_mean", serde_json::json!(many.mean)),
+    ] {
+        more.insert(k.into(), v);
+    }
     if args.json {
         say!("{report}");
     } else {
@@ -371,6 +399,8 @@ struct ServeFigures {
     bytes_per_triangle_steady: f64,
     rebuilds: usize,
     evaluated_median: f64,
+    /// Schedule entries taken per frame (stale ones included).
+    popped_median: f64,
     viewer_bytes: usize,
     /// Where the cut's bytes go (`Coherent::heap_parts`).
     viewer_parts: Vec<serde_json::Value>,
@@ -380,13 +410,12 @@ fn serve_bench(
     terrain: &std::sync::Arc<Terrain>,
     vt: &VarianceTree,
     limits: Limits,
+    script: &roam_protocol::script::Script,
 ) -> Result<ServeFigures> {
     use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
     use roam_server::tessellate::{Mode, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
-    let script =
-        roam_protocol::script::parse(roam_protocol::script::DRIVE_SCRIPT).expect("a valid script");
-    let cameras = flyover::drive(terrain, &script, 60);
+    let cameras = flyover::drive(terrain, script, 60);
     let sc = scales(terrain);
     let levels = terrain.heights.levels();
     let step = roam_protocol::height_step(terrain.heights.samples());
@@ -409,7 +438,7 @@ fn serve_bench(
     let mut scratch = Tessellator::new(terrain.heights.side());
     let (mut served, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let (mut us, mut changes, mut err, mut scratch_err) = (vec![], vec![], vec![], vec![]);
-    let (mut bytes, mut evaluated, mut rebuilds) = (vec![], vec![], 0);
+    let (mut bytes, mut evaluated, mut popped, mut rebuilds) = (vec![], vec![], vec![], 0);
     for (k, cam) in cameras.iter().enumerate() {
         let started = Instant::now();
         let made = core.make_frame_at(&scene, cam);
@@ -420,6 +449,7 @@ fn serve_bench(
             us.push(elapsed);
             changes.push(f64::from(made.changes));
             evaluated.push(f64::from(core.cut().stats().evaluated));
+            popped.push(f64::from(core.cut().stats().popped));
             rebuilds += usize::from(made.mode == Mode::Rebuild);
         }
         let b = made.base.map(|_| &base);
@@ -464,6 +494,7 @@ fn serve_bench(
         bytes_per_triangle_steady: quantile(bytes.get(1..).unwrap_or(&[]), 0.5),
         rebuilds,
         evaluated_median: quantile(&evaluated, 0.5),
+        popped_median: quantile(&popped, 0.5),
         viewer_bytes: core.heap_bytes(),
         viewer_parts: core
             .cut()
@@ -472,4 +503,74 @@ fn serve_bench(
             .map(|(part, bytes, entries)| serde_json::json!({"part": part, "bytes": bytes, "entries": entries}))
             .collect(),
     })
+}
+
+/// Viewers served in turn by [`serve_many_bench`].
+const MANY_VIEWERS: usize = 32;
+
+/// Frame times with caches as a busy server has them.
+struct ManyFigures {
+    median: f64,
+    p90: f64,
+    p99: f64,
+    /// What a server spends a frame on average (the tail included).
+    mean: f64,
+}
+
+/// The serving path as a server with many viewers runs it: [`MANY_VIEWERS`] per-viewer
+/// cores along the codec's drive, each from another point of it, making their frames in
+/// turn (so each finds its own state gone from the caches, as it does when a server
+/// serves many viewers), every frame acknowledged at once. Each core's first frame (a
+/// rebuild) is not timed.
+fn serve_many_bench(
+    terrain: &std::sync::Arc<Terrain>,
+    vt: &VarianceTree,
+    limits: Limits,
+    script: &roam_protocol::script::Script,
+) -> ManyFigures {
+    use roam_server::viewer::{Event, Scene, ViewerCore};
+    let cameras = flyover::drive(terrain, script, 60);
+    let levels = terrain.heights.levels();
+    let step = roam_protocol::height_step(terrain.heights.samples());
+    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side());
+    let scene = Scene {
+        terrain,
+        variance: vt,
+        scratch: &pool,
+    };
+    let mut cores: Vec<ViewerCore> = (0..MANY_VIEWERS)
+        .map(|_| {
+            ViewerCore::new(
+                levels,
+                step,
+                flyover::FOV_Y_DEG as f32,
+                [flyover::WIDTH, flyover::HEIGHT],
+                limits.budget,
+            )
+        })
+        .collect();
+    let n = cameras.len();
+    let mut us = Vec::with_capacity(n * MANY_VIEWERS);
+    for k in 0..n {
+        for (i, core) in cores.iter_mut().enumerate() {
+            let cam = &cameras[(k + i * n / MANY_VIEWERS) % n];
+            let started = Instant::now();
+            let made = core.make_frame_at(&scene, cam);
+            let elapsed = started.elapsed().as_nanos() as f64 / 1e3;
+            if k > 0 {
+                us.push(elapsed);
+                if std::env::var_os("ROAM_DEBUG_SLOW").is_some() && elapsed > 200.0 {
+                    let st = core.cut().stats();
+                    eprintln!("slow {elapsed:.0} us: changes {} evaluated {} popped {} splits {} merges {} mode {:?}", made.changes, st.evaluated, st.popped, st.splits, st.merges, made.mode);
+                }
+            }
+            core.handle(Event::Acked(made.frame));
+        }
+    }
+    ManyFigures {
+        median: quantile(&us, 0.5),
+        p90: quantile(&us, 0.9),
+        p99: quantile(&us, 0.99),
+        mean: us.iter().sum::<f64>() / us.len().max(1) as f64,
+    }
 }

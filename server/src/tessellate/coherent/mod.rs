@@ -93,6 +93,8 @@ pub struct CoherentStats {
     /// Diamonds split and merged (forced splits included).
     pub splits: u32,
     pub merges: u32,
+    /// Entries taken from the two frontiers' schedules (stale ones included).
+    pub popped: u32,
 }
 
 /// The camera and limits of the last frame, to tell a jump from a step.

@@ -155,12 +155,16 @@ impl Coherent {
             let mut due = std::mem::take(&mut self.new);
             due.clear();
             // An entry due on both odometers is taken once (its `DUE` flag set).
+            let mut popped = 0;
             while let Some((at, s)) = frontier.due_moved.pop_due(moved) {
                 take_due(frontier, s, |e| e.due_moved == at, &mut due);
+                popped += 1;
             }
             while let Some((at, s)) = frontier.due_turned.pop_due(turned) {
                 take_due(frontier, s, |e| e.due_turned == at, &mut due);
+                popped += 1;
             }
+            self.stats.popped += popped;
             self.evaluate_list(f, &due, merges);
             self.new = due;
         }
