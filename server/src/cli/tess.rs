@@ -302,6 +302,9 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
         ("serve_many_frame_us_p90", serde_json::json!(many.p90)),
         ("serve_many_frame_us_mean", serde_json::json!(many.mean)),
+        ("serve_many_changes_mean", serde_json::json!(many.per_frame[0])),
+        ("serve_many_evaluated_mean", serde_json::json!(many.per_frame[1])),
+        ("serve_many_popped_mean", serde_json::json!(many.per_frame[2])),
     ] {
         more.insert(k.into(), v);
     }
@@ -515,6 +518,8 @@ struct ManyFigures {
     p99: f64,
     /// What a server spends a frame on average (the tail included).
     mean: f64,
+    /// Changes, evaluations and schedule entries taken, a frame on average.
+    per_frame: [f64; 3],
 }
 
 /// The serving path as a server with many viewers runs it: [`MANY_VIEWERS`] per-viewer
@@ -551,6 +556,8 @@ fn serve_many_bench(
         .collect();
     let n = cameras.len();
     let mut us = Vec::with_capacity(n * MANY_VIEWERS);
+    // Changes, evaluations and schedule entries taken, summed over the timed frames.
+    let mut counts = [0f64; 3];
     for k in 0..n {
         for (i, core) in cores.iter_mut().enumerate() {
             let cam = &cameras[(k + i * n / MANY_VIEWERS) % n];
@@ -559,10 +566,10 @@ fn serve_many_bench(
             let elapsed = started.elapsed().as_nanos() as f64 / 1e3;
             if k > 0 {
                 us.push(elapsed);
-                if std::env::var_os("ROAM_DEBUG_SLOW").is_some() && elapsed > 200.0 {
-                    let st = core.cut().stats();
-                    eprintln!("slow {elapsed:.0} us: changes {} evaluated {} popped {} splits {} merges {} mode {:?}", made.changes, st.evaluated, st.popped, st.splits, st.merges, made.mode);
-                }
+                let st = core.cut().stats();
+                counts[0] += f64::from(made.changes);
+                counts[1] += f64::from(st.evaluated);
+                counts[2] += f64::from(st.popped);
             }
             core.handle(Event::Acked(made.frame));
         }
@@ -572,5 +579,6 @@ fn serve_many_bench(
         p90: quantile(&us, 0.9),
         p99: quantile(&us, 0.99),
         mean: us.iter().sum::<f64>() / us.len().max(1) as f64,
+        per_frame: counts.map(|c| c / us.len().max(1) as f64),
     }
 }

@@ -160,6 +160,9 @@ pub struct Coherent {
     /// frames: the odometers a kept evaluation is due against.
     moved: f64,
     turned: f64,
+    /// How far the eye has lately travelled and turned a frame (a moving average): how an
+    /// evaluation shares its margin between the two ([`eval`]).
+    pace: (f32, f32),
     /// This frame's changes (packed positions), in order.
     log: Vec<u32>,
     /// Scratch for rebuilds: the old and new split sets, row-major.
@@ -192,6 +195,7 @@ impl Coherent {
             stamp: 0,
             moved: 0.0,
             turned: 0.0,
+            pace: (0.0, 0.0),
             log: Vec::new(),
             old: Vec::new(),
             new: Vec::new(),
@@ -346,7 +350,10 @@ impl Coherent {
             let (moved, yaw, pitch) = motion(&last.camera, camera);
             self.moved += moved;
             // A yaw and a pitch change compose into a rotation of at most their sum.
-            self.turned += (yaw + pitch).to_radians();
+            let turned = (yaw + pitch).to_radians();
+            self.turned += turned;
+            let ease = |old: f32, new: f64| 0.75 * old + 0.25 * new as f32;
+            self.pace = (ease(self.pace.0, moved), ease(self.pace.1, turned));
         }
         self.last = Some(Last {
             camera: *camera,
