@@ -371,21 +371,24 @@ fn load_pem(cert: &Path, key: &Path) -> Result<net::web::WebCert> {
 }
 
 /// The allocation size from which glibc's `malloc` maps each block of its own (and unmaps
-/// it when freed): its default, kept fixed.
+/// it when freed), kept fixed: twice glibc's starting value.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
-const MMAP_THRESHOLD: libc::c_int = 128 << 10;
+const MMAP_THRESHOLD: libc::c_int = 256 << 10;
 
 /// Keeps glibc's `malloc` mapping every block of [`MMAP_THRESHOLD`] or more on its own.
 /// By default the threshold rises to the largest mapped block freed (up to 32 MiB): a
 /// viewer's cut grows its tables by doubling, every freed table raises it, and from then on
 /// the tables come from the allocator's arenas, which keep what is freed and spread it over
 /// a heap per thread (frames are made on any worker or blocking thread). Measured with
-/// `scripts/viewer_memory.sh` (4097², 65,536 triangles, driving): 18.0–20.2 MB of
-/// anonymous memory a viewer with the rising threshold, 12.3 with it fixed, the cut's
-/// heap 13.3–14.5 MB (a mapped table is resident only where it is written); heaptrack put
-/// everything else a viewer holds at about 0.2 MB. What is mapped a block at a time costs a
-/// `mmap` when a table grows and a `munmap` when it is freed: a rebuild's, a key frame's
-/// coding, a colour tile's message, not a frame's update.
+/// `scripts/viewer_memory.sh` (4097², 65,536 triangles, driving), anonymous memory a
+/// viewer: 17.7–20.2 MB with the rising threshold (four runs), 14.0–14.4 with it fixed at
+/// 256 KiB, 12.3–12.9 at 128 KiB, 16.2 at 1 MiB; the cut's heap is 13.3–14.5 MB (a mapped
+/// table is resident only where it is written), and heaptrack put everything else a viewer
+/// holds at about 0.2 MB. A mapped block costs an `mmap` when it is made and a `munmap`
+/// when freed: 10 viewers at 32,768 triangles on `data/kossou`, 6,000 frames, made 436 +
+/// 466 + 298 (`mremap`) such calls at 256 KiB, 965 + 959 + 1,174 at 128 KiB (the cut's
+/// schedule buckets growing and shrinking; 20 viewers' CPU per frame 368–372 µs against
+/// 361–364 with the rising threshold), 24 + 45 + 15 with the rising threshold.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 fn keep_large_blocks_mapped() {
     // SAFETY: `mallopt` sets one of glibc's allocator settings; any value is safe to set,

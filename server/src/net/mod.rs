@@ -494,9 +494,10 @@ async fn summary_loop(
         let seconds = now.0.duration_since(last.0).as_secs_f64().max(1e-3);
         let cpu = now.2.zip(last.2).map(|(b, a)| b.saturating_sub(a));
         let s = stats::Summary::between(&last.1, &now.1, seconds, cpu);
-        let (pending, viewers) = {
+        let (pending, viewers, reserved) = {
             let gate = shared.gate();
-            (gate.admission.pending(), gate.admission.viewers())
+            let a = &gate.admission;
+            (a.pending(), a.viewers(), a.memory())
         };
         let snap = shared.snapshots.borrow().clone();
         let ticks = world.ticks();
@@ -505,6 +506,7 @@ async fn summary_loop(
         let late_ms_max = shared.stats.late_longest_us() as f64 / 1e3;
         tracing::info!(
             viewers,
+            memory_mb = format_args!("{:.1}", reserved as f64 / f64::from(1u32 << 20)),
             ticks_per_s = format_args!("{:.1}", (ticks - last_ticks.0) as f64 / seconds),
             dropped_ticks = dropped - last_ticks.1,
             vehicles = snap.vehicles.len(),

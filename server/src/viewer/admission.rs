@@ -99,7 +99,7 @@ fn mib(bytes: u64) -> String {
 /// Measured (issue 22) on a 4097² data set at 65,536 triangles, driving: the cut's
 /// `heap_bytes` 13.3 MB (`roam-server bench --json`'s `serve_viewer_heap_bytes`), its
 /// heap 14.5 MB at steady state (heaptrack: 221 bytes a triangle), the server's anonymous
-/// RSS 12.3–12.9 MB a viewer, connection included (`scripts/viewer_memory.sh`, with
+/// RSS 14.0–14.4 MB a viewer, connection included (`scripts/viewer_memory.sh`, with
 /// `serve` keeping large blocks mapped; 17.7–20.2 MB before). The tables grow by doubling,
 /// so a cut just past a doubling holds up to twice its entries' bytes: 256 leaves room
 /// for that at most budgets. `server/tests/viewer_core.rs` checks that a driving viewer's
