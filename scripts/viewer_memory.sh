@@ -4,13 +4,20 @@
 # (RSS with 5 − RSS with 1) ÷ 4. Prints one JSON line.
 #
 #   scripts/viewer_memory.sh [DATA]     (default: /tmp/synth-4097, generated if missing)
+#   PROFILE=measure BUDGET=32768 scripts/viewer_memory.sh
+#
+# PROFILE (default release) is the cargo profile built and run (`measure`: a quicker
+# build, no LTO); BUDGET (default 65536) the triangles each viewer asks for.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 DATA=${1:-/tmp/synth-4097}
 BUDGET=${BUDGET:-65536}
-cargo build --release -p roam-server -p roam-client >&2
-[[ -d "$DATA" ]] || target/release/roam-server generate "$DATA" --side 4097 --seed 1 >&2
+PROFILE=${PROFILE:-release}
+BIN_DIR="${CARGO_TARGET_DIR:-target}/$PROFILE"
+export BIN_DIR
+cargo build --profile "$PROFILE" -p roam-server -p roam-client >&2
+[[ -d "$DATA" ]] || "$BIN_DIR/roam-server" generate "$DATA" --side 4097 --seed 1 >&2
 
 # shellcheck source=scripts/lib.sh
 source scripts/lib.sh
@@ -22,7 +29,7 @@ rss_anon() { awk '/^RssAnon:/ { print $2 * 1024 }' "/proc/$server/status"; }
 
 # RssAnon of the server 8 s into a run of N driving viewers (20 s of frames).
 measure() {
-    target/release/roam-client --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
+    "$BIN_DIR/roam-client" --connect "$addr" --token "$token" --fingerprint "$fingerprint" \
         --headless --viewers "$1" --budget "$BUDGET" --frames 1200 --skip-decode \
         --inputs "$state/drive.txt" >/dev/null &
     local client=$!
@@ -37,6 +44,6 @@ five=$(measure 5)
 python3 -c "
 import json
 idle, one, five = $idle, $one, $five
-print(json.dumps({'data_set': '$DATA', 'budget': $BUDGET, 'rss_anon_idle': idle,
+print(json.dumps({'data_set': '$DATA', 'profile': '$PROFILE', 'budget': $BUDGET, 'rss_anon_idle': idle,
     'rss_anon_1_viewer': one, 'rss_anon_5_viewers': five,
     'bytes_per_viewer': (five - one) / 4}))"

@@ -503,6 +503,19 @@ pub fn server_config(id: &Identity) -> Result<quinn::ServerConfig, TlsError> {
     Ok(config)
 }
 
+/// [`server_transport`]'s send window, bytes: what a connection may have sent and not yet had
+/// acknowledged (also what it buffers at most for the viewer).
+pub const SERVER_SEND_WINDOW: u64 = 2 << 20;
+/// [`server_transport`]'s receive window for the whole connection, bytes (it bounds every
+/// stream's together).
+pub const SERVER_RECEIVE_WINDOW: u64 = 128 << 10;
+/// [`server_transport`]'s receive window for one stream, bytes.
+pub const SERVER_STREAM_RECEIVE_WINDOW: u64 = 64 << 10;
+/// [`server_transport`]'s buffer for datagrams received and not yet read, bytes.
+pub const SERVER_DATAGRAM_RECEIVE: u64 = 64 << 10;
+/// [`server_transport`]'s buffer for datagrams queued to send, bytes.
+pub const SERVER_DATAGRAM_SEND: u64 = 4 << 10;
+
 /// The server's transport settings: one control stream from the viewer, no other stream
 /// from it, small receive windows (what the server's WebTransport endpoint starts from,
 /// adding the streams HTTP/3 needs).
@@ -518,17 +531,20 @@ pub fn server_transport() -> quinn::TransportConfig {
     ));
     t.max_concurrent_uni_streams(0u32.into());
     t.max_concurrent_bidi_streams(1u32.into());
-    t.stream_receive_window((64u32 << 10).into());
-    t.receive_window((128u32 << 10).into());
-    t.datagram_receive_buffer_size(Some(64 << 10));
+    let window = |bytes: u64| {
+        quinn::VarInt::from_u64(bytes).expect("a window of a few hundred KiB is a valid varint")
+    };
+    t.stream_receive_window(window(SERVER_STREAM_RECEIVE_WINDOW));
+    t.receive_window(window(SERVER_RECEIVE_WINDOW));
+    t.datagram_receive_buffer_size(Some(SERVER_DATAGRAM_RECEIVE as usize));
     // Small frames go as datagrams, which quinn sends first in, first out and drops oldest
     // first when this buffer is full: room for a few frames only, so on a link that
     // cannot keep up the newest frame waits behind at most a few stale ones.
-    t.datagram_send_buffer_size(4 << 10);
+    t.datagram_send_buffer_size(SERVER_DATAGRAM_SEND as usize);
     // What a connection may have sent and not yet had acknowledged: it bounds what the
     // server buffers per viewer (the colour map at connect would otherwise sit whole in
     // the send buffer: tens of MB for a 4097² map), and is still 50 MB/s at a 40 ms RTT.
-    t.send_window(2 << 20);
+    t.send_window(SERVER_SEND_WINDOW);
     t
 }
 

@@ -27,6 +27,7 @@ fn help_on_everything() {
             "check", "generate", "import", "mesh", "bench", "simulate", "replay", "serve",
         ],
     );
+    check(&["serve", "--help"], 0, &["--max-memory", "MemAvailable"]);
     for (cmd, flag) in [
         ("check", "DIR"),
         ("generate", "--side"),
@@ -201,6 +202,16 @@ fn bad_cli_values() {
         ),
         (vec!["generate"], 2, &["OUT"]),
         (vec!["frobnicate"], 2, &["frobnicate"]),
+        (
+            vec!["serve", "data/synth-65", "--max-memory", "4X"],
+            2,
+            &["--max-memory", "expected a number of bytes"],
+        ),
+        (
+            vec!["serve", "data/synth-65", "--max-memory", "1K"],
+            2,
+            &["--max-memory", "expected at least"],
+        ),
     ] {
         check(&args, exit, expected);
     }

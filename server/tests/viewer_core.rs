@@ -3,7 +3,8 @@
 //! reorders and acknowledges them late; every frame it decodes must equal the server's cut
 //! for that frame, index for index. And when the core makes key frames: the first, when
 //! asked, and when the pending key frame is superseded (its logs gone), never merely
-//! because no frame has been acknowledged yet.
+//! because no frame has been acknowledged yet. And that a driving viewer's state stays
+//! within what admission reserves for its budget.
 
 use std::collections::VecDeque;
 use std::sync::Arc;
@@ -543,4 +544,42 @@ fn frames_begun_in_line_leave_rebuilds_and_key_frames_unfinished() {
     let jumped = check(23, &far, &[Event::Acked(halved.frame)], Some(false));
     assert_eq!(jumped.mode, Mode::Rebuild);
     assert!(inline >= 15, "{inline} of 20 driving frames made in line");
+}
+
+/// Admission reserves a viewer's state from its budget before it costs anything
+/// (`viewer::admission::viewer_bytes`): a driving viewer's core, whatever its budget and
+/// however its budget changes, must stay within the cut's share of it and the core's own.
+#[test]
+fn a_driving_viewers_state_stays_within_its_admission_estimate() {
+    use roam_server::viewer::admission::{CORE_BYTES, CUT_BYTES_PER_TRIANGLE};
+    let fx = Fixture::new(257, 11);
+    let scene = fx.scene();
+    let drive = fx.drive(150);
+    for budget in [500u32, 4_000, 40_000] {
+        let mut core = fx.core(budget);
+        let most = u64::from(budget) * CUT_BYTES_PER_TRIANGLE + CORE_BYTES;
+        let mut largest = 0;
+        for (k, state) in drive.iter().enumerate() {
+            // Halfway, the viewer halves its budget and then asks for it back.
+            match k {
+                50 => core.handle(Event::Budget(budget / 2)),
+                60 => core.handle(Event::Budget(budget)),
+                _ => {}
+            }
+            let made = core.make_frame(&scene, state);
+            core.handle(Event::Acked(made.frame));
+            largest = largest.max(core.heap_bytes() as u64);
+        }
+        assert!(
+            largest <= most,
+            "{budget} triangles: {largest} bytes, more than the {most} reserved"
+        );
+        // Not a bound so loose that it would reserve twice what a viewer holds.
+        if budget >= 4_000 {
+            assert!(
+                largest * 4 > most,
+                "{budget} triangles: {largest} of {most} bytes"
+            );
+        }
+    }
 }

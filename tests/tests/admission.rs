@@ -1,5 +1,8 @@
 //! Limits a token holder meets, against a real server on loopback: the 65th viewer is
-//! refused as full (and one leaving makes room), a viewer asking more triangles and frames
+//! refused as full (and one leaving makes room), a viewer whose state would not fit in
+//! `--max-memory` is refused with a reason naming it (a cheaper one still fits, a budget
+//! raised later grows its seat only as far as the limit, and one leaving makes room), a
+//! viewer asking more triangles and frames
 //! than `--max-budget` and `--max-fps` gets those (its frames counted against the world's
 //! ticks, both paced by the server's clock), and eight viewers asking the most
 //! triangles at the most frames a second do not slow the world (no tick dropped: the
@@ -107,10 +110,102 @@ async fn the_65th_viewer_is_refused_as_full_and_a_leave_makes_room() {
     r.server.shutdown().await.expect("stops");
 }
 
+/// Waits (on the world's ticks, bounded) until `done` says so of the server.
+async fn until(r: &Running, what: &str, done: impl Fn(&roam_server::net::Server) -> bool) {
+    let mut ticks = r.server.watch();
+    for _ in 0..3_000 {
+        if done(&r.server) {
+            return;
+        }
+        let _ = ticks.changed().await;
+    }
+    panic!("{what}: not within 3,000 ticks");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
+    use roam_server::viewer::admission::viewer_bytes;
+    let _turn = ONE_AT_A_TIME.lock().await;
+    const BUDGET: u32 = 65_536;
+    // Room for two viewers at 65,536 triangles, and half of one more.
+    let limit = viewer_bytes(BUDGET) * 5 / 2;
+    let r = fixtures::serve(flat(), |o| roam_server::net::Options {
+        max_memory: Some(limit),
+        ..o
+    });
+    assert_eq!(r.server.memory(), (0, limit));
+    let big = hello(&r, Role::Driver, BUDGET, 30);
+    let first = say_hello(&r, &big).await;
+    let second = say_hello(&r, &big).await;
+    for v in [&first, &second] {
+        assert!(
+            matches!(v.answer, ServerMessage::Welcome(_)),
+            "{:?}",
+            v.answer
+        );
+    }
+    assert_eq!(r.server.memory().0, 2 * viewer_bytes(BUDGET));
+    // The third would not fit: refused, with the limit named (the viewer shows the reason).
+    let third = say_hello(&r, &big).await;
+    let ServerMessage::Refused(Reason::Unavailable(why)) = &third.answer else {
+        panic!("expected a refusal, got {:?}", third.answer);
+    };
+    assert!(why.contains("--max-memory"), "{why}");
+    assert!(why.contains("65536 triangles"), "{why}");
+    let shown = roam_client::joining::welcome_of(third.answer.clone()).expect_err("refused");
+    assert!(shown.contains("--max-memory"), "{shown}");
+    assert_eq!(r.server.counts().refused, 1);
+    assert_eq!(r.server.load().1, 2);
+    // A viewer asking few triangles still fits in what is left ...
+    let small = hello(&r, Role::Driver, messages::MIN_BUDGET, 30);
+    let mut cheap = say_hello(&r, &small).await;
+    assert!(
+        matches!(cheap.answer, ServerMessage::Welcome(_)),
+        "{:?}",
+        cheap.answer
+    );
+    // ... and asking for more later, its seat grows only as far as the limit.
+    wire::write(
+        &mut cheap._control.0,
+        &ClientMessage::Budget(messages::MAX_BUDGET),
+    )
+    .await
+    .expect("the budget goes");
+    until(&r, "the seat grows to the limit", |s| s.memory().0 == limit).await;
+    let fourth = say_hello(&r, &small).await;
+    assert!(
+        matches!(
+            fourth.answer,
+            ServerMessage::Refused(Reason::Unavailable(_))
+        ),
+        "{:?}",
+        fourth.answer
+    );
+    // One leaves (with its goodbye code): its seat is given back, and the next is welcome.
+    first.conn.close(messages::close::BYE.into(), b"bye");
+    until(&r, "the seat is given back", |s| {
+        s.memory().0 == limit - viewer_bytes(BUDGET)
+    })
+    .await;
+    let next = say_hello(&r, &big).await;
+    assert!(
+        matches!(next.answer, ServerMessage::Welcome(_)),
+        "{:?}",
+        next.answer
+    );
+    drop((second, cheap, next));
+    r.server.shutdown().await.expect("stops");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn greedy_viewers_do_not_slow_the_world() {
     let _turn = ONE_AT_A_TIME.lock().await;
-    let r = fixtures::serve(fixtures::kossou(), |o| o);
+    // Eight seats of 258 MiB each (admission's estimate at the most triangles): no memory
+    // limit, whatever the machine's default; the world's ticks are what this tests.
+    let r = fixtures::serve(fixtures::kossou(), |o| roam_server::net::Options {
+        max_memory: Some(u64::MAX),
+        ..o
+    });
     let greedy = hello(&r, Role::Driver, messages::MAX_BUDGET, 240);
     let mut sessions = Vec::new();
     for _ in 0..8 {

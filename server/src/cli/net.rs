@@ -1,5 +1,7 @@
 //! `serve`: the QUIC server. The colour pyramid is mapped from the data set's cache
-//! (`.cache/color-tiles.bin`), or built (with a progress bar) and cached there.
+//! (`.cache/color-tiles.bin`), or built (with a progress bar) and cached there. On glibc,
+//! `malloc` is told to keep mapping large blocks on their own (`keep_large_blocks_mapped`:
+//! what freed viewers' tables go back to the system, measured there).
 //!
 //! With `--web ADDR`, the browser viewer too (`net::web`): the page built into this binary
 //! (refused at once if there is none) over HTTPS, WebTransport beside it. Its certificate
@@ -22,6 +24,7 @@ use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
 use roam_server::terrain::dataset::{HashSource, Terrain};
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::viewer::ViewerLimits;
+use roam_server::viewer::admission::viewer_bytes;
 use roam_server::web::{Page, cert};
 use std::time::Duration;
 
@@ -44,6 +47,15 @@ pub struct ServeArgs {
     /// Viewers served at once (drivers and spectators); the next is refused as full.
     #[arg(long, default_value_t = net::MAX_VIEWERS)]
     pub max_viewers: usize,
+    /// Bytes the viewers' state may hold together: each viewer's seat reserves an estimate
+    /// from its budget (about 19 MiB at 65,536 triangles: 256 bytes a triangle for its cut
+    /// and 2.7 MiB for its connection); the next viewer that would not fit is refused with
+    /// a reason naming this limit, and a budget raised later is served as far as it fits.
+    /// A number of bytes, or with K, M, G or T (times 1024 each; `512M`, `4G`, `1.5GiB`).
+    /// Default: half the memory available (MemAvailable in /proc/meminfo) when the server
+    /// starts, leaving the rest to the page cache the data set is served from.
+    #[arg(long, value_name = "BYTES", value_parser = max_memory)]
+    pub max_memory: Option<u64>,
     /// Connections in their handshake or hello at once; past it, new ones must prove
     /// their address (QUIC Retry), and the oldest pending one is closed for a proven one.
     #[arg(long, default_value_t = net::MAX_PENDING)]
@@ -109,6 +121,54 @@ fn seconds(text: &str) -> Result<f64, String> {
     Ok(s)
 }
 
+/// A number of bytes: digits (a decimal point allowed with a suffix), then optionally K,
+/// M, G or T (times 1024 each), then optionally `B` or `iB`; case and a space before the
+/// suffix do not matter.
+pub fn byte_size(text: &str) -> Result<u64, String> {
+    let expected =
+        || format!("{text:?}: expected a number of bytes, such as 536870912, 512M, 4G or 1.5GiB");
+    let t = text.trim();
+    let split = t
+        .find(|c: char| !(c.is_ascii_digit() || c == '.'))
+        .unwrap_or(t.len());
+    let (number, suffix) = t.split_at(split);
+    let suffix = suffix.trim_start().to_ascii_lowercase();
+    let unit = suffix
+        .strip_suffix("ib")
+        .or_else(|| suffix.strip_suffix('b'))
+        .unwrap_or(&suffix);
+    let shift = match unit {
+        "" if !suffix.is_empty() => 0, // a plain `B`
+        "" => {
+            // Digits only: a whole number of bytes.
+            return number.parse().map_err(|_| expected());
+        }
+        "k" => 10,
+        "m" => 20,
+        "g" => 30,
+        "t" => 40,
+        _ => return Err(expected()),
+    };
+    let value: f64 = number.parse().map_err(|_| expected())?;
+    let bytes = (value * (1u64 << shift) as f64).round();
+    if !(bytes.is_finite() && bytes >= 0.0 && bytes < 2f64.powi(64)) {
+        return Err(expected());
+    }
+    Ok(bytes as u64)
+}
+
+/// `--max-memory`: a [`byte_size`] with room for one viewer at the fewest triangles.
+fn max_memory(text: &str) -> Result<u64, String> {
+    let bytes = byte_size(text)?;
+    let least = viewer_bytes(roam_protocol::messages::MIN_BUDGET);
+    if bytes < least {
+        return Err(format!(
+            "{text:?}: expected at least {least} bytes (one viewer at the fewest triangles)"
+        ));
+    }
+    Ok(bytes)
+}
+
 impl ServeArgs {
     /// The serving options these flags give, or why they are wrong.
     fn options(&self, token: String, record: Option<RecordOptions>) -> Result<Options> {
@@ -131,6 +191,7 @@ impl ServeArgs {
             record,
             limits,
             max_viewers: self.max_viewers,
+            max_memory: self.max_memory,
             max_pending: self.max_pending,
             hello_timeout: Duration::from_secs_f64(self.hello_timeout),
             hold: Duration::from_secs_f64(self.hold),
@@ -309,7 +370,39 @@ fn load_pem(cert: &Path, key: &Path) -> Result<net::web::WebCert> {
     })
 }
 
+/// The allocation size from which glibc's `malloc` maps each block of its own (and unmaps
+/// it when freed), kept fixed: twice glibc's starting value.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+const MMAP_THRESHOLD: libc::c_int = 256 << 10;
+
+/// Keeps glibc's `malloc` mapping every block of [`MMAP_THRESHOLD`] or more on its own.
+/// By default the threshold rises to the largest mapped block freed (up to 32 MiB): a
+/// viewer's cut grows its tables by doubling, every freed table raises it, and from then on
+/// the tables come from the allocator's arenas, which keep what is freed and spread it over
+/// a heap per thread (frames are made on any worker or blocking thread). Measured with
+/// `scripts/viewer_memory.sh` (4097², 65,536 triangles, driving), anonymous memory a
+/// viewer: 17.7–20.2 MB with the rising threshold (four runs), 14.0–14.4 with it fixed at
+/// 256 KiB, 12.3–12.9 at 128 KiB, 16.2 at 1 MiB; the cut's heap is 13.3–14.5 MB (a mapped
+/// table is resident only where it is written), and heaptrack put everything else a viewer
+/// holds at about 0.2 MB. A mapped block costs an `mmap` when it is made and a `munmap`
+/// when freed: 10 viewers at 32,768 triangles on `data/kossou`, 6,000 frames, made 436 +
+/// 466 + 298 (`mremap`) such calls at 256 KiB, 965 + 959 + 1,174 at 128 KiB (the cut's
+/// schedule buckets growing and shrinking; 20 viewers' CPU per frame 368–372 µs against
+/// 361–364 with the rising threshold), 24 + 45 + 15 with the rising threshold.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+fn keep_large_blocks_mapped() {
+    // SAFETY: `mallopt` sets one of glibc's allocator settings; any value is safe to set,
+    // at any time, from any thread.
+    if unsafe { libc::mallopt(libc::M_MMAP_THRESHOLD, MMAP_THRESHOLD) } != 1 {
+        tracing::warn!("malloc's mmap threshold could not be fixed: viewers may hold more memory");
+    }
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn keep_large_blocks_mapped() {}
+
 pub fn serve(args: ServeArgs) -> Result<()> {
+    keep_large_blocks_mapped();
     // The page and the certificate files first, then the token: each fails before
     // anything is loaded.
     let web = args
@@ -436,4 +529,46 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         }
         Ok(())
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{byte_size, max_memory};
+
+    #[test]
+    fn byte_sizes_take_suffixes_and_refuse_anything_else() {
+        let cases = [
+            ("536870912", 536_870_912),
+            ("512M", 512 << 20),
+            ("512m", 512 << 20),
+            ("512MiB", 512 << 20),
+            ("512 MB", 512 << 20),
+            ("4G", 4 << 30),
+            ("1.5GiB", 3 << 29),
+            ("2t", 2 << 40),
+            ("64K", 64 << 10),
+            ("100B", 100),
+        ];
+        for (text, bytes) in cases {
+            assert_eq!(byte_size(text), Ok(bytes), "{text}");
+        }
+        for bad in [
+            "",
+            "G",
+            "lots",
+            "4X",
+            "4GG",
+            "-1G",
+            "1.5",
+            "1e3",
+            "99999999999T",
+            "4 G B",
+        ] {
+            let e = byte_size(bad).expect_err(bad);
+            assert!(e.contains("expected a number of bytes"), "{bad}: {e}");
+        }
+        assert_eq!(max_memory("4G"), Ok(4 << 30));
+        let e = max_memory("1K").expect_err("too small for one viewer");
+        assert!(e.contains("expected at least"), "{e}");
+    }
 }

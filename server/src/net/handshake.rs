@@ -1,11 +1,14 @@
 //! A connection from its first packet to its welcome: admission (the pending cap, QUIC
 //! Retry, eviction of the oldest pending connection: [`crate::viewer::admission`]), one
 //! deadline for the TLS handshake and the hello together, the hello's checks (version,
-//! token, the viewer limit), and the join: a new vehicle, a held one taken back with the
-//! driver's ticket, or a vehicle to follow. Every refusal is said to the viewer with its
-//! reason and logged with the peer's address; junk that never says hello is closed at the
-//! deadline (or evicted) and only counted (one log line per junk connection would let a
-//! flood fill the disk). An evicted connection still in its TLS handshake is finished in
+//! token, then a seat: the viewer limit and the memory limit), and the join: a new
+//! vehicle, a held one taken back with the driver's ticket, or a vehicle to follow. A seat
+//! reserves the viewer's state against `max_memory` (the estimate from its budget,
+//! [`crate::viewer::admission::viewer_bytes`]) until it leaves; a refusal for memory names
+//! the limit, as [`Reason::Unavailable`] (the protocol's reasons are unchanged). Every
+//! refusal is said to the viewer with its reason and logged with the peer's address; junk
+//! that never says hello is closed at the deadline (or evicted) and only counted (one log
+//! line per junk connection would let a flood fill the disk). An evicted connection still in its TLS handshake is finished in
 //! the background (at most the pending cap of them at once), by the same deadline, and
 //! closed with its reason: dropped unfinished, it would end with a bare transport close,
 //! which a peer whose side of the handshake is done and that sends nothing hears only if
@@ -33,7 +36,8 @@ use super::Shared;
 use super::link::{Conn, RecvStream, SendStream, Via, Web};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::Event;
-use crate::viewer::admission::{PendingId, Verdict};
+use crate::viewer::Event as ViewerEvent;
+use crate::viewer::admission::{self, NoSeat, PendingId, Verdict};
 
 /// Control-stream messages from a viewer are at most this long (a hello is well under).
 pub const MAX_CONTROL: usize = 4096;
@@ -201,15 +205,24 @@ async fn handshake(
             .get(&t)
             .is_some_and(|c| c.replace.as_ref().is_some_and(|r| !r.is_closed()))
     });
-    let seated = shared.gate().admission.seat(replacing);
-    if let Err(full) = seated {
-        let reason = Reason::Full {
-            viewers: full.max as u32,
-        };
-        return refuse(&mut send, reason, &full.to_string()).await;
-    }
-    let seat = Seat {
-        shared: shared.clone(),
+    // Its state is reserved for the budget it is served (clamped), before it costs anything.
+    let budget = shared.limits.budget(hello.budget);
+    let seated = shared.gate().admission.seat(budget, replacing);
+    let seat = match seated {
+        Ok(seat) => Seat {
+            shared: shared.clone(),
+            seat: Some(seat),
+        },
+        Err(NoSeat::Full(full)) => {
+            let reason = Reason::Full {
+                viewers: full.max as u32,
+            };
+            return refuse(&mut send, reason, &full.to_string()).await;
+        }
+        Err(NoSeat::Memory(out)) => {
+            let why = out.to_string();
+            return refuse(&mut send, Reason::Unavailable(why.clone()), &why).await;
+        }
     };
     let joined = match join(&shared, &hello).await {
         Ok(j) => j,
@@ -323,14 +336,32 @@ async fn greet(conn: &Conn) -> Result<(SendStream, RecvStream, Hello), String> {
     }
 }
 
-/// A viewer being served: counted until dropped.
+/// A viewer being served: counted, and its state's bytes reserved, until dropped.
 pub(super) struct Seat {
     shared: Arc<Shared>,
+    /// Taken only by the drop.
+    seat: Option<admission::Seat>,
+}
+
+impl Seat {
+    /// A control event as the viewer is served it: a larger budget only as far as its seat
+    /// can grow within the server's memory limit ([`admission::Admission::grow`]).
+    pub(super) fn granted(&mut self, event: ViewerEvent) -> ViewerEvent {
+        match (event, self.seat.as_mut()) {
+            (ViewerEvent::Budget(asked), Some(seat)) => {
+                let budget = self.shared.limits.budget(asked);
+                ViewerEvent::Budget(self.shared.gate().admission.grow(seat, budget))
+            }
+            (other, _) => other,
+        }
+    }
 }
 
 impl Drop for Seat {
     fn drop(&mut self) {
-        self.shared.gate().admission.left();
+        if let Some(seat) = self.seat.take() {
+            self.shared.gate().admission.left(seat);
+        }
     }
 }
 

@@ -51,6 +51,13 @@ pub struct Options {
     /// Viewers served at once (drivers and spectators); the next is refused with
     /// [`roam_protocol::messages::Reason::Full`].
     pub max_viewers: usize,
+    /// Bytes the viewers' state may hold together ([`crate::viewer::admission`]: each
+    /// viewer's seat reserves an estimate from its budget); the next viewer that would not
+    /// fit is refused with [`roam_protocol::messages::Reason::Unavailable`] naming the
+    /// limit. `None`: [`crate::viewer::admission::default_max_memory`] of this machine's
+    /// `/proc/meminfo` when the server starts (half the memory available), or no limit
+    /// where that cannot be read.
+    pub max_memory: Option<u64>,
     /// Connections still in their handshake or hello at once; past it, new ones must
     /// prove their address (QUIC Retry), and are refused if still over.
     pub max_pending: usize,
@@ -101,6 +108,7 @@ impl Options {
             record: None,
             limits: crate::viewer::ViewerLimits::default(),
             max_viewers: MAX_VIEWERS,
+            max_memory: None,
             max_pending: MAX_PENDING,
             hello_timeout: HELLO_TIMEOUT,
             hold: HOLD,
@@ -219,6 +227,29 @@ pub enum ServeError {
     WebTls(String),
 }
 
+/// [`Options::max_memory`] when not given: half the memory this machine has available now
+/// ([`crate::viewer::admission::default_max_memory`]), or no limit (logged) where
+/// `/proc/meminfo` does not say. Read once, as the server starts.
+fn machine_max_memory() -> u64 {
+    let meminfo = std::fs::read_to_string("/proc/meminfo").unwrap_or_default();
+    match crate::viewer::admission::default_max_memory(&meminfo) {
+        Some(bytes) => {
+            tracing::info!(
+                mib = bytes >> 20,
+                "viewers' memory at most half of what is available (--max-memory to change)"
+            );
+            bytes
+        }
+        None => {
+            tracing::warn!(
+                "no MemAvailable in /proc/meminfo: viewers' memory is not limited \
+                 (--max-memory to limit it)"
+            );
+            u64::MAX
+        }
+    }
+}
+
 /// The most levels a served data set may have: a grid of `2^15 + 1` samples a side, the
 /// protocol's largest colour map ([`roam_protocol::tiles::MAX_COLOR_CELLS`]; it streams as
 /// tiles, so no viewer ever holds it whole).
@@ -271,6 +302,7 @@ impl Server {
             error,
         })?;
         let web = options.web.map(web::bind).transpose()?;
+        let max_memory = options.max_memory.unwrap_or_else(machine_max_memory);
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world_stats = Arc::new(world_loop::WorldStats::default());
@@ -307,7 +339,8 @@ impl Server {
             hello_timeout: options.hello_timeout,
             world_stats: world_stats.clone(),
             gate: Mutex::new(Gate {
-                admission: Admission::new(options.max_pending, options.max_viewers),
+                admission: Admission::new(options.max_pending, options.max_viewers)
+                    .with_max_memory(max_memory),
                 evict: HashMap::new(),
             }),
             tickets: Mutex::new(HashMap::new()),
@@ -357,6 +390,13 @@ impl Server {
     pub fn load(&self) -> (usize, usize) {
         let gate = self.shared.gate();
         (gate.admission.pending(), gate.admission.viewers())
+    }
+
+    /// Bytes the viewers' seats reserve now, and the most they may
+    /// ([`Options::max_memory`], resolved).
+    pub fn memory(&self) -> (u64, u64) {
+        let gate = self.shared.gate();
+        (gate.admission.memory(), gate.admission.max_memory())
     }
 
     /// How the world thread keeps time (ticks made, dropped, late).
@@ -454,9 +494,10 @@ async fn summary_loop(
         let seconds = now.0.duration_since(last.0).as_secs_f64().max(1e-3);
         let cpu = now.2.zip(last.2).map(|(b, a)| b.saturating_sub(a));
         let s = stats::Summary::between(&last.1, &now.1, seconds, cpu);
-        let (pending, viewers) = {
+        let (pending, viewers, reserved) = {
             let gate = shared.gate();
-            (gate.admission.pending(), gate.admission.viewers())
+            let a = &gate.admission;
+            (a.pending(), a.viewers(), a.memory())
         };
         let snap = shared.snapshots.borrow().clone();
         let ticks = world.ticks();
@@ -465,6 +506,7 @@ async fn summary_loop(
         let late_ms_max = shared.stats.late_longest_us() as f64 / 1e3;
         tracing::info!(
             viewers,
+            memory_mb = format_args!("{:.1}", reserved as f64 / f64::from(1u32 << 20)),
             ticks_per_s = format_args!("{:.1}", (ticks - last_ticks.0) as f64 / seconds),
             dropped_ticks = dropped - last_ticks.1,
             vehicles = snap.vehicles.len(),

@@ -81,7 +81,7 @@ pub(super) struct Viewer {
 
 /// Serves a welcomed viewer to its end. A driver whose connection is lost (not a
 /// goodbye) has its vehicle held for a while, to take back with its ticket.
-pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
+pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     let Viewer {
         conn,
         send,
@@ -147,7 +147,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     let rate = ViewerCore::frame_rate(&hello, shared.limits);
     let mut sent = 0u64;
     let why: String = tokio::select! {
-        end = frames(&conn, &shared, control, core, rate, (vehicle, driver), &mut sent) => {
+        end = frames(&conn, &shared, (control, &mut seat), core, rate, (vehicle, driver), &mut sent) => {
             match end {
                 FramesEnd::ConnectionLost => {
                     leave.hold = conn.hold_after().then(silent);
@@ -520,10 +520,12 @@ enum FramesEnd {
     Failed(&'static str),
 }
 
+/// `seat`: the viewer's budget changes are served as far as its seat can grow
+/// ([`Seat::granted`]).
 async fn frames(
     conn: &Conn,
     shared: &Arc<Shared>,
-    control: Arc<Mutex<Mailbox>>,
+    (control, seat): (Arc<Mutex<Mailbox>>, &mut Seat),
     core: ViewerCore,
     rate: u16,
     (vehicle, driver): (VehicleId, bool),
@@ -557,7 +559,7 @@ async fn frames(
         seen = true;
         let mut c = core.take().expect("put back below");
         for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
-            c.handle(event);
+            c.handle(seat.granted(event));
         }
         let scene = Scene {
             terrain: &shared.terrain,
