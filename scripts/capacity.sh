@@ -29,6 +29,7 @@
 # frames_lost, first_frame_after_join_ms_max) and the CPU figures over the whole storm;
 # then one line for 40 viewers joining at once (one process, `--viewers 40`), as above.
 #
+# SERVER_LOG=FILE keeps the server's log there.
 # PROFILE (default release) is the cargo profile built and run (`measure`: a quicker
 # build, no LTO); DRIVE replaces the drive script.
 set -euo pipefail
@@ -57,6 +58,8 @@ cargo build --profile "$PROFILE" -p roam-server -p roam-client >&2
 # shellcheck source=scripts/lib.sh
 source scripts/lib.sh
 start_server "$DATA" taskset -c 0
+# SERVER_LOG=FILE keeps the server's log (its summary lines: key frames, late frames).
+trap 'stop_server; [[ -z "${SERVER_LOG:-}" ]] || cp "$state/server.log" "$SERVER_LOG"; rm -rf "$state"' EXIT
 
 # CPU seconds (user + system) a process has used so far.
 cpu() { awk -v hz="$(getconf CLK_TCK)" '{ print ($14 + $15) / hz }' "/proc/$1/stat"; }

@@ -296,15 +296,27 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     // Added apart: one `json!` of every key passes the macro's recursion limit.
     let more = report.as_object_mut().expect("built as an object above");
     for (k, v) in [
-        ("serve_popped_per_frame_median", serde_json::json!(serve.popped_median)),
+        (
+            "serve_popped_per_frame_median",
+            serde_json::json!(serve.popped_median),
+        ),
         ("serve_many_viewers", serde_json::json!(MANY_VIEWERS)),
         ("serve_many_frame_us_median", serde_json::json!(many.median)),
         ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
         ("serve_many_frame_us_p90", serde_json::json!(many.p90)),
         ("serve_many_frame_us_mean", serde_json::json!(many.mean)),
-        ("serve_many_changes_mean", serde_json::json!(many.per_frame[0])),
-        ("serve_many_evaluated_mean", serde_json::json!(many.per_frame[1])),
-        ("serve_many_popped_mean", serde_json::json!(many.per_frame[2])),
+        (
+            "serve_many_changes_mean",
+            serde_json::json!(many.per_frame[0]),
+        ),
+        (
+            "serve_many_evaluated_mean",
+            serde_json::json!(many.per_frame[1]),
+        ),
+        (
+            "serve_many_popped_mean",
+            serde_json::json!(many.per_frame[2]),
+        ),
     ] {
         more.insert(k.into(), v);
     }

@@ -15,10 +15,49 @@
 //! the colour spread too ([`super::color_budget`]), 20 joining at once had their longest
 //! gap after the first frame at 35–43 ms.
 
+//!
+//! **Below the async workers.** A blocking maker thread runs at a lower scheduling
+//! priority ([`lower_this_thread`], nice [`MAKER_NICE`]) than the async workers that make
+//! and send the streaming viewers' frames: on the one core a server is given, the kernel
+//! otherwise shared it evenly between them, and 40 viewers joining at once (40 first key
+//! frames, 7–10 ms each, back to back on the maker) left the workers half a core, so the
+//! frames of the viewers already served started up to 330 ms late, their acknowledgements
+//! fell more than [`crate::viewer::LOGS`] frames behind and ~100 more key frames followed
+//! (the server's summary: 53, then 75, then 11 key frames a second for 40 joins). Frames
+//! first; key frames in what is left.
+
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use tokio::sync::oneshot;
+
+/// The nice value of a blocking frame maker thread (the async workers run at 0): about a
+/// tenth of the core against a busy worker, all of it against an idle one.
+pub const MAKER_NICE: i32 = 10;
+
+/// Lowers the calling thread's scheduling priority to [`MAKER_NICE`], once per thread (a
+/// thread of tokio's blocking pool keeps it: the pool also runs only the shutdown's join
+/// of the world thread). Where the system refuses, or is not Linux, it stays as it was.
+pub fn lower_this_thread() {
+    thread_local!(static LOWERED: std::cell::Cell<bool> = const { std::cell::Cell::new(false) });
+    LOWERED.with(|lowered| {
+        if lowered.replace(true) {
+            return;
+        }
+        #[cfg(target_os = "linux")]
+        {
+            // SAFETY: setpriority reads its three integer arguments and touches no memory;
+            // `who` 0 with PRIO_PROCESS is the calling thread on Linux.
+            let r = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, MAKER_NICE) };
+            if r != 0 {
+                tracing::debug!(
+                    "frame maker priority unchanged: {}",
+                    std::io::Error::last_os_error()
+                );
+            }
+        }
+    });
+}
 
 /// The permits, and who waits for one.
 #[derive(Debug)]

@@ -17,8 +17,13 @@ pub struct ServeStats {
     pub bytes_out: AtomicU64,
     /// Time spent making frames, nanoseconds.
     pub make_ns: AtomicU64,
-    /// Key frames among the frames.
+    /// Key frames among the frames, and those that were not a viewer's first: asked for,
+    /// made because acknowledgements fell behind the kept logs, or cheaper than the
+    /// changes ([`crate::viewer::KeyCause`]).
     pub key_frames: AtomicU64,
+    pub key_asked: AtomicU64,
+    pub key_behind: AtomicU64,
+    pub key_larger: AtomicU64,
     /// Colour tile messages written to viewers' control streams, and their bytes (the
     /// coarsest tile sent before the first frame included).
     pub color_tiles: AtomicU64,
@@ -59,6 +64,9 @@ pub struct Counts {
     pub bytes_out: u64,
     pub make_ns: u64,
     pub key_frames: u64,
+    pub key_asked: u64,
+    pub key_behind: u64,
+    pub key_larger: u64,
     pub color_tiles: u64,
     pub color_bytes: u64,
     pub joins: u64,
@@ -112,6 +120,9 @@ impl ServeStats {
             bytes_out: get(&self.bytes_out),
             make_ns: get(&self.make_ns),
             key_frames: get(&self.key_frames),
+            key_asked: get(&self.key_asked),
+            key_behind: get(&self.key_behind),
+            key_larger: get(&self.key_larger),
             color_tiles: get(&self.color_tiles),
             color_bytes: get(&self.color_bytes),
             joins: get(&self.joins),

@@ -56,7 +56,7 @@ use crate::sim::world_core::{Event, Snapshot};
 use crate::terrain::color_pyramid::TileError;
 use crate::viewer::color::{ColorScheduler, ColorSend};
 use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
-use crate::viewer::{Scene, ViewerCore};
+use crate::viewer::{KeyCause, Scene, ViewerCore};
 
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
@@ -573,28 +573,48 @@ async fn frames(
         // At most one fewer blocking frame maker than cores ([`Shared::makers`]): the
         // world thread always finds a core, whatever the viewers ask for.
         let started = std::time::Instant::now();
-        let (c, made) = match c.begin_frame(&scene, &v.state) {
-            Some(made) => (c, made),
+        // The first frame (a rebuild and a key frame) is made whole on the maker, for the
+        // vehicle where it is when the maker starts: made for where it was when the frame
+        // was begun, a first frame that waited behind many joins (1.6 s for 40 at once)
+        // showed a place the vehicle had long left, so the second frame rebuilt and was a
+        // key frame again (41 of 81 key frames for 40 joins, `key_larger`).
+        let first = *sent == 0;
+        let inline = if first {
+            None
+        } else {
+            c.begin_frame(&scene, &v.state)
+        };
+        let (c, made, snap) = match inline {
+            Some(made) => (c, made, snap),
             None => {
                 // The permit goes with the job: it is held until the job ends, even if
                 // this viewer's task is dropped while waiting for it.
-                let Ok(permit) = shared.makers.acquire(*sent == 0).await else {
+                let Ok(permit) = shared.makers.acquire(first).await else {
                     return FramesEnd::Failed("the server is shutting down");
                 };
                 let shared2 = shared.clone();
                 match tokio::task::spawn_blocking(move || {
                     let _permit = permit;
+                    // Below the async workers: frames first ([`super::makers`]).
+                    super::makers::lower_this_thread();
                     let scene = Scene {
                         terrain: &shared2.terrain,
                         variance: &shared2.variance,
                         scratch: &shared2.scratch,
                     };
-                    let made = c.finish_frame(&scene);
-                    (c, made)
+                    if !first {
+                        let made = c.finish_frame(&scene);
+                        return Some((c, made, snap));
+                    }
+                    let snap: Arc<Snapshot> = shared2.snapshots.borrow().clone();
+                    let v = snap.vehicles.iter().find(|v| v.id == vehicle)?;
+                    let made = c.make_frame(&scene, &v.state);
+                    Some((c, made, snap))
                 })
                 .await
                 {
-                    Ok(r) => r,
+                    Ok(Some(r)) => r,
+                    Ok(None) => return FramesEnd::VehicleLeft,
                     Err(_) => return FramesEnd::Failed("the frame maker failed"),
                 }
             }
@@ -612,6 +632,12 @@ async fn frames(
         let frame = made.frame;
         let key = made.base.is_none();
         stats.add(&stats.key_frames, u64::from(key));
+        match made.key {
+            Some(KeyCause::Asked) => stats.add(&stats.key_asked, 1),
+            Some(KeyCause::Behind) => stats.add(&stats.key_behind, 1),
+            Some(KeyCause::Larger) => stats.add(&stats.key_larger, 1),
+            Some(KeyCause::First) | None => {}
+        }
         let msg = frame_message(&shared.terrain, &snap, made, vehicle, driver);
         let mut bytes = Vec::new();
         if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {

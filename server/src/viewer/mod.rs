@@ -14,7 +14,8 @@
 //!   viewer's base and the cut now, so coding it costs what changed, not the cut;
 //! - a **key frame** (format 1, the whole cut) for the first frame, when the viewer asks
 //!   for one, when the base is older than the logs kept ([`LOGS`] frames), or when the
-//!   change list would cost more than the whole cut. No other frame is a key frame: not
+//!   change list would cost more than twice the whole cut (changes past a third of the
+//!   triangles: see `encode_changes`). No other frame is a key frame: not
 //!   the frames made while a key frame is on its way and not yet acknowledged.
 //!
 //! A key frame is the viewer's next base whatever happens to the frames around it: the
@@ -119,6 +120,7 @@ enum Left {
         frame: u64,
         mode: Mode,
         changes: u32,
+        cause: KeyCause,
     },
 }
 
@@ -136,6 +138,22 @@ pub struct Made {
     pub mode: Mode,
     pub changes: u32,
     pub triangles: u32,
+    /// Why a key frame is one (`None` for a change frame).
+    pub key: Option<KeyCause>,
+}
+
+/// Why a frame is a key frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KeyCause {
+    /// The viewer's first frame (nothing acknowledged, no key frame pending).
+    First,
+    /// The viewer asked for one (it lost its bases).
+    Asked,
+    /// The base (the acknowledged frame, or the pending key frame) is older than the
+    /// [`LOGS`] frames whose changes are kept: acknowledgements fell behind.
+    Behind,
+    /// The changes since the base would cost more than twice the whole cut.
+    Larger,
 }
 
 /// What the server serves one viewer at most, whatever it asks (`serve --max-budget`,
@@ -376,7 +394,8 @@ impl ViewerCore {
                 frame,
                 mode,
                 changes,
-            }) => self.key_frame(scene, frame, mode, changes),
+                cause,
+            }) => self.key_frame(scene, frame, mode, changes, cause),
             None => panic!("finish_frame without an unfinished frame: a caller bug"),
         }
     }
@@ -435,21 +454,39 @@ impl ViewerCore {
                 mode,
                 changes,
                 triangles: self.coherent.triangles(),
+                key: None,
             });
         }
+        let cause = if self.key_requested {
+            KeyCause::Asked
+        } else if base.is_some() {
+            KeyCause::Larger
+        } else if self.acked.max(self.pending_key).is_some() {
+            KeyCause::Behind
+        } else {
+            KeyCause::First
+        };
         if inline {
             self.left = Some(Left::Key {
                 frame,
                 mode,
                 changes,
+                cause,
             });
             return None;
         }
-        Some(self.key_frame(scene, frame, mode, changes))
+        Some(self.key_frame(scene, frame, mode, changes, cause))
     }
 
     /// Codes the cut as frame `frame`'s key frame.
-    fn key_frame(&mut self, scene: &Scene, frame: u64, mode: Mode, changes: u32) -> Made {
+    fn key_frame(
+        &mut self,
+        scene: &Scene,
+        frame: u64,
+        mode: Mode,
+        changes: u32,
+        cause: KeyCause,
+    ) -> Made {
         let mut payload = Vec::new();
         self.encode_key(scene, &mut payload);
         self.key_requested = false;
@@ -462,6 +499,7 @@ impl ViewerCore {
             mode,
             changes,
             triangles: self.coherent.triangles(),
+            key: Some(cause),
         }
     }
 
@@ -508,8 +546,14 @@ impl ViewerCore {
             }
         }
         odd_ones(&mut self.changes);
-        // About 2–3 bytes a change against a third of a byte a triangle for the key frame.
-        if self.changes.len() as u64 * 8 > u64::from(self.coherent.triangles()) {
+        // About 2–3 bytes a change against a third of a byte a triangle for the key frame:
+        // changes up to a third of the triangles (twice a key frame's bytes) still go as a
+        // change frame. At an eighth (as small as a key frame), a server overloaded by 40
+        // joins at once made frames late, so each carried more changes, so more of them
+        // became key frames (107 of 147 key frames in that storm, `key_larger`), which
+        // made it later still; a change frame costs what changed to make, a key frame the
+        // whole cut.
+        if self.changes.len() as u64 * 3 > u64::from(self.coherent.triangles()) {
             return false;
         }
         let grid = self.grid;
