@@ -1,32 +1,43 @@
 //! The frame-coherent tessellator's queues, kept from frame to frame: priority buckets
 //! (the spec's queue) and the odometer schedules that say which kept evaluations are due,
 //! both as lists threaded through the frontier's own member records (ROAM's doubly linked
-//! bucket lists, Duchaineau et al. 1997 §6).
+//! bucket lists, Duchaineau et al. 1997 §6), reached through [`Nodes`].
 //!
 //! A member sits in at most one bucket of its frontier's [`Queue`] and in at most one
 //! bucket of each [`Schedule`], by a [`Link`] (previous and next member) of its own for
 //! each: evaluated again, it is unlinked from where its old evaluation put it and linked
 //! where the new one does; leaving its frontier, it is unlinked; moved in the dense list
 //! (a removal fills the hole with the last member), its neighbours and the bucket's head
-//! are told. So a frame pushes what it evaluated and pops what it splits or merges,
-//! nothing walks the frontiers, and nothing goes stale.
-//!
-//! **Memory** (issue 22: a viewer within 4 MB, aim 2, at 65,536 triangles on `kossou`).
-//! The first version pushed a new entry per evaluation into per-bucket `VecDeque`s
-//! (`(position, stamp, priority)`, 16 bytes) and per-schedule-bucket vectors (`(reading,
-//! position and stamp)`, 16 bytes), each naming its evaluation by a stamp and dropped when
-//! met stale, and re-filled everything from the live evaluations once stale entries
-//! outnumbered them twice: at the end of the bench's drive the split side held 63,687
-//! queue entries and 108,874 schedule entries for 30,935 members (4.27 MB), the merge side
-//! 1.6 MB more, and 2,048 `VecDeque` headers a queue (64 KB). Threaded through the
-//! members, a member costs 8 bytes of links per list, and a queue 8 KB of bucket heads:
-//! 24 bytes a member for the three lists, none stale. Within a bucket the order is still
-//! first in, first out (each list is circular: the head's previous member is its tail).
+//! are told. So a frame links what it evaluated and unlinks what it splits or merges,
+//! nothing walks the frontiers, and nothing goes stale. Each list is circular (the head's
+//! previous member is its tail), so a bucket costs one head.
 //!
 //! Within a bucket the order is first in, first out, as in the from-scratch queue. (Last
 //! in, first out was tried: at the budget, split/merge swaps of diamonds in one bucket
 //! then cycled until the update's bound, 9 rebuilds along the bench's drive, none with
 //! this order.)
+//!
+//! **Memory** (issue 22). The first version pushed a new entry per evaluation into
+//! per-bucket `VecDeque`s (`(position, stamp, priority)`, 16 bytes) and per-schedule-bucket
+//! vectors (`(reading, position and stamp)`, 16 bytes), each naming its evaluation by a
+//! stamp and dropped when met stale, and re-filled everything from the live evaluations
+//! once stale entries outnumbered them twice: at the end of the bench's drive on `kossou`
+//! at 65,536 triangles the split side held 63,687 queue entries and 108,874 schedule
+//! entries for 30,935 members (4.27 MB), the merge side 1.6 MB more, and each queue 2,048
+//! `VecDeque` headers (64 KB). Threaded through the members, the three lists cost a
+//! member 18 bytes of links (24-bit places, [`super::frontier::Member`]) and a queue 8 KB
+//! of heads; none is stale. Compacting lazily kept entries harder (in place, at a lower
+//! threshold) could not go below 8 bytes an entry for a schedule alone, stale ones on top.
+//!
+//! **Time.** A radix heap moves a member down a bucket at a time as the odometer nears its
+//! key, and a move is now a relink of scattered records, not a push onto a vector: the
+//! schedules' buckets go by digits of 4 bits, not bits, to move members half as often
+//! ([`Schedule`]). The queue keeps each split bucket's highest priority ([`Queue::most`]):
+//! the error bound read the bucket that holds it whole every frame, 540 scattered records
+//! at the median (20 µs), where the vector of `(entry, priority)` had been read in order.
+//! Along the bench's drive at 32,768 triangles (six runs of each in turn on a busy
+//! machine) the median frame went from 17–41 µs to 13–21 µs, the p99 (frames of 100–240
+//! changes) from 708–1,972 µs to 871–4,576 µs (medians of the six: 870 and 990).
 
 /// Number of buckets, and the one above every priority ([`crate::tessellate::queue`]).
 use crate::tessellate::queue::BUCKETS;
@@ -375,29 +386,40 @@ impl Queue {
     }
 }
 
-/// Buckets of a schedule: keys equal to the last taken, then one per highest bit that
-/// differs from it.
-const SLOTS: usize = 33;
+/// Bits of a schedule key's digit: a member moves down at most once per digit (8).
+const DIGIT: u32 = 4;
+const RADIX: usize = 1 << DIGIT;
+
+/// Buckets of a schedule: keys equal to the last taken, then per digit (the highest that
+/// differs from the last key taken) one per value it may take above the last key's.
+const SLOTS: usize = 1 + (32 / DIGIT as usize) * (RADIX - 1);
 
 /// When kept evaluations fall due: members by odometer key (a reading in fixed point,
 /// rounded down: see [`super::Odometer`]) in a radix heap (Ahuja et al. 1990) over the
-/// keys' bits, each bucket a list threaded through the members.
+/// keys' digits of 4 bits, each bucket a list threaded through the members.
 ///
 /// Keys only grow, and every key pushed is at least the odometer's now, so a monotone
-/// queue fits: a member sits in the bucket of the highest bit in which its key differs
-/// from `last` (the newest key taken), and is moved to a lower bucket only when `last`
-/// catches up with its bucket; each bucket keeps a lower bound of its keys (exact when it
-/// was filled; a removal may leave it low, which only makes the bucket's members move down
-/// a frame early), so "anything due?" reads one word. (A binary heap of the same entries
-/// walked 16 levels of scattered memory per pop, 1–2 µs each with the caches cold, as they
-/// are when a server serves many viewers in turn.)
+/// queue fits: a member sits in the bucket of the highest digit in which its key differs
+/// from `last` (the newest key taken) and that digit's value, and is moved to a lower
+/// bucket only when `last` catches up with its bucket; each bucket keeps a lower bound of
+/// its keys (exact when it was filled; a removal may leave it low, which only makes the
+/// bucket's members move down a frame early), so "anything due?" reads one word. (A binary
+/// heap of the same entries walked 16 levels of scattered memory per pop, 1–2 µs each with
+/// the caches cold, as they are when a server serves many viewers in turn.) A move is a
+/// relink of scattered records, no longer a push onto a vector: with a bucket per
+/// differing bit (33), a member moved 2.6 times per push along the bench's drive at 32,768
+/// triangles (1.64 million moves) and the serving frames took 906 million instructions
+/// (callgrind); with digits of 4 bits (121 buckets) 1.4 times (0.89 million) and 822
+/// million. (The entries pushed per evaluation took 484 million: the lists cost
+/// instructions in the frames that change much, 100–240 changes, 6,000–15,000 moves;
+/// a frame of a few changes moves 0–15 members and got faster.)
 pub(super) struct Schedule {
     /// The odometer: the member's key `k`, its list `1 + k`.
     k: usize,
     heads: [u32; SLOTS],
     least: [u32; SLOTS],
     /// Buckets not empty, a bit each.
-    nonempty: u64,
+    nonempty: u128,
     last: u32,
     len: usize,
 }
@@ -425,7 +447,14 @@ impl Schedule {
 
     #[inline]
     fn bucket(&self, key: u32) -> usize {
-        (32 - (key ^ self.last).leading_zeros()) as usize
+        let x = key ^ self.last;
+        if x == 0 {
+            return 0;
+        }
+        let j = (31 - x.leading_zeros()) / DIGIT;
+        // Above the last key's digit there, so at least 1.
+        let v = (key >> (j * DIGIT)) as usize & (RADIX - 1);
+        j as usize * (RADIX - 1) + v
     }
 
     #[inline]
@@ -648,7 +677,9 @@ mod tests {
         d.relocate(&mut nodes, 4, 6);
         d.push(&mut nodes, 7, 2600);
         d.remove(&mut nodes, 7);
-        assert!(d.lists(&nodes).is_ok_and(|l| l == [3, 6]));
+        let mut listed = d.lists(&nodes).expect("well formed");
+        listed.sort_unstable();
+        assert_eq!(listed, [3, 6]);
         assert_eq!(d.pop_due(&mut nodes, 2900), Some(6));
         assert_eq!(d.pop_due(&mut nodes, 10_000), Some(3));
         assert_eq!((d.pop_due(&mut nodes, u32::MAX), d.len()), (None, 0));

@@ -2,12 +2,12 @@
 //! (Duchaineau et al. 1997, §5–7), so the work per frame follows what changed.
 //!
 //! The cut is a set of split diamonds ([`PosSet`], sized by the cut: no per-viewer state
-//! is sized by the map). Two frontiers are kept incrementally as [`PosSet`]s: **split
+//! is sized by the map). Two frontiers are kept incrementally ([`Frontier`]): **split
 //! candidates** (unsplit diamonds with at least one split parent: what from-scratch
 //! split-only would have queued) and **merge candidates** (split diamonds none of whose
-//! children are split). Each frontier diamond keeps its last evaluation ([`Entry`]) and
-//! sits in a priority-bucket queue by it, kept from frame to frame ([`buckets`]). Each
-//! frame:
+//! children are split). Each frontier diamond keeps its last evaluation in its record
+//! ([`frontier::Member`]) and sits in a priority-bucket queue by it, kept from frame to
+//! frame ([`buckets`]). Each frame:
 //!
 //! 1. The frontier diamonds whose kept evaluation is due are evaluated again, with the
 //!    very function the from-scratch tessellator uses ([`super::evaluate::priority`]),
@@ -46,9 +46,32 @@
 //! the first stopped.
 //!
 //! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates 10 to 14 of
-//! some 26,000 frontier diamonds; nothing else in a frame walks the frontiers, so a frame
+//! some 22,000 frontier diamonds; nothing else in a frame walks the frontiers, so a frame
 //! costs what it evaluates and changes. (Queuing every frontier diamond each frame, as
 //! this did before, cost 150–200 µs a frame whatever changed.)
+//!
+//! **Memory** (issue 22: a viewer within 4 MB, aim 2, everything counted, at 65,536
+//! triangles). `heap_bytes` counts what is reserved (capacities), and the bench reports
+//! it at the drive's end and its peak after any frame (`serve_viewer_heap_bytes_peak`).
+//! On `kossou` at 65,536 triangles (32,913 split diamonds, 30,781 split and 8,496 merge
+//! candidates at the drive's end):
+//!
+//! | | before | now |
+//! |---|---|---|
+//! | split set | 1.31 MB (list + `(position, index)` table ≤ ½ full) | 0.20 MB (a table of positions, 40–80 % full) |
+//! | split candidates | 5.51 MB (64-byte entries, `Vec` reserve, table) | 1.34 MB (36-byte records in chunks + index) |
+//! | split queue, schedules | 4.27 MB (63,687 + 108,874 entries, half stale) | 16 KB (bucket heads; links in the records) |
+//! | merge side | 2.97 MB | 0.39 MB |
+//! | scratch | 0.39 MB (rebuild lists kept) | 37 KB |
+//! | total (peak) | 14.46 MB | 1.99 MB (2.21 MB) |
+//!
+//! At 32,768: 7.11 MB, now 1.11 MB (peak 1.25 MB). The decisions, each measured in its
+//! file: lists threaded through the records, not entries pushed per evaluation and
+//! compacted ([`buckets`]); the camera-independent part of an evaluation gathered again
+//! rather than kept, links of 24 bits, records in chunks ([`frontier`],
+//! [`super::frontier`]); odometer keys in fixed point ([`Odometer`]). The median frame
+//! got faster, the heaviest slower ([`buckets`]: `serve_frame_us_median` at 32,768, six
+//! runs of each in turn on a busy machine, 17–41 µs before, 13–21 µs after).
 
 mod audit;
 mod buckets;
