@@ -283,6 +283,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         "serve_wire_bytes_per_triangle_steady": serve.bytes_per_triangle_steady,
         "serve_rebuilds": serve.rebuilds,
         "serve_viewer_heap_bytes": serve.viewer_bytes,
+        "serve_viewer_heap_bytes_peak": serve.viewer_bytes_peak,
         "serve_viewer_heap_parts": serve.viewer_parts,
         "serve_evaluated_per_frame_median": serve.evaluated_median,
         "last_frame": {
@@ -417,6 +418,8 @@ struct ServeFigures {
     /// Schedule entries taken per frame (stale ones included).
     popped_median: f64,
     viewer_bytes: usize,
+    /// The most the core had reserved after any frame of the drive.
+    viewer_bytes_peak: usize,
     /// Where the cut's bytes go (`Coherent::heap_parts`).
     viewer_parts: Vec<serde_json::Value>,
 }
@@ -454,6 +457,7 @@ fn serve_bench(
     let (mut served, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let (mut us, mut changes, mut err, mut scratch_err) = (vec![], vec![], vec![], vec![]);
     let (mut bytes, mut evaluated, mut popped, mut rebuilds) = (vec![], vec![], vec![], 0);
+    let mut peak = 0;
     for (k, cam) in cameras.iter().enumerate() {
         let started = Instant::now();
         let made = core.make_frame_at(&scene, cam);
@@ -483,6 +487,7 @@ fn serve_bench(
         }
         std::mem::swap(&mut base, &mut cut);
         core.handle(Event::Acked(made.frame));
+        peak = peak.max(core.heap_bytes());
         if made.triangles > limits.budget.max(2) {
             bail!("the served cut is over budget at frame {k}: a tessellator bug");
         }
@@ -511,6 +516,7 @@ fn serve_bench(
         evaluated_median: quantile(&evaluated, 0.5),
         popped_median: quantile(&popped, 0.5),
         viewer_bytes: core.heap_bytes(),
+        viewer_bytes_peak: peak,
         viewer_parts: core
             .cut()
             .heap_parts()

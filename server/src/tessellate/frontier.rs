@@ -1,186 +1,395 @@
-//! A set of diamonds as a dense list plus an index, each member with a value beside it:
-//! O(1) insert, remove and membership, and a sequential walk over the members and values. The frame-coherent tessellator keeps its two
-//! frontiers (diamonds that may be split, diamonds that may be merged) in these, so what a
-//! viewer holds grows with its cut, not with the map.
+//! Hash tables over packed diamond positions (`x | z << 16`), sized by what they hold: the
+//! frame-coherent tessellator's split set ([`PosSet`]) and the index from a frontier
+//! diamond to its record in a dense list ([`PosIndex`]), so what a viewer holds grows and
+//! shrinks with its cut, not with the map.
 //!
-//! The index is open addressing with linear probing over packed positions (`x | z << 16`;
-//! 0 is the corner `(0, 0)`, never a diamond, so it marks an empty slot), kept at most half
-//! full, with backward-shift deletion (no tombstones). Deterministic: no random hasher, so
-//! the member order depends only on the operations.
+//! Both are open addressing with linear probing and backward-shift deletion (no
+//! tombstones), over a table of any length (a slot is the hash's high bits scaled to it,
+//! Lemire's multiply-shift), kept between 40 % and 80 % full: past 80 % the table grows,
+//! below 40 % it shrinks, to 60 % full either way. So a member costs 5 to 10 bytes of
+//! table, 6.7 at 60 %, where the first version (a list of positions beside a table of
+//! `(position, index)` pairs of a power of two length, at most half full) cost 4 + 16 to
+//! 32. At 80 % a miss probes 13 slots on average: 52 bytes of one table, one or two cache
+//! lines. Deterministic: no random hasher, so the member order depends only on the
+//! operations.
+//!
+//! [`PosSet`] keeps the positions themselves in its slots (0, the corner `(0, 0)`, never a
+//! diamond, marks an empty one). [`PosIndex`] keeps a place in the caller's list (24
+//! bits) with 8 bits of the position's hash beside it: a probe compares those before it
+//! reads the caller's list, so a probe past other members rarely leaves the table (bare
+//! places would read a scattered record per probe).
+//!
+//! [`Chunks`] is the dense list beside a [`PosIndex`]: chunks of 1,024 records, so what
+//! it reserves follows what it holds within a chunk and a half, and growing copies
+//! nothing. (A `Vec` keeps what it reserved at its largest unless shrunk: grown by a
+//! quarter at a time and shrunk below half full, the split frontier's 30,781 records at
+//! the end of the bench's drive on `kossou` at 65,536 triangles sat in room for 43,301
+//! (1.91 MB of 44-byte records); grown by an eighth and shrunk below three quarters, in
+//! room for 39,809 (1.75 MB); in chunks, 31,744 (1.40 MB; 1.14 MB of 36-byte records).)
 
-/// Diamonds, by packed position, each with a `T`.
-pub struct PosSet<T> {
-    /// The members, in no particular order.
-    list: Vec<u32>,
-    /// Each member's value, beside it.
-    data: Vec<T>,
-    /// `(position, index in list)`; position 0 is empty.
-    table: Vec<(u32, u32)>,
-}
-
+/// The mixer of MurmurHash3 (`fmix32`): every output bit depends on every input bit.
 #[inline(always)]
-fn hash(pos: u32) -> usize {
-    (pos.wrapping_mul(0x9e37_79b1) ^ (pos >> 15)).wrapping_mul(0x85eb_ca6b) as usize
+fn hash(pos: u32) -> u32 {
+    let mut h = pos;
+    h ^= h >> 16;
+    h = h.wrapping_mul(0x85eb_ca6b);
+    h ^= h >> 13;
+    h = h.wrapping_mul(0xc2b2_ae35);
+    h ^ (h >> 16)
 }
 
-impl<T> Default for PosSet<T> {
+/// The home slot of hash `h` in a table of `len` slots.
+#[inline(always)]
+fn home(h: u32, len: usize) -> usize {
+    ((u64::from(h) * len as u64) >> 32) as usize
+}
+
+/// Smallest table.
+const MIN_SLOTS: usize = 64;
+
+/// The table length for `members` after a resize: 60 % full.
+fn slots_for(members: usize) -> usize {
+    (members * 5 / 3).max(MIN_SLOTS)
+}
+
+/// Whether a table of `slots` holding `members` is to be resized: over 80 % full, or under
+/// 40 % (and larger than the smallest).
+#[inline(always)]
+fn out_of_bounds(members: usize, slots: usize) -> bool {
+    5 * members > 4 * slots || (5 * members < 2 * slots && slots > MIN_SLOTS)
+}
+
+/// Records per chunk of a [`Chunks`].
+const CHUNK: usize = 1024;
+
+/// A dense list in chunks of [`CHUNK`] records: what it reserves follows its length
+/// within a chunk and a half, and growing never copies it (a `Vec` doubles, so it reserves
+/// a third more than it holds on average and up to twice, and keeps its peak).
+pub struct Chunks<T> {
+    chunks: Vec<Vec<T>>,
+    len: usize,
+}
+
+impl<T> Default for Chunks<T> {
     fn default() -> Self {
-        PosSet {
-            list: Vec::new(),
-            data: Vec::new(),
-            table: Vec::new(),
+        Chunks {
+            chunks: Vec::new(),
+            len: 0,
         }
     }
 }
 
-impl<T: Copy> PosSet<T> {
-    /// The members, in no particular order.
-    pub fn as_slice(&self) -> &[u32] {
-        &self.list
-    }
-
-    /// The members' values, in the order of [`Self::as_slice`].
-    pub fn values(&self) -> &[T] {
-        &self.data
-    }
-
-    /// The same, to change.
-    pub fn values_mut(&mut self) -> &mut [T] {
-        &mut self.data
-    }
-
+impl<T: Copy> Chunks<T> {
     pub fn len(&self) -> usize {
-        self.list.len()
+        self.len
     }
 
+    /// Empties it (its chunks given back).
     pub fn clear(&mut self) {
-        self.list.clear();
-        self.data.clear();
-        self.table.iter_mut().for_each(|e| *e = (0, 0));
+        self.chunks = Vec::new();
+        self.len = 0;
     }
 
     pub fn heap_bytes(&self) -> usize {
-        self.list.capacity() * 4
-            + self.data.capacity() * std::mem::size_of::<T>()
-            + self.table.capacity() * 8
+        self.chunks.capacity() * std::mem::size_of::<Vec<T>>()
+            + self
+                .chunks
+                .iter()
+                .map(|c| c.capacity() * std::mem::size_of::<T>())
+                .sum::<usize>()
     }
+
+    /// Appends `v`.
+    pub fn push(&mut self, v: T) {
+        if self.len / CHUNK == self.chunks.len() {
+            self.chunks.push(Vec::with_capacity(CHUNK));
+        }
+        self.chunks[self.len / CHUNK].push(v);
+        self.len += 1;
+    }
+
+    /// Removes the record at `i`, the last one taking its place.
+    pub fn swap_remove(&mut self, i: usize) -> T {
+        let last = self.chunks[(self.len - 1) / CHUNK]
+            .pop()
+            .expect("the last chunk holds the last record");
+        self.len -= 1;
+        let removed = if i == self.len {
+            last
+        } else {
+            std::mem::replace(&mut self[i], last)
+        };
+        // No chunk past the last record's, but one while it is over half a chunk in (so a
+        // length going back and forth across a chunk's end allocates nothing).
+        let keep = if self.len == 0 {
+            0
+        } else {
+            (self.len + CHUNK / 2).div_ceil(CHUNK)
+        };
+        if keep == 0 {
+            self.chunks = Vec::new();
+        } else if self.chunks.len() > keep {
+            self.chunks.truncate(keep);
+        }
+        removed
+    }
+
+    pub fn iter(&self) -> impl Iterator<Item = &T> + '_ {
+        self.chunks.iter().flatten()
+    }
+}
+
+impl<T> std::ops::Index<usize> for Chunks<T> {
+    type Output = T;
 
     #[inline(always)]
-    fn mask(&self) -> usize {
-        self.table.len() - 1
+    fn index(&self, i: usize) -> &T {
+        &self.chunks[i / CHUNK][i % CHUNK]
+    }
+}
+
+impl<T> std::ops::IndexMut<usize> for Chunks<T> {
+    #[inline(always)]
+    fn index_mut(&mut self, i: usize) -> &mut T {
+        &mut self.chunks[i / CHUNK][i % CHUNK]
+    }
+}
+
+/// Whether the element at `j` of a cyclic table may stay when slot `i` (before it in its
+/// probe run) empties: its home lies cyclically in `(i, j]`.
+#[inline(always)]
+fn stays(i: usize, j: usize, home: usize) -> bool {
+    if i <= j {
+        i < home && home <= j
+    } else {
+        i < home || home <= j
+    }
+}
+
+/// A set of diamonds by packed position (not 0).
+#[derive(Default)]
+pub struct PosSet {
+    /// Positions; 0 is an empty slot.
+    table: Vec<u32>,
+    len: usize,
+}
+
+impl PosSet {
+    pub fn len(&self) -> usize {
+        self.len
     }
 
-    /// The table slot holding `pos`, or the empty slot where it would go.
+    /// The members, in table order (not sorted).
+    pub fn iter(&self) -> impl Iterator<Item = u32> + '_ {
+        self.table.iter().copied().filter(|&p| p != 0)
+    }
+
+    pub fn heap_bytes(&self) -> usize {
+        self.table.capacity() * 4
+    }
+
+    /// The slot holding `pos`, or the empty slot where it would go.
     #[inline(always)]
     fn find(&self, pos: u32) -> usize {
-        let mask = self.mask();
-        let mut i = hash(pos) & mask;
+        let n = self.table.len();
+        let mut i = home(hash(pos), n);
         loop {
-            let k = self.table[i].0;
+            let k = self.table[i];
             if k == pos || k == 0 {
                 return i;
             }
-            i = (i + 1) & mask;
+            i += 1;
+            if i == n {
+                i = 0;
+            }
         }
     }
 
-    /// The value beside `pos`, if it is a member.
     #[inline]
-    pub fn get(&self, pos: u32) -> Option<&T> {
-        if self.table.is_empty() {
-            return None;
-        }
-        let (k, at) = self.table[self.find(pos)];
-        (k == pos).then(|| &self.data[at as usize])
-    }
-
-    /// The same, to change.
-    pub fn get_mut(&mut self, pos: u32) -> Option<&mut T> {
-        if self.table.is_empty() {
-            return None;
-        }
-        let (k, at) = self.table[self.find(pos)];
-        (k == pos).then(|| &mut self.data[at as usize])
-    }
-
     pub fn contains(&self, pos: u32) -> bool {
-        !self.table.is_empty() && self.table[self.find(pos)].0 == pos
+        !self.table.is_empty() && self.table[self.find(pos)] == pos
     }
 
-    /// Adds `pos` (not 0) with the value `make()`; false (and `make` not called) when it
-    /// was there already.
-    pub fn insert_with(&mut self, pos: u32, make: impl FnOnce() -> T) -> bool {
+    /// Adds `pos` (not 0); false when it was there already.
+    pub fn insert(&mut self, pos: u32) -> bool {
         debug_assert_ne!(pos, 0, "position 0 is a corner, not a diamond");
-        if 2 * (self.list.len() + 1) > self.table.len() {
-            self.grow();
+        if out_of_bounds(self.len + 1, self.table.len()) {
+            self.resize(slots_for(self.len + 1));
         }
         let i = self.find(pos);
-        if self.table[i].0 == pos {
+        if self.table[i] == pos {
             return false;
         }
-        self.table[i] = (pos, self.list.len() as u32);
-        self.list.push(pos);
-        self.data.push(make());
+        self.table[i] = pos;
+        self.len += 1;
         true
     }
 
     /// Removes `pos`; false when it was not there.
     pub fn remove(&mut self, pos: u32) -> bool {
-        if self.table.is_empty() {
+        if !self.contains(pos) {
             return false;
         }
+        let n = self.table.len();
         let mut i = self.find(pos);
-        if self.table[i].0 != pos {
-            return false;
-        }
-        // The last member takes the removed one's place in the list.
-        let at = self.table[i].1 as usize;
-        let last = self
-            .list
-            .pop()
-            .expect("a member was found, so the list is not empty");
-        let value = self.data.pop().expect("values are beside members");
-        if last != pos {
-            self.list[at] = last;
-            self.data[at] = value;
-            let j = self.find(last);
-            self.table[j].1 = at as u32;
-        }
-        // Backward-shift deletion: pull later members of the probe run into the hole.
-        let mask = self.mask();
         let mut j = i;
         loop {
-            j = (j + 1) & mask;
-            let (k, v) = self.table[j];
+            j = if j + 1 == n { 0 } else { j + 1 };
+            let k = self.table[j];
             if k == 0 {
                 break;
             }
-            let home = hash(k) & mask;
-            // Move k into the hole at i unless its home lies cyclically in (i, j].
-            let stays = if i <= j {
-                i < home && home <= j
-            } else {
-                i < home || home <= j
-            };
-            if !stays {
-                self.table[i] = (k, v);
+            if !stays(i, j, home(hash(k), n)) {
+                self.table[i] = k;
                 i = j;
             }
         }
-        self.table[i] = (0, 0);
+        self.table[i] = 0;
+        self.len -= 1;
+        if out_of_bounds(self.len, n) {
+            self.resize(slots_for(self.len));
+        }
         true
     }
 
-    fn grow(&mut self) {
-        let cap = (self.table.len() * 2).max(64);
-        self.table = vec![(0, 0); cap];
-        let mask = cap - 1;
-        for (n, &pos) in self.list.iter().enumerate() {
-            let mut i = hash(pos) & mask;
-            while self.table[i].0 != 0 {
-                i = (i + 1) & mask;
+    fn resize(&mut self, slots: usize) {
+        let old = std::mem::replace(&mut self.table, vec![0; slots]);
+        for p in old.into_iter().filter(|&p| p != 0) {
+            let i = self.find(p);
+            self.table[i] = p;
+        }
+    }
+}
+
+/// An empty [`PosIndex`] slot.
+const EMPTY: u32 = u32::MAX;
+/// Bits of an index in a [`PosIndex`] slot (the rest hold the hash's low bits).
+const INDEX_BITS: u32 = 24;
+const INDEX_MASK: u32 = (1 << INDEX_BITS) - 1;
+
+/// The most members a [`PosIndex`] indexes (a frontier holds at most 4 diamonds per
+/// split one, and a cut splits fewer diamonds than its budget, at most 2^20 triangles).
+pub const MAX_INDEXED: usize = INDEX_MASK as usize;
+
+/// The hash bits a slot keeps beside its index.
+#[inline(always)]
+fn tag(h: u32) -> u32 {
+    h << INDEX_BITS
+}
+
+/// An index from packed positions to places in a list the caller keeps: the caller says
+/// which position is at a place (`at`), and tells the index when a member moves.
+#[derive(Default)]
+pub struct PosIndex {
+    /// `tag | index`; [`EMPTY`] is an empty slot.
+    table: Vec<u32>,
+    len: usize,
+}
+
+impl PosIndex {
+    pub fn len(&self) -> usize {
+        self.len
+    }
+
+    pub fn clear(&mut self) {
+        self.table.iter_mut().for_each(|e| *e = EMPTY);
+        self.len = 0;
+    }
+
+    pub fn heap_bytes(&self) -> usize {
+        self.table.capacity() * 4
+    }
+
+    /// The slot holding `pos` (`Ok`), or the empty slot where it would go (`Err`).
+    #[inline(always)]
+    fn find(&self, pos: u32, at: impl Fn(u32) -> u32) -> Result<usize, usize> {
+        let n = self.table.len();
+        let h = hash(pos);
+        let t = tag(h);
+        let mut i = home(h, n);
+        loop {
+            let k = self.table[i];
+            if k == EMPTY {
+                return Err(i);
             }
-            self.table[i] = (pos, n as u32);
+            if k & !INDEX_MASK == t && at(k & INDEX_MASK) == pos {
+                return Ok(i);
+            }
+            i += 1;
+            if i == n {
+                i = 0;
+            }
+        }
+    }
+
+    /// The place of `pos` in the caller's list.
+    #[inline]
+    pub fn get(&self, pos: u32, at: impl Fn(u32) -> u32) -> Option<u32> {
+        if self.table.is_empty() {
+            return None;
+        }
+        self.find(pos, at).ok().map(|i| self.table[i] & INDEX_MASK)
+    }
+
+    /// Records that `pos` (not a member) is at `index` of the caller's list.
+    pub fn insert(&mut self, pos: u32, index: u32, at: impl Fn(u32) -> u32) {
+        assert!(
+            (index as usize) < MAX_INDEXED,
+            "a frontier is bounded by the largest budget"
+        );
+        if out_of_bounds(self.len + 1, self.table.len()) {
+            self.resize(slots_for(self.len + 1), &at);
+        }
+        let i = match self.find(pos, &at) {
+            Err(i) => i,
+            Ok(_) => unreachable!("inserted positions are not members"),
+        };
+        self.table[i] = tag(hash(pos)) | index;
+        self.len += 1;
+    }
+
+    /// Records that member `pos` moved to `index`.
+    pub fn moved(&mut self, pos: u32, index: u32, at: impl Fn(u32) -> u32) {
+        let i = self
+            .find(pos, at)
+            .expect("a member that moved is indexed under its position");
+        self.table[i] = tag(hash(pos)) | index;
+    }
+
+    /// Forgets member `pos` (while `at` still finds it at its place).
+    pub fn remove(&mut self, pos: u32, at: impl Fn(u32) -> u32) {
+        let n = self.table.len();
+        let mut i = self
+            .find(pos, &at)
+            .expect("a member removed is indexed under its position");
+        let mut j = i;
+        loop {
+            j = if j + 1 == n { 0 } else { j + 1 };
+            let k = self.table[j];
+            if k == EMPTY {
+                break;
+            }
+            if !stays(i, j, home(hash(at(k & INDEX_MASK)), n)) {
+                self.table[i] = k;
+                i = j;
+            }
+        }
+        self.table[i] = EMPTY;
+        self.len -= 1;
+        if out_of_bounds(self.len, n) {
+            self.resize(slots_for(self.len), &at);
+        }
+    }
+
+    fn resize(&mut self, slots: usize, at: impl Fn(u32) -> u32) {
+        let old = std::mem::replace(&mut self.table, vec![EMPTY; slots]);
+        for k in old.into_iter().filter(|&k| k != EMPTY) {
+            let pos = at(k & INDEX_MASK);
+            let i = match self.find(pos, &at) {
+                Err(i) => i,
+                Ok(_) => unreachable!("each member is indexed once"),
+            };
+            self.table[i] = k;
         }
     }
 }
@@ -189,35 +398,97 @@ impl<T: Copy> PosSet<T> {
 mod tests {
     use super::*;
 
-    /// Random inserts and removes against a sorted reference (a tiny LCG keeps it
-    /// deterministic).
+    /// A tiny LCG keeps it deterministic.
+    fn positions(seed: &mut u64) -> (u32, bool) {
+        *seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (1 + ((*seed >> 33) % 700) as u32 * 97, *seed >> 63 == 0)
+    }
+
+    /// Random inserts and removes against a sorted reference.
     #[test]
-    fn matches_a_reference_set() {
-        let mut set = PosSet::<u32>::default();
+    fn set_matches_a_reference_set() {
+        let mut set = PosSet::default();
         let mut reference = std::collections::BTreeSet::new();
         let mut seed = 12345u64;
         for _ in 0..20_000 {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            let pos = 1 + ((seed >> 33) % 700) as u32 * 97;
-            if seed >> 63 == 0 {
-                assert_eq!(set.insert_with(pos, || pos * 3), reference.insert(pos));
+            let (pos, insert) = positions(&mut seed);
+            if insert {
+                assert_eq!(set.insert(pos), reference.insert(pos));
             } else {
                 assert_eq!(set.remove(pos), reference.remove(&pos));
             }
             assert_eq!(set.len(), reference.len());
+            let slots = set.heap_bytes() / 4;
+            assert!(
+                slots <= MIN_SLOTS || 5 * set.len() >= 2 * slots,
+                "40 % full"
+            );
+            assert!(5 * set.len() <= 4 * slots, "80 % full at most");
         }
-        let mut got = set.as_slice().to_vec();
+        let mut got: Vec<u32> = set.iter().collect();
         got.sort_unstable();
         assert_eq!(got, reference.iter().copied().collect::<Vec<_>>());
-        for (p, v) in set.as_slice().iter().zip(set.values()) {
-            assert_eq!(*v, p * 3, "each value stays beside its member");
-        }
         for p in 1..70_000 {
             assert_eq!(set.contains(p), reference.contains(&p), "{p}");
         }
-        set.clear();
-        assert!(set.len() == 0 && !set.contains(got.first().copied().unwrap_or(1)));
+        for p in got {
+            assert!(set.remove(p));
+        }
+        assert!(
+            set.len() == 0 && set.heap_bytes() <= MIN_SLOTS * 4,
+            "shrunk"
+        );
+    }
+
+    /// The same with an index over a swap-removed list, as the frontiers use it; then the
+    /// tables shrink as the members go.
+    #[test]
+    fn index_matches_a_reference_map() {
+        let mut index = PosIndex::default();
+        let mut list: Chunks<u32> = Chunks::default();
+        let mut reference = std::collections::BTreeSet::new();
+        let mut seed = 777u64;
+        for _ in 0..20_000 {
+            let (pos, insert) = positions(&mut seed);
+            let found = index.get(pos, |i| list[i as usize]);
+            assert_eq!(found.is_some(), reference.contains(&pos));
+            match (found, insert) {
+                (None, true) => {
+                    list.push(pos);
+                    index.insert(pos, list.len() as u32 - 1, |i| list[i as usize]);
+                    reference.insert(pos);
+                }
+                (Some(at), false) => {
+                    index.remove(pos, |i| list[i as usize]);
+                    let last = list.len() - 1;
+                    if at as usize != last {
+                        index.moved(list[last], at, |i| list[i as usize]);
+                    }
+                    list.swap_remove(at as usize);
+                    reference.remove(&pos);
+                }
+                _ => {}
+            }
+            assert_eq!(index.len(), reference.len());
+            let chunks = list.heap_bytes() / (CHUNK * 4);
+            assert!(chunks <= (list.len() + CHUNK / 2).div_ceil(CHUNK).max(1));
+        }
+        for (i, &p) in list.iter().enumerate() {
+            assert_eq!(index.get(p, |i| list[i as usize]), Some(i as u32));
+        }
+        for p in 1..70_000 {
+            let got = index.get(p, |i| list[i as usize]);
+            assert_eq!(got.is_some(), reference.contains(&p), "{p}");
+        }
+        let peak = index.heap_bytes();
+        while list.len() > 0 {
+            let last = list.len() - 1;
+            index.remove(list[last], |i| list[i as usize]);
+            list.swap_remove(last);
+        }
+        assert!(index.heap_bytes() < peak && index.heap_bytes() <= MIN_SLOTS * 4);
+        assert_eq!(list.heap_bytes(), 0, "every chunk given back");
     }
 }

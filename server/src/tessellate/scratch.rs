@@ -47,13 +47,13 @@ impl Tessellator {
     /// Makes `split` (packed positions, a cut: closed under parent) this tessellator's
     /// split set, as if its last cut had made it with `triangles` triangles, for the
     /// codec's bitset and the output pass.
-    pub(crate) fn load_cut(&mut self, split: &[u32], triangles: u32) {
+    pub(crate) fn load_cut(&mut self, split: impl IntoIterator<Item = u32>, triangles: u32) {
         self.reset();
-        for &p in split {
+        for p in split {
             let (x, z) = unpack(p);
             self.set_active(x, z);
+            self.active_list.push(p);
         }
-        self.active_list.extend_from_slice(split);
         self.triangles = triangles;
     }
 

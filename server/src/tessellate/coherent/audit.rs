@@ -2,7 +2,9 @@
 //! alone: for tests (it walks the whole map).
 
 use super::eval::fixed;
-use super::{Coherent, Frontier, pack, unpack};
+use super::frontier::Frontier;
+use super::frontier::{Member, UNDER, WANTED};
+use super::{Coherent, pack, unpack};
 use crate::terrain::heightfield::Heightfield;
 use crate::terrain::variance::VarianceTree;
 use crate::tessellate::Frame;
@@ -11,11 +13,14 @@ use crate::tessellate::queue::{TOP, bucket_of};
 use crate::tessellate::{Limits, Scales};
 
 impl Coherent {
-    /// Checks the cut after a frame at `camera`: the triangle and split counts, both
-    /// frontiers and the values kept beside their members equal a recomputation from the
-    /// split set; the cut is closed under parent; and every split diamond that nothing
-    /// forces (a merge candidate) is worth splitting at this camera: in view (or under the
-    /// eye), with error, at or above the threshold.
+    /// Checks the cut after a frame at `camera`: the triangle and split counts and both
+    /// frontiers equal a recomputation from the split set; the cut is closed under parent;
+    /// each frontier's index finds every member where it is, each member is queued exactly
+    /// once, in the bucket its kept evaluation gives (or in none), and scheduled on both
+    /// odometers when it has error (on neither when it is exact), each schedule's lists
+    /// well formed; and every split diamond that nothing forces (a merge candidate) is
+    /// worth splitting at this camera: in view (or under the eye), with error, at or above
+    /// the threshold.
     pub fn audit(
         &self,
         hf: &Heightfield,
@@ -66,11 +71,15 @@ impl Coherent {
             v.dedup();
             v
         };
-        for (name, kept, want) in [
-            ("split", self.splits.cands.as_slice(), &splits),
-            ("merge", self.merges.cands.as_slice(), &merges),
+        for (name, fr, want) in [
+            ("split", &self.splits, &splits),
+            ("merge", &self.merges, &merges),
         ] {
-            let (kept, want) = (sorted(kept), sorted(want));
+            let kept: Vec<u32> = fr.members().map(|m| m.pos).collect();
+            if sorted(&kept).len() != kept.len() {
+                return Err(format!("{name} candidates listed twice"));
+            }
+            let (kept, want) = (sorted(&kept), sorted(want));
             if kept != want {
                 let missing = want
                     .iter()
@@ -86,28 +95,22 @@ impl Coherent {
             }
         }
         let f = Frame::new(hf, variance, scales, camera, limits);
-        for set in [&self.splits.cands, &self.merges.cands] {
-            for (&p, v) in set.as_slice().iter().zip(set.values()) {
-                if fixed(&f, p) != v.fixed {
-                    return Err(format!("stale values kept beside {:?}", unpack(p)));
-                }
-            }
-        }
-        queued("split", &self.splits, |e| {
-            (e.flags & 1 != 0).then(|| {
-                if e.flags & 2 != 0 {
+        let now = [self.odometers[0].now(), self.odometers[1].now()];
+        queued("split", &self.splits, &f, now, |m| {
+            (m.flags & WANTED != 0).then(|| {
+                if m.flags & UNDER != 0 {
                     TOP
                 } else {
-                    bucket_of(e.prio)
+                    bucket_of(m.prio)
                 }
             })
         })?;
-        queued("merge", &self.merges, |e| {
-            (e.flags & 2 == 0).then(|| {
-                if e.flags & 1 == 0 {
+        queued("merge", &self.merges, &f, now, |m| {
+            (m.flags & UNDER == 0).then(|| {
+                if m.flags & WANTED == 0 {
                     TOP
                 } else {
-                    TOP - 1 - bucket_of(e.prio)
+                    TOP - 1 - bucket_of(m.prio)
                 }
             })
         })?;
@@ -128,58 +131,70 @@ impl Coherent {
     }
 }
 
-/// Checks that each member of a frontier has its newest evaluation queued exactly once,
-/// in the bucket `bucket` gives (none: not queued), and scheduled on both odometers
-/// unless it is never due.
+/// Checks a frontier's index, queue and schedules: each member indexed where it is;
+/// queued exactly once, in the bucket `bucket` gives its kept evaluation (none: not
+/// queued), which the frontier's own rule agrees with; scheduled exactly once on each
+/// odometer when it has error, on neither when it is exact (never due again), and not
+/// before the odometers' keys `now` (what was due was taken); the lists well formed (each
+/// member's previous names the one before it, each bucket marked as it is, each schedule
+/// key in its bucket).
 fn queued(
     name: &str,
     fr: &Frontier,
-    bucket: impl Fn(&super::eval::Entry) -> Option<usize>,
+    f: &Frame,
+    now: [u32; 2],
+    bucket: impl Fn(&Member) -> Option<usize>,
 ) -> Result<(), String> {
-    let mut count = std::collections::HashMap::<u32, usize>::new();
-    for (b, s) in fr.queue.entries() {
-        if let Some(e) = fr.live(s) {
-            if bucket(e) != Some(b) {
-                return Err(format!(
-                    "{name} candidate {:?} queued in bucket {b}, {:?} by its evaluation",
-                    unpack(s.pos),
-                    bucket(e)
-                ));
-            }
-            *count.entry(s.pos).or_default() += 1;
-        }
-    }
-    for (&p, e) in fr.cands.as_slice().iter().zip(fr.cands.values()) {
-        let want = usize::from(bucket(e).is_some());
-        let got = count.get(&p).copied().unwrap_or(0);
-        if got != want {
+    let members: Vec<Member> = fr.members().copied().collect();
+    let (queue, schedules) = fr.lists().map_err(|e| format!("{name} candidates: {e}"))?;
+    let mut count = vec![0usize; members.len()];
+    for &(b, i) in &queue {
+        let m = &members[i as usize];
+        if bucket(m) != Some(b) {
             return Err(format!(
-                "{name} candidate {:?} queued {got} times, {want} by its evaluation",
-                unpack(p)
+                "{name} candidate {:?} queued in bucket {b}, {:?} by its evaluation",
+                unpack(m.pos),
+                bucket(m)
+            ));
+        }
+        count[i as usize] += 1;
+    }
+    for (i, m) in members.iter().enumerate() {
+        if !fr.indexed(i) {
+            return Err(format!("{name} candidate {:?} not indexed", unpack(m.pos)));
+        }
+        let want = usize::from(bucket(m).is_some());
+        if count[i] != want || bucket(m) != fr.queue_bucket(m) || m.queued() != (want == 1) {
+            return Err(format!(
+                "{name} candidate {:?} queued {} times, {want} by its evaluation",
+                unpack(m.pos),
+                count[i]
             ));
         }
     }
-    for (odometer, schedule, reading) in [
-        (
-            "travel",
-            &fr.due_moved,
-            (|e| e.due_moved) as fn(&super::eval::Entry) -> f64,
-        ),
-        ("turn", &fr.due_turned, |e| e.due_turned),
-    ] {
-        let mut scheduled = std::collections::HashSet::new();
-        for (at, s) in schedule.entries() {
-            if let Some(e) = fr.live(s)
-                && at == reading(e)
-            {
-                scheduled.insert(s.pos);
-            }
+    for (k, (odometer, list)) in ["travel", "turn"].iter().zip(schedules).enumerate() {
+        let mut count = vec![0usize; members.len()];
+        for i in list {
+            count[i as usize] += 1;
         }
-        for (&p, e) in fr.cands.as_slice().iter().zip(fr.cands.values()) {
-            if reading(e).is_finite() && !scheduled.contains(&p) {
+        for (i, m) in members.iter().enumerate() {
+            let exact = fixed(f, m.pos).exact();
+            let want = usize::from(!exact);
+            if count[i] != want || m.due(k).is_some() == exact {
                 return Err(format!(
-                    "{name} candidate {:?} is not scheduled by its {odometer}",
-                    unpack(p)
+                    "{name} candidate {:?} scheduled {} times by its {odometer}, {want} \
+                     by its error",
+                    unpack(m.pos),
+                    count[i]
+                ));
+            }
+            if let Some(key) = m.due(k)
+                && key < now[k]
+            {
+                return Err(format!(
+                    "{name} candidate {:?} was due by its {odometer} at {key}, {} now",
+                    unpack(m.pos),
+                    now[k]
                 ));
             }
         }
@@ -204,7 +219,7 @@ pub fn measured_error(
     let mut c = Coherent::new(hf.side());
     let split: Vec<u32> = split.into_iter().map(|(x, z)| pack(x, z)).collect();
     for &p in &split {
-        c.split.insert_with(p, || ());
+        c.split.insert(p);
     }
     let mut candidates: Vec<u32> = Vec::new();
     for &p in &split {

@@ -1,91 +1,269 @@
 //! The frame-coherent tessellator's queues, kept from frame to frame: priority buckets
-//! (the spec's queue) whose entries live as long as the evaluation they carry, and the
-//! odometer schedules that say which kept evaluations are due.
+//! (the spec's queue) and the odometer schedules that say which kept evaluations are due,
+//! both as lists threaded through the frontier's own member records (ROAM's doubly linked
+//! bucket lists, Duchaineau et al. 1997 §6), reached through [`Nodes`].
 //!
-//! A frontier diamond is queued once per evaluation, its entry naming the evaluation by
-//! a stamp ([`Stamped`]): when the diamond is evaluated again, leaves its frontier or is
-//! popped, older entries go stale and are dropped when met (a check of the stamp kept
-//! beside the diamond). So a frame pushes what it evaluated and pops what it splits or
-//! merges, and nothing walks the frontiers: the fixed cost that made a one-change frame
-//! cost 150 µs at 32,768 triangles on `kossou` (every one of some 26,000 frontier
-//! diamonds checked and pushed again, each frame) is gone. Stale entries are counted, and
-//! the owner compacts (re-queues the live entries alone) once they outnumber the live
-//! ones, so memory stays proportional to the frontier.
+//! A member sits in at most one bucket of its frontier's [`Queue`] and in at most one
+//! bucket of each [`Schedule`], by a [`Link`] (previous and next member) of its own for
+//! each: evaluated again, it is unlinked from where its old evaluation put it and linked
+//! where the new one does; leaving its frontier, it is unlinked; moved in the dense list
+//! (a removal fills the hole with the last member), its neighbours and the bucket's head
+//! are told. So a frame links what it evaluated and unlinks what it splits or merges,
+//! nothing walks the frontiers, and nothing goes stale. Each list is circular (the head's
+//! previous member is its tail), so a bucket costs one head.
 //!
 //! Within a bucket the order is first in, first out, as in the from-scratch queue. (Last
 //! in, first out was tried: at the budget, split/merge swaps of diamonds in one bucket
 //! then cycled until the update's bound, 9 rebuilds along the bench's drive, none with
 //! this order.)
+//!
+//! **Memory** (issue 22). The first version pushed a new entry per evaluation into
+//! per-bucket `VecDeque`s (`(position, stamp, priority)`, 16 bytes) and per-schedule-bucket
+//! vectors (`(reading, position and stamp)`, 16 bytes), each naming its evaluation by a
+//! stamp and dropped when met stale, and re-filled everything from the live evaluations
+//! once stale entries outnumbered them twice: at the end of the bench's drive on `kossou`
+//! at 65,536 triangles the split side held 63,687 queue entries and 108,874 schedule
+//! entries for 30,935 members (4.27 MB), the merge side 1.6 MB more, and each queue 2,048
+//! `VecDeque` headers (64 KB). Threaded through the members, the three lists cost a
+//! member 18 bytes of links (24-bit places, [`super::frontier::Member`]) and a queue 8 KB
+//! of heads; none is stale. Compacting lazily kept entries harder (in place, at a lower
+//! threshold) could not go below 8 bytes an entry for a schedule alone, stale ones on top.
+//!
+//! **Time.** A radix heap moves a member down a bucket at a time as the odometer nears its
+//! key, and a move is now a relink of scattered records, not a push onto a vector: the
+//! schedules' buckets go by digits of 4 bits, not bits, to move members half as often
+//! ([`Schedule`]). The queue keeps each split bucket's highest priority ([`Queue::most`]):
+//! the error bound read the bucket that holds it whole every frame, 540 scattered records
+//! at the median (20 µs), where the vector of `(entry, priority)` had been read in order.
+//! Along the bench's drive at 32,768 triangles (six runs of each in turn on a busy
+//! machine) the median frame went from 17–41 µs to 13–21 µs, the p99 (frames of 100–240
+//! changes) from 708–1,972 µs to 871–4,576 µs (medians of the six: 870 and 990).
 
 /// Number of buckets, and the one above every priority ([`crate::tessellate::queue`]).
 use crate::tessellate::queue::BUCKETS;
 
-/// A queued diamond: its packed position and the stamp of the evaluation it carries.
+/// No member: an empty bucket's head, and an unlinked member's previous.
+pub(super) const NIL: u32 = u32::MAX;
+
+/// A member's place in one circular list: its previous and next members.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(super) struct Stamped {
-    pub pos: u32,
-    pub stamp: u32,
+pub(super) struct Link {
+    pub prev: u32,
+    pub next: u32,
 }
 
-impl Stamped {
-    fn pack(self) -> u64 {
-        (u64::from(self.stamp) << 32) | u64::from(self.pos)
+impl Link {
+    /// In no list.
+    pub const OUT: Link = Link {
+        prev: NIL,
+        next: NIL,
+    };
+
+    pub fn linked(self) -> bool {
+        self.prev != NIL
+    }
+}
+
+/// The members the lists are threaded through, by place: their links (list `w`: 0 the
+/// queue, 1 + `k` the schedule of odometer `k`), their schedule keys and priorities.
+pub(super) trait Nodes {
+    fn len(&self) -> usize;
+    fn link(&self, i: u32, w: usize) -> Link;
+    fn set_link(&mut self, i: u32, w: usize, l: Link);
+    fn key(&self, i: u32, k: usize) -> u32;
+    fn set_key(&mut self, i: u32, k: usize, key: u32);
+    /// Its priority, by which it is queued.
+    fn prio(&self, i: u32) -> f32;
+
+    #[inline(always)]
+    fn set_prev(&mut self, i: u32, w: usize, prev: u32) {
+        let l = self.link(i, w);
+        self.set_link(i, w, Link { prev, ..l });
     }
 
-    fn unpack(e: u64) -> Stamped {
-        Stamped {
-            pos: e as u32,
-            stamp: (e >> 32) as u32,
+    #[inline(always)]
+    fn set_next(&mut self, i: u32, w: usize, next: u32) {
+        let l = self.link(i, w);
+        self.set_link(i, w, Link { next, ..l });
+    }
+}
+
+/// Appends member `i` to the circular list at `head` (list `w`).
+#[inline]
+fn push_back(nodes: &mut impl Nodes, w: usize, head: &mut u32, i: u32) {
+    if *head == NIL {
+        *head = i;
+        nodes.set_link(i, w, Link { prev: i, next: i });
+    } else {
+        let h = *head;
+        let tail = nodes.link(h, w).prev;
+        nodes.set_link(
+            i,
+            w,
+            Link {
+                prev: tail,
+                next: h,
+            },
+        );
+        nodes.set_next(tail, w, i);
+        nodes.set_prev(h, w, i);
+    }
+}
+
+/// Unlinks member `i` from the circular list at `head` (list `w`); true when it empties.
+#[inline]
+fn unlink(nodes: &mut impl Nodes, w: usize, head: &mut u32, i: u32) -> bool {
+    let Link { prev, next } = nodes.link(i, w);
+    debug_assert!(prev != NIL, "only a linked member is unlinked");
+    nodes.set_link(i, w, Link::OUT);
+    if next == i {
+        *head = NIL;
+        return true;
+    }
+    nodes.set_next(prev, w, next);
+    nodes.set_prev(next, w, prev);
+    if *head == i {
+        *head = next;
+    }
+    false
+}
+
+/// Member `from`, linked in the list at `head` (list `w`), now lives at `to` (its record
+/// copied there): its neighbours and the head follow.
+#[inline]
+fn relocate(nodes: &mut impl Nodes, w: usize, head: &mut u32, from: u32, to: u32) {
+    let Link { prev, next } = nodes.link(to, w);
+    if next == from {
+        // Alone in its list.
+        nodes.set_link(to, w, Link { prev: to, next: to });
+    } else {
+        nodes.set_next(prev, w, to);
+        nodes.set_prev(next, w, to);
+    }
+    if *head == from {
+        *head = to;
+    }
+}
+
+/// The members of the circular list at `head` (list `w`), first to last, checked: each
+/// one's previous names the one before it. For the audit.
+pub(super) fn walk(nodes: &impl Nodes, w: usize, head: u32) -> Result<Vec<u32>, String> {
+    let mut out = Vec::new();
+    if head == NIL {
+        return Ok(out);
+    }
+    let mut i = head;
+    loop {
+        if i as usize >= nodes.len() {
+            return Err(format!("list {w} names member {i}, past the members"));
+        }
+        let l = nodes.link(i, w);
+        let prev = out.last().copied().unwrap_or(nodes.link(head, w).prev);
+        if l.prev != prev {
+            return Err(format!(
+                "list {w}: member {i}'s previous is {}, not {prev}",
+                l.prev
+            ));
+        }
+        out.push(i);
+        if out.len() > nodes.len() {
+            return Err(format!("list {w} does not come back to its head"));
+        }
+        i = l.next;
+        if i == head {
+            return Ok(out);
         }
     }
 }
 
-/// Priority buckets kept across frames (entries pushed and popped, never rebuilt per
-/// frame); a two-level bitmap finds the highest non-empty bucket.
-pub(super) struct Buckets {
-    /// Per bucket, `(entry, priority)`: the priority beside it lets the error bound scan a
-    /// bucket without looking every entry up.
-    lists: Vec<std::collections::VecDeque<(u64, f32)>>,
+/// Priority buckets kept across frames, each a first-in first-out list of members; a
+/// two-level bitmap finds the highest non-empty bucket.
+///
+/// A queue may keep each bucket's highest priority ([`Queue::most`]: the split queue, for
+/// the error bound): known while nothing that could be it left the bucket, found again by a
+/// walk of the bucket (its members' records: scattered reads) only when it is asked for
+/// after such a change. Walked every frame, the bucket holding the bound (on `kossou` at
+/// 32,768 triangles a median of 540 members, up to 2,345) cost 20 µs a frame.
+pub(super) struct Queue {
+    heads: Vec<u32>,
+    /// Per bucket, its highest priority, NaN when not known (empty when not kept).
+    most: Vec<f32>,
     nonempty: [u64; BUCKETS / 64],
     summary: u32,
     len: usize,
 }
 
-impl Default for Buckets {
-    fn default() -> Self {
-        Buckets {
-            lists: vec![std::collections::VecDeque::new(); BUCKETS],
+impl Queue {
+    /// An empty queue, keeping each bucket's highest priority or not.
+    pub fn new(keep_most: bool) -> Queue {
+        Queue {
+            heads: vec![NIL; BUCKETS],
+            most: if keep_most {
+                vec![f32::NAN; BUCKETS]
+            } else {
+                Vec::new()
+            },
             nonempty: [0; BUCKETS / 64],
             summary: 0,
             len: 0,
         }
     }
-}
 
-impl Buckets {
-    /// Entries queued, stale ones included.
+    /// Members queued.
     pub fn len(&self) -> usize {
         self.len
     }
 
+    /// Empties the queue (the members' links are the caller's to forget).
     pub fn clear(&mut self) {
         while let Some(b) = self.top_bucket() {
-            self.lists[b].clear();
+            self.heads[b] = NIL;
             self.clear_bit(b);
         }
         self.len = 0;
     }
 
-    /// Queues `e`, whose evaluation gave `prio`, in `bucket`.
+    /// Queues member `i` (not queued) last in `bucket`.
     #[inline]
-    pub fn push(&mut self, bucket: usize, e: Stamped, prio: f32) {
-        let list = &mut self.lists[bucket];
-        if list.is_empty() {
+    pub fn push(&mut self, nodes: &mut impl Nodes, bucket: usize, i: u32) {
+        let empty = self.heads[bucket] == NIL;
+        if empty {
             self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
             self.summary |= 1 << (bucket >> 6);
         }
-        list.push_back((e.pack(), prio));
+        if let Some(most) = self.most.get_mut(bucket) {
+            let prio = nodes.prio(i);
+            *most = if empty {
+                prio
+            } else if most.is_nan() {
+                // Not known: stays so.
+                f32::NAN
+            } else {
+                most.max(prio)
+            };
+        }
+        push_back(nodes, 0, &mut self.heads[bucket], i);
         self.len += 1;
+    }
+
+    /// Takes member `i` out of `bucket`, where it is queued.
+    #[inline]
+    pub fn remove(&mut self, nodes: &mut impl Nodes, bucket: usize, i: u32) {
+        if unlink(nodes, 0, &mut self.heads[bucket], i) {
+            self.clear_bit(bucket);
+        }
+        if let Some(most) = self.most.get_mut(bucket)
+            && (most.is_nan() || nodes.prio(i) >= *most)
+        {
+            // It may have been the highest (or the bucket's highest is not known).
+            *most = f32::NAN;
+        }
+        self.len -= 1;
+    }
+
+    /// Member `from`, queued in `bucket`, now lives at `to`.
+    pub fn relocate(&mut self, nodes: &mut impl Nodes, bucket: usize, from: u32, to: u32) {
+        relocate(nodes, 0, &mut self.heads[bucket], from, to);
     }
 
     /// The highest non-empty bucket.
@@ -98,25 +276,19 @@ impl Buckets {
         Some(w * 64 + 63 - self.nonempty[w].leading_zeros() as usize)
     }
 
-    /// The entry the next pop returns, with its bucket.
+    /// The member the next pop returns, with its bucket.
     #[inline]
-    pub fn peek(&self) -> Option<(usize, Stamped)> {
+    pub fn peek(&self) -> Option<(usize, u32)> {
         let b = self.top_bucket()?;
-        let (e, _) = *self.lists[b].front()?;
-        Some((b, Stamped::unpack(e)))
+        Some((b, self.heads[b]))
     }
 
-    /// Removes and returns the next entry of the highest non-empty bucket.
+    /// Removes and returns the first member of the highest non-empty bucket.
     #[inline]
-    pub fn pop(&mut self) -> Option<(usize, Stamped)> {
-        let b = self.top_bucket()?;
-        let list = &mut self.lists[b];
-        let (e, _) = list.pop_front()?;
-        if list.is_empty() {
-            self.clear_bit(b);
-        }
-        self.len -= 1;
-        Some((b, Stamped::unpack(e)))
+    pub fn pop(&mut self, nodes: &mut impl Nodes) -> Option<(usize, u32)> {
+        let (b, i) = self.peek()?;
+        self.remove(nodes, b, i);
+        Some((b, i))
     }
 
     #[inline]
@@ -127,197 +299,261 @@ impl Buckets {
         }
     }
 
-    /// Non-empty buckets, highest first.
-    fn buckets_desc(&self) -> impl Iterator<Item = usize> + '_ {
-        (0..BUCKETS)
-            .rev()
-            .filter(|&b| self.nonempty[b >> 6] >> (b & 63) & 1 != 0)
-    }
-
-    /// The highest priority of a live entry (`live` says which are), from the highest
-    /// bucket holding one; `top` (ranked by position, not priority) is read whole and the
-    /// search goes on below it. An entry is looked up only when it would raise the
-    /// highest found so far: a few lookups a bucket, not one an entry.
-    pub fn max_live(&self, top: usize, live: impl Fn(Stamped) -> bool) -> f32 {
-        let mut best = 0f32;
-        for b in self.buckets_desc() {
-            let mut most: Option<f32> = None;
-            for &(e, prio) in &self.lists[b] {
-                if most.is_none_or(|m| prio > m) && live(Stamped::unpack(e)) {
-                    most = Some(prio);
-                }
+    /// The highest non-empty bucket below `bucket`.
+    pub fn below(&self, bucket: usize) -> Option<usize> {
+        let mut w = bucket >> 6;
+        // Bits below `bucket` in its word, then whole words below.
+        let mut bits = self.nonempty[w] & ((1u64 << (bucket & 63)) - 1);
+        loop {
+            if bits != 0 {
+                return Some(w * 64 + 63 - bits.leading_zeros() as usize);
             }
-            if let Some(v) = most {
-                best = best.max(v);
-                if b != top {
-                    break;
-                }
+            if w == 0 {
+                return None;
             }
+            w -= 1;
+            bits = self.nonempty[w];
         }
-        best
     }
 
-    /// Every entry with its bucket, stale ones included (for the audit).
-    pub fn entries(&self) -> impl Iterator<Item = (usize, Stamped)> + '_ {
-        self.buckets_desc().flat_map(move |b| {
-            self.lists[b]
-                .iter()
-                .map(move |&(e, _)| (b, Stamped::unpack(e)))
+    /// The highest priority in `bucket` (non-empty), walking it when not known; needs a
+    /// queue that keeps it.
+    pub fn most(&mut self, nodes: &impl Nodes, bucket: usize) -> f32 {
+        let known = self.most[bucket];
+        if !known.is_nan() {
+            return known;
+        }
+        let most = self
+            .members(nodes, bucket)
+            .map(|i| nodes.prio(i))
+            .fold(0f32, f32::max);
+        self.most[bucket] = most;
+        most
+    }
+
+    /// The members of `bucket`, first to last.
+    pub fn members<'a>(
+        &self,
+        nodes: &'a impl Nodes,
+        bucket: usize,
+    ) -> impl Iterator<Item = u32> + 'a {
+        let head = self.heads[bucket];
+        let mut at = head;
+        std::iter::from_fn(move || {
+            if at == NIL {
+                return None;
+            }
+            let i = at;
+            at = nodes.link(i, 0).next;
+            if at == head {
+                at = NIL;
+            }
+            Some(i)
         })
     }
 
-    pub fn heap_bytes(&self) -> usize {
-        self.lists.capacity() * std::mem::size_of::<std::collections::VecDeque<(u64, f32)>>()
-            + self.lists.iter().map(|l| l.capacity() * 16).sum::<usize>()
+    /// The members of each non-empty bucket, checked (for the audit).
+    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<(usize, Vec<u32>)>, String> {
+        let mut out = Vec::new();
+        for b in 0..BUCKETS {
+            let list = walk(nodes, 0, self.heads[b])?;
+            let marked = self.nonempty[b >> 6] >> (b & 63) & 1 != 0;
+            if marked == list.is_empty() {
+                return Err(format!(
+                    "queue bucket {b} marked {marked}, {} long",
+                    list.len()
+                ));
+            }
+            let most = list.iter().map(|&i| nodes.prio(i)).fold(0f32, f32::max);
+            if let Some(&known) = self.most.get(b)
+                && !list.is_empty()
+                && !known.is_nan()
+                && known != most
+            {
+                return Err(format!(
+                    "queue bucket {b}'s highest is {most}, kept as {known}"
+                ));
+            }
+            if !list.is_empty() {
+                out.push((b, list));
+            }
+        }
+        Ok(out)
     }
 
-    /// Frees what the buckets reserved beyond what they hold.
-    pub fn shrink(&mut self) {
-        for l in &mut self.lists {
-            l.shrink_to_fit();
-        }
+    pub fn heap_bytes(&self) -> usize {
+        (self.heads.capacity() + self.most.capacity()) * 4
     }
 }
 
-/// When kept evaluations fall due: `(odometer reading, diamond)` pairs in a radix heap
-/// (Ahuja et al. 1990) over the readings' bits, stale entries dropped when popped.
+/// Bits of a schedule key's digit: a member moves down at most once per digit (8).
+const DIGIT: u32 = 4;
+const RADIX: usize = 1 << DIGIT;
+
+/// Buckets of a schedule: keys equal to the last taken, then per digit (the highest that
+/// differs from the last key taken) one per value it may take above the last key's.
+const SLOTS: usize = 1 + (32 / DIGIT as usize) * (RADIX - 1);
+
+/// When kept evaluations fall due: members by odometer key (a reading in fixed point,
+/// rounded down: see [`super::Odometer`]) in a radix heap (Ahuja et al. 1990) over the
+/// keys' digits of 4 bits, each bucket a list threaded through the members.
 ///
-/// Readings only grow, and every reading pushed is at least the odometer now, so a
-/// monotone queue fits: an entry sits in the bucket of the highest bit in which its
-/// reading differs from `last` (the newest reading taken), and is moved to a lower
-/// bucket only when `last` catches up with its bucket; each bucket keeps its smallest
-/// reading, so "anything due?" reads one word. Buckets are plain vectors walked in order,
-/// so a frame touches a few cache lines: a binary heap of the same entries walked 16
-/// levels of scattered memory per pop, 1–2 µs each with the caches cold (as they are
-/// when a server serves many viewers in turn).
+/// Keys only grow, and every key pushed is at least the odometer's now, so a monotone
+/// queue fits: a member sits in the bucket of the highest digit in which its key differs
+/// from `last` (the newest key taken) and that digit's value, and is moved to a lower
+/// bucket only when `last` catches up with its bucket; each bucket keeps a lower bound of
+/// its keys (exact when it was filled; a removal may leave it low, which only makes the
+/// bucket's members move down a frame early), so "anything due?" reads one word. (A binary
+/// heap of the same entries walked 16 levels of scattered memory per pop, 1–2 µs each with
+/// the caches cold, as they are when a server serves many viewers in turn.) A move is a
+/// relink of scattered records, no longer a push onto a vector: with a bucket per
+/// differing bit (33), a member moved 2.6 times per push along the bench's drive at 32,768
+/// triangles (1.64 million moves) and the serving frames took 906 million instructions
+/// (callgrind); with digits of 4 bits (121 buckets) 1.4 times (0.89 million) and 822
+/// million. (The entries pushed per evaluation took 484 million: the lists cost
+/// instructions in the frames that change much, 100–240 changes, 6,000–15,000 moves;
+/// a frame of a few changes moves 0–15 members and got faster.)
 pub(super) struct Schedule {
-    /// Bucket `i` holds readings whose highest bit differing from `last` is `i - 1`
-    /// (bucket 0: equal to `last`); as `(reading bits, entry)`.
-    buckets: Vec<Vec<(u64, u64)>>,
-    /// Each bucket's smallest reading (bits).
-    least: [u64; 65],
+    /// The odometer: the member's key `k`, its list `1 + k`.
+    k: usize,
+    heads: [u32; SLOTS],
+    least: [u32; SLOTS],
     /// Buckets not empty, a bit each.
     nonempty: u128,
-    last: u64,
+    last: u32,
     len: usize,
 }
 
-/// Entries a schedule's emptied bucket keeps room for.
-const KEEP_CAPACITY: usize = 256;
-
-impl Default for Schedule {
-    fn default() -> Self {
+impl Schedule {
+    pub fn new(k: usize) -> Schedule {
         Schedule {
-            buckets: vec![Vec::new(); 65],
-            least: [u64::MAX; 65],
+            k,
+            heads: [NIL; SLOTS],
+            least: [u32::MAX; SLOTS],
             nonempty: 0,
             last: 0,
             len: 0,
         }
     }
-}
 
-impl Schedule {
     pub fn len(&self) -> usize {
         self.len
     }
 
-    /// Empties the schedule (and forgets the readings taken: any may be pushed next).
+    /// Empties the schedule (and forgets the keys taken: any may be pushed next).
     pub fn clear(&mut self) {
-        for b in &mut self.buckets {
-            b.clear();
+        *self = Schedule::new(self.k);
+    }
+
+    #[inline]
+    fn bucket(&self, key: u32) -> usize {
+        let x = key ^ self.last;
+        if x == 0 {
+            return 0;
         }
-        self.least = [u64::MAX; 65];
-        self.nonempty = 0;
-        self.last = 0;
-        self.len = 0;
+        let j = (31 - x.leading_zeros()) / DIGIT;
+        // Above the last key's digit there, so at least 1.
+        let v = (key >> (j * DIGIT)) as usize & (RADIX - 1);
+        j as usize * (RADIX - 1) + v
     }
 
     #[inline]
-    fn bucket(&self, at: u64) -> usize {
-        (64 - (at ^ self.last).leading_zeros()) as usize
-    }
-
-    #[inline]
-    fn put(&mut self, at: u64, e: u64) {
-        let b = self.bucket(at);
-        self.buckets[b].push((at, e));
-        self.least[b] = self.least[b].min(at);
+    fn put(&mut self, nodes: &mut impl Nodes, i: u32) {
+        let key = nodes.key(i, self.k);
+        let b = self.bucket(key);
+        push_back(nodes, 1 + self.k, &mut self.heads[b], i);
+        self.least[b] = self.least[b].min(key);
         self.nonempty |= 1 << b;
     }
 
-    /// Schedules `e` at odometer reading `at` (an infinite one is never due and is not
-    /// scheduled; one below a reading already taken counts as that one).
+    /// Schedules member `i` (not scheduled) at `key` (one below a key already taken counts
+    /// as that one).
     #[inline]
-    pub fn push(&mut self, at: f64, e: Stamped) {
-        if at.is_finite() {
-            // Non-negative floats order as their bits.
-            let at = at.max(0.0).to_bits().max(self.last);
-            self.put(at, e.pack());
-            self.len += 1;
-        }
+    pub fn push(&mut self, nodes: &mut impl Nodes, i: u32, key: u32) {
+        nodes.set_key(i, self.k, key.max(self.last));
+        self.put(nodes, i);
+        self.len += 1;
     }
 
-    /// The next entry due at odometer reading `now`, if any, with its reading.
+    /// Takes member `i`, scheduled, out.
     #[inline]
-    pub fn pop_due(&mut self, now: f64) -> Option<(f64, Stamped)> {
-        let now = now.max(0.0).to_bits();
+    pub fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
+        let b = self.bucket(nodes.key(i, self.k));
+        if unlink(nodes, 1 + self.k, &mut self.heads[b], i) {
+            self.nonempty &= !(1 << b);
+            self.least[b] = u32::MAX;
+        }
+        self.len -= 1;
+    }
+
+    /// Member `from`, scheduled, now lives at `to`.
+    pub fn relocate(&mut self, nodes: &mut impl Nodes, from: u32, to: u32) {
+        let b = self.bucket(nodes.key(to, self.k));
+        relocate(nodes, 1 + self.k, &mut self.heads[b], from, to);
+    }
+
+    /// The next member due at odometer key `now`, if any (taken out).
+    #[inline]
+    pub fn pop_due(&mut self, nodes: &mut impl Nodes, now: u32) -> Option<u32> {
         loop {
             if self.nonempty == 0 {
+                self.last = self.last.max(now);
                 return None;
             }
             let b = self.nonempty.trailing_zeros() as usize;
             if self.least[b] > now {
+                if self.bucket(now) < b {
+                    self.last = now;
+                }
                 return None;
             }
             if b == 0 {
-                let (at, e) = self.buckets[0].pop().expect("a bucket marked non-empty");
-                if self.buckets[0].is_empty() {
-                    self.nonempty &= !1;
-                    self.least[0] = u64::MAX;
-                }
-                self.len -= 1;
-                return Some((f64::from_bits(at), Stamped::unpack(e)));
+                let i = self.heads[0];
+                self.remove(nodes, i);
+                return Some(i);
             }
-            // The smallest reading is due: take it as `last`, and move its bucket's
-            // entries down (each to a lower bucket: they share more bits with it).
+            // The bucket's lower bound is due: take it as `last`, and move the bucket's
+            // members down (each to a lower bucket: they share more bits with it).
             self.last = self.least[b];
-            let moved = std::mem::take(&mut self.buckets[b]);
-            self.least[b] = u64::MAX;
+            let head = std::mem::replace(&mut self.heads[b], NIL);
+            self.least[b] = u32::MAX;
             self.nonempty &= !(1 << b);
-            for &(at, e) in &moved {
-                self.put(at, e);
-            }
-            // A small bucket keeps its memory for later; a large one gives it back (its
-            // entries went to lower buckets: kept, every bucket's peak would stay held).
-            if moved.capacity() <= KEEP_CAPACITY {
-                let mut moved = moved;
-                moved.clear();
-                self.buckets[b] = moved;
+            let mut i = head;
+            loop {
+                let next = nodes.link(i, 1 + self.k).next;
+                self.put(nodes, i);
+                if next == head {
+                    break;
+                }
+                i = next;
             }
         }
     }
 
-    /// Every entry with its reading, stale ones included (for the audit).
-    pub fn entries(&self) -> impl Iterator<Item = (f64, Stamped)> + '_ {
-        self.buckets
-            .iter()
-            .flatten()
-            .map(|&(at, e)| (f64::from_bits(at), Stamped::unpack(e)))
-    }
-
-    pub fn heap_bytes(&self) -> usize {
-        self.buckets
-            .iter()
-            .map(|b| b.capacity() * 16)
-            .sum::<usize>()
-            + 65 * 24
-    }
-
-    pub fn shrink(&mut self) {
-        for b in &mut self.buckets {
-            b.shrink_to_fit();
+    /// Every member scheduled, with its bucket, checked: each in the bucket its key says,
+    /// at or above the bucket's bound (for the audit).
+    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<u32>, String> {
+        let mut out = Vec::new();
+        for b in 0..SLOTS {
+            let list = walk(nodes, 1 + self.k, self.heads[b])?;
+            if (self.nonempty >> b & 1 != 0) == list.is_empty() {
+                return Err(format!("schedule bucket {b} marked wrong"));
+            }
+            for &i in &list {
+                let key = nodes.key(i, self.k);
+                if self.bucket(key) != b || key < self.least[b] {
+                    return Err(format!(
+                        "key {key} in schedule bucket {b} (bound {}, last {})",
+                        self.least[b], self.last
+                    ));
+                }
+            }
+            out.extend(list);
         }
+        if out.len() != self.len {
+            return Err(format!("{} scheduled, {} counted", out.len(), self.len));
+        }
+        Ok(out)
     }
 }
 
@@ -325,72 +561,137 @@ impl Schedule {
 mod tests {
     use super::*;
 
-    fn s(pos: u32, stamp: u32) -> Stamped {
-        Stamped { pos, stamp }
+    #[derive(Clone, Copy)]
+    struct N {
+        links: [Link; 3],
+        keys: [u32; 2],
+    }
+
+    impl Nodes for Vec<N> {
+        fn len(&self) -> usize {
+            self.as_slice().len()
+        }
+        fn link(&self, i: u32, w: usize) -> Link {
+            self[i as usize].links[w]
+        }
+        fn set_link(&mut self, i: u32, w: usize, l: Link) {
+            self[i as usize].links[w] = l;
+        }
+        fn key(&self, i: u32, k: usize) -> u32 {
+            self[i as usize].keys[k]
+        }
+        fn set_key(&mut self, i: u32, k: usize, key: u32) {
+            self[i as usize].keys[k] = key;
+        }
+        fn prio(&self, i: u32) -> f32 {
+            self[i as usize].keys[0] as f32
+        }
+    }
+
+    fn nodes(n: usize) -> Vec<N> {
+        vec![
+            N {
+                links: [Link::OUT; 3],
+                keys: [0; 2],
+            };
+            n
+        ]
     }
 
     #[test]
     fn pops_highest_bucket_first_oldest_within() {
-        let mut q = Buckets::default();
-        for (b, e) in [(5, 1), (700, 2), (5, 3), (BUCKETS - 1, 4), (700, 5), (0, 6)] {
-            q.push(b, s(e, e), 0.0);
+        let mut nodes = nodes(8);
+        let mut q = Queue::new(false);
+        for (b, i) in [(5, 1), (700, 2), (5, 3), (BUCKETS - 1, 4), (700, 5), (0, 6)] {
+            q.push(&mut nodes, b, i);
         }
         assert_eq!(q.len(), 6);
-        assert_eq!(q.peek(), Some((BUCKETS - 1, s(4, 4))));
-        let order: Vec<u32> = std::iter::from_fn(|| q.pop()).map(|(_, e)| e.pos).collect();
-        assert_eq!(order, [4, 2, 5, 1, 3, 6]);
+        assert_eq!(q.peek(), Some((BUCKETS - 1, 4)));
+        assert_eq!(q.members(&nodes, 700).collect::<Vec<_>>(), [2, 5]);
+        // A member taken out of the middle, and one moved in the list.
+        q.remove(&mut nodes, 5, 1);
+        nodes[7] = nodes[3];
+        q.relocate(&mut nodes, 5, 3, 7);
+        q.push(&mut nodes, 5, 1);
+        let order: Vec<u32> = std::iter::from_fn(|| q.pop(&mut nodes))
+            .map(|(_, i)| i)
+            .collect();
+        assert_eq!(order, [4, 2, 5, 7, 1, 6]);
         assert_eq!((q.top_bucket(), q.len()), (None, 0));
-        q.push(9, s(7, 0), 0.0);
+        assert!(q.lists(&nodes).is_ok_and(|l| l.is_empty()));
+        q.push(&mut nodes, 9, 0);
         q.clear();
-        assert_eq!(q.pop(), None);
+        assert_eq!(q.pop(&mut nodes), None);
     }
 
+    /// Each bucket's highest priority, kept through pushes and removals, and the buckets
+    /// below one.
     #[test]
-    fn max_live_skips_stale_entries_and_reads_top_whole() {
-        let mut q = Buckets::default();
-        let top = BUCKETS - 1;
-        q.push(top, s(1, 0), 1.0);
-        q.push(top, s(2, 0), 2.0);
-        q.push(100, s(3, 1), 3.0); // stale
-        q.push(90, s(4, 0), 4.0);
-        q.push(90, s(9, 1), 9.0); // stale
-        q.push(90, s(5, 0), 5.0);
-        q.push(80, s(8, 0), 8.0); // below the highest live bucket
-        let live = |e: Stamped| e.stamp == 0;
-        assert_eq!(q.max_live(top, live), 5.0);
-        assert_eq!(Buckets::default().max_live(top, live), 0.0);
+    fn keeps_each_buckets_highest() {
+        let mut nodes = nodes(8);
+        for (i, n) in nodes.iter_mut().enumerate() {
+            n.keys[0] = 10 * i as u32;
+        }
+        let mut q = Queue::new(true);
+        for i in [2, 5, 3] {
+            q.push(&mut nodes, 40, i);
+        }
+        q.push(&mut nodes, 100, 1);
+        q.push(&mut nodes, 900, 7);
+        assert_eq!(q.most(&nodes, 40), 50.0);
+        q.remove(&mut nodes, 40, 2);
+        assert_eq!(q.most(&nodes, 40), 50.0, "a lower one left");
+        q.remove(&mut nodes, 40, 5);
+        assert_eq!(q.most(&nodes, 40), 30.0, "the highest left: walked again");
+        q.push(&mut nodes, 40, 6);
+        assert_eq!(q.most(&nodes, 40), 60.0);
+        assert!(q.lists(&nodes).is_ok());
+        assert_eq!(
+            (
+                q.below(900),
+                q.below(100),
+                q.below(40),
+                q.below(BUCKETS - 1)
+            ),
+            (Some(100), Some(40), None, Some(900))
+        );
     }
 
     #[test]
     fn schedule_pops_what_is_due_in_order() {
-        let mut d = Schedule::default();
-        d.push(3.0, s(3, 0));
-        d.push(1.0, s(1, 0));
-        d.push(f64::INFINITY, s(9, 0));
-        d.push(2.0, s(2, 0));
-        assert_eq!(d.len(), 3, "an infinite reading is never due");
-        assert_eq!(d.pop_due(0.5), None);
-        let due: Vec<u32> = std::iter::from_fn(|| d.pop_due(2.0))
-            .map(|(_, e)| e.pos)
-            .collect();
+        let mut nodes = nodes(8);
+        let mut d = Schedule::new(1);
+        d.push(&mut nodes, 3, 3000);
+        d.push(&mut nodes, 1, 1000);
+        d.push(&mut nodes, 2, 2000);
+        assert_eq!(d.pop_due(&mut nodes, 500), None);
+        let due: Vec<u32> = std::iter::from_fn(|| d.pop_due(&mut nodes, 2000)).collect();
         assert_eq!(due, [1, 2]);
-        // Pushed after readings were taken: at least the last one.
-        d.push(2.5, s(4, 0));
-        d.push(0.0, s(5, 0));
-        assert_eq!(d.pop_due(2.0), Some((2.0, s(5, 0))));
-        assert_eq!(d.pop_due(2.9), Some((2.5, s(4, 0))));
-        assert_eq!(d.pop_due(10.0), Some((3.0, s(3, 0))));
-        assert_eq!((d.pop_due(10.0), d.len()), (None, 0));
-        d.clear();
-        assert_eq!(d.len(), 0);
+        // Pushed after keys were taken: at least the last one.
+        d.push(&mut nodes, 4, 2500);
+        d.push(&mut nodes, 5, 0);
+        assert_eq!(nodes[5].keys[1], 2000);
+        assert_eq!(d.pop_due(&mut nodes, 2000), Some(5));
+        // One moved in the list, one taken out before it was due.
+        nodes[6] = nodes[4];
+        d.relocate(&mut nodes, 4, 6);
+        d.push(&mut nodes, 7, 2600);
+        d.remove(&mut nodes, 7);
+        let mut listed = d.lists(&nodes).expect("well formed");
+        listed.sort_unstable();
+        assert_eq!(listed, [3, 6]);
+        assert_eq!(d.pop_due(&mut nodes, 2900), Some(6));
+        assert_eq!(d.pop_due(&mut nodes, 10_000), Some(3));
+        assert_eq!((d.pop_due(&mut nodes, u32::MAX), d.len()), (None, 0));
     }
 
-    /// Many readings, pushed as an odometer grows and popped as it passes them, come out
-    /// exactly when due, against a sorted reference.
+    /// Many keys, pushed as an odometer grows, some taken out again, popped as it passes
+    /// them, come out exactly when due, against a sorted reference.
     #[test]
     fn schedule_matches_a_reference() {
-        let mut d = Schedule::default();
-        let mut reference: Vec<(f64, u32)> = Vec::new();
+        let mut nodes = nodes(8000);
+        let mut d = Schedule::new(0);
+        let mut reference: Vec<(u32, u32)> = Vec::new();
         let mut seed = 99u64;
         let mut rand = || {
             seed = seed
@@ -398,24 +699,33 @@ mod tests {
                 .wrapping_add(1442695040888963407);
             (seed >> 11) as f64 / (1u64 << 53) as f64
         };
-        let mut now = 0.0;
+        let mut now = 0u32;
         for step in 0..2000u32 {
-            now += rand() * 3.0;
+            now += (rand() * 3000.0) as u32;
             for k in 0..3 {
-                let at = now + rand().powi(3) * 500.0;
-                d.push(at, s(step * 4 + k, 0));
-                reference.push((at, step * 4 + k));
+                let key = now + (rand().powi(3) * 500_000.0) as u32;
+                d.push(&mut nodes, step * 4 + k, key);
+                reference.push((key, step * 4 + k));
             }
-            let mut got: Vec<(f64, u32)> = std::iter::from_fn(|| d.pop_due(now))
-                .map(|(at, e)| (at, e.pos))
+            if step % 7 == 0
+                && let Some(&(_, i)) = reference.get(reference.len() / 2)
+            {
+                d.remove(&mut nodes, i);
+                reference.retain(|&(_, j)| j != i);
+            }
+            let popped: Vec<u32> = std::iter::from_fn(|| d.pop_due(&mut nodes, now)).collect();
+            let mut got: Vec<(u32, u32)> = popped
+                .into_iter()
+                .map(|i| (nodes[i as usize].keys[0], i))
                 .collect();
             let (mut want, rest): (Vec<_>, Vec<_>) =
-                reference.iter().partition(|&&(at, _)| at <= now);
+                reference.iter().partition(|&&(key, _)| key <= now);
             reference = rest;
-            got.sort_by(|a, b| a.partial_cmp(b).expect("finite readings"));
-            want.sort_by(|a, b| a.partial_cmp(b).expect("finite readings"));
+            got.sort_unstable();
+            want.sort_unstable();
             assert_eq!(got, want, "step {step}");
             assert_eq!(d.len(), reference.len());
+            assert!(d.lists(&nodes).is_ok_and(|l| l.len() == reference.len()));
         }
     }
 }

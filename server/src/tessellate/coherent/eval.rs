@@ -1,8 +1,9 @@
 //! Priorities of frontier diamonds of any shapes and sizes, four at a time, with the same
 //! arithmetic as the from-scratch tessellator ([`crate::tessellate::evaluate::priority`]).
-//! What does not depend on the camera (centre, error, height bounds, size) is computed once
-//! when a diamond joins a frontier and kept beside it ([`Fixed`]), so a frame's evaluation
-//! reads one small record per diamond and gathers nothing from the map.
+//! What does not depend on the camera (centre, error, height bounds, size: [`Fixed`]) is
+//! gathered from the map at each evaluation ([`fixed`]): kept beside each frontier
+//! diamond it cost 28 bytes a diamond (1.1 MB at 65,536 triangles), for 10 to 14
+//! gathers a frame (see [`super::frontier`]).
 
 use super::super::evaluate::{Batch, Shape4, priority};
 use super::super::lanes::F4;
@@ -28,6 +29,13 @@ pub(super) struct Fixed {
     kind: u16,
 }
 
+impl Fixed {
+    /// Without error: its priority is 0 wherever the eye is, never due again.
+    pub fn exact(&self) -> bool {
+        self.e <= 0.0 || self.e.is_nan()
+    }
+}
+
 /// What a diamond's evaluation says, per lane.
 pub(super) struct Lanes {
     pub prio: [f32; 4],
@@ -46,48 +54,11 @@ pub(super) struct Lanes {
 /// (the split/merge choices and the error bound are that close to exact).
 pub(super) const PRIORITY_TOLERANCE: f32 = 0.02;
 
-/// A frontier diamond's kept evaluation: its fixed part, the priority and verdicts last
-/// computed, and the odometer readings at which they must be computed again.
-#[derive(Clone, Copy, Debug)]
-pub(super) struct Entry {
-    pub fixed: Fixed,
-    pub prio: f32,
-    /// Bit 0 wanted, 1 under the eye, 2 dropped (as in [`Lanes`]); bit 3 is the
-    /// frame's own mark (taken for evaluation).
-    pub flags: u8,
-    /// Names this evaluation in the queue and schedules (older entries are stale).
-    pub stamp: u32,
-    /// Due when the eye's travel reaches `due_moved` or its turning `due_turned`.
-    pub due_moved: f64,
-    pub due_turned: f64,
-}
-
-impl Entry {
-    /// A diamond that joins a frontier: evaluated at the next frame.
-    pub fn fresh(fixed: Fixed) -> Entry {
-        Entry {
-            fixed,
-            prio: 0.0,
-            flags: 0,
-            stamp: 0,
-            due_moved: f64::NEG_INFINITY,
-            due_turned: f64::NEG_INFINITY,
-        }
-    }
-
-    /// Keeps lane `i` of an evaluation made at these odometer readings.
-    pub fn keep(&mut self, l: &Lanes, i: usize, moved: f64, turned: f64) {
-        self.prio = l.prio[i];
-        self.flags = lane_flags(l, i);
-        let (m, t) = l.slack[i];
-        self.due_moved = moved + f64::from(m);
-        self.due_turned = turned + f64::from(t);
-    }
-}
-
-/// Lane `i`'s verdicts as [`Entry`] flags.
-fn lane_flags(l: &Lanes, i: usize) -> u8 {
-    (l.wanted >> i & 1) as u8 | ((l.under >> i & 1) as u8) << 1 | ((l.dropped >> i & 1) as u8) << 2
+/// Lane `i`'s verdicts as [`super::frontier::Member`] flags.
+pub(super) fn lane_flags(l: &Lanes, i: usize) -> u8 {
+    use super::frontier::{DROPPED, UNDER, WANTED};
+    let bit = |mask: u32, flag: u8| if mask >> i & 1 != 0 { flag } else { 0 };
+    bit(l.wanted, WANTED) | bit(l.under, UNDER) | bit(l.dropped, DROPPED)
 }
 
 impl Coherent {

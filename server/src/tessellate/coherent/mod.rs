@@ -2,12 +2,12 @@
 //! (Duchaineau et al. 1997, §5–7), so the work per frame follows what changed.
 //!
 //! The cut is a set of split diamonds ([`PosSet`], sized by the cut: no per-viewer state
-//! is sized by the map). Two frontiers are kept incrementally as [`PosSet`]s: **split
+//! is sized by the map). Two frontiers are kept incrementally ([`Frontier`]): **split
 //! candidates** (unsplit diamonds with at least one split parent: what from-scratch
 //! split-only would have queued) and **merge candidates** (split diamonds none of whose
-//! children are split). Each frontier diamond keeps its last evaluation ([`Entry`]) and
-//! sits in a priority-bucket queue by it, kept from frame to frame ([`buckets`]). Each
-//! frame:
+//! children are split). Each frontier diamond keeps its last evaluation in its record
+//! ([`frontier::Member`]) and sits in a priority-bucket queue by it, kept from frame to
+//! frame ([`buckets`]). Each frame:
 //!
 //! 1. The frontier diamonds whose kept evaluation is due are evaluated again, with the
 //!    very function the from-scratch tessellator uses ([`super::evaluate::priority`]),
@@ -46,19 +46,42 @@
 //! the first stopped.
 //!
 //! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates 10 to 14 of
-//! some 26,000 frontier diamonds; nothing else in a frame walks the frontiers, so a frame
+//! some 22,000 frontier diamonds; nothing else in a frame walks the frontiers, so a frame
 //! costs what it evaluates and changes. (Queuing every frontier diamond each frame, as
 //! this did before, cost 150–200 µs a frame whatever changed.)
+//!
+//! **Memory** (issue 22: a viewer within 4 MB, aim 2, everything counted, at 65,536
+//! triangles). `heap_bytes` counts what is reserved (capacities), and the bench reports
+//! it at the drive's end and its peak after any frame (`serve_viewer_heap_bytes_peak`).
+//! On `kossou` at 65,536 triangles (32,913 split diamonds, 30,781 split and 8,496 merge
+//! candidates at the drive's end):
+//!
+//! | | before | now |
+//! |---|---|---|
+//! | split set | 1.31 MB (list + `(position, index)` table ≤ ½ full) | 0.20 MB (a table of positions, 40–80 % full) |
+//! | split candidates | 5.51 MB (64-byte entries, `Vec` reserve, table) | 1.34 MB (36-byte records in chunks + index) |
+//! | split queue, schedules | 4.27 MB (63,687 + 108,874 entries, half stale) | 16 KB (bucket heads; links in the records) |
+//! | merge side | 2.97 MB | 0.39 MB |
+//! | scratch | 0.39 MB (rebuild lists kept) | 37 KB |
+//! | total (peak) | 14.46 MB | 1.99 MB (2.21 MB) |
+//!
+//! At 32,768: 7.11 MB, now 1.11 MB (peak 1.25 MB). The decisions, each measured in its
+//! file: lists threaded through the records, not entries pushed per evaluation and
+//! compacted ([`buckets`]); the camera-independent part of an evaluation gathered again
+//! rather than kept, links of 24 bits, records in chunks ([`frontier`],
+//! [`super::frontier`]); odometer keys in fixed point ([`Odometer`]). The median frame
+//! got faster, the heaviest slower ([`buckets`]: `serve_frame_us_median` at 32,768, six
+//! runs of each in turn on a busy machine, 17–41 µs before, 13–21 µs after).
 
 mod audit;
 mod buckets;
 mod eval;
+mod frontier;
 mod ops;
 
 pub use audit::measured_error;
 
-use self::buckets::{Buckets, Schedule};
-use self::eval::Entry;
+use self::frontier::{DROPPED, Frontier};
 use super::frontier::PosSet;
 use super::{Frame, Limits, Mesh, Scales, Scratch, pack, unpack};
 use crate::terrain::heightfield::Heightfield;
@@ -93,7 +116,7 @@ pub struct CoherentStats {
     /// Diamonds split and merged (forced splits included).
     pub splits: u32,
     pub merges: u32,
-    /// Entries taken from the two frontiers' schedules (stale ones included).
+    /// Members taken from the two frontiers' schedules, due.
     pub popped: u32,
 }
 
@@ -114,60 +137,80 @@ enum Left {
     Rebuild,
 }
 
-/// One frontier: its diamonds with their kept evaluations, the queue they sit in, and
-/// when each evaluation falls due (by the eye's travel and by its turning).
-#[derive(Default)]
-struct Frontier {
-    cands: PosSet<Entry>,
-    queue: Buckets,
-    due_moved: Schedule,
-    due_turned: Schedule,
+/// An odometer (how far the eye has travelled, world units, or turned, radians, summed
+/// over the frames), and the keys its schedules are kept in: readings in fixed point
+/// (`SCALE` steps a unit) from a base, rounded down, so a member is evaluated no later
+/// than its reading (at most one step early). Before the keys of the reading now pass
+/// 2^31, the base moves up to it and every key shifts down (a few times a day of driving
+/// or turning, if ever: 2^31 steps are 524 km, or 2,048 radians).
+#[derive(Clone, Copy)]
+struct Odometer {
+    reading: f64,
+    base: f64,
+    scale: f64,
 }
 
-impl Frontier {
-    fn clear(&mut self) {
-        self.cands.clear();
-        self.queue.clear();
-        self.due_moved.clear();
-        self.due_turned.clear();
+impl Odometer {
+    fn new(scale: f64) -> Odometer {
+        Odometer {
+            reading: 0.0,
+            base: 0.0,
+            scale,
+        }
     }
 
-    fn heap_bytes(&self) -> usize {
-        self.cands.heap_bytes()
-            + self.queue.heap_bytes()
-            + self.due_moved.heap_bytes()
-            + self.due_turned.heap_bytes()
+    /// The key of reading `at` (saturating: a key too large is due early, never late).
+    #[inline]
+    fn key_of(&self, at: f64) -> u32 {
+        ((at - self.base) * self.scale).floor() as u32
     }
 
-    /// Whether `e` is the newest evaluation of a member.
-    fn live(&self, e: buckets::Stamped) -> Option<&Entry> {
-        self.cands.get(e.pos).filter(|c| c.stamp == e.stamp)
+    /// The key of the reading now.
+    fn now(&self) -> u32 {
+        self.key_of(self.reading)
+    }
+
+    /// The key at which an evaluation with this `slack` falls due (`None`: never).
+    #[inline]
+    fn key(&self, slack: f32) -> Option<u32> {
+        slack
+            .is_finite()
+            .then(|| self.key_of(self.reading + f64::from(slack)))
+    }
+
+    /// Moves the base to the reading now once its key passes 2^31: the shift of the keys.
+    fn rebase(&mut self) -> Option<u32> {
+        let shift = self.now();
+        (shift >= 1 << 31).then(|| {
+            self.base += f64::from(shift) / self.scale;
+            shift
+        })
     }
 }
+
+/// Steps per world unit of the travel odometer, per radian of the turn odometer.
+const TRAVEL_SCALE: f64 = 4096.0;
+const TURN_SCALE: f64 = 1048576.0;
 
 /// One viewer's cut, carried from frame to frame.
 pub struct Coherent {
     size: u32,
     /// The split diamonds (packed positions).
-    split: PosSet<()>,
+    split: PosSet,
     splits: Frontier,
     merges: Frontier,
     /// Scratch for forced splits: the unsplit parents a split needs, parents first.
     chain: Vec<u32>,
-    /// The stamp of the newest evaluation queued.
-    stamp: u32,
-    /// How far the eye has travelled (world units) and turned (radians), summed over the
-    /// frames: the odometers a kept evaluation is due against.
-    moved: f64,
-    turned: f64,
+    /// Scratch: the members due this frame.
+    due: Vec<u32>,
+    /// How far the eye has travelled and turned: the odometers a kept evaluation is due
+    /// against.
+    odometers: [Odometer; 2],
     /// How far the eye has lately travelled and turned a frame (a moving average): how an
     /// evaluation shares its margin between the two ([`eval`]).
     pace: (f32, f32),
     /// This frame's changes (packed positions), in order.
     log: Vec<u32>,
-    /// Scratch for rebuilds: the old and new split sets, row-major.
-    old: Vec<u32>,
-    new: Vec<u32>,
     triangles: u32,
     split_count: u32,
     error_bound_px: f32,
@@ -177,6 +220,9 @@ pub struct Coherent {
     mode: Mode,
     stats: CoherentStats,
 }
+
+/// A frame's log keeps at most this much reserved into the next frame.
+const LOG_KEPT: usize = 1024;
 
 /// Rebuild rather than update past these camera changes.
 const JUMP_DEGREES: f64 = 30.0;
@@ -189,16 +235,13 @@ impl Coherent {
         Coherent {
             size: side - 1,
             split: PosSet::default(),
-            splits: Frontier::default(),
-            merges: Frontier::default(),
+            splits: Frontier::new(false),
+            merges: Frontier::new(true),
             chain: Vec::new(),
-            stamp: 0,
-            moved: 0.0,
-            turned: 0.0,
+            due: Vec::new(),
+            odometers: [Odometer::new(TRAVEL_SCALE), Odometer::new(TURN_SCALE)],
             pace: (0.0, 0.0),
             log: Vec::new(),
-            old: Vec::new(),
-            new: Vec::new(),
             triangles: 2,
             split_count: 0,
             error_bound_px: 0.0,
@@ -246,7 +289,7 @@ impl Coherent {
 
     /// The split diamonds, row-major (sorted: for key frames and tests, not per frame).
     pub fn split_diamonds(&self) -> impl Iterator<Item = (u32, u32)> + use<> {
-        let mut list = self.split.as_slice().to_vec();
+        let mut list: Vec<u32> = self.split.iter().collect();
         list.sort_unstable();
         list.into_iter().map(unpack)
     }
@@ -259,7 +302,7 @@ impl Coherent {
         f: impl FnOnce(&roam_protocol::BitSet) -> R,
     ) -> R {
         scratch.with(|t| {
-            t.load_cut(self.split.as_slice(), self.triangles);
+            t.load_cut(self.split.iter(), self.triangles);
             t.with_split_set(f)
         })
     }
@@ -268,29 +311,28 @@ impl Coherent {
     /// tessellator borrowed from `scratch`.
     pub fn mesh(&self, scratch: &Scratch, out: &mut Mesh) {
         scratch.with(|t| {
-            t.load_cut(self.split.as_slice(), self.triangles);
+            t.load_cut(self.split.iter(), self.triangles);
             t.emit(out);
         });
         out.error_bound_px = self.error_bound_px;
     }
 
-    /// Bytes of per-viewer state currently reserved.
+    /// Bytes of per-viewer state currently reserved (capacities, not lengths).
     pub fn heap_bytes(&self) -> usize {
-        self.split.heap_bytes()
-            + self.splits.heap_bytes()
-            + self.merges.heap_bytes()
-            + (self.chain.capacity() + self.log.capacity()) * 4
-            + (self.old.capacity() + self.new.capacity()) * 4
+        self.heap_parts().iter().map(|&(_, bytes, _)| bytes).sum()
     }
 
     /// Where the per-viewer bytes go: `(part, bytes reserved, entries)`.
     pub fn heap_parts(&self) -> Vec<(&'static str, usize, usize)> {
         let f = |name, f: &Frontier| {
+            let (queued, moved, turned) = f.counts();
             [
-                (name, f.cands.heap_bytes(), f.cands.len()),
-                ("queue", f.queue.heap_bytes(), f.queue.len()),
-                ("due_moved", f.due_moved.heap_bytes(), f.due_moved.len()),
-                ("due_turned", f.due_turned.heap_bytes(), f.due_turned.len()),
+                (name, f.members_bytes(), f.len()),
+                ("index", f.index_bytes(), f.len()),
+                ("queue", f.queue_bytes(), queued),
+                // Threaded through the members: no bytes of their own.
+                ("due_moved", 0, moved),
+                ("due_turned", 0, turned),
             ]
         };
         let mut v = vec![("split", self.split.heap_bytes(), self.split.len())];
@@ -298,11 +340,7 @@ impl Coherent {
         v.extend(f("merge_cands", &self.merges));
         v.push((
             "scratch",
-            (self.chain.capacity()
-                + self.log.capacity()
-                + self.old.capacity()
-                + self.new.capacity())
-                * 4,
+            (self.chain.capacity() + self.due.capacity() + self.log.capacity()) * 4,
             0,
         ));
         v
@@ -344,14 +382,19 @@ impl Coherent {
     ) -> Step {
         assert!(self.left.is_none(), "a frame was begun and not finished");
         self.log.clear();
+        // A rebuild's log (the difference of two cuts) is not kept reserved for the small
+        // ones that follow.
+        if self.log.capacity() > LOG_KEPT {
+            self.log = Vec::new();
+        }
         self.stats = CoherentStats::default();
         let jump = rebuild || self.jumped(camera, limits, scales);
         if let Some(last) = &self.last {
             let (moved, yaw, pitch) = motion(&last.camera, camera);
-            self.moved += moved;
+            self.odometers[0].reading += moved;
             // A yaw and a pitch change compose into a rotation of at most their sum.
             let turned = (yaw + pitch).to_radians();
-            self.turned += turned;
+            self.odometers[1].reading += turned;
             let ease = |old: f32, new: f64| 0.75 * old + 0.25 * new as f32;
             self.pace = (ease(self.pace.0, moved), ease(self.pace.1, turned));
         }
@@ -365,7 +408,7 @@ impl Coherent {
             return Step::Unfinished;
         }
         let f = Frame::new(hf, variance, scales, camera, limits);
-        self.compact();
+        self.rebase();
         self.evaluate_due(&f);
         self.run(&f, limits, 0, most)
     }
@@ -449,11 +492,11 @@ impl Coherent {
         // The log keeps what an unfinished update did before: the difference logged here is
         // from the cut as that update left it.
         let logged = self.log.len();
-        let (mut old, mut new) = (std::mem::take(&mut self.old), std::mem::take(&mut self.new));
-        old.clear();
-        old.extend_from_slice(self.split.as_slice());
+        // Both lists live as long as the rebuild: a rebuild is rare, and kept they would
+        // hold the cut twice over.
+        let mut old: Vec<u32> = self.split.iter().collect();
         old.sort_unstable();
-        new.clear();
+        let mut new = Vec::new();
         self.triangles = scratch.with(|t| {
             t.cut(hf, variance, scales, camera, limits);
             new.extend_from_slice(&t.active_list);
@@ -484,13 +527,11 @@ impl Coherent {
         for k in logged..self.log.len() {
             let p = self.log[k];
             if !self.split.remove(p) {
-                self.split.insert_with(p, || ());
+                self.split.insert(p);
             }
         }
         self.stats.splits += (self.log.len() - logged) as u32;
         self.rebuild_frontiers(f, &new);
-        self.old = old;
-        self.new = new;
         self.error_bound_px = self.bound(limits);
     }
 
@@ -525,10 +566,10 @@ impl Coherent {
                     None => {}
                 }
             }
-            let Some((bucket, entry, prio)) = self.pop_split() else {
+            let Some((bucket, pos, prio)) = self.pop_split() else {
                 break;
             };
-            let (x, z) = unpack(entry.pos);
+            let (x, z) = unpack(pos);
             self.chain.clear();
             let cost = self.collect(x, z);
             if self.triangles + cost <= budget {
@@ -543,13 +584,13 @@ impl Coherent {
             let gain = if bucket == TOP { f32::INFINITY } else { prio };
             match self.peek_merge() {
                 Some((_, loss)) if loss < gain => {
-                    let pos = self.pop_merge().expect("peeked above");
-                    self.merge(f, pos);
+                    let merged = self.pop_merge().expect("peeked above");
+                    self.merge(f, merged);
                     changes += 1;
-                    self.splits.queue.push(bucket, entry, prio);
+                    self.splits.requeue(pos);
                 }
                 _ => {
-                    self.splits.queue.push(bucket, entry, prio);
+                    self.splits.requeue(pos);
                     break;
                 }
             }
@@ -563,18 +604,14 @@ impl Coherent {
         if limits.threshold_px > 0.0 {
             self.dropped = self
                 .splits
-                .cands
-                .values()
-                .iter()
-                .filter(|e| e.flags & 4 != 0)
-                .map(|e| e.prio)
+                .members()
+                .filter(|m| m.flags & DROPPED != 0)
+                .map(|m| m.prio)
                 .fold(0.0, f32::max);
         } else {
             self.dropped = 0.0;
         }
-        let splits = &self.splits;
-        let remaining = splits.queue.max_live(TOP, |e| splits.live(e).is_some());
-        remaining.max(self.dropped)
+        self.splits.max_queued().max(self.dropped)
     }
 }
 
@@ -591,4 +628,78 @@ fn motion(a: &Camera, b: &Camera) -> (f64, f64, f64) {
         yaw.min(360.0 - yaw),
         (b.pitch_deg - a.pitch_deg).abs(),
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A rebase shifts every key by what it says, exactly, and leaves the odometer's
+    /// key now near 0.
+    #[test]
+    fn odometer_rebase_shifts_keys() {
+        let mut o = Odometer::new(TRAVEL_SCALE);
+        o.reading = 600_000.0;
+        let before: Vec<u32> = [0.0, 0.001, 5.5, 1e4]
+            .map(|s| o.key(s).expect("finite"))
+            .into();
+        let shift = o.rebase().expect("600 km is past 2^31 steps");
+        let after: Vec<u32> = [0.0, 0.001, 5.5, 1e4]
+            .map(|s| o.key(s).expect("finite"))
+            .into();
+        for (b, a) in before.iter().zip(&after) {
+            assert_eq!(b - shift, *a);
+        }
+        assert_eq!((o.now(), o.rebase()), (0, None));
+        assert_eq!(o.key(f32::INFINITY), None, "exact: never due");
+    }
+
+    /// A cut carried across odometer rebases (both odometers started just short of one)
+    /// passes the audit every frame: every schedule shifted with its odometer, nothing due
+    /// left behind, evaluations still made.
+    #[test]
+    fn a_cut_is_carried_across_rebases() {
+        let side = 65;
+        let samples = (0..side * side)
+            .map(|i| {
+                let (x, z) = (f64::from(i % side), f64::from(i / side));
+                (20_000.0 + 3_000.0 * (x * 0.37).sin() * (z * 0.23).cos() + 40.0 * x) as u16
+            })
+            .collect();
+        let hf = Heightfield::new(side, samples).expect("side is 2^N + 1");
+        let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+        let scales = Scales { h: 10.0, v: 0.02 };
+        let limits = Limits {
+            budget: 600,
+            threshold_px: 0.0,
+        };
+        let scratch = Scratch::new(side);
+        let mut c = Coherent::new(side);
+        let mut evaluated = 0;
+        for k in 0..40 {
+            let t = f64::from(k);
+            let camera = Camera {
+                eye: [200.0 + 3.0 * t, 300.0, 150.0 + 1.0 * t],
+                yaw_deg: 20.0 + 6.0 * (t * 0.7).sin(),
+                pitch_deg: -15.0,
+                fov_y_deg: 60.0,
+                width: 640,
+                height: 480,
+            };
+            if k == 1 {
+                // A few metres and milliradians short of their keys' limit.
+                for o in &mut c.odometers {
+                    o.reading = o.base + (f64::from(1u32 << 31) - 20_000.0) / o.scale;
+                }
+            }
+            c.frame(&hf, &vt, scales, &camera, limits, false, &scratch);
+            c.audit(&hf, &vt, scales, &camera, limits)
+                .unwrap_or_else(|e| panic!("frame {k}: {e}"));
+            evaluated += c.stats().evaluated;
+        }
+        for o in &c.odometers {
+            assert!(o.base > 0.0 && o.now() < 1 << 30, "rebased");
+        }
+        assert!(evaluated > 0);
+    }
 }

@@ -1,0 +1,384 @@
+//! One frontier of the cut (split candidates, or merge candidates): its members in a dense
+//! list of small records ([`Member`], in [`Chunks`]) with an index by position
+//! ([`PosIndex`]), the priority queue they sit in and the two schedules that say when each
+//! is due, all threaded through the records ([`super::buckets`]).
+//!
+//! A member keeps only what the next frame needs of its last evaluation: its priority,
+//! its verdicts, when it falls due (an odometer key each), and its links: 36 bytes, where
+//! the first version kept a 64-byte entry beside a list of positions and a table of
+//! `(position, index)` pairs, plus 16-byte queue and schedule entries pushed per
+//! evaluation. Two decisions, measured on `kossou` at 65,536 triangles:
+//!
+//! - What an evaluation needs that does not depend on the camera (centre, error, corner
+//!   heights, size) is gathered from the map again at each evaluation
+//!   ([`super::eval::fixed`]): a frame evaluates 10 to 14 diamonds and a rebuild gathers
+//!   every member anyway, where keeping it cost 28 bytes a member (1.1 MB).
+//! - Links are places of 24 bits (a frontier holds fewer than 2^24 members:
+//!   [`crate::tessellate::frontier::MAX_INDEXED`]): as `u32`s the record was 44 bytes
+//!   (1.72 MB for the split frontier's records at the drive's end, now 1.14 MB).
+
+use super::buckets::{Link, NIL, Nodes, Queue, Schedule};
+use crate::tessellate::frontier::{Chunks, PosIndex};
+use crate::tessellate::queue::{TOP, bucket_of};
+
+/// [`Member`] flags: worth splitting (error, in view or under the eye, at or above the
+/// threshold); under the eye; in view with error but below the threshold.
+pub(super) const WANTED: u8 = 1;
+pub(super) const UNDER: u8 = 2;
+pub(super) const DROPPED: u8 = 4;
+
+/// A [`Member`]'s link to no member: places are below 2^24 - 1
+/// ([`crate::tessellate::frontier::MAX_INDEXED`]).
+const NIL24: u32 = 0xff_ffff;
+
+/// A frontier diamond and its last evaluation: 36 bytes.
+#[derive(Clone, Copy, Debug)]
+pub(super) struct Member {
+    /// Packed position.
+    pub pos: u32,
+    /// Priority at its last evaluation (0 before the first).
+    pub prio: f32,
+    /// When it is due again, per odometer (while scheduled on it).
+    keys: [u32; 2],
+    /// Its links in the queue and the two schedules, each previous then next: places of
+    /// 24 bits, little-endian ([`NIL24`]: none). (As `u32`s the record was 44 bytes.)
+    links: [u8; 18],
+    /// [`WANTED`], [`UNDER`], [`DROPPED`].
+    pub flags: u8,
+}
+
+impl Member {
+    #[inline(always)]
+    fn get24(&self, at: usize) -> u32 {
+        let b = &self.links[at..at + 3];
+        let v = u32::from_le_bytes([b[0], b[1], b[2], 0]);
+        if v == NIL24 { NIL } else { v }
+    }
+
+    #[inline(always)]
+    fn set24(&mut self, at: usize, v: u32) {
+        debug_assert!(v == NIL || v < NIL24, "places fit in 24 bits");
+        self.links[at..at + 3].copy_from_slice(&(v & NIL24).to_le_bytes()[..3]);
+    }
+
+    #[inline(always)]
+    fn link(&self, w: usize) -> Link {
+        Link {
+            prev: self.get24(6 * w),
+            next: self.get24(6 * w + 3),
+        }
+    }
+
+    pub fn queued(&self) -> bool {
+        self.link(0).linked()
+    }
+
+    /// Whether it is scheduled on odometer `k`, and at which key.
+    pub fn due(&self, k: usize) -> Option<u32> {
+        self.link(1 + k).linked().then_some(self.keys[k])
+    }
+}
+
+impl Nodes for Chunks<Member> {
+    #[inline(always)]
+    fn len(&self) -> usize {
+        Chunks::len(self)
+    }
+    #[inline(always)]
+    fn link(&self, i: u32, w: usize) -> Link {
+        self[i as usize].link(w)
+    }
+    #[inline(always)]
+    fn set_link(&mut self, i: u32, w: usize, l: Link) {
+        let m = &mut self[i as usize];
+        m.set24(6 * w, l.prev);
+        m.set24(6 * w + 3, l.next);
+    }
+    #[inline(always)]
+    fn set_prev(&mut self, i: u32, w: usize, prev: u32) {
+        self[i as usize].set24(6 * w, prev);
+    }
+    #[inline(always)]
+    fn set_next(&mut self, i: u32, w: usize, next: u32) {
+        self[i as usize].set24(6 * w + 3, next);
+    }
+    #[inline(always)]
+    fn key(&self, i: u32, k: usize) -> u32 {
+        self[i as usize].keys[k]
+    }
+    #[inline(always)]
+    fn set_key(&mut self, i: u32, k: usize, key: u32) {
+        self[i as usize].keys[k] = key;
+    }
+    #[inline(always)]
+    fn prio(&self, i: u32) -> f32 {
+        self[i as usize].prio
+    }
+}
+
+/// A frontier: its members, the queue and the schedules.
+pub(super) struct Frontier {
+    /// Merge candidates (else split candidates): which bucket a member is queued in.
+    merges: bool,
+    members: Chunks<Member>,
+    index: PosIndex,
+    queue: Queue,
+    due: [Schedule; 2],
+}
+
+impl Frontier {
+    pub fn new(merges: bool) -> Frontier {
+        Frontier {
+            merges,
+            members: Chunks::default(),
+            index: PosIndex::default(),
+            // The split queue's highest priority is the error bound.
+            queue: Queue::new(!merges),
+            due: [Schedule::new(0), Schedule::new(1)],
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.members.len()
+    }
+
+    pub fn members(&self) -> impl Iterator<Item = &Member> + '_ {
+        self.members.iter()
+    }
+
+    pub fn clear(&mut self) {
+        self.members.clear();
+        self.index.clear();
+        self.queue.clear();
+        self.due.iter_mut().for_each(Schedule::clear);
+    }
+
+    pub fn members_bytes(&self) -> usize {
+        self.members.heap_bytes()
+    }
+
+    pub fn index_bytes(&self) -> usize {
+        self.index.heap_bytes()
+    }
+
+    pub fn queue_bytes(&self) -> usize {
+        self.queue.heap_bytes()
+    }
+
+    /// Members queued, and scheduled on each odometer.
+    pub fn counts(&self) -> (usize, usize, usize) {
+        (self.queue.len(), self.due[0].len(), self.due[1].len())
+    }
+
+    #[inline]
+    fn find(&self, pos: u32) -> Option<u32> {
+        let m = &self.members;
+        self.index.get(pos, |i| m[i as usize].pos)
+    }
+
+    #[inline]
+    pub fn contains(&self, pos: u32) -> bool {
+        self.find(pos).is_some()
+    }
+
+    /// The bucket a member's evaluation queues it in, if any. A split candidate goes in its
+    /// priority's bucket (under the eye: the top one) when it is worth splitting; otherwise
+    /// in none. A merge candidate goes first (the top bucket) when unwanted, else lowest
+    /// priority first; one under the eye in none (the ground under the eye stays refined).
+    #[inline]
+    fn bucket(&self, m: &Member) -> Option<usize> {
+        let (wanted, under) = (m.flags & WANTED != 0, m.flags & UNDER != 0);
+        if self.merges {
+            match (under, wanted) {
+                (true, _) => None,
+                (false, false) => Some(TOP),
+                (false, true) => Some(TOP - 1 - bucket_of(m.prio)),
+            }
+        } else {
+            wanted.then(|| if under { TOP } else { bucket_of(m.prio) })
+        }
+    }
+
+    /// The bucket `m` is queued in by its evaluation (for the audit).
+    pub fn queue_bucket(&self, m: &Member) -> Option<usize> {
+        self.bucket(m)
+    }
+
+    /// Adds `pos` as a member not yet evaluated (neither queued nor scheduled); false when
+    /// it was one already.
+    pub fn insert(&mut self, pos: u32) -> bool {
+        if self.contains(pos) {
+            return false;
+        }
+        self.members.push(Member {
+            pos,
+            prio: 0.0,
+            keys: [0; 2],
+            links: [0xff; 18],
+            flags: 0,
+        });
+        let m = &self.members;
+        self.index
+            .insert(pos, m.len() as u32 - 1, |i| m[i as usize].pos);
+        true
+    }
+
+    /// Takes member `i` out of the queue and the schedules it is in.
+    fn unlink(&mut self, i: u32) {
+        let m = self.members[i as usize];
+        if m.queued() {
+            let b = self.bucket(&m).expect("a queued member has a bucket");
+            self.queue.remove(&mut self.members, b, i);
+        }
+        for (k, due) in self.due.iter_mut().enumerate() {
+            if m.due(k).is_some() {
+                due.remove(&mut self.members, i);
+            }
+        }
+    }
+
+    /// Removes `pos`; false when it was not a member. The last member fills its place.
+    pub fn remove(&mut self, pos: u32) -> bool {
+        let Some(i) = self.find(pos) else {
+            return false;
+        };
+        self.unlink(i);
+        let m = &self.members;
+        self.index.remove(pos, |j| m[j as usize].pos);
+        let from = m.len() as u32 - 1;
+        if i != from {
+            // Told while the last member is still where the index has it.
+            self.index
+                .moved(m[from as usize].pos, i, |j| m[j as usize].pos);
+        }
+        self.members.swap_remove(i as usize);
+        if i != from {
+            let moved = self.members[i as usize];
+            if moved.queued() {
+                let b = self.bucket(&moved).expect("a queued member has a bucket");
+                self.queue.relocate(&mut self.members, b, from, i);
+            }
+            for (k, due) in self.due.iter_mut().enumerate() {
+                if moved.due(k).is_some() {
+                    due.relocate(&mut self.members, from, i);
+                }
+            }
+        }
+        true
+    }
+
+    /// Keeps an evaluation of member `pos` (priority, flags, and per odometer the key it
+    /// is due at, `None`: never), and queues and schedules it by it. False when `pos` is
+    /// not a member.
+    pub fn keep(&mut self, pos: u32, prio: f32, flags: u8, keys: [Option<u32>; 2]) -> bool {
+        let Some(i) = self.find(pos) else {
+            return false;
+        };
+        self.unlink(i);
+        let m = &mut self.members[i as usize];
+        m.prio = prio;
+        m.flags = flags;
+        let m = *m;
+        if let Some(b) = self.bucket(&m) {
+            self.queue.push(&mut self.members, b, i);
+        }
+        for (k, key) in keys.into_iter().enumerate() {
+            if let Some(key) = key {
+                self.due[k].push(&mut self.members, i, key);
+            }
+        }
+        true
+    }
+
+    /// The first member of the highest bucket, taken out of the queue (it stays a
+    /// member): its bucket, position and priority.
+    pub fn pop(&mut self) -> Option<(usize, u32, f32)> {
+        let (b, i) = self.queue.pop(&mut self.members)?;
+        let m = &self.members[i as usize];
+        Some((b, m.pos, m.prio))
+    }
+
+    /// The bucket and member the next pop returns.
+    pub fn peek(&self) -> Option<(usize, &Member)> {
+        let (b, i) = self.queue.peek()?;
+        Some((b, &self.members[i as usize]))
+    }
+
+    /// Queues member `pos` again by its kept evaluation, after a pop (nothing if it left
+    /// the frontier since, or is queued).
+    pub fn requeue(&mut self, pos: u32) {
+        if let Some(i) = self.find(pos)
+            && !self.members[i as usize].queued()
+        {
+            let m = self.members[i as usize];
+            let b = self.bucket(&m).expect("a popped member had a bucket");
+            self.queue.push(&mut self.members, b, i);
+        }
+    }
+
+    /// The next member due on odometer `k` at key `now`, taken out of both schedules (so
+    /// one due on both is taken once): its position.
+    pub fn pop_due(&mut self, k: usize, now: u32) -> Option<u32> {
+        let i = self.due[k].pop_due(&mut self.members, now)?;
+        if self.members[i as usize].due(1 - k).is_some() {
+            self.due[1 - k].remove(&mut self.members, i);
+        }
+        Some(self.members[i as usize].pos)
+    }
+
+    /// Shifts odometer `k`'s keys down by `shift` (those below it to 0), the schedule
+    /// made again in member order.
+    pub fn rebase(&mut self, k: usize, shift: u32) {
+        let keys: Vec<Option<u32>> = self
+            .members
+            .iter()
+            .map(|m| m.due(k).map(|key| key.saturating_sub(shift)))
+            .collect();
+        self.due[k].clear();
+        for (i, key) in keys.into_iter().enumerate() {
+            self.members.set_link(i as u32, 1 + k, Link::OUT);
+            if let Some(key) = key {
+                self.due[k].push(&mut self.members, i as u32, key);
+            }
+        }
+    }
+
+    /// The highest priority queued: the top bucket (ranked by position, not priority) is
+    /// read whole, and the search goes on to the next bucket below it.
+    pub fn max_queued(&mut self) -> f32 {
+        let mut best = 0f32;
+        let mut bucket = self.queue.top_bucket();
+        while let Some(b) = bucket {
+            best = best.max(self.queue.most(&self.members, b));
+            if b != TOP {
+                break;
+            }
+            bucket = self.queue.below(b);
+        }
+        best
+    }
+
+    /// The queue's buckets and the schedules, each member where its evaluation puts it,
+    /// checked (for the audit): `(bucket, member)` queued, and each odometer's members.
+    #[allow(clippy::type_complexity)]
+    pub fn lists(&self) -> Result<(Vec<(usize, u32)>, [Vec<u32>; 2]), String> {
+        let queued = self
+            .queue
+            .lists(&self.members)?
+            .into_iter()
+            .flat_map(|(b, l)| l.into_iter().map(move |i| (b, i)))
+            .collect();
+        Ok((
+            queued,
+            [
+                self.due[0].lists(&self.members)?,
+                self.due[1].lists(&self.members)?,
+            ],
+        ))
+    }
+
+    /// Whether `i` is the place the index gives member `i`'s position (for the audit).
+    pub fn indexed(&self, i: usize) -> bool {
+        self.find(self.members[i].pos) == Some(i as u32) && self.index.len() == self.len()
+    }
+}
