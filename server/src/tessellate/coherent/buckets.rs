@@ -1,16 +1,18 @@
 //! The frame-coherent tessellator's queues, kept from frame to frame: priority buckets
-//! (the spec's queue) and the odometer schedules that say which kept evaluations are due,
-//! both as lists threaded through the frontier's own member records (ROAM's doubly linked
-//! bucket lists, Duchaineau et al. 1997 §6), reached through [`Nodes`].
+//! (the spec's queue) as lists threaded through the frontier's own member records (ROAM's
+//! doubly linked bucket lists, Duchaineau et al. 1997 §6), reached through [`Nodes`], and
+//! the odometer schedules that say which kept evaluations are due, as bucket vectors of
+//! member places ([`Schedule`]).
 //!
 //! A member sits in at most one bucket of its frontier's [`Queue`] and in at most one
-//! bucket of each [`Schedule`], by a [`Link`] (previous and next member) of its own for
-//! each: evaluated again, it is unlinked from where its old evaluation put it and linked
-//! where the new one does; leaving its frontier, it is unlinked; moved in the dense list
-//! (a removal fills the hole with the last member), its neighbours and the bucket's head
-//! are told. So a frame links what it evaluated and unlinks what it splits or merges,
-//! nothing walks the frontiers, and nothing goes stale. Each list is circular (the head's
-//! previous member is its tail), so a bucket costs one head.
+//! bucket of each [`Schedule`], by a [`Link`] of its own for each (in the queue its
+//! previous and next member; in a schedule its index in the bucket's vector): evaluated
+//! again, it is taken out of where its old evaluation put it and put where the new one
+//! does; leaving its frontier, it is taken out; moved in the dense list (a removal fills
+//! the hole with the last member), its neighbours, bucket head or bucket slot are told. So
+//! a frame touches what it evaluated, splits or merges, nothing walks the frontiers, and
+//! nothing goes stale. Each queue list is circular (the head's previous member is its
+//! tail), so a bucket costs one head.
 //!
 //! Within a bucket the order is first in, first out, as in the from-scratch queue. (Last
 //! in, first out was tried: at the budget, split/merge swaps of diamonds in one bucket
@@ -26,13 +28,13 @@
 //! entries for 30,935 members (4.27 MB), the merge side 1.6 MB more, and each queue 2,048
 //! `VecDeque` headers (64 KB). Threaded through the members, the three lists cost a
 //! member 18 bytes of links (24-bit places, [`super::frontier::Member`]) and a queue 8 KB
-//! of heads; none is stale. Compacting lazily kept entries harder (in place, at a lower
+//! of heads (the schedules, since, 4 bytes a scheduled member: see [`Schedule`]); none
+//! is stale. Compacting lazily kept entries harder (in place, at a lower
 //! threshold) could not go below 8 bytes an entry for a schedule alone, stale ones on top.
 //!
 //! **Time.** A radix heap moves a member down a bucket at a time as the odometer nears its
-//! key, and a move is now a relink of scattered records, not a push onto a vector: the
-//! schedules' buckets go by digits of 4 bits, not bits, to move members half as often
-//! ([`Schedule`]). The queue keeps each split bucket's highest priority ([`Queue::most`]):
+//! key: the schedules' buckets go by digits of 4 bits, not bits, to move members half as
+//! often, and are vectors, not lists ([`Schedule`]). The queue keeps each split bucket's highest priority ([`Queue::most`]):
 //! the error bound read the bucket that holds it whole every frame, 540 scattered records
 //! at the median (20 µs), where the vector of `(entry, priority)` had been read in order.
 //! Along the bench's drive at 32,768 triangles (six runs of each in turn on a busy
@@ -396,7 +398,9 @@ const SLOTS: usize = 1 + (32 / DIGIT as usize) * (RADIX - 1);
 
 /// When kept evaluations fall due: members by odometer key (a reading in fixed point,
 /// rounded down: see [`super::Odometer`]) in a radix heap (Ahuja et al. 1990) over the
-/// keys' digits of 4 bits, each bucket a list threaded through the members.
+/// keys' digits of 4 bits, each bucket a vector of member places; a member keeps its
+/// index in its bucket's vector (in its link for the schedule: `prev` the index, `next`
+/// 0), so it is taken out in O(1) (the bucket's last member fills its place).
 ///
 /// Keys only grow, and every key pushed is at least the odometer's now, so a monotone
 /// queue fits: a member sits in the bucket of the highest digit in which its key differs
@@ -405,18 +409,24 @@ const SLOTS: usize = 1 + (32 / DIGIT as usize) * (RADIX - 1);
 /// its keys (exact when it was filled; a removal may leave it low, which only makes the
 /// bucket's members move down a frame early), so "anything due?" reads one word. (A binary
 /// heap of the same entries walked 16 levels of scattered memory per pop, 1–2 µs each with
-/// the caches cold, as they are when a server serves many viewers in turn.) A move is a
-/// relink of scattered records, no longer a push onto a vector: with a bucket per
-/// differing bit (33), a member moved 2.6 times per push along the bench's drive at 32,768
-/// triangles (1.64 million moves) and the serving frames took 906 million instructions
-/// (callgrind); with digits of 4 bits (121 buckets) 1.4 times (0.89 million) and 822
-/// million. (The entries pushed per evaluation took 484 million: the lists cost
-/// instructions in the frames that change much, 100–240 changes, 6,000–15,000 moves;
-/// a frame of a few changes moves 0–15 members and got faster.)
+/// the caches cold, as they are when a server serves many viewers in turn.)
+///
+/// **Vectors, not lists.** A bucket was first a list threaded through the members: moving
+/// a bucket down walked it member by member, each step a cache miss that waited for the
+/// one before (the next member's place is in the member), and in a server serving 50
+/// driving viewers that walk and the relinking around it took a third of the server's
+/// CPU (`perf`: the schedules' list walk, `push_back` and `unlink`). Now a move reads the
+/// bucket's places in order and touches each member once, misses that overlap; it costs
+/// 4 bytes a scheduled member (two schedules: about 0.3 MB at 65,536 triangles). 50
+/// driving viewers on one core (`scripts/capacity.sh 50`): 289–322 µs of server CPU per
+/// frame with the lists (three runs), 276 with vectors. (Keeping each key beside its
+/// place, so that a move reads no member, measured the same, 273, for 4 bytes more.) With a
+/// bucket per differing bit (33), a member moved 2.6 times per push along the bench's
+/// drive at 32,768 triangles; with digits of 4 bits (121 buckets), 1.4 times.
 pub(super) struct Schedule {
-    /// The odometer: the member's key `k`, its list `1 + k`.
+    /// The odometer: the member's key `k`, its link `1 + k`.
     k: usize,
-    heads: [u32; SLOTS],
+    buckets: Vec<Vec<u32>>,
     least: [u32; SLOTS],
     /// Buckets not empty, a bit each.
     nonempty: u128,
@@ -424,11 +434,15 @@ pub(super) struct Schedule {
     len: usize,
 }
 
+/// Places an emptied bucket keeps room for when it is moved down (a larger one gives its
+/// memory back: kept, every bucket's peak would stay held).
+const KEEP_CAPACITY: usize = 256;
+
 impl Schedule {
     pub fn new(k: usize) -> Schedule {
         Schedule {
             k,
-            heads: [NIL; SLOTS],
+            buckets: vec![Vec::new(); SLOTS],
             least: [u32::MAX; SLOTS],
             nonempty: 0,
             last: 0,
@@ -442,7 +456,21 @@ impl Schedule {
 
     /// Empties the schedule (and forgets the keys taken: any may be pushed next).
     pub fn clear(&mut self) {
-        *self = Schedule::new(self.k);
+        for b in &mut self.buckets {
+            b.clear();
+            if b.capacity() > KEEP_CAPACITY {
+                b.shrink_to(KEEP_CAPACITY);
+            }
+        }
+        self.least = [u32::MAX; SLOTS];
+        self.nonempty = 0;
+        self.last = 0;
+        self.len = 0;
+    }
+
+    pub fn heap_bytes(&self) -> usize {
+        self.buckets.capacity() * std::mem::size_of::<Vec<u32>>()
+            + self.buckets.iter().map(|b| b.capacity() * 4).sum::<usize>()
     }
 
     #[inline]
@@ -458,10 +486,18 @@ impl Schedule {
     }
 
     #[inline]
-    fn put(&mut self, nodes: &mut impl Nodes, i: u32) {
-        let key = nodes.key(i, self.k);
+    fn put(&mut self, nodes: &mut impl Nodes, i: u32, key: u32) {
         let b = self.bucket(key);
-        push_back(nodes, 1 + self.k, &mut self.heads[b], i);
+        let list = &mut self.buckets[b];
+        nodes.set_link(
+            i,
+            1 + self.k,
+            Link {
+                prev: list.len() as u32,
+                next: 0,
+            },
+        );
+        list.push(i);
         self.least[b] = self.least[b].min(key);
         self.nonempty |= 1 << b;
     }
@@ -470,8 +506,9 @@ impl Schedule {
     /// as that one).
     #[inline]
     pub fn push(&mut self, nodes: &mut impl Nodes, i: u32, key: u32) {
-        nodes.set_key(i, self.k, key.max(self.last));
-        self.put(nodes, i);
+        let key = key.max(self.last);
+        nodes.set_key(i, self.k, key);
+        self.put(nodes, i, key);
         self.len += 1;
     }
 
@@ -479,17 +516,27 @@ impl Schedule {
     #[inline]
     pub fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
         let b = self.bucket(nodes.key(i, self.k));
-        if unlink(nodes, 1 + self.k, &mut self.heads[b], i) {
+        let at = nodes.link(i, 1 + self.k).prev;
+        debug_assert!(at != NIL, "only a scheduled member is taken out");
+        nodes.set_link(i, 1 + self.k, Link::OUT);
+        let list = &mut self.buckets[b];
+        list.swap_remove(at as usize);
+        if let Some(&moved) = list.get(at as usize) {
+            nodes.set_link(moved, 1 + self.k, Link { prev: at, next: 0 });
+        }
+        if list.is_empty() {
             self.nonempty &= !(1 << b);
             self.least[b] = u32::MAX;
         }
         self.len -= 1;
     }
 
-    /// Member `from`, scheduled, now lives at `to`.
+    /// Member `from`, scheduled, now lives at `to` (its link and key moved with it).
     pub fn relocate(&mut self, nodes: &mut impl Nodes, from: u32, to: u32) {
         let b = self.bucket(nodes.key(to, self.k));
-        relocate(nodes, 1 + self.k, &mut self.heads[b], from, to);
+        let at = nodes.link(to, 1 + self.k).prev as usize;
+        debug_assert_eq!(self.buckets[b][at], from, "the moved member's place");
+        self.buckets[b][at] = to;
     }
 
     /// The next member due at odometer key `now`, if any (taken out).
@@ -508,38 +555,47 @@ impl Schedule {
                 return None;
             }
             if b == 0 {
-                let i = self.heads[0];
+                let i = *self.buckets[0].last().expect("a bucket marked non-empty");
                 self.remove(nodes, i);
                 return Some(i);
             }
             // The bucket's lower bound is due: take it as `last`, and move the bucket's
             // members down (each to a lower bucket: they share more bits with it).
             self.last = self.least[b];
-            let head = std::mem::replace(&mut self.heads[b], NIL);
+            let mut moved = std::mem::take(&mut self.buckets[b]);
             self.least[b] = u32::MAX;
             self.nonempty &= !(1 << b);
-            let mut i = head;
-            loop {
-                let next = nodes.link(i, 1 + self.k).next;
-                self.put(nodes, i);
-                if next == head {
-                    break;
-                }
-                i = next;
+            for &i in &moved {
+                let key = nodes.key(i, self.k);
+                self.put(nodes, i, key);
+            }
+            if moved.capacity() <= KEEP_CAPACITY {
+                moved.clear();
+                self.buckets[b] = moved;
             }
         }
     }
 
-    /// Every member scheduled, with its bucket, checked: each in the bucket its key says,
-    /// at or above the bucket's bound (for the audit).
+    /// Every member scheduled, checked: each in the bucket its key says, at or above the
+    /// bucket's bound, its link naming its index (for the audit).
     pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<u32>, String> {
         let mut out = Vec::new();
-        for b in 0..SLOTS {
-            let list = walk(nodes, 1 + self.k, self.heads[b])?;
+        for (b, list) in self.buckets.iter().enumerate() {
             if (self.nonempty >> b & 1 != 0) == list.is_empty() {
                 return Err(format!("schedule bucket {b} marked wrong"));
             }
-            for &i in &list {
+            for (at, &i) in list.iter().enumerate() {
+                if i as usize >= nodes.len() {
+                    return Err(format!(
+                        "schedule bucket {b} names member {i}, past the members"
+                    ));
+                }
+                let l = nodes.link(i, 1 + self.k);
+                if l.prev != at as u32 || l.next != 0 {
+                    return Err(format!(
+                        "member {i} at {at} of schedule bucket {b} has link {l:?}"
+                    ));
+                }
                 let key = nodes.key(i, self.k);
                 if self.bucket(key) != b || key < self.least[b] {
                     return Err(format!(
@@ -548,7 +604,7 @@ impl Schedule {
                     ));
                 }
             }
-            out.extend(list);
+            out.extend_from_slice(list);
         }
         if out.len() != self.len {
             return Err(format!("{} scheduled, {} counted", out.len(), self.len));

@@ -1,7 +1,8 @@
 //! One frontier of the cut (split candidates, or merge candidates): its members in a dense
 //! list of small records ([`Member`], in [`Chunks`]) with an index by position
-//! ([`PosIndex`]), the priority queue they sit in and the two schedules that say when each
-//! is due, all threaded through the records ([`super::buckets`]).
+//! ([`PosIndex`]), the priority queue they sit in (threaded through the records) and the
+//! two schedules that say when each is due (bucket vectors of places, each member knowing
+//! its index), in [`super::buckets`].
 //!
 //! A member keeps only what the next frame needs of its last evaluation: its priority,
 //! its verdicts, when it falls due (an odometer key each), and its links: 36 bytes, where
@@ -40,7 +41,8 @@ pub(super) struct Member {
     pub prio: f32,
     /// When it is due again, per odometer (while scheduled on it).
     keys: [u32; 2],
-    /// Its links in the queue and the two schedules, each previous then next: places of
+    /// Its links in the queue (previous then next) and the two schedules (its index in its
+    /// bucket's vector, then 0): places of
     /// 24 bits, little-endian ([`NIL24`]: none). (As `u32`s the record was 44 bytes.)
     links: [u8; 18],
     /// [`WANTED`], [`UNDER`], [`DROPPED`].
@@ -163,6 +165,11 @@ impl Frontier {
 
     pub fn queue_bytes(&self) -> usize {
         self.queue.heap_bytes()
+    }
+
+    /// The schedule of odometer `k`'s bucket vectors.
+    pub fn schedule_bytes(&self, k: usize) -> usize {
+        self.due[k].heap_bytes()
     }
 
     /// Members queued, and scheduled on each odometer.

@@ -330,9 +330,8 @@ impl Coherent {
                 (name, f.members_bytes(), f.len()),
                 ("index", f.index_bytes(), f.len()),
                 ("queue", f.queue_bytes(), queued),
-                // Threaded through the members: no bytes of their own.
-                ("due_moved", 0, moved),
-                ("due_turned", 0, turned),
+                ("due_moved", f.schedule_bytes(0), moved),
+                ("due_turned", f.schedule_bytes(1), turned),
             ]
         };
         let mut v = vec![("split", self.split.heap_bytes(), self.split.len())];
