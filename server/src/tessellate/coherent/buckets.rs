@@ -29,13 +29,14 @@
 //! `VecDeque` headers (64 KB). Threaded through the members, the three lists cost a
 //! member 18 bytes of links (24-bit places, [`super::frontier::Member`]) and a queue 8 KB
 //! of heads (the schedules, since, 4 bytes a scheduled member: see [`Schedule`]); none
-//! is stale. Compacting lazily kept entries harder (in place, at a lower
-//! threshold) could not go below 8 bytes an entry for a schedule alone, stale ones on top.
+//! is stale. Compacting lazily kept entries harder (in place, at a lower threshold) could
+//! not go below 8 bytes an entry for a schedule alone, stale ones on top.
 //!
 //! **Time.** A radix heap moves a member down a bucket at a time as the odometer nears its
 //! key: the schedules' buckets go by digits of 4 bits, not bits, to move members half as
-//! often, and are vectors, not lists ([`Schedule`]). The queue keeps each split bucket's highest priority ([`Queue::most`]):
-//! the error bound read the bucket that holds it whole every frame, 540 scattered records
+//! often, and are vectors, not lists ([`Schedule`]). The queue keeps each split bucket's
+//! highest priority ([`Queue::most`]): the error bound read the bucket that holds it whole
+//! every frame, 540 scattered records
 //! at the median (20 µs), where the vector of `(entry, priority)` had been read in order.
 //! Along the bench's drive at 32,768 triangles (six runs of each in turn on a busy
 //! machine) the median frame went from 17–41 µs to 13–21 µs, the p99 (frames of 100–240
