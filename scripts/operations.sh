@@ -34,7 +34,7 @@ awk '/ summary /{ for (i = 1; i <= NF; i++) { split($i, kv, "=");
 rm -rf "$state"
 
 # 2. Eight greedy viewers (2^20 triangles, 240 frames a second, not decoding) for 20 s.
-# Each reserves 258 MiB of --max-memory (admission's estimate at 2^20 triangles): 4G seats
+# Each reserves 67 MiB of --max-memory (admission's estimate at 2^20 triangles): 4G seats
 # all eight whatever the machine's default (half its available memory).
 SERVE_ARGS="--log-every 2 --max-memory 4G" start_server "$DATA"
 "$BIN_DIR/roam-client" --connect "$addr" --token "$token" --fingerprint "$fingerprint" \

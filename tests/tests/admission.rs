@@ -200,7 +200,7 @@ async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn greedy_viewers_do_not_slow_the_world() {
     let _turn = ONE_AT_A_TIME.lock().await;
-    // Eight seats of 258 MiB each (admission's estimate at the most triangles): no memory
+    // Eight seats of 67 MiB each (admission's estimate at the most triangles): no memory
     // limit, whatever the machine's default; the world's ticks are what this tests.
     let r = fixtures::serve(fixtures::kossou(), |o| roam_server::net::Options {
         max_memory: Some(u64::MAX),

@@ -48,7 +48,7 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = net::MAX_VIEWERS)]
     pub max_viewers: usize,
     /// Bytes the viewers' state may hold together: each viewer's seat reserves an estimate
-    /// from its budget (about 19 MiB at 65,536 triangles: 256 bytes a triangle for its cut
+    /// from its budget (about 6.7 MiB at 65,536 triangles: 64 bytes a triangle for its cut
     /// and 2.7 MiB for its connection); the next viewer that would not fit is refused with
     /// a reason naming this limit, and a budget raised later is served as far as it fits.
     /// A number of bytes, or with K, M, G or T (times 1024 each; `512M`, `4G`, `1.5GiB`).

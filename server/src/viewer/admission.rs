@@ -96,15 +96,14 @@ fn mib(bytes: u64) -> String {
 
 /// What one triangle of a viewer's budget costs its cut at most, bytes: the split set,
 /// both frontiers, their queues and schedules, with what the allocator holds around them.
-/// Measured (issue 22) on a 4097² data set at 65,536 triangles, driving: the cut's
-/// `heap_bytes` 13.3 MB (`roam-server bench --json`'s `serve_viewer_heap_bytes`), its
-/// heap 14.5 MB at steady state (heaptrack: 221 bytes a triangle), the server's anonymous
-/// RSS 14.0–14.4 MB a viewer, connection included (`scripts/viewer_memory.sh`, with
-/// `serve` keeping large blocks mapped; 17.7–20.2 MB before). The tables grow by doubling,
-/// so a cut just past a doubling holds up to twice its entries' bytes: 256 leaves room
-/// for that at most budgets. `server/tests/viewer_core.rs` checks that a driving viewer's
-/// cut stays within it.
-pub const CUT_BYTES_PER_TRIANGLE: u64 = 256;
+/// Measured (issue 22) on `kossou` at 65,536 triangles, driving: the cut's `heap_bytes`
+/// (capacities) 2.48 MB, 2.73 MB at its peak along the bench's drive (`roam-server bench
+/// --json`'s `serve_viewer_heap_bytes` and `_peak`): 38 to 42 bytes a triangle (221
+/// before its frontiers became small records). The records grow by chunks, the indexes
+/// and vectors by doubling: 64 leaves room for that at every budget.
+/// `server/tests/viewer_core.rs` checks that a driving viewer's cut stays within it, and
+/// that it is not so loose as to reserve four times what a viewer holds.
+pub const CUT_BYTES_PER_TRIANGLE: u64 = 64;
 
 /// What a viewer holds besides its cut and its transport's buffers, at most, bytes: the
 /// core's encoders, change logs and scratch, the viewer's tasks, quinn's state for the
@@ -544,7 +543,7 @@ mod tests {
         }
         assert_eq!(budget_within(CONNECTION_BYTES - 1), 0);
         // 65,536 triangles: about 19 MB with the connection.
-        assert_eq!(viewer_bytes(65_536), CONNECTION_BYTES + (16 << 20));
+        assert_eq!(viewer_bytes(65_536), CONNECTION_BYTES + (4 << 20));
     }
 
     #[test]
