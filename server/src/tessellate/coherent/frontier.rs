@@ -5,7 +5,7 @@
 //! its index), in [`super::buckets`].
 //!
 //! A member keeps only what the next frame needs of its last evaluation: its priority,
-//! its verdicts, when it falls due (an odometer key each), and its links: 36 bytes, where
+//! its verdicts, when it falls due (an odometer key each), and its links: 32 bytes, where
 //! the first version kept a 64-byte entry beside a list of positions and a table of
 //! `(position, index)` pairs, plus 16-byte queue and schedule entries pushed per
 //! evaluation. Two decisions, measured on `kossou` at 65,536 triangles:
@@ -32,7 +32,15 @@ pub(super) const DROPPED: u8 = 4;
 /// ([`crate::tessellate::frontier::MAX_INDEXED`]).
 const NIL24: u32 = 0xff_ffff;
 
-/// A frontier diamond and its last evaluation: 36 bytes.
+/// Where list `w`'s 24-bit link starts in [`Member::links`]: the queue's previous and
+/// next (0 and 3), then each schedule's index in its bucket (6 and 9; a schedule has no
+/// next: its `Link::next` reads 0).
+#[inline(always)]
+fn prev_at(w: usize) -> usize {
+    if w == 0 { 0 } else { 3 + 3 * w }
+}
+
+/// A frontier diamond and its last evaluation: 32 bytes.
 #[derive(Clone, Copy, Debug)]
 pub(super) struct Member {
     /// Packed position.
@@ -44,7 +52,7 @@ pub(super) struct Member {
     /// Its links in the queue (previous then next) and the two schedules (its index in its
     /// bucket's vector, then 0): places of
     /// 24 bits, little-endian ([`NIL24`]: none). (As `u32`s the record was 44 bytes.)
-    links: [u8; 18],
+    links: [u8; 12],
     /// [`WANTED`], [`UNDER`], [`DROPPED`].
     pub flags: u8,
 }
@@ -66,8 +74,8 @@ impl Member {
     #[inline(always)]
     fn link(&self, w: usize) -> Link {
         Link {
-            prev: self.get24(6 * w),
-            next: self.get24(6 * w + 3),
+            prev: self.get24(prev_at(w)),
+            next: if w == 0 { self.get24(3) } else { 0 },
         }
     }
 
@@ -93,16 +101,19 @@ impl Nodes for Chunks<Member> {
     #[inline(always)]
     fn set_link(&mut self, i: u32, w: usize, l: Link) {
         let m = &mut self[i as usize];
-        m.set24(6 * w, l.prev);
-        m.set24(6 * w + 3, l.next);
+        m.set24(prev_at(w), l.prev);
+        if w == 0 {
+            m.set24(3, l.next);
+        }
     }
     #[inline(always)]
     fn set_prev(&mut self, i: u32, w: usize, prev: u32) {
-        self[i as usize].set24(6 * w, prev);
+        self[i as usize].set24(prev_at(w), prev);
     }
     #[inline(always)]
     fn set_next(&mut self, i: u32, w: usize, next: u32) {
-        self[i as usize].set24(6 * w + 3, next);
+        debug_assert_eq!(w, 0, "only the queue's lists have a next");
+        self[i as usize].set24(3, next);
     }
     #[inline(always)]
     fn key(&self, i: u32, k: usize) -> u32 {
@@ -221,7 +232,7 @@ impl Frontier {
             pos,
             prio: 0.0,
             keys: [0; 2],
-            links: [0xff; 18],
+            links: [0xff; 12],
             flags: 0,
         });
         let m = &self.members;
