@@ -2,8 +2,8 @@
 //! the cores at once, handed out **streaming viewers first, joining ones after**.
 //!
 //! A viewer's first frame is a key frame from scratch (several milliseconds at 32,768
-//! triangles), and so far its second frame is not cheap either (made on a blocking
-//! thread too). With one FIFO queue, 20 viewers joining at once queued 20 first key
+//! triangles), and when this was written its second frame was not cheap either (made on
+//! a blocking thread too; it is made in line now). With one FIFO queue, 20 viewers joining at once queued 20 first key
 //! frames, and each viewer's second frame waited behind the key frames of all those
 //! that joined after it: seen in the server (one core, `data/kossou`, 32,768 triangles,
 //! every second frame timed), 16 to 151 ms, growing by one key frame (7.5 ms there) per

@@ -175,6 +175,16 @@ impl Shared {
         self.tickets.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// What a viewer's frames are made from: the terrain, its variance tree, and the
+    /// tessellators a rebuild borrows.
+    fn scene(&self) -> crate::viewer::Scene<'_> {
+        crate::viewer::Scene {
+            terrain: &self.terrain,
+            variance: &self.variance,
+            scratch: &self.scratch,
+        }
+    }
+
     async fn shutting_down(&self) {
         let mut rx = self.shutdown.clone();
         let _ = rx.wait_for(|&s| s).await;

@@ -56,7 +56,7 @@ use crate::sim::world_core::{Event, Snapshot};
 use crate::terrain::color_pyramid::TileError;
 use crate::viewer::color::{ColorScheduler, ColorSend};
 use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
-use crate::viewer::{KeyCause, Scene, ViewerCore};
+use crate::viewer::{KeyCause, ViewerCore};
 
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
@@ -561,11 +561,7 @@ async fn frames(
         for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
             c.handle(seat.granted(event));
         }
-        let scene = Scene {
-            terrain: &shared.terrain,
-            variance: &shared.variance,
-            scratch: &shared.scratch,
-        };
+        let scene = shared.scene();
         // A frame is begun in line: an update of a few changes coded as a change frame is
         // made there (microseconds). Anything heavier (more changes, a rebuild, a key
         // frame's coding: milliseconds at large budgets) is left unfinished and finished on
@@ -597,11 +593,7 @@ async fn frames(
                     let _permit = permit;
                     // Below the async workers: frames first ([`super::makers`]).
                     super::makers::lower_this_thread();
-                    let scene = Scene {
-                        terrain: &shared2.terrain,
-                        variance: &shared2.variance,
-                        scratch: &shared2.scratch,
-                    };
+                    let scene = shared2.scene();
                     if !first {
                         let made = c.finish_frame(&scene);
                         return Some((c, made, snap));
