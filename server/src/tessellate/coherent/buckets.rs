@@ -75,6 +75,11 @@ pub(super) trait Nodes {
     fn set_link(&mut self, i: u32, w: usize, l: Link);
     fn key(&self, i: u32, k: usize) -> u32;
     fn set_key(&mut self, i: u32, k: usize, key: u32);
+    /// The bucket its entry sits in, in the schedule of odometer `k` (while scheduled).
+    fn entry_bucket(&self, i: u32, k: usize) -> usize;
+    fn set_entry_bucket(&mut self, i: u32, k: usize, b: usize);
+    /// Brings its record into the cache ahead of use (see [`Schedule::pop_due`]).
+    fn prefetch(&self, _i: u32) {}
     /// Its priority, by which it is queued.
     fn prio(&self, i: u32) -> f32;
 
@@ -264,6 +269,22 @@ impl Queue {
         self.len -= 1;
     }
 
+    /// Member `i`, queued in `bucket` and staying there, had priority `old` and has `new`:
+    /// the bucket's highest follows.
+    #[inline]
+    pub fn repriced(&mut self, bucket: usize, old: f32, new: f32) {
+        if let Some(most) = self.most.get_mut(bucket)
+            && !most.is_nan()
+        {
+            if new >= *most {
+                *most = new;
+            } else if old >= *most {
+                // It was the highest and is lower now: not known.
+                *most = f32::NAN;
+            }
+        }
+    }
+
     /// Member `from`, queued in `bucket`, now lives at `to`.
     pub fn relocate(&mut self, nodes: &mut impl Nodes, bucket: usize, from: u32, to: u32) {
         relocate(nodes, 0, &mut self.heads[bucket], from, to);
@@ -424,6 +445,17 @@ const SLOTS: usize = 1 + (32 / DIGIT as usize) * (RADIX - 1);
 /// place, so that a move reads no member, measured the same, 273, for 4 bytes more.) With a
 /// bucket per differing bit (33), a member moved 2.6 times per push along the bench's
 /// drive at 32,768 triangles; with digits of 4 bits (121 buckets), 1.4 times.
+///
+/// **Keys that grow keep their entry** ([`Schedule::reschedule`]): a member evaluated again
+/// (due on the other odometer) whose key here is no earlier than before only has its key
+/// raised; its entry stays in the bucket it was put in (the member records which), and is
+/// put again by its key when that bucket is moved down or taken. Taking it out and putting
+/// it back touched the member that filled its place, a cache miss per evaluation. With
+/// that, evaluating members by place rather than looking them up by position, and
+/// leaving a re-evaluated member in its queue bucket when its bucket did not change
+/// ([`super::frontier::Frontier::keep`]), 50 driving viewers went from 276 to 218 µs of
+/// server CPU per frame (`scripts/capacity.sh 50`, quiet machine), and the bench's
+/// `serve_many_frame_us_mean` along `scripts/capacity-drive.txt` from 187 to 141–146.
 pub(super) struct Schedule {
     /// The odometer: the member's key `k`, its link `1 + k`.
     k: usize,
@@ -434,6 +466,11 @@ pub(super) struct Schedule {
     last: u32,
     len: usize,
 }
+
+/// How many members ahead a schedule's walks ask for their records ([`Nodes::prefetch`]):
+/// each member's record is a cache miss when a server serves many viewers in turn, and a
+/// walk's members are known ahead, in its bucket's vector.
+const PREFETCH: usize = 8;
 
 /// Places an emptied bucket keeps room for when it is moved down (a larger one gives its
 /// memory back: kept, every bucket's peak would stay held).
@@ -498,6 +535,7 @@ impl Schedule {
                 next: 0,
             },
         );
+        nodes.set_entry_bucket(i, self.k, b);
         list.push(i);
         self.least[b] = self.least[b].min(key);
         self.nonempty |= 1 << b;
@@ -513,10 +551,31 @@ impl Schedule {
         self.len += 1;
     }
 
+    /// Schedules member `i` at `key` (`None`: never), scheduled or not. A member already
+    /// scheduled no later than `key` keeps its entry, only its key grows (see the type's
+    /// docs: it is put again by its key when its entry comes up).
+    #[inline]
+    pub fn reschedule(&mut self, nodes: &mut impl Nodes, i: u32, key: Option<u32>) {
+        let scheduled = nodes.link(i, 1 + self.k).linked();
+        match key {
+            Some(key) if scheduled && key >= nodes.key(i, self.k) => {
+                nodes.set_key(i, self.k, key);
+            }
+            _ => {
+                if scheduled {
+                    self.remove(nodes, i);
+                }
+                if let Some(key) = key {
+                    self.push(nodes, i, key);
+                }
+            }
+        }
+    }
+
     /// Takes member `i`, scheduled, out.
     #[inline]
     pub fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
-        let b = self.bucket(nodes.key(i, self.k));
+        let b = nodes.entry_bucket(i, self.k);
         let at = nodes.link(i, 1 + self.k).prev;
         debug_assert!(at != NIL, "only a scheduled member is taken out");
         nodes.set_link(i, 1 + self.k, Link::OUT);
@@ -534,7 +593,7 @@ impl Schedule {
 
     /// Member `from`, scheduled, now lives at `to` (its link and key moved with it).
     pub fn relocate(&mut self, nodes: &mut impl Nodes, from: u32, to: u32) {
-        let b = self.bucket(nodes.key(to, self.k));
+        let b = nodes.entry_bucket(to, self.k);
         let at = nodes.link(to, 1 + self.k).prev as usize;
         debug_assert_eq!(self.buckets[b][at], from, "the moved member's place");
         self.buckets[b][at] = to;
@@ -556,8 +615,18 @@ impl Schedule {
                 return None;
             }
             if b == 0 {
-                let i = *self.buckets[0].last().expect("a bucket marked non-empty");
+                let list = &self.buckets[0];
+                if let Some(&ahead) = list.len().checked_sub(1 + PREFETCH).map(|j| &list[j]) {
+                    nodes.prefetch(ahead);
+                }
+                let i = *list.last().expect("a bucket marked non-empty");
+                let key = nodes.key(i, self.k);
                 self.remove(nodes, i);
+                if key > now {
+                    // Its key grew after its entry was put ([`Self::reschedule`]).
+                    self.push(nodes, i, key);
+                    continue;
+                }
                 return Some(i);
             }
             // The bucket's lower bound is due: take it as `last`, and move the bucket's
@@ -566,7 +635,10 @@ impl Schedule {
             let mut moved = std::mem::take(&mut self.buckets[b]);
             self.least[b] = u32::MAX;
             self.nonempty &= !(1 << b);
-            for &i in &moved {
+            for (j, &i) in moved.iter().enumerate() {
+                if let Some(&ahead) = moved.get(j + PREFETCH) {
+                    nodes.prefetch(ahead);
+                }
                 let key = nodes.key(i, self.k);
                 self.put(nodes, i, key);
             }
@@ -592,13 +664,15 @@ impl Schedule {
                     ));
                 }
                 let l = nodes.link(i, 1 + self.k);
-                if l.prev != at as u32 || l.next != 0 {
+                if l.prev != at as u32 || l.next != 0 || nodes.entry_bucket(i, self.k) != b {
                     return Err(format!(
-                        "member {i} at {at} of schedule bucket {b} has link {l:?}"
+                        "member {i} at {at} of schedule bucket {b} has link {l:?}, bucket {}",
+                        nodes.entry_bucket(i, self.k)
                     ));
                 }
+                // A key may have grown since its entry was put: at or above the bucket.
                 let key = nodes.key(i, self.k);
-                if self.bucket(key) != b || key < self.least[b] {
+                if self.bucket(key) < b || key < self.least[b] {
                     return Err(format!(
                         "key {key} in schedule bucket {b} (bound {}, last {})",
                         self.least[b], self.last
@@ -622,6 +696,7 @@ mod tests {
     struct N {
         links: [Link; 3],
         keys: [u32; 2],
+        at: [usize; 2],
     }
 
     impl Nodes for Vec<N> {
@@ -640,6 +715,12 @@ mod tests {
         fn set_key(&mut self, i: u32, k: usize, key: u32) {
             self[i as usize].keys[k] = key;
         }
+        fn entry_bucket(&self, i: u32, k: usize) -> usize {
+            self[i as usize].at[k]
+        }
+        fn set_entry_bucket(&mut self, i: u32, k: usize, b: usize) {
+            self[i as usize].at[k] = b;
+        }
         fn prio(&self, i: u32) -> f32 {
             self[i as usize].keys[0] as f32
         }
@@ -650,6 +731,7 @@ mod tests {
             N {
                 links: [Link::OUT; 3],
                 keys: [0; 2],
+                at: [0; 2],
             };
             n
         ]
@@ -769,6 +851,23 @@ mod tests {
             {
                 d.remove(&mut nodes, i);
                 reference.retain(|&(_, j)| j != i);
+            }
+            // Scheduled again: later (the entry stays, only its key grows), earlier (moved),
+            // or never.
+            if step % 3 == 0
+                && let Some(&(old, i)) = reference.get(reference.len() / 3)
+            {
+                let key = match step % 4 {
+                    0 => Some(old + 40_000),
+                    1 => Some(now.max(old / 2)),
+                    2 => Some(old),
+                    _ => None,
+                };
+                d.reschedule(&mut nodes, i, key);
+                reference.retain(|&(_, j)| j != i);
+                if let Some(key) = key {
+                    reference.push((key, i));
+                }
             }
             let popped: Vec<u32> = std::iter::from_fn(|| d.pop_due(&mut nodes, now)).collect();
             let mut got: Vec<(u32, u32)> = popped

@@ -93,19 +93,9 @@ impl Coherent {
         tris + self.added(x, z)
     }
 
-    /// Keeps lane `i` of an evaluation beside split candidate `pos`, and queues it.
-    pub(super) fn keep_split(&mut self, l: &Lanes, i: usize, pos: u32) {
-        self.keep(l, i, pos, false);
-    }
-
-    /// Keeps lane `i` of an evaluation beside merge candidate `pos`, and queues it.
-    pub(super) fn keep_merge(&mut self, l: &Lanes, i: usize, pos: u32) {
-        self.keep(l, i, pos, true);
-    }
-
-    /// Keeps lane `i` of an evaluation in member `pos` of the merge or split frontier, and
-    /// queues and schedules it by it.
-    fn keep(&mut self, l: &Lanes, i: usize, pos: u32, merges: bool) {
+    /// Keeps lane `i` of an evaluation in member `at` (a place) of the merge or split
+    /// frontier, and queues and schedules it by it.
+    fn keep(&mut self, l: &Lanes, i: usize, at: u32, merges: bool) {
         let (m, t) = l.slack[i];
         let keys = [self.odometers[0].key(m), self.odometers[1].key(t)];
         let fr = if merges {
@@ -113,7 +103,7 @@ impl Coherent {
         } else {
             &mut self.splits
         };
-        fr.keep(pos, l.prio[i], lane_flags(l, i), keys);
+        fr.keep(at, l.prio[i], lane_flags(l, i), keys);
     }
 
     /// Evaluates again the frontier diamonds whose evaluations are due (four at a time),
@@ -129,9 +119,9 @@ impl Coherent {
             };
             due.clear();
             // One due on both odometers is taken once (out of both schedules).
-            for (k, &now) in now.iter().enumerate() {
-                while let Some(pos) = frontier.pop_due(k, now) {
-                    due.push(pos);
+            for k in 0..2 {
+                while let Some(i) = frontier.pop_due(k, now) {
+                    due.push(i);
                 }
             }
             self.stats.popped += due.len() as u32;
@@ -140,13 +130,18 @@ impl Coherent {
         self.due = due;
     }
 
-    /// Evaluates the members `list` of a frontier, four at a time, and keeps and queues
-    /// each evaluation.
+    /// Evaluates the members `list` (places) of a frontier, four at a time, and keeps and
+    /// queues each evaluation.
     fn evaluate_list(&mut self, f: &Frame, list: &[u32], merges: bool) {
         for chunk in list.chunks(4) {
-            let lanes = self.evaluate_at(f, chunk);
-            for (i, &p) in chunk.iter().enumerate() {
-                self.keep(&lanes, i, p, merges);
+            let fr = if merges { &self.merges } else { &self.splits };
+            let mut pos = [0u32; 4];
+            for (p, &i) in pos.iter_mut().zip(chunk) {
+                *p = fr.pos(i);
+            }
+            let lanes = self.evaluate_at(f, &pos[..chunk.len()]);
+            for (i, &at) in chunk.iter().enumerate() {
+                self.keep(&lanes, i, at, merges);
             }
             self.stats.evaluated += chunk.len() as u32;
         }
@@ -187,7 +182,7 @@ impl Coherent {
         }
         for merges in [false, true] {
             let cands = if merges { &self.merges } else { &self.splits };
-            let list: Vec<u32> = cands.members().map(|m| m.pos).collect();
+            let list: Vec<u32> = (0..cands.len() as u32).collect();
             self.evaluate_list(f, &list, merges);
         }
     }
@@ -223,12 +218,16 @@ impl Coherent {
         for p in self.parents(x, z).into_iter().flatten() {
             self.merges.remove(p);
         }
-        self.merges.insert(pos);
-        let mut fresh = [0u32; 4];
+        let at = self
+            .merges
+            .insert(pos)
+            .expect("an unsplit diamond is no merge candidate");
+        // Places, valid to the end: nothing leaves a frontier below.
+        let (mut fresh, mut places) = ([0u32; 4], [0u32; 4]);
         let mut n = 0;
         for c in self.children(x, z).into_iter().flatten() {
-            if self.splits.insert(c) {
-                fresh[n] = c;
+            if let Some(i) = self.splits.insert(c) {
+                (fresh[n], places[n]) = (c, i);
                 n += 1;
             }
         }
@@ -240,14 +239,14 @@ impl Coherent {
         } else {
             self.evaluate_at(f, &pos4)
         };
-        for (i, &c) in fresh.iter().enumerate().take(n) {
-            self.keep_split(&lanes, i, c);
+        for (i, &c) in places.iter().enumerate().take(n) {
+            self.keep(&lanes, i, c, false);
         }
         if n < 4 {
-            self.keep_merge(&lanes, n, pos);
+            self.keep(&lanes, n, at, true);
         } else {
             let lanes = self.evaluate_at(f, &[pos]);
-            self.keep_merge(&lanes, 0, pos);
+            self.keep(&lanes, 0, at, true);
         }
     }
 
@@ -268,21 +267,25 @@ impl Coherent {
                 self.splits.remove(c);
             }
         }
-        let mut fresh = [0u32; 4];
+        // Places, valid to the end: nothing leaves a frontier below.
+        let at = self.splits.place(pos).expect("inserted above");
+        let (mut fresh, mut places) = ([0u32; 4], [0u32; 4]);
         let mut n = 0;
         for p in self.parents(x, z).into_iter().flatten() {
             let (px, pz) = unpack(p);
-            if !self.any_split(&self.children(px, pz)) && self.merges.insert(p) {
-                fresh[n] = p;
+            if !self.any_split(&self.children(px, pz))
+                && let Some(i) = self.merges.insert(p)
+            {
+                (fresh[n], places[n]) = (p, i);
                 n += 1;
             }
         }
         let mut pos4 = [pos; 4];
         pos4[1..=n].copy_from_slice(&fresh[..n]);
         let lanes = self.evaluate_at(f, &pos4[..=n]);
-        self.keep_split(&lanes, 0, pos);
-        for (i, &p) in fresh.iter().enumerate().take(n) {
-            self.keep_merge(&lanes, i + 1, p);
+        self.keep(&lanes, 0, at, false);
+        for (i, &p) in places.iter().enumerate().take(n) {
+            self.keep(&lanes, i + 1, p, true);
         }
     }
 }
