@@ -145,7 +145,11 @@ fn queued(
     now: [u32; 2],
     bucket: impl Fn(&Member) -> Option<usize>,
 ) -> Result<(), String> {
-    let members: Vec<Member> = fr.members().copied().collect();
+    // By place, free places' records included (neither queued nor scheduled).
+    let members: Vec<Member> = fr.records().copied().collect();
+    if !fr.free_listed() {
+        return Err(format!("{name} candidates: free places listed wrong"));
+    }
     let (queue, schedules) = fr.lists().map_err(|e| format!("{name} candidates: {e}"))?;
     let mut count = vec![0usize; members.len()];
     for &(b, i) in &queue {
@@ -160,6 +164,14 @@ fn queued(
         count[i as usize] += 1;
     }
     for (i, m) in members.iter().enumerate() {
+        if m.is_free() {
+            if count[i] != 0 || m.queued() || m.due(0).is_some() || m.due(1).is_some() {
+                return Err(format!(
+                    "{name} candidates: free place {i} queued or scheduled"
+                ));
+            }
+            continue;
+        }
         if !fr.indexed(i) {
             return Err(format!("{name} candidate {:?} not indexed", unpack(m.pos)));
         }
@@ -178,6 +190,12 @@ fn queued(
             count[i as usize] += 1;
         }
         for (i, m) in members.iter().enumerate() {
+            if m.is_free() {
+                if count[i] != 0 {
+                    return Err(format!("{name} candidates: free place {i} scheduled"));
+                }
+                continue;
+            }
             let exact = fixed(f, m.pos).exact();
             let want = usize::from(!exact);
             if count[i] != want || m.due(k).is_some() == exact {

@@ -28,6 +28,16 @@ pub(super) const WANTED: u8 = 1;
 pub(super) const UNDER: u8 = 2;
 pub(super) const DROPPED: u8 = 4;
 
+/// The position of a free place's record (no diamond's: positions are at most
+/// `32768 | 32768 << 16`).
+const FREE: u32 = u32::MAX;
+
+/// Free places at most before [`Frontier::remove`] compacts the records, and the share of
+/// the places they may be: a frontier that shrank for good (a lower budget) gives its
+/// memory back; one that breathes, as a driving cut's does, refills its holes.
+const FREE_MIN: usize = 256;
+const FREE_SHARE: usize = 8;
+
 /// A [`Member`]'s link to no member: places are below 2^24 - 1
 /// ([`crate::tessellate::frontier::MAX_INDEXED`]).
 const NIL24: u32 = 0xff_ffff;
@@ -90,6 +100,23 @@ impl Member {
     pub fn due(&self, k: usize) -> Option<u32> {
         self.link(1 + k).linked().then_some(self.keys[k])
     }
+
+    /// A free place's record ([`Frontier::remove`]).
+    pub fn is_free(&self) -> bool {
+        self.pos == FREE
+    }
+
+    /// A diamond's record, not evaluated (neither queued nor scheduled).
+    fn fresh(pos: u32) -> Member {
+        Member {
+            pos,
+            prio: 0.0,
+            keys: [0; 2],
+            links: [0xff; 12],
+            at: [0; 2],
+            flags: 0,
+        }
+    }
 }
 
 impl Nodes for Chunks<Member> {
@@ -149,7 +176,10 @@ impl Nodes for Chunks<Member> {
 pub(super) struct Frontier {
     /// Merge candidates (else split candidates): which bucket a member is queued in.
     merges: bool,
+    /// By place; a removed member's place is left free ([`FREE`]) for the next inserted.
     members: Chunks<Member>,
+    /// The free places, the latest freed last.
+    free: Vec<u32>,
     index: PosIndex,
     queue: Queue,
     due: [Schedule; 2],
@@ -160,6 +190,7 @@ impl Frontier {
         Frontier {
             merges,
             members: Chunks::default(),
+            free: Vec::new(),
             index: PosIndex::default(),
             // The split queue's highest priority is the error bound.
             queue: Queue::new(!merges),
@@ -167,23 +198,35 @@ impl Frontier {
         }
     }
 
+    /// Members.
     pub fn len(&self) -> usize {
-        self.members.len()
+        self.members.len() - self.free.len()
     }
 
     pub fn members(&self) -> impl Iterator<Item = &Member> + '_ {
+        self.members.iter().filter(|m| !m.is_free())
+    }
+
+    /// Every place's record, free ones included ([`Member::is_free`]), by place.
+    pub fn records(&self) -> impl Iterator<Item = &Member> + '_ {
         self.members.iter()
+    }
+
+    /// The members' places.
+    pub fn places(&self) -> impl Iterator<Item = u32> + '_ {
+        (0..self.members.len() as u32).filter(|&i| !self.members[i as usize].is_free())
     }
 
     pub fn clear(&mut self) {
         self.members.clear();
+        self.free = Vec::new();
         self.index.clear();
         self.queue.clear();
         self.due.iter_mut().for_each(Schedule::clear);
     }
 
     pub fn members_bytes(&self) -> usize {
-        self.members.heap_bytes()
+        self.members.heap_bytes() + self.free.capacity() * 4
     }
 
     pub fn index_bytes(&self) -> usize {
@@ -256,16 +299,17 @@ impl Frontier {
         if self.contains(pos) {
             return None;
         }
-        self.members.push(Member {
-            pos,
-            prio: 0.0,
-            keys: [0; 2],
-            links: [0xff; 12],
-            at: [0; 2],
-            flags: 0,
-        });
+        let i = match self.free.pop() {
+            Some(i) => {
+                self.members[i as usize] = Member::fresh(pos);
+                i
+            }
+            None => {
+                self.members.push(Member::fresh(pos));
+                self.members.len() as u32 - 1
+            }
+        };
         let m = &self.members;
-        let i = m.len() as u32 - 1;
         self.index.insert(pos, i, |i| m[i as usize].pos);
         Some(i)
     }
@@ -284,7 +328,12 @@ impl Frontier {
         }
     }
 
-    /// Removes `pos`; false when it was not a member. The last member fills its place.
+    /// Removes `pos`; false when it was not a member. Its place is left free for the next
+    /// member inserted: moving the last member into it, as this did first, told the
+    /// moved member's queue neighbours, schedule slots and index slot where it went, four
+    /// or five cache misses a removal (two or three removals a split or merge) when a
+    /// server serves many viewers in turn. Free places are compacted away only once they
+    /// are many ([`FREE_MIN`], [`FREE_SHARE`]).
     pub fn remove(&mut self, pos: u32) -> bool {
         let Some(i) = self.find(pos) else {
             return false;
@@ -292,26 +341,53 @@ impl Frontier {
         self.unlink(i);
         let m = &self.members;
         self.index.remove(pos, |j| m[j as usize].pos);
-        let from = m.len() as u32 - 1;
-        if i != from {
-            // Told while the last member is still where the index has it.
-            self.index
-                .moved(m[from as usize].pos, i, |j| m[j as usize].pos);
+        if i as usize + 1 == self.members.len() {
+            self.members.swap_remove(i as usize);
+        } else {
+            self.members[i as usize] = Member::fresh(FREE);
+            self.free.push(i);
         }
-        self.members.swap_remove(i as usize);
-        if i != from {
-            let moved = self.members[i as usize];
-            if moved.queued() {
-                let b = self.bucket(&moved).expect("a queued member has a bucket");
-                self.queue.relocate(&mut self.members, b, from, i);
-            }
-            for (k, due) in self.due.iter_mut().enumerate() {
-                if moved.due(k).is_some() {
-                    due.relocate(&mut self.members, from, i);
-                }
-            }
+        if self.free.len() > FREE_MIN && self.free.len() * FREE_SHARE > self.members.len() {
+            self.compact();
         }
         true
+    }
+
+    /// Fills the free places with the last members, and drops the free places at the end.
+    fn compact(&mut self) {
+        self.free.sort_unstable();
+        let mut holes = std::mem::take(&mut self.free).into_iter();
+        while let Some(hole) = holes.next() {
+            // Free records at the end go first (the highest free places, in order).
+            while self.members.len() > 0 && self.members[self.members.len() - 1].is_free() {
+                self.members.swap_remove(self.members.len() - 1);
+                holes.next_back();
+            }
+            if hole as usize >= self.members.len() {
+                break;
+            }
+            self.move_last_to(hole);
+        }
+    }
+
+    /// Moves the last member (not free) into the free place `i`, telling the index, its
+    /// queue neighbours and its schedule slots.
+    fn move_last_to(&mut self, i: u32) {
+        let m = &self.members;
+        let from = m.len() as u32 - 1;
+        self.index
+            .moved(m[from as usize].pos, i, |j| m[j as usize].pos);
+        self.members.swap_remove(i as usize);
+        let moved = self.members[i as usize];
+        if moved.queued() {
+            let b = self.bucket(&moved).expect("a queued member has a bucket");
+            self.queue.relocate(&mut self.members, b, from, i);
+        }
+        for (k, due) in self.due.iter_mut().enumerate() {
+            if moved.due(k).is_some() {
+                due.relocate(&mut self.members, from, i);
+            }
+        }
     }
 
     /// Keeps an evaluation of member `i` (by place: priority, flags, and per odometer the
@@ -446,5 +522,15 @@ impl Frontier {
     /// Whether `i` is the place the index gives member `i`'s position (for the audit).
     pub fn indexed(&self, i: usize) -> bool {
         self.find(self.members[i].pos) == Some(i as u32) && self.index.len() == self.len()
+    }
+
+    /// Whether the free places are the free records, each once (for the audit).
+    pub fn free_listed(&self) -> bool {
+        let mut free = self.free.clone();
+        free.sort_unstable();
+        free.dedup();
+        free.len() == self.free.len()
+            && free.iter().all(|&i| self.members[i as usize].is_free())
+            && self.members.iter().filter(|m| m.is_free()).count() == free.len()
     }
 }

@@ -182,7 +182,7 @@ impl Coherent {
         }
         for merges in [false, true] {
             let cands = if merges { &self.merges } else { &self.splits };
-            let list: Vec<u32> = (0..cands.len() as u32).collect();
+            let list: Vec<u32> = cands.places().collect();
             self.evaluate_list(f, &list, merges);
         }
     }
