@@ -452,20 +452,23 @@ impl Frontier {
         }
     }
 
-    /// The next member due on odometer `k` at the keys `now`, taken out of its schedule,
-    /// and out of the other when due there too (so one due on both is taken once): its
-    /// place. Not due on the other, it stays scheduled there, its entry kept for
-    /// [`Self::keep`] (taking it out touched the member that filled its place: a cache
-    /// miss, in a server serving many viewers, for most evaluations of a turning frame).
-    pub fn pop_due(&mut self, k: usize, now: [u32; 2]) -> Option<u32> {
-        let i = self.due[k].pop_due(&mut self.members, now[k])?;
-        if self.members[i as usize]
-            .due(1 - k)
-            .is_some_and(|key| key <= now[1 - k])
-        {
-            self.due[1 - k].remove(&mut self.members, i);
+    /// Takes every member due on odometer `k` at the keys `now` out of its schedule into
+    /// `out` (places), and out of the other schedule those due there too (so one due on
+    /// both is taken once). One not due on the other stays scheduled there, its entry
+    /// kept for [`Self::keep`] (taking it out touched the member that filled its place: a
+    /// cache miss, in a server serving many viewers, for most evaluations of a turning
+    /// frame).
+    pub fn take_due(&mut self, k: usize, now: [u32; 2], out: &mut Vec<u32>) {
+        let from = out.len();
+        self.due[k].take_due(&mut self.members, now[k], out);
+        for &i in &out[from..] {
+            if self.members[i as usize]
+                .due(1 - k)
+                .is_some_and(|key| key <= now[1 - k])
+            {
+                self.due[1 - k].remove(&mut self.members, i);
+            }
         }
-        Some(i)
     }
 
     /// Shifts odometer `k`'s keys down by `shift` (those below it to 0), the schedule

@@ -120,9 +120,7 @@ impl Coherent {
             due.clear();
             // One due on both odometers is taken once (out of both schedules).
             for k in 0..2 {
-                while let Some(i) = frontier.pop_due(k, now) {
-                    due.push(i);
-                }
+                frontier.take_due(k, now, &mut due);
             }
             self.stats.popped += due.len() as u32;
             self.evaluate_list(f, &due, merges);
