@@ -29,7 +29,8 @@
 # frames_lost, first_frame_after_join_ms_max) and the CPU figures over the whole storm;
 # then one line for 40 viewers joining at once (one process, `--viewers 40`), as above.
 #
-# SERVER_LOG=FILE keeps the server's log there.
+# SERVER_LOG=FILE keeps the server's log there. BIN_DIR=DIR runs the binaries found there,
+# unbuilt (to compare two builds in turn).
 # PROFILE (default release) is the cargo profile built and run (`measure`: a quicker
 # build, no LTO); DRIVE replaces the drive script.
 set -euo pipefail
@@ -51,10 +52,11 @@ if (($(nproc) < 2)); then
     echo "error: needs two CPUs (one for the server, one for the load generator)" >&2
     exit 1
 fi
-BIN_DIR="${CARGO_TARGET_DIR:-target}/$PROFILE"
+if [[ -z "${BIN_DIR:-}" ]]; then
+    BIN_DIR="${CARGO_TARGET_DIR:-target}/$PROFILE"
+    cargo build --profile "$PROFILE" -p roam-server -p roam-client >&2
+fi
 export BIN_DIR
-
-cargo build --profile "$PROFILE" -p roam-server -p roam-client >&2
 # shellcheck source=scripts/lib.sh
 source scripts/lib.sh
 start_server "$DATA" taskset -c 0

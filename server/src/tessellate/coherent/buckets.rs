@@ -467,6 +467,8 @@ pub(super) struct Schedule {
     len: usize,
     /// Scratch for [`Self::take_due`]: the members of the buckets it empties.
     taken: Vec<u32>,
+    /// Per bucket, its places left empty ([`NIL`]) by members taken out.
+    dead: [u32; SLOTS],
 }
 
 /// How many members ahead [`Schedule::take_due`] asks for their records ([`Nodes::prefetch`]):
@@ -488,6 +490,7 @@ impl Schedule {
             last: 0,
             len: 0,
             taken: Vec::new(),
+            dead: [0; SLOTS],
         }
     }
 
@@ -504,6 +507,7 @@ impl Schedule {
             }
         }
         self.least = [u32::MAX; SLOTS];
+        self.dead = [0; SLOTS];
         self.nonempty = 0;
         self.last = 0;
         self.len = 0;
@@ -576,23 +580,62 @@ impl Schedule {
         }
     }
 
-    /// Takes member `i`, scheduled, out.
+    /// Takes member `i`, scheduled, out. Its place in its bucket's vector is left empty
+    /// ([`NIL`]) unless it is the last: filling it with the last member, as this did
+    /// first, touched that member's record to tell it (a cache miss, in a server serving
+    /// many viewers in turn, for most removals). Empty places go when the bucket is taken
+    /// ([`Self::take_due`]), or when they outnumber the bucket's members ([`Self::compact`]).
     #[inline]
     pub fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
         let b = nodes.entry_bucket(i, self.k);
-        let at = nodes.link(i, 1 + self.k).prev;
-        debug_assert!(at != NIL, "only a scheduled member is taken out");
+        let at = nodes.link(i, 1 + self.k).prev as usize;
+        debug_assert!(at != NIL as usize, "only a scheduled member is taken out");
         nodes.set_link(i, 1 + self.k, Link::OUT);
+        self.len -= 1;
         let list = &mut self.buckets[b];
-        list.swap_remove(at as usize);
-        if let Some(&moved) = list.get(at as usize) {
-            nodes.set_link(moved, 1 + self.k, Link { prev: at, next: 0 });
+        if at + 1 == list.len() {
+            list.pop();
+            while list.last() == Some(&NIL) {
+                list.pop();
+                self.dead[b] -= 1;
+            }
+        } else {
+            list[at] = NIL;
+            self.dead[b] += 1;
+            if self.dead[b] as usize * 2 > list.len() {
+                self.compact(nodes, b);
+            }
         }
-        if list.is_empty() {
+        if self.buckets[b].is_empty() {
             self.nonempty &= !(1 << b);
             self.least[b] = u32::MAX;
         }
-        self.len -= 1;
+    }
+
+    /// Closes up bucket `b`'s empty places, its members told their new places.
+    fn compact(&mut self, nodes: &mut impl Nodes, b: usize) {
+        let list = &mut self.buckets[b];
+        let mut w = 0;
+        for r in 0..list.len() {
+            let i = list[r];
+            if i == NIL {
+                continue;
+            }
+            if w != r {
+                list[w] = i;
+                nodes.set_link(
+                    i,
+                    1 + self.k,
+                    Link {
+                        prev: w as u32,
+                        next: 0,
+                    },
+                );
+            }
+            w += 1;
+        }
+        list.truncate(w);
+        self.dead[b] = 0;
     }
 
     /// Member `from`, scheduled, now lives at `to` (its link and key moved with it).
@@ -627,8 +670,9 @@ impl Schedule {
             let b = bits.trailing_zeros() as usize;
             bits &= bits - 1;
             let list = &mut self.buckets[b];
-            taken.extend_from_slice(list);
+            taken.extend(list.iter().filter(|&&i| i != NIL));
             list.clear();
+            self.dead[b] = 0;
             if list.capacity() > KEEP_CAPACITY {
                 list.shrink_to(KEEP_CAPACITY);
             }
@@ -664,7 +708,18 @@ impl Schedule {
             if (self.nonempty >> b & 1 != 0) == list.is_empty() {
                 return Err(format!("schedule bucket {b} marked wrong"));
             }
+            let dead = list.iter().filter(|&&i| i == NIL).count();
+            if dead != self.dead[b] as usize || list.last() == Some(&NIL) {
+                return Err(format!(
+                    "schedule bucket {b}: {dead} empty places, {} counted, last {:?}",
+                    self.dead[b],
+                    list.last()
+                ));
+            }
             for (at, &i) in list.iter().enumerate() {
+                if i == NIL {
+                    continue;
+                }
                 if i as usize >= nodes.len() {
                     return Err(format!(
                         "schedule bucket {b} names member {i}, past the members"
@@ -686,7 +741,7 @@ impl Schedule {
                     ));
                 }
             }
-            out.extend_from_slice(list);
+            out.extend(list.iter().filter(|&&i| i != NIL));
         }
         if out.len() != self.len {
             return Err(format!("{} scheduled, {} counted", out.len(), self.len));

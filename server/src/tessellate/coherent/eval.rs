@@ -137,17 +137,19 @@ impl Coherent {
         // lately (`Coherent::pace`): while the driver turns, the far diamonds' share goes
         // to turning, so they fall due less often (an even split evaluated 463 diamonds a
         // frame along the capacity drive with 32 viewers, this 330; 738 and 532 along the
-        // bench's own drive). The share stays within a quarter and three quarters: a
-        // wider range let the small yaw wobble of a straight drive take most of the far
-        // diamonds' travel margin (10 to 20 evaluations a frame on the straight).
+        // bench's own drive). The share stays within a tenth and nine tenths: evaluations
+        // a frame along the capacity drive (the mean, dominated by the turns) 332 with a
+        // quarter and three quarters, 281 with this, 270 with a twentieth; a wider range
+        // lets the small yaw wobble of a straight drive take more of the far diamonds'
+        // travel margin (the median along the bench's own drive 15, 21 and 29).
         let far = p.far.max(F4::splat(1e-3));
         let (v, w) = (F4::splat(self.pace.0), F4::splat(self.pace.1));
         let eps = F4::splat(1e-6);
         let share = v
             .add(eps)
             .div(v.add(far.mul(w)).add(eps).add(eps))
-            .max(F4::splat(0.25))
-            .min(F4::splat(0.75));
+            .max(F4::splat(0.1))
+            .min(F4::splat(0.9));
         let moved = margin.mul(share).min(footprint);
         let moved_shown = moved.min(by_prio);
         let turned = margin.mul(F4::splat(1.0).sub(share)).div(far);
