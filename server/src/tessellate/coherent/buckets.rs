@@ -467,8 +467,6 @@ pub(super) struct Schedule {
     len: usize,
     /// Scratch for [`Self::take_due`]: the members of the buckets it empties.
     taken: Vec<u32>,
-    /// Per bucket, its places left empty ([`NIL`]) by members taken out.
-    dead: [u32; SLOTS],
 }
 
 /// How many members ahead [`Schedule::take_due`] asks for their records ([`Nodes::prefetch`]):
@@ -478,7 +476,7 @@ const PREFETCH: usize = 8;
 
 /// Places an emptied bucket keeps room for when it is moved down (a larger one gives its
 /// memory back: kept, every bucket's peak would stay held).
-const KEEP_CAPACITY: usize = 256;
+const KEEP_CAPACITY: usize = 64;
 
 impl Schedule {
     pub fn new(k: usize) -> Schedule {
@@ -490,7 +488,6 @@ impl Schedule {
             last: 0,
             len: 0,
             taken: Vec::new(),
-            dead: [0; SLOTS],
         }
     }
 
@@ -507,7 +504,6 @@ impl Schedule {
             }
         }
         self.least = [u32::MAX; SLOTS];
-        self.dead = [0; SLOTS];
         self.nonempty = 0;
         self.last = 0;
         self.len = 0;
@@ -544,6 +540,11 @@ impl Schedule {
             },
         );
         nodes.set_entry_bucket(i, self.k, b);
+        if list.len() == list.capacity() {
+            // Grown by a quarter, not doubled: the schedules' vectors were half slack
+            // (issue 22's memory per viewer); the copies are sequential and rare.
+            list.reserve_exact(list.len() / 4 + 16);
+        }
         list.push(i);
         self.least[b] = self.least[b].min(key);
         self.nonempty |= 1 << b;
@@ -580,62 +581,29 @@ impl Schedule {
         }
     }
 
-    /// Takes member `i`, scheduled, out. Its place in its bucket's vector is left empty
-    /// ([`NIL`]) unless it is the last: filling it with the last member, as this did
-    /// first, touched that member's record to tell it (a cache miss, in a server serving
-    /// many viewers in turn, for most removals). Empty places go when the bucket is taken
-    /// ([`Self::take_due`]), or when they outnumber the bucket's members ([`Self::compact`]).
+    /// Takes member `i`, scheduled, out.
     #[inline]
     pub fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
         let b = nodes.entry_bucket(i, self.k);
-        let at = nodes.link(i, 1 + self.k).prev as usize;
-        debug_assert!(at != NIL as usize, "only a scheduled member is taken out");
+        let at = nodes.link(i, 1 + self.k).prev;
+        debug_assert!(at != NIL, "only a scheduled member is taken out");
         nodes.set_link(i, 1 + self.k, Link::OUT);
-        self.len -= 1;
         let list = &mut self.buckets[b];
-        if at + 1 == list.len() {
-            list.pop();
-            while list.last() == Some(&NIL) {
-                list.pop();
-                self.dead[b] -= 1;
-            }
-        } else {
-            list[at] = NIL;
-            self.dead[b] += 1;
-            if self.dead[b] as usize * 2 > list.len() {
-                self.compact(nodes, b);
-            }
+        list.swap_remove(at as usize);
+        if let Some(&moved) = list.get(at as usize) {
+            nodes.set_link(moved, 1 + self.k, Link { prev: at, next: 0 });
         }
-        if self.buckets[b].is_empty() {
+        if list.is_empty() {
             self.nonempty &= !(1 << b);
             self.least[b] = u32::MAX;
         }
-    }
-
-    /// Closes up bucket `b`'s empty places, its members told their new places.
-    fn compact(&mut self, nodes: &mut impl Nodes, b: usize) {
-        let list = &mut self.buckets[b];
-        let mut w = 0;
-        for r in 0..list.len() {
-            let i = list[r];
-            if i == NIL {
-                continue;
-            }
-            if w != r {
-                list[w] = i;
-                nodes.set_link(
-                    i,
-                    1 + self.k,
-                    Link {
-                        prev: w as u32,
-                        next: 0,
-                    },
-                );
-            }
-            w += 1;
+        // A bucket that emptied out by removals gives its memory back (one that is
+        // taken is cut to `KEEP_CAPACITY`): kept, a bucket of distant keys held its
+        // peak, and the schedules half their bytes in slack.
+        if list.capacity() > KEEP_CAPACITY && list.len() * 4 < list.capacity() {
+            list.shrink_to(list.len() * 2);
         }
-        list.truncate(w);
-        self.dead[b] = 0;
+        self.len -= 1;
     }
 
     /// Member `from`, scheduled, now lives at `to` (its link and key moved with it).
@@ -670,9 +638,8 @@ impl Schedule {
             let b = bits.trailing_zeros() as usize;
             bits &= bits - 1;
             let list = &mut self.buckets[b];
-            taken.extend(list.iter().filter(|&&i| i != NIL));
+            taken.extend_from_slice(list);
             list.clear();
-            self.dead[b] = 0;
             if list.capacity() > KEEP_CAPACITY {
                 list.shrink_to(KEEP_CAPACITY);
             }
@@ -694,7 +661,7 @@ impl Schedule {
                 self.put(nodes, i, key);
             }
         }
-        if taken.capacity() > KEEP_CAPACITY * 4 {
+        if taken.capacity() > KEEP_CAPACITY * 16 {
             taken = Vec::new();
         }
         self.taken = taken;
@@ -708,18 +675,7 @@ impl Schedule {
             if (self.nonempty >> b & 1 != 0) == list.is_empty() {
                 return Err(format!("schedule bucket {b} marked wrong"));
             }
-            let dead = list.iter().filter(|&&i| i == NIL).count();
-            if dead != self.dead[b] as usize || list.last() == Some(&NIL) {
-                return Err(format!(
-                    "schedule bucket {b}: {dead} empty places, {} counted, last {:?}",
-                    self.dead[b],
-                    list.last()
-                ));
-            }
             for (at, &i) in list.iter().enumerate() {
-                if i == NIL {
-                    continue;
-                }
                 if i as usize >= nodes.len() {
                     return Err(format!(
                         "schedule bucket {b} names member {i}, past the members"
@@ -741,7 +697,7 @@ impl Schedule {
                     ));
                 }
             }
-            out.extend(list.iter().filter(|&&i| i != NIL));
+            out.extend_from_slice(list);
         }
         if out.len() != self.len {
             return Err(format!("{} scheduled, {} counted", out.len(), self.len));

@@ -36,7 +36,7 @@ const FREE: u32 = u32::MAX;
 /// the places they may be: a frontier that shrank for good (a lower budget) gives its
 /// memory back; one that breathes, as a driving cut's does, refills its holes.
 const FREE_MIN: usize = 256;
-const FREE_SHARE: usize = 8;
+const FREE_SHARE: usize = 16;
 
 /// A [`Member`]'s link to no member: places are below 2^24 - 1
 /// ([`crate::tessellate::frontier::MAX_INDEXED`]).
