@@ -61,11 +61,17 @@ use crate::viewer::{KeyCause, ViewerCore};
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
-/// Sends a last message (a refusal, a goodbye) and gives it a moment to arrive before the
-/// connection closes (closing drops what is unsent).
+/// How long a last message may take to be received before the connection closes anyway.
+/// The wait ends as soon as the peer has it; 250 ms was too short for a browser on a
+/// loaded 2-core machine (the page saw the connection lost, not the refusal, in one run
+/// of the whole test suite).
+const LAST_WORD_WAIT: Duration = Duration::from_secs(2);
+
+/// Sends a last message (a refusal, a goodbye) and gives it up to [`LAST_WORD_WAIT`] to
+/// arrive before the connection closes (closing drops what is unsent).
 pub(super) async fn last_word(send: &mut SendStream, msg: &ServerMessage) {
     if send.write_msg(msg).await.is_ok() && send.finish() {
-        let _ = tokio::time::timeout(Duration::from_millis(250), send.stopped()).await;
+        let _ = tokio::time::timeout(LAST_WORD_WAIT, send.stopped()).await;
     }
 }
 
