@@ -404,13 +404,14 @@ impl Frontier {
             None
         };
         let will = self.bucket(&new);
-        if was.is_some() && was == will {
+        if let Some(b) = was
+            && was == will
+        {
             // It stays where it is (most evaluations of a driving frame: the priority moved
             // by a few per cent, its bucket spans 9 %); only its bucket's highest follows.
             let m = &mut self.members[i as usize];
             (m.prio, m.flags) = (prio, flags);
-            self.queue
-                .repriced(was.expect("checked above"), old.prio, prio);
+            self.queue.repriced(b, old.prio, prio);
         } else {
             if let Some(b) = was {
                 self.queue.remove(&mut self.members, b, i);
