@@ -34,7 +34,8 @@
 //!
 //! **Time.** A radix heap moves a member down a bucket at a time as the odometer nears its
 //! key: the schedules' buckets go by digits of 4 bits, not bits, to move members half as
-//! often, and are vectors, not lists ([`Schedule`]). The queue keeps each split bucket's
+//! often, and are vectors, not lists ([`Schedule`]); a frame takes every due member at
+//! once, the heap's last key jumping to the odometer's ([`Schedule::take_due`]). The queue keeps each split bucket's
 //! highest priority ([`Queue::most`]): the error bound read the bucket that holds it whole
 //! every frame, 540 scattered records
 //! at the median (20 µs), where the vector of `(entry, priority)` had been read in order.
@@ -78,7 +79,7 @@ pub(super) trait Nodes {
     /// The bucket its entry sits in, in the schedule of odometer `k` (while scheduled).
     fn entry_bucket(&self, i: u32, k: usize) -> usize;
     fn set_entry_bucket(&mut self, i: u32, k: usize, b: usize);
-    /// Brings its record into the cache ahead of use (see [`Schedule::pop_due`]).
+    /// Brings its record into the cache ahead of use (see [`Schedule::take_due`]).
     fn prefetch(&self, _i: u32) {}
     /// Its priority, by which it is queued.
     fn prio(&self, i: u32) -> f32;
@@ -269,8 +270,8 @@ impl Queue {
         self.len -= 1;
     }
 
-    /// Member `i`, queued in `bucket` and staying there, had priority `old` and has `new`:
-    /// the bucket's highest follows.
+    /// A member queued in `bucket` and staying there had priority `old` and has `new`: the
+    /// bucket's highest follows.
     #[inline]
     pub fn repriced(&mut self, bucket: usize, old: f32, new: f32) {
         if let Some(most) = self.most.get_mut(bucket)
@@ -597,9 +598,9 @@ impl Schedule {
             self.nonempty &= !(1 << b);
             self.least[b] = u32::MAX;
         }
-        // A bucket that emptied out by removals gives its memory back (one that is
-        // taken is cut to `KEEP_CAPACITY`): kept, a bucket of distant keys held its
-        // peak, and the schedules half their bytes in slack.
+        // A bucket that emptied out by removals gives its memory back, as one that is
+        // taken is cut to `KEEP_CAPACITY`: a bound on a bucket of distant keys, which is
+        // rarely taken (along the bench's drive it changed nothing measurable).
         if list.capacity() > KEEP_CAPACITY && list.len() * 4 < list.capacity() {
             list.shrink_to(list.len() * 2);
         }

@@ -45,7 +45,7 @@
 //! a blocking thread. The queues are kept between the two, so the second goes on where
 //! the first stopped.
 //!
-//! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates 10 to 14 of
+//! **Cost**: on `kossou` at 32,768 triangles, a frame of driving evaluates 10 to 20 of
 //! some 22,000 frontier diamonds; nothing else in a frame walks the frontiers, so a frame
 //! costs what it evaluates and changes. (Queuing every frontier diamond each frame, as
 //! this did before, cost 150–200 µs a frame whatever changed.)
