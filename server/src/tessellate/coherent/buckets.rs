@@ -563,13 +563,24 @@ impl Schedule {
 
     /// Schedules member `i` at `key` (`None`: never), scheduled or not. A member already
     /// scheduled no later than `key` keeps its entry, only its key grows (see the type's
-    /// docs: it is put again by its key when its entry comes up).
+    /// docs: it is put again by its key when its entry comes up); so does one whose earlier
+    /// key falls in its entry's bucket (taking it out touched the member that filled its
+    /// place: 3 % of a server's time with 50 driving viewers).
     #[inline]
     pub fn reschedule(&mut self, nodes: &mut impl Nodes, i: u32, key: Option<u32>) {
         let scheduled = nodes.link(i, 1 + self.k).linked();
         match key {
             Some(key) if scheduled && key >= nodes.key(i, self.k) => {
                 nodes.set_key(i, self.k, key);
+            }
+            Some(key)
+                if scheduled
+                    && key >= self.last
+                    && self.bucket(key) == nodes.entry_bucket(i, self.k) =>
+            {
+                nodes.set_key(i, self.k, key);
+                let b = self.bucket(key);
+                self.least[b] = self.least[b].min(key);
             }
             _ => {
                 if scheduled {
