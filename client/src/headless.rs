@@ -92,6 +92,8 @@ pub struct ViewerStats {
     pub last_tick: u64,
     /// The largest mesh received, triangles.
     pub max_triangles: usize,
+    /// The most vehicles one frame taken carried.
+    pub vehicles_max: usize,
     /// With `keep_last`: the scene, the last mesh decoded and the colour tiles resident.
     pub scene: Option<crate::render::Scene>,
     pub last_mesh: Option<mesh::Mesh>,
@@ -232,6 +234,7 @@ async fn frames(
             stats.first_frame_s = started.elapsed().as_secs_f64();
         }
         stats.frames += 1;
+        stats.vehicles_max = stats.vehicles_max.max(r.vehicles.len());
         let reconnects = session.reconnects();
         if reconnects != connection {
             // A new connection: its frames are numbered from 0 again.

@@ -55,6 +55,7 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         "input_to_frame_ms_p99": quantile(&latencies, 0.99),
         "decode_errors": viewers.iter().map(|s| s.decode_errors).sum::<u64>(),
         "max_triangles": viewers.iter().map(|s| s.max_triangles).max().unwrap_or(0),
+        "vehicles_max": viewers.iter().map(|s| s.vehicles_max).max().unwrap_or(0),
         "budget_served_min": viewers.iter().map(|s| s.budget_served).min().unwrap_or(0),
         "reconnects": viewers.iter().map(|s| s.reconnects).sum::<u32>(),
         "resumed": viewers.iter().map(|s| s.resumed).sum::<u32>(),

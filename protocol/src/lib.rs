@@ -5,6 +5,7 @@
 
 pub mod bintree;
 mod bounded;
+pub mod bus;
 pub mod changes;
 pub mod codec;
 pub mod colormap;

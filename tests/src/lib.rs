@@ -10,6 +10,7 @@ pub mod browser;
 pub mod fixtures;
 pub mod flood;
 pub mod fuzz;
+pub mod nats;
 pub mod relay;
 pub mod simnet;
 pub mod web;

@@ -412,6 +412,9 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
             None => Err(Refusal::Unavailable("no vehicle to follow".into())),
         };
     }
+    if let Some(remote) = &shared.remote {
+        return join_world(shared, remote, hello).await;
+    }
     let (replace, replaced) = oneshot::channel();
     let claim = hello.resume.and_then(|t| shared.tickets().remove(&t));
     if let (Some(ticket), Some(claim)) = (hello.resume, claim) {
@@ -473,6 +476,82 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
         resumed: false,
         replaced: Some(replaced),
     })
+}
+
+/// A driver's join on an edge: its vehicle taken back from the world with its ticket
+/// (issued by the world: any edge's), or a new one. A connection of this edge that still
+/// drives it is ended first, as in [`join`].
+async fn join_world(
+    shared: &Shared,
+    remote: &super::bus::edge::Remote,
+    hello: &Hello,
+) -> Result<Joined, Refusal> {
+    let (replace, replaced) = oneshot::channel();
+    if let Some(ticket) = hello.resume {
+        let claim = shared.tickets().remove(&ticket);
+        if let Some(old) = claim.and_then(|c| c.replace) {
+            let (done, ended) = oneshot::channel();
+            if old.send(done).is_ok() {
+                let _ = tokio::time::timeout(REPLACE_WAIT, ended).await;
+            }
+        }
+        match remote.resume(ticket).await {
+            Ok(vehicle) => {
+                claim_ticket(shared, ticket, vehicle, replace);
+                return Ok(Joined {
+                    vehicle,
+                    driver: true,
+                    ticket: Some(ticket),
+                    resumed: true,
+                    replaced: Some(replaced),
+                });
+            }
+            Err(why) => tracing::info!("a resume refused by the world ({why}): a new vehicle"),
+        }
+    }
+    join_new(shared, remote).await.map(|mut j| {
+        if let Some(t) = j.ticket {
+            claim_ticket(shared, t, j.vehicle, replace);
+            j.replaced = Some(replaced);
+        }
+        j
+    })
+}
+
+/// A new vehicle from the world, its ticket the world's.
+async fn join_new(shared: &Shared, remote: &super::bus::edge::Remote) -> Result<Joined, Refusal> {
+    let (vehicle, ticket) = remote.join().await.map_err(|why| {
+        if *shared.shutdown.borrow() {
+            Refusal::Shutdown
+        } else {
+            Refusal::Unavailable(why)
+        }
+    })?;
+    Ok(Joined {
+        vehicle,
+        driver: true,
+        ticket: Some(ticket),
+        resumed: false,
+        replaced: None,
+    })
+}
+
+/// Records that `ticket` names `vehicle`, driven by the connection `replace` reaches.
+fn claim_ticket(
+    shared: &Shared,
+    ticket: Ticket,
+    vehicle: VehicleId,
+    replace: oneshot::Sender<oneshot::Sender<()>>,
+) {
+    let mut tickets = shared.tickets();
+    tickets.retain(|_, c| c.vehicle != vehicle);
+    tickets.insert(
+        ticket,
+        Claim {
+            vehicle,
+            replace: Some(replace),
+        },
+    );
 }
 
 /// Hands the world an event that answers with a vehicle: `Err` when it answers none (a

@@ -11,6 +11,7 @@
 //! on a second endpoint ([`web`]), admitted and served by the same code as native viewers
 //! ([`link`] hides which), in the same world, under the same limits.
 
+pub mod bus;
 pub mod color_budget;
 mod handshake;
 pub mod link;
@@ -80,6 +81,10 @@ pub struct Options {
     pub color_window: u8,
     /// The browser viewer (`serve --web`): its page over HTTPS and WebTransport.
     pub web: Option<web::WebOptions>,
+    /// The world, when it is elsewhere (`roam-server edge`): reached over NATS, its
+    /// snapshots served and its tickets handed out. `None`: the world runs in this process
+    /// (`serve`), and [`Options::record`] records it.
+    pub remote: Option<Arc<bus::edge::Remote>>,
 }
 
 /// [`Options::max_viewers`] unless told otherwise.
@@ -117,6 +122,7 @@ impl Options {
             color_total: COLOR_TOTAL,
             color_window: roam_protocol::tiles::DEFAULT_WINDOW,
             web: None,
+            remote: None,
         }
     }
 }
@@ -144,8 +150,11 @@ pub struct Shared {
     world_stats: Arc<world_loop::WorldStats>,
     /// Admission, and how to evict each pending connection.
     gate: Mutex<Gate>,
-    /// Drivers' tickets: the vehicle each names.
+    /// Drivers' tickets: the vehicle each names (on an edge, the world's tickets of the
+    /// drivers this edge serves).
     tickets: Mutex<HashMap<Ticket, handshake::Claim>>,
+    /// The world, when it is elsewhere ([`Options::remote`]).
+    remote: Option<Arc<bus::edge::Remote>>,
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
     /// Streaming viewers' frames before joining viewers' first ones ([`makers`]).
@@ -316,17 +325,27 @@ impl Server {
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world_stats = Arc::new(world_loop::WorldStats::default());
-        let world = {
-            let core = crate::sim::world_core::WorldCore::new(terrain.clone(), options.record)
-                .map_err(ServeError::World)?
-                .with_hold(world_loop::hold_ticks(options.hold))
-                // Vehicles at most, held ones included.
-                .with_limit(options.max_viewers);
-            let stats = world_stats.clone();
-            std::thread::Builder::new()
-                .name("roam-world".into())
-                .spawn(move || world_loop::run(core, inbox_rx, snap_tx, &stats))
-                .map_err(ServeError::World)?
+        let world = match options.remote.clone() {
+            None => {
+                let core = crate::sim::world_core::WorldCore::new(terrain.clone(), options.record)
+                    .map_err(ServeError::World)?
+                    .with_hold(world_loop::hold_ticks(options.hold))
+                    // Vehicles at most, held ones included.
+                    .with_limit(options.max_viewers);
+                let stats = world_stats.clone();
+                std::thread::Builder::new()
+                    .name("roam-world".into())
+                    .spawn(move || world_loop::run(core, inbox_rx, snap_tx, &stats))
+                    .map_err(ServeError::World)?
+            }
+            Some(remote) => {
+                let terrain = terrain.clone();
+                let runtime = tokio::runtime::Handle::current();
+                std::thread::Builder::new()
+                    .name("roam-edge".into())
+                    .spawn(move || bus::edge::run(remote, terrain, runtime, inbox_rx, snap_tx))
+                    .map_err(ServeError::World)?
+            }
         };
         let (stop, shutdown) = watch::channel(false);
         let shared = Arc::new(Shared {
@@ -354,6 +373,7 @@ impl Server {
                 evict: HashMap::new(),
             }),
             tickets: Mutex::new(HashMap::new()),
+            remote: options.remote,
             makers: Arc::new(makers::Makers::new(makers())),
             unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),

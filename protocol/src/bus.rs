@@ -1,0 +1,369 @@
+//! What a world and its edge servers say to each other over NATS (`roam-server world` and
+//! `roam-server edge`): subjects, and the messages on them. Pure, as the rest of this
+//! crate: the NATS client lives in the server's shell. Every message decodes with
+//! [`crate::messages::decode`]: a byte limit per message, a limit per list, an error naming
+//! the field, never a panic.
+//!
+//! ```text
+//! edge ──ask (request-reply: hello, join, resume, leave, hold)──► world
+//! edge ──keys (publish: one driver's key states, as its datagram brought them)──► world
+//! edge ◄──snapshot (publish, each tick: supersedes the one before)── world
+//! ```
+//!
+//! Decisions:
+//!
+//! - Core NATS is at-most-once. A snapshot supersedes the one before, so a lost one costs
+//!   nothing but its tick; key states travel as the viewer's datagram brings them (the
+//!   newest few at once), so a lost message is covered by the next one, as on the viewer's
+//!   own link; what must not be lost (a join, a resume, a leave, a hold) is a request the
+//!   world answers, retried by the edge until it is.
+//! - Vehicle states go as `f64` bits, not as the rounded views a frame carries: an edge
+//!   computes its viewers' cameras from exactly what the world simulated.
+//! - Subjects are namespaced by world (`roam.<world>.…`), so worlds share one NATS.
+
+use serde::{Deserialize, Deserializer, Serialize};
+
+use crate::bounded;
+use crate::messages::{Checked, KEY_HISTORY, KeyState, MAX_REASON, MAX_VEHICLES, Ticket};
+
+/// The longest world name: letters, digits, `-` and `_` (a NATS subject token).
+pub const MAX_WORLD_NAME: usize = 64;
+
+/// The world name when none is given.
+pub const DEFAULT_WORLD: &str = "default";
+
+/// The most edges a world lists to its viewers' pages.
+pub const MAX_EDGES: usize = 64;
+
+/// The longest address an edge gives for itself.
+pub const MAX_ADDRESS: usize = 256;
+
+/// The subjects of one world.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Subjects {
+    /// World → edges, each tick: [`Snapshot`].
+    pub snapshots: String,
+    /// Edges → world: [`Keys`].
+    pub keys: String,
+    /// Edges → world, request-reply: [`Ask`], answered with [`Answer`].
+    pub ask: String,
+}
+
+/// Why a world name cannot be used.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum NameError {
+    #[error("a world name is 1 to {MAX_WORLD_NAME} bytes, got {0}")]
+    Length(usize),
+    #[error("a world name is letters, digits, '-' and '_' (it is a NATS subject token), got {0:?}")]
+    Character(char),
+}
+
+impl Subjects {
+    /// The subjects of world `name`, if it is a valid name.
+    pub fn of(name: &str) -> Result<Subjects, NameError> {
+        if name.is_empty() || name.len() > MAX_WORLD_NAME {
+            return Err(NameError::Length(name.len()));
+        }
+        if let Some(c) = name
+            .chars()
+            .find(|c| !(c.is_ascii_alphanumeric() || *c == '-' || *c == '_'))
+        {
+            return Err(NameError::Character(c));
+        }
+        Ok(Subjects {
+            snapshots: format!("roam.{name}.snap"),
+            keys: format!("roam.{name}.keys"),
+            ask: format!("roam.{name}.ask"),
+        })
+    }
+}
+
+/// A vehicle as the world simulated it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Vehicle {
+    pub id: u16,
+    pub x: f64,
+    pub z: f64,
+    pub speed: f64,
+    pub heading: f64,
+}
+
+/// The world after a tick.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Snapshot {
+    pub tick: u64,
+    #[serde(deserialize_with = "vehicles")]
+    pub vehicles: Vec<Vehicle>,
+    /// Per driver, the newest key state applied by this tick.
+    #[serde(deserialize_with = "applied")]
+    pub applied: Vec<(u16, u32)>,
+    /// Vehicles held for a driver whose connection dropped, the oldest hold first.
+    #[serde(deserialize_with = "held")]
+    pub held: Vec<u16>,
+}
+
+/// One driver's key states, as its datagram brought them to its edge.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Keys {
+    pub vehicle: u16,
+    #[serde(deserialize_with = "key_states")]
+    pub states: Vec<KeyState>,
+}
+
+/// What an edge asks the world (request-reply).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Ask {
+    /// An edge starting (or back after NATS was away): the content hash of its data set,
+    /// and the addresses its viewers reach it at. Answered with [`Answer::Hello`].
+    Hello {
+        data: [u8; 32],
+        #[serde(deserialize_with = "addresses")]
+        addresses: Vec<String>,
+    },
+    /// A driver joins: a new vehicle and its ticket, or a refusal.
+    Join,
+    /// A driver is back with its ticket: its held vehicle, or a refusal.
+    Resume { ticket: Ticket },
+    /// A driver left (a goodbye, or its join was abandoned): its vehicle goes.
+    Leave { vehicle: u16 },
+    /// A driver's connection dropped: its vehicle is held, counted from `silent` ticks ago.
+    Hold { vehicle: u16, silent: u64 },
+}
+
+/// The world's answer to an [`Ask`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Answer {
+    /// The world's data set, and the addresses of the edges it knows.
+    Hello {
+        data: [u8; 32],
+        #[serde(deserialize_with = "edges")]
+        edges: Vec<String>,
+    },
+    Joined {
+        vehicle: u16,
+        ticket: Ticket,
+    },
+    Resumed {
+        vehicle: u16,
+    },
+    /// Taken (a leave, a hold).
+    Done,
+    Refused {
+        #[serde(deserialize_with = "reason")]
+        reason: String,
+    },
+}
+
+/// A snapshot of the most vehicles: `MAX_VEHICLES` of them at 42 bytes or less each.
+const MAX_SNAPSHOT: usize = 64 + MAX_VEHICLES * (1 + 4 * 9 + 3 + 5 + 3 + 3);
+
+impl Checked for Snapshot {
+    const MAX_BYTES: usize = MAX_SNAPSHOT;
+}
+impl Checked for Keys {
+    const MAX_BYTES: usize = crate::messages::MAX_DATAGRAM;
+}
+impl Checked for Ask {
+    const MAX_BYTES: usize = 64 + MAX_EDGES * (MAX_ADDRESS + 3);
+}
+impl Checked for Answer {
+    const MAX_BYTES: usize = 64 + MAX_REASON + MAX_EDGES * (MAX_ADDRESS + 3);
+}
+
+fn vehicles<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Vehicle>, D::Error> {
+    bounded::list(d, "vehicles", MAX_VEHICLES)
+}
+
+fn applied<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<(u16, u32)>, D::Error> {
+    bounded::list(d, "applied key states", MAX_VEHICLES)
+}
+
+fn held<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u16>, D::Error> {
+    bounded::list(d, "held vehicles", MAX_VEHICLES)
+}
+
+fn key_states<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<KeyState>, D::Error> {
+    bounded::list(d, "key states", KEY_HISTORY)
+}
+
+fn reason<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+    bounded::string(d, "reason bytes", MAX_REASON)
+}
+
+fn addresses<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    address_list(d)
+}
+
+fn edges<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    address_list(d)
+}
+
+/// At most [`MAX_EDGES`] addresses of at most [`MAX_ADDRESS`] bytes each.
+fn address_list<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    #[derive(Deserialize)]
+    struct Address(#[serde(deserialize_with = "address")] String);
+    fn address<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+        bounded::string(d, "address bytes", MAX_ADDRESS)
+    }
+    let list: Vec<Address> = bounded::list(d, "addresses", MAX_EDGES)?;
+    Ok(list.into_iter().map(|a| a.0).collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::messages::{DecodeError, decode, encode};
+
+    fn bytes<T: Serialize>(msg: &T) -> Vec<u8> {
+        let mut out = Vec::new();
+        encode(msg, &mut out).expect("a bus message encodes");
+        out
+    }
+
+    /// Each message comes back as it went.
+    #[test]
+    fn messages_round_trip() {
+        let snap = Snapshot {
+            tick: 1 << 40,
+            vehicles: vec![Vehicle {
+                id: 3,
+                x: 0.1,
+                z: f64::MAX,
+                speed: 12.5,
+                heading: 359.999,
+            }],
+            applied: vec![(3, 77)],
+            held: vec![5, 9],
+        };
+        assert_eq!(decode::<Snapshot>(&bytes(&snap)).expect("decodes"), snap);
+        let keys = Keys {
+            vehicle: 7,
+            states: vec![KeyState {
+                seq: 9,
+                held: 1,
+                pressed: 0,
+            }],
+        };
+        assert_eq!(decode::<Keys>(&bytes(&keys)).expect("decodes"), keys);
+        for ask in [
+            Ask::Hello {
+                data: [7; 32],
+                addresses: vec!["127.0.0.1:4433".into()],
+            },
+            Ask::Join,
+            Ask::Resume { ticket: [1; 16] },
+            Ask::Leave { vehicle: 2 },
+            Ask::Hold {
+                vehicle: 2,
+                silent: 40,
+            },
+        ] {
+            assert_eq!(decode::<Ask>(&bytes(&ask)).expect("decodes"), ask);
+        }
+        for answer in [
+            Answer::Hello {
+                data: [1; 32],
+                edges: vec!["a:1".into(), "b:2".into()],
+            },
+            Answer::Joined {
+                vehicle: 1,
+                ticket: [2; 16],
+            },
+            Answer::Resumed { vehicle: 1 },
+            Answer::Done,
+            Answer::Refused {
+                reason: "no vehicle free".into(),
+            },
+        ] {
+            assert_eq!(decode::<Answer>(&bytes(&answer)).expect("decodes"), answer);
+        }
+    }
+
+    /// A list claiming more than its limit is refused by name, before it is read.
+    #[test]
+    fn long_lists_are_refused_by_name() {
+        let check = |msg: Vec<u8>, what: &str| match decode::<Ask>(&msg) {
+            Err(DecodeError::TooLong { what: w, .. }) => assert_eq!(w, what),
+            other => panic!("{what}: {other:?}"),
+        };
+        let many = Ask::Hello {
+            data: [0; 32],
+            addresses: vec!["x".into(); MAX_EDGES + 1],
+        };
+        check(bytes(&many), "addresses");
+        let long = Ask::Hello {
+            data: [0; 32],
+            addresses: vec!["x".repeat(MAX_ADDRESS + 1)],
+        };
+        check(bytes(&long), "address bytes");
+        let keys = Keys {
+            vehicle: 1,
+            states: vec![
+                KeyState {
+                    seq: 0,
+                    held: 0,
+                    pressed: 0
+                };
+                KEY_HISTORY + 1
+            ],
+        };
+        assert!(matches!(
+            decode::<Keys>(&bytes(&keys)),
+            Err(DecodeError::TooLong {
+                what: "key states",
+                ..
+            })
+        ));
+    }
+
+    /// Every prefix of a message, and every byte flipped, decodes to a value or an error.
+    #[test]
+    fn damaged_messages_never_panic() {
+        let msg = bytes(&Snapshot {
+            tick: 5,
+            vehicles: vec![
+                Vehicle {
+                    id: 1,
+                    x: 1.0,
+                    z: 2.0,
+                    speed: 3.0,
+                    heading: 4.0
+                };
+                3
+            ],
+            applied: vec![(1, 2)],
+            held: vec![1],
+        });
+        for n in 0..msg.len() {
+            let _ = decode::<Snapshot>(&msg[..n]);
+            let _ = decode::<Ask>(&msg[..n]);
+            let _ = decode::<Answer>(&msg[..n]);
+        }
+        for i in 0..msg.len() {
+            for bit in 0..8 {
+                let mut m = msg.clone();
+                m[i] ^= 1 << bit;
+                let _ = decode::<Snapshot>(&m);
+                let _ = decode::<Keys>(&m);
+            }
+        }
+    }
+
+    #[test]
+    fn world_names_are_subject_tokens() {
+        let check = |name: &str, expected: Result<&str, NameError>| {
+            assert_eq!(
+                Subjects::of(name).map(|s| s.ask),
+                expected.map(String::from),
+                "{name:?}"
+            );
+        };
+        check("default", Ok("roam.default.ask"));
+        check("east-1_b", Ok("roam.east-1_b.ask"));
+        check("", Err(NameError::Length(0)));
+        check(&"w".repeat(65), Err(NameError::Length(65)));
+        check("a.b", Err(NameError::Character('.')));
+        check("a*", Err(NameError::Character('*')));
+        check("a b", Err(NameError::Character(' ')));
+    }
+}

@@ -1,0 +1,207 @@
+//! One world, many machines: the world ([`world::WorldServer`], `roam-server world`) and
+//! its edges ([`edge::Remote`], `roam-server edge`) over NATS. The messages and subjects
+//! are [`roam_protocol::bus`]'s; this module owns the NATS client (`async-nats`).
+//!
+//! ```text
+//! viewer ─► edge: viewer tasks ─► edge thread ─keys─► NATS ─► world: keys task ─┐
+//!           handshake ──────────── ask (join, resume) ─►       ask task ───────┤
+//!           viewer tasks ◄── watch ◄── snapshot task ◄─ NATS ◄── publisher ◄── world thread (100 Hz)
+//! ```
+//!
+//! The seam is the one `serve` already has: the world thread takes a closed set of events
+//! ([`crate::sim::world_core::Event`]) and gives a snapshot each tick; a viewer task needs
+//! only snapshots and the terrain. `serve` keeps its in-process channel and `watch`; an
+//! edge puts NATS between the two, and the drivers' tickets live with the world, so a
+//! driver may come back through any edge.
+
+pub mod edge;
+pub mod world;
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use roam_protocol::bus::{self as wire, Subjects};
+
+use crate::sim::physics::VehicleState;
+use crate::sim::world::Vehicle;
+use crate::sim::world_core::Snapshot;
+
+/// Where the world's NATS is, and which world.
+#[derive(Clone, Debug)]
+pub struct BusOptions {
+    /// `nats://host:port` (or `tls://…`: TLS required), or several, comma-separated.
+    pub url: String,
+    /// The world's name: its subjects are `roam.<world>.…`.
+    pub world: String,
+    /// A NATS credentials file (`.creds`: a JWT and its nkey seed), or a file holding a
+    /// token (one line).
+    pub creds: Option<PathBuf>,
+    /// What this process calls itself to the NATS server (its connection name).
+    pub name: String,
+}
+
+/// Why the bus could not be used.
+#[derive(Debug, thiserror::Error)]
+pub enum BusError {
+    #[error("world name: {0}")]
+    Name(#[from] wire::NameError),
+    #[error("reading the NATS credentials {file}: {error}")]
+    Creds {
+        file: PathBuf,
+        error: std::io::Error,
+    },
+    #[error("connecting to NATS at {url}: {error}")]
+    Connect { url: String, error: String },
+    #[error("NATS ({what}): {error}")]
+    Nats { what: &'static str, error: String },
+    #[error(
+        "the world {world:?} serves the data set {world_data}, this edge has {edge_data} \
+         ({dir}): serve the same data set on both"
+    )]
+    DataSet {
+        world: String,
+        world_data: String,
+        edge_data: String,
+        dir: String,
+    },
+    #[error(
+        "the world {world:?} did not answer on NATS at {url} (is `roam-server world` running?)"
+    )]
+    NoWorld { world: String, url: String },
+    #[error("the world's answer: {0}")]
+    Answer(String),
+}
+
+impl BusOptions {
+    pub fn subjects(&self) -> Result<Subjects, BusError> {
+        Ok(Subjects::of(&self.world)?)
+    }
+
+    /// Connects to NATS: TLS when the URL asks for it, the credentials or token from
+    /// [`Self::creds`], reconnecting for ever when the server goes away (the client keeps
+    /// a bounded buffer meanwhile: a publish waits, nothing grows).
+    pub async fn connect(&self) -> Result<async_nats::Client, BusError> {
+        let mut options = async_nats::ConnectOptions::new()
+            .name(&self.name)
+            .retry_on_initial_connect()
+            .max_reconnects(None)
+            // The world's snapshots come 100 a second; a subscriber buffers a few seconds.
+            .subscription_capacity(1024)
+            .require_tls(self.url.split(',').any(|u| u.trim().starts_with("tls://")));
+        if let Some(file) = &self.creds {
+            options = creds(options, file).await?;
+        }
+        let url = self.url.clone();
+        // `retry_on_initial_connect` makes this return at once; the first connection is
+        // made in the background (a world started before its NATS waits for it).
+        options
+            .connect(self.url.as_str())
+            .await
+            .map_err(|e| BusError::Connect {
+                url,
+                error: e.to_string(),
+            })
+    }
+}
+
+/// A credentials file (it holds `-----BEGIN NATS USER JWT-----`), else a token file.
+async fn creds(
+    options: async_nats::ConnectOptions,
+    file: &std::path::Path,
+) -> Result<async_nats::ConnectOptions, BusError> {
+    let err = |error| BusError::Creds {
+        file: file.to_owned(),
+        error,
+    };
+    let text = std::fs::read_to_string(file).map_err(err)?;
+    if text.contains("NATS USER JWT") {
+        options.credentials_file(file).await.map_err(err)
+    } else {
+        let token = text.trim();
+        if token.is_empty() || token.contains(char::is_whitespace) {
+            return Err(err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                "expected a NATS credentials file or one line holding a token",
+            )));
+        }
+        Ok(options.token(token.to_owned()))
+    }
+}
+
+/// A world snapshot as it goes on the bus.
+pub fn to_wire(s: &Snapshot) -> wire::Snapshot {
+    wire::Snapshot {
+        tick: s.tick,
+        vehicles: s
+            .vehicles
+            .iter()
+            .map(|v| wire::Vehicle {
+                id: v.id,
+                x: v.state.x,
+                z: v.state.z,
+                speed: v.state.speed,
+                heading: v.state.heading,
+            })
+            .collect(),
+        applied: s.applied.clone(),
+        held: s.held.clone(),
+    }
+}
+
+/// A snapshot from the bus, as the viewer tasks take it.
+pub fn from_wire(s: wire::Snapshot) -> Arc<Snapshot> {
+    Arc::new(Snapshot {
+        tick: s.tick,
+        vehicles: s
+            .vehicles
+            .into_iter()
+            .map(|v| Vehicle {
+                id: v.id,
+                state: VehicleState {
+                    x: v.x,
+                    z: v.z,
+                    speed: v.speed,
+                    heading: v.heading,
+                },
+            })
+            .collect(),
+        applied: s.applied,
+        held: s.held,
+    })
+}
+
+/// Encodes a bus message (they are small and bounded: encoding cannot fail).
+pub(crate) fn encode<T: serde::Serialize>(msg: &T) -> bytes::Bytes {
+    let mut out = Vec::new();
+    roam_protocol::messages::encode(msg, &mut out)
+        .expect("bus messages have no field bincode refuses");
+    out.into()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A snapshot goes over the bus and comes back bit for bit.
+    #[test]
+    fn snapshots_cross_the_bus_exactly() {
+        let snap = Snapshot {
+            tick: 77,
+            vehicles: vec![Vehicle {
+                id: 4,
+                state: VehicleState {
+                    x: 0.1 + 0.2,
+                    z: 1e-300,
+                    speed: f64::from_bits(33f64.to_bits() + 1),
+                    heading: f64::from_bits(360f64.to_bits() - 1),
+                },
+            }],
+            applied: vec![(4, 12)],
+            held: vec![9],
+        };
+        let bytes = encode(&to_wire(&snap));
+        let back: wire::Snapshot =
+            roam_protocol::messages::decode(&bytes).expect("a snapshot decodes");
+        assert_eq!(*from_wire(back), snap);
+    }
+}

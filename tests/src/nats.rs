@@ -1,0 +1,88 @@
+//! A real NATS server for the tests of the world and its edges: Debian's `nats-server`, on
+//! a loopback port of its own, stopped when dropped. A machine without it fails the test
+//! with a message naming the package.
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+/// How long `nats-server` has to say it is ready.
+const READY_WAIT: Duration = Duration::from_secs(20);
+
+/// A running `nats-server`.
+pub struct Nats {
+    child: Child,
+    pub port: u16,
+}
+
+impl Nats {
+    /// Starts `nats-server` on a free loopback port and waits until it is ready.
+    pub fn start() -> Nats {
+        // A port the kernel picked, freed for nats-server (which reports if it is taken).
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .expect("a free loopback port")
+            .port();
+        Nats::on(port)
+    }
+
+    /// Starts `nats-server` on `port` (a restart: the same port as before).
+    pub fn on(port: u16) -> Nats {
+        let mut child = Command::new("nats-server")
+            .args(["-a", "127.0.0.1", "-p", &port.to_string()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "starting nats-server: {e}. The world/edge tests need Debian's \
+                     `nats-server` package: apt-get install nats-server"
+                )
+            });
+        let stderr = child.stderr.take().expect("stderr is piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        // Reads the log to its end (nats-server keeps writing to it), telling when ready.
+        std::thread::spawn(move || {
+            let mut said = false;
+            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                if !said && line.contains("Server is ready") {
+                    said = true;
+                    let _ = tx.send(Ok(()));
+                } else if !said && line.contains("[FTL]") {
+                    let _ = tx.send(Err(line));
+                }
+            }
+        });
+        match rx.recv_timeout(READY_WAIT) {
+            Ok(Ok(())) => Nats { child, port },
+            Ok(Err(line)) => {
+                let _ = child.kill();
+                panic!("nats-server on port {port} failed: {line}")
+            }
+            Err(_) => {
+                let _ = child.kill();
+                panic!("nats-server on port {port} was not ready in {READY_WAIT:?}")
+            }
+        }
+    }
+
+    /// The URL clients connect to.
+    pub fn url(&self) -> String {
+        format!("nats://127.0.0.1:{}", self.port)
+    }
+
+    /// Stops it (as `kill -9` would) and waits for it to be gone.
+    pub fn kill(mut self) -> u16 {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        self.port
+    }
+}
+
+impl Drop for Nats {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}

@@ -1,0 +1,222 @@
+//! One world, many machines: a real `nats-server` on loopback, a world
+//! (`roam_server::net::bus::world`) and two edges (servers whose world is over NATS), with
+//! headless viewers on both over real QUIC.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use roam_client::headless::{self, ViewerOptions, ViewerStats};
+use roam_protocol::messages::Role;
+use roam_protocol::script;
+use roam_server::Terrain;
+use roam_server::net::Options;
+use roam_server::net::bus::edge::Remote;
+use roam_server::net::bus::world::{WorldOptions, WorldServer};
+use roam_server::net::bus::{BusError, BusOptions};
+use roam_server::sim::record_files::RecordDir;
+use roam_server::sim::session::{self, RecordOptions};
+use roam_server::sim::world::{self, Inputs, World};
+use roam_server::sim::{recording, replay};
+use roam_tests::fixtures::{self, Running, flat};
+use roam_tests::nats::Nats;
+
+/// Each test runs a world and edges with their threads: one at a time, so that on a
+/// 2-core machine none starves another of the CPU.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+fn bus(nats: &Nats, world: &str) -> BusOptions {
+    BusOptions {
+        url: nats.url(),
+        world: world.into(),
+        creds: None,
+        name: "roam-test".into(),
+    }
+}
+
+async fn edge(terrain: Arc<Terrain>, bus: &BusOptions) -> Running {
+    let remote = Remote::connect(
+        bus,
+        terrain.content_hash(),
+        "the test terrain",
+        vec!["127.0.0.1:0".into()],
+        Duration::from_secs(10),
+    )
+    .await
+    .expect("the edge reaches the world");
+    fixtures::serve(terrain, |o| Options {
+        remote: Some(remote),
+        ..o
+    })
+}
+
+fn driver(r: &Running, frames: u64, drive: Option<&str>) -> ViewerOptions {
+    ViewerOptions {
+        token: r.token.clone(),
+        role: Role::Driver,
+        budget: 8_000,
+        frames,
+        inputs: drive.map(|d| script::parse(d).expect("valid")),
+        ..ViewerOptions::default()
+    }
+}
+
+/// Accelerate, turn, then brake to a stop: the end state is still, whatever the timing.
+const DRIVE: &str = "10 U\n5 UL\n8 U\n400 D\n";
+
+/// Vehicle 0 driven by [`DRIVE`] from its start, vehicle 1 parked at its own: no vehicle
+/// touches another, so vehicle 0 ends where it would alone.
+fn simulated(terrain: &Arc<Terrain>) -> world::Vehicle {
+    let s = script::parse(DRIVE).expect("valid");
+    let mut w = World::new(terrain.clone());
+    w.add(0, world::start_state(terrain, 0))
+        .expect("on the map");
+    let mut inputs = Inputs::new();
+    for k in s.keys() {
+        inputs.set(0, k);
+        world::step(&mut w, &inputs);
+    }
+    w.vehicles()[0]
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn drivers_on_two_edges_share_one_world_and_it_replays() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let dir = std::env::temp_dir().join(format!("roam-cluster-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let terrain = flat();
+    let bus = bus(&nats, "two-edges");
+    let files = RecordDir::new(dir.clone(), roam_server::net::world_loop::unix_seconds);
+    let world = WorldServer::start(
+        terrain.clone(),
+        terrain.content_hash(),
+        WorldOptions {
+            record: Some(RecordOptions::new(files, session::DEFAULT_MAX_BYTES)),
+            hold: Duration::from_secs(30),
+            max_vehicles: 64,
+        },
+        &bus,
+    )
+    .await
+    .expect("the world starts");
+    let (a, b) = (
+        edge(terrain.clone(), &bus).await,
+        edge(terrain.clone(), &bus).await,
+    );
+    // The driver on edge A joins first (vehicle 0, at the first start slot), then the
+    // driver on B (vehicle 1) once A's vehicle is in the world.
+    let da = tokio::spawn(headless::run(
+        a.server.addr,
+        a.fingerprint,
+        driver(&a, 330, Some(DRIVE)),
+    ));
+    let mut snaps = world.watch();
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        snaps.wait_for(|s| !s.vehicles.is_empty()),
+    )
+    .await
+    .expect("A's vehicle appears")
+    .expect("the world runs");
+    let db = tokio::spawn(headless::run(
+        b.server.addr,
+        b.fingerprint,
+        driver(&b, 200, None),
+    ));
+    let (sa, sb): (ViewerStats, ViewerStats) = (
+        da.await.expect("joins").expect("A's driver runs"),
+        db.await.expect("joins").expect("B's driver runs"),
+    );
+    for s in [&sa, &sb] {
+        assert_eq!(s.decode_errors, 0);
+        assert_eq!(s.vehicles_max, 2, "each edge's driver sees both vehicles");
+    }
+    assert_eq!((sa.vehicle, sb.vehicle), (0, 1));
+    // The drive through edge A and the bus ends exactly where the script, simulated, ends.
+    let want = simulated(&terrain);
+    let got = sa.last.expect("a vehicle in the frames");
+    assert_eq!(
+        (got.x, got.z, got.speed, got.heading),
+        (
+            want.state.x,
+            want.state.z,
+            want.state.speed,
+            want.state.heading
+        ),
+        "at tick {}",
+        sa.last_tick
+    );
+    assert!(!sa.latencies_ms.is_empty(), "key changes were seen applied");
+    a.server.shutdown().await.expect("edge A stops");
+    b.server.shutdown().await.expect("edge B stops");
+    // Both drivers said goodbye through their edges: the world let their vehicles go.
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        snaps.wait_for(|s| s.vehicles.is_empty()),
+    )
+    .await
+    .expect("the vehicles leave")
+    .expect("the world runs");
+    // The world's recording, every driver's inputs in it, replays bit for bit.
+    let final_world = world.shutdown().await.expect("the world stops");
+    let files: Vec<_> = std::fs::read_dir(&dir)
+        .expect("the recording directory")
+        .map(|e| e.expect("a directory entry").path())
+        .collect();
+    assert_eq!(files.len(), 1, "one recording file: {files:?}");
+    let bytes = std::fs::read(&files[0]).expect("the recording");
+    let rec = recording::parse(&bytes).expect("parses");
+    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
+    assert!(out.ended, "closed cleanly");
+    assert_eq!(out.tick, final_world.tick());
+    assert_eq!(out.digest, final_world.digest());
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edge_with_another_data_set_is_refused_naming_both() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "data-check");
+    let world = WorldServer::start(
+        terrain.clone(),
+        terrain.content_hash(),
+        WorldOptions {
+            record: None,
+            hold: Duration::from_secs(30),
+            max_vehicles: 64,
+        },
+        &bus,
+    )
+    .await
+    .expect("the world starts");
+    let mut other = terrain.content_hash();
+    other[0] ^= 1;
+    let err = Remote::connect(&bus, other, "/data/other", vec![], Duration::from_secs(10))
+        .await
+        .err()
+        .expect("refused");
+    assert!(matches!(err, BusError::DataSet { .. }), "{err}");
+    let text = err.to_string();
+    for part in [
+        roam_link::tls::hex(&terrain.content_hash()),
+        roam_link::tls::hex(&other),
+        "/data/other".to_string(),
+        "\"data-check\"".to_string(),
+    ] {
+        assert!(text.contains(&part), "{text} names {part}");
+    }
+    // No world by that name: said, after the wait.
+    let none = BusOptions {
+        world: "nobody".into(),
+        ..bus.clone()
+    };
+    let err = Remote::connect(&none, other, "d", vec![], Duration::from_millis(500))
+        .await
+        .err()
+        .expect("no world answers");
+    assert!(matches!(err, BusError::NoWorld { .. }), "{err}");
+    world.shutdown().await.expect("the world stops");
+}
