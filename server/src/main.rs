@@ -46,6 +46,12 @@ enum Command {
     Replay(cli::sim::ReplayArgs),
     /// Serve the terrain to viewers over QUIC, the world at 100 Hz; stop with Ctrl-C.
     Serve(cli::net::ServeArgs),
+    /// Run the world alone (physics at 100 Hz, tickets, the recording) for edges to serve,
+    /// over NATS; stop with Ctrl-C.
+    World(cli::cluster::WorldArgs),
+    /// Serve viewers as `serve` does, the world being the one on NATS (`world`); stop with
+    /// Ctrl-C.
+    Edge(cli::cluster::EdgeArgs),
     /// Serve a data set in process and measure a driving viewer's colour stream: connect
     /// to first frame, bytes before it, colour bytes a second; one JSON line.
     ColorBench(cli::color_bench::ColorBenchArgs),
@@ -65,6 +71,8 @@ fn main() -> ExitCode {
         Command::Simulate(args) => cli::sim::simulate(args),
         Command::Replay(args) => cli::sim::replay(args),
         Command::Serve(args) => cli::net::serve(args),
+        Command::World(args) => cli::cluster::world(args),
+        Command::Edge(args) => cli::cluster::edge(args),
         Command::ColorBench(args) => cli::color_bench::color_bench(args),
         Command::Identity(args) => cli::identity::identity(args),
     };

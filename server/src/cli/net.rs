@@ -204,6 +204,33 @@ impl ServeArgs {
     }
 }
 
+/// The data set's content hash: the recordings name the data set by it (colour included,
+/// as `replay`, which loads it whole, computes it), and a world and its edges check they
+/// serve the same one. Cached in `.cache/content.hash`, so a warm start reads neither
+/// `hf.pgm` nor `color.ppm`.
+pub fn data_hash(
+    dir: &Path,
+    terrain: &Terrain,
+    report: &roam_server::terrain::cache::CacheReport,
+) -> Result<[u8; 32]> {
+    let started = std::time::Instant::now();
+    let mut p = super::progress::Progress::new("hashing");
+    let (hash, source) = roam_server::terrain::dataset::content_hash_cached(
+        dir,
+        terrain,
+        report,
+        &mut p.callback(),
+    )?;
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    match source {
+        HashSource::Cached => tracing::info!("data set hash cached in {ms:.0} ms"),
+        HashSource::Computed(why) => {
+            tracing::info!("data set hash computed in {ms:.0} ms ({why})")
+        }
+    }
+    Ok(hash)
+}
+
 /// A data set opened for serving: heights and variance tree mapped from its cache, the
 /// colour tiles mapped from theirs (each built on first use, with progress bars).
 pub struct Served {
@@ -402,6 +429,12 @@ fn keep_large_blocks_mapped() {
 fn keep_large_blocks_mapped() {}
 
 pub fn serve(args: ServeArgs) -> Result<()> {
+    serve_on(args, None)
+}
+
+/// `serve`, or with `bus` an edge of that world (`roam-server edge`): the world's
+/// snapshots served, its tickets handed out, nothing recorded here (the world records).
+pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()> {
     keep_large_blocks_mapped();
     // The page and the certificate files first, then the token: each fails before
     // anything is loaded.
@@ -418,27 +451,7 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         pyramid,
         report,
     } = open_served(&args.dir)?;
-    // The recordings name the data set by its hash, colour included, as `replay` (which
-    // loads it whole) computes it; cached in `.cache/content.hash`, so a warm start reads
-    // neither `hf.pgm` nor `color.ppm`.
-    let hash = {
-        let started = std::time::Instant::now();
-        let mut p = super::progress::Progress::new("hashing");
-        let (hash, source) = roam_server::terrain::dataset::content_hash_cached(
-            &args.dir,
-            &terrain,
-            &report,
-            &mut p.callback(),
-        )?;
-        let ms = started.elapsed().as_secs_f64() * 1e3;
-        match source {
-            HashSource::Cached => tracing::info!("data set hash cached in {ms:.0} ms"),
-            HashSource::Computed(why) => {
-                tracing::info!("data set hash computed in {ms:.0} ms ({why})")
-            }
-        }
-        hash
-    };
+    let hash = data_hash(&args.dir, &terrain, &report)?;
     let identity = tls::load_or_create(&args.state_dir)?;
     let record_dir = args
         .record_dir
@@ -451,6 +464,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
     let web_host = web.as_ref().map(|(_, host)| host.clone());
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
+        let remote = match &bus {
+            Some(edge) => Some(edge.reach(&args, hash).await?),
+            None => None,
+        };
         // Timed apart: `Server::start` scans every height for the codec's height step
         // (`roam_protocol::height_step`), most of a warm start at 16385² and more.
         let started = std::time::Instant::now();
@@ -461,13 +478,11 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             &identity,
             Options {
                 web: web.map(|(options, _)| options),
-                ..args.options(
-                    token.clone(),
-                    Some(
-                        RecordOptions::new(files, args.record_max_bytes)
-                            .with_terrain_hash(hash),
-                    ),
-                )?
+                record: remote.is_none().then(|| {
+                    RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash)
+                }),
+                remote: remote.clone(),
+                ..args.options(token.clone(), None)?
             },
         )?;
         tracing::info!(
@@ -476,8 +491,17 @@ pub fn serve(args: ServeArgs) -> Result<()> {
         );
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
-        let first = made.list().first().map(|p| p.display().to_string());
-        say!("recording to {}", first.as_deref().unwrap_or("nothing"));
+        match &remote {
+            Some(r) => say!(
+                "edge of the world {:?}: it records the session (its edges: {})",
+                r.world(),
+                r.edges().join(", ")
+            ),
+            None => {
+                let first = made.list().first().map(|p| p.display().to_string());
+                say!("recording to {}", first.as_deref().unwrap_or("nothing"));
+            }
+        }
         let host = if server.addr.ip().is_unspecified() {
             format!("<this machine's address>:{}", server.addr.port())
         } else {
@@ -508,6 +532,10 @@ pub fn serve(args: ServeArgs) -> Result<()> {
             .context("waiting for Ctrl-C")?;
         say!("shutting down");
         let world = server.shutdown().await?;
+        if remote.is_some() {
+            say!("stopped (the world was at tick {})", world.tick());
+            return Ok(());
+        }
         match made.list().as_slice() {
             [] => say!("stopped at tick {}", world.tick()),
             [one] => say!(

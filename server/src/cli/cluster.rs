@@ -1,0 +1,187 @@
+//! `world` and `edge`: one world served by many machines over NATS
+//! (`roam_server::net::bus`). `world` runs the 100 Hz world and records it; `edge` is
+//! `serve` whose world is the one on the bus (`super::net::serve_on`).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+
+use anyhow::{Context, Result};
+use clap::Args;
+use roam_server::net::bus::BusOptions;
+use roam_server::net::bus::edge::Remote;
+use roam_server::net::bus::world::{WorldOptions, WorldServer};
+use roam_server::net::{self};
+use roam_server::sim::record_files::RecordDir;
+use roam_server::sim::session::{self, RecordOptions};
+
+use super::net::ServeArgs;
+
+/// Which world, on which NATS.
+#[derive(Args, Clone)]
+pub struct BusArgs {
+    /// The NATS server: `nats://HOST:PORT`, or `tls://HOST:PORT` to require TLS; several
+    /// comma-separated.
+    #[arg(long, value_name = "URL")]
+    pub nats: String,
+    /// The world's name (its NATS subjects are `roam.NAME.…`; worlds may share one NATS).
+    #[arg(long, value_name = "NAME", default_value = roam_protocol::bus::DEFAULT_WORLD)]
+    pub world: String,
+    /// NATS credentials: a `.creds` file (JWT and nkey seed), or a file holding a token.
+    #[arg(long, value_name = "FILE")]
+    pub nats_creds: Option<PathBuf>,
+}
+
+impl BusArgs {
+    fn options(&self, name: &str) -> Result<BusOptions> {
+        roam_protocol::bus::Subjects::of(&self.world).context("--world")?;
+        Ok(BusOptions {
+            url: self.nats.clone(),
+            world: self.world.clone(),
+            creds: self.nats_creds.clone(),
+            name: name.into(),
+        })
+    }
+}
+
+#[derive(Args)]
+pub struct WorldArgs {
+    /// Data set directory (each edge serves the same data set).
+    pub dir: PathBuf,
+    #[command(flatten)]
+    pub bus: BusArgs,
+    /// Where the state is kept (the recordings, unless --record-dir).
+    #[arg(long, default_value = "roam-state")]
+    pub state_dir: PathBuf,
+    /// Where sessions are recorded (default: `recordings` in the state directory).
+    #[arg(long)]
+    pub record_dir: Option<PathBuf>,
+    /// A recording file is closed and the next begun before it grows past this many bytes.
+    #[arg(long, default_value_t = session::DEFAULT_MAX_BYTES,
+          value_parser = clap::value_parser!(u64).range(session::MIN_MAX_BYTES..=session::MAX_MAX_BYTES))]
+    pub record_max_bytes: u64,
+    /// Seconds a driver's vehicle is held after its connection drops, for it to come back
+    /// (through any edge).
+    #[arg(long, default_value_t = net::HOLD.as_secs_f64())]
+    pub hold: f64,
+    /// Vehicles at most, held ones included; a join past it frees the oldest held one, or
+    /// is refused.
+    #[arg(long, default_value_t = 1024)]
+    pub max_vehicles: usize,
+}
+
+#[derive(Args)]
+pub struct EdgeArgs {
+    #[command(flatten)]
+    pub serve: ServeArgs,
+    #[command(flatten)]
+    pub bus: BusArgs,
+    /// Seconds to wait for the world to answer when starting.
+    #[arg(long, default_value_t = 30.0)]
+    pub world_wait: f64,
+}
+
+/// An edge's way to its world, for [`super::net::serve_on`].
+pub struct Edge {
+    bus: BusOptions,
+    wait: Duration,
+}
+
+impl Edge {
+    /// Reaches the world and checks it serves this data set (`hash`).
+    pub async fn reach(&self, args: &ServeArgs, hash: [u8; 32]) -> Result<Arc<Remote>> {
+        let dir = args.dir.display().to_string();
+        let remote = Remote::connect(
+            &self.bus,
+            hash,
+            &dir,
+            vec![args.listen.to_string()],
+            self.wait,
+        )
+        .await?;
+        tracing::info!(
+            world = remote.world(),
+            "the world answered: the same data set"
+        );
+        Ok(remote)
+    }
+}
+
+pub fn edge(args: EdgeArgs) -> Result<()> {
+    anyhow::ensure!(
+        args.serve.record_dir.is_none(),
+        "--record-dir: an edge records nothing (the world does: give it to `roam-server world`)"
+    );
+    anyhow::ensure!(
+        args.world_wait.is_finite() && (0.0..=86_400.0).contains(&args.world_wait),
+        "--world-wait {}: expected 0 to 86400 seconds",
+        args.world_wait
+    );
+    let edge = Edge {
+        bus: args.bus.options("roam-server edge")?,
+        wait: Duration::from_secs_f64(args.world_wait),
+    };
+    super::net::serve_on(args.serve, Some(edge))
+}
+
+pub fn world(args: WorldArgs) -> Result<()> {
+    let bus = args.bus.options("roam-server world")?;
+    anyhow::ensure!(
+        args.hold.is_finite() && (0.0..=86_400.0).contains(&args.hold),
+        "--hold {}: expected 0 to 86400 seconds",
+        args.hold
+    );
+    anyhow::ensure!(
+        args.max_vehicles >= 1,
+        "--max-vehicles: expected at least 1"
+    );
+    let served = super::net::open_served(&args.dir)?;
+    let hash = super::net::data_hash(&args.dir, &served.terrain, &served.report)?;
+    let record_dir = args
+        .record_dir
+        .clone()
+        .unwrap_or_else(|| args.state_dir.join("recordings"));
+    std::fs::create_dir_all(&record_dir)
+        .with_context(|| format!("creating {}", record_dir.display()))?;
+    let files = RecordDir::new(&record_dir, net::world_loop::unix_seconds);
+    let made = files.made();
+    let terrain = Arc::new(served.terrain);
+    let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
+    runtime.block_on(async {
+        let world = WorldServer::start(
+            terrain,
+            hash,
+            WorldOptions {
+                record: Some(
+                    RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash),
+                ),
+                hold: Duration::from_secs_f64(args.hold),
+                max_vehicles: args.max_vehicles,
+            },
+            &bus,
+        )
+        .await?;
+        say!("world {:?} on NATS at {}", bus.world, bus.url);
+        say!("data set {}", roam_link::tls::hex(&hash));
+        let first = made.list().first().map(|p| p.display().to_string());
+        say!("recording to {}", first.as_deref().unwrap_or("nothing"));
+        say!(
+            "serve it with: roam-server edge {} --nats {} --world {}",
+            args.dir.display(),
+            bus.url,
+            bus.world
+        );
+        tokio::signal::ctrl_c()
+            .await
+            .context("waiting for Ctrl-C")?;
+        say!("shutting down");
+        let world = world.shutdown().await?;
+        say!(
+            "stopped at tick {}; each recording file in {} replays with: roam-server replay FILE --data {}",
+            world.tick(),
+            record_dir.display(),
+            args.dir.display()
+        );
+        Ok(())
+    })
+}
