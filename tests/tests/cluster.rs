@@ -220,3 +220,64 @@ async fn an_edge_with_another_data_set_is_refused_naming_both() {
     assert!(matches!(err, BusError::NoWorld { .. }), "{err}");
     world.shutdown().await.expect("the world stops");
 }
+
+/// The NATS server restarted mid-drive: the world ticks on (none dropped), the edge and the
+/// world reconnect and resubscribe, and the driver's frames pause, then go on.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "restart");
+    let world = WorldServer::start(
+        terrain.clone(),
+        terrain.content_hash(),
+        WorldOptions {
+            record: None,
+            hold: Duration::from_secs(30),
+            max_vehicles: 64,
+        },
+        &bus,
+    )
+    .await
+    .expect("the world starts");
+    let a = edge(terrain.clone(), &bus).await;
+    let drive = driver(&a, 480, Some(DRIVE));
+    let d = tokio::spawn(headless::run(a.server.addr, a.fingerprint, drive));
+    // Mid-drive (by the world's own ticks), the NATS server goes and comes back.
+    let mut snaps = world.watch();
+    let at = tokio::time::timeout(
+        Duration::from_secs(20),
+        snaps.wait_for(|s| !s.vehicles.is_empty() && s.tick >= 300),
+    )
+    .await
+    .expect("the drive is under way")
+    .expect("the world runs")
+    .tick;
+    let port = nats.kill();
+    let _back = Nats::on(port);
+    let stats = d.await.expect("joins").expect("the driver runs");
+    assert_eq!(stats.frames, 480);
+    assert!(stats.last_tick > at, "frames after the restart");
+    assert!(
+        stats.gap_max_s <= 3.0,
+        "the longest pause between frames: {} s",
+        stats.gap_max_s
+    );
+    assert_eq!(stats.reconnects, 0, "the viewer's own link never broke");
+    // Key states lost with the bus are states the world waited for, then got again: the
+    // drive is still exact.
+    let (want, got) = (simulated(&terrain), stats.last.expect("a vehicle"));
+    assert_eq!(
+        (got.x, got.z, got.speed, got.heading),
+        (
+            want.state.x,
+            want.state.z,
+            want.state.speed,
+            want.state.heading
+        )
+    );
+    assert_eq!(world.world_stats().dropped(), 0, "no world tick lost");
+    a.server.shutdown().await.expect("the edge stops");
+    world.shutdown().await.expect("the world stops");
+}
