@@ -117,7 +117,7 @@ pub enum Ask {
     /// and the addresses its viewers reach it at. Answered with [`Answer::Hello`].
     Hello {
         data: [u8; 32],
-        #[serde(deserialize_with = "addresses")]
+        #[serde(deserialize_with = "address_list")]
         addresses: Vec<String>,
     },
     /// A driver joins: a new vehicle and its ticket, or a refusal.
@@ -136,7 +136,7 @@ pub enum Answer {
     /// The world's data set, and the addresses of the edges it knows.
     Hello {
         data: [u8; 32],
-        #[serde(deserialize_with = "edges")]
+        #[serde(deserialize_with = "address_list")]
         edges: Vec<String>,
     },
     Joined {
@@ -188,14 +188,6 @@ fn key_states<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<KeyState>, D::Error
 
 fn reason<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
     bounded::string(d, "reason bytes", MAX_REASON)
-}
-
-fn addresses<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
-    address_list(d)
-}
-
-fn edges<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
-    address_list(d)
 }
 
 /// At most [`MAX_EDGES`] addresses of at most [`MAX_ADDRESS`] bytes each.

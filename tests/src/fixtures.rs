@@ -115,3 +115,22 @@ impl SplitMix64 {
         p > 0.0 && self.unit() < p
     }
 }
+
+/// Accelerate, turn, then brake to a stop: the end state is still, whatever the timing.
+pub const DRIVE: &str = "10 U\n5 UL\n8 U\n400 D\n";
+
+/// Where vehicle 0 ends, driven by [`DRIVE`] from the first start slot of `terrain`,
+/// simulated without a network (the other vehicles of a world never touch it).
+pub fn simulated_drive(terrain: &Arc<Terrain>) -> roam_server::sim::world::Vehicle {
+    use roam_server::sim::world::{self, Inputs, World};
+    let s = roam_protocol::script::parse(DRIVE).expect("valid");
+    let mut w = World::new(terrain.clone());
+    w.add(0, world::start_state(terrain, 0))
+        .expect("on the map");
+    let mut inputs = Inputs::new();
+    for k in s.keys() {
+        inputs.set(0, k);
+        world::step(&mut w, &inputs);
+    }
+    w.vehicles()[0]
+}

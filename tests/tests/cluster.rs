@@ -15,7 +15,6 @@ use roam_server::net::bus::world::{WorldOptions, WorldServer};
 use roam_server::net::bus::{BusError, BusOptions};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
-use roam_server::sim::world::{self, Inputs, World};
 use roam_server::sim::{recording, replay};
 use roam_tests::fixtures::{self, Running, flat};
 use roam_tests::nats::Nats;
@@ -31,6 +30,22 @@ fn bus(nats: &Nats, world: &str) -> BusOptions {
         creds: None,
         name: "roam-test".into(),
     }
+}
+
+/// A world of `terrain` on `bus`, recording to `record` if given.
+async fn start_world(
+    terrain: &Arc<Terrain>,
+    bus: &BusOptions,
+    record: Option<RecordOptions>,
+) -> WorldServer {
+    let options = WorldOptions {
+        record,
+        hold: Duration::from_secs(30),
+        max_vehicles: 64,
+    };
+    WorldServer::start(terrain.clone(), terrain.content_hash(), options, bus)
+        .await
+        .expect("the world starts")
 }
 
 async fn edge(terrain: Arc<Terrain>, bus: &BusOptions) -> Running {
@@ -60,24 +75,6 @@ fn driver(r: &Running, frames: u64, drive: Option<&str>) -> ViewerOptions {
     }
 }
 
-/// Accelerate, turn, then brake to a stop: the end state is still, whatever the timing.
-const DRIVE: &str = "10 U\n5 UL\n8 U\n400 D\n";
-
-/// Vehicle 0 driven by [`DRIVE`] from its start, vehicle 1 parked at its own: no vehicle
-/// touches another, so vehicle 0 ends where it would alone.
-fn simulated(terrain: &Arc<Terrain>) -> world::Vehicle {
-    let s = script::parse(DRIVE).expect("valid");
-    let mut w = World::new(terrain.clone());
-    w.add(0, world::start_state(terrain, 0))
-        .expect("on the map");
-    let mut inputs = Inputs::new();
-    for k in s.keys() {
-        inputs.set(0, k);
-        world::step(&mut w, &inputs);
-    }
-    w.vehicles()[0]
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn drivers_on_two_edges_share_one_world_and_it_replays() {
     let _turn = ONE_AT_A_TIME.lock().await;
@@ -88,18 +85,12 @@ async fn drivers_on_two_edges_share_one_world_and_it_replays() {
     let terrain = flat();
     let bus = bus(&nats, "two-edges");
     let files = RecordDir::new(dir.clone(), roam_server::net::world_loop::unix_seconds);
-    let world = WorldServer::start(
-        terrain.clone(),
-        terrain.content_hash(),
-        WorldOptions {
-            record: Some(RecordOptions::new(files, session::DEFAULT_MAX_BYTES)),
-            hold: Duration::from_secs(30),
-            max_vehicles: 64,
-        },
+    let world = start_world(
+        &terrain,
         &bus,
+        Some(RecordOptions::new(files, session::DEFAULT_MAX_BYTES)),
     )
-    .await
-    .expect("the world starts");
+    .await;
     let (a, b) = (
         edge(terrain.clone(), &bus).await,
         edge(terrain.clone(), &bus).await,
@@ -109,7 +100,7 @@ async fn drivers_on_two_edges_share_one_world_and_it_replays() {
     let da = tokio::spawn(headless::run(
         a.server.addr,
         a.fingerprint,
-        driver(&a, 330, Some(DRIVE)),
+        driver(&a, 330, Some(fixtures::DRIVE)),
     ));
     let mut snaps = world.watch();
     tokio::time::timeout(
@@ -134,7 +125,7 @@ async fn drivers_on_two_edges_share_one_world_and_it_replays() {
     }
     assert_eq!((sa.vehicle, sb.vehicle), (0, 1));
     // The drive through edge A and the bus ends exactly where the script, simulated, ends.
-    let want = simulated(&terrain);
+    let want = fixtures::simulated_drive(&terrain);
     let got = sa.last.expect("a vehicle in the frames");
     assert_eq!(
         (got.x, got.z, got.speed, got.heading),
@@ -180,18 +171,7 @@ async fn an_edge_with_another_data_set_is_refused_naming_both() {
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "data-check");
-    let world = WorldServer::start(
-        terrain.clone(),
-        terrain.content_hash(),
-        WorldOptions {
-            record: None,
-            hold: Duration::from_secs(30),
-            max_vehicles: 64,
-        },
-        &bus,
-    )
-    .await
-    .expect("the world starts");
+    let world = start_world(&terrain, &bus, None).await;
     let mut other = terrain.content_hash();
     other[0] ^= 1;
     let err = Remote::connect(&bus, other, "/data/other", vec![], Duration::from_secs(10))
@@ -229,20 +209,9 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "restart");
-    let world = WorldServer::start(
-        terrain.clone(),
-        terrain.content_hash(),
-        WorldOptions {
-            record: None,
-            hold: Duration::from_secs(30),
-            max_vehicles: 64,
-        },
-        &bus,
-    )
-    .await
-    .expect("the world starts");
+    let world = start_world(&terrain, &bus, None).await;
     let a = edge(terrain.clone(), &bus).await;
-    let drive = driver(&a, 480, Some(DRIVE));
+    let drive = driver(&a, 480, Some(fixtures::DRIVE));
     let d = tokio::spawn(headless::run(a.server.addr, a.fingerprint, drive));
     // Mid-drive (by the world's own ticks), the NATS server goes and comes back.
     let mut snaps = world.watch();
@@ -267,7 +236,10 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
     assert_eq!(stats.reconnects, 0, "the viewer's own link never broke");
     // Key states lost with the bus are states the world waited for, then got again: the
     // drive is still exact.
-    let (want, got) = (simulated(&terrain), stats.last.expect("a vehicle"));
+    let (want, got) = (
+        fixtures::simulated_drive(&terrain),
+        stats.last.expect("a vehicle"),
+    );
     assert_eq!(
         (got.x, got.z, got.speed, got.heading),
         (

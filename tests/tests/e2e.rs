@@ -13,7 +13,6 @@ use roam_server::Terrain;
 use roam_server::net::Options;
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
-use roam_server::sim::world::{self, Inputs, World};
 use roam_server::sim::{recording, replay};
 
 /// The tests here each run a server with a 100 Hz world thread and 60 Hz viewers: one at a
@@ -41,22 +40,6 @@ fn opts(r: &Running, role: Role, frames: u64) -> ViewerOptions {
     }
 }
 
-/// Accelerate, turn, then brake to a stop: the end state is still, whatever the timing.
-const DRIVE: &str = "10 U\n5 UL\n8 U\n400 D\n";
-
-fn simulated(terrain: &Arc<Terrain>) -> world::Vehicle {
-    let s = script::parse(DRIVE).expect("valid");
-    let mut w = World::new(terrain.clone());
-    w.add(0, world::start_state(terrain, 0))
-        .expect("on the map");
-    let mut inputs = Inputs::new();
-    for k in s.keys() {
-        inputs.set(0, k);
-        world::step(&mut w, &inputs);
-    }
-    w.vehicles()[0]
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_viewers_one_driving_and_the_session_replays() {
     let _turn = ONE_AT_A_TIME.lock().await;
@@ -67,7 +50,7 @@ async fn two_viewers_one_driving_and_the_session_replays() {
     let r = start(terrain.clone(), Some(dir.clone()));
     let addr = r.server.addr;
     let driver = ViewerOptions {
-        inputs: Some(script::parse(DRIVE).expect("valid")),
+        inputs: Some(script::parse(fixtures::DRIVE).expect("valid")),
         ..opts(&r, Role::Driver, 330)
     };
     let d = tokio::spawn(headless::run(addr, r.fingerprint, driver));
@@ -96,7 +79,7 @@ async fn two_viewers_one_driving_and_the_session_replays() {
     }
     assert_eq!(s.vehicle, d.vehicle, "the spectator follows the driver");
     // The drive over the network ends exactly where the script, simulated, ends.
-    let want = simulated(&terrain);
+    let want = fixtures::simulated_drive(&terrain);
     let got = d.last.expect("a vehicle in the frames");
     assert_eq!(
         (got.x, got.z, got.speed, got.heading),

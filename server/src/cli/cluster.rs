@@ -12,7 +12,6 @@ use roam_server::net::bus::BusOptions;
 use roam_server::net::bus::edge::Remote;
 use roam_server::net::bus::world::{WorldOptions, WorldServer};
 use roam_server::net::{self};
-use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 
 use super::net::ServeArgs;
@@ -137,13 +136,8 @@ pub fn world(args: WorldArgs) -> Result<()> {
     );
     let served = super::net::open_served(&args.dir)?;
     let hash = super::net::data_hash(&args.dir, &served.terrain, &served.report)?;
-    let record_dir = args
-        .record_dir
-        .clone()
-        .unwrap_or_else(|| args.state_dir.join("recordings"));
-    std::fs::create_dir_all(&record_dir)
-        .with_context(|| format!("creating {}", record_dir.display()))?;
-    let files = RecordDir::new(&record_dir, net::world_loop::unix_seconds);
+    let (record_dir, files) =
+        super::net::record_files(&args.state_dir, args.record_dir.as_deref())?;
     let made = files.made();
     let terrain = Arc::new(served.terrain);
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;

@@ -204,6 +204,15 @@ impl ServeArgs {
     }
 }
 
+/// The recording directory (`record_dir`, else `recordings` in `state_dir`), made if
+/// absent, and its files.
+pub fn record_files(state_dir: &Path, record_dir: Option<&Path>) -> Result<(PathBuf, RecordDir)> {
+    let dir = record_dir.map_or_else(|| state_dir.join("recordings"), Path::to_owned);
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let files = RecordDir::new(&dir, net::world_loop::unix_seconds);
+    Ok((dir, files))
+}
+
 /// The data set's content hash: the recordings name the data set by it (colour included,
 /// as `replay`, which loads it whole, computes it), and a world and its edges check they
 /// serve the same one. Cached in `.cache/content.hash`, so a warm start reads neither
@@ -453,14 +462,14 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
     } = open_served(&args.dir)?;
     let hash = data_hash(&args.dir, &terrain, &report)?;
     let identity = tls::load_or_create(&args.state_dir)?;
-    let record_dir = args
-        .record_dir
-        .clone()
-        .unwrap_or_else(|| args.state_dir.join("recordings"));
-    std::fs::create_dir_all(&record_dir)
-        .with_context(|| format!("creating {}", record_dir.display()))?;
-    let files = RecordDir::new(&record_dir, net::world_loop::unix_seconds);
-    let made = files.made();
+    // An edge records nothing: its world does.
+    let recording = match bus {
+        None => Some(record_files(&args.state_dir, args.record_dir.as_deref())?),
+        Some(_) => None,
+    };
+    let made = recording
+        .as_ref()
+        .map(|(dir, files)| (dir.clone(), files.made()));
     let web_host = web.as_ref().map(|(_, host)| host.clone());
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
@@ -478,7 +487,7 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
             &identity,
             Options {
                 web: web.map(|(options, _)| options),
-                record: remote.is_none().then(|| {
+                record: recording.map(|(_, files)| {
                     RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash)
                 }),
                 remote: remote.clone(),
@@ -491,16 +500,16 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
         );
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
-        match &remote {
-            Some(r) => say!(
+        if let Some(r) = &remote {
+            say!(
                 "edge of the world {:?}: it records the session (its edges: {})",
                 r.world(),
                 r.edges().join(", ")
-            ),
-            None => {
-                let first = made.list().first().map(|p| p.display().to_string());
-                say!("recording to {}", first.as_deref().unwrap_or("nothing"));
-            }
+            );
+        }
+        if let Some((_, made)) = &made {
+            let first = made.list().first().map(|p| p.display().to_string());
+            say!("recording to {}", first.as_deref().unwrap_or("nothing"));
         }
         let host = if server.addr.ip().is_unspecified() {
             format!("<this machine's address>:{}", server.addr.port())
@@ -532,10 +541,10 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
             .context("waiting for Ctrl-C")?;
         say!("shutting down");
         let world = server.shutdown().await?;
-        if remote.is_some() {
+        let Some((record_dir, made)) = &made else {
             say!("stopped (the world was at tick {})", world.tick());
             return Ok(());
-        }
+        };
         match made.list().as_slice() {
             [] => say!("stopped at tick {}", world.tick()),
             [one] => say!(

@@ -412,48 +412,11 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
             None => Err(Refusal::Unavailable("no vehicle to follow".into())),
         };
     }
-    if let Some(remote) = &shared.remote {
-        return join_world(shared, remote, hello).await;
-    }
     let (replace, replaced) = oneshot::channel();
-    let claim = hello.resume.and_then(|t| shared.tickets().remove(&t));
-    if let (Some(ticket), Some(claim)) = (hello.resume, claim) {
-        // The old connection may still be up (its loss not yet seen here): end it first,
-        // so that the world holds the vehicle before it is asked for it back.
-        if let Some(old) = claim.replace {
-            let (done, ended) = oneshot::channel();
-            if old.send(done).is_ok() {
-                let _ = tokio::time::timeout(REPLACE_WAIT, ended).await;
-            }
-        }
-        if let Ok(vehicle) = ask(shared, Event::Resume(claim.vehicle)).await {
-            shared.tickets().insert(
-                ticket,
-                Claim {
-                    vehicle,
-                    replace: Some(replace),
-                },
-            );
-            return Ok(Joined {
-                vehicle,
-                driver: true,
-                ticket: Some(ticket),
-                resumed: true,
-                replaced: Some(replaced),
-            });
-        }
-    }
-    // At the limit, the world frees the oldest held vehicle before it seats this one
-    // ([`crate::sim::world_core::WorldCore::with_limit`]): decided there, in the order the
-    // joins arrive, so two at once free two distinct vehicles.
-    let vehicle = ask(shared, Event::Join).await.map_err(|()| {
-        if *shared.shutdown.borrow() {
-            Refusal::Shutdown
-        } else {
-            Refusal::Unavailable("no vehicle free".into())
-        }
-    })?;
-    let ticket = random_ticket();
+    let (vehicle, ticket, resumed) = match &shared.remote {
+        Some(remote) => from_world(shared, remote, hello).await?,
+        None => from_here(shared, hello).await?,
+    };
     let mut tickets = shared.tickets();
     // The freed vehicles' tickets name nothing now. Taken before this join's own ticket
     // goes in: a vehicle freed before this join was answered is never this one.
@@ -473,85 +436,68 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
         vehicle,
         driver: true,
         ticket: Some(ticket),
-        resumed: false,
+        resumed,
         replaced: Some(replaced),
     })
 }
 
-/// A driver's join on an edge: its vehicle taken back from the world with its ticket
-/// (issued by the world: any edge's), or a new one. A connection of this edge that still
-/// drives it is ended first, as in [`join`].
-async fn join_world(
+/// A driver's vehicle from the world in this process: its held one taken back with the
+/// ticket this server gave it, or a new one with a new ticket. Whether it was resumed.
+async fn from_here(shared: &Shared, hello: &Hello) -> Result<(VehicleId, Ticket, bool), Refusal> {
+    let claim = hello.resume.and_then(|t| shared.tickets().remove(&t));
+    if let (Some(ticket), Some(claim)) = (hello.resume, claim) {
+        end_replaced(claim.replace).await;
+        if let Ok(vehicle) = ask(shared, Event::Resume(claim.vehicle)).await {
+            return Ok((vehicle, ticket, true));
+        }
+    }
+    // At the limit, the world frees the oldest held vehicle before it seats this one
+    // ([`crate::sim::world_core::WorldCore::with_limit`]): decided there, in the order the
+    // joins arrive, so two at once free two distinct vehicles.
+    let vehicle = ask(shared, Event::Join)
+        .await
+        .map_err(|()| refused(shared, "no vehicle free".into()))?;
+    Ok((vehicle, random_ticket(), false))
+}
+
+/// A driver's vehicle from the world over the bus (an edge): its held one taken back with
+/// its ticket (the world's: any edge's), or a new one with the world's new ticket.
+async fn from_world(
     shared: &Shared,
     remote: &super::bus::edge::Remote,
     hello: &Hello,
-) -> Result<Joined, Refusal> {
-    let (replace, replaced) = oneshot::channel();
+) -> Result<(VehicleId, Ticket, bool), Refusal> {
     if let Some(ticket) = hello.resume {
         let claim = shared.tickets().remove(&ticket);
-        if let Some(old) = claim.and_then(|c| c.replace) {
-            let (done, ended) = oneshot::channel();
-            if old.send(done).is_ok() {
-                let _ = tokio::time::timeout(REPLACE_WAIT, ended).await;
-            }
-        }
+        end_replaced(claim.and_then(|c| c.replace)).await;
         match remote.resume(ticket).await {
-            Ok(vehicle) => {
-                claim_ticket(shared, ticket, vehicle, replace);
-                return Ok(Joined {
-                    vehicle,
-                    driver: true,
-                    ticket: Some(ticket),
-                    resumed: true,
-                    replaced: Some(replaced),
-                });
-            }
+            Ok(vehicle) => return Ok((vehicle, ticket, true)),
             Err(why) => tracing::info!("a resume refused by the world ({why}): a new vehicle"),
         }
     }
-    join_new(shared, remote).await.map(|mut j| {
-        if let Some(t) = j.ticket {
-            claim_ticket(shared, t, j.vehicle, replace);
-            j.replaced = Some(replaced);
-        }
-        j
-    })
+    let (vehicle, ticket) = remote.join().await.map_err(|why| refused(shared, why))?;
+    Ok((vehicle, ticket, false))
 }
 
-/// A new vehicle from the world, its ticket the world's.
-async fn join_new(shared: &Shared, remote: &super::bus::edge::Remote) -> Result<Joined, Refusal> {
-    let (vehicle, ticket) = remote.join().await.map_err(|why| {
-        if *shared.shutdown.borrow() {
-            Refusal::Shutdown
-        } else {
-            Refusal::Unavailable(why)
+/// The old connection of a driver coming back may still be up (its loss not yet seen
+/// here): it is ended first, so that the world holds the vehicle before it is asked for
+/// it back.
+async fn end_replaced(old: Option<oneshot::Sender<oneshot::Sender<()>>>) {
+    if let Some(old) = old {
+        let (done, ended) = oneshot::channel();
+        if old.send(done).is_ok() {
+            let _ = tokio::time::timeout(REPLACE_WAIT, ended).await;
         }
-    })?;
-    Ok(Joined {
-        vehicle,
-        driver: true,
-        ticket: Some(ticket),
-        resumed: false,
-        replaced: None,
-    })
+    }
 }
 
-/// Records that `ticket` names `vehicle`, driven by the connection `replace` reaches.
-fn claim_ticket(
-    shared: &Shared,
-    ticket: Ticket,
-    vehicle: VehicleId,
-    replace: oneshot::Sender<oneshot::Sender<()>>,
-) {
-    let mut tickets = shared.tickets();
-    tickets.retain(|_, c| c.vehicle != vehicle);
-    tickets.insert(
-        ticket,
-        Claim {
-            vehicle,
-            replace: Some(replace),
-        },
-    );
+/// A join the world did not grant: the server is stopping, or `why`.
+fn refused(shared: &Shared, why: String) -> Refusal {
+    if *shared.shutdown.borrow() {
+        Refusal::Shutdown
+    } else {
+        Refusal::Unavailable(why)
+    }
 }
 
 /// Hands the world an event that answers with a vehicle: `Err` when it answers none (a
@@ -562,7 +508,7 @@ async fn ask(shared: &Shared, event: Event) -> Result<VehicleId, ()> {
     rx.await.map_err(|_| ())
 }
 
-fn random_ticket() -> Ticket {
+pub(super) fn random_ticket() -> Ticket {
     use ring::rand::SecureRandom;
     let mut t = [0u8; 16];
     ring::rand::SystemRandom::new()

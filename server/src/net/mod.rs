@@ -326,18 +326,16 @@ impl Server {
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world_stats = Arc::new(world_loop::WorldStats::default());
         let world = match options.remote.clone() {
-            None => {
-                let core = crate::sim::world_core::WorldCore::new(terrain.clone(), options.record)
-                    .map_err(ServeError::World)?
-                    .with_hold(world_loop::hold_ticks(options.hold))
-                    // Vehicles at most, held ones included.
-                    .with_limit(options.max_viewers);
-                let stats = world_stats.clone();
-                std::thread::Builder::new()
-                    .name("roam-world".into())
-                    .spawn(move || world_loop::run(core, inbox_rx, snap_tx, &stats))
-                    .map_err(ServeError::World)?
-            }
+            // Vehicles at most, held ones included: a seat each.
+            None => world_loop::start(
+                terrain.clone(),
+                options.record,
+                (options.hold, options.max_viewers),
+                inbox_rx,
+                snap_tx,
+                world_stats.clone(),
+            )
+            .map_err(ServeError::World)?,
             Some(remote) => {
                 let terrain = terrain.clone();
                 let runtime = tokio::runtime::Handle::current();

@@ -97,6 +97,25 @@ fn log_all(core: &mut WorldCore) {
     }
 }
 
+/// The world thread, started: a [`WorldCore`] of `terrain` recording to `record`, holding
+/// a dropped driver's vehicle `hold`, with at most `limit` vehicles (held ones included),
+/// [`run`] on a thread of its own. Both `serve` and `roam-server world` start it so.
+pub fn start(
+    terrain: Arc<crate::Terrain>,
+    record: Option<crate::sim::session::RecordOptions>,
+    (hold, limit): (Duration, usize),
+    inbox: Receiver<Inbound>,
+    snapshots: watch::Sender<Arc<Snapshot>>,
+    stats: Arc<WorldStats>,
+) -> std::io::Result<std::thread::JoinHandle<World>> {
+    let core = WorldCore::new(terrain, record)?
+        .with_hold(hold_ticks(hold))
+        .with_limit(limit);
+    std::thread::Builder::new()
+        .name("roam-world".into())
+        .spawn(move || run(core, inbox, snapshots, &stats))
+}
+
 /// Runs the world until `inbox` closes, then finishes the recording. Returns the final
 /// world.
 pub fn run(

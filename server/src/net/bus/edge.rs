@@ -15,7 +15,7 @@ use roam_protocol::bus::{self as wire, Answer, Ask, Keys, Subjects};
 use roam_protocol::messages::{Ticket, decode};
 use tokio::sync::{mpsc, watch};
 
-use super::{BusError, BusOptions, encode, from_wire};
+use super::{BusError, BusOptions, Malformed, encode, from_wire};
 use crate::Terrain;
 use crate::net::world_loop::Inbound;
 use crate::sim::world::{VehicleId, World};
@@ -227,18 +227,13 @@ async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Sn
             return;
         }
     };
-    let mut malformed = 0u64;
+    let mut malformed = Malformed::new("snapshot");
     while let Some(msg) = sub.next().await {
         match decode::<wire::Snapshot>(&msg.payload) {
             Ok(s) => {
                 snapshots.send_replace(from_wire(s));
             }
-            Err(e) => {
-                malformed += 1;
-                if malformed.is_power_of_two() {
-                    tracing::warn!(malformed, "a malformed snapshot on the bus: {e}");
-                }
-            }
+            Err(e) => malformed.note(&e),
         }
     }
 }

@@ -70,6 +70,34 @@ pub enum BusError {
     NoWorld { world: String, url: String },
     #[error("the world's answer: {0}")]
     Answer(String),
+    #[error("the world thread: {0}")]
+    World(std::io::Error),
+    #[error("the world thread panicked")]
+    WorldPanicked,
+}
+
+/// Messages from the bus that did not decode, counted; logged at the first, second,
+/// fourth… so a flood cannot fill the log.
+pub(crate) struct Malformed {
+    what: &'static str,
+    count: u64,
+}
+
+impl Malformed {
+    pub(crate) fn new(what: &'static str) -> Malformed {
+        Malformed { what, count: 0 }
+    }
+
+    pub(crate) fn note(&mut self, error: &roam_protocol::messages::DecodeError) {
+        self.count += 1;
+        if self.count.is_power_of_two() {
+            tracing::warn!(
+                malformed = self.count,
+                "a malformed {} on the bus: {error}",
+                self.what
+            );
+        }
+    }
 }
 
 impl BusOptions {

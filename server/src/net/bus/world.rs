@@ -18,12 +18,12 @@ use roam_protocol::bus::{Answer, Ask, Keys, MAX_EDGES, Subjects};
 use roam_protocol::messages::{Ticket, decode};
 use tokio::sync::{oneshot, watch};
 
-use super::{BusError, BusOptions, encode, to_wire};
+use super::{BusError, BusOptions, Malformed, encode, to_wire};
 use crate::Terrain;
 use crate::net::world_loop::{self, Inbound, WorldStats};
 use crate::sim::session::RecordOptions;
 use crate::sim::world::{VehicleId, World};
-use crate::sim::world_core::{Event, Snapshot, WorldCore};
+use crate::sim::world_core::{Event, Snapshot};
 
 /// Requests answered at once; past it, the next waits for one to finish.
 const MAX_ASKING: usize = 256;
@@ -87,17 +87,15 @@ impl WorldServer {
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let stats = Arc::new(WorldStats::default());
-        let thread = {
-            let core = WorldCore::new(terrain, options.record)
-                .map_err(|e| BusError::Answer(format!("the recording: {e}")))?
-                .with_hold(world_loop::hold_ticks(options.hold))
-                .with_limit(options.max_vehicles);
-            let stats = stats.clone();
-            std::thread::Builder::new()
-                .name("roam-world".into())
-                .spawn(move || world_loop::run(core, inbox_rx, snap_tx, &stats))
-                .map_err(|e| BusError::Answer(format!("starting the world thread: {e}")))?
-        };
+        let thread = world_loop::start(
+            terrain,
+            options.record,
+            (options.hold, options.max_vehicles),
+            inbox_rx,
+            snap_tx,
+            stats.clone(),
+        )
+        .map_err(BusError::World)?;
         let state = Arc::new(State {
             tickets: Mutex::new(HashMap::new()),
             edges: Mutex::new(Vec::new()),
@@ -155,7 +153,7 @@ impl WorldServer {
             .await
             .ok()
             .and_then(Result::ok)
-            .ok_or_else(|| BusError::Answer("the world thread panicked".into()))
+            .ok_or(BusError::WorldPanicked)
     }
 }
 
@@ -166,7 +164,7 @@ async fn answer_asks(
     state: Arc<State>,
 ) {
     let permits = Arc::new(tokio::sync::Semaphore::new(MAX_ASKING));
-    let mut malformed = 0u64;
+    let mut malformed = Malformed::new("request");
     while let Some(msg) = asks.next().await {
         let Some(reply) = msg.reply else {
             continue; // a request nobody waits for the answer of: not one of ours
@@ -174,10 +172,7 @@ async fn answer_asks(
         let ask = match decode::<Ask>(&msg.payload) {
             Ok(ask) => ask,
             Err(e) => {
-                malformed += 1;
-                if malformed.is_power_of_two() {
-                    tracing::warn!(malformed, "a malformed request on the bus: {e}");
-                }
+                malformed.note(&e);
                 let answer = Answer::Refused {
                     reason: format!("malformed request: {e}"),
                 };
@@ -202,15 +197,6 @@ async fn ask_world(state: &State, event: Event) -> Option<VehicleId> {
     let (tx, rx) = oneshot::channel();
     state.inbox.send((event, Some(tx))).ok()?;
     rx.await.ok()
-}
-
-fn random_ticket() -> Ticket {
-    use ring::rand::SecureRandom;
-    let mut t = [0u8; 16];
-    ring::rand::SystemRandom::new()
-        .fill(&mut t)
-        .expect("the system's random source works");
-    t
 }
 
 async fn answer(state: &State, ask: Ask) -> Answer {
@@ -243,7 +229,7 @@ async fn answer(state: &State, ask: Ask) -> Answer {
             let Some(vehicle) = ask_world(state, Event::Join).await else {
                 return refused("no vehicle free");
             };
-            let ticket = random_ticket();
+            let ticket = crate::net::handshake::random_ticket();
             let mut tickets = state.tickets.lock().unwrap_or_else(|e| e.into_inner());
             for freed in state.stats.take_evicted() {
                 tickets.retain(|_, v| *v != freed);
@@ -292,7 +278,7 @@ async fn answer(state: &State, ask: Ask) -> Answer {
 
 /// Hands the drivers' key states to the world thread.
 async fn take_keys(mut keys: async_nats::Subscriber, inbox: Sender<Inbound>) {
-    let mut malformed = 0u64;
+    let mut malformed = Malformed::new("key states");
     while let Some(msg) = keys.next().await {
         match decode::<Keys>(&msg.payload) {
             Ok(k) => {
@@ -304,12 +290,7 @@ async fn take_keys(mut keys: async_nats::Subscriber, inbox: Sender<Inbound>) {
                     return; // the world has stopped
                 }
             }
-            Err(e) => {
-                malformed += 1;
-                if malformed.is_power_of_two() {
-                    tracing::warn!(malformed, "malformed key states on the bus: {e}");
-                }
-            }
+            Err(e) => malformed.note(&e),
         }
     }
 }

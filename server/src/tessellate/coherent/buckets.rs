@@ -579,7 +579,7 @@ impl Schedule {
                     && self.bucket(key) == nodes.entry_bucket(i, self.k) =>
             {
                 nodes.set_key(i, self.k, key);
-                let b = self.bucket(key);
+                let b = nodes.entry_bucket(i, self.k);
                 self.least[b] = self.least[b].min(key);
             }
             _ => {
