@@ -1,26 +1,42 @@
-//! One connection's tasks and words, with no clock (the session, [`crate::session`], bounds
+//! Each connection's tasks and words, and the [`Supervisor`] that runs them one
+//! connection after another. A connection's tasks have no clock (the supervisor bounds
 //! them in time): the frames read into the session's core (datagrams, and streams read to
 //! their end, each chunk news of the server), the server's control messages after the
 //! join (colour windows and tiles into the colour cache, each tile decoded outside its
-//! lock; a goodbye ends the session; a colour message the cache refuses ends it as the
-//! server's protocol error), the goodbye said when the viewer quits, and how a connection
-//! ended ([`End`]: quit, lost, or for good); one attempt to join (bounded by the session's
-//! timeouts), and the key sender.
+//! lock; an edge's news of its world to the session; a goodbye ends the session; a colour
+//! message the cache refuses ends it as the server's protocol error), the goodbye said
+//! when the viewer quits, and how a connection ended ([`End`]: quit, lost, the server
+//! shutting down, or for good); one attempt to join (bounded by the session's timeouts),
+//! and the key sender.
+//!
+//! **The supervisor** ([`crate::session`] starts it) drives each connection (the readers
+//! above, the core's control messages written in order, the silence watched:
+//! [`Patience::silence`], or [`SILENCE_MANY`] when there are other addresses), and when
+//! one is lost, reconnects: to the next address in turn ([`Addresses::after_loss`]), each
+//! handshake within 5 s ([`HANDSHAKE_MANY`] with other addresses), backing off from
+//! 100 ms to 2 s, for [`Patience::reconnect_for`]; the silence rule counted per address
+//! ([`Silences`]). With other addresses, a server shutting down is a loss too (the next
+//! edge takes the viewer); alone, it ends the session.
+//!
+//! [`Addresses::after_loss`]: crate::edges::Addresses::after_loss
 
 use std::net::SocketAddr;
 use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
 use roam_link::wire;
-use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, close};
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage, close};
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinSet;
 
 use crate::color_cache::Keep;
-use crate::join::{self, JoinError, Joined};
-use crate::joining::take_control;
-use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Steps, lock, secs};
+use crate::core::ClientCore;
+use crate::edges::{HANDSHAKE_MANY, SILENCE_MANY, Silences};
+use crate::join::{self, JoinError, Joined, TerrainId};
+use crate::joining::{next_hello, take_control};
+use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Patience, State, Steps, lock, secs};
 
 pub use crate::core::MAX_FRAME;
 
@@ -37,12 +53,20 @@ pub enum End {
     Quit,
     /// Lost: worth connecting again. `silent`: the server went silent.
     Lost { why: String, silent: bool },
+    /// The server is shutting down (it said goodbye so, or closed with that code): for
+    /// good when there is no other address to go to.
+    Shutdown(String),
     /// For good.
     Final(String),
 }
 
 impl End {
     pub fn of(e: &quinn::ConnectionError) -> End {
+        if let quinn::ConnectionError::ApplicationClosed(c) = e
+            && c.error_code == close::SHUTDOWN.into()
+        {
+            return End::Shutdown(join::ending(e).1);
+        }
         match join::ending(e) {
             (true, why) => End::Lost { why, silent: false },
             (false, why) => End::Final(why),
@@ -92,8 +116,9 @@ pub async fn goodbye(send: &mut quinn::SendStream) -> bool {
 }
 
 /// The server's control messages after the join: each is news of the server; colour
-/// windows and tiles go to the colour cache; a goodbye ends the session, and so does
-/// anything else (not the protocol). Ends with the stream.
+/// windows and tiles go to the colour cache, an edge's news of its world to the session
+/// ([`Link::news`]); a goodbye ends the session, and so does anything else (not the
+/// protocol). Ends with the stream.
 pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mpsc::Sender<End>) {
     let mut rgb = Vec::new();
     let end = loop {
@@ -104,8 +129,11 @@ pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mp
             Err(e) => break End::Final(format!("the server's control stream: {e}")),
         };
         link.heard();
-        if let Err(why) = take_control(&msg, &mut rgb, || lock(&link.colors)) {
-            break End::Final(why);
+        match take_control(&msg, &mut rgb, || lock(&link.colors)) {
+            Ok(None) => {}
+            Ok(Some(news)) => link.news(news),
+            Err(why) if msg == ServerMessage::Bye(Reason::Shutdown) => break End::Shutdown(why),
+            Err(why) => break End::Final(why),
         }
     };
     let _ = ends.send(end).await;
@@ -222,5 +250,273 @@ pub async fn send_keys(link: Arc<Link>, mut steps: Steps) {
         {
             let _ = conn.send_datagram(bytes.into());
         }
+    }
+}
+
+/// The first pause between reconnection attempts, doubled after each up to the second.
+const BACKOFF_FIRST: Duration = Duration::from_millis(100);
+const BACKOFF_MOST: Duration = Duration::from_secs(2);
+/// A reconnection's QUIC handshake, at most, with one address (the next attempt starts
+/// afresh; the last may end this much after [`Patience::reconnect_for`]).
+const HANDSHAKE: Duration = Duration::from_secs(5);
+
+/// The connection's life and the reconnections: owns the control stream's writing end.
+pub(crate) struct Supervisor {
+    pub(crate) endpoint: quinn::Endpoint,
+    /// The hello of the next connection (the newest ticket, the vehicle followed).
+    pub(crate) hello: Hello,
+    pub(crate) patience: Patience,
+    /// What the colour caches keep.
+    pub(crate) keep: Keep,
+    /// The first connection's terrain: every later one must show it.
+    pub(crate) terrain: TerrainId,
+    pub(crate) link: Arc<Link>,
+    pub(crate) outgoing: mpsc::UnboundedReceiver<Outgoing>,
+}
+
+impl Supervisor {
+    pub(crate) async fn run(mut self, mut joined: Joined) {
+        // The addresses silent since the last frame: the same one silent again ends it.
+        let mut silences = Silences::default();
+        loop {
+            let Joined {
+                conn,
+                mut send,
+                recv,
+                ..
+            } = joined;
+            let end = self.drive(&conn, &mut send, recv).await;
+            let (here, many) = {
+                let a = lock(&self.link.addresses);
+                (a.index(), a.many())
+            };
+            let addr = self.addr();
+            let (why, silent) = match end {
+                End::Quit => return self.link.end("quit".into()),
+                // Another edge takes the viewer.
+                End::Shutdown(why) if many => (why, false),
+                End::Final(why) | End::Shutdown(why) => {
+                    conn.close(close::BYE.into(), b"bye");
+                    return self.link.end(why);
+                }
+                End::Lost { why, silent } => (why, silent),
+            };
+            conn.close(0u32.into(), b"lost");
+            *lock(&self.link.conn) = None;
+            if silent && silences.silent(here, self.link.frames.load(Ordering::Relaxed)) {
+                return self.link.end(format!(
+                    "lost the server at {addr}: {why}, again right after reconnecting, with \
+                     no frame between: the server welcomes but sends nothing"
+                ));
+            }
+            self.link.status.send_modify(|s| {
+                s.gaps.lost(Instant::now());
+                s.state = State::Reconnecting {
+                    why: why.clone(),
+                    attempts: 0,
+                };
+            });
+            joined = match self.reconnect(&why).await {
+                Ok(Some(j)) => j,
+                Ok(None) => return self.link.end("quit".into()),
+                Err(why) => return self.link.end(why),
+            };
+            if self.link.ended().is_some() {
+                joined.conn.close(close::BYE.into(), b"bye");
+                return;
+            }
+            if let Err(why) = self.adopt(&mut joined) {
+                joined.conn.close(close::BYE.into(), b"bye");
+                return self.link.end(why);
+            }
+        }
+    }
+
+    /// The address in use.
+    fn addr(&self) -> SocketAddr {
+        *lock(&self.link.addresses).current()
+    }
+
+    /// How long a silence may last: shorter when there are other addresses to go to.
+    fn silence(&self) -> Duration {
+        if lock(&self.link.addresses).many() {
+            self.patience.silence.min(SILENCE_MANY)
+        } else {
+            self.patience.silence
+        }
+    }
+
+    /// Serves one connection until it ends: frames into the core, the server's control
+    /// messages, the core's control messages out, the silence watched.
+    async fn drive(
+        &mut self,
+        conn: &quinn::Connection,
+        send: &mut quinn::SendStream,
+        recv: quinn::RecvStream,
+    ) -> End {
+        let epoch = self.link.epoch.load(Ordering::Acquire);
+        let (ends_tx, mut ends) = mpsc::channel(1);
+        // Dropped on return: the readers stop with the connection's end.
+        let mut tasks = JoinSet::new();
+        tasks.spawn(read_frames(conn.clone(), self.link.clone(), epoch));
+        tasks.spawn(read_control(recv, self.link.clone(), ends_tx));
+        // A view to tell the new connection.
+        let mut outbox = Vec::new();
+        while let Some(m) = lock(&self.link.core).poll_control() {
+            outbox.push(m);
+        }
+        for m in outbox {
+            if let Err(e) = write_control(send, &m).await {
+                return failed_write(conn, e);
+            }
+        }
+        loop {
+            // Edges learned meanwhile shorten it.
+            let silence = self.silence();
+            let quiet_until = *lock(&self.link.heard) + silence;
+            tokio::select! {
+                o = self.outgoing.recv() => match o {
+                    Some(Outgoing::Message(m)) => {
+                        if let Err(e) = write_control(send, &m).await {
+                            return failed_write(conn, e);
+                        }
+                    }
+                    Some(Outgoing::Quit(heard)) => {
+                        let _ = heard.send(goodbye(send).await);
+                        return End::Quit;
+                    }
+                    None => return End::Quit,
+                },
+                Some(end) = ends.recv() => return end,
+                e = conn.closed() => return End::of(&e),
+                () = tokio::time::sleep_until(quiet_until.into()) => {
+                    if lock(&self.link.heard).elapsed() >= silence {
+                        return End::Lost {
+                            why: format!(
+                                "no frame or message from the server for {}",
+                                secs(silence)
+                            ),
+                            silent: true,
+                        };
+                    }
+                }
+            }
+        }
+    }
+
+    /// Connects again, each attempt to the next address in turn, until a connection
+    /// joins, the session quits (`None`), or the time runs out or a server refuses (an
+    /// error, in words).
+    async fn reconnect(&mut self, why: &str) -> Result<Option<Joined>, String> {
+        let deadline = Instant::now() + self.patience.reconnect_for;
+        let mut backoff = BACKOFF_FIRST;
+        let mut attempts = 0u32;
+        let from = self.addr();
+        let lost = |more: String| format!("lost the server at {from}: {why}; {more}");
+        loop {
+            attempts += 1;
+            self.link.status.send_modify(|s| {
+                if let State::Reconnecting { attempts: a, .. } = &mut s.state {
+                    *a = attempts;
+                }
+            });
+            // An attempt begun before the deadline has its whole handshake.
+            let hello = self.hello_now();
+            let (addr, handshake) = {
+                let mut a = lock(&self.link.addresses);
+                let addr = *a.after_loss();
+                (addr, if a.many() { HANDSHAKE_MANY } else { HANDSHAKE })
+            };
+            let attempt = attempt(&self.endpoint, addr, handshake, hello, self.keep);
+            let result = tokio::select! {
+                r = attempt => r,
+                () = quit_asked(&mut self.outgoing) => {
+                    // The attempt in flight may already have been welcomed (and the vehicle
+                    // resumed): close it with the goodbye code, so the server frees the
+                    // vehicle rather than holding it.
+                    self.endpoint.close(close::BYE.into(), b"quit");
+                    return Ok(None);
+                }
+            };
+            let last = match result {
+                Ok(j) => {
+                    let found = TerrainId::of(&j.welcome, j.colors.coarsest());
+                    return match self.terrain.differences(&found) {
+                        None => Ok(Some(j)),
+                        Some(d) => {
+                            j.conn.close(close::BYE.into(), b"another terrain");
+                            Err(lost(format!("the server changed its terrain: {d}")))
+                        }
+                    };
+                }
+                Err(e) if !e.lost => return Err(lost(format!("reconnecting to {addr}: {e}"))),
+                Err(e) => format!("{addr}: {}", e.message),
+            };
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() || self.link.ended().is_some() {
+                return Err(lost(format!(
+                    "tried to reconnect for {} s ({attempts} attempts; the last: {last})",
+                    self.patience.reconnect_for.as_secs()
+                )));
+            }
+            tokio::select! {
+                () = tokio::time::sleep(backoff.min(left)) => {}
+                () = quit_asked(&mut self.outgoing) => return Ok(None),
+            }
+            backoff = (backoff * 2).min(BACKOFF_MOST);
+        }
+    }
+
+    /// The next hello, asking for the budget asked so far.
+    fn hello_now(&self) -> Hello {
+        Hello {
+            budget: lock(&self.link.core).budget(),
+            ..self.hello.clone()
+        }
+    }
+
+    /// Makes `joined` the session's connection: a fresh core (with the budget and the view
+    /// asked so far) and its colour cache, the keys sent on it, the reconnection counted.
+    fn adopt(&mut self, joined: &mut Joined) -> Result<(), String> {
+        let welcome = joined.welcome.clone();
+        {
+            let mut core = lock(&self.link.core);
+            let mut fresh = ClientCore::new(&welcome, core.budget())
+                .ok_or_else(|| format!("a grid of 2^{} + 1", welcome.levels))?;
+            if let Some(view) = *lock(&self.link.view) {
+                fresh.set_view(view);
+            }
+            self.link
+                .bytes_before
+                .fetch_add(core.bytes_in(), Ordering::Relaxed);
+            self.link.epoch.fetch_add(1, Ordering::AcqRel);
+            *core = fresh;
+        }
+        {
+            let mut colors = lock(&self.link.colors);
+            let joined_colors = std::mem::replace(&mut joined.colors, colors.fresh());
+            self.link
+                .color_bytes_before
+                .fetch_add(colors.bytes(), Ordering::Relaxed);
+            *colors = joined_colors;
+        }
+        self.link.heard();
+        *lock(&self.link.conn) = Some(joined.conn.clone());
+        let driver = self.hello.role == Role::Driver;
+        let addr = self.addr();
+        let now = Instant::now();
+        self.link.status.send_modify(|s| {
+            s.gaps.reconnected(driver && welcome.resumed);
+            s.state = State::Connected;
+            s.welcome = welcome.clone();
+            s.addr = addr;
+            // This edge says so if its world is gone too.
+            s.world.back(now);
+        });
+        for news in std::mem::take(&mut joined.news) {
+            self.link.news(&news);
+        }
+        self.hello = next_hello(self.hello.clone(), &welcome);
+        Ok(())
     }
 }

@@ -4,7 +4,10 @@
 //! measured ([`measure`]), with the error beside. Colour tiles are decoded and checked,
 //! and kept only for a screenshot ([`Keep::Masks`] otherwise: a load generator of many
 //! viewers holds no texels); the window asked is the default one
-//! ([`roam_protocol::tiles::DEFAULT_WINDOW`]), as a viewer with a GPU asks.
+//! ([`roam_protocol::tiles::DEFAULT_WINDOW`]), as a viewer with a GPU asks. Given several
+//! addresses (the edges of one world, [`measure_any`]) it goes from one to the next as
+//! the session does; an edge's word that its world is gone, and back, is one line each on
+//! stderr.
 
 use std::net::SocketAddr;
 use std::time::Instant;
@@ -15,7 +18,7 @@ use roam_protocol::messages::{self, Hello, Role, VERSION};
 use roam_protocol::script::Script;
 
 use crate::color_cache::{ColorCache, Keep};
-use crate::session::{KeySource, Patience, Session, Taken};
+use crate::session::{KeySource, Patience, Session, Status, Taken};
 
 pub use crate::session::connect;
 
@@ -111,6 +114,10 @@ pub struct ViewerStats {
     pub gap_max_s: f64,
     /// The budget served: the one asked for, or the server's most if that is less.
     pub budget_served: u32,
+    /// Addresses learned from the edges' lists, and the time the world behind the edge
+    /// was said gone, in all, seconds.
+    pub edges_learned: usize,
+    pub world_gone_s: f64,
     /// Why the session ended before its frame count, if it did.
     pub error: Option<String>,
 }
@@ -146,6 +153,16 @@ pub async fn measure(
     fingerprint: [u8; 32],
     opts: ViewerOptions,
 ) -> Result<ViewerStats> {
+    measure_any(&[addr], fingerprint, opts).await
+}
+
+/// As [`measure`], joining the first of `addrs` that answers and going from one to the
+/// next when one is lost ([`Session::join_any`]).
+pub async fn measure_any(
+    addrs: &[SocketAddr],
+    fingerprint: [u8; 32],
+    opts: ViewerOptions,
+) -> Result<ViewerStats> {
     let hello = Hello {
         version: VERSION,
         role: opts.role.clone(),
@@ -166,8 +183,8 @@ pub async fn measure(
     } else {
         Keep::Masks
     };
-    let session =
-        Session::join_keeping(addr, fingerprint, hello, keys, opts.patience, keep).await?;
+    let session = Session::join_any(addrs, fingerprint, hello, keys, opts.patience, keep).await?;
+    let said = tokio::spawn(say_world(session.status_changes()));
     let mut stats = ViewerStats {
         scene: opts.keep_last.then(|| session.scene.clone()),
         ..ViewerStats::default()
@@ -182,6 +199,8 @@ pub async fn measure(
     stats.reconnects = status.gaps.reconnects;
     stats.resumed = status.gaps.resumed;
     stats.gap_max_s = status.gaps.longest(Instant::now()).as_secs_f64();
+    stats.edges_learned = status.edges_learned;
+    stats.world_gone_s = status.world.gone_total(Instant::now()).as_secs_f64();
     stats.budget_served = session.core().effective_budget();
     stats.color_bytes = session.color_bytes();
     {
@@ -200,7 +219,30 @@ pub async fn measure(
         }
         Err(e) => stats.error = Some(format!("{e:#}")),
     }
+    said.abort();
     Ok(stats)
+}
+
+/// One line on stderr when the edge says its world is gone, one when it is back (or
+/// another edge, which does not say it is gone, takes the viewer), until the session ends.
+async fn say_world(mut status: tokio::sync::watch::Receiver<Status>) {
+    let mut gone: Option<String> = None;
+    loop {
+        let (now, addr) = {
+            let s = status.borrow_and_update();
+            (s.world.gone.clone(), s.addr)
+        };
+        if now != gone {
+            match &now {
+                Some(why) => eprintln!("roam-client: the world behind {addr} is gone: {why}"),
+                None => eprintln!("roam-client: the world behind {addr} is back"),
+            }
+            gone = now;
+        }
+        if status.changed().await.is_err() {
+            return;
+        }
+    }
 }
 
 /// Takes frames into `stats` until the frame count, a stop, or the session's end (an

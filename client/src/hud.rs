@@ -82,6 +82,9 @@ pub struct Numbers {
     /// back.
     pub reconnects: u32,
     pub resumed: u32,
+    /// The edge says the world behind it does not answer: why (the frames show it as
+    /// last seen).
+    pub world_gone: Option<String>,
     pub adapter: String,
 }
 
@@ -126,7 +129,8 @@ pub fn bearing(heading_deg: f64) -> (f64, &'static str) {
     (b, POINTS[i])
 }
 
-/// The HUD's lines.
+/// The HUD's lines: the connection, then (while the edge says so) the world gone, then
+/// the numbers.
 pub fn lines(n: &Numbers) -> Vec<String> {
     let on = |b: bool, name: &str, key: char| {
         if b {
@@ -138,45 +142,52 @@ pub fn lines(n: &Numbers) -> Vec<String> {
     let t = n.toggles;
     let ms = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.1} ms"));
     let (b, point) = bearing(n.heading_deg);
-    vec![
-        connection_line(n),
-        format!(
-            "{:.0} fps  ({} a frame)  {}",
-            n.fps,
-            ms(n.frame_ms),
-            n.adapter
-        ),
-        format!("{} triangles  ({}, [+]/[-])", n.triangles, budget_text(n)),
-        format!(
-            "server {:.0} frames/s  {:.1} KB/s in",
-            n.server_fps, n.kb_per_s
-        ),
-        format!(
-            "colour {:.1} KB/s in ({:.1} MB)  {}/{} tiles",
-            n.color_kb_per_s, n.color_mb, n.color_tiles, n.color_capacity
-        ),
-        format!(
-            "decode {}  upload {}  input→frame {}",
-            ms(n.decode_ms),
-            ms(n.upload_ms),
-            ms(n.latency_ms)
-        ),
-        format!(
-            "{:.0} km/h  heading {:.0}° ({point}, bearing {b:.0}°)",
-            n.speed * 3.6,
-            n.heading_deg
-        ),
-        [
-            on(t.fog, "fog", 'f'),
-            on(t.lighting, "lighting", 'l'),
-            on(t.wireframe, "wireframe", 'w'),
-            on(t.water, "water", 'r'),
-            on(t.vehicles, "vehicles", 'v'),
-            on(t.detail, "detail", 'd'),
-        ]
-        .join("  "),
-        "arrows drive · [h] hides this · [q]/Esc quits".to_string(),
-    ]
+    let world = n
+        .world_gone
+        .as_ref()
+        .map(|why| format!("the world does not answer ({why}): showing it as last seen"));
+    [connection_line(n)]
+        .into_iter()
+        .chain(world)
+        .chain([
+            format!(
+                "{:.0} fps  ({} a frame)  {}",
+                n.fps,
+                ms(n.frame_ms),
+                n.adapter
+            ),
+            format!("{} triangles  ({}, [+]/[-])", n.triangles, budget_text(n)),
+            format!(
+                "server {:.0} frames/s  {:.1} KB/s in",
+                n.server_fps, n.kb_per_s
+            ),
+            format!(
+                "colour {:.1} KB/s in ({:.1} MB)  {}/{} tiles",
+                n.color_kb_per_s, n.color_mb, n.color_tiles, n.color_capacity
+            ),
+            format!(
+                "decode {}  upload {}  input→frame {}",
+                ms(n.decode_ms),
+                ms(n.upload_ms),
+                ms(n.latency_ms)
+            ),
+            format!(
+                "{:.0} km/h  heading {:.0}° ({point}, bearing {b:.0}°)",
+                n.speed * 3.6,
+                n.heading_deg
+            ),
+            [
+                on(t.fog, "fog", 'f'),
+                on(t.lighting, "lighting", 'l'),
+                on(t.wireframe, "wireframe", 'w'),
+                on(t.water, "water", 'r'),
+                on(t.vehicles, "vehicles", 'v'),
+                on(t.detail, "detail", 'd'),
+            ]
+            .join("  "),
+            "arrows drive · [h] hides this · [q]/Esc quits".to_string(),
+        ])
+        .collect()
 }
 
 /// Lays the HUD out for this egui pass.
@@ -193,7 +204,9 @@ pub fn show(ctx: &egui::Context, n: &Numbers) {
                     ui.style_mut().wrap_mode = Some(egui::TextWrapMode::Extend);
                     for (i, line) in lines(n).into_iter().enumerate() {
                         let mut text = egui::RichText::new(line).monospace().size(13.0);
-                        text = if i == 0 && !n.connected {
+                        // The connection lost, or the world gone (its line is the second).
+                        let alarm = (i == 0 && !n.connected) || (i == 1 && n.world_gone.is_some());
+                        text = if alarm {
                             text.color(egui::Color32::from_rgb(255, 120, 100))
                         } else {
                             text.color(egui::Color32::from_gray(230))
@@ -389,6 +402,15 @@ mod tests {
         );
         n.resumed = 2;
         assert!(first(&n).ends_with("reconnected 2×"), "{}", first(&n));
+        // The world gone is a line of its own, under the connection, while it lasts.
+        let count = lines(&n).len();
+        n.world_gone = Some("no answer for 1.5 s".into());
+        let shown = lines(&n);
+        assert_eq!(shown.len(), count + 1);
+        assert_eq!(
+            shown[1],
+            "the world does not answer (no answer for 1.5 s): showing it as last seen"
+        );
         let text = lines(&n).join("\n");
         assert!(
             text.contains("budget 16384 (the server's most; 65536 asked)"),

@@ -6,6 +6,7 @@
 //! and what a connection's end means: **lost** (timed out, reset, a transport error: worth
 //! reconnecting) or **final** (the server closed it, refused the viewer, or broke the
 //! protocol). No clock here: the session ([`crate::session`]) bounds each step in time.
+//! One endpoint serves every address a session tries ([`endpoint_for`]).
 //!
 //! Grid limit: the viewer takes any grid the protocol has (`2^15 + 1`,
 //! `roam_protocol::Grid::new`); it was `2^13 + 1` while the colour map came whole. Grid
@@ -17,7 +18,7 @@ use std::net::SocketAddr;
 
 use anyhow::{Context, Result};
 use roam_link::{tls, wire};
-use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome};
+use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome, WorldNews};
 
 use crate::color_cache::{ColorCache, Keep};
 use crate::joining::{Joining, welcome_of};
@@ -27,7 +28,13 @@ pub use crate::joining::{TerrainId, describe, name};
 /// SHA-256 `fingerprint`: one per session, reused by its reconnections (one UDP socket
 /// however often it connects again).
 pub fn endpoint(addr: SocketAddr, fingerprint: [u8; 32]) -> Result<quinn::Endpoint> {
-    let bind: SocketAddr = if addr.is_ipv4() {
+    endpoint_for(&[addr], fingerprint)
+}
+
+/// As [`endpoint`], for every address of `addrs`: IPv4 when they all are, else IPv6
+/// (which reaches IPv4 addresses too, mapped).
+pub fn endpoint_for(addrs: &[SocketAddr], fingerprint: [u8; 32]) -> Result<quinn::Endpoint> {
+    let bind: SocketAddr = if addrs.iter().all(SocketAddr::is_ipv4) {
         "0.0.0.0:0".parse().expect("a valid address")
     } else {
         "[::]:0".parse().expect("a valid address")
@@ -118,14 +125,16 @@ impl std::fmt::Display for JoinError {
     }
 }
 
-/// A connection that has joined: its control stream, the welcome and the colour cache
-/// holding (at least) the coarsest tile.
+/// A connection that has joined: its control stream, the welcome, the colour cache
+/// holding (at least) the coarsest tile, and an edge's news of its world that came
+/// meanwhile.
 pub struct Joined {
     pub conn: quinn::Connection,
     pub send: quinn::SendStream,
     pub recv: quinn::RecvStream,
     pub welcome: Welcome,
     pub colors: ColorCache,
+    pub news: Vec<WorldNews>,
 }
 
 /// Says `hello` on `conn`, reads the welcome and the colour messages up to the coarsest
@@ -151,7 +160,7 @@ pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<
             });
         }
     };
-    let colors = coarsest(&mut recv, &welcome, asked, keep)
+    let (colors, news) = coarsest(&mut recv, &welcome, asked, keep)
         .await
         .map_err(|e| JoinError::on(&conn, format!("{e:#}")))?;
     Ok(Joined {
@@ -160,22 +169,23 @@ pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<
         recv,
         welcome,
         colors,
+        news,
     })
 }
 
 /// Reads the colour messages that follow the welcome until the coarsest level's tile is
-/// resident ([`Joining`]).
+/// resident ([`Joining`]), and the news of the world among them.
 async fn coarsest(
     recv: &mut quinn::RecvStream,
     welcome: &Welcome,
     asked: u8,
     keep: Keep,
-) -> Result<ColorCache> {
+) -> Result<(ColorCache, Vec<WorldNews>)> {
     let mut joining = Joining::new(welcome, asked, keep).map_err(anyhow::Error::msg)?;
     loop {
         let msg = wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await?;
         if let Some(cache) = joining.apply(&msg).map_err(anyhow::Error::msg)? {
-            return Ok(cache);
+            return Ok((cache, joining.take_news()));
         }
     }
 }

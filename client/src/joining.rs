@@ -2,11 +2,12 @@
 //! protocol's grids, the colour messages that follow it taken up to the coarsest tile
 //! ([`Joining`]), the terrain every reconnection must find again ([`TerrainId`]), the next
 //! connection's hello ([`next_hello`]), what a server message means during the session
-//! ([`take_control`]), and how the server's refusals and messages read in words. Shared by the native viewer ([`crate::join`], over
+//! ([`take_control`]: colour into the cache, an edge's news of its world handed back),
+//! and how the server's refusals and messages read in words. Shared by the native viewer ([`crate::join`], over
 //! QUIC) and the browser viewer (`roam-web`, over WebTransport), which differ only in how
 //! the bytes travel.
 
-use roam_protocol::messages::{Hello, Reason, Role, ServerMessage, Welcome};
+use roam_protocol::messages::{Hello, Reason, Role, ServerMessage, Welcome, WorldNews};
 
 use crate::color_cache::{ColorCache, Keep};
 
@@ -37,6 +38,11 @@ pub fn name(m: &ServerMessage) -> String {
         }
         ServerMessage::Refused(r) => format!("Refused({r:?})"),
         ServerMessage::Bye(r) => format!("Bye({r:?})"),
+        ServerMessage::World(WorldNews::Gone(why)) => format!("news of the world gone ({why})"),
+        ServerMessage::World(WorldNews::Back) => "news of the world back".into(),
+        ServerMessage::World(WorldNews::Edges(e)) => {
+            format!("news of the world's edges ({} addresses)", e.len())
+        }
     }
 }
 
@@ -49,13 +55,19 @@ pub fn welcome_of(msg: ServerMessage) -> Result<Welcome, String> {
     }
 }
 
+/// News of the world an edge may send before the coarsest tile, at most (kept for the
+/// session, [`Joining::take_news`]).
+const NEWS_BEFORE_TILE: usize = 16;
+
 /// A welcomed connection taking the colour messages that follow the welcome until the
 /// coarsest level's tile is resident (the server sends it first; a few windows before it
-/// are taken too).
+/// are taken too, and an edge's news of its world, kept).
 pub struct Joining {
     cache: ColorCache,
     /// Messages still allowed before the coarsest tile.
     left: u32,
+    /// News of the world that came before the coarsest tile.
+    news: Vec<WorldNews>,
 }
 
 impl Joining {
@@ -73,11 +85,27 @@ impl Joining {
         // Nothing the server may send before the coarsest tile can be more than a message
         // per slot and a window per level.
         let left = cache.capacity() + u32::from(welcome.color.levels) + 1;
-        Ok(Joining { cache, left })
+        Ok(Joining {
+            cache,
+            left,
+            news: Vec::new(),
+        })
+    }
+
+    /// News of the world that came with the join, in order.
+    pub fn take_news(&mut self) -> Vec<WorldNews> {
+        std::mem::take(&mut self.news)
     }
 
     /// Takes the next message: the colour cache once the coarsest tile is in it.
     pub fn apply(&mut self, msg: &ServerMessage) -> Result<Option<ColorCache>, String> {
+        if let ServerMessage::World(news) = msg {
+            if self.news.len() >= NEWS_BEFORE_TILE {
+                return Err("the server sent too much news before the coarsest tile".into());
+            }
+            self.news.push(news.clone());
+            return Ok(None);
+        }
         if self.left == 0 {
             return Err("the server sent too many colour messages before the coarsest tile".into());
         }
@@ -149,15 +177,17 @@ impl TerrainId {
 
 /// Takes a server message that comes during the session: colour windows and tiles into the
 /// colour cache, which `colors` lends (twice for a tile: it decodes into `rgb` in between,
-/// without the cache, which the display drains meanwhile). `Err` with the reason when the
+/// without the cache, which the display drains meanwhile); an edge's news of its world is
+/// handed back (`Ok(Some(news))`) for the session to take. `Err` with the reason when the
 /// message ends the session: a goodbye, anything else not colour, or colour the cache
 /// refuses.
-pub fn take_control<C: std::ops::DerefMut<Target = ColorCache>>(
-    msg: &ServerMessage,
+pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
+    msg: &'m ServerMessage,
     rgb: &mut Vec<u8>,
     mut colors: impl FnMut() -> C,
-) -> Result<(), String> {
+) -> Result<Option<&'m WorldNews>, String> {
     let taken = match msg {
+        ServerMessage::World(news) => return Ok(Some(news)),
         ServerMessage::Bye(reason) => {
             return Err(format!("the server said goodbye: {}", describe(reason)));
         }
@@ -174,7 +204,9 @@ pub fn take_control<C: std::ops::DerefMut<Target = ColorCache>>(
             ));
         }
     };
-    taken.map_err(|e| format!("the server broke the protocol: {e}"))
+    taken
+        .map(|()| None)
+        .map_err(|e| format!("the server broke the protocol: {e}"))
 }
 
 /// The hello of the connection after one welcomed with `welcome`: a driver presents its

@@ -4,7 +4,7 @@
 //! renders offscreen with the same renderer.
 
 //!
-//! The clock-free core ([`core`], [`color_cache`], [`camera`]), the [`render`]er and the
+//! The clock-free core ([`core`], [`color_cache`], [`camera`], [`edges`]), the [`render`]er and the
 //! [`hud`] also build for `wasm32` (the browser viewer's beginning, issue 15); the I/O
 //! modules (QUIC, the window, the headless runs) are native only.
 
@@ -12,6 +12,7 @@ pub mod camera;
 pub mod cockpit;
 pub mod color_cache;
 pub mod core;
+pub mod edges;
 pub mod hud;
 pub mod joining;
 pub mod render;

@@ -20,9 +20,11 @@ use roam_server::net::{self, Options, Server};
     about = "View a roam server's terrain stream"
 )]
 struct Cli {
-    /// The server's address, `HOST:PORT`.
-    #[arg(long, conflicts_with = "local", requires = "fingerprint")]
-    connect: Option<SocketAddr>,
+    /// The server's address, `HOST:PORT`; or several, comma-separated (the edges of one
+    /// world, behind the one --fingerprint and token): tried in turn, and after losing one
+    /// the next, wrapping around.
+    #[arg(long, conflicts_with = "local", requires = "fingerprint", value_parser = addresses)]
+    connect: Option<Addresses>,
     /// The join token the server printed (visible to other users in `ps`: prefer
     /// `--token-file` or the environment variable `ROAM_TOKEN`).
     #[arg(long, requires = "connect", conflicts_with = "token_file")]
@@ -74,7 +76,8 @@ struct Cli {
     #[arg(long, default_value_t = 60, value_parser = clap::value_parser!(u16).range(1..))]
     frame_rate: u16,
     /// Seconds without a frame or message from the server before a headless viewer calls
-    /// the connection lost (and reconnects).
+    /// the connection lost (and reconnects): 10, or 1 when there are other addresses to
+    /// go to (a shorter one given stands).
     #[arg(long, default_value_t = 10.0, value_parser = seconds)]
     silence: f64,
     /// Seconds a headless viewer keeps trying to reconnect after a loss.
@@ -132,6 +135,23 @@ impl Cli {
             Role::Driver
         }
     }
+}
+
+/// The addresses `--connect` names.
+#[derive(Clone, Debug)]
+struct Addresses(Vec<SocketAddr>);
+
+/// `HOST:PORT[,HOST:PORT…]`: socket addresses, at least one.
+fn addresses(text: &str) -> Result<Addresses, String> {
+    let list = text
+        .split(',')
+        .map(|a| {
+            a.trim()
+                .parse::<SocketAddr>()
+                .map_err(|e| format!("{a:?}: {e} (expected HOST:PORT, e.g. 192.0.2.1:4433)"))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(Addresses(list))
 }
 
 /// The bundled data set: `data/kossou` from the current directory (the repository root,
@@ -196,9 +216,10 @@ fn run(cli: Cli) -> Result<()> {
         bail!("{}", roam_client::window::NO_DISPLAY);
     }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    let (server, addr, token, fingerprint) = runtime.block_on(serve(&cli))?;
+    let (server, addrs, token, fingerprint) = runtime.block_on(serve(&cli))?;
+    let addr = addrs[0];
     if !cli.headless {
-        let shown = window(&runtime, &cli, addr, &token, fingerprint);
+        let shown = window(&runtime, &cli, &addrs, &token, fingerprint);
         if let Some(server) = server {
             runtime.block_on(server.shutdown())?;
         }
@@ -252,7 +273,10 @@ fn run(cli: Cli) -> Result<()> {
                 stop: Some(stopped.clone()),
                 ..ViewerOptions::default()
             };
-            tasks.push(tokio::spawn(headless::measure(addr, fingerprint, opts)));
+            let addrs = addrs.clone();
+            tasks.push(tokio::spawn(async move {
+                headless::measure_any(&addrs, fingerprint, opts).await
+            }));
         }
         // A viewer that could not join (refused, or its handshake past the server's
         // deadline in a crowd joining at once) is counted, not measured; the others are.
@@ -330,9 +354,9 @@ fn write_report(cli: &Cli, report: &serde_json::Value) -> Result<()> {
     }
 }
 
-/// An in-process server (`--local`, the default) or the one given (`--connect`): its
-/// address, token and certificate fingerprint.
-async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32])> {
+/// An in-process server (`--local`, the default) or the ones given (`--connect`): the
+/// addresses (at least one), token and certificate fingerprint.
+async fn serve(cli: &Cli) -> Result<(Option<Server>, Vec<SocketAddr>, String, [u8; 32])> {
     Ok(match &cli.connect {
         None => {
             let dir = cli.local.clone().unwrap_or_else(bundled);
@@ -369,11 +393,14 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
             )?;
             let fp = tls::parse_fingerprint(&identity.fingerprint())?;
             let addr = server.addr;
-            (Some(server), addr, token, fp)
+            (Some(server), vec![addr], token, fp)
         }
-        Some(addr) => {
+        Some(Addresses(addrs)) => {
             let fp = tls::parse_fingerprint(cli.fingerprint.as_deref().unwrap_or_default())?;
-            (None, *addr, join_token(cli)?, fp)
+            if addrs.is_empty() {
+                bail!("--connect names no address");
+            }
+            (None, addrs.clone(), join_token(cli)?, fp)
         }
     })
 }
@@ -382,7 +409,7 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, SocketAddr, String, [u8; 32
 fn window(
     runtime: &tokio::runtime::Runtime,
     cli: &Cli,
-    addr: SocketAddr,
+    addrs: &[SocketAddr],
     token: &str,
     fingerprint: [u8; 32],
 ) -> Result<()> {
@@ -406,12 +433,24 @@ fn window(
     } else {
         KeySource::Latch
     };
-    let session = runtime.block_on(Session::join(addr, fingerprint, hello, keys))?;
+    let session = runtime.block_on(Session::join_any(
+        addrs,
+        fingerprint,
+        hello,
+        keys,
+        roam_client::session::Patience::default(),
+        roam_client::color_cache::Keep::Texels,
+    ))?;
     let name = match &cli.connect {
-        Some(a) => a.to_string(),
+        Some(Addresses(a)) => a
+            .iter()
+            .map(ToString::to_string)
+            .collect::<Vec<_>>()
+            .join(","),
         None => format!(
-            "{} (in-process, {addr})",
-            cli.local.clone().unwrap_or_else(bundled).display()
+            "{} (in-process, {})",
+            cli.local.clone().unwrap_or_else(bundled).display(),
+            session.addr()
         ),
     };
     window::run(
@@ -422,6 +461,7 @@ fn window(
             size: cli.size,
             toggles: cli.toggles(),
             server: name,
+            edges: addrs.len() > 1,
             driver: !cli.spectate,
             fov_y_deg: cli.fov,
         },

@@ -1,35 +1,45 @@
 //! The viewer's I/O: QUIC, tasks and the clock around the clock-free cores
 //! ([`ClientCore`] and [`ColorCache`] per connection, [`KeyCore`] and [`Gaps`] per
 //! session). It joins ([`crate::join`]: hello, welcome, the colour layout checked against
-//! the grid, the coarsest colour tile), then runs beside the caller: a **supervisor** that
-//! drives the connection (reading frames into the core, the server's control messages —
-//! colour windows and tiles into the colour cache —, writing the core's control messages in
-//! order) and reconnects when it is lost, and a **key sender** that sends a key
-//! datagram every 10 ms (the physics' step) from the core's latch or a script. The window,
-//! the headless viewer and `--bench` take frames with [`Session::next_frame`].
+//! the grid, the coarsest colour tile), then runs beside the caller: a **supervisor**
+//! (in `connection.rs`) that drives the connection (reading frames into the core, the
+//! server's control messages — colour windows and tiles into the colour cache, an edge's
+//! news of its world into the [`Status`] —, writing the core's control messages in order)
+//! and reconnects when it is lost, and a **key sender** that sends a key datagram every
+//! 10 ms (the physics' step) from the core's latch or a script. The window, the headless
+//! viewer and `--bench` take frames with [`Session::next_frame`].
+//!
+//! **Addresses.** A session has one address or several ([`Session::join_any`]: the edges
+//! of one world, `roam-client --connect A,B,…`), all behind the one certificate pin and
+//! token; an edge's [`WorldNews::Edges`] adds the others it names
+//! ([`crate::edges::Addresses`]). The first connection tries them in turn (each handshake
+//! within [`HANDSHAKE_MANY`] when there are several); [`Session::addr`] is the one in use.
 //!
 //! **Reconnecting.** A connection is *lost* when QUIC says so (idle timeout, reset,
 //! transport error) or when the server is *silent*: no frame, no control message and no
-//! frame bytes for [`Patience::silence`] (10 s) after the welcome (the server sends frames
+//! frame bytes for [`Patience::silence`] (10 s; [`SILENCE_MANY`], 1 s, when there are other
+//! addresses, unless the patience is shorter) after the welcome (the server sends frames
 //! at the viewer's rate whatever the world does, so silence means a stuck path or server).
-//! Then the session connects again to the same address, from the same endpoint, with the
-//! same certificate pin and token, presenting the driver's ticket
-//! ([`Hello::resume`]; a spectator asks to follow the same vehicle), after 100 ms, then
-//! doubling to 2 s between attempts, each handshake bounded to 5 s, for
-//! [`Patience::reconnect_for`] (35 s: the server's 30 s hold and a margin), and then gives
-//! up with an error naming the server. The new connection starts a fresh [`ClientCore`]
-//! (frame numbers start again at 0) with the budget and view asked so far; the keys go on
-//! (their numbers keep rising, so a resumed vehicle's queue takes them as new). Its
-//! welcome must show the same terrain (grid, scales, colour layout and coarsest tile), else
-//! the session ends. A new connection also starts a fresh colour cache: the server sends
-//! the colour pyramid again from its coarsest tile.
+//! Then the session connects again to the next address in turn (the same one when it has
+//! one), from the same endpoint, with the same certificate pin and token, presenting the
+//! driver's ticket ([`Hello::resume`]; a spectator asks to follow the same vehicle), at
+//! once, then after 100 ms, doubling to 2 s between attempts, each handshake bounded to
+//! 5 s (1 s with other addresses), for [`Patience::reconnect_for`] (35 s: the server's 30 s
+//! hold and a margin), and then gives up with an error naming the server. The new
+//! connection starts a fresh [`ClientCore`] (frame numbers start again at 0) with the
+//! budget and view asked so far; the keys go on (their numbers keep rising, so a resumed
+//! vehicle's queue takes them as new). Its welcome must show the same terrain (grid,
+//! scales, colour layout and coarsest tile), else the session ends. A new connection also
+//! starts a fresh colour cache: the server sends the colour pyramid again from its
+//! coarsest tile.
 //!
 //! Never reconnected after: a refusal (wrong token, version, a full server), the server
-//! closing the connection (a goodbye, shutting down), a frame the server could not have
-//! sent ([`crate::core::Broken`]: the session ends with the server and the numbers named),
-//! the viewer quitting. **Silence reconnects once**: it may be a stuck path, but a server
-//! that welcomes again and then stays silent (two silences with no frame between) is
-//! stuck itself, and the session ends.
+//! closing the connection (a goodbye; shutting down, unless there are other addresses), a
+//! frame the server could not have sent ([`crate::core::Broken`]: the session ends with the
+//! server and the numbers named), the viewer quitting. **Silence reconnects once** per
+//! address: it may be a stuck path, but a server that welcomes again and then stays
+//! silent (the same address silent twice with no frame between) is stuck itself, and the
+//! session ends ([`crate::edges::Silences`]).
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -38,18 +48,16 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use roam_protocol::keys::{KeyStep, Keys};
-use roam_protocol::messages::{self, Hello, Role, ViewChange, Welcome, close};
+use roam_protocol::messages::{self, Hello, ViewChange, Welcome, WorldNews, close};
 use roam_protocol::script::Script;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
-use tokio::task::JoinSet;
 
 use crate::color_cache::{ColorCache, Keep};
 pub use crate::connection::MAX_FRAME;
-use crate::connection::{
-    End, Outgoing, attempt, failed_write, goodbye, quit_asked, read_control, read_frames,
-    send_keys, write_control,
-};
+use crate::connection::{Outgoing, Supervisor, attempt, send_keys};
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, Received, Taken};
+use crate::edges::{Addresses, native_edges};
+pub use crate::edges::{HANDSHAKE_MANY, SILENCE_MANY, World};
 use crate::join::{self, Joined, TerrainId};
 pub use crate::join::{connect, describe};
 use crate::joining::next_hello;
@@ -64,12 +72,6 @@ pub(crate) const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
 pub const SILENCE: Duration = Duration::from_secs(10);
 /// [`Patience::reconnect_for`] unless told otherwise: the server's hold (30 s) and a margin.
 pub const RECONNECT_FOR: Duration = Duration::from_secs(35);
-/// The first pause between reconnection attempts, doubled after each up to the second.
-const BACKOFF_FIRST: Duration = Duration::from_millis(100);
-const BACKOFF_MOST: Duration = Duration::from_secs(2);
-/// A reconnection's QUIC handshake, at most (the next attempt starts afresh; the last
-/// may end this much after [`Patience::reconnect_for`]).
-const HANDSHAKE: Duration = Duration::from_secs(5);
 
 /// How long a session waits on its server.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -103,7 +105,8 @@ pub enum State {
     Ended(String),
 }
 
-/// What a session shows of itself: its state, its gaps and its newest welcome.
+/// What a session shows of itself: its state, its gaps, its newest welcome, where it is
+/// connected and what the edge said of its world.
 #[derive(Clone, Debug)]
 pub struct Status {
     pub state: State,
@@ -111,6 +114,13 @@ pub struct Status {
     /// The newest connection's welcome (the vehicle may change on a reconnection that
     /// did not get it back).
     pub welcome: Welcome,
+    /// The newest connection's address.
+    pub addr: SocketAddr,
+    /// The world behind the server: `world.gone` says why when the edge said it does not
+    /// answer (frames go on, showing it as last seen); the time gone in all.
+    pub world: World,
+    /// Addresses learned from the edges ([`WorldNews::Edges`]), in the rotation.
+    pub edges_learned: usize,
 }
 
 /// Set once Ctrl-C is pressed in the terminal; a second Ctrl-C exits at once (130), not
@@ -145,35 +155,39 @@ pub(crate) type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
 /// What the tasks and the caller share.
 pub(crate) struct Link {
     /// The connection's frames; replaced with each connection.
-    core: Mutex<ClientCore>,
+    pub(crate) core: Mutex<ClientCore>,
     /// The connection's colour tiles; replaced with each connection. Locked apart from
     /// the frames (and never while a tile decodes): the render thread drains it.
     pub(crate) colors: Mutex<ColorCache>,
     /// Colour bytes of the connections before this one.
-    color_bytes_before: AtomicU64,
+    pub(crate) color_bytes_before: AtomicU64,
     /// Locked apart from the frames: a key state never waits on a decode. For the session.
     pub(crate) keys: Mutex<KeyCore>,
     /// Woken when a frame is offered or the session ends.
-    notify: Notify,
+    pub(crate) notify: Notify,
     /// Bumped (under the core's lock) with each connection: bytes of an older one are not
     /// offered to the new core.
-    epoch: AtomicU64,
+    pub(crate) epoch: AtomicU64,
     /// The connection the keys go on; none while reconnecting.
     pub(crate) conn: Mutex<Option<quinn::Connection>>,
     /// When the server was last heard (a frame's bytes, a control message, the welcome).
-    heard: Mutex<Instant>,
+    pub(crate) heard: Mutex<Instant>,
     /// Frames offered, all connections together.
-    frames: AtomicU64,
+    pub(crate) frames: AtomicU64,
     /// Frame bytes of the connections before this one.
-    bytes_before: AtomicU64,
+    pub(crate) bytes_before: AtomicU64,
     /// The newest view asked for, sent again on a new connection.
-    view: Mutex<Option<ViewChange>>,
-    status: watch::Sender<Status>,
+    pub(crate) view: Mutex<Option<ViewChange>>,
+    pub(crate) status: watch::Sender<Status>,
+    /// The addresses tried in turn, the one in use among them.
+    pub(crate) addresses: Mutex<Addresses<SocketAddr>>,
+    /// Whether the endpoint reaches IPv6 addresses (learned ones it cannot are skipped).
+    ipv6: bool,
 }
 
 impl Link {
     /// The session ends with `why` (the first reason given stands).
-    fn end(&self, why: String) {
+    pub(crate) fn end(&self, why: String) {
         self.status.send_if_modified(|s| {
             if matches!(s.state, State::Ended(_)) {
                 return false;
@@ -210,8 +224,35 @@ impl Link {
         self.notify.notify_one();
     }
 
+    /// An edge's news of its world: its other edges join the rotation; the world gone or
+    /// back goes into the status (waking its watchers).
+    pub(crate) fn news(&self, news: &WorldNews) {
+        let now = Instant::now();
+        match news {
+            WorldNews::Edges(edges) => {
+                let reachable = native_edges(edges)
+                    .into_iter()
+                    .filter(|a| self.ipv6 || a.is_ipv4());
+                let learned = {
+                    let mut a = lock(&self.addresses);
+                    a.learn(reachable);
+                    a.learned()
+                };
+                self.status.send_if_modified(|s| {
+                    let changed = s.edges_learned != learned;
+                    s.edges_learned = learned;
+                    changed
+                });
+            }
+            other => {
+                self.status
+                    .send_if_modified(|s| s.world.apply(other, now).is_some());
+            }
+        }
+    }
+
     /// Closes the current connection, if any.
-    fn close(&self, code: u32, why: &[u8]) {
+    pub(crate) fn close(&self, code: u32, why: &[u8]) {
         if let Some(conn) = lock(&self.conn).take() {
             conn.close(code.into(), why);
         }
@@ -229,7 +270,6 @@ pub(crate) fn secs(d: Duration) -> String {
 
 /// A joined viewer.
 pub struct Session {
-    addr: SocketAddr,
     pub scene: Scene,
     link: Arc<Link>,
     control: mpsc::UnboundedSender<Outgoing>,
@@ -270,26 +310,30 @@ impl Session {
         patience: Patience,
         keep: Keep,
     ) -> Result<Session> {
-        let endpoint = join::endpoint(addr, fingerprint)?;
-        let conn = endpoint
-            .connect(addr, "roam")
-            .with_context(|| format!("connecting to {addr}"))?
-            .await
-            .with_context(|| format!("connecting to {addr}"))?;
+        Session::join_any(&[addr], fingerprint, hello, keys, patience, keep).await
+    }
+
+    /// As [`Session::join_keeping`], at the first of `addrs` that joins, tried in turn; the
+    /// others (and those the edges tell of) are where the session goes when it loses one
+    /// (the module's docs). An error when none joins, naming each.
+    pub async fn join_any(
+        addrs: &[SocketAddr],
+        fingerprint: [u8; 32],
+        hello: Hello,
+        keys: KeySource,
+        patience: Patience,
+        keep: Keep,
+    ) -> Result<Session> {
+        let Some(mut addresses) = Addresses::new(addrs.iter().copied()) else {
+            bail!("no address to connect to");
+        };
+        let endpoint = join::endpoint_for(addresses.all(), fingerprint)?;
+        let ipv6 = endpoint.local_addr().is_ok_and(|a| a.is_ipv6());
         let mut hello = hello;
         hello.budget = messages::clamp_budget(hello.budget);
-        let joined = match tokio::time::timeout(
-            JOIN_TIMEOUT,
-            join::hello(conn, hello.clone(), keep),
-        )
-        .await
-        {
-            Ok(j) => j.map_err(|e| anyhow!("{e}"))?,
-            Err(_) => bail!(
-                "the server sent no welcome and coarsest colour tile within {} s",
-                JOIN_TIMEOUT.as_secs()
-            ),
-        };
+        let (i, joined) = first_join(&endpoint, &addresses, hello.clone(), keep).await?;
+        addresses.set_current(i);
+        let addr = *addresses.current();
         let mut joined = joined;
         let welcome = joined.welcome.clone();
         let core = ClientCore::new(&welcome, hello.budget)
@@ -302,6 +346,9 @@ impl Session {
             state: State::Connected,
             gaps: Gaps::default(),
             welcome: welcome.clone(),
+            addr,
+            world: World::default(),
+            edges_learned: 0,
         });
         let link = Arc::new(Link {
             core: Mutex::new(core),
@@ -316,10 +363,14 @@ impl Session {
             bytes_before: AtomicU64::new(0),
             view: Mutex::new(None),
             status,
+            addresses: Mutex::new(addresses),
+            ipv6,
         });
+        for news in std::mem::take(&mut joined.news) {
+            link.news(&news);
+        }
         let (control, outgoing) = mpsc::unbounded_channel();
         let supervisor = Supervisor {
-            addr,
             endpoint,
             hello: next_hello(hello, &welcome),
             patience,
@@ -347,7 +398,6 @@ impl Session {
             tasks.push(tokio::spawn(send_keys(link.clone(), steps)));
         }
         Ok(Session {
-            addr,
             scene,
             link,
             control,
@@ -355,9 +405,15 @@ impl Session {
         })
     }
 
-    /// The server's address.
+    /// The address of the server connected now (the newest connection's, while
+    /// reconnecting).
     pub fn addr(&self) -> SocketAddr {
-        self.addr
+        self.link.status.borrow().addr
+    }
+
+    /// Every address the session may go to, in turn: those given, then those learned.
+    pub fn addresses(&self) -> Vec<SocketAddr> {
+        lock(&self.link.addresses).all().to_vec()
     }
 
     /// The core (the newest mesh, the grid, the budget) of the current connection: held
@@ -453,7 +509,7 @@ impl Session {
                         }
                         Ok(other) => Ok(other),
                         Err(broken) => {
-                            let why = format!("the server at {}: {broken}", self.addr);
+                            let why = format!("the server at {}: {broken}", self.addr());
                             self.link.end(why.clone());
                             self.link.close(close::PROTOCOL, b"a frame out of order");
                             Err(anyhow!(why))
@@ -529,233 +585,40 @@ impl Drop for Session {
     }
 }
 
-/// The connection's life and the reconnections: owns the control stream's writing end.
-struct Supervisor {
-    addr: SocketAddr,
-    endpoint: quinn::Endpoint,
-    /// The hello of the next connection (the newest ticket, the vehicle followed).
+/// The first connection: to the one address as it always was (the handshake within
+/// QUIC's own idle timeout); with several, each in turn, its handshake within
+/// [`HANDSHAKE_MANY`], until one joins. The address's place, and the joined connection.
+async fn first_join(
+    endpoint: &quinn::Endpoint,
+    addresses: &Addresses<SocketAddr>,
     hello: Hello,
-    patience: Patience,
-    /// What the colour caches keep.
     keep: Keep,
-    /// The first connection's terrain: every later one must show it.
-    terrain: TerrainId,
-    link: Arc<Link>,
-    outgoing: mpsc::UnboundedReceiver<Outgoing>,
-}
-
-impl Supervisor {
-    async fn run(mut self, mut joined: Joined) {
-        // Frames offered at the last silence: a second silence with none since ends it.
-        let mut silent_at: Option<u64> = None;
-        loop {
-            let Joined {
-                conn,
-                mut send,
-                recv,
-                ..
-            } = joined;
-            let end = self.drive(&conn, &mut send, recv).await;
-            let (why, silent) = match end {
-                End::Quit => return self.link.end("quit".into()),
-                End::Final(why) => {
-                    conn.close(close::BYE.into(), b"bye");
-                    return self.link.end(why);
-                }
-                End::Lost { why, silent } => (why, silent),
-            };
-            conn.close(0u32.into(), b"lost");
-            *lock(&self.link.conn) = None;
-            if silent {
-                let frames = self.link.frames.load(Ordering::Relaxed);
-                if silent_at == Some(frames) {
-                    return self.link.end(format!(
-                        "lost the server at {}: {why}, again right after reconnecting, with \
-                         no frame between: the server welcomes but sends nothing",
-                        self.addr
-                    ));
-                }
-                silent_at = Some(frames);
-            }
-            self.link.status.send_modify(|s| {
-                s.gaps.lost(Instant::now());
-                s.state = State::Reconnecting {
-                    why: why.clone(),
-                    attempts: 0,
-                };
-            });
-            joined = match self.reconnect(&why).await {
-                Ok(Some(j)) => j,
-                Ok(None) => return self.link.end("quit".into()),
-                Err(why) => return self.link.end(why),
-            };
-            if self.link.ended().is_some() {
-                joined.conn.close(close::BYE.into(), b"bye");
-                return;
-            }
-            if let Err(why) = self.adopt(&mut joined) {
-                joined.conn.close(close::BYE.into(), b"bye");
-                return self.link.end(why);
-            }
+) -> Result<(usize, Joined)> {
+    if !addresses.many() {
+        let addr = *addresses.current();
+        let conn = endpoint
+            .connect(addr, "roam")
+            .with_context(|| format!("connecting to {addr}"))?
+            .await
+            .with_context(|| format!("connecting to {addr}"))?;
+        return match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn, hello, keep)).await {
+            Ok(j) => Ok((0, j.map_err(|e| anyhow!("{e}"))?)),
+            Err(_) => bail!(
+                "the server sent no welcome and coarsest colour tile within {} s",
+                JOIN_TIMEOUT.as_secs()
+            ),
+        };
+    }
+    let mut failed = Vec::new();
+    for (i, &addr) in addresses.all().iter().enumerate() {
+        match attempt(endpoint, addr, HANDSHAKE_MANY, hello.clone(), keep).await {
+            Ok(joined) => return Ok((i, joined)),
+            Err(e) => failed.push(format!("{addr}: {e}")),
         }
     }
-
-    /// Serves one connection until it ends: frames into the core, the server's control
-    /// messages, the core's control messages out, the silence watched.
-    async fn drive(
-        &mut self,
-        conn: &quinn::Connection,
-        send: &mut quinn::SendStream,
-        recv: quinn::RecvStream,
-    ) -> End {
-        let epoch = self.link.epoch.load(Ordering::Acquire);
-        let (ends_tx, mut ends) = mpsc::channel(1);
-        // Dropped on return: the readers stop with the connection's end.
-        let mut tasks = JoinSet::new();
-        tasks.spawn(read_frames(conn.clone(), self.link.clone(), epoch));
-        tasks.spawn(read_control(recv, self.link.clone(), ends_tx));
-        // A view to tell the new connection.
-        let mut outbox = Vec::new();
-        while let Some(m) = lock(&self.link.core).poll_control() {
-            outbox.push(m);
-        }
-        for m in outbox {
-            if let Err(e) = write_control(send, &m).await {
-                return failed_write(conn, e);
-            }
-        }
-        let silence = self.patience.silence;
-        loop {
-            let quiet_until = *lock(&self.link.heard) + silence;
-            tokio::select! {
-                o = self.outgoing.recv() => match o {
-                    Some(Outgoing::Message(m)) => {
-                        if let Err(e) = write_control(send, &m).await {
-                            return failed_write(conn, e);
-                        }
-                    }
-                    Some(Outgoing::Quit(heard)) => {
-                        let _ = heard.send(goodbye(send).await);
-                        return End::Quit;
-                    }
-                    None => return End::Quit,
-                },
-                Some(end) = ends.recv() => return end,
-                e = conn.closed() => return End::of(&e),
-                () = tokio::time::sleep_until(quiet_until.into()) => {
-                    if lock(&self.link.heard).elapsed() >= silence {
-                        return End::Lost {
-                            why: format!(
-                                "no frame or message from the server for {}",
-                                secs(silence)
-                            ),
-                            silent: true,
-                        };
-                    }
-                }
-            }
-        }
-    }
-
-    /// Connects again until a connection joins, the session quits (`None`), or the time
-    /// runs out or the server refuses (an error, in words).
-    async fn reconnect(&mut self, why: &str) -> Result<Option<Joined>, String> {
-        let deadline = Instant::now() + self.patience.reconnect_for;
-        let mut backoff = BACKOFF_FIRST;
-        let mut attempts = 0u32;
-        let lost =
-            |more: String| format!("lost the server at {}: {why}; {more}", self.addr, why = why);
-        loop {
-            attempts += 1;
-            self.link.status.send_modify(|s| {
-                if let State::Reconnecting { attempts: a, .. } = &mut s.state {
-                    *a = attempts;
-                }
-            });
-            // An attempt begun before the deadline has its whole handshake.
-            let hello = self.hello_now();
-            let attempt = attempt(&self.endpoint, self.addr, HANDSHAKE, hello, self.keep);
-            let result = tokio::select! {
-                r = attempt => r,
-                () = quit_asked(&mut self.outgoing) => {
-                    // The attempt in flight may already have been welcomed (and the vehicle
-                    // resumed): close it with the goodbye code, so the server frees the
-                    // vehicle rather than holding it.
-                    self.endpoint.close(close::BYE.into(), b"quit");
-                    return Ok(None);
-                }
-            };
-            let last = match result {
-                Ok(j) => {
-                    let found = TerrainId::of(&j.welcome, j.colors.coarsest());
-                    return match self.terrain.differences(&found) {
-                        None => Ok(Some(j)),
-                        Some(d) => {
-                            j.conn.close(close::BYE.into(), b"another terrain");
-                            Err(lost(format!("the server changed its terrain: {d}")))
-                        }
-                    };
-                }
-                Err(e) if !e.lost => return Err(lost(format!("reconnecting: {e}"))),
-                Err(e) => e.message,
-            };
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() || self.link.ended().is_some() {
-                return Err(lost(format!(
-                    "tried to reconnect for {} s ({attempts} attempts; the last: {last})",
-                    self.patience.reconnect_for.as_secs()
-                )));
-            }
-            tokio::select! {
-                () = tokio::time::sleep(backoff.min(left)) => {}
-                () = quit_asked(&mut self.outgoing) => return Ok(None),
-            }
-            backoff = (backoff * 2).min(BACKOFF_MOST);
-        }
-    }
-
-    /// The next hello, asking for the budget asked so far.
-    fn hello_now(&self) -> Hello {
-        Hello {
-            budget: lock(&self.link.core).budget(),
-            ..self.hello.clone()
-        }
-    }
-
-    /// Makes `joined` the session's connection: a fresh core (with the budget and the view
-    /// asked so far) and its colour cache, the keys sent on it, the reconnection counted.
-    fn adopt(&mut self, joined: &mut Joined) -> Result<(), String> {
-        let welcome = joined.welcome.clone();
-        {
-            let mut core = lock(&self.link.core);
-            let mut fresh = ClientCore::new(&welcome, core.budget())
-                .ok_or_else(|| format!("a grid of 2^{} + 1", welcome.levels))?;
-            if let Some(view) = *lock(&self.link.view) {
-                fresh.set_view(view);
-            }
-            self.link
-                .bytes_before
-                .fetch_add(core.bytes_in(), Ordering::Relaxed);
-            self.link.epoch.fetch_add(1, Ordering::AcqRel);
-            *core = fresh;
-        }
-        {
-            let mut colors = lock(&self.link.colors);
-            let joined_colors = std::mem::replace(&mut joined.colors, colors.fresh());
-            self.link
-                .color_bytes_before
-                .fetch_add(colors.bytes(), Ordering::Relaxed);
-            *colors = joined_colors;
-        }
-        self.link.heard();
-        *lock(&self.link.conn) = Some(joined.conn.clone());
-        let driver = self.hello.role == Role::Driver;
-        self.link.status.send_modify(|s| {
-            s.gaps.reconnected(driver && welcome.resumed);
-            s.state = State::Connected;
-            s.welcome = welcome.clone();
-        });
-        self.hello = next_hello(self.hello.clone(), &welcome);
-        Ok(())
-    }
+    bail!(
+        "none of the {} addresses joined: {}",
+        failed.len(),
+        failed.join("; ")
+    )
 }

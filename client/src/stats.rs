@@ -6,7 +6,9 @@
 //! the server's most if less) and `errors` (viewers whose session ended early). The colour
 //! keys: `color_bytes` (colour tile bytes received, every viewer's), `color_tiles` (the
 //! fewest tiles resident at the end, of any viewer) and `color_capacity` (the most a
-//! viewer holds).
+//! viewer holds). The keys of a world served by edges: `edges_learned` (the most
+//! addresses one viewer learned from the edges' lists) and `world_gone_s` (the longest
+//! time one viewer's edge said its world was gone, in all).
 //!
 //! The load generator's keys (`scripts/capacity.sh` reads them): `frames_per_second_min`
 //! (the slowest viewer's frames taken a second, from its first frame to its last),
@@ -64,5 +66,7 @@ pub fn report(viewers: &[ViewerStats]) -> serde_json::Value {
         "color_bytes": viewers.iter().map(|s| s.color_bytes).sum::<u64>(),
         "color_tiles": viewers.iter().map(|s| s.color_tiles).min().unwrap_or(0),
         "color_capacity": viewers.iter().map(|s| s.color_capacity).max().unwrap_or(0),
+        "edges_learned": viewers.iter().map(|s| s.edges_learned).max().unwrap_or(0),
+        "world_gone_s": viewers.iter().map(|s| s.world_gone_s).fold(0.0, f64::max),
     })
 }

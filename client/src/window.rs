@@ -31,6 +31,9 @@ pub struct Options {
     pub toggles: Toggles,
     /// Where the session is connected, for the HUD.
     pub server: String,
+    /// `server` names several addresses (edges of one world): the HUD says which one is
+    /// in use.
+    pub edges: bool,
     pub driver: bool,
     pub fov_y_deg: f32,
 }
@@ -299,9 +302,23 @@ impl App {
                     .map(|g| g.as_secs_f64()),
                 reconnects: status.gaps.reconnects,
                 resumed: status.gaps.resumed,
+                world_gone: status.world.gone.clone(),
                 connection: match (link, &status.state) {
                     (Link::Connected, State::Reconnecting { why, attempts }) => {
                         format!("to {} · {why} · attempt {attempts}", self.opts.server)
+                    }
+                    // Of several edges, the one in use.
+                    (Link::Connected, _) if self.opts.edges || status.edges_learned > 0 => {
+                        format!(
+                            "connected to {} (of {}) · vehicle #{me} · {}",
+                            status.addr,
+                            self.opts.server,
+                            if self.opts.driver {
+                                "driving"
+                            } else {
+                                "watching"
+                            }
+                        )
                     }
                     (Link::Connected, _) => format!(
                         "connected to {} · vehicle #{me} · {}",

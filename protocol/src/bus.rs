@@ -5,8 +5,8 @@
 //! the field, never a panic.
 //!
 //! ```text
-//! edge ──ask (request-reply: hello, join, resume, leave, hold)──► world
-//! edge ──keys (publish: one driver's key states, as its datagram brought them)──► world
+//! edge ──ask (request-reply: hello every ½ s, join, resume, leave, hold)──► world
+//! edge ──keys (publish: its drivers' key states, all it had queued, as one message)──► world
 //! edge ◄──snapshot (publish, each tick: supersedes the one before)── world
 //! ```
 //!
@@ -20,6 +20,14 @@
 //! - Vehicle states go as `f64` bits, not as the rounded views a frame carries: an edge
 //!   computes its viewers' cameras from exactly what the world simulated.
 //! - Subjects are namespaced by world (`roam.<world>.…`), so worlds share one NATS.
+//! - An edge batches its drivers' key states: what it had queued when the last publish
+//!   finished goes as one message, so the world takes a few messages a tick however many
+//!   drivers there are (a thousand single messages a tick cost the world more than its
+//!   physics).
+//! - Liveness both ways is the edge's hello, asked every half second: the world learns the
+//!   edge lives (and the vehicles it drives: an edge silent for 3 s has them held), the
+//!   edge learns the world lives (a world silent, or another world process, is news for
+//!   its viewers) and where the other edges are.
 
 use serde::{Deserialize, Deserializer, Serialize};
 
@@ -32,11 +40,7 @@ pub const MAX_WORLD_NAME: usize = 64;
 /// The world name when none is given.
 pub const DEFAULT_WORLD: &str = "default";
 
-/// The most edges a world lists to its viewers' pages.
-pub const MAX_EDGES: usize = 64;
-
-/// The longest address an edge gives for itself.
-pub const MAX_ADDRESS: usize = 256;
+pub use crate::messages::{MAX_ADDRESS, MAX_EDGES};
 
 /// The subjects of one world.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -91,6 +95,9 @@ pub struct Vehicle {
 /// The world after a tick.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Snapshot {
+    /// The world process's name ([`Answer::Hello`]'s `world`): a new one is a world
+    /// restarted.
+    pub world: u64,
     pub tick: u64,
     #[serde(deserialize_with = "vehicles")]
     pub vehicles: Vec<Vehicle>,
@@ -102,50 +109,80 @@ pub struct Snapshot {
     pub held: Vec<u16>,
 }
 
-/// One driver's key states, as its datagram brought them to its edge.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// Drivers' key states, as their datagrams brought them to one edge: what the edge had
+/// queued when it published (one message a tick for all its drivers, not one a driver).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Keys {
+    #[serde(deserialize_with = "drivers")]
+    pub drivers: Vec<DriverKeys>,
+}
+
+/// One driver's key states, as its datagram brought them.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DriverKeys {
     pub vehicle: u16,
     #[serde(deserialize_with = "key_states")]
     pub states: Vec<KeyState>,
 }
 
+/// The most drivers in one [`Keys`].
+pub const MAX_BATCH: usize = 1024;
+
 /// What an edge asks the world (request-reply).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Ask {
-    /// An edge starting (or back after NATS was away): the content hash of its data set,
-    /// and the addresses its viewers reach it at. Answered with [`Answer::Hello`].
+    /// An edge, every half second while it runs (its first hello checks the data set;
+    /// the world holds the vehicles of an edge gone silent): the content hash of its data
+    /// set, its name for itself (random, per process), the addresses its viewers reach it
+    /// at, and the vehicles its drivers drive, each with its claim. Answered with
+    /// [`Answer::Hello`].
     Hello {
         data: [u8; 32],
-        #[serde(deserialize_with = "address_list")]
+        edge: u64,
+        #[serde(deserialize_with = "crate::messages::edge_list")]
         addresses: Vec<String>,
+        #[serde(deserialize_with = "driven")]
+        vehicles: Vec<(u16, u64)>,
     },
     /// A driver joins: a new vehicle and its ticket, or a refusal.
     Join,
     /// A driver is back with its ticket: its held vehicle, or a refusal.
     Resume { ticket: Ticket },
-    /// A driver left (a goodbye, or its join was abandoned): its vehicle goes.
-    Leave { vehicle: u16 },
-    /// A driver's connection dropped: its vehicle is held, counted from `silent` ticks ago.
-    Hold { vehicle: u16, silent: u64 },
+    /// A driver left (a goodbye, or its join was abandoned): its vehicle goes, if `claim`
+    /// is still the vehicle's newest ([`Answer::Joined`], [`Answer::Resumed`]): a leave
+    /// asked again after its answer was lost, or told by an edge whose driver has since
+    /// come back through another, changes nothing.
+    Leave { vehicle: u16, claim: u64 },
+    /// A driver's connection dropped: its vehicle is held, counted from `silent` ticks ago
+    /// (if `claim` is still its newest, as for a leave).
+    Hold {
+        vehicle: u16,
+        claim: u64,
+        silent: u64,
+    },
 }
 
 /// The world's answer to an [`Ask`].
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub enum Answer {
-    /// The world's data set, and the addresses of the edges it knows.
+    /// The world's data set, its name for itself (random, per process: a new one is a
+    /// world restarted, which knows none of the old vehicles), and the addresses of the
+    /// edges it hears from.
     Hello {
         data: [u8; 32],
-        #[serde(deserialize_with = "address_list")]
+        world: u64,
+        #[serde(deserialize_with = "crate::messages::edge_list")]
         edges: Vec<String>,
     },
+    /// A new vehicle, its driver's ticket, and the claim its edge names it by: a number
+    /// the world gives each join and resume, never twice.
     Joined {
         vehicle: u16,
         ticket: Ticket,
+        claim: u64,
     },
-    Resumed {
-        vehicle: u16,
-    },
+    /// The held vehicle given back, and its new claim.
+    Resumed { vehicle: u16, claim: u64 },
     /// Taken (a leave, a hold).
     Done,
     Refused {
@@ -155,16 +192,17 @@ pub enum Answer {
 }
 
 /// A snapshot of the most vehicles: `MAX_VEHICLES` of them at 42 bytes or less each.
-const MAX_SNAPSHOT: usize = 64 + MAX_VEHICLES * (1 + 4 * 9 + 3 + 5 + 3 + 3);
+const MAX_SNAPSHOT: usize = 80 + MAX_VEHICLES * (1 + 4 * 9 + 3 + 5 + 3 + 3);
 
 impl Checked for Snapshot {
     const MAX_BYTES: usize = MAX_SNAPSHOT;
 }
 impl Checked for Keys {
-    const MAX_BYTES: usize = crate::messages::MAX_DATAGRAM;
+    /// A driver's entry: its vehicle (3), the count (1), and [`KEY_HISTORY`] states of 7.
+    const MAX_BYTES: usize = 64 + MAX_BATCH * (4 + KEY_HISTORY * 7);
 }
 impl Checked for Ask {
-    const MAX_BYTES: usize = 64 + MAX_EDGES * (MAX_ADDRESS + 3);
+    const MAX_BYTES: usize = 64 + MAX_EDGES * (MAX_ADDRESS + 3) + MAX_VEHICLES * (3 + 9);
 }
 impl Checked for Answer {
     const MAX_BYTES: usize = 64 + MAX_REASON + MAX_EDGES * (MAX_ADDRESS + 3);
@@ -182,23 +220,20 @@ fn held<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u16>, D::Error> {
     bounded::list(d, "held vehicles", MAX_VEHICLES)
 }
 
+fn driven<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<(u16, u64)>, D::Error> {
+    bounded::list(d, "driven vehicles", MAX_VEHICLES)
+}
+
+fn drivers<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<DriverKeys>, D::Error> {
+    bounded::list(d, "drivers", MAX_BATCH)
+}
+
 fn key_states<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<KeyState>, D::Error> {
     bounded::list(d, "key states", KEY_HISTORY)
 }
 
 fn reason<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
     bounded::string(d, "reason bytes", MAX_REASON)
-}
-
-/// At most [`MAX_EDGES`] addresses of at most [`MAX_ADDRESS`] bytes each.
-fn address_list<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
-    #[derive(Deserialize)]
-    struct Address(#[serde(deserialize_with = "address")] String);
-    fn address<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
-        bounded::string(d, "address bytes", MAX_ADDRESS)
-    }
-    let list: Vec<Address> = bounded::list(d, "addresses", MAX_EDGES)?;
-    Ok(list.into_iter().map(|a| a.0).collect())
 }
 
 #[cfg(test)]
@@ -216,6 +251,7 @@ mod tests {
     #[test]
     fn messages_round_trip() {
         let snap = Snapshot {
+            world: 9,
             tick: 1 << 40,
             vehicles: vec![Vehicle {
                 id: 3,
@@ -229,24 +265,42 @@ mod tests {
         };
         assert_eq!(decode::<Snapshot>(&bytes(&snap)).expect("decodes"), snap);
         let keys = Keys {
-            vehicle: 7,
-            states: vec![KeyState {
-                seq: 9,
-                held: 1,
-                pressed: 0,
-            }],
+            drivers: vec![
+                DriverKeys {
+                    vehicle: 7,
+                    states: vec![
+                        KeyState {
+                            seq: u32::MAX,
+                            held: 0xff,
+                            pressed: 0xff,
+                        };
+                        KEY_HISTORY
+                    ],
+                };
+                MAX_BATCH
+            ],
         };
+        assert!(
+            bytes(&keys).len() <= Keys::MAX_BYTES,
+            "the largest batch fits"
+        );
         assert_eq!(decode::<Keys>(&bytes(&keys)).expect("decodes"), keys);
         for ask in [
             Ask::Hello {
                 data: [7; 32],
+                edge: u64::MAX,
                 addresses: vec!["127.0.0.1:4433".into()],
+                vehicles: vec![(0, 1), (9, u64::MAX)],
             },
             Ask::Join,
             Ask::Resume { ticket: [1; 16] },
-            Ask::Leave { vehicle: 2 },
+            Ask::Leave {
+                vehicle: 2,
+                claim: 3,
+            },
             Ask::Hold {
                 vehicle: 2,
+                claim: 4,
                 silent: 40,
             },
         ] {
@@ -255,13 +309,18 @@ mod tests {
         for answer in [
             Answer::Hello {
                 data: [1; 32],
+                world: 5,
                 edges: vec!["a:1".into(), "b:2".into()],
             },
             Answer::Joined {
                 vehicle: 1,
                 ticket: [2; 16],
+                claim: 7,
             },
-            Answer::Resumed { vehicle: 1 },
+            Answer::Resumed {
+                vehicle: 1,
+                claim: 8,
+            },
             Answer::Done,
             Answer::Refused {
                 reason: "no vehicle free".into(),
@@ -280,15 +339,19 @@ mod tests {
         };
         let many = Ask::Hello {
             data: [0; 32],
+            edge: 1,
             addresses: vec!["x".into(); MAX_EDGES + 1],
+            vehicles: vec![],
         };
         check(bytes(&many), "addresses");
         let long = Ask::Hello {
             data: [0; 32],
+            edge: 1,
             addresses: vec!["x".repeat(MAX_ADDRESS + 1)],
+            vehicles: vec![],
         };
         check(bytes(&long), "address bytes");
-        let keys = Keys {
+        let keys = DriverKeys {
             vehicle: 1,
             states: vec![
                 KeyState {
@@ -300,7 +363,9 @@ mod tests {
             ],
         };
         assert!(matches!(
-            decode::<Keys>(&bytes(&keys)),
+            decode::<Keys>(&bytes(&Keys {
+                drivers: vec![keys]
+            })),
             Err(DecodeError::TooLong {
                 what: "key states",
                 ..
@@ -312,6 +377,7 @@ mod tests {
     #[test]
     fn damaged_messages_never_panic() {
         let msg = bytes(&Snapshot {
+            world: 1,
             tick: 5,
             vehicles: vec![
                 Vehicle {

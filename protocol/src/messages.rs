@@ -33,8 +33,10 @@ pub use crate::tiles::{ColorLayout, MAX_TILE_BYTES, MAX_WINDOW};
 /// a full server says so ([`Reason::Full`]). 5: the colour map is streamed by view as
 /// tiles of a pyramid ([`ColorLayout`], [`ServerMessage::ColorWindow`],
 /// [`ServerMessage::ColorTile`]) instead of whole; a hello says the window it can hold
-/// ([`Hello::color_window`]).
-pub const VERSION: u16 = 5;
+/// ([`Hello::color_window`]). 6: an edge server (`roam-server edge`) tells its viewers
+/// how the world behind it stands and where the world's other edges are
+/// ([`ServerMessage::World`]).
+pub const VERSION: u16 = 6;
 /// The largest message (a frame with its mesh).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.
@@ -218,7 +220,28 @@ pub enum ServerMessage {
     },
     Refused(Reason),
     Bye(Reason),
+    /// News of the world behind an edge server (never sent by `serve`).
+    World(WorldNews),
 }
+
+/// What an edge server says of its world ([`ServerMessage::World`]).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum WorldNews {
+    /// The world does not answer (why, in words): frames go on showing it as last seen,
+    /// and the edge keeps trying.
+    Gone(#[serde(deserialize_with = "reason")] String),
+    /// The world answers again, after [`WorldNews::Gone`].
+    Back,
+    /// The world's edges, this one included, where a viewer may connect again: `host:port`
+    /// for a native viewer's QUIC, `https://host:port` for the page's WebTransport.
+    Edges(#[serde(deserialize_with = "edge_list")] Vec<String>),
+}
+
+/// The most edge addresses in [`WorldNews::Edges`].
+pub const MAX_EDGES: usize = 64;
+
+/// The longest edge address.
+pub const MAX_ADDRESS: usize = 256;
 
 /// A vehicle as the viewer sees it.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -364,6 +387,17 @@ fn token<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
 
 fn reason<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
     bounded::string(d, "reason bytes", MAX_REASON)
+}
+
+/// At most [`MAX_EDGES`] addresses of at most [`MAX_ADDRESS`] bytes each.
+pub(crate) fn edge_list<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, D::Error> {
+    #[derive(Deserialize)]
+    struct Address(#[serde(deserialize_with = "address")] String);
+    fn address<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
+        bounded::string(d, "address bytes", MAX_ADDRESS)
+    }
+    let list: Vec<Address> = bounded::list(d, "addresses", MAX_EDGES)?;
+    Ok(list.into_iter().map(|a| a.0).collect())
 }
 
 fn tile<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {

@@ -3,7 +3,7 @@
 use proptest::prelude::*;
 use roam_protocol::messages::{
     self, ClientMessage, ColorLayout, DecodeError, Frame, Hello, KeyDatagram, KeyState,
-    MAX_TILE_BYTES, Reason, Role, ServerMessage, VehicleView, Welcome,
+    MAX_TILE_BYTES, Reason, Role, ServerMessage, VehicleView, Welcome, WorldNews,
 };
 
 fn round_trip<T>(msg: &T)
@@ -106,6 +106,12 @@ fn every_message_round_trips() {
         ServerMessage::Refused(Reason::Version { server: 1 }),
         ServerMessage::Bye(Reason::Shutdown),
         ServerMessage::Bye(Reason::Unavailable("no vehicle 9".into())),
+        ServerMessage::World(WorldNews::Gone("no snapshot for 2 s".into())),
+        ServerMessage::World(WorldNews::Back),
+        ServerMessage::World(WorldNews::Edges(vec![
+            "10.0.0.2:4433".into(),
+            "https://10.0.0.2:4434".into(),
+        ])),
     ] {
         round_trip(&m);
     }

@@ -32,16 +32,26 @@ pub fn serve_tiled(
     tile: u32,
     tune: impl FnOnce(Options) -> Options,
 ) -> Running {
+    let identity = tls::generate().expect("a certificate");
+    serve_as(terrain, tile, &identity, tune)
+}
+
+/// [`serve_tiled`] with `identity`'s certificate (servers sharing one: the edges of a
+/// world, pinned by one fingerprint).
+pub fn serve_as(
+    terrain: Arc<Terrain>,
+    tile: u32,
+    identity: &tls::Identity,
+    tune: impl FnOnce(Options) -> Options,
+) -> Running {
     let pyramid = pyramid(&terrain, tile);
     let vt = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
-    let identity = tls::generate().expect("a certificate");
     let options = tune(Options::new(
         "127.0.0.1:0".parse().expect("valid"),
         TOKEN.to_owned(),
     ));
     let token = options.token.clone();
-    let server =
-        Server::start(terrain, Arc::new(vt), pyramid, &identity, options).expect("listens");
+    let server = Server::start(terrain, Arc::new(vt), pyramid, identity, options).expect("listens");
     let fingerprint = tls::parse_fingerprint(&identity.fingerprint()).expect("valid");
     Running {
         server,

@@ -1,6 +1,7 @@
 //! A real NATS server for the tests of the world and its edges: Debian's `nats-server`, on
 //! a loopback port of its own, stopped when dropped. A machine without it fails the test
-//! with a message naming the package.
+//! with a message naming the package. And an edge as a process of its own
+//! ([`EdgeProcess`], the `roam-test-edge` binary), for a test to kill.
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
@@ -28,8 +29,19 @@ impl Nats {
 
     /// Starts `nats-server` on `port` (a restart: the same port as before).
     pub fn on(port: u16) -> Nats {
+        Nats::with_args(port, &[])
+    }
+
+    /// Starts `nats-server` on a free loopback port, admitting only clients with `token`.
+    pub fn with_token(token: &str) -> Nats {
+        let port = Nats::start().kill();
+        Nats::with_args(port, &["--auth", token])
+    }
+
+    fn with_args(port: u16, more: &[&str]) -> Nats {
         let mut child = Command::new("nats-server")
             .args(["-a", "127.0.0.1", "-p", &port.to_string()])
+            .args(more)
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::piped())
@@ -81,6 +93,65 @@ impl Nats {
 }
 
 impl Drop for Nats {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// An edge of a test world in a process of its own (`roam-test-edge`), killed when dropped.
+pub struct EdgeProcess {
+    child: Child,
+    pub addr: std::net::SocketAddr,
+    pub fingerprint: [u8; 32],
+}
+
+impl EdgeProcess {
+    /// Starts `exe` (the `roam-test-edge` binary) for `world` on `nats`, with the identity
+    /// in `state`, and waits until it listens.
+    pub fn start(exe: &str, nats: &Nats, world: &str, state: &std::path::Path) -> EdgeProcess {
+        let mut child = Command::new(exe)
+            .args([&nats.url(), world, &state.display().to_string()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .unwrap_or_else(|e| panic!("starting {exe}: {e}"));
+        let stdout = child.stdout.take().expect("stdout is piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                let _ = tx.send(line);
+            }
+        });
+        let said = |what: &str| loop {
+            match rx.recv_timeout(READY_WAIT) {
+                Ok(line) => {
+                    if let Some(rest) = line.strip_prefix(what) {
+                        break rest.trim().to_owned();
+                    }
+                }
+                Err(_) => panic!("{exe} did not say {what:?} in {READY_WAIT:?}"),
+            }
+        };
+        let addr = said("listening on").parse().expect("an address");
+        let fingerprint =
+            roam_link::tls::parse_fingerprint(&said("fingerprint")).expect("a fingerprint");
+        EdgeProcess {
+            child,
+            addr,
+            fingerprint,
+        }
+    }
+
+    /// Kills it (`kill -9`: no goodbye to its viewers or its world) and waits for it to go.
+    pub fn kill(mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for EdgeProcess {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();

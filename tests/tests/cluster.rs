@@ -6,7 +6,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use roam_client::headless::{self, ViewerOptions, ViewerStats};
+use roam_protocol::bus::{Answer, Ask};
 use roam_protocol::messages::Role;
+use roam_protocol::messages::{decode, encode};
 use roam_protocol::script;
 use roam_server::Terrain;
 use roam_server::net::Options;
@@ -15,9 +17,10 @@ use roam_server::net::bus::world::{WorldOptions, WorldServer};
 use roam_server::net::bus::{BusError, BusOptions};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
+use roam_server::sim::world_core::Snapshot;
 use roam_server::sim::{recording, replay};
 use roam_tests::fixtures::{self, Running, flat};
-use roam_tests::nats::Nats;
+use roam_tests::nats::{EdgeProcess, Nats};
 
 /// Each test runs a world and edges with their threads: one at a time, so that on a
 /// 2-core machine none starves another of the CPU.
@@ -252,4 +255,262 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
     assert_eq!(world.world_stats().dropped(), 0, "no world tick lost");
     a.server.shutdown().await.expect("the edge stops");
     world.shutdown().await.expect("the world stops");
+}
+
+/// An edge killed (`kill -9`) mid-drive: its driver, given both edges' addresses, moves to
+/// the other one after a second's silence and gets its vehicle back with its ticket.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edge_killed_mid_drive_its_driver_resumes_on_the_other() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let name = "edge-killed";
+    let bus = bus(&nats, name);
+    let world = start_world(&terrain, &bus, None).await;
+    let state = std::env::temp_dir().join(format!("roam-edges-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&state);
+    let exe = env!("CARGO_BIN_EXE_roam-test-edge");
+    let a = EdgeProcess::start(exe, &nats, name, &state);
+    let b = EdgeProcess::start(exe, &nats, name, &state);
+    assert_eq!(
+        a.fingerprint, b.fingerprint,
+        "one state directory, one identity"
+    );
+    let drive = ViewerOptions {
+        token: fixtures::TOKEN.to_string(),
+        role: Role::Driver,
+        budget: 8_000,
+        frames: 600,
+        inputs: Some(script::parse(fixtures::DRIVE).expect("valid")),
+        ..ViewerOptions::default()
+    };
+    let (addrs, fingerprint) = ([a.addr, b.addr], a.fingerprint);
+    let mover =
+        tokio::spawn(async move { headless::measure_any(&addrs, fingerprint, drive).await });
+    let mut snaps = world.watch();
+    let started = tokio::time::timeout(
+        Duration::from_secs(10),
+        snaps.wait_for(|s| !s.vehicles.is_empty()),
+    )
+    .await
+    .expect("the vehicle appears")
+    .expect("the world runs")
+    .tick;
+    let at = tokio::time::timeout(
+        Duration::from_secs(20),
+        snaps.wait_for(|s| s.tick >= started + 200),
+    )
+    .await
+    .expect("the drive is under way")
+    .expect("the world runs")
+    .tick;
+    a.kill();
+    let moved = mover.await.expect("runs").expect("joins");
+    assert_eq!(moved.error, None, "the session went on");
+    assert_eq!(moved.frames, 600);
+    assert_eq!(moved.vehicle, 0, "the same vehicle");
+    assert_eq!(
+        (moved.reconnects, moved.resumed),
+        (1, 1),
+        "moved once, resumed"
+    );
+    assert!(moved.last_tick > at, "frames from B after A died");
+    // The figure the README gives (run with --nocapture).
+    eprintln!("edge killed: longest frame gap {:.3} s", moved.gap_max_s);
+    assert!(
+        moved.gap_max_s <= 3.0,
+        "the longest pause between frames: {} s",
+        moved.gap_max_s
+    );
+    drop(b);
+    world.shutdown().await.expect("the world stops");
+    let _ = std::fs::remove_dir_all(&state);
+}
+
+/// The world's side of an edge's death, spoken over NATS as an edge would: a vehicle whose
+/// edge falls silent is held (not freed), given back when that edge is heard again; a
+/// leave or hold naming an older claim (a retry, or an edge whose driver has since moved)
+/// changes nothing.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_world_holds_a_silent_edges_vehicles_and_ignores_stale_claims() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "silent-edge");
+    let world = start_world(&terrain, &bus, None).await;
+    let client = bus.connect().await.expect("reaches NATS");
+    let subjects = bus.subjects().expect("a valid name");
+    let ask = |a: Ask| {
+        let (client, subject) = (client.clone(), subjects.ask.clone());
+        async move {
+            let mut bytes = Vec::new();
+            encode(&a, &mut bytes).expect("a request encodes");
+            let reply = client
+                .request(subject, bytes.into())
+                .await
+                .expect("the world answers");
+            decode::<Answer>(&reply.payload).expect("an answer")
+        }
+    };
+    let joined = |a: Answer| match a {
+        Answer::Joined { vehicle, claim, .. } => (vehicle, claim),
+        other => panic!("{other:?}"),
+    };
+    let hello = |vehicles: Vec<(u16, u64)>| Ask::Hello {
+        data: terrain.content_hash(),
+        edge: 7,
+        addresses: vec!["10.0.0.7:4433".into()],
+        vehicles,
+    };
+    let (v, claim) = joined(ask(Ask::Join).await);
+    let (w, w_claim) = joined(ask(Ask::Join).await);
+    match ask(hello(vec![(v, claim), (w, w_claim)])).await {
+        Answer::Hello { edges, .. } => assert_eq!(edges, vec!["10.0.0.7:4433".to_string()]),
+        other => panic!("{other:?}"),
+    }
+    // A stale claim changes nothing; the newest one does.
+    assert_eq!(
+        ask(Ask::Leave {
+            vehicle: w,
+            claim: w_claim + 100
+        })
+        .await,
+        Answer::Done
+    );
+    let mut snaps = world.watch();
+    let with_both = |s: &Arc<Snapshot>| s.vehicles.len() == 2;
+    tokio::time::timeout(Duration::from_secs(5), snaps.wait_for(with_both))
+        .await
+        .expect("both vehicles stay")
+        .expect("the world runs");
+    assert_eq!(
+        ask(Ask::Leave {
+            vehicle: w,
+            claim: w_claim
+        })
+        .await,
+        Answer::Done
+    );
+    tokio::time::timeout(
+        Duration::from_secs(5),
+        snaps.wait_for(|s| s.vehicles.iter().all(|x| x.id != w)),
+    )
+    .await
+    .expect("the left vehicle goes")
+    .expect("the world runs");
+    // Edge 7 goes silent: its vehicle is held, not freed.
+    let held = tokio::time::timeout(
+        Duration::from_secs(15),
+        snaps.wait_for(|s| s.held.contains(&v)),
+    )
+    .await
+    .expect("held once the edge is silent")
+    .expect("the world runs")
+    .clone();
+    assert!(held.vehicles.iter().any(|x| x.id == v), "held, not freed");
+    // Heard again, naming it: given back.
+    ask(hello(vec![(v, claim)])).await;
+    tokio::time::timeout(
+        Duration::from_secs(5),
+        snaps.wait_for(|s| !s.held.contains(&v) && s.vehicles.iter().any(|x| x.id == v)),
+    )
+    .await
+    .expect("given back to its edge")
+    .expect("the world runs");
+    world.shutdown().await.expect("the world stops");
+}
+
+/// A NATS server that wants a token: given in a file (`--nats-creds`), the world and an
+/// edge connect; a wrong one is refused at once, naming the URL, not retried for ever.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn nats_credentials_from_a_file_are_used_and_a_wrong_one_is_said() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::with_token("s3cret-token");
+    let dir = std::env::temp_dir().join(format!("roam-creds-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("temp dir");
+    let (good, bad) = (dir.join("good"), dir.join("bad"));
+    std::fs::write(&good, "s3cret-token\n").expect("written");
+    std::fs::write(&bad, "wrong-token\n").expect("written");
+    let terrain = flat();
+    let with = |file: &std::path::Path| BusOptions {
+        creds: Some(file.to_owned()),
+        ..bus(&nats, "creds")
+    };
+    let world = start_world(&terrain, &with(&good), None).await;
+    let data = terrain.content_hash();
+    Remote::connect(&with(&good), data, "d", vec![], Duration::from_secs(10))
+        .await
+        .expect("an edge with the token reaches the world");
+    let err = Remote::connect(&with(&bad), data, "d", vec![], Duration::from_secs(10))
+        .await
+        .err()
+        .expect("a wrong token is refused");
+    assert!(matches!(err, BusError::Connect { .. }), "{err}");
+    assert!(err.to_string().contains(&nats.url()), "{err}");
+    world.shutdown().await.expect("the world stops");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The world gone from under an edge: the edge tells its viewers why (frames go on), and
+/// keeps asking; when another world process answers, its driver, whose vehicle that world
+/// never knew, is told and let go.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_world_gone_is_told_and_a_restarted_world_lets_drivers_go() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "world-gone");
+    let world = start_world(&terrain, &bus, None).await;
+    let remote = Remote::connect(
+        &bus,
+        terrain.content_hash(),
+        "the test terrain",
+        vec![],
+        Duration::from_secs(10),
+    )
+    .await
+    .expect("the edge reaches the world");
+    let a = fixtures::serve(terrain.clone(), |o| Options {
+        remote: Some(remote.clone()),
+        ..o
+    });
+    let d = tokio::spawn(headless::measure(
+        a.server.addr,
+        a.fingerprint,
+        driver(&a, 1_000_000, None),
+    ));
+    let mut snaps = world.watch();
+    tokio::time::timeout(
+        Duration::from_secs(10),
+        snaps.wait_for(|s| !s.vehicles.is_empty()),
+    )
+    .await
+    .expect("the vehicle appears")
+    .expect("the world runs");
+    world.shutdown().await.expect("the world stops");
+    let mut news = remote.news();
+    let gone = tokio::time::timeout(Duration::from_secs(10), news.wait_for(|n| n.gone.is_some()))
+        .await
+        .expect("the edge finds the world gone")
+        .expect("the edge runs")
+        .clone();
+    let why = gone.gone.expect("waited for it");
+    assert!(why.contains("\"world-gone\" has not answered"), "{why}");
+    assert!(!d.is_finished(), "the driver stays while the world is away");
+    let again = start_world(&terrain, &bus, None).await;
+    let stats = tokio::time::timeout(Duration::from_secs(20), d)
+        .await
+        .expect("the driver is let go")
+        .expect("runs")
+        .expect("joined");
+    let error = stats.error.expect("the session ended");
+    assert!(error.contains("the world restarted"), "{error}");
+    assert!(
+        stats.world_gone_s > 0.0,
+        "the viewer was told: {}",
+        stats.world_gone_s
+    );
+    assert_eq!(remote.news().borrow().gone, None, "the world answers again");
+    a.server.shutdown().await.expect("the edge stops");
+    again.shutdown().await.expect("the world stops");
 }

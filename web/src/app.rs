@@ -120,7 +120,7 @@ struct App {
     first_frame_ms: Option<f64>,
     hud_at: f64,
     reported: bool,
-    said: Option<State>,
+    said: Option<(State, Option<String>)>,
     /// Recent key change → frame showing it, milliseconds.
     latencies: std::collections::VecDeque<f64>,
 }
@@ -378,13 +378,27 @@ impl App {
         self.live.borrow().welcome.vehicle
     }
 
-    /// The message line follows the session's state.
+    /// The message line follows the session's state, and the edge's word that its world
+    /// is gone.
     fn status(&mut self) {
-        let state = self.live.borrow().state.clone();
-        if self.said.as_ref() == Some(&state) {
+        let (state, gone) = {
+            let l = self.live.borrow();
+            (l.state.clone(), l.world.gone.clone())
+        };
+        let now = (state, gone);
+        if self.said.as_ref() == Some(&now) {
             return;
         }
+        let (state, gone) = now.clone();
         let (text, error) = match &state {
+            State::Connected if gone.is_some() => (
+                format!(
+                    "The world behind this server does not answer ({}): showing it as last \
+                     seen.",
+                    gone.as_deref().unwrap_or_default()
+                ),
+                true,
+            ),
             State::Connected if self.first_frame_ms.is_none() => {
                 ("joined; waiting for the first frame…".to_owned(), false)
             }
@@ -413,6 +427,7 @@ impl App {
             let l = self.live.borrow();
             let body = serde_json::json!({
                 "state": kind,
+                "world_gone": gone,
                 "message": text,
                 "vehicle": l.welcome.vehicle,
                 "reconnects": l.gaps.reconnects,
@@ -421,7 +436,7 @@ impl App {
             .to_string();
             wasm_bindgen_futures::spawn_local(async move { page::post(&url, &body).await });
         }
-        self.said = Some(state);
+        self.said = Some(now);
     }
 
     fn numbers(
@@ -446,6 +461,7 @@ impl App {
             reconnecting_s: reconnecting,
             reconnects: l.gaps.reconnects,
             resumed: l.gaps.resumed,
+            world_gone: l.world.gone.clone(),
             latency_ms: {
                 let mut v: Vec<f64> = self.latencies.iter().copied().collect();
                 v.sort_by(f64::total_cmp);

@@ -6,9 +6,11 @@
 //!
 //! The page learns everything from its own address: the token from the URL's fragment
 //! (never sent to the server in a request), the WebTransport port and the certificate
-//! hashes from `/webtransport.json` on its own origin ([`page`]). It says clearly what is
-//! wrong when the browser lacks WebTransport or both GPU APIs, when the token is refused,
-//! and when the connection drops (and reconnects as the native viewer does).
+//! hashes from `/webtransport.json` on its own origin ([`page`]); an edge server names the
+//! world's other edges, where the page goes when its connection is lost ([`net`]). It
+//! says clearly what is wrong when the browser lacks WebTransport or both GPU APIs, when
+//! the token is refused, when the connection drops (and reconnects as the native viewer
+//! does), and when an edge says its world is gone.
 //!
 //! Natively this crate is empty: `cargo test --workspace` builds none of it.
 #![cfg(target_arch = "wasm32")]
@@ -16,6 +18,7 @@
 mod app;
 mod net;
 mod page;
+mod wire;
 
 use roam_protocol::messages::{Hello, Role, VERSION};
 use wasm_bindgen::prelude::*;
@@ -82,17 +85,20 @@ async fn run(options: page::Options) -> Result<(), String> {
             gfx.gpu.device.limits().max_texture_dimension_2d,
         ),
     };
-    let mut joined = net::join(&endpoint, hello.clone()).await.map_err(|e| {
-        if e.message.contains("wrong token") {
-            format!(
-                "The server refused this viewer: wrong token. Open the link roam-server \
+    let edge = endpoint.edge()?;
+    let mut joined = net::join(&edge, hello.clone(), net::HANDSHAKE_MS)
+        .await
+        .map_err(|e| {
+            if e.message.contains("wrong token") {
+                format!(
+                    "The server refused this viewer: wrong token. Open the link roam-server \
                  printed, with its #token=…, again ({})",
-                e.message
-            )
-        } else {
-            format!("Could not join the server: {}", e.message)
-        }
-    })?;
+                    e.message
+                )
+            } else {
+                format!("Could not join the server: {}", e.message)
+            }
+        })?;
     let script = match &options.script {
         Some(text) => {
             let script = roam_protocol::script::parse(text).map_err(|e| format!("script: {e}"))?;
@@ -105,8 +111,8 @@ async fn run(options: page::Options) -> Result<(), String> {
     let silence = options
         .silence_s
         .map_or(net::SILENCE, web_time::Duration::from_secs_f64);
-    let live = net::live(&mut joined, budget, script, silence)?;
+    let live = net::live(&mut joined, edge, budget, script, silence)?;
     let scene = roam_client::render::Scene::of(&joined.welcome);
-    wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), endpoint, hello, joined));
+    wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), hello, joined));
     app::start(gfx, scene, live.clone(), options).inspect_err(|e| live.borrow_mut().end(e.clone()))
 }

@@ -11,6 +11,14 @@
 //! driver's ticket after 100 ms, doubling to 2 s, for 35 s; a refusal, the server's
 //! goodbye, or a frame the server could not have sent ends the session for good, with
 //! the reason on the page.
+//!
+//! **Edges.** An edge server names the world's edges ([`WorldNews::Edges`]): their
+//! WebTransport URLs, each with its certificate hashes to pin, join the page's rotation
+//! after its own origin's ([`roam_client::edges::Addresses`]). A lost connection is made
+//! again at the next edge in turn (wrapping), with the page's token; with other edges to
+//! go to, 0.8 s of silence ([`SILENCE_MANY`]) is a loss and a handshake has a second.
+//! The silence rule counts per edge ([`Silences`]). The edge's word that its world is gone
+//! (and back) is kept in [`Live::world`] for the page's message line.
 
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -20,17 +28,18 @@ use futures_channel::mpsc::{self, UnboundedReceiver, UnboundedSender};
 use futures_util::StreamExt;
 use roam_client::color_cache::{ColorCache, Keep};
 use roam_client::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
+use roam_client::edges::{Addresses, SILENCE_MANY, Silences, WebEdge, World, web_edges};
 use roam_client::joining::{self, Joining, TerrainId};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{
-    self, Checked, ClientMessage, Hello, Reason, ServerMessage, ViewChange, Welcome, close,
+    self, ClientMessage, Hello, Reason, ServerMessage, ViewChange, Welcome, WorldNews, close,
 };
-use serde::de::DeserializeOwned;
 use wasm_bindgen_futures::spawn_local;
 use web_time::{Duration, Instant};
 use web_transport_wasm::{ClientBuilder, RecvStream, SendStream, Session};
 
-use crate::page::{self, Endpoint};
+use crate::page;
+use crate::wire::{Reader, write};
 
 /// [`Live::silence`] unless told otherwise.
 pub const SILENCE: Duration = Duration::from_secs(10);
@@ -40,8 +49,10 @@ const RECONNECT_FOR: Duration = Duration::from_secs(35);
 const MAX_STREAMS: usize = 16;
 /// How long a loss waits for a goodbye that may be behind it, milliseconds.
 const GOODBYE_GRACE_MS: i32 = 300;
-/// A connection's handshake at most, milliseconds (the next attempt starts afresh).
-const HANDSHAKE_MS: i32 = 5_000;
+/// A connection's handshake at most, milliseconds (the next attempt starts afresh); with
+/// other edges to go to, [`HANDSHAKE_MANY_MS`].
+pub const HANDSHAKE_MS: i32 = 5_000;
+const HANDSHAKE_MANY_MS: i32 = 1_000;
 /// A join (handshake, welcome, coarsest tile) at most, milliseconds.
 const JOIN_MS: i32 = 30_000;
 
@@ -79,6 +90,10 @@ pub struct Live {
     view: Option<ViewChange>,
     /// Frame streams being read now (at most [`MAX_STREAMS`]).
     streams: usize,
+    /// What the edge says of its world (gone, why).
+    pub world: World,
+    /// The edges the page connects to in turn: its own origin's, then those learned.
+    pub edges: Addresses<WebEdge>,
 }
 
 pub type Shared = Rc<RefCell<Live>>;
@@ -116,6 +131,29 @@ impl Live {
 
     pub fn ended(&self) -> bool {
         matches!(self.state, State::Ended(_))
+    }
+
+    /// How long the server may be silent: a second when there are other edges to go to
+    /// (unless the page was told less).
+    fn silence(&self) -> Duration {
+        if self.edges.many() {
+            self.silence.min(SILENCE_MANY)
+        } else {
+            self.silence
+        }
+    }
+
+    /// An edge's news of its world: the edges it names join the rotation; gone or back
+    /// is kept for the page.
+    fn news(&mut self, news: &WorldNews) {
+        match news {
+            WorldNews::Edges(edges) => {
+                self.edges.learn(web_edges(edges));
+            }
+            other => {
+                self.world.apply(other, Instant::now());
+            }
+        }
     }
 
     pub fn bytes_in(&self) -> u64 {
@@ -179,63 +217,14 @@ pub struct JoinError {
     pub message: String,
 }
 
-/// A connection that has joined.
+/// A connection that has joined, and the news of the world that came with it.
 pub struct Joined {
     session: Session,
     send: SendStream,
     recv: Reader,
     pub welcome: Welcome,
     pub colors: ColorCache,
-}
-
-/// Length-prefixed messages (a `u32` length, little-endian, then the message) read from a
-/// stream: a length past the limit is refused before anything is kept.
-struct Reader {
-    stream: RecvStream,
-    buf: Vec<u8>,
-}
-
-impl Reader {
-    /// Until `n` bytes are buffered; `false` at the stream's end.
-    async fn fill(&mut self, n: usize) -> Result<bool, String> {
-        while self.buf.len() < n {
-            match self.stream.read(n - self.buf.len()).await {
-                Ok(Some(chunk)) => self.buf.extend_from_slice(&chunk),
-                Ok(None) => return Ok(false),
-                Err(e) => return Err(format!("reading the control stream: {e}")),
-            }
-        }
-        Ok(true)
-    }
-
-    /// The next message; `None` when the stream ends between messages.
-    async fn message<T: DeserializeOwned + Checked>(&mut self) -> Result<Option<T>, String> {
-        if !self.fill(4).await? {
-            return if self.buf.is_empty() {
-                Ok(None)
-            } else {
-                Err("the control stream ended inside a message's length".into())
-            };
-        }
-        let len = u32::from_le_bytes([self.buf[0], self.buf[1], self.buf[2], self.buf[3]]) as usize;
-        if len > messages::MAX_MESSAGE {
-            return Err(format!(
-                "a message of {len} bytes, more than the {} allowed",
-                messages::MAX_MESSAGE
-            ));
-        }
-        if !self.fill(4 + len).await? {
-            return Err("the control stream ended inside a message".into());
-        }
-        let msg = messages::decode(&self.buf[4..4 + len]).map_err(|e| format!("decoding: {e}"));
-        self.buf.drain(..4 + len);
-        msg.map(Some)
-    }
-}
-
-async fn write(send: &mut SendStream, msg: &ClientMessage) -> Result<(), String> {
-    let buf = messages::frame(msg).map_err(|e| e.to_string())?;
-    send.write(&buf).await.map_err(|e| e.to_string())
+    news: Vec<WorldNews>,
 }
 
 /// Whether the browser has WebTransport at all.
@@ -268,29 +257,33 @@ fn ending(e: &web_transport_wasm::Error) -> (bool, String) {
     }
 }
 
-/// Connects, says `hello`, and reads the welcome and the coarsest colour tile: the
-/// handshake within [`HANDSHAKE_MS`], the rest within [`JOIN_MS`]. A session that does not
-/// join is closed (the goodbye's code when it was refused or broke the protocol; else 0,
-/// so that a vehicle it took back stays held for the next attempt).
-pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError> {
+/// Connects to `edge`, says `hello`, and reads the welcome and the coarsest colour tile:
+/// the handshake within `handshake_ms` ([`HANDSHAKE_MS`], or [`HANDSHAKE_MANY_MS`] with
+/// other edges to go to), the rest within [`JOIN_MS`]. A session that does not join is
+/// closed (the goodbye's code when it was refused or broke the protocol; else 0, so that
+/// a vehicle it took back stays held for the next attempt).
+pub async fn join(edge: &WebEdge, hello: Hello, handshake_ms: i32) -> Result<Joined, JoinError> {
     let fatal = |message: String| JoinError {
         lost: false,
         message,
     };
-    let url = endpoint.url().map_err(fatal)?;
-    let url = url::Url::parse(&url).map_err(|e| fatal(format!("the address {url}: {e}")))?;
-    let hashes = endpoint.hashes().map_err(fatal)?;
+    let url =
+        url::Url::parse(&edge.url).map_err(|e| fatal(format!("the address {}: {e}", edge.url)))?;
+    let hashes = page::hash_bytes(&edge.hashes).map_err(fatal)?;
     let builder = ClientBuilder::new().with_unreliable(true);
     let client = if hashes.is_empty() {
         builder.with_system_roots()
     } else {
         builder.with_server_certificate_hashes(hashes)
     };
-    let session = with_timeout(client.connect(url.clone()), HANDSHAKE_MS)
+    let session = with_timeout(client.connect(url.clone()), handshake_ms)
         .await
         .ok_or_else(|| JoinError {
             lost: true,
-            message: format!("connecting to {url}: no handshake within 5 s"),
+            message: format!(
+                "connecting to {url}: no handshake within {:.1} s",
+                f64::from(handshake_ms) / 1000.0
+            ),
         })?
         .map_err(|e| JoinError {
             lost: true,
@@ -307,12 +300,13 @@ pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError
         }),
     };
     match joined {
-        Ok((send, recv, welcome, colors)) => Ok(Joined {
+        Ok((send, recv, welcome, colors, news)) => Ok(Joined {
             session,
             send,
             recv,
             welcome,
             colors,
+            news,
         }),
         Err(e) => {
             session.close(if e.lost { 0 } else { close::BYE }, "did not join");
@@ -321,11 +315,12 @@ pub async fn join(endpoint: &Endpoint, hello: Hello) -> Result<Joined, JoinError
     }
 }
 
+/// What a join reads: the control stream's ends, the welcome, the coarsest colour and the
+/// news of the world among them.
+type Greeted = (SendStream, Reader, Welcome, ColorCache, Vec<WorldNews>);
+
 /// The hello on a new session, the welcome and the colour messages up to the coarsest tile.
-async fn greet(
-    session: &Session,
-    hello: Hello,
-) -> Result<(SendStream, Reader, Welcome, ColorCache), JoinError> {
+async fn greet(session: &Session, hello: Hello) -> Result<Greeted, JoinError> {
     let fatal = |message: String| JoinError {
         lost: false,
         message,
@@ -355,7 +350,7 @@ async fn greet(
             Err(e) => return Err(failed_on(session, e).await),
         };
         if let Some(cache) = joining.apply(&msg).map_err(fatal)? {
-            return Ok((send, recv, welcome, cache));
+            return Ok((send, recv, welcome, cache, joining.take_news()));
         }
     }
 }
@@ -379,9 +374,10 @@ async fn failed_on(session: &Session, message: String) -> JoinError {
     }
 }
 
-/// The first connection's state.
+/// The first connection's state: joined at `edge`, the page's own.
 pub fn live(
     joined: &mut Joined,
+    edge: WebEdge,
     budget: u32,
     script: Option<Vec<KeyStep>>,
     silence: Duration,
@@ -407,6 +403,8 @@ pub fn live(
         silence,
         view: None,
         streams: 0,
+        world: World::default(),
+        edges: Addresses::new([edge]).ok_or("no edge to connect to")?,
     })))
 }
 
@@ -417,14 +415,14 @@ enum End {
 }
 
 /// Runs the session: the connection `joined`, then each reconnection, until it ends.
-pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joined: Joined) {
+pub async fn supervise(live: Shared, hello: Hello, mut joined: Joined) {
     // The first connection's terrain, which every later one must show (its colour cache
     // went to `live`).
     let first = TerrainId::of(&joined.welcome, live.borrow().colors.coarsest());
     let mut hello = joining::next_hello(hello, &joined.welcome);
-    // Frame bytes at the last silence: a second silence with none between is a stuck
+    // The edges silent since the last frame bytes: the same one silent again is a stuck
     // server (as the native viewer's rule).
-    let mut silent_at: Option<u64> = None;
+    let mut silences = Silences::default();
     loop {
         let end = serve(&live, joined).await;
         let why = match end {
@@ -437,15 +435,15 @@ pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joine
         if live.borrow().ended() {
             return;
         }
-        let bytes = live.borrow().bytes_in();
-        if why.contains("silent") {
-            if silent_at == Some(bytes) {
-                live.borrow_mut().end(format!(
-                    "{why}, again after reconnecting with no frame between: the server is stuck"
-                ));
-                return;
-            }
-            silent_at = Some(bytes);
+        let (bytes, here) = {
+            let l = live.borrow();
+            (l.bytes_in(), l.edges.index())
+        };
+        if why.contains("silent") && silences.silent(here, bytes) {
+            live.borrow_mut().end(format!(
+                "{why}, again after reconnecting with no frame between: the server is stuck"
+            ));
+            return;
         }
         // The budget and viewport asked now, not at the page's load.
         {
@@ -455,7 +453,7 @@ pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joine
                 hello.viewport = v.viewport;
             }
         }
-        match reconnect(&live, &endpoint, &hello, &why, &first).await {
+        match reconnect(&live, &hello, &why, &first).await {
             Ok(j) => {
                 hello = joining::next_hello(hello, &j.welcome);
                 joined = j;
@@ -468,10 +466,10 @@ pub async fn supervise(live: Shared, endpoint: Endpoint, hello: Hello, mut joine
     }
 }
 
-/// Connects again until one joins (showing the same terrain) or time runs out.
+/// Connects again, each attempt at the next edge in turn, until one joins (showing the
+/// same terrain) or time runs out.
 async fn reconnect(
     live: &Shared,
-    endpoint: &Endpoint,
     hello: &Hello,
     why: &str,
     first: &TerrainId,
@@ -496,7 +494,23 @@ async fn reconnect(
         }
         attempts += 1;
         let left = RECONNECT_FOR.saturating_sub(started.elapsed()).as_millis() as i32;
-        let joined = with_timeout(join(endpoint, hello.clone()), left.clamp(1, JOIN_MS)).await;
+        let (edge, handshake) = {
+            let mut l = live.borrow_mut();
+            let edge = l.edges.after_loss().clone();
+            (
+                edge,
+                if l.edges.many() {
+                    HANDSHAKE_MANY_MS
+                } else {
+                    HANDSHAKE_MS
+                },
+            )
+        };
+        let joined = with_timeout(
+            join(&edge, hello.clone(), handshake),
+            left.clamp(1, JOIN_MS),
+        )
+        .await;
         if live.borrow().ended() {
             // Quit (or the page closed) meanwhile: nothing comes back.
             if let Some(Ok(j)) = joined {
@@ -547,6 +561,7 @@ async fn serve(live: &Shared, joined: Joined) -> End {
         recv,
         welcome,
         colors,
+        news,
     } = joined;
     let (control, outgoing) = mpsc::unbounded();
     let (ends, mut ended) = mpsc::unbounded::<End>();
@@ -576,6 +591,11 @@ async fn serve(live: &Shared, joined: Joined) -> End {
             l.colors = colors;
             l.gaps
                 .reconnected(welcome.ticket.is_some() && welcome.resumed);
+            // This edge says so if its world is gone too.
+            l.world.back(Instant::now());
+        }
+        for n in &news {
+            l.news(n);
         }
         l.epoch += 1;
         l.welcome = welcome;
@@ -637,10 +657,11 @@ async fn watch_silence(live: Shared, epoch: u64, ends: UnboundedSender<End>) {
         if l.epoch != epoch || l.ended() {
             return;
         }
-        if l.heard.elapsed() >= l.silence {
+        let silence = l.silence();
+        if l.heard.elapsed() >= silence {
             let _ = ends.unbounded_send(End::Lost(format!(
                 "the server was silent for {:.1} s",
-                l.silence.as_secs_f64()
+                silence.as_secs_f64()
             )));
             return;
         }
@@ -688,8 +709,10 @@ async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: Unbounde
             l.heard = Instant::now();
         }
         let colors = || std::cell::RefMut::map(live.borrow_mut(), |l| &mut l.colors);
-        if let Err(why) = joining::take_control(&msg, &mut rgb, colors) {
-            break End::Final(why);
+        match joining::take_control(&msg, &mut rgb, colors) {
+            Ok(None) => {}
+            Ok(Some(news)) => live.borrow_mut().news(news),
+            Err(why) => break End::Final(why),
         }
     };
     let _ = ends.unbounded_send(end);

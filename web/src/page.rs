@@ -1,10 +1,13 @@
 //! The page around the viewer: its options (from the URL's fragment, which a browser
 //! never sends to the server), its elements (the canvas, the message line, the HUD), the
 //! server's WebTransport address and certificate hashes (`/webtransport.json`, from the
-//! page's own origin), timers as futures, and the results a test asks to be posted.
+//! page's own origin: [`Endpoint::edge`], the first place the page connects to; an edge
+//! server names the world's others, `roam_client::edges::web_edges`), timers as futures,
+//! and the results a test asks to be posted.
 
 use std::collections::HashMap;
 
+use roam_client::edges::WebEdge;
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 use wasm_bindgen_futures::JsFuture;
@@ -141,21 +144,34 @@ impl Endpoint {
         Ok(format!("https://{host}:{}{}", self.port, self.path))
     }
 
-    /// The hashes as bytes.
-    pub fn hashes(&self) -> Result<Vec<Vec<u8>>, String> {
-        self.certificate_hashes
-            .iter()
-            .map(|h| {
-                let bytes: Option<Vec<u8>> = (0..h.len())
-                    .step_by(2)
-                    .map(|i| u8::from_str_radix(h.get(i..i + 2)?, 16).ok())
-                    .collect();
-                bytes
-                    .filter(|b| b.len() == 32)
-                    .ok_or_else(|| format!("certificate_hashes: {h:?} is not a SHA-256 in hex"))
-            })
-            .collect()
+    /// The session's URL and the certificate hashes, as an edge names a place to
+    /// connect to.
+    pub fn edge(&self) -> Result<WebEdge, String> {
+        Ok(WebEdge {
+            url: self.url()?,
+            hashes: self
+                .certificate_hashes
+                .iter()
+                .map(|h| h.to_ascii_lowercase())
+                .collect(),
+        })
     }
+}
+
+/// Certificate hashes in hex as bytes (each a SHA-256).
+pub fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, String> {
+    hashes
+        .iter()
+        .map(|h| {
+            let bytes: Option<Vec<u8>> = (0..h.len())
+                .step_by(2)
+                .map(|i| u8::from_str_radix(h.get(i..i + 2)?, 16).ok())
+                .collect();
+            bytes
+                .filter(|b| b.len() == 32)
+                .ok_or_else(|| format!("certificate hash {h:?} is not a SHA-256 in hex"))
+        })
+        .collect()
 }
 
 /// Fetches `/webtransport.json` from the page's origin.

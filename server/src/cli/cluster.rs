@@ -78,26 +78,27 @@ pub struct EdgeArgs {
     /// Seconds to wait for the world to answer when starting.
     #[arg(long, default_value_t = 30.0)]
     pub world_wait: f64,
+    /// The host name or address viewers reach this edge at, as the world's other edges tell
+    /// their viewers (default: the --listen address, or this machine's LAN address when
+    /// that is unspecified).
+    #[arg(long, value_name = "HOST")]
+    pub advertise: Option<String>,
 }
 
 /// An edge's way to its world, for [`super::net::serve_on`].
 pub struct Edge {
     bus: BusOptions,
     wait: Duration,
+    /// The host its viewers reach it at, if given.
+    pub advertise: Option<String>,
 }
 
 impl Edge {
     /// Reaches the world and checks it serves this data set (`hash`).
     pub async fn reach(&self, args: &ServeArgs, hash: [u8; 32]) -> Result<Arc<Remote>> {
         let dir = args.dir.display().to_string();
-        let remote = Remote::connect(
-            &self.bus,
-            hash,
-            &dir,
-            vec![args.listen.to_string()],
-            self.wait,
-        )
-        .await?;
+        // The addresses follow once the edge listens (its ports may be chosen then).
+        let remote = Remote::connect(&self.bus, hash, &dir, Vec::new(), self.wait).await?;
         tracing::info!(
             world = remote.world(),
             "the world answered: the same data set"
@@ -116,9 +117,18 @@ pub fn edge(args: EdgeArgs) -> Result<()> {
         "--world-wait {}: expected 0 to 86400 seconds",
         args.world_wait
     );
+    if let Some(host) = &args.advertise {
+        // With a port and a URL around it, within the bus's limit on an address.
+        anyhow::ensure!(
+            !host.is_empty() && host.len() <= roam_protocol::bus::MAX_ADDRESS - 128,
+            "--advertise: expected a host name or address of 1 to {} bytes",
+            roam_protocol::bus::MAX_ADDRESS - 128
+        );
+    }
     let edge = Edge {
         bus: args.bus.options("roam-server edge")?,
         wait: Duration::from_secs_f64(args.world_wait),
+        advertise: args.advertise,
     };
     super::net::serve_on(args.serve, Some(edge))
 }

@@ -347,6 +347,31 @@ fn web_options(args: &ServeArgs, listen: SocketAddr) -> Result<(net::web::WebOpt
     Ok((options, host))
 }
 
+/// Where viewers reach an edge, as the world tells the other edges' viewers: its QUIC
+/// `host:port` and, with `--web`, its WebTransport URL with the certificate hashes to pin.
+fn edge_addresses(server: &Server, advertise: Option<&str>, web_host: Option<&str>) -> Vec<String> {
+    let ip = server.addr.ip();
+    let host = match advertise {
+        Some(host) => host.to_owned(),
+        None if !ip.is_unspecified() => ip.to_string(),
+        None => lan_address(ip).map_or_else(|| "127.0.0.1".into(), |ip| ip.to_string()),
+    };
+    let native = match host.parse::<std::net::Ipv6Addr>() {
+        Ok(_) => format!("[{host}]:{}", server.addr.port()),
+        Err(_) => format!("{host}:{}", server.addr.port()),
+    };
+    let mut out = vec![native];
+    if let (Some(addr), Some(web_host)) = (server.web_addr(), web_host) {
+        let web_host = advertise.unwrap_or(web_host);
+        out.push(roam_server::web::transport_url(
+            web_host,
+            addr.port(),
+            &server.web_hashes(),
+        ));
+    }
+    out
+}
+
 /// This machine's address on its LAN for `listen`'s family (IPv4 first for `[::]`): the
 /// source address of a route out, found by connecting a UDP socket (no packet is sent).
 fn lan_address(listen: IpAddr) -> Option<IpAddr> {
@@ -500,12 +525,18 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
         );
         say!("listening on {} (UDP)", server.addr);
         say!("fingerprint {}", identity.fingerprint());
-        if let Some(r) = &remote {
+        if let (Some(r), Some(edge)) = (&remote, &bus) {
+            let addresses = edge_addresses(&server, edge.advertise.as_deref(), web_host.as_deref());
             say!(
-                "edge of the world {:?}: it records the session (its edges: {})",
+                "edge of the world {:?}: it records the session; this edge is {}",
                 r.world(),
-                r.edges().join(", ")
+                addresses.join(" and ")
             );
+            r.set_addresses(addresses);
+            let others: Vec<String> = r.edges();
+            if !others.is_empty() {
+                say!("the world's other edges: {}", others.join(", "));
+            }
         }
         if let Some((_, made)) = &made {
             let first = made.list().first().map(|p| p.display().to_string());
@@ -536,11 +567,27 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
                 roam_server::web::page_url(host, addr.port(), &token)
             );
         }
-        tokio::signal::ctrl_c()
-            .await
-            .context("waiting for Ctrl-C")?;
+        // An edge says its addresses again each minute: a made browser certificate is
+        // renewed every few days, and the pages of the other edges pin it by its hash.
+        let mut renew = tokio::time::interval(Duration::from_secs(60));
+        let ctrl_c = tokio::signal::ctrl_c();
+        tokio::pin!(ctrl_c);
+        loop {
+            tokio::select! {
+                r = &mut ctrl_c => break r.context("waiting for Ctrl-C")?,
+                _ = renew.tick() => {
+                    if let (Some(r), Some(edge)) = (&remote, &bus) {
+                        let advertise = edge.advertise.as_deref();
+                        r.set_addresses(edge_addresses(&server, advertise, web_host.as_deref()));
+                    }
+                }
+            }
+        }
         say!("shutting down");
         let world = server.shutdown().await?;
+        if let Some(r) = &remote {
+            r.settle(Duration::from_secs(5)).await;
+        }
         let Some((record_dir, made)) = &made else {
             say!("stopped (the world was at tick {})", world.tick());
             return Ok(());

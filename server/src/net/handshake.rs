@@ -372,6 +372,9 @@ pub(super) struct Joined {
     /// A driver's claim on its vehicle, for a reconnection.
     pub ticket: Option<Ticket>,
     pub resumed: bool,
+    /// On an edge, the world's claim on a driver's vehicle for this connection (its leave
+    /// or hold names it); 0 elsewhere.
+    pub claim: u64,
     /// A driver's connection is told here that a reconnection with its ticket replaces it
     /// (the viewer came back before this server saw the old connection die): it ends,
     /// has its vehicle held, then answers on the sender it was given.
@@ -407,13 +410,14 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
                 driver: false,
                 ticket: None,
                 resumed: false,
+                claim: 0,
                 replaced: None,
             }),
             None => Err(Refusal::Unavailable("no vehicle to follow".into())),
         };
     }
     let (replace, replaced) = oneshot::channel();
-    let (vehicle, ticket, resumed) = match &shared.remote {
+    let (vehicle, ticket, resumed, claim) = match &shared.remote {
         Some(remote) => from_world(shared, remote, hello).await?,
         None => from_here(shared, hello).await?,
     };
@@ -437,18 +441,23 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
         driver: true,
         ticket: Some(ticket),
         resumed,
+        claim,
         replaced: Some(replaced),
     })
 }
 
 /// A driver's vehicle from the world in this process: its held one taken back with the
-/// ticket this server gave it, or a new one with a new ticket. Whether it was resumed.
-async fn from_here(shared: &Shared, hello: &Hello) -> Result<(VehicleId, Ticket, bool), Refusal> {
+/// ticket this server gave it, or a new one with a new ticket. Whether it was resumed (and
+/// no claim: 0).
+async fn from_here(
+    shared: &Shared,
+    hello: &Hello,
+) -> Result<(VehicleId, Ticket, bool, u64), Refusal> {
     let claim = hello.resume.and_then(|t| shared.tickets().remove(&t));
     if let (Some(ticket), Some(claim)) = (hello.resume, claim) {
         end_replaced(claim.replace).await;
         if let Ok(vehicle) = ask(shared, Event::Resume(claim.vehicle)).await {
-            return Ok((vehicle, ticket, true));
+            return Ok((vehicle, ticket, true, 0));
         }
     }
     // At the limit, the world frees the oldest held vehicle before it seats this one
@@ -457,26 +466,27 @@ async fn from_here(shared: &Shared, hello: &Hello) -> Result<(VehicleId, Ticket,
     let vehicle = ask(shared, Event::Join)
         .await
         .map_err(|()| refused(shared, "no vehicle free".into()))?;
-    Ok((vehicle, random_ticket(), false))
+    Ok((vehicle, random_ticket(), false, 0))
 }
 
 /// A driver's vehicle from the world over the bus (an edge): its held one taken back with
-/// its ticket (the world's: any edge's), or a new one with the world's new ticket.
+/// its ticket (the world's: any edge's), or a new one with the world's new ticket; and the
+/// world's claim for this connection.
 async fn from_world(
     shared: &Shared,
     remote: &super::bus::edge::Remote,
     hello: &Hello,
-) -> Result<(VehicleId, Ticket, bool), Refusal> {
+) -> Result<(VehicleId, Ticket, bool, u64), Refusal> {
     if let Some(ticket) = hello.resume {
         let claim = shared.tickets().remove(&ticket);
         end_replaced(claim.and_then(|c| c.replace)).await;
         match remote.resume(ticket).await {
-            Ok(vehicle) => return Ok((vehicle, ticket, true)),
+            Ok((vehicle, claim)) => return Ok((vehicle, ticket, true, claim)),
             Err(why) => tracing::info!("a resume refused by the world ({why}): a new vehicle"),
         }
     }
-    let (vehicle, ticket) = remote.join().await.map_err(|why| refused(shared, why))?;
-    Ok((vehicle, ticket, false))
+    let (vehicle, ticket, claim) = remote.join().await.map_err(|why| refused(shared, why))?;
+    Ok((vehicle, ticket, false, claim))
 }
 
 /// The old connection of a driver coming back may still be up (its loss not yet seen

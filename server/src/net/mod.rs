@@ -409,6 +409,14 @@ impl Server {
         self.web.as_ref().map(|w| w.certs.current().sha256)
     }
 
+    /// What a page pins the browser viewer's certificate by (none for a given one).
+    pub fn web_hashes(&self) -> Vec<[u8; 32]> {
+        self.web
+            .as_ref()
+            .map(|w| w.certs.served_hashes())
+            .unwrap_or_default()
+    }
+
     /// What the server has counted so far.
     pub fn counts(&self) -> stats::Counts {
         self.shared.stats.counts()

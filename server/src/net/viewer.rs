@@ -36,6 +36,11 @@
 //! merely ends (finished between messages, reset, or with the connection) still leaves the
 //! end to the connection, so one rule ([`Conn::hold_after`]) decides hold or leave.
 //!
+//! On an edge (`roam-server edge`), the news of the world ([`tell_news`]) goes on the
+//! control stream as it changes: the world's edges (where the viewer may go if this one
+//! fails), the world gone and back; a driver whose world restarted (its vehicle unknown
+//! there) is told so and let go.
+//!
 //! A browser's WebTransport session is served by the same code, through [`super::link`]'s
 //! [`Conn`]: only the logs' `via` tells them apart.
 
@@ -45,7 +50,9 @@ use std::time::Duration;
 
 use roam_link::wire;
 use roam_protocol::ColorLayout;
-use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
+use roam_protocol::messages::{
+    ClientMessage, Hello, Reason, ServerMessage, Welcome, WorldNews, close,
+};
 use tokio::sync::oneshot;
 
 use super::Shared;
@@ -103,6 +110,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     let mut answer = None;
     let mut leave = Leave {
         world: shared.world.clone(),
+        remote: shared.remote.clone().map(|r| (r, joined.claim)),
         vehicle: driver.then_some(vehicle),
         hold: None,
     };
@@ -152,6 +160,8 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
     let rate = ViewerCore::frame_rate(&hello, shared.limits);
     let mut sent = 0u64;
+    // A driver whose vehicle vanishes on an edge after a world restart is told why.
+    let restarts = shared.remote.as_ref().map(|r| r.restarts());
     let why: String = tokio::select! {
         end = frames(&conn, &shared, (control, &mut seat), core, rate, (vehicle, driver), &mut sent) => {
             match end {
@@ -162,6 +172,9 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
                 FramesEnd::VehicleLeft | FramesEnd::Failed(_) => {
                     let why = match end {
                         FramesEnd::Failed(why) => why,
+                        _ if driver && restarts != shared.remote.as_ref().map(|r| r.restarts()) => {
+                            WORLD_RESTARTED
+                        }
                         _ => "the vehicle followed has left",
                     };
                     let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
@@ -199,6 +212,12 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
             answer = Some(done);
             conn.close(close::BYE, b"replaced by a reconnection");
             "replaced by a reconnection".into()
+        }
+        why = tell_news(&send, shared.remote.clone(), driver) => {
+            let bye = ServerMessage::Bye(Reason::Unavailable(why.clone()));
+            goodbye(&send, &color.0, &bye).await;
+            conn.close(close::BYE, why.as_bytes());
+            why
         }
         _ = shared.shutting_down() => {
             let bye = ServerMessage::Bye(Reason::Shutdown);
@@ -249,9 +268,11 @@ fn lost(conn: &Conn) -> String {
 
 /// Tells the world a driver left, however the connection ended: a goodbye frees its
 /// vehicle, a lost connection has it held ([`Event::Hold`]), the hold counted from when
-/// its link fell silent (`hold`: how long before the end that was).
+/// its link fell silent (`hold`: how long before the end that was). On an edge, told to the
+/// world over the bus with the connection's claim, in order with the resumes.
 struct Leave {
     world: std::sync::mpsc::Sender<super::world_loop::Inbound>,
+    remote: Option<(Arc<super::bus::edge::Remote>, u64)>,
     vehicle: Option<VehicleId>,
     hold: Option<std::time::Duration>,
 }
@@ -259,6 +280,11 @@ struct Leave {
 impl Drop for Leave {
     fn drop(&mut self) {
         if let Some(vehicle) = self.vehicle {
+            if let Some((remote, claim)) = &self.remote {
+                let hold = self.hold.map(super::world_loop::hold_ticks);
+                remote.ended(vehicle, *claim, hold);
+                return;
+            }
             let event = match self.hold {
                 Some(silent) => Event::Hold {
                     vehicle,
@@ -363,6 +389,66 @@ async fn write_color(
         }
     };
     send.write_msg(&msg).await
+}
+
+/// Why a driver on an edge is let go when its world restarts.
+const WORLD_RESTARTED: &str = "the world restarted and knows no vehicle from before: join again";
+
+/// An edge's news of its world, told to the viewer as it changes (nothing on `serve`).
+/// Completes only when a driver must go: the world restarted, and knows none of the
+/// vehicles driven before.
+async fn tell_news(
+    send: &tokio::sync::Mutex<SendStream>,
+    remote: Option<Arc<super::bus::edge::Remote>>,
+    driver: bool,
+) -> String {
+    let Some(remote) = remote else {
+        return std::future::pending().await;
+    };
+    let mut news = remote.news();
+    let mut told = super::bus::edge::News {
+        restarts: news.borrow().restarts,
+        ..Default::default()
+    };
+    loop {
+        let now = news.borrow_and_update().clone();
+        if driver && now.restarts != told.restarts {
+            return WORLD_RESTARTED.into();
+        }
+        let mut say = Vec::new();
+        if now.edges != told.edges {
+            say.push(WorldNews::Edges(now.edges.clone()));
+        }
+        match (&told.gone, &now.gone) {
+            (None, Some(why)) => {
+                let mut why = why.clone();
+                let mut end = why.len().min(roam_protocol::messages::MAX_REASON);
+                while !why.is_char_boundary(end) {
+                    end -= 1;
+                }
+                why.truncate(end);
+                say.push(WorldNews::Gone(why));
+            }
+            (Some(_), None) => say.push(WorldNews::Back),
+            _ => {}
+        }
+        for m in say {
+            if send
+                .lock()
+                .await
+                .write_msg(&ServerMessage::World(m))
+                .await
+                .is_err()
+            {
+                // The connection's end is seen by the other branches.
+                return std::future::pending().await;
+            }
+        }
+        told = now;
+        if news.changed().await.is_err() {
+            return std::future::pending().await;
+        }
+    }
 }
 
 /// How often the colour task looks at the camera and its budget.

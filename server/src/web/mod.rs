@@ -133,10 +133,7 @@ pub fn transport_json(port: u16, hashes: &[[u8; 32]]) -> String {
 /// and logs. The token is percent-encoded but for unreserved characters; an IPv6 host is
 /// bracketed.
 pub fn page_url(host: &str, port: u16, token: &str) -> String {
-    let host = match host.parse::<std::net::Ipv6Addr>() {
-        Ok(_) => format!("[{host}]"),
-        Err(_) => host.to_owned(),
-    };
+    let host = url_host(host);
     let mut encoded = String::with_capacity(token.len());
     for b in token.bytes() {
         if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
@@ -146,6 +143,28 @@ pub fn page_url(host: &str, port: u16, token: &str) -> String {
         }
     }
     format!("https://{host}:{port}/#token={encoded}")
+}
+
+/// An IPv6 address in brackets, as a URL writes it.
+fn url_host(host: &str) -> String {
+    match host.parse::<std::net::Ipv6Addr>() {
+        Ok(_) => format!("[{host}]"),
+        Err(_) => host.to_owned(),
+    }
+}
+
+/// Where a page reaches this server's WebTransport directly, as an edge tells its world's
+/// other pages (`roam_protocol::messages::WorldNews::Edges`):
+/// `https://HOST:PORT/roam#hashes=HEX,…`, the certificate hashes to pin (none for a
+/// certificate browsers trust).
+pub fn transport_url(host: &str, port: u16, hashes: &[[u8; 32]]) -> String {
+    let hashes: Vec<String> = hashes.iter().map(|h| roam_link::tls::hex(h)).collect();
+    let url = format!("https://{}:{port}{SESSION_PATH}", url_host(host));
+    if hashes.is_empty() {
+        url
+    } else {
+        format!("{url}#hashes={}", hashes.join(","))
+    }
 }
 
 /// What the HTTPS server serves: the page, and the WebTransport endpoint's port and

@@ -93,8 +93,11 @@ impl Sim {
                                     client_offer(v, epoch + at, bytes);
                                 }
                             }
+                            // Colour, and an edge's news (`serve`'s cores send none).
                             Ok(
-                                ServerMessage::ColorTile { .. } | ServerMessage::ColorWindow { .. },
+                                ServerMessage::ColorTile { .. }
+                                | ServerMessage::ColorWindow { .. }
+                                | ServerMessage::World(_),
                             ) => {}
                             Ok(ServerMessage::Refused(r) | ServerMessage::Bye(r)) => {
                                 v.client.closed = Some(format!("{r:?}"));

@@ -5,15 +5,24 @@
 //! where `serve`'s world thread stands: it takes the viewer tasks' events (key states are
 //! published, leaves and holds asked until answered) and puts each snapshot from the bus
 //! in the viewer tasks' `watch`.
+//!
+//! Beside it, the **beat** ([`beat`]): a hello every [`BEAT`], naming the vehicles this
+//! edge's drivers drive, so the world holds them if the edge goes silent (killed, cut
+//! off). Its answers are the edge's news of the world ([`News`], told to every viewer by
+//! [`super::super::viewer`]): the world's edges (where a viewer may go), the world gone
+//! (no answer for [`GONE_AFTER`]) and back, and a world restarted (another process, which
+//! knows none of the old vehicles: the drivers are told to join again).
 
+use std::collections::HashMap;
+use std::sync::atomic::Ordering;
 use std::sync::mpsc::Receiver;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use futures_util::StreamExt;
-use roam_protocol::bus::{self as wire, Answer, Ask, Keys, Subjects};
+use roam_protocol::bus::{self as wire, Answer, Ask, DriverKeys, Keys, MAX_BATCH, Subjects};
 use roam_protocol::messages::{Ticket, decode};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::{mpsc, oneshot, watch};
 
 use super::{BusError, BusOptions, Malformed, encode, from_wire};
 use crate::Terrain;
@@ -24,8 +33,9 @@ use crate::sim::world_core::{Event, Snapshot};
 /// How long one request waits for the world's answer.
 const ASK_TIMEOUT: Duration = Duration::from_secs(2);
 
-/// How many times a leave or a hold is asked before it is given up (logged): the world
-/// holds a vehicle whose edge went silent anyway, and frees it when the hold runs out.
+/// How many times a leave or a hold is asked before it is given up (logged): a vehicle
+/// whose leave is lost stays driven while this edge names it, and is held once it does
+/// not.
 const ASK_TRIES: u32 = 15;
 
 /// Key-state messages waiting to be published at most; past it (NATS away), the newest
@@ -33,14 +43,64 @@ const ASK_TRIES: u32 = 15;
 /// are sent again 100 times a second.
 const KEYS_QUEUED: usize = 4096;
 
+/// How often an edge says hello to its world.
+pub const BEAT: Duration = Duration::from_millis(500);
+
+/// No answer to the hellos for this long: the world is gone (news for the viewers).
+pub const GONE_AFTER: Duration = Duration::from_millis(1500);
+
+/// What an edge knows of its world, for its viewers.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct News {
+    /// The world does not answer: why.
+    pub gone: Option<String>,
+    /// The world's edges, as its last answer listed them.
+    pub edges: Vec<String>,
+    /// Times the world was found restarted (another process answering).
+    pub restarts: u32,
+}
+
 /// The world as an edge reaches it.
 pub struct Remote {
     client: async_nats::Client,
     subjects: Subjects,
     world: String,
-    /// The world's edges (addresses viewers reach them at), as its last hello said.
-    edges: Mutex<Vec<String>>,
+    url: String,
+    data: [u8; 32],
+    /// This edge's name for itself in its hellos (random, per process).
+    edge: u64,
+    /// The addresses viewers reach this edge at (set once it listens).
+    addresses: Mutex<Vec<String>>,
+    /// The vehicles this edge's drivers drive, each with its newest claim here.
+    driven: Mutex<HashMap<VehicleId, u64>>,
+    /// Leaves, holds and resumes, asked in the order they were told ([`tell_in_order`]):
+    /// a driver's old connection's hold goes before its reconnection's resume.
+    tells: mpsc::Sender<Tell>,
+    /// Tells queued or being asked, and a wake-up for each one done.
+    telling: Arc<(std::sync::atomic::AtomicUsize, tokio::sync::Notify)>,
+    /// The world process heard last (its hellos' answers and its snapshots name it).
+    world_id: std::sync::atomic::AtomicU64,
+    /// When the world was last heard (an answer, a snapshot).
+    heard: Mutex<tokio::time::Instant>,
+    /// The world's last answer named another data set (a world restarted on other data):
+    /// gone, whatever its snapshots say.
+    mismatch: std::sync::atomic::AtomicBool,
+    news: watch::Sender<News>,
 }
+
+/// What [`tell_in_order`] asks.
+enum Tell {
+    /// Asked until answered (at most [`ASK_TRIES`] times).
+    Ask(Ask),
+    /// Asked once, answered on the sender.
+    Resume(Ticket, oneshot::Sender<Result<Answer, BusError>>),
+}
+
+/// Leaves, holds and resumes waiting to be asked, at most: one or two for each viewer an
+/// edge admits, so a full queue is a world that has stopped answering (a leave or hold
+/// past it is dropped, logged: the world holds the vehicles of an edge it stops hearing
+/// from, or frees them with its hold).
+const TELLS_QUEUED: usize = 4096;
 
 impl Remote {
     /// Connects to the world named in `bus` and says hello with this edge's data set
@@ -55,16 +115,27 @@ impl Remote {
     ) -> Result<Arc<Remote>, BusError> {
         let subjects = bus.subjects()?;
         let client = bus.connect().await?;
-        let remote = Remote {
+        let (tells, tells_rx) = mpsc::channel(TELLS_QUEUED);
+        let mut remote = Remote {
             client,
             subjects,
             world: bus.world.clone(),
-            edges: Mutex::new(Vec::new()),
+            url: bus.url.clone(),
+            data,
+            edge: super::random_id(),
+            addresses: Mutex::new(addresses),
+            driven: Mutex::new(HashMap::new()),
+            tells,
+            telling: Arc::default(),
+            world_id: Default::default(),
+            heard: Mutex::new(tokio::time::Instant::now()),
+            mismatch: Default::default(),
+            news: watch::Sender::new(News::default()),
         };
-        let hello = Ask::Hello { data, addresses };
+        let hello = remote.hello();
         let deadline = tokio::time::Instant::now() + wait;
         let answer = loop {
-            match remote.ask(&hello).await {
+            match ask(&remote.client, &remote.subjects, &hello).await {
                 Ok(answer) => break answer,
                 Err(e) if tokio::time::Instant::now() >= deadline => {
                     tracing::warn!("no answer from the world: {e}");
@@ -81,6 +152,7 @@ impl Remote {
         match answer {
             Answer::Hello {
                 data: world_data,
+                world,
                 edges,
             } => {
                 if world_data != data {
@@ -91,10 +163,17 @@ impl Remote {
                         dir: dir.to_owned(),
                     });
                 }
-                *remote.edges.lock().unwrap_or_else(|e| e.into_inner()) = edges;
+                *remote.world_id.get_mut() = world;
+                remote.news.send_modify(|n| n.edges = edges);
             }
             other => return Err(BusError::Answer(format!("to hello: {other:?}"))),
         }
+        tokio::spawn(tell_in_order(
+            remote.client.clone(),
+            remote.subjects.clone(),
+            tells_rx,
+            remote.telling.clone(),
+        ));
         Ok(Arc::new(remote))
     }
 
@@ -105,59 +184,198 @@ impl Remote {
 
     /// The world's edges, as its last hello said.
     pub fn edges(&self) -> Vec<String> {
-        self.edges.lock().unwrap_or_else(|e| e.into_inner()).clone()
+        self.news.borrow().edges.clone()
     }
 
-    /// One request, and the world's answer.
-    async fn ask(&self, ask: &Ask) -> Result<Answer, BusError> {
-        let nats = |e: String| BusError::Nats {
-            what: "asking the world",
-            error: e,
-        };
-        let reply = tokio::time::timeout(
-            ASK_TIMEOUT,
-            self.client.request(self.subjects.ask.clone(), encode(ask)),
-        )
-        .await
-        .map_err(|_| nats("no answer in 2 s".into()))?
-        .map_err(|e| nats(e.to_string()))?;
-        decode::<Answer>(&reply.payload).map_err(|e| BusError::Answer(e.to_string()))
+    /// The news of the world as it changes.
+    pub fn news(&self) -> watch::Receiver<News> {
+        self.news.subscribe()
     }
 
-    /// A new vehicle for a driver, and its ticket; `Err` says why not.
-    pub async fn join(&self) -> Result<(VehicleId, Ticket), String> {
-        match self.ask(&Ask::Join).await {
-            Ok(Answer::Joined { vehicle, ticket }) => Ok((vehicle, ticket)),
+    /// The addresses viewers reach this edge at, said in every hello from now on.
+    pub fn set_addresses(&self, addresses: Vec<String>) {
+        *lock(&self.addresses) = addresses;
+    }
+
+    /// World process `world` answered: if it is not the one heard before, the world
+    /// restarted (said once, its drivers let go: their vehicles are not the new world's).
+    fn heard_world(&self, world: u64) {
+        *lock(&self.heard) = tokio::time::Instant::now();
+        self.news.send_if_modified(|n| {
+            let back = !self.mismatch.load(Ordering::Acquire) && n.gone.take().is_some();
+            if back {
+                tracing::info!(world = self.world, "the world answers again");
+            }
+            back
+        });
+        if self.world_id.swap(world, Ordering::AcqRel) == world {
+            return;
+        }
+        lock(&self.driven).clear();
+        tracing::warn!(
+            world = self.world,
+            "the world restarted: its vehicles are new; drivers are told to join again"
+        );
+        self.news.send_modify(|n| n.restarts += 1);
+    }
+
+    /// Times the world was found restarted.
+    pub fn restarts(&self) -> u32 {
+        self.news.borrow().restarts
+    }
+
+    /// This edge's hello.
+    fn hello(&self) -> Ask {
+        let mut vehicles: Vec<(u16, u64)> =
+            lock(&self.driven).iter().map(|(v, c)| (*v, *c)).collect();
+        vehicles.sort_unstable();
+        Ask::Hello {
+            data: self.data,
+            edge: self.edge,
+            addresses: lock(&self.addresses).clone(),
+            vehicles,
+        }
+    }
+
+    /// A new vehicle for a driver, its ticket and its claim; `Err` says why not.
+    pub async fn join(&self) -> Result<(VehicleId, Ticket, u64), String> {
+        match ask(&self.client, &self.subjects, &Ask::Join).await {
+            Ok(Answer::Joined {
+                vehicle,
+                ticket,
+                claim,
+            }) => {
+                lock(&self.driven).insert(vehicle, claim);
+                Ok((vehicle, ticket, claim))
+            }
             Ok(Answer::Refused { reason }) => Err(reason),
             Ok(other) => Err(format!("the world answered a join with {other:?}")),
             Err(e) => Err(e.to_string()),
         }
     }
 
-    /// The held vehicle `ticket` names, given back; `Err` says why not.
-    pub async fn resume(&self, ticket: Ticket) -> Result<VehicleId, String> {
-        match self.ask(&Ask::Resume { ticket }).await {
-            Ok(Answer::Resumed { vehicle }) => Ok(vehicle),
-            Ok(Answer::Refused { reason }) => Err(reason),
-            Ok(other) => Err(format!("the world answered a resume with {other:?}")),
-            Err(e) => Err(e.to_string()),
+    /// The held vehicle `ticket` names, given back, and its new claim; `Err` says why
+    /// not. Asked after every leave and hold told before it.
+    pub async fn resume(&self, ticket: Ticket) -> Result<(VehicleId, u64), String> {
+        let (tx, rx) = oneshot::channel();
+        self.tells.try_send(Tell::Resume(ticket, tx)).map_err(|_| {
+            "the world has stopped answering (too many requests queued)".to_string()
+        })?;
+        match rx.await {
+            Ok(Ok(Answer::Resumed { vehicle, claim })) => {
+                lock(&self.driven).insert(vehicle, claim);
+                Ok((vehicle, claim))
+            }
+            Ok(Ok(Answer::Refused { reason })) => Err(reason),
+            Ok(Ok(other)) => Err(format!("the world answered a resume with {other:?}")),
+            Ok(Err(e)) => Err(e.to_string()),
+            Err(_) => Err("the edge is stopping".into()),
         }
     }
 
-    /// Asks until answered (at most [`ASK_TRIES`] times).
-    async fn tell(&self, ask: Ask) {
-        for _ in 0..ASK_TRIES {
-            match self.ask(&ask).await {
-                Ok(_) => return,
-                Err(e) => tracing::debug!("{ask:?}: {e}; asking again"),
+    /// A driver here is gone from `vehicle` (its claim `claim`): held, counted from
+    /// `hold` ticks ago, or (`None`) left. Told to the world in order, until answered.
+    pub fn ended(&self, vehicle: VehicleId, claim: u64, hold: Option<u64>) {
+        {
+            let mut driven = lock(&self.driven);
+            if driven.get(&vehicle) == Some(&claim) {
+                driven.remove(&vehicle);
             }
         }
-        tracing::warn!("{ask:?}: the world did not answer; its hold frees the vehicle");
+        let ask = match hold {
+            Some(silent) => Ask::Hold {
+                vehicle,
+                claim,
+                silent,
+            },
+            None => Ask::Leave { vehicle, claim },
+        };
+        if self.queue(Tell::Ask(ask)).is_err() {
+            tracing::warn!(vehicle, "too many requests queued for the world: not told");
+        }
+    }
+
+    fn queue(&self, tell: Tell) -> Result<(), ()> {
+        self.telling.0.fetch_add(1, Ordering::AcqRel);
+        self.tells.try_send(tell).map_err(|_| {
+            self.telling.0.fetch_sub(1, Ordering::AcqRel);
+        })
+    }
+
+    /// Waits (at most `within`) until every leave and hold told so far has been asked: an
+    /// edge stopping tells its world that its drivers left before it goes.
+    pub async fn settle(&self, within: Duration) {
+        let deadline = tokio::time::Instant::now() + within;
+        loop {
+            let done = self.telling.1.notified();
+            if self.telling.0.load(Ordering::Acquire) == 0 {
+                return;
+            }
+            if tokio::time::timeout_at(deadline, done).await.is_err() {
+                tracing::warn!("stopping with leaves or holds the world has not answered");
+                return;
+            }
+        }
+    }
+}
+
+/// One request, and the world's answer.
+async fn ask(
+    client: &async_nats::Client,
+    subjects: &Subjects,
+    ask: &Ask,
+) -> Result<Answer, BusError> {
+    let nats = |e: String| BusError::Nats {
+        what: "asking the world",
+        error: e,
+    };
+    let reply = tokio::time::timeout(
+        ASK_TIMEOUT,
+        client.request(subjects.ask.clone(), encode(ask)),
+    )
+    .await
+    .map_err(|_| nats("no answer in 2 s".into()))?
+    .map_err(|e| nats(e.to_string()))?;
+    decode::<Answer>(&reply.payload).map_err(|e| BusError::Answer(e.to_string()))
+}
+
+/// Asks what is told, one at a time, in order: a leave or a hold until answered (at most
+/// [`ASK_TRIES`] times), a resume once.
+async fn tell_in_order(
+    client: async_nats::Client,
+    subjects: Subjects,
+    mut tells: mpsc::Receiver<Tell>,
+    telling: Arc<(std::sync::atomic::AtomicUsize, tokio::sync::Notify)>,
+) {
+    while let Some(tell) = tells.recv().await {
+        tell_one(&client, &subjects, tell).await;
+        telling.0.fetch_sub(1, Ordering::AcqRel);
+        telling.1.notify_waiters();
+    }
+}
+
+async fn tell_one(client: &async_nats::Client, subjects: &Subjects, tell: Tell) {
+    match tell {
+        Tell::Resume(ticket, reply) => {
+            let _ = reply.send(ask(client, subjects, &Ask::Resume { ticket }).await);
+        }
+        Tell::Ask(a) => {
+            for tries in 1..=ASK_TRIES {
+                match ask(client, subjects, &a).await {
+                    Ok(_) => return,
+                    Err(e) if tries < ASK_TRIES => tracing::debug!("{a:?}: {e}; asking again"),
+                    Err(e) => tracing::warn!(
+                        "{a:?}: {e}; the world did not answer (a vehicle this edge no longer \
+                         names is held once the world notices)"
+                    ),
+                }
+            }
+        }
     }
 }
 
 /// The edge's stand-in for the world thread: until `inbox` closes, publishes key states,
-/// asks leaves and holds, and puts the world's snapshots in `snapshots`. Returns the
+/// says hello, and puts the world's snapshots in `snapshots`. Returns the
 /// world as last seen (its tick; the vehicles are the world's).
 pub fn run(
     remote: Arc<Remote>,
@@ -170,47 +388,118 @@ pub fn run(
     let subscriber = runtime.spawn(take_snapshots(remote.clone(), snapshots.clone()));
     let (keys, keys_rx) = mpsc::channel(KEYS_QUEUED);
     let publisher = runtime.spawn(publish_keys(remote.clone(), keys_rx));
+    let beating = runtime.spawn(beat(remote.clone()));
     let mut dropped = 0u64;
     // A blocking receive: this thread is the channel's reader, not a runtime worker.
     while let Ok((event, reply)) = inbox.recv() {
         match event {
             Event::Keys { vehicle, states } => {
-                if keys.try_send(Keys { vehicle, states }).is_err() {
+                if keys.try_send(DriverKeys { vehicle, states }).is_err() {
                     dropped += 1;
                     if dropped.is_power_of_two() {
                         tracing::warn!(dropped, "key states dropped: NATS is not keeping up");
                     }
                 }
             }
-            Event::Leave(vehicle) => {
-                let remote = remote.clone();
-                runtime.spawn(async move { remote.tell(Ask::Leave { vehicle }).await });
-            }
-            Event::Hold { vehicle, silent } => {
-                let remote = remote.clone();
-                runtime.spawn(async move { remote.tell(Ask::Hold { vehicle, silent }).await });
-            }
             // Joins and resumes go by [`Remote::join`] and [`Remote::resume`], with the
-            // world's tickets; one sent here is refused (its reply dropped).
-            Event::Join | Event::Resume(_) => drop(reply),
+            // world's tickets, leaves and holds by [`Remote::ended`] with their claims;
+            // one sent here is refused (its reply dropped).
+            Event::Join | Event::Resume(_) | Event::Leave(_) | Event::Hold { .. } => drop(reply),
         }
     }
     subscriber.abort();
     publisher.abort();
+    beating.abort();
     let tick = snapshots.borrow().tick;
     World::at_tick(terrain, tick)
 }
 
-async fn publish_keys(remote: Arc<Remote>, mut keys: mpsc::Receiver<Keys>) {
+/// Publishes the drivers' key states: each message all that was queued (at most
+/// [`MAX_BATCH`]), so a tick's worth of drivers goes as one message.
+async fn publish_keys(remote: Arc<Remote>, mut keys: mpsc::Receiver<DriverKeys>) {
+    let mut batch = Keys::default();
     while let Some(k) = keys.recv().await {
+        batch.drivers.push(k);
+        while batch.drivers.len() < MAX_BATCH {
+            match keys.try_recv() {
+                Ok(k) => batch.drivers.push(k),
+                Err(_) => break,
+            }
+        }
         if let Err(e) = remote
             .client
-            .publish(remote.subjects.keys.clone(), encode(&k))
+            .publish(remote.subjects.keys.clone(), encode(&batch))
             .await
         {
             tracing::warn!("publishing key states: {e}");
         }
+        batch.drivers.clear();
     }
+}
+
+/// Says hello every [`BEAT`] and keeps the news: the world's edges, the world gone (no
+/// answer for [`GONE_AFTER`]) and back, a world restarted.
+async fn beat(remote: Arc<Remote>) {
+    let mut tick = tokio::time::interval(BEAT);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    loop {
+        tick.tick().await;
+        let why = match ask(&remote.client, &remote.subjects, &remote.hello()).await {
+            Ok(Answer::Hello { data, world, edges }) if data == remote.data => {
+                remote.mismatch.store(false, Ordering::Release);
+                remote.heard_world(world);
+                remote.news.send_if_modified(|n| {
+                    let changed = n.edges != edges;
+                    n.edges = edges;
+                    changed
+                });
+                continue;
+            }
+            Ok(Answer::Hello { data, .. }) => {
+                remote.mismatch.store(true, Ordering::Release);
+                let why = format!(
+                    "the world {:?} now serves another data set ({}, this edge has {}): \
+                     serve the same data set on both",
+                    remote.world,
+                    roam_link::tls::hex(&data),
+                    roam_link::tls::hex(&remote.data)
+                );
+                remote.news.send_if_modified(|n| {
+                    let first = n.gone.as_ref() != Some(&why);
+                    if first {
+                        tracing::error!("{why}");
+                    }
+                    n.gone = Some(why);
+                    first
+                });
+                continue;
+            }
+            Ok(other) => format!("the world answered a hello with {other:?}"),
+            Err(e) => e.to_string(),
+        };
+        let silent = lock(&remote.heard).elapsed();
+        if silent >= GONE_AFTER {
+            let why = format!(
+                "the world {:?} has not answered for {:.0} s (NATS at {}): {why}; \
+                 still trying",
+                remote.world,
+                silent.as_secs_f64(),
+                remote.url
+            );
+            remote.news.send_if_modified(|n| {
+                let first = n.gone.is_none();
+                if first {
+                    tracing::warn!("{why}");
+                }
+                n.gone = Some(why);
+                first
+            });
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Each snapshot from the bus into the viewer tasks' `watch` (an older one than the
@@ -231,6 +520,8 @@ async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Sn
     while let Some(msg) = sub.next().await {
         match decode::<wire::Snapshot>(&msg.payload) {
             Ok(s) => {
+                // Before the snapshot: a viewer task missing its vehicle in it knows why.
+                remote.heard_world(s.world);
                 snapshots.send_replace(from_wire(s));
             }
             Err(e) => malformed.note(&e),

@@ -76,6 +76,12 @@ pub enum BusError {
     WorldPanicked,
 }
 
+/// A random name for this process (an edge's, a world's), as the bus knows it.
+pub(crate) fn random_id() -> u64 {
+    let t = crate::net::handshake::random_ticket();
+    u64::from_le_bytes([t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7]])
+}
+
 /// Messages from the bus that did not decode, counted; logged at the first, second,
 /// fourth… so a flood cannot fill the log.
 pub(crate) struct Malformed {
@@ -109,9 +115,30 @@ impl BusOptions {
     /// [`Self::creds`], reconnecting for ever when the server goes away (the client keeps
     /// a bounded buffer meanwhile: a publish waits, nothing grows).
     pub async fn connect(&self) -> Result<async_nats::Client, BusError> {
+        let refused = |e: async_nats::ConnectError| BusError::Connect {
+            url: self.url.clone(),
+            error: e.to_string(),
+        };
+        // Tried once first: credentials or TLS the server refuses are said now, rather
+        // than retried for ever in the background.
+        match self.options().await?.connect(self.url.as_str()).await {
+            Ok(client) => return Ok(client),
+            Err(e) if refusal(&e) => return Err(refused(e)),
+            Err(e) => tracing::warn!("NATS at {} not reached yet ({e}); waiting for it", self.url),
+        }
+        // `retry_on_initial_connect` makes this return at once; the first connection is
+        // made in the background (a world started before its NATS waits for it).
+        self.options()
+            .await?
+            .retry_on_initial_connect()
+            .connect(self.url.as_str())
+            .await
+            .map_err(refused)
+    }
+
+    async fn options(&self) -> Result<async_nats::ConnectOptions, BusError> {
         let mut options = async_nats::ConnectOptions::new()
             .name(&self.name)
-            .retry_on_initial_connect()
             .max_reconnects(None)
             // The world's snapshots come 100 a second; a subscriber buffers a few seconds.
             .subscription_capacity(1024)
@@ -119,17 +146,18 @@ impl BusOptions {
         if let Some(file) = &self.creds {
             options = creds(options, file).await?;
         }
-        let url = self.url.clone();
-        // `retry_on_initial_connect` makes this return at once; the first connection is
-        // made in the background (a world started before its NATS waits for it).
-        options
-            .connect(self.url.as_str())
-            .await
-            .map_err(|e| BusError::Connect {
-                url,
-                error: e.to_string(),
-            })
+        Ok(options)
     }
+}
+
+/// Whether a first connection failed for a reason trying again will not cure: the server
+/// refused the credentials, or TLS, or the URL is not one.
+fn refusal(e: &async_nats::ConnectError) -> bool {
+    use async_nats::ConnectErrorKind as K;
+    matches!(
+        e.kind(),
+        K::Authentication | K::AuthorizationViolation | K::Tls | K::ServerParse
+    )
 }
 
 /// A credentials file (it holds `-----BEGIN NATS USER JWT-----`), else a token file.
@@ -156,9 +184,10 @@ async fn creds(
     }
 }
 
-/// A world snapshot as it goes on the bus.
-pub fn to_wire(s: &Snapshot) -> wire::Snapshot {
+/// A snapshot of world process `world` as it goes on the bus.
+pub fn to_wire(s: &Snapshot, world: u64) -> wire::Snapshot {
     wire::Snapshot {
+        world,
         tick: s.tick,
         vehicles: s
             .vehicles
@@ -227,7 +256,7 @@ mod tests {
             applied: vec![(4, 12)],
             held: vec![9],
         };
-        let bytes = encode(&to_wire(&snap));
+        let bytes = encode(&to_wire(&snap, 5));
         let back: wire::Snapshot =
             roam_protocol::messages::decode(&bytes).expect("a snapshot decodes");
         assert_eq!(*from_wire(back), snap);

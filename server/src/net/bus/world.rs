@@ -8,10 +8,20 @@
 //! forty), one hands the drivers' key states to the thread, one publishes each snapshot
 //! (the latest: a publish that waits for a slow NATS skips the ticks made meanwhile, and
 //! the world thread never waits for it).
+//!
+//! The edges' hellos come every half second ([`super::edge::BEAT`]), each naming the
+//! vehicles its drivers drive. A fourth task ([`watch_edges`]) holds the vehicles of an
+//! edge silent for [`EDGE_SILENCE`] (killed, cut off from NATS), counting the hold from
+//! its last hello, so they are freed when the hold runs out unless their drivers come
+//! back through another edge with their tickets. An edge heard again names its vehicles
+//! again: those still held since its silence are given back to it. While the world's own
+//! NATS connection is down it judges no edge, and gives each a fresh [`EDGE_SILENCE`]
+//! once it is back (a NATS restart silences everyone at once).
 
 use std::collections::HashMap;
 use std::sync::mpsc::Sender;
 use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
 use roam_protocol::bus::{Answer, Ask, Keys, MAX_EDGES, Subjects};
@@ -28,6 +38,51 @@ use crate::sim::world_core::{Event, Snapshot};
 /// Requests answered at once; past it, the next waits for one to finish.
 const MAX_ASKING: usize = 256;
 
+/// An edge not heard for this long is taken for dead: its vehicles are held.
+pub const EDGE_SILENCE: Duration = Duration::from_secs(3);
+
+/// The most edges the world keeps track of; a hello from one more is answered, but its
+/// vehicles are not watched.
+const MAX_WATCHED: usize = 4096;
+
+/// What names a driver's vehicle: its ticket (the driver's, to come back with through any
+/// edge) and its claim (the edge's, for one join or resume: a leave or hold with an older
+/// claim is stale). Each map holds at most one entry a vehicle id.
+#[derive(Default)]
+struct Drivers {
+    tickets: HashMap<Ticket, VehicleId>,
+    claims: HashMap<VehicleId, u64>,
+    next_claim: u64,
+}
+
+impl Drivers {
+    /// A new claim on `vehicle`: older ones are stale from now on.
+    fn claim(&mut self, vehicle: VehicleId) -> u64 {
+        self.next_claim += 1;
+        self.claims.insert(vehicle, self.next_claim);
+        self.next_claim
+    }
+
+    /// Whether `claim` is `vehicle`'s newest.
+    fn holds(&self, vehicle: VehicleId, claim: u64) -> bool {
+        self.claims.get(&vehicle) == Some(&claim)
+    }
+
+    /// `vehicle` is free: its ticket and claim name nothing.
+    fn forget(&mut self, vehicle: VehicleId) {
+        self.tickets.retain(|_, v| *v != vehicle);
+        self.claims.remove(&vehicle);
+    }
+}
+
+/// An edge, as its hellos tell it.
+struct Seen {
+    heard: Instant,
+    addresses: Vec<String>,
+    /// Its drivers' vehicles and their claims.
+    vehicles: Vec<(VehicleId, u64)>,
+}
+
 /// How the world runs.
 pub struct WorldOptions {
     pub record: Option<RecordOptions>,
@@ -39,11 +94,16 @@ pub struct WorldOptions {
 
 /// What the request tasks share.
 struct State {
-    /// The drivers' tickets: the vehicle each names.
-    tickets: Mutex<HashMap<Ticket, VehicleId>>,
-    /// The edges' addresses, as they said hello (the newest last, at most [`MAX_EDGES`]).
-    edges: Mutex<Vec<String>>,
+    /// The drivers' tickets and claims.
+    drivers: Mutex<Drivers>,
+    /// The edges heard from, by their names.
+    edges: Mutex<HashMap<u64, Seen>>,
+    /// Vehicles held because their edge fell silent: which edge, and the claim it named.
+    /// (Locked after `drivers` where both are.)
+    silenced: Mutex<HashMap<VehicleId, (u64, u64)>>,
     data: [u8; 32],
+    /// This world process's name (random): a new one tells edges the world restarted.
+    id: u64,
     inbox: Sender<Inbound>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     stats: Arc<WorldStats>,
@@ -97,9 +157,11 @@ impl WorldServer {
         )
         .map_err(BusError::World)?;
         let state = Arc::new(State {
-            tickets: Mutex::new(HashMap::new()),
-            edges: Mutex::new(Vec::new()),
+            drivers: Mutex::new(Drivers::default()),
+            edges: Mutex::new(HashMap::new()),
+            silenced: Mutex::new(HashMap::new()),
             data,
+            id: super::random_id(),
             inbox: inbox.clone(),
             snapshots: snapshots.clone(),
             stats: stats.clone(),
@@ -107,7 +169,13 @@ impl WorldServer {
         let tasks = vec![
             tokio::spawn(answer_asks(asks, client.clone(), state.clone())),
             tokio::spawn(take_keys(keys, inbox.clone())),
-            tokio::spawn(publish(client.clone(), subjects, snapshots.clone())),
+            tokio::spawn(publish(
+                client.clone(),
+                subjects,
+                snapshots.clone(),
+                state.id,
+            )),
+            tokio::spawn(watch_edges(client.clone(), state.clone())),
         ];
         client.flush().await.map_err(|e| BusError::Nats {
             what: "flushing the subscriptions",
@@ -204,23 +272,19 @@ async fn answer(state: &State, ask: Ask) -> Answer {
         reason: reason.into(),
     };
     match ask {
-        Ask::Hello { data, addresses } => {
+        Ask::Hello {
+            data,
+            edge,
+            addresses,
+            vehicles,
+        } => {
             if data == state.data {
-                let mut edges = state.edges.lock().unwrap_or_else(|e| e.into_inner());
-                for a in addresses {
-                    edges.retain(|e| *e != a);
-                    edges.push(a);
-                }
-                let extra = edges.len().saturating_sub(MAX_EDGES);
-                edges.drain(..extra);
+                heard(state, edge, addresses, vehicles);
             }
             Answer::Hello {
                 data: state.data,
-                edges: state
-                    .edges
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .clone(),
+                world: state.id,
+                edges: live_addresses(state),
             }
         }
         Ask::Join => {
@@ -230,25 +294,31 @@ async fn answer(state: &State, ask: Ask) -> Answer {
                 return refused("no vehicle free");
             };
             let ticket = crate::net::handshake::random_ticket();
-            let mut tickets = state.tickets.lock().unwrap_or_else(|e| e.into_inner());
+            let mut drivers = lock(&state.drivers);
             for freed in state.stats.take_evicted() {
-                tickets.retain(|_, v| *v != freed);
+                drivers.forget(freed);
             }
             // A ticket names one vehicle, and a vehicle has one ticket (ids are reused).
-            tickets.retain(|_, v| *v != vehicle);
-            tickets.insert(ticket, vehicle);
-            Answer::Joined { vehicle, ticket }
+            drivers.forget(vehicle);
+            drivers.tickets.insert(ticket, vehicle);
+            let claim = drivers.claim(vehicle);
+            Answer::Joined {
+                vehicle,
+                ticket,
+                claim,
+            }
         }
         Ask::Resume { ticket } => {
-            let vehicle = state
-                .tickets
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .get(&ticket)
-                .copied();
-            let Some(vehicle) = vehicle else {
-                return refused("no vehicle has this ticket (its hold ran out)");
+            // Claimed before the world is asked: a leave or hold from the driver's old
+            // connection, arriving meanwhile, is stale.
+            let (vehicle, claim) = {
+                let mut drivers = lock(&state.drivers);
+                let Some(vehicle) = drivers.tickets.get(&ticket).copied() else {
+                    return refused("no vehicle has this ticket (its hold ran out)");
+                };
+                (vehicle, drivers.claim(vehicle))
             };
+            lock(&state.silenced).remove(&vehicle);
             // Its old edge may not have seen the connection go (or be gone itself): the
             // ticket proves the driver, so a vehicle still driven is held and taken back.
             let held = state.snapshots.borrow().held.contains(&vehicle);
@@ -256,24 +326,130 @@ async fn answer(state: &State, ask: Ask) -> Answer {
                 let _ = state.inbox.send((Event::Hold { vehicle, silent: 0 }, None));
             }
             match ask_world(state, Event::Resume(vehicle)).await {
-                Some(vehicle) => Answer::Resumed { vehicle },
+                Some(vehicle) => Answer::Resumed { vehicle, claim },
                 None => refused("the vehicle is not held any more"),
             }
         }
-        Ask::Leave { vehicle } => {
-            let _ = state.inbox.send((Event::Leave(vehicle), None));
-            state
-                .tickets
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .retain(|_, v| *v != vehicle);
+        Ask::Leave { vehicle, claim } => {
+            let mut drivers = lock(&state.drivers);
+            if drivers.holds(vehicle, claim) {
+                drivers.forget(vehicle);
+                let _ = state.inbox.send((Event::Leave(vehicle), None));
+            }
             Answer::Done
         }
-        Ask::Hold { vehicle, silent } => {
-            let _ = state.inbox.send((Event::Hold { vehicle, silent }, None));
+        Ask::Hold {
+            vehicle,
+            claim,
+            silent,
+        } => {
+            if lock(&state.drivers).holds(vehicle, claim) {
+                let _ = state.inbox.send((Event::Hold { vehicle, silent }, None));
+            }
             Answer::Done
         }
     }
+}
+
+/// An edge said hello: it lives, with these addresses and vehicles. Those of its
+/// vehicles held since it fell silent are given back to it.
+fn heard(state: &State, edge: u64, addresses: Vec<String>, vehicles: Vec<(VehicleId, u64)>) {
+    {
+        let drivers = lock(&state.drivers);
+        let mut silenced = lock(&state.silenced);
+        for &(v, claim) in &vehicles {
+            if silenced.get(&v) == Some(&(edge, claim)) {
+                silenced.remove(&v);
+                if drivers.holds(v, claim) && state.snapshots.borrow().held.contains(&v) {
+                    tracing::info!(edge, vehicle = v, "an edge heard again: its vehicle back");
+                    let _ = state.inbox.send((Event::Resume(v), None));
+                }
+            }
+        }
+    }
+    let mut edges = lock(&state.edges);
+    if edges.len() >= MAX_WATCHED && !edges.contains_key(&edge) {
+        return;
+    }
+    let seen = Seen {
+        heard: Instant::now(),
+        addresses,
+        vehicles,
+    };
+    if edges.insert(edge, seen).is_none() {
+        tracing::info!(edge, edges = edges.len(), "an edge said hello");
+    }
+}
+
+/// The addresses of the edges heard from lately, at most [`MAX_EDGES`].
+fn live_addresses(state: &State) -> Vec<String> {
+    let edges = lock(&state.edges);
+    let mut all: Vec<&Seen> = edges.values().collect();
+    all.sort_by_key(|s| std::cmp::Reverse(s.heard));
+    let mut out: Vec<String> = Vec::new();
+    for a in all.into_iter().flat_map(|s| &s.addresses) {
+        if out.len() < MAX_EDGES && !out.contains(a) {
+            out.push(a.clone());
+        }
+    }
+    out
+}
+
+/// Holds the vehicles of each edge silent for [`EDGE_SILENCE`] (judging none while this
+/// world's own NATS connection is down, and giving each a fresh start once it is back).
+async fn watch_edges(client: async_nats::Client, state: Arc<State>) {
+    let mut tick = tokio::time::interval(EDGE_SILENCE / 8);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let mut was_down = false;
+    loop {
+        tick.tick().await;
+        let down = client.connection_state() != async_nats::connection::State::Connected;
+        if down || was_down {
+            let now = Instant::now();
+            for seen in lock(&state.edges).values_mut() {
+                seen.heard = now;
+            }
+            was_down = down;
+            continue;
+        }
+        let snap = state.snapshots.borrow().clone();
+        let mut dead = Vec::new();
+        lock(&state.edges).retain(|edge, seen| {
+            let silent = seen.heard.elapsed();
+            if silent < EDGE_SILENCE {
+                return true;
+            }
+            dead.push((*edge, silent, std::mem::take(&mut seen.vehicles)));
+            false
+        });
+        let drivers = lock(&state.drivers);
+        let mut silenced = lock(&state.silenced);
+        // Forgotten once not held any more (taken back, freed).
+        silenced.retain(|v, _| snap.held.contains(v));
+        for (edge, silent, vehicles) in dead {
+            let mut held = 0;
+            for (vehicle, claim) in vehicles {
+                // Not one its driver has since taken back through another edge.
+                let driven = snap.vehicles.iter().any(|v| v.id == vehicle);
+                if drivers.holds(vehicle, claim) && driven && !snap.held.contains(&vehicle) {
+                    let silent = world_loop::hold_ticks(silent);
+                    let _ = state.inbox.send((Event::Hold { vehicle, silent }, None));
+                    silenced.insert(vehicle, (edge, claim));
+                    held += 1;
+                }
+            }
+            tracing::warn!(
+                edge,
+                held,
+                "an edge silent for {:.1} s: its vehicles held",
+                silent.as_secs_f64()
+            );
+        }
+    }
+}
+
+fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Hands the drivers' key states to the world thread.
@@ -281,13 +457,15 @@ async fn take_keys(mut keys: async_nats::Subscriber, inbox: Sender<Inbound>) {
     let mut malformed = Malformed::new("key states");
     while let Some(msg) = keys.next().await {
         match decode::<Keys>(&msg.payload) {
-            Ok(k) => {
-                let event = Event::Keys {
-                    vehicle: k.vehicle,
-                    states: k.states,
-                };
-                if inbox.send((event, None)).is_err() {
-                    return; // the world has stopped
+            Ok(batch) => {
+                for k in batch.drivers {
+                    let event = Event::Keys {
+                        vehicle: k.vehicle,
+                        states: k.states,
+                    };
+                    if inbox.send((event, None)).is_err() {
+                        return; // the world has stopped
+                    }
                 }
             }
             Err(e) => malformed.note(&e),
@@ -300,11 +478,12 @@ async fn publish(
     client: async_nats::Client,
     subjects: Subjects,
     mut snapshots: watch::Receiver<Arc<Snapshot>>,
+    world: u64,
 ) {
     while snapshots.changed().await.is_ok() {
         let snap = snapshots.borrow_and_update().clone();
         if let Err(e) = client
-            .publish(subjects.snapshots.clone(), encode(&to_wire(&snap)))
+            .publish(subjects.snapshots.clone(), encode(&to_wire(&snap, world)))
             .await
         {
             tracing::warn!(tick = snap.tick, "publishing the snapshot: {e}");

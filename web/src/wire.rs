@@ -1,0 +1,57 @@
+//! The control stream's framing on the page: length-prefixed messages (a `u32` length,
+//! little-endian, then the message, as `roam-link`'s `wire` on the native side), read
+//! with the limit checked before anything is kept ([`Reader`]) and written ([`write`]).
+
+use roam_protocol::messages::{self, Checked, ClientMessage};
+use serde::de::DeserializeOwned;
+use web_transport_wasm::{RecvStream, SendStream};
+
+/// Length-prefixed messages (a `u32` length, little-endian, then the message) read from a
+/// stream: a length past the limit is refused before anything is kept.
+pub struct Reader {
+    pub stream: RecvStream,
+    pub buf: Vec<u8>,
+}
+
+impl Reader {
+    /// Until `n` bytes are buffered; `false` at the stream's end.
+    async fn fill(&mut self, n: usize) -> Result<bool, String> {
+        while self.buf.len() < n {
+            match self.stream.read(n - self.buf.len()).await {
+                Ok(Some(chunk)) => self.buf.extend_from_slice(&chunk),
+                Ok(None) => return Ok(false),
+                Err(e) => return Err(format!("reading the control stream: {e}")),
+            }
+        }
+        Ok(true)
+    }
+
+    /// The next message; `None` when the stream ends between messages.
+    pub async fn message<T: DeserializeOwned + Checked>(&mut self) -> Result<Option<T>, String> {
+        if !self.fill(4).await? {
+            return if self.buf.is_empty() {
+                Ok(None)
+            } else {
+                Err("the control stream ended inside a message's length".into())
+            };
+        }
+        let len = u32::from_le_bytes([self.buf[0], self.buf[1], self.buf[2], self.buf[3]]) as usize;
+        if len > messages::MAX_MESSAGE {
+            return Err(format!(
+                "a message of {len} bytes, more than the {} allowed",
+                messages::MAX_MESSAGE
+            ));
+        }
+        if !self.fill(4 + len).await? {
+            return Err("the control stream ended inside a message".into());
+        }
+        let msg = messages::decode(&self.buf[4..4 + len]).map_err(|e| format!("decoding: {e}"));
+        self.buf.drain(..4 + len);
+        msg.map(Some)
+    }
+}
+
+pub async fn write(send: &mut SendStream, msg: &ClientMessage) -> Result<(), String> {
+    let buf = messages::frame(msg).map_err(|e| e.to_string())?;
+    send.write(&buf).await.map_err(|e| e.to_string())
+}
