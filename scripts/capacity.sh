@@ -31,6 +31,14 @@
 #
 # SERVER_LOG=FILE keeps the server's log there. BIN_DIR=DIR runs the binaries found there,
 # unbuilt (to compare two builds in turn).
+#
+# EDGE=1 measures an edge's core instead (issue 23; `scripts/cluster.sh capacity`):
+# nats-server, `roam-server world` and `roam-server edge` (scripts/lib.sh's
+# start_cluster), the edge pinned to CPU 0 where `serve` would be, nats-server and the
+# world on CPU 1 beside the load generator. `server_cpu_*` are then the edge's; each line
+# adds `mode: "edge"`, `world_cpu_share` and `nats_cpu_share`, and SERVER_LOG keeps the
+# edge's log (SERVE_ARGS go to the edge).
+#
 # PROFILE (default release) is the cargo profile built and run (`measure`: a quicker
 # build, no LTO); DRIVE replaces the drive script.
 set -euo pipefail
@@ -59,13 +67,20 @@ fi
 export BIN_DIR
 # shellcheck source=scripts/lib.sh
 source scripts/lib.sh
-start_server "$DATA" taskset -c 0
-# SERVER_LOG=FILE keeps the server's log (its summary lines: key frames, late frames).
-trap 'stop_server; [[ -z "${SERVER_LOG:-}" ]] || cp "$state/server.log" "$SERVER_LOG"; rm -rf "$state"' EXIT
+if [[ "${EDGE:-0}" == 1 ]]; then
+    CLUSTER_PREFIX="taskset -c 1" start_cluster "$DATA" taskset -c 0
+    trap 'stop_cluster; [[ -z "${SERVER_LOG:-}" ]] || cp "$state/server.log" "$SERVER_LOG"; rm -rf "$state"' EXIT
+else
+    start_server "$DATA" taskset -c 0
+    # SERVER_LOG=FILE keeps the server's log (its summary lines: key frames, late frames).
+    trap 'stop_server; [[ -z "${SERVER_LOG:-}" ]] || cp "$state/server.log" "$SERVER_LOG"; rm -rf "$state"' EXIT
+fi
 
 # CPU seconds (user + system) a process has used so far.
 cpu() { awk -v hz="$(getconf CLK_TCK)" '{ print ($14 + $15) / hz }' "/proc/$1/stat"; }
 now() { date +%s.%N; }
+# With EDGE=1: the world's and nats-server's CPU seconds so far (else nothing).
+cluster_cpu() { if [[ "${EDGE:-0}" == 1 ]]; then echo "$(cpu "$world") $(cpu "$nats")"; fi; }
 
 # generate NAME VIEWERS: one generator process on CPU 1, in the background; its report
 # goes to $state/NAME.json, its CPU time to $state/NAME.time.
@@ -127,22 +142,30 @@ out["server_cpu_share"] = round(server_cpu / wall, 3)
 out["generator_cpu_share"] = round(gen_cpu / wall, 3)
 out["server_cpu_us_per_frame"] = round(server_cpu / max(frames, 1) * 1e6, 1)
 out["wall_s"] = round(wall, 2)
+import os
+cluster = os.environ.get("CLUSTER_CPU", "").split()
+if len(cluster) == 4:  # EDGE=1: world and nats-server before, then after
+    out["mode"] = "edge"
+    out["world_cpu_share"] = round((float(cluster[2]) - float(cluster[0])) / wall, 3)
+    out["nats_cpu_share"] = round((float(cluster[3]) - float(cluster[1])) / wall, 3)
 print(json.dumps(out, sort_keys=True))
 EOF
 }
 
 # One process of N viewers joining at once.
 at_once() {
-    local n=$1 before start end
+    local n=$1 before start end cluster
     before=$(cpu "$server")
+    cluster=$(cluster_cpu)
     start=$(now)
     generate "n$n" "$n"
     end=$(now)
-    summary "$start" "$end" "$before" "all=n$n"
+    CLUSTER_CPU="$cluster $(cluster_cpu)" summary "$start" "$end" "$before" "all=n$n"
 }
 
 if ((STORM)); then
     before=$(cpu "$server")
+    cluster=$(cluster_cpu)
     start=$(now)
     pids=()
     names=()
@@ -157,7 +180,7 @@ if ((STORM)); then
     pids+=($!)
     wait "${pids[@]}"
     end=$(now)
-    summary "$start" "$end" "$before" "staggered=$(
+    CLUSTER_CPU="$cluster $(cluster_cpu)" summary "$start" "$end" "$before" "staggered=$(
         IFS=,
         echo "${names[*]}"
     )" "burst=burst"

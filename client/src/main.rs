@@ -76,7 +76,7 @@ struct Cli {
     #[arg(long, default_value_t = 60, value_parser = clap::value_parser!(u16).range(1..))]
     frame_rate: u16,
     /// Seconds without a frame or message from the server before a headless viewer calls
-    /// the connection lost (and reconnects): 10, or 1 when there are other addresses to
+    /// the connection lost (and reconnects): 10, or 0.8 when there are other addresses to
     /// go to (a shorter one given stands).
     #[arg(long, default_value_t = 10.0, value_parser = seconds)]
     silence: f64,

@@ -17,7 +17,7 @@
 //!
 //! **Reconnecting.** A connection is *lost* when QUIC says so (idle timeout, reset,
 //! transport error) or when the server is *silent*: no frame, no control message and no
-//! frame bytes for [`Patience::silence`] (10 s; [`SILENCE_MANY`], 1 s, when there are other
+//! frame bytes for [`Patience::silence`] (10 s; [`SILENCE_MANY`], 0.8 s, when there are other
 //! addresses, unless the patience is shorter) after the welcome (the server sends frames
 //! at the viewer's rate whatever the world does, so silence means a stuck path or server).
 //! Then the session connects again to the next address in turn (the same one when it has

@@ -21,9 +21,9 @@
 //!   computes its viewers' cameras from exactly what the world simulated.
 //! - Subjects are namespaced by world (`roam.<world>.…`), so worlds share one NATS.
 //! - An edge batches its drivers' key states: what it had queued when the last publish
-//!   finished goes as one message, so the world takes a few messages a tick however many
-//!   drivers there are (a thousand single messages a tick cost the world more than its
-//!   physics).
+//!   finished goes as one message, never waiting for more (a key's latency first), so
+//!   the messages a second stay bounded by the publishes an edge can make, however many
+//!   drivers it has.
 //! - Liveness both ways is the edge's hello, asked every half second: the world learns the
 //!   edge lives (and the vehicles it drives: an edge silent for 3 s has them held), the
 //!   edge learns the world lives (a world silent, or another world process, is news for
@@ -110,7 +110,8 @@ pub struct Snapshot {
 }
 
 /// Drivers' key states, as their datagrams brought them to one edge: what the edge had
-/// queued when it published (one message a tick for all its drivers, not one a driver).
+/// queued when it published (one datagram's when it keeps up; under load, many drivers'
+/// in one message).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Keys {
     #[serde(deserialize_with = "drivers")]

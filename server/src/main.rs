@@ -52,6 +52,10 @@ enum Command {
     /// Serve viewers as `serve` does, the world being the one on NATS (`world`); stop with
     /// Ctrl-C.
     Edge(cli::cluster::EdgeArgs),
+    /// Stand in for E edges of a world on NATS (joins, hellos, key states, snapshot
+    /// subscribers) and measure the snapshot fan-out; one JSON line (`scripts/cluster.sh`).
+    #[command(hide = true)]
+    BusLoad(cli::bus_load::BusLoadArgs),
     /// Serve a data set in process and measure a driving viewer's colour stream: connect
     /// to first frame, bytes before it, colour bytes a second; one JSON line.
     ColorBench(cli::color_bench::ColorBenchArgs),
@@ -73,6 +77,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => cli::net::serve(args),
         Command::World(args) => cli::cluster::world(args),
         Command::Edge(args) => cli::cluster::edge(args),
+        Command::BusLoad(args) => cli::bus_load::bus_load(args),
         Command::ColorBench(args) => cli::color_bench::color_bench(args),
         Command::Identity(args) => cli::identity::identity(args),
     };

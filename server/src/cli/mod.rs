@@ -1,6 +1,7 @@
 //! The binary's commands, one module per concern (data sets, tessellation, simulation,
 //! serving), and the terminal progress bar they share.
 
+pub mod bus_load;
 pub mod cluster;
 pub mod color_bench;
 pub mod data;

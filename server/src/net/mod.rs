@@ -330,7 +330,7 @@ impl Server {
             None => world_loop::start(
                 terrain.clone(),
                 options.record,
-                (options.hold, options.max_viewers),
+                (options.hold, options.max_viewers, false),
                 inbox_rx,
                 snap_tx,
                 world_stats.clone(),

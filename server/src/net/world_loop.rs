@@ -98,12 +98,13 @@ fn log_all(core: &mut WorldCore) {
 }
 
 /// The world thread, started: a [`WorldCore`] of `terrain` recording to `record`, holding
-/// a dropped driver's vehicle `hold`, with at most `limit` vehicles (held ones included),
-/// [`run`] on a thread of its own. Both `serve` and `roam-server world` start it so.
+/// a dropped driver's vehicle `hold`, with at most `limit` vehicles (held ones included;
+/// `hard`: a join past it refused, [`WorldCore::refusing_past_limit`]), [`run`] on a
+/// thread of its own. Both `serve` and `roam-server world` start it so.
 pub fn start(
     terrain: Arc<crate::Terrain>,
     record: Option<crate::sim::session::RecordOptions>,
-    (hold, limit): (Duration, usize),
+    (hold, limit, hard): (Duration, usize, bool),
     inbox: Receiver<Inbound>,
     snapshots: watch::Sender<Arc<Snapshot>>,
     stats: Arc<WorldStats>,
@@ -111,6 +112,11 @@ pub fn start(
     let core = WorldCore::new(terrain, record)?
         .with_hold(hold_ticks(hold))
         .with_limit(limit);
+    let core = if hard {
+        core.refusing_past_limit()
+    } else {
+        core
+    };
     std::thread::Builder::new()
         .name("roam-world".into())
         .spawn(move || run(core, inbox, snapshots, &stats))

@@ -245,6 +245,9 @@ pub struct WorldCore {
     hold_ticks: u64,
     /// Vehicles at most before a join frees the oldest held one ([`WorldCore::with_limit`]).
     limit: usize,
+    /// Whether a join past `limit` with nothing held to free is refused
+    /// ([`WorldCore::refusing_past_limit`]).
+    hard_limit: bool,
     /// Held vehicles a join freed, since [`WorldCore::take_evicted`].
     evicted: Vec<VehicleId>,
 }
@@ -273,6 +276,7 @@ impl WorldCore {
             inputs: Inputs::new(),
             hold_ticks: HOLD_TICKS,
             limit: usize::MAX,
+            hard_limit: false,
             evicted: Vec::new(),
         })
     }
@@ -290,6 +294,15 @@ impl WorldCore {
     /// at once free two distinct vehicles, and held ones never take the world past it.
     pub fn with_limit(mut self, limit: usize) -> WorldCore {
         self.limit = limit;
+        self
+    }
+
+    /// A join at the limit with no held vehicle to free is refused (`None`), as the world of
+    /// `roam-server world` needs: its joins come from any number of edges, each admitting
+    /// its own viewers. (`serve` admits viewers up to the limit itself, and lets a driver
+    /// replacing its own connection take a seat past it for a moment.)
+    pub fn refusing_past_limit(mut self) -> WorldCore {
+        self.hard_limit = true;
         self
     }
 
@@ -382,6 +395,9 @@ impl WorldCore {
         {
             self.leave(oldest);
             self.evicted.push(oldest);
+        }
+        if self.hard_limit && self.drivers.len() >= self.limit {
+            return None;
         }
         // The next id not in use (ids wrap after 65,536 joins).
         let drivers = &self.drivers;
@@ -681,6 +697,11 @@ mod tests {
         let g = c.handle(Event::Join).expect("a vehicle");
         assert!(c.take_evicted().is_empty());
         assert_eq!(c.drivers(), [d, e, f, g]);
+        // Refusing past the limit: at it with nothing held, a join gets no vehicle.
+        let mut hard = core(3000).with_limit(2).refusing_past_limit();
+        assert!(hard.handle(Event::Join).is_some());
+        assert!(hard.handle(Event::Join).is_some());
+        assert_eq!(hard.handle(Event::Join), None);
         // Without a limit, held vehicles stay until their hold runs out.
         let mut open = core(3000);
         let h = open.handle(Event::Join).expect("a vehicle");

@@ -150,7 +150,7 @@ impl WorldServer {
         let thread = world_loop::start(
             terrain,
             options.record,
-            (options.hold, options.max_vehicles),
+            (options.hold, options.max_vehicles, true),
             inbox_rx,
             snap_tx,
             stats.clone(),
@@ -291,7 +291,7 @@ async fn answer(state: &State, ask: Ask) -> Answer {
             // At the limit the world frees the oldest held vehicle first
             // ([`WorldCore::with_limit`]), in the order the joins reach it.
             let Some(vehicle) = ask_world(state, Event::Join).await else {
-                return refused("no vehicle free");
+                return refused("the world is full (--max-vehicles), none held to free");
             };
             let ticket = crate::net::handshake::random_ticket();
             let mut drivers = lock(&state.drivers);
