@@ -13,6 +13,7 @@
 
 pub mod bus;
 pub mod color_budget;
+mod control;
 mod handshake;
 pub mod link;
 pub mod makers;

@@ -1,0 +1,199 @@
+//! What a viewer's task writes on its control stream after the welcome, beside the last
+//! words ([`super::viewer`]): the colour tiles ([`stream_color`], [`write_color`]: the
+//! viewer's [`ColorScheduler`] picks them for the followed vehicle's position, paced by a
+//! token bucket whose rate is the viewer's share of the server-wide colour budget,
+//! [`super::color_budget`]; a tile is written whole and awaited before the next), and on
+//! an edge the news of the world ([`tell_news`]: its edges, the world gone and back; a
+//! driver whose world restarted is let go).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use roam_link::wire;
+use roam_protocol::messages::{ServerMessage, WorldNews};
+
+use super::Shared;
+use super::link::SendStream;
+use crate::sim::world::VehicleId;
+use crate::terrain::color_pyramid::TileError;
+use crate::viewer::color::{ColorScheduler, ColorSend};
+
+/// Writes one colour message (a tile's payload from the pyramid), counting it.
+pub(super) async fn write_color(
+    send: &mut SendStream,
+    shared: &Shared,
+    m: ColorSend,
+) -> Result<(), wire::WireError> {
+    let msg = match m {
+        ColorSend::Window { level, x0, z0 } => ServerMessage::ColorWindow { level, x0, z0 },
+        ColorSend::Tile { level, x, z } => {
+            let data = match shared.pyramid.served_tile(level, x, z) {
+                Ok(data) => data,
+                Err(e) => {
+                    // Not sent: the viewer draws a coarser level there (the scheduler
+                    // counts it as held, so it is not asked for again).
+                    if e == (TileError::Damaged { first: true }) {
+                        tracing::error!(
+                            level,
+                            x,
+                            z,
+                            "colour tile not served: {e}; restart the server to rebuild it"
+                        );
+                    }
+                    return Ok(());
+                }
+            };
+            let stats = &shared.stats;
+            stats.add(&stats.color_tiles, 1);
+            stats.add(&stats.color_bytes, data.len() as u64);
+            ServerMessage::ColorTile {
+                level,
+                x,
+                z,
+                data: data.to_vec(),
+            }
+        }
+    };
+    send.write_msg(&msg).await
+}
+
+/// Why a driver on an edge is let go when its world restarts.
+pub(super) const WORLD_RESTARTED: &str =
+    "the world restarted and knows no vehicle from before: join again";
+
+/// An edge's news of its world, told to the viewer as it changes (nothing on `serve`).
+/// Completes only when a driver must go: the world restarted, and knows none of the
+/// vehicles driven before.
+pub(super) async fn tell_news(
+    send: &tokio::sync::Mutex<SendStream>,
+    remote: Option<Arc<super::bus::edge::Remote>>,
+    driver: bool,
+) -> String {
+    let Some(remote) = remote else {
+        return std::future::pending().await;
+    };
+    let mut news = remote.news();
+    let mut told = super::bus::edge::News {
+        restarts: news.borrow().restarts,
+        ..Default::default()
+    };
+    loop {
+        let now = news.borrow_and_update().clone();
+        if driver && now.restarts != told.restarts {
+            return WORLD_RESTARTED.into();
+        }
+        let mut say = Vec::new();
+        if now.edges != told.edges {
+            say.push(WorldNews::Edges(now.edges.clone()));
+        }
+        match (&told.gone, &now.gone) {
+            (None, Some(why)) => {
+                let mut why = why.clone();
+                let mut end = why.len().min(roam_protocol::messages::MAX_REASON);
+                while !why.is_char_boundary(end) {
+                    end -= 1;
+                }
+                why.truncate(end);
+                say.push(WorldNews::Gone(why));
+            }
+            (Some(_), None) => say.push(WorldNews::Back),
+            _ => {}
+        }
+        for m in say {
+            if send
+                .lock()
+                .await
+                .write_msg(&ServerMessage::World(m))
+                .await
+                .is_err()
+            {
+                // The connection's end is seen by the other branches.
+                return std::future::pending().await;
+            }
+        }
+        told = now;
+        if news.changed().await.is_err() {
+            return std::future::pending().await;
+        }
+    }
+}
+
+/// How often the colour task looks at the camera and its budget.
+const COLOR_TICK: Duration = Duration::from_millis(50);
+
+/// Streams colour tiles to the viewer following `vehicle`, as its scheduler picks them,
+/// within the byte rate; ends when the control stream fails.
+pub(super) async fn stream_color(
+    send: Arc<tokio::sync::Mutex<SendStream>>,
+    shared: Arc<Shared>,
+    mut colors: ColorScheduler,
+    vehicle: VehicleId,
+) {
+    let largest = roam_protocol::colormap::max_len(colors.layout().tile) as f64;
+    let h_scale = shared.terrain.map.h_scale;
+    let mut tokens = 0.0f64;
+    let mut last = tokio::time::Instant::now();
+    let mut tick = tokio::time::interval(COLOR_TICK);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let pyramid = shared.pyramid.clone();
+    let cost =
+        move |level: u8, x: u32, z: u32| pyramid.tile(level, x, z).map_or(0, |t| t.len() as u64);
+    // Counted among the viewers sharing the budget while its windows are not full.
+    let mut want = Wanting {
+        shared: shared.clone(),
+        on: false,
+    };
+    want.set(true);
+    loop {
+        tick.tick().await;
+        let now = tokio::time::Instant::now();
+        let rate = shared.color.rate();
+        let burst = (rate / 4.0).max(largest);
+        tokens = (tokens + rate * now.duration_since(last).as_secs_f64()).min(burst);
+        last = now;
+        let camera = {
+            let snap = shared.snapshots.borrow();
+            snap.vehicles
+                .iter()
+                .find(|v| v.id == vehicle)
+                .map(|v| (v.state.x / h_scale, v.state.z / h_scale))
+        };
+        let Some(camera) = camera else { continue };
+        let mut msgs = Vec::new();
+        let spent =
+            shared
+                .color
+                .spend(now.into_std(), largest as u64, tokens as u64, |allowance| {
+                    let (m, spent) = colors.step(camera, allowance, &cost);
+                    msgs = m;
+                    spent
+                });
+        tokens -= spent as f64;
+        want.set(!colors.complete());
+        for m in msgs {
+            let mut s = send.lock().await;
+            if write_color(&mut s, &shared, m).await.is_err() {
+                return;
+            }
+        }
+    }
+}
+
+/// A viewer's place among those sharing the colour budget, given up when dropped.
+struct Wanting {
+    shared: Arc<Shared>,
+    on: bool,
+}
+
+impl Wanting {
+    fn set(&mut self, on: bool) {
+        self.shared.color.set_wanting(self.on, on);
+        self.on = on;
+    }
+}
+
+impl Drop for Wanting {
+    fn drop(&mut self) {
+        self.set(false);
+    }
+}
