@@ -144,3 +144,133 @@ pub fn simulated_drive(terrain: &Arc<Terrain>) -> roam_server::sim::world::Vehic
     }
     w.vehicles()[0]
 }
+
+/// Checks that a drive of [`DRIVE`] ends, in the frames, exactly where
+/// [`simulated_drive`] puts it (`last`: the driven vehicle in the last frame, at `tick`).
+pub fn assert_drive_exact(
+    terrain: &Arc<Terrain>,
+    last: Option<roam_protocol::messages::VehicleView>,
+    tick: u64,
+) {
+    let want = simulated_drive(terrain);
+    let got = last.expect("a vehicle in the frames");
+    assert_eq!(
+        (got.x, got.z, got.speed, got.heading),
+        (
+            want.state.x,
+            want.state.z,
+            want.state.speed,
+            want.state.heading
+        ),
+        "at tick {tick}"
+    );
+}
+
+/// Checks that the one recording in `dir` replays to `final_world` bit for bit, closed
+/// cleanly, and removes `dir`.
+pub fn assert_replays(
+    dir: &std::path::Path,
+    terrain: &Arc<Terrain>,
+    final_world: &roam_server::sim::world::World,
+) {
+    use roam_server::sim::{recording, replay};
+    let files: Vec<_> = std::fs::read_dir(dir)
+        .expect("the recording directory")
+        .map(|e| e.expect("a directory entry").path())
+        .collect();
+    assert_eq!(files.len(), 1, "one recording file: {files:?}");
+    let bytes = std::fs::read(&files[0]).expect("the recording");
+    let rec = recording::parse(&bytes).expect("parses");
+    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
+    assert!(out.ended, "closed cleanly");
+    assert_eq!(out.tick, final_world.tick());
+    assert_eq!(out.digest, final_world.digest());
+    let _ = std::fs::remove_dir_all(dir);
+}
+
+/// A key frame of the whole 65² grid unsplit, numbered `frame` (what a fake server sends).
+pub fn key_frame(frame: u64) -> Vec<u8> {
+    use roam_protocol::{BitSet, Grid, MeshEncoder, messages};
+    let grid = Grid::new(6).expect("a valid size");
+    let heights = vec![100u16; grid.vertices()];
+    let mut mesh = Vec::new();
+    MeshEncoder::new(grid)
+        .encode(&BitSet::new(grid.vertices()), &heights, None, &mut mesh)
+        .expect("a closed cut");
+    let mut out = Vec::new();
+    messages::encode(
+        &messages::Frame {
+            frame,
+            base: None,
+            tick: frame,
+            vehicles: Vec::new(),
+            input_seq: None,
+            mesh,
+        },
+        &mut out,
+    )
+    .expect("within the limits");
+    out
+}
+
+/// How long a session test waits for any one thing.
+pub const BOUND: std::time::Duration = std::time::Duration::from_secs(60);
+
+/// `f`, or a panic naming `what` after [`BOUND`].
+pub async fn bounded<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
+    tokio::time::timeout(BOUND, f)
+        .await
+        .unwrap_or_else(|_| panic!("{what}: not within {} s", BOUND.as_secs()))
+}
+
+/// The next frame `s` takes (frames that fail to decode are not expected).
+pub async fn frame(s: &roam_client::session::Session) -> roam_client::session::Received {
+    use roam_client::session::Taken;
+    loop {
+        match bounded("a frame", s.next_frame(true)).await {
+            Ok(Taken::Frame(r)) => return r,
+            Ok(Taken::Nothing) => {}
+            Ok(Taken::Dropped(why)) => panic!("a frame failed to decode: {why}"),
+            Err(e) => panic!("the session ended: {e:#}"),
+        }
+    }
+}
+
+/// What a fake server welcomes with: the 65² grid of [`key_frame`], colour in `color`.
+pub fn fake_welcome(color: roam_protocol::ColorLayout) -> roam_protocol::messages::Welcome {
+    use roam_protocol::messages::{MAX_BUDGET, VERSION, Welcome};
+    Welcome {
+        version: VERSION,
+        levels: 6,
+        h_scale: 10.0,
+        v_scale: 0.1,
+        sun_dir: [0.0, 1.0, 0.0],
+        sun_color: [255; 3],
+        fog_density: 1e-3,
+        fog_color: [200; 3],
+        water_level: None,
+        vehicle: 0,
+        color,
+        tick: 0,
+        ticket: None,
+        resumed: false,
+        max_budget: MAX_BUDGET,
+        max_fps: 240,
+    }
+}
+
+/// A driver's hello with `token`: 640×480, 4,000 triangles, 60 frames a second.
+pub fn driver_hello(token: &str) -> roam_protocol::messages::Hello {
+    use roam_protocol::messages::{Hello, Role, VERSION};
+    Hello {
+        version: VERSION,
+        role: Role::Driver,
+        token: token.to_owned(),
+        viewport: [640, 480],
+        fov_y_deg: 60.0,
+        budget: 4_000,
+        frame_rate: 60,
+        resume: None,
+        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
+    }
+}

@@ -18,7 +18,6 @@ use roam_server::net::bus::{BusError, BusOptions};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::sim::world_core::Snapshot;
-use roam_server::sim::{recording, replay};
 use roam_tests::fixtures::{self, Running, flat};
 use roam_tests::nats::{EdgeProcess, Nats};
 
@@ -52,19 +51,41 @@ async fn start_world(
 }
 
 async fn edge(terrain: Arc<Terrain>, bus: &BusOptions) -> Running {
+    edge_and_remote(terrain, bus).await.0
+}
+
+/// An edge of `bus`'s world on loopback, and its way to the world.
+async fn edge_and_remote(terrain: Arc<Terrain>, bus: &BusOptions) -> (Running, Arc<Remote>) {
     let remote = Remote::connect(
         bus,
         terrain.content_hash(),
         "the test terrain",
-        vec!["127.0.0.1:0".into()],
+        vec![],
         Duration::from_secs(10),
     )
     .await
     .expect("the edge reaches the world");
-    fixtures::serve(terrain, |o| Options {
-        remote: Some(remote),
+    let running = fixtures::serve(terrain, |o| Options {
+        remote: Some(remote.clone()),
         ..o
-    })
+    });
+    remote.set_addresses(vec![running.server.addr.to_string()]);
+    (running, remote)
+}
+
+/// The world's snapshot once `f` holds of it, within `secs` seconds (else a panic naming
+/// `what`).
+async fn when(
+    snaps: &mut tokio::sync::watch::Receiver<Arc<Snapshot>>,
+    secs: u64,
+    what: &str,
+    f: impl FnMut(&Arc<Snapshot>) -> bool,
+) -> Arc<Snapshot> {
+    tokio::time::timeout(Duration::from_secs(secs), snaps.wait_for(f))
+        .await
+        .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
+        .expect("the world runs")
+        .clone()
 }
 
 fn driver(r: &Running, frames: u64, drive: Option<&str>) -> ViewerOptions {
@@ -106,13 +127,10 @@ async fn drivers_on_two_edges_share_one_world_and_it_replays() {
         driver(&a, 330, Some(fixtures::DRIVE)),
     ));
     let mut snaps = world.watch();
-    tokio::time::timeout(
-        Duration::from_secs(10),
-        snaps.wait_for(|s| !s.vehicles.is_empty()),
-    )
-    .await
-    .expect("A's vehicle appears")
-    .expect("the world runs");
+    when(&mut snaps, 10, "A's vehicle appears", |s| {
+        !s.vehicles.is_empty()
+    })
+    .await;
     let db = tokio::spawn(headless::run(
         b.server.addr,
         b.fingerprint,
@@ -128,44 +146,18 @@ async fn drivers_on_two_edges_share_one_world_and_it_replays() {
     }
     assert_eq!((sa.vehicle, sb.vehicle), (0, 1));
     // The drive through edge A and the bus ends exactly where the script, simulated, ends.
-    let want = fixtures::simulated_drive(&terrain);
-    let got = sa.last.expect("a vehicle in the frames");
-    assert_eq!(
-        (got.x, got.z, got.speed, got.heading),
-        (
-            want.state.x,
-            want.state.z,
-            want.state.speed,
-            want.state.heading
-        ),
-        "at tick {}",
-        sa.last_tick
-    );
+    fixtures::assert_drive_exact(&terrain, sa.last, sa.last_tick);
     assert!(!sa.latencies_ms.is_empty(), "key changes were seen applied");
     a.server.shutdown().await.expect("edge A stops");
     b.server.shutdown().await.expect("edge B stops");
     // Both drivers said goodbye through their edges: the world let their vehicles go.
-    tokio::time::timeout(
-        Duration::from_secs(10),
-        snaps.wait_for(|s| s.vehicles.is_empty()),
-    )
-    .await
-    .expect("the vehicles leave")
-    .expect("the world runs");
+    when(&mut snaps, 10, "the vehicles leave", |s| {
+        s.vehicles.is_empty()
+    })
+    .await;
     // The world's recording, every driver's inputs in it, replays bit for bit.
     let final_world = world.shutdown().await.expect("the world stops");
-    let files: Vec<_> = std::fs::read_dir(&dir)
-        .expect("the recording directory")
-        .map(|e| e.expect("a directory entry").path())
-        .collect();
-    assert_eq!(files.len(), 1, "one recording file: {files:?}");
-    let bytes = std::fs::read(&files[0]).expect("the recording");
-    let rec = recording::parse(&bytes).expect("parses");
-    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
-    assert!(out.ended, "closed cleanly");
-    assert_eq!(out.tick, final_world.tick());
-    assert_eq!(out.digest, final_world.digest());
-    let _ = std::fs::remove_dir_all(&dir);
+    fixtures::assert_replays(&dir, &terrain, &final_world);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -218,13 +210,10 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
     let d = tokio::spawn(headless::run(a.server.addr, a.fingerprint, drive));
     // Mid-drive (by the world's own ticks), the NATS server goes and comes back.
     let mut snaps = world.watch();
-    let at = tokio::time::timeout(
-        Duration::from_secs(20),
-        snaps.wait_for(|s| !s.vehicles.is_empty() && s.tick >= 300),
-    )
+    let at = when(&mut snaps, 20, "the drive is under way", |s| {
+        !s.vehicles.is_empty() && s.tick >= 300
+    })
     .await
-    .expect("the drive is under way")
-    .expect("the world runs")
     .tick;
     let port = nats.kill();
     let _back = Nats::on(port);
@@ -239,19 +228,7 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
     assert_eq!(stats.reconnects, 0, "the viewer's own link never broke");
     // Key states lost with the bus are states the world waited for, then got again: the
     // drive is still exact.
-    let (want, got) = (
-        fixtures::simulated_drive(&terrain),
-        stats.last.expect("a vehicle"),
-    );
-    assert_eq!(
-        (got.x, got.z, got.speed, got.heading),
-        (
-            want.state.x,
-            want.state.z,
-            want.state.speed,
-            want.state.heading
-        )
-    );
+    fixtures::assert_drive_exact(&terrain, stats.last, stats.last_tick);
     assert_eq!(world.world_stats().dropped(), 0, "no world tick lost");
     a.server.shutdown().await.expect("the edge stops");
     world.shutdown().await.expect("the world stops");
@@ -288,21 +265,15 @@ async fn an_edge_killed_mid_drive_its_driver_resumes_on_the_other() {
     let mover =
         tokio::spawn(async move { headless::measure_any(&addrs, fingerprint, drive).await });
     let mut snaps = world.watch();
-    let started = tokio::time::timeout(
-        Duration::from_secs(10),
-        snaps.wait_for(|s| !s.vehicles.is_empty()),
-    )
+    let started = when(&mut snaps, 10, "the vehicle appears", |s| {
+        !s.vehicles.is_empty()
+    })
     .await
-    .expect("the vehicle appears")
-    .expect("the world runs")
     .tick;
-    let at = tokio::time::timeout(
-        Duration::from_secs(20),
-        snaps.wait_for(|s| s.tick >= started + 200),
-    )
+    let at = when(&mut snaps, 20, "the drive is under way", |s| {
+        s.tick >= started + 200
+    })
     .await
-    .expect("the drive is under way")
-    .expect("the world runs")
     .tick;
     a.kill();
     let moved = mover.await.expect("runs").expect("joins");
@@ -379,10 +350,7 @@ async fn the_world_holds_a_silent_edges_vehicles_and_ignores_stale_claims() {
     );
     let mut snaps = world.watch();
     let with_both = |s: &Arc<Snapshot>| s.vehicles.len() == 2;
-    tokio::time::timeout(Duration::from_secs(5), snaps.wait_for(with_both))
-        .await
-        .expect("both vehicles stay")
-        .expect("the world runs");
+    when(&mut snaps, 5, "both vehicles stay", with_both).await;
     assert_eq!(
         ask(Ask::Leave {
             vehicle: w,
@@ -391,32 +359,23 @@ async fn the_world_holds_a_silent_edges_vehicles_and_ignores_stale_claims() {
         .await,
         Answer::Done
     );
-    tokio::time::timeout(
-        Duration::from_secs(5),
-        snaps.wait_for(|s| s.vehicles.iter().all(|x| x.id != w)),
-    )
-    .await
-    .expect("the left vehicle goes")
-    .expect("the world runs");
+    when(&mut snaps, 5, "the left vehicle goes", |s| {
+        s.vehicles.iter().all(|x| x.id != w)
+    })
+    .await;
     // Edge 7 goes silent: its vehicle is held, not freed.
-    let held = tokio::time::timeout(
-        Duration::from_secs(15),
-        snaps.wait_for(|s| s.held.contains(&v)),
-    )
+    let held = when(&mut snaps, 15, "held once the edge is silent", |s| {
+        s.held.contains(&v)
+    })
     .await
-    .expect("held once the edge is silent")
-    .expect("the world runs")
     .clone();
     assert!(held.vehicles.iter().any(|x| x.id == v), "held, not freed");
     // Heard again, naming it: given back.
     ask(hello(vec![(v, claim)])).await;
-    tokio::time::timeout(
-        Duration::from_secs(5),
-        snaps.wait_for(|s| !s.held.contains(&v) && s.vehicles.iter().any(|x| x.id == v)),
-    )
-    .await
-    .expect("given back to its edge")
-    .expect("the world runs");
+    when(&mut snaps, 5, "given back to its edge", |s| {
+        !s.held.contains(&v) && s.vehicles.iter().any(|x| x.id == v)
+    })
+    .await;
     world.shutdown().await.expect("the world stops");
 }
 
@@ -461,32 +420,17 @@ async fn the_world_gone_is_told_and_a_restarted_world_lets_drivers_go() {
     let terrain = flat();
     let bus = bus(&nats, "world-gone");
     let world = start_world(&terrain, &bus, None).await;
-    let remote = Remote::connect(
-        &bus,
-        terrain.content_hash(),
-        "the test terrain",
-        vec![],
-        Duration::from_secs(10),
-    )
-    .await
-    .expect("the edge reaches the world");
-    let a = fixtures::serve(terrain.clone(), |o| Options {
-        remote: Some(remote.clone()),
-        ..o
-    });
+    let (a, remote) = edge_and_remote(terrain.clone(), &bus).await;
     let d = tokio::spawn(headless::measure(
         a.server.addr,
         a.fingerprint,
         driver(&a, 1_000_000, None),
     ));
     let mut snaps = world.watch();
-    tokio::time::timeout(
-        Duration::from_secs(10),
-        snaps.wait_for(|s| !s.vehicles.is_empty()),
-    )
-    .await
-    .expect("the vehicle appears")
-    .expect("the world runs");
+    when(&mut snaps, 10, "the vehicle appears", |s| {
+        !s.vehicles.is_empty()
+    })
+    .await;
     world.shutdown().await.expect("the world stops");
     let mut news = remote.news();
     let gone = tokio::time::timeout(Duration::from_secs(10), news.wait_for(|n| n.gone.is_some()))

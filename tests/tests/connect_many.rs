@@ -20,29 +20,19 @@ use std::time::{Duration, Instant};
 
 use roam_client::color_cache::Keep;
 use roam_client::headless::{self, ViewerOptions};
-use roam_client::session::{KeySource, Patience, Received, Session, State, Status, Taken};
+use roam_client::session::{KeySource, Patience, Session, State, Status};
 use roam_link::{tls, wire};
-use roam_protocol::messages::{
-    self, ClientMessage, Hello, Role, ServerMessage, VERSION, Welcome, WorldNews,
-};
-use roam_protocol::{BitSet, ColorLayout, Grid, MeshEncoder};
+use roam_protocol::ColorLayout;
+use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome, WorldNews};
 use roam_server::net::{Options, Server};
 use roam_server::terrain::variance::VarianceTree;
 use roam_tests::fixtures::{TOKEN, flat, pyramid};
+use roam_tests::fixtures::{bounded, frame, key_frame};
 use roam_tests::relay::{LinkConfig, Relay};
 
 /// One pair of servers with their 100 Hz worlds at a time: on a 2-core machine none
 /// starves another (a starved viewer would find its server silent, here after a second).
 static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
-/// A safety bound on each wait: a regression fails, never hangs.
-const BOUND: Duration = Duration::from_secs(60);
-
-async fn bounded<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
-    tokio::time::timeout(BOUND, f)
-        .await
-        .unwrap_or_else(|_| panic!("{what}: not within {} s", BOUND.as_secs()))
-}
 
 /// Two servers of one world's terrain with one identity (one fingerprint), as two edges
 /// sharing a state directory are.
@@ -76,17 +66,7 @@ fn pair() -> Pair {
 }
 
 fn hello() -> Hello {
-    Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: TOKEN.to_owned(),
-        viewport: [640, 480],
-        fov_y_deg: 60.0,
-        budget: 4_000,
-        frame_rate: 60,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    roam_tests::fixtures::driver_hello(TOKEN)
 }
 
 /// A UDP socket that takes datagrams and never answers: an address where nothing serves.
@@ -110,18 +90,6 @@ async fn join(addrs: &[SocketAddr], fingerprint: [u8; 32]) -> Session {
     )
     .await
     .expect("joins")
-}
-
-/// The next frame taken.
-async fn frame(s: &Session) -> Received {
-    loop {
-        match bounded("a frame", s.next_frame(true)).await {
-            Ok(Taken::Frame(r)) => return r,
-            Ok(Taken::Nothing) => {}
-            Ok(Taken::Dropped(why)) => panic!("a frame failed to decode: {why}"),
-            Err(e) => panic!("the session ended: {e:#}"),
-        }
-    }
 }
 
 /// The session's status once `f` holds.
@@ -274,24 +242,7 @@ const CELLS: u32 = 64;
 const TILE: u32 = 16;
 
 fn fake_welcome() -> Welcome {
-    Welcome {
-        version: VERSION,
-        levels: 6,
-        h_scale: 10.0,
-        v_scale: 0.1,
-        sun_dir: [0.0, 1.0, 0.0],
-        sun_color: [255; 3],
-        fog_density: 1e-3,
-        fog_color: [200; 3],
-        water_level: None,
-        vehicle: 0,
-        color: ColorLayout::new(CELLS, TILE, 4).expect("a valid layout"),
-        tick: 0,
-        ticket: None,
-        resumed: false,
-        max_budget: messages::MAX_BUDGET,
-        max_fps: 240,
-    }
+    roam_tests::fixtures::fake_welcome(ColorLayout::new(CELLS, TILE, 4).expect("a valid layout"))
 }
 
 /// The welcome, the coarsest colour tile, `news`, then a key frame every 20 ms while
@@ -346,30 +297,6 @@ async fn fake_edge(
             });
         }
     })
-}
-
-/// A frame of the whole 65² grid unsplit, numbered `frame`.
-fn key_frame(frame: u64) -> Vec<u8> {
-    let grid = Grid::new(6).expect("a valid size");
-    let heights = vec![100u16; grid.vertices()];
-    let mut mesh = Vec::new();
-    MeshEncoder::new(grid)
-        .encode(&BitSet::new(grid.vertices()), &heights, None, &mut mesh)
-        .expect("a closed cut");
-    let mut out = Vec::new();
-    messages::encode(
-        &messages::Frame {
-            frame,
-            base: None,
-            tick: frame,
-            vehicles: Vec::new(),
-            input_seq: None,
-            mesh,
-        },
-        &mut out,
-    )
-    .expect("within the limits");
-    out
 }
 
 /// Given only edge A, whose world is gone and which names B among the world's edges (and

@@ -13,7 +13,6 @@ use roam_server::Terrain;
 use roam_server::net::Options;
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
-use roam_server::sim::{recording, replay};
 
 /// The tests here each run a server with a 100 Hz world thread and 60 Hz viewers: one at a
 /// time, so that on a 2-core machine none starves another of the CPU.
@@ -79,34 +78,11 @@ async fn two_viewers_one_driving_and_the_session_replays() {
     }
     assert_eq!(s.vehicle, d.vehicle, "the spectator follows the driver");
     // The drive over the network ends exactly where the script, simulated, ends.
-    let want = fixtures::simulated_drive(&terrain);
-    let got = d.last.expect("a vehicle in the frames");
-    assert_eq!(
-        (got.x, got.z, got.speed, got.heading),
-        (
-            want.state.x,
-            want.state.z,
-            want.state.speed,
-            want.state.heading
-        ),
-        "at tick {}",
-        d.last_tick
-    );
+    fixtures::assert_drive_exact(&terrain, d.last, d.last_tick);
     assert!(!d.latencies_ms.is_empty(), "key changes were seen applied");
     // The server's recording replays bit for bit.
     let final_world = r.server.shutdown().await.expect("stops cleanly");
-    let files: Vec<_> = std::fs::read_dir(&dir)
-        .expect("the recording directory")
-        .map(|e| e.expect("a directory entry").path())
-        .collect();
-    assert_eq!(files.len(), 1, "one recording file: {files:?}");
-    let bytes = std::fs::read(&files[0]).expect("the recording");
-    let rec = recording::parse(&bytes).expect("parses");
-    let out = replay::replay(&rec, terrain.clone(), &terrain.content_hash()).expect("replays");
-    assert!(out.ended, "closed cleanly");
-    assert_eq!(out.tick, final_world.tick());
-    assert_eq!(out.digest, final_world.digest());
-    let _ = std::fs::remove_dir_all(&dir);
+    fixtures::assert_replays(&dir, &terrain, &final_world);
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -11,10 +11,11 @@ use std::time::Duration;
 
 use roam_client::session::{KeySource, Patience, Session, State, Taken};
 use roam_link::{tls, wire};
+use roam_protocol::ColorLayout;
 use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION, Welcome,
 };
-use roam_protocol::{BitSet, ColorLayout, Grid, MeshEncoder};
+use roam_tests::fixtures::key_frame;
 
 /// What the fake server sends after reading the hello.
 #[derive(Clone, Debug)]
@@ -53,24 +54,7 @@ fn tile(level: u8, x: u32, z: u32, data: Vec<u8>) -> Say {
 }
 
 fn welcome() -> Welcome {
-    Welcome {
-        version: VERSION,
-        levels: 6,
-        h_scale: 10.0,
-        v_scale: 0.1,
-        sun_dir: [0.0, 1.0, 0.0],
-        sun_color: [255; 3],
-        fog_density: 1e-3,
-        fog_color: [200; 3],
-        water_level: None,
-        vehicle: 0,
-        color: layout(),
-        tick: 0,
-        ticket: None,
-        resumed: false,
-        max_budget: roam_protocol::messages::MAX_BUDGET,
-        max_fps: 240,
-    }
+    roam_tests::fixtures::fake_welcome(layout())
 }
 
 /// A welcome and the coarsest colour tile.
@@ -349,30 +333,6 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
         "{ended}"
     );
     task.abort();
-}
-
-/// A key frame of the fake's grid (the root's two triangles), numbered `frame`.
-fn key_frame(frame: u64) -> Vec<u8> {
-    let grid = Grid::new(6).expect("a valid size");
-    let heights = vec![100u16; grid.vertices()];
-    let mut mesh = Vec::new();
-    MeshEncoder::new(grid)
-        .encode(&BitSet::new(grid.vertices()), &heights, None, &mut mesh)
-        .expect("a closed cut");
-    let mut out = Vec::new();
-    messages::encode(
-        &messages::Frame {
-            frame,
-            base: None,
-            tick: frame,
-            vehicles: Vec::new(),
-            input_seq: None,
-            mesh,
-        },
-        &mut out,
-    )
-    .expect("within the limits");
-    out
 }
 
 /// A server that welcomes and then says nothing (no frame, no control message; its QUIC

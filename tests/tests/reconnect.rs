@@ -18,13 +18,14 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use roam_client::session::{KeySource, Patience, Received, Session, State, Status, Taken};
+use roam_client::session::{KeySource, Patience, Session, State, Status};
 use roam_link::tls;
-use roam_protocol::messages::{Hello, Role, VERSION, VehicleView};
+use roam_protocol::messages::VehicleView;
 use roam_server::net::{Options, Server};
 use roam_server::sim::world_core::Snapshot;
 use roam_server::terrain::variance::VarianceTree;
 use roam_tests::fixtures::flat;
+use roam_tests::fixtures::{bounded, frame};
 use roam_tests::relay::{LinkConfig, Relay};
 use tokio::sync::watch;
 
@@ -41,8 +42,6 @@ const PATIENCE: Patience = Patience {
     silence: Duration::from_secs(2),
     reconnect_for: Duration::from_secs(60),
 };
-/// A safety bound on each wait: a regression fails, never hangs.
-const BOUND: Duration = Duration::from_secs(60);
 /// Accelerate ahead for 1.5 s, then no keys: the vehicle coasts on, away from its start.
 const DRIVE: &str = "150 U\n";
 
@@ -83,17 +82,7 @@ async fn start() -> Running {
 
 /// A driver joined through the relay, playing [`DRIVE`].
 async fn driver(r: &Running) -> Session {
-    let hello = Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: r.token.clone(),
-        viewport: [640, 480],
-        fov_y_deg: 60.0,
-        budget: 4_000,
-        frame_rate: 60,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    };
+    let hello = roam_tests::fixtures::driver_hello(&r.token);
     let script = roam_protocol::script::parse(DRIVE).expect("a valid script");
     let addr: SocketAddr = r.relay.addr();
     bounded(
@@ -108,24 +97,6 @@ async fn driver(r: &Running) -> Session {
     )
     .await
     .expect("joins")
-}
-
-async fn bounded<T>(what: &str, f: impl std::future::Future<Output = T>) -> T {
-    tokio::time::timeout(BOUND, f)
-        .await
-        .unwrap_or_else(|_| panic!("{what}: not within {} s", BOUND.as_secs()))
-}
-
-/// The next frame taken (frames that fail to decode are not expected).
-async fn frame(s: &Session) -> Received {
-    loop {
-        match bounded("a frame", s.next_frame(true)).await {
-            Ok(Taken::Frame(r)) => return r,
-            Ok(Taken::Nothing) => {}
-            Ok(Taken::Dropped(why)) => panic!("a frame failed to decode: {why}"),
-            Err(e) => panic!("the session ended: {e:#}"),
-        }
-    }
 }
 
 /// The first frame showing vehicle `id` where `f` holds.
