@@ -229,9 +229,15 @@ pub async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) ->
 /// Sends a key datagram every 10 ms (the physics' step) with the step's keys from
 /// `steps`, on whichever connection is up: the core numbers the state and repeats the
 /// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
-/// are numbered) unsent. Ends with the session.
-pub async fn send_keys(link: Arc<Link>, mut steps: Steps) {
-    let mut tick = tokio::time::interval(Duration::from_millis(10));
+/// are numbered) unsent. Ends with the session. With a `phase`, the clock ticks at that
+/// offset on the process's 10 ms grid ([`KeySource::ScriptAt`]); without, from now.
+pub async fn send_keys(link: Arc<Link>, mut steps: Steps, phase: Option<Duration>) {
+    const STEP: Duration = Duration::from_millis(10);
+    let start = match phase {
+        Some(phase) => on_grid(tokio::time::Instant::now(), STEP, phase),
+        None => tokio::time::Instant::now(),
+    };
+    let mut tick = tokio::time::interval_at(start, STEP);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tick.tick().await;
@@ -251,6 +257,26 @@ pub async fn send_keys(link: Arc<Link>, mut steps: Steps) {
             let _ = conn.send_datagram(bytes.into());
         }
     }
+}
+
+/// The first instant at or after `now` that is `phase` past a multiple of `step` counted
+/// from the process's first call (one grid for every clock in the process).
+fn on_grid(now: tokio::time::Instant, step: Duration, phase: Duration) -> tokio::time::Instant {
+    static EPOCH: std::sync::OnceLock<tokio::time::Instant> = std::sync::OnceLock::new();
+    let epoch = *EPOCH.get_or_init(|| now);
+    let at = grid_after(
+        now.duration_since(epoch).as_nanos(),
+        step.as_nanos(),
+        phase.as_nanos(),
+    );
+    epoch + Duration::from_nanos(u64::try_from(at).unwrap_or(u64::MAX))
+}
+
+/// The first `k × step + phase mod step` at or after `since` (nanoseconds).
+fn grid_after(since: u128, step: u128, phase: u128) -> u128 {
+    let step = step.max(1);
+    let offset = phase % step;
+    since.saturating_sub(offset).div_ceil(step) * step + offset
 }
 
 /// The first pause between reconnection attempts, doubled after each up to the second.
@@ -518,5 +544,22 @@ impl Supervisor {
         }
         self.hello = next_hello(self.hello.clone(), &welcome);
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::grid_after;
+
+    #[test]
+    fn key_clocks_start_on_their_phase_of_the_grid() {
+        let check = |since, phase, expected| assert_eq!(grid_after(since, 10, phase), expected);
+        check(0, 0, 0);
+        check(0, 5, 5);
+        check(5, 5, 5);
+        check(6, 5, 15);
+        check(10, 0, 10);
+        check(11, 0, 20);
+        check(3, 25, 5); // a phase past the step wraps
     }
 }

@@ -32,6 +32,9 @@ pub struct ViewerOptions {
     pub frames: u64,
     /// Keys to play, one step of the script per 10 ms (drivers).
     pub inputs: Option<Script>,
+    /// Where on the process's 10 ms grid the key clock ticks ([`KeySource::ScriptAt`]);
+    /// `None`: from the join.
+    pub key_phase: Option<std::time::Duration>,
     pub viewport: [u32; 2],
     pub fov_y_deg: f32,
     pub frame_rate: u16,
@@ -54,6 +57,7 @@ impl Default for ViewerOptions {
             budget: 65_536,
             frames: 300,
             inputs: None,
+            key_phase: None,
             viewport: [1280, 720],
             fov_y_deg: 60.0,
             frame_rate: 60,
@@ -175,7 +179,10 @@ pub async fn measure_any(
         color_window: roam_protocol::tiles::DEFAULT_WINDOW,
     };
     let keys = match (&opts.role, &opts.inputs) {
-        (Role::Driver, Some(script)) => KeySource::Script(script.clone()),
+        (Role::Driver, Some(script)) => match opts.key_phase {
+            Some(phase) => KeySource::ScriptAt(script.clone(), phase),
+            None => KeySource::Script(script.clone()),
+        },
         _ => KeySource::None,
     };
     let keep = if opts.keep_last {

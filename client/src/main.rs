@@ -57,7 +57,9 @@ struct Cli {
     #[arg(long, default_value_t = 65_536)]
     budget: u32,
     /// Headless viewers to run in this process (a load generator), each driving its own
-    /// vehicle (all with the same script).
+    /// vehicle (all with the same script). Their key clocks are spread evenly over the
+    /// 10 ms step (viewer i of N at i × 10 / N ms on one grid), so a latency pooled over
+    /// them samples every phase of the server's tick.
     #[arg(long, default_value_t = 1)]
     viewers: u32,
     /// Watch instead of drive.
@@ -263,6 +265,9 @@ fn run(cli: Cli) -> Result<()> {
                 budget: cli.budget,
                 frames: cli.frames,
                 inputs,
+                key_phase: (cli.viewers > 1).then(|| {
+                    std::time::Duration::from_micros(10_000 * u64::from(i) / u64::from(cli.viewers))
+                }),
                 skip_decode: cli.skip_decode,
                 frame_rate: cli.frame_rate,
                 patience: roam_client::session::Patience {

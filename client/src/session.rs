@@ -147,6 +147,10 @@ pub enum KeySource {
     Latch,
     /// A script, one step per 10 ms, then no keys.
     Script(Script),
+    /// A script whose 10 ms key clock ticks at this offset on the process's own 10 ms
+    /// grid (`--viewers N` spreads its drivers' clocks over the step, so their latencies
+    /// sample every phase of the server's tick rather than the one the joins fell on).
+    ScriptAt(Script, std::time::Duration),
 }
 
 /// Each physics step's keys, taken from the core's latch or a script.
@@ -380,10 +384,14 @@ impl Session {
             outgoing,
         };
         let mut tasks = vec![tokio::spawn(supervisor.run(joined))];
+        let phase = match &keys {
+            KeySource::ScriptAt(_, phase) => Some(*phase),
+            _ => None,
+        };
         let steps: Option<Steps> = match keys {
             KeySource::None => None,
             KeySource::Latch => Some(Box::new(KeyCore::take_keys)),
-            KeySource::Script(script) => {
+            KeySource::Script(script) | KeySource::ScriptAt(script, _) => {
                 let mut steps: Vec<KeyStep> = script.steps().collect();
                 steps.reverse();
                 Some(Box::new(move |_: &mut KeyCore| {
@@ -395,7 +403,7 @@ impl Session {
             }
         };
         if let Some(steps) = steps {
-            tasks.push(tokio::spawn(send_keys(link.clone(), steps)));
+            tasks.push(tokio::spawn(send_keys(link.clone(), steps, phase)));
         }
         Ok(Session {
             scene,

@@ -114,6 +114,10 @@ impl Browser {
         .stdin(Stdio::null())
         .stdout(Stdio::null())
         .stderr(Stdio::null());
+        // ROAM_BROWSER_LOG=1: the browser's log, the page's console included, on stderr.
+        if std::env::var_os("ROAM_BROWSER_LOG").is_some() {
+            cmd.arg("--enable-logging=stderr").stderr(Stdio::inherit());
+        }
         std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
         let child = cmd.spawn().expect("starting chromium");
         Browser {
@@ -159,6 +163,29 @@ impl Drop for TempDir {
 
 /// The most a report may be (a screenshot as a data URL included).
 const MAX_REPORT: usize = 32 << 20;
+
+/// A bound on the wait for the page's report: a regression fails, never hangs (a page on
+/// SwiftShader takes seconds).
+pub const REPORT_WITHIN: std::time::Duration = std::time::Duration::from_secs(150);
+
+/// The page's next report.
+pub async fn next(reports: &mut mpsc::UnboundedReceiver<String>) -> serde_json::Value {
+    let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
+        .await
+        .unwrap_or_else(|_| panic!("no report from the page within {REPORT_WITHIN:?}"))
+        .expect("the report endpoint runs");
+    serde_json::from_str(&body).expect("the page reports JSON")
+}
+
+/// The page's numbers, after any state report before them (an error fails).
+pub async fn numbers(reports: &mut mpsc::UnboundedReceiver<String>) -> serde_json::Value {
+    let mut r = next(reports).await;
+    while r.get("frames").is_none() {
+        assert!(r.get("error").is_none(), "{r}");
+        r = next(reports).await;
+    }
+    r
+}
 
 /// A local HTTP endpoint taking POSTed bodies (as text/plain, so without a CORS
 /// preflight); each body comes out of the receiver.

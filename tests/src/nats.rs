@@ -104,14 +104,32 @@ pub struct EdgeProcess {
     child: Child,
     pub addr: std::net::SocketAddr,
     pub fingerprint: [u8; 32],
+    /// Its page's HTTPS address (and WebTransport's UDP one), when started with the page.
+    pub web: Option<std::net::SocketAddr>,
 }
 
 impl EdgeProcess {
     /// Starts `exe` (the `roam-test-edge` binary) for `world` on `nats`, with the identity
     /// in `state`, and waits until it listens.
     pub fn start(exe: &str, nats: &Nats, world: &str, state: &std::path::Path) -> EdgeProcess {
+        EdgeProcess::spawn(exe, nats, world, state, false)
+    }
+
+    /// As [`EdgeProcess::start`], serving the page too (`--web`).
+    pub fn start_web(exe: &str, nats: &Nats, world: &str, state: &std::path::Path) -> EdgeProcess {
+        EdgeProcess::spawn(exe, nats, world, state, true)
+    }
+
+    fn spawn(
+        exe: &str,
+        nats: &Nats,
+        world: &str,
+        state: &std::path::Path,
+        web: bool,
+    ) -> EdgeProcess {
         let mut child = Command::new(exe)
             .args([&nats.url(), world, &state.display().to_string()])
+            .args(web.then_some("--web"))
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
@@ -137,10 +155,12 @@ impl EdgeProcess {
         let addr = said("listening on").parse().expect("an address");
         let fingerprint =
             roam_link::tls::parse_fingerprint(&said("fingerprint")).expect("a fingerprint");
+        let web = web.then(|| said("web on").parse().expect("an address"));
         EdgeProcess {
             child,
             addr,
             fingerprint,
+            web,
         }
     }
 

@@ -7,17 +7,10 @@
 //! token, a browser without either GPU API and a server shutting down are said on the
 //! page.
 
-use std::time::Duration;
-
 use roam_server::net::web::{WebCert, WebOptions};
-use roam_tests::browser::{Browser, GpuPath, Image, built_page, reports};
+use roam_tests::browser::{Browser, GpuPath, Image, built_page, next, numbers, reports};
 use roam_tests::fixtures::{self, Running};
 use serde_json::Value;
-use tokio::sync::mpsc::UnboundedReceiver;
-
-/// A bound on the wait for the page's report: a regression fails, never hangs (a page on
-/// SwiftShader takes seconds).
-const REPORT_WITHIN: Duration = Duration::from_secs(150);
 
 /// Frames the page decodes before it reports.
 const FRAMES: u64 = 90;
@@ -51,25 +44,6 @@ async fn open(running: &Running, token: &str, gpu: GpuPath) -> (Value, Browser) 
     );
     let browser = Browser::open(&url, gpu);
     (next(&mut reports).await, browser)
-}
-
-/// The page's next report.
-async fn next(reports: &mut UnboundedReceiver<String>) -> Value {
-    let body = tokio::time::timeout(REPORT_WITHIN, reports.recv())
-        .await
-        .unwrap_or_else(|_| panic!("no report from the page within {REPORT_WITHIN:?}"))
-        .expect("the report endpoint runs");
-    serde_json::from_str(&body).expect("the page reports JSON")
-}
-
-/// The page's numbers, after any state report before them (an error fails).
-async fn numbers(reports: &mut UnboundedReceiver<String>) -> Value {
-    let mut r = next(reports).await;
-    while r.get("frames").is_none() {
-        assert!(r.get("error").is_none(), "{r}");
-        r = next(reports).await;
-    }
-    r
 }
 
 /// The page joined, drove, decoded every frame and drew sky above terrain.

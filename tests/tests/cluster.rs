@@ -18,6 +18,7 @@ use roam_server::net::bus::{BusError, BusOptions};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::sim::world_core::Snapshot;
+use roam_tests::browser::{self, Browser, GpuPath};
 use roam_tests::fixtures::{self, Running, flat};
 use roam_tests::nats::{EdgeProcess, Nats};
 
@@ -293,6 +294,75 @@ async fn an_edge_killed_mid_drive_its_driver_resumes_on_the_other() {
         "the longest pause between frames: {} s",
         moved.gap_max_s
     );
+    drop(b);
+    world.shutdown().await.expect("the world stops");
+    let _ = std::fs::remove_dir_all(&state);
+}
+
+/// The page one edge served learns the world's other edges from it; when that edge is
+/// killed (`kill -9`), the page moves to the other edge, trusting that edge's own
+/// certificate (its hashes came with its address), and gets its vehicle back.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_moves_to_another_edge_when_its_edge_is_killed() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let name = "page-moves";
+    let world = start_world(&terrain, &bus(&nats, name), None).await;
+    let state = std::env::temp_dir().join(format!("roam-page-edges-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&state);
+    let exe = env!("CARGO_BIN_EXE_roam-test-edge");
+    let a = EdgeProcess::start_web(exe, &nats, name, &state);
+    let b = EdgeProcess::start_web(exe, &nats, name, &state);
+    let (a_web, b_web) = (a.web.expect("serves the page"), b.web.expect("the page"));
+    let (report, mut reports) = browser::reports().await;
+    let url = format!(
+        "https://127.0.0.1:{}/#token={}&gpu=webgl&frames=10&report=http://{report}/report&script={}",
+        a_web.port(),
+        fixtures::TOKEN,
+        "150%20U%0A3000%20UL%0A",
+    );
+    let _browser = Browser::open(&url, GpuPath::WebGl2);
+    let on = |r: &serde_json::Value, port: u16| {
+        r["edge"]
+            .as_str()
+            .is_some_and(|e| e.starts_with(&format!("https://127.0.0.1:{port}/")))
+    };
+    let first = browser::numbers(&mut reports).await;
+    assert!(on(&first, a_web.port()), "on A first: {first}");
+    let vehicle = first["vehicle"].clone();
+    // A names B as soon as the world has heard of both: in the numbers, or a report after.
+    let mut known = first;
+    for _ in 0..8 {
+        if known["edges"].as_u64() >= Some(2) {
+            break;
+        }
+        known = browser::next(&mut reports).await;
+        assert_eq!(known["state"], "connected", "{known}");
+    }
+    assert!(known["edges"].as_u64() >= Some(2), "B learned: {known}");
+    a.kill();
+    let mut r = browser::next(&mut reports).await;
+    for _ in 0..16 {
+        if r["state"] != "reconnecting" {
+            break;
+        }
+        r = browser::next(&mut reports).await;
+    }
+    assert_eq!(r["state"], "connected", "{r}");
+    assert!(on(&r, b_web.port()), "on B now: {r}");
+    assert_eq!(
+        (&r["reconnects"], &r["resumed"]),
+        (&1.into(), &1.into()),
+        "{r}"
+    );
+    assert_eq!(r["vehicle"], vehicle, "its vehicle back: {r}");
+    let mut snaps = world.watch();
+    let s = when(&mut snaps, 10, "the vehicle driven again", |s| {
+        s.held.is_empty()
+    })
+    .await;
+    assert_eq!(s.vehicles.len(), 1, "no second vehicle");
     drop(b);
     world.shutdown().await.expect("the world stops");
     let _ = std::fs::remove_dir_all(&state);

@@ -120,7 +120,10 @@ struct App {
     first_frame_ms: Option<f64>,
     hud_at: f64,
     reported: bool,
-    said: Option<(State, Option<String>)>,
+    /// The state last said: the session's, the world's word, and (for a test) the edges
+    /// known, the one in use and the reconnections (a move to another edge may be quicker
+    /// than a frame, and must still be heard).
+    said: Option<(State, Option<String>, [usize; 3])>,
     /// Recent key change → frame showing it, milliseconds.
     latencies: std::collections::VecDeque<f64>,
 }
@@ -379,17 +382,18 @@ impl App {
     }
 
     /// The message line follows the session's state, and the edge's word that its world
-    /// is gone.
+    /// is gone; a test hears of the edges it learns and moves to too.
     fn status(&mut self) {
-        let (state, gone) = {
+        let (state, gone, edges) = {
             let l = self.live.borrow();
-            (l.state.clone(), l.world.gone.clone())
+            let edges = [l.edges.len(), l.edges.index(), l.gaps.reconnects as usize];
+            (l.state.clone(), l.world.gone.clone(), edges)
         };
-        let now = (state, gone);
+        let now = (state, gone, edges);
         if self.said.as_ref() == Some(&now) {
             return;
         }
-        let (state, gone) = now.clone();
+        let (state, gone, _) = now.clone();
         let (text, error) = match &state {
             State::Connected if gone.is_some() => (
                 format!(
@@ -432,6 +436,9 @@ impl App {
                 "vehicle": l.welcome.vehicle,
                 "reconnects": l.gaps.reconnects,
                 "resumed": l.gaps.resumed,
+                // The edge it is on or trying (its WebTransport URL) and how many it knows.
+                "edge": l.edges.current().url,
+                "edges": l.edges.len(),
             })
             .to_string();
             wasm_bindgen_futures::spawn_local(async move { page::post(&url, &body).await });
@@ -502,6 +509,8 @@ impl App {
             "backend": format!("{:?}", self.gfx.gpu.adapter.backend),
             "triangles": self.renderer.triangles(),
             "vehicle": l.welcome.vehicle,
+            "edge": l.edges.current().url,
+            "edges": l.edges.len(),
             "speed": n.speed,
             "color_tiles": l.colors.resident(),
             "size": [self.gfx.config.width, self.gfx.config.height],

@@ -84,6 +84,10 @@ pub fn canvas() -> Result<HtmlCanvasElement, String> {
 
 /// Shows `text` on the message line (`error` in red), or hides the line when empty.
 pub fn say(text: &str, error: bool) {
+    // The console keeps each line said (the browser's log shows how a session went).
+    if !text.is_empty() {
+        web_sys::console::log_1(&text.into());
+    }
     if let Ok(m) = element::<HtmlElement>("message") {
         m.set_text_content(Some(text));
         let style = m.style();

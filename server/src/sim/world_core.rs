@@ -20,6 +20,9 @@
 //!      step this tick, so its drive is delayed, never changed;
 //!    - with more than [`PRIME`] + [`CATCH_UP`] queued (a backlog after a wait or a
 //!      stall), it steps **twice**, one step per state, until the backlog is gone;
+//!    - with more than [`PRIME`] queued at every tick for [`TRIM_AFTER`] ticks (slack a
+//!      past wait left that the link has not needed for a second), it steps **twice**
+//!      once, so the queue, and the driver's latency, goes back to [`PRIME`];
 //!    - otherwise one step, with the oldest queued state folded into the driver's latch;
 //!    - a queue longer than [`MAX_QUEUED`] (a viewer whose clock runs fast) is folded into
 //!      the latch at once: the only case where a drive is not step for step the script's.
@@ -115,6 +118,19 @@ pub const PRIME: usize = 2;
 /// double steps.
 pub const CATCH_UP: usize = 2;
 
+/// Ticks (1 s) that a driver's queue must have held more than [`PRIME`] states at every
+/// tick before one double step trims the excess. A wait adds a tick of latency that the
+/// catch-up rule alone takes back only at [`PRIME`] + [`CATCH_UP`] + 1 queued, so jitter
+/// ratcheted a driver's queue up to that and left it there: through an edge (the NATS hop
+/// both ways, four processes on two cores) the queues settled higher than through `serve`,
+/// some 6 ms on the input→frame p99 (`scripts/cluster.sh latency`). Trimming after a
+/// calm second brings both back to [`PRIME`]: a tick of slack always stays. Trimming to
+/// no slack (the least that did not run dry over the last second, as an adaptive jitter
+/// buffer would) was tried: `serve`'s p99 fell 3 ms but an edge's jitter kept drying its
+/// queues (a wait, then a second a tick behind), and the edge's p99 rose 2 ms, so the bus
+/// added 7.4 ms instead of 2.0 (6 rounds each, this machine).
+pub const TRIM_AFTER: u32 = 100;
+
 /// Key states a driver may have waiting (a third of a second): a longer backlog is folded
 /// into the latch at once, so a fast clock cannot delay a driver's keys without bound.
 pub const MAX_QUEUED: usize = 32;
@@ -134,6 +150,8 @@ struct Driver {
     /// The newest state applied.
     applied: Option<u32>,
     primed: bool,
+    /// Consecutive ticks its queue held more than [`PRIME`] states (see [`TRIM_AFTER`]).
+    spare: u32,
     /// The tick its hold began, while its vehicle is held.
     held_since: Option<u64>,
     /// Resumed, and no key state taken since: the next may number from 0 again.
@@ -150,6 +168,7 @@ impl Driver {
             queue: VecDeque::new(),
             applied: None,
             primed: false,
+            spare: 0,
             held_since: None,
             resumed: false,
         }
@@ -160,6 +179,7 @@ impl Driver {
         self.held_since = Some(tick);
         self.queue.clear();
         self.primed = false;
+        self.spare = 0;
         self.latch = KeyLatch::default();
     }
 
@@ -168,6 +188,7 @@ impl Driver {
         self.held_since = None;
         self.queue.clear();
         self.primed = false;
+        self.spare = 0;
         self.resumed = true;
     }
 
@@ -180,6 +201,7 @@ impl Driver {
     fn take(&mut self, inputs: &mut Inputs) {
         self.primed |= self.queue.len() >= PRIME;
         if !self.primed || self.queue.is_empty() {
+            self.spare = 0;
             inputs.set_extra(self.id, Extra::Wait);
             return;
         }
@@ -187,9 +209,16 @@ impl Driver {
             let s = self.queue.pop_front().expect("longer than MAX_QUEUED");
             self.apply(s);
         }
+        self.spare = if self.queue.len() > PRIME {
+            self.spare + 1
+        } else {
+            0
+        };
         let first = self.step();
         inputs.set(self.id, first);
-        if self.queue.len() >= PRIME + CATCH_UP {
+        let trim = self.spare >= TRIM_AFTER;
+        if self.queue.len() >= PRIME + CATCH_UP || trim {
+            self.spare = 0;
             let second = self.step();
             inputs.set_extra(self.id, Extra::Twice(first, second));
         }
@@ -492,7 +521,7 @@ mod tests {
     use roam_protocol::keys::Keys;
     use roam_protocol::messages::KeyState;
 
-    use super::{Event, WorldCore, free_id};
+    use super::{Event, TRIM_AFTER, WorldCore, free_id};
     use crate::sim::physics::VehicleState;
     use crate::sim::world::VehicleId;
 
@@ -574,6 +603,31 @@ mod tests {
         assert_eq!(c.handle(Event::Resume(a)), None);
         assert_eq!(c.handle(Event::Resume(b)), None);
         assert_eq!(c.handle(Event::Resume(77)), None);
+    }
+
+    #[test]
+    fn slack_past_prime_the_link_did_not_need_for_a_second_is_trimmed() {
+        let mut c = core(100);
+        let id = c.handle(Event::Join).expect("a vehicle");
+        // Three states before the first tick (as after a wait): one more than PRIME.
+        c.handle(up(id, 0..=2));
+        let n = 3 + 2 * TRIM_AFTER;
+        // States received and not yet applied after each tick, one arriving a tick.
+        let mut waiting = Vec::new();
+        for seq in 3..n {
+            let applied = c.tick().applied_by(id).expect("driving");
+            waiting.push(seq - 1 - applied);
+            c.handle(up(id, seq..=seq));
+        }
+        // A calm second trims the state past PRIME; the state of slack PRIME leaves stays.
+        let once = (TRIM_AFTER - 1) as usize;
+        assert!(waiting[..once].iter().all(|&w| w == 2), "{waiting:?}");
+        assert!(waiting[once..].iter().all(|&w| w == 1), "{waiting:?}");
+        // Every state applied once, in order: the drive is the one-step-a-tick drive.
+        for _ in 0..10 {
+            c.tick();
+        }
+        assert_eq!(state(&c, id), Some(driven(n)));
     }
 
     #[test]
