@@ -38,6 +38,15 @@ impl Nats {
         Nats::with_args(port, &["--auth", token])
     }
 
+    /// Starts `nats-server` on a free loopback port with TLS (`--tls`: clients must speak
+    /// it; their certificates are not asked for), presenting the certificate in the PEM
+    /// file `cert` with its key in `key`.
+    pub fn with_tls(cert: &std::path::Path, key: &std::path::Path) -> Nats {
+        let port = Nats::start().kill();
+        let (cert, key) = (cert.display().to_string(), key.display().to_string());
+        Nats::with_args(port, &["--tls", "--tlscert", &cert, "--tlskey", &key])
+    }
+
     fn with_args(port: u16, more: &[&str]) -> Nats {
         let mut child = Command::new("nats-server")
             .args(["-a", "127.0.0.1", "-p", &port.to_string()])
@@ -82,6 +91,11 @@ impl Nats {
     /// The URL clients connect to.
     pub fn url(&self) -> String {
         format!("nats://127.0.0.1:{}", self.port)
+    }
+
+    /// The URL clients connect to requiring TLS.
+    pub fn tls_url(&self) -> String {
+        format!("tls://127.0.0.1:{}", self.port)
     }
 
     /// Stops it (as `kill -9` would) and waits for it to be gone.

@@ -31,6 +31,7 @@ fn bus(nats: &Nats, world: &str) -> BusOptions {
         url: nats.url(),
         world: world.into(),
         creds: None,
+        ca: None,
         name: "roam-test".into(),
     }
 }

@@ -410,6 +410,7 @@ async fn run(args: BusLoadArgs, subjects: Subjects, expected: Option<[u8; 32]>) 
             url: args.bus.nats.clone(),
             world: args.bus.world.clone(),
             creds: args.bus.nats_creds.clone(),
+            ca: args.bus.nats_ca.clone(),
             name: format!("roam-server bus-load {i}"),
         };
         let client = bus.connect().await?;

@@ -29,6 +29,11 @@ pub struct BusArgs {
     /// NATS credentials: a `.creds` file (JWT and nkey seed), or a file holding a token.
     #[arg(long, value_name = "FILE")]
     pub nats_creds: Option<PathBuf>,
+    /// CA certificates (PEM) to trust for NATS's TLS certificate, for a NATS whose
+    /// certificate is self-signed or from a private CA; given, the system's CAs are not
+    /// used for NATS.
+    #[arg(long, value_name = "FILE")]
+    pub nats_ca: Option<PathBuf>,
 }
 
 impl BusArgs {
@@ -38,6 +43,7 @@ impl BusArgs {
             url: self.nats.clone(),
             world: self.world.clone(),
             creds: self.nats_creds.clone(),
+            ca: self.nats_ca.clone(),
             name: name.into(),
         })
     }

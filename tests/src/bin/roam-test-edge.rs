@@ -35,6 +35,7 @@ fn main() -> Result<()> {
             url: url.clone(),
             world: world.clone(),
             creds: None,
+            ca: None,
             name: "roam-test-edge".into(),
         };
         let remote = Remote::connect(

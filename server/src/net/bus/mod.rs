@@ -36,6 +36,10 @@ pub struct BusOptions {
     /// A NATS credentials file (`.creds`: a JWT and its nkey seed), or a file holding a
     /// token (one line).
     pub creds: Option<PathBuf>,
+    /// A PEM file of CA certificates that NATS's TLS certificate must chain to (a private
+    /// or self-signed CA). Given, these are the only ones trusted for NATS (async-nats
+    /// then leaves out the system's); else the system's are.
+    pub ca: Option<PathBuf>,
     /// What this process calls itself to the NATS server (its connection name).
     pub name: String,
 }
@@ -50,8 +54,20 @@ pub enum BusError {
         file: PathBuf,
         error: std::io::Error,
     },
+    #[error("the CA certificates for NATS's TLS, {file}: {error}")]
+    Ca {
+        file: PathBuf,
+        error: std::io::Error,
+    },
     #[error("connecting to NATS at {url}: {error}")]
     Connect { url: String, error: String },
+    #[error("TLS to NATS at {url} failed: {error} ({})", tls_hint(.ca.as_deref()))]
+    Tls {
+        url: String,
+        error: String,
+        /// The CA file trusted ([`BusOptions::ca`]), if one was.
+        ca: Option<PathBuf>,
+    },
     #[error("NATS ({what}): {error}")]
     Nats { what: &'static str, error: String },
     #[error(
@@ -74,6 +90,20 @@ pub enum BusError {
     World(std::io::Error),
     #[error("the world thread panicked")]
     WorldPanicked,
+}
+
+/// What to do about a TLS failure, with the CA file trusted or without one.
+fn tls_hint(ca: Option<&std::path::Path>) -> String {
+    match ca {
+        None => "if NATS's certificate is from a private or self-signed CA, give that CA's \
+                 certificate with --nats-ca FILE"
+            .into(),
+        Some(file) => format!(
+            "NATS's certificate must be signed by one in --nats-ca {}, or be one of them and \
+             not itself a CA (basicConstraints CA:FALSE)",
+            file.display()
+        ),
+    }
 }
 
 /// A random name for this process (an edge's, a world's), as the bus knows it.
@@ -111,19 +141,30 @@ impl BusOptions {
         Ok(Subjects::of(&self.world)?)
     }
 
-    /// Connects to NATS: TLS when the URL asks for it, the credentials or token from
+    /// Connects to NATS: TLS when the URL (or the server) asks for it, trusting
+    /// [`Self::ca`]'s certificates if given, the credentials or token from
     /// [`Self::creds`], reconnecting for ever when the server goes away (the client keeps
     /// a bounded buffer meanwhile: a publish waits, nothing grows).
     pub async fn connect(&self) -> Result<async_nats::Client, BusError> {
-        let refused = |e: async_nats::ConnectError| BusError::Connect {
-            url: self.url.clone(),
-            error: e.to_string(),
+        let refused = |e: async_nats::ConnectError| {
+            let url = self.url.clone();
+            match tls_failure(&e) {
+                Some(error) => BusError::Tls {
+                    url,
+                    error,
+                    ca: self.ca.clone(),
+                },
+                None => BusError::Connect {
+                    url,
+                    error: e.to_string(),
+                },
+            }
         };
         // Tried once first: credentials or TLS the server refuses are said now, rather
         // than retried for ever in the background.
         match self.options().await?.connect(self.url.as_str()).await {
             Ok(client) => return Ok(client),
-            Err(e) if refusal(&e) => return Err(refused(e)),
+            Err(e) if refusal(&e) || tls_failure(&e).is_some() => return Err(refused(e)),
             Err(e) => tracing::warn!("NATS at {} not reached yet ({e}); waiting for it", self.url),
         }
         // `retry_on_initial_connect` makes this return at once; the first connection is
@@ -146,6 +187,10 @@ impl BusOptions {
         if let Some(file) = &self.creds {
             options = creds(options, file).await?;
         }
+        if let Some(file) = &self.ca {
+            check_ca(file)?;
+            options = options.add_root_certificates(file.clone());
+        }
         Ok(options)
     }
 }
@@ -158,6 +203,47 @@ fn refusal(e: &async_nats::ConnectError) -> bool {
         e.kind(),
         K::Authentication | K::AuthorizationViolation | K::Tls | K::ServerParse
     )
+}
+
+/// What went wrong if a first connection failed in TLS: its setup (`ConnectErrorKind::Tls`),
+/// or the handshake (async-nats reports those as I/O errors wrapping rustls' error: a
+/// certificate not trusted, a name that does not match). Neither is cured by trying again.
+fn tls_failure(e: &async_nats::ConnectError) -> Option<String> {
+    use async_nats::ConnectErrorKind as K;
+    use std::error::Error as _;
+    match e.kind() {
+        K::Tls => Some(e.to_string()),
+        K::Io => e
+            .source()
+            .and_then(|s| s.downcast_ref::<std::io::Error>())
+            .and_then(|io| io.get_ref())
+            .and_then(|inner| inner.downcast_ref::<async_nats::rustls::Error>())
+            .map(|tls| tls.to_string()),
+        _ => None,
+    }
+}
+
+/// The `--nats-ca` file is readable and holds at least one PEM certificate (else
+/// async-nats would trust none, and every server would be refused as untrusted).
+fn check_ca(file: &std::path::Path) -> Result<(), BusError> {
+    use async_nats::rustls::pki_types::{CertificateDer, pem::PemObject};
+    let err = |error| BusError::Ca {
+        file: file.to_owned(),
+        error,
+    };
+    let pem = std::fs::read(file).map_err(err)?;
+    let mut certs = 0;
+    for cert in CertificateDer::pem_slice_iter(&pem) {
+        cert.map_err(|e| err(std::io::Error::new(std::io::ErrorKind::InvalidData, e)))?;
+        certs += 1;
+    }
+    if certs == 0 {
+        return Err(err(std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            "no PEM certificate (-----BEGIN CERTIFICATE-----) in it",
+        )));
+    }
+    Ok(())
 }
 
 /// A credentials file (it holds `-----BEGIN NATS USER JWT-----`), else a token file.
