@@ -24,10 +24,11 @@
 # `serve_p99_ms` and `edge_p99_ms` (the runs' medians), `bus_adds_p99_ms` (edge − serve:
 # issue 23 asks ≤ 5, aim ≤ 2), the same for the medians (`bus_adds_median_ms`), and each
 # run's p99s (`serve_p99s`, `edge_p99s`). Why several viewers: a driver's latency moves
-# in steps of a tick (10 ms) with how many key states its world-side queue settled at
-# holding (`sim/world_core.rs`: PRIME, CATCH_UP), fixed for a run; one viewer a run gave
-# per-run medians from 9.9 to 23.2 ms through the same `serve` (16 runs), which hides a
-# few milliseconds; four viewers a run average over four queues (16.3–19.3 over 8 runs).
+# with the phase of its key clock against the world's tick and with how many key states
+# its world-side queue holds (`sim/world_core.rs`: PRIME, CATCH_UP, TRIM_AFTER); the
+# viewers of one `--viewers N` process have their key clocks spread over the 10 ms step,
+# so a run samples every phase. One viewer a run gave per-run medians from 9.9 to 23.2 ms
+# through the same `serve` (16 runs), which hides a few milliseconds.
 #
 # fanout: nats-server and the world on the loopback; for each N, `roam-server bus-load`
 # (the load generator, hidden from `--help`, documented in server/src/cli/bus_load.rs)
@@ -61,16 +62,16 @@
 #
 # Measured on 2026-11-26, evening, PROFILE=measure, the 2 cores shared with other
 # sessions (load average in each line; provisional):
-# - latency, 4 viewers a run, two sessions of 4 rounds (load 0.1–1.4): the bus adds
-#   5.3 and 2.4 ms to the median, 6.1 and 6.1 ms to the p99 (serve 18.0 / 30.0 and
-#   17.6 / 30.5 ms, edge 23.3 / 36.1 and 20.0 / 36.7); over the 8 rounds, the medians of
-#   the runs' p99s 30.3 (serve) and 36.6 ms (edge): +6.2, the edge's p99 the higher in
-#   every round. Over the ≤ 5 ms asked. With one viewer a run (16 rounds in three
-#   sessions, load 0.1–4.9) the difference was lost in the runs' spread: −3.7 to +6.8 ms
-#   on the p99 by session, −0.2 pooled.
+# - latency, 4 viewers a run, before the world trimmed its key queues and the viewers'
+#   key clocks were spread: +6.1 ms on the p99 (two sessions of 4 rounds). After, four
+#   sessions (3, 6, 6, 6 rounds; load 0.1–1.5): +0.4, +2.0, +5.8, +4.6 ms on the p99;
+#   the 21 rounds pooled, the medians of the runs' p99s 30.1 (serve) and 34.7 ms (edge):
+#   +4.6 (the medians +2.5). On a 16-core machine (the GPU machine lent to that session,
+#   stripped binaries and Debian's nats-server carried there, BIN_DIR set, nothing else
+#   running), two sessions of 6 rounds: −1.3 and +0.8; pooled 26.5 and 25.9 ms: −0.7.
 # - fanout, 4 fake edges, two runs: snapshots of 376 / 3,706 / 40,446 bytes at 10 / 100
 #   / 1,000 vehicles, 37.6 KB / 371 KB / 4.04 MB a second to each edge, every snapshot
-#   delivered; the world's CPU 100–180 / 170–230 / 560–700 µs a tick (≤ 2,000 asked at
+#   delivered; the world's CPU 100–190 / 170–240 / 560–700 µs a tick (≤ 2,000 asked at
 #   1,000 vehicles, aim 500); nats-server 2–4.4 % of a core; every vehicle moving.
 # - capacity, 40 and 60 viewers, two runs each, interleaved with `scripts/capacity.sh`
 #   (serve) on the same build: the edge served 59.5–59.7 / 59.1 frames a second to its

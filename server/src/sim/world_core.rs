@@ -118,17 +118,13 @@ pub const PRIME: usize = 2;
 /// double steps.
 pub const CATCH_UP: usize = 2;
 
-/// Ticks (1 s) that a driver's queue must have held more than [`PRIME`] states at every
-/// tick before one double step trims the excess. A wait adds a tick of latency that the
-/// catch-up rule alone takes back only at [`PRIME`] + [`CATCH_UP`] + 1 queued, so jitter
-/// ratcheted a driver's queue up to that and left it there: through an edge (the NATS hop
-/// both ways, four processes on two cores) the queues settled higher than through `serve`,
-/// some 6 ms on the input→frame p99 (`scripts/cluster.sh latency`). Trimming after a
-/// calm second brings both back to [`PRIME`]: a tick of slack always stays. Trimming to
-/// no slack (the least that did not run dry over the last second, as an adaptive jitter
-/// buffer would) was tried: `serve`'s p99 fell 3 ms but an edge's jitter kept drying its
-/// queues (a wait, then a second a tick behind), and the edge's p99 rose 2 ms, so the bus
-/// added 7.4 ms instead of 2.0 (6 rounds each, this machine).
+/// Ticks (1 s) a driver's queue must hold more than [`PRIME`] states at every tick before
+/// one double step trims the excess. A wait adds a tick that catch-up alone takes back
+/// only past [`PRIME`] + [`CATCH_UP`], so jitter ratcheted queues up and left them there:
+/// through an edge (more jitter) some 6 ms higher on the input→frame p99 than through
+/// `serve` (`scripts/cluster.sh latency`). Trimming to no slack at all (an adaptive jitter
+/// buffer) was tried: `serve`'s p99 fell 3 ms, an edge's rose 2 (its jitter kept drying
+/// the queues), so the bus added 7.4 ms instead of 2.0 (6 rounds each, this machine).
 pub const TRIM_AFTER: u32 = 100;
 
 /// Key states a driver may have waiting (a third of a second): a longer backlog is folded
@@ -402,10 +398,8 @@ impl WorldCore {
         }
     }
 
-    /// By binary search: the drivers are kept sorted by id. (A linear search made every
-    /// key event cost a walk of the drivers: at 1,000 drivers, `perf record` on the world
-    /// during `scripts/cluster.sh fanout 1000` put 32 % of its samples in `handle`; 10 %
-    /// after, most of it each state's decoding and queueing.)
+    /// By binary search, the drivers sorted by id (a walk per key event was 32 % of the
+    /// world's `perf` samples at 1,000 drivers, `scripts/cluster.sh fanout 1000`; now 10 %).
     fn driver(&mut self, vehicle: VehicleId) -> Option<&mut Driver> {
         let at = self.drivers.binary_search_by_key(&vehicle, |d| d.id).ok()?;
         self.drivers.get_mut(at)
@@ -796,10 +790,7 @@ mod tests {
         for (id, n) in [(a, 3), (b, 5), (last, 7), (wrapped, 9)] {
             c.handle(up(id, 0..=n - 1));
         }
-        let mut snap = c.tick();
-        for _ in 0..20 {
-            snap = c.tick();
-        }
+        let snap = (0..20).fold(c.tick(), |_, _| c.tick());
         for (id, n) in [(a, 3), (b, 5), (last, 7), (wrapped, 9)] {
             assert_eq!(snap.applied_by(id), Some(n - 1), "vehicle {id}");
         }
