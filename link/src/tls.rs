@@ -1,5 +1,6 @@
-//! Certificates: a self-signed one made on first run and kept in the state directory, its
-//! SHA-256 fingerprint (what viewers pin), and the QUIC configurations of both ends.
+//! Certificates: a self-signed one made on first run and kept in the state directory (or
+//! one given in files, [`load_files`]), its SHA-256 fingerprint (what viewers pin), and the
+//! QUIC configurations of both ends.
 //!
 //! The state directory holds the server's identity: `key.der` (its private key, PKCS#8) and
 //! `cert.der` (its certificate, whose SHA-256 viewers pin). Its rules, in the spirit of ssh:
@@ -38,6 +39,7 @@ use std::sync::Arc;
 
 use rustls::client::danger::{HandshakeSignatureValid, ServerCertVerified, ServerCertVerifier};
 use rustls::crypto::CryptoProvider;
+use rustls::pki_types::pem::{self, PemObject};
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer, ServerName, UnixTime};
 use rustls::{DigitallySignedStruct, SignatureScheme};
 
@@ -140,6 +142,53 @@ pub fn load_or_create(dir: &Path) -> Result<Identity, TlsError> {
     let id = generate()?;
     state.save(&id)?;
     Ok(id)
+}
+
+/// The identity in two files an operator made or was given (`serve --cert F --key F`), so
+/// that several servers can share one fingerprint. Each file is DER or PEM: the certificate
+/// X.509 (the first `CERTIFICATE` of a PEM file; any others, such as a chain's, are not
+/// used: viewers pin this one), the key PKCS#8 (`PRIVATE KEY`). Both are checked as the
+/// state directory's are: the certificate parses, the key loads, and it is the
+/// certificate's key. Nothing is written, and the files' modes are left as they are.
+pub fn load_files(cert: &Path, key: &Path) -> Result<Identity, TlsError> {
+    let read = |path: &Path| {
+        File::open(path)
+            .map_err(io(path))
+            .and_then(|f| read_bounded(f, path))
+    };
+    let cert_der: CertificateDer<'static> = decode(
+        cert,
+        read(cert)?,
+        "not a certificate (X.509, DER or PEM): no `-----BEGIN CERTIFICATE-----` in it",
+    )?;
+    let key_der: PrivatePkcs8KeyDer<'static> = decode(
+        key,
+        read(key)?,
+        "no PKCS#8 private key (DER, or PEM `-----BEGIN PRIVATE KEY-----`) in it; another \
+         PEM key converts with `openssl pkcs8 -topk8 -nocrypt`",
+    )?;
+    checked((cert_der, cert), (key_der, key), Source::Given)
+}
+
+/// The item in a file that is PEM (its first section of `T`'s kind) or else DER (the bytes
+/// themselves); `missing` says what is wrong with a PEM file without such a section.
+fn decode<T: PemObject + From<Vec<u8>>>(
+    path: &Path,
+    bytes: Vec<u8>,
+    missing: &str,
+) -> Result<T, TlsError> {
+    let invalid = |what: String| TlsError::Invalid {
+        path: path.display().to_string(),
+        what,
+    };
+    match T::from_pem_slice(&bytes) {
+        Ok(item) => Ok(item),
+        Err(pem::Error::NoItemsFound) if !bytes.windows(11).any(|w| w == b"-----BEGIN ") => {
+            Ok(T::from(bytes))
+        }
+        Err(pem::Error::NoItemsFound) => Err(invalid(missing.to_owned())),
+        Err(e) => Err(invalid(format!("PEM that does not decode: {e}"))),
+    }
 }
 
 /// What [`rotate`] did.
@@ -335,17 +384,7 @@ impl StateDir {
                 );
             }
         }
-        let mut bytes = Vec::new();
-        file.take(MAX_FILE + 1)
-            .read_to_end(&mut bytes)
-            .map_err(io(&path))?;
-        if bytes.len() as u64 > MAX_FILE {
-            return Err(TlsError::Invalid {
-                path: path.display().to_string(),
-                what: format!("over {MAX_FILE} bytes: not a certificate or key roam made"),
-            });
-        }
-        Ok(Some(bytes))
+        read_bounded(file, &path).map(Some)
     }
 
     /// The identity in the directory: none if neither file is there, an error if only one
@@ -373,31 +412,7 @@ impl StateDir {
                 });
             }
         };
-        rustls::server::ParsedCertificate::try_from(&cert).map_err(|e| TlsError::Invalid {
-            path: name(&cert_path),
-            what: format!("not a certificate (X.509, DER): {e}"),
-        })?;
-        let signer = provider()
-            .key_provider
-            .load_private_key(PrivateKeyDer::Pkcs8(key.clone_key()))
-            .map_err(|e| TlsError::Invalid {
-                path: name(&key_path),
-                what: format!("not a private key (PKCS#8, DER): {e}"),
-            })?;
-        match rustls::sign::CertifiedKey::new(vec![cert.clone()], signer).keys_match() {
-            Ok(()) => Ok(Some(Identity { cert, key })),
-            Err(rustls::Error::InconsistentKeys(rustls::InconsistentKeys::KeyMismatch)) => {
-                Err(TlsError::Mismatch {
-                    cert: name(&cert_path),
-                    key: name(&key_path),
-                    pinned: pinned(Some(&cert)),
-                })
-            }
-            Err(e) => Err(TlsError::Invalid {
-                path: name(&cert_path),
-                what: format!("cannot check it against {}: {e}", name(&key_path)),
-            }),
-        }
+        checked((cert, &cert_path), (key, &key_path), Source::StateDir).map(Some)
     }
 
     /// Writes `id` over the directory's identity: both files to temporary names (final
@@ -439,6 +454,75 @@ impl StateDir {
         file.write_all(bytes)
             .and_then(|()| file.sync_all())
             .map_err(io(&path))
+    }
+}
+
+/// The whole of an identity's file, `path`, refused past [`MAX_FILE`].
+fn read_bounded(file: File, path: &Path) -> Result<Vec<u8>, TlsError> {
+    let mut bytes = Vec::new();
+    file.take(MAX_FILE + 1)
+        .read_to_end(&mut bytes)
+        .map_err(io(path))?;
+    if bytes.len() as u64 > MAX_FILE {
+        return Err(TlsError::Invalid {
+            path: path.display().to_string(),
+            what: format!("over {MAX_FILE} bytes: too large for a certificate or key"),
+        });
+    }
+    Ok(bytes)
+}
+
+/// Where an identity's files come from, for what its errors say.
+#[derive(Clone, Copy)]
+enum Source {
+    /// `cert.der` and `key.der` in the state directory.
+    StateDir,
+    /// Files given (`--cert`, `--key`), DER or PEM.
+    Given,
+}
+
+/// `cert` (read from `cert_path`) and `key` (from `key_path`) as an identity, if the
+/// certificate parses, the key loads with the provider, and it is the certificate's key.
+fn checked(
+    (cert, cert_path): (CertificateDer<'static>, &Path),
+    (key, key_path): (PrivatePkcs8KeyDer<'static>, &Path),
+    source: Source,
+) -> Result<Identity, TlsError> {
+    let forms = match source {
+        Source::StateDir => "DER",
+        Source::Given => "DER or PEM",
+    };
+    let name = |p: &Path| p.display().to_string();
+    rustls::server::ParsedCertificate::try_from(&cert).map_err(|e| TlsError::Invalid {
+        path: name(cert_path),
+        what: format!("not a certificate (X.509, {forms}): {e}"),
+    })?;
+    let signer = provider()
+        .key_provider
+        .load_private_key(PrivateKeyDer::Pkcs8(key.clone_key()))
+        .map_err(|e| TlsError::Invalid {
+            path: name(key_path),
+            what: format!("not a private key (PKCS#8, {forms}): {e}"),
+        })?;
+    match rustls::sign::CertifiedKey::new(vec![cert.clone()], signer).keys_match() {
+        Ok(()) => Ok(Identity { cert, key }),
+        Err(rustls::Error::InconsistentKeys(rustls::InconsistentKeys::KeyMismatch)) => {
+            Err(match source {
+                Source::StateDir => TlsError::Mismatch {
+                    cert: name(cert_path),
+                    key: name(key_path),
+                    pinned: pinned(Some(&cert)),
+                },
+                Source::Given => TlsError::Invalid {
+                    path: name(key_path),
+                    what: format!("the key does not match the certificate {}", name(cert_path)),
+                },
+            })
+        }
+        Err(e) => Err(TlsError::Invalid {
+            path: name(cert_path),
+            what: format!("cannot check it against {}: {e}", name(key_path)),
+        }),
     }
 }
 

@@ -9,6 +9,10 @@
 //! address, this machine's LAN address and host name; or `--web-cert`/`--web-key` give one
 //! browsers trust. The page's address printed carries the token in its fragment
 //! (`#token=`): the one printed URL with a `#`.
+//!
+//! The server's QUIC identity (the certificate viewers pin) is the state directory's, or
+//! with `--cert`/`--key` one from files (`tls::load_files`), which the edges of one world
+//! can share.
 
 use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
@@ -38,9 +42,17 @@ pub struct ServeArgs {
     /// The join token viewers must present.
     #[command(flatten)]
     pub token: super::token::TokenArgs,
-    /// Where the certificate is kept (made on first run).
+    /// Where the certificate is kept (made on first run), unless --cert and --key give it.
     #[arg(long, default_value = "roam-state")]
     pub state_dir: PathBuf,
+    /// The server's certificate (with --key), instead of the state directory's: X.509, DER
+    /// or PEM (its first CERTIFICATE). Viewers pin its SHA-256, so the edges of one world
+    /// given the same files share one fingerprint.
+    #[arg(long, value_name = "FILE", requires = "key")]
+    pub cert: Option<PathBuf>,
+    /// The private key of --cert: PKCS#8, DER or PEM (`BEGIN PRIVATE KEY`).
+    #[arg(long, value_name = "FILE", requires = "cert")]
+    pub key: Option<PathBuf>,
     /// Where sessions are recorded (default: `recordings` in the state directory).
     #[arg(long)]
     pub record_dir: Option<PathBuf>,
@@ -470,12 +482,19 @@ pub fn serve(args: ServeArgs) -> Result<()> {
 /// snapshots served, its tickets handed out, nothing recorded here (the world records).
 pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()> {
     keep_large_blocks_mapped();
-    // The page and the certificate files first, then the token: each fails before
-    // anything is loaded.
+    // The page and the certificate files (the browser's, and the server's identity when
+    // given) first, then the token: each fails before anything is loaded.
     let web = args
         .web
         .map(|listen| web_options(&args, listen))
         .transpose()?;
+    let given = match (&args.cert, &args.key) {
+        (Some(cert), Some(key)) => {
+            Some(tls::load_files(cert, key).context("the server's identity (--cert, --key)")?)
+        }
+        (None, None) => None,
+        _ => anyhow::bail!("--cert and --key go together"),
+    };
     let token = args.token.resolve()?;
     tracing::info!("join token from {}", token.source);
     let token = token.as_str().to_owned();
@@ -486,7 +505,10 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
         report,
     } = open_served(&args.dir)?;
     let hash = data_hash(&args.dir, &terrain, &report)?;
-    let identity = tls::load_or_create(&args.state_dir)?;
+    let identity = match given {
+        Some(identity) => identity,
+        None => tls::load_or_create(&args.state_dir)?,
+    };
     // An edge records nothing: its world does.
     let recording = match bus {
         None => Some(record_files(&args.state_dir, args.record_dir.as_deref())?),
