@@ -14,6 +14,8 @@ const READY_WAIT: Duration = Duration::from_secs(20);
 pub struct Nats {
     child: Child,
     pub port: u16,
+    /// Its log's lines after "Server is ready", as they come.
+    log: std::sync::Mutex<std::sync::mpsc::Receiver<String>>,
 }
 
 impl Nats {
@@ -64,19 +66,26 @@ impl Nats {
         let stderr = child.stderr.take().expect("stderr is piped");
         let (tx, rx) = std::sync::mpsc::channel();
         // Reads the log to its end (nats-server keeps writing to it), telling when ready.
+        let (log_tx, log) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
             let mut said = false;
             for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                if !said && line.contains("Server is ready") {
+                if said {
+                    let _ = log_tx.send(line);
+                } else if line.contains("Server is ready") {
                     said = true;
                     let _ = tx.send(Ok(()));
-                } else if !said && line.contains("[FTL]") {
+                } else if line.contains("[FTL]") {
                     let _ = tx.send(Err(line));
                 }
             }
         });
         match rx.recv_timeout(READY_WAIT) {
-            Ok(Ok(())) => Nats { child, port },
+            Ok(Ok(())) => Nats {
+                child,
+                port,
+                log: std::sync::Mutex::new(log),
+            },
             Ok(Err(line)) => {
                 let _ = child.kill();
                 panic!("nats-server on port {port} failed: {line}")
@@ -85,6 +94,30 @@ impl Nats {
                 let _ = child.kill();
                 panic!("nats-server on port {port} was not ready in {READY_WAIT:?}")
             }
+        }
+    }
+
+    /// Starts `nats-server` on a free loopback port with `config` (the server's
+    /// configuration file's text, e.g. `max_pending` or `write_deadline`).
+    pub fn with_config(config: &str) -> Nats {
+        let port = Nats::start().kill();
+        let file =
+            std::env::temp_dir().join(format!("roam-nats-{}-{port}.conf", std::process::id()));
+        std::fs::write(&file, config).expect("a temporary nats-server configuration");
+        Nats::with_args(port, &["-c", &file.display().to_string()])
+    }
+
+    /// The first line of its log from now on that holds `needle`, within `within`.
+    pub fn logged(&self, needle: &str, within: Duration) -> Option<String> {
+        let log = self.log.lock().unwrap_or_else(|e| e.into_inner());
+        let mut left = within;
+        loop {
+            let started = std::time::Instant::now();
+            let line = log.recv_timeout(left).ok()?;
+            if line.contains(needle) {
+                return Some(line);
+            }
+            left = left.checked_sub(started.elapsed())?;
         }
     }
 

@@ -90,6 +90,27 @@ async fn when(
         .clone()
 }
 
+/// A world `name` on `nats`, an edge, and a driver on it driving [`fixtures::DRIVE`] for
+/// 480 frames (its task, to await).
+async fn driving(
+    nats: &Nats,
+    name: &str,
+) -> (
+    Arc<Terrain>,
+    BusOptions,
+    WorldServer,
+    Running,
+    tokio::task::JoinHandle<anyhow::Result<ViewerStats>>,
+) {
+    let terrain = flat();
+    let bus = bus(nats, name);
+    let world = start_world(&terrain, &bus, None).await;
+    let a = edge(terrain.clone(), &bus).await;
+    let drive = driver(&a, 480, Some(fixtures::DRIVE));
+    let d = tokio::spawn(headless::run(a.server.addr, a.fingerprint, drive));
+    (terrain, bus, world, a, d)
+}
+
 fn driver(r: &Running, frames: u64, drive: Option<&str>) -> ViewerOptions {
     ViewerOptions {
         token: r.token.clone(),
@@ -204,12 +225,7 @@ async fn an_edge_with_another_data_set_is_refused_naming_both() {
 async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
     let _turn = ONE_AT_A_TIME.lock().await;
     let nats = Nats::start();
-    let terrain = flat();
-    let bus = bus(&nats, "restart");
-    let world = start_world(&terrain, &bus, None).await;
-    let a = edge(terrain.clone(), &bus).await;
-    let drive = driver(&a, 480, Some(fixtures::DRIVE));
-    let d = tokio::spawn(headless::run(a.server.addr, a.fingerprint, drive));
+    let (terrain, _, world, a, d) = driving(&nats, "restart").await;
     // Mid-drive (by the world's own ticks), the NATS server goes and comes back.
     let mut snaps = world.watch();
     let at = when(&mut snaps, 20, "the drive is under way", |s| {
@@ -367,6 +383,69 @@ async fn the_page_moves_to_another_edge_when_its_edge_is_killed() {
     drop(b);
     world.shutdown().await.expect("the world stops");
     let _ = std::fs::remove_dir_all(&state);
+}
+
+/// A stuck edge (a subscriber that stopped reading: its TCP window full) slows neither the
+/// world nor the other edges: nats-server buffers for it, then cuts it off as a slow
+/// consumer, while the world ticks on (none dropped) and a driver on another edge drives
+/// exactly. Sixty vehicles make the snapshots big enough to fill its buffers within the
+/// drive.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stuck_edge_slows_neither_the_world_nor_the_other_edges() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::with_config("max_pending: 1048576\nwrite_deadline: \"1s\"\n");
+    // The driver first (the first start slot, where the offline drive starts).
+    let (terrain, bus, world, a, d) = driving(&nats, "stuck").await;
+    let mut snaps = world.watch();
+    when(&mut snaps, 20, "the driver's vehicle", |s| {
+        !s.vehicles.is_empty()
+    })
+    .await;
+    let subjects = bus.subjects().expect("a valid name");
+    let client = bus.connect().await.expect("reaches NATS");
+    for _ in 0..60 {
+        let mut bytes = Vec::new();
+        encode(&Ask::Join, &mut bytes).expect("a request encodes");
+        let reply = client
+            .request(subjects.ask.clone(), bytes.into())
+            .await
+            .expect("the world answers");
+        let answer = decode::<Answer>(&reply.payload).expect("an answer");
+        assert!(matches!(answer, Answer::Joined { .. }), "{answer:?}");
+    }
+    // The stuck edge: subscribed to the snapshots, then never reading again.
+    let mut stuck = std::net::TcpStream::connect(("127.0.0.1", nats.port)).expect("connects");
+    {
+        use std::io::{BufRead, Write};
+        let subscribe = format!(
+            "CONNECT {{\"verbose\":false,\"pedantic\":false}}\r\nSUB {} 1\r\nPING\r\n",
+            subjects.snapshots
+        );
+        stuck.write_all(subscribe.as_bytes()).expect("subscribes");
+        let mut lines = std::io::BufReader::new(stuck.try_clone().expect("a second handle"));
+        let mut line = String::new();
+        for _ in 0..4 {
+            line.clear();
+            lines.read_line(&mut line).expect("nats-server answers");
+            if line.starts_with("PONG") {
+                break;
+            }
+        }
+        assert!(line.starts_with("PONG"), "subscribed: {line:?}");
+    }
+    let stats = d.await.expect("joins").expect("the driver runs");
+    let cut = nats.logged("Slow Consumer", Duration::from_secs(30));
+    assert!(cut.is_some(), "nats-server found the stuck edge out");
+    assert_eq!(stats.frames, 480);
+    assert_eq!(
+        stats.vehicles_max, 61,
+        "the other edge's driver sees every vehicle"
+    );
+    fixtures::assert_drive_exact(&terrain, stats.last, stats.last_tick);
+    assert_eq!(world.world_stats().dropped(), 0, "no world tick lost");
+    drop(stuck);
+    a.server.shutdown().await.expect("the edge stops");
+    world.shutdown().await.expect("the world stops");
 }
 
 /// The world's side of an edge's death, spoken over NATS as an edge would: a vehicle whose
