@@ -74,8 +74,8 @@
 #   delivered; the world's CPU 100–180 / 170–230 / 560–700 µs a tick (≤ 2,000 asked at
 #   1,000 vehicles, aim 500); nats-server 2–4.4 % of a core; every vehicle moving. Later
 #   (the world finding a key event's driver by binary search, not a walk), two runs:
-#   100–130 / 140–160 / 450–500 µs; twelve runs at 1,000 that session: 425–512, median
-#   462 (one of 762 at load 0.8; 5 of them with the runtime on one worker: no change).
+#   100–130 / 140–160 / 450–500 µs; seven runs at 1,000 that session (`fanout 1000`,
+#   WINDOW_S=8 for five): six at 437–500 (median 462), one at 762 with load 0.8.
 # - capacity, 40 and 60 viewers, two runs each, interleaved with `scripts/capacity.sh`
 #   (serve) on the same build: the edge served 59.5–59.7 / 59.1 frames a second to its
 #   slowest viewer at 224–229 / 210–211 µs of edge CPU a frame (51–52 % / 71 % of its

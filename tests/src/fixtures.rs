@@ -223,6 +223,19 @@ pub async fn bounded<T>(what: &str, f: impl std::future::Future<Output = T>) -> 
         .unwrap_or_else(|_| panic!("{what}: not within {} s", BOUND.as_secs()))
 }
 
+/// `s`'s status once `f` holds, within [`BOUND`].
+pub async fn status_when(
+    s: &roam_client::session::Session,
+    what: &str,
+    f: impl Fn(&roam_client::session::Status) -> bool,
+) -> roam_client::session::Status {
+    let mut changes = s.status_changes();
+    bounded(what, changes.wait_for(|st| f(st)))
+        .await
+        .expect("the session is there")
+        .clone()
+}
+
 /// The next frame `s` takes (frames that fail to decode are not expected).
 pub async fn frame(s: &roam_client::session::Session) -> roam_client::session::Received {
     use roam_client::session::Taken;

@@ -2,6 +2,7 @@
 //! (`roam_server::net::bus::world`) and two edges (servers whose world is over NATS), with
 //! headless viewers on both over real QUIC.
 
+use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -88,6 +89,22 @@ async fn when(
         .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
         .expect("the world runs")
         .clone()
+}
+
+/// Two edge processes (`roam-test-edge`, with the page if `web`) of world `name`, sharing
+/// one fresh state directory (one identity), and that directory, for the test to remove.
+fn edge_processes(nats: &Nats, name: &str, web: bool) -> (EdgeProcess, EdgeProcess, PathBuf) {
+    let state = std::env::temp_dir().join(format!("roam-edges-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&state);
+    let exe = env!("CARGO_BIN_EXE_roam-test-edge");
+    let start = if web {
+        EdgeProcess::start_web
+    } else {
+        EdgeProcess::start
+    };
+    let a = start(exe, nats, name, &state);
+    let b = start(exe, nats, name, &state);
+    (a, b, state)
 }
 
 /// A world `name` on `nats`, an edge, and a driver on it driving [`fixtures::DRIVE`] for
@@ -262,11 +279,7 @@ async fn an_edge_killed_mid_drive_its_driver_resumes_on_the_other() {
     let name = "edge-killed";
     let bus = bus(&nats, name);
     let world = start_world(&terrain, &bus, None).await;
-    let state = std::env::temp_dir().join(format!("roam-edges-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&state);
-    let exe = env!("CARGO_BIN_EXE_roam-test-edge");
-    let a = EdgeProcess::start(exe, &nats, name, &state);
-    let b = EdgeProcess::start(exe, &nats, name, &state);
+    let (a, b, state) = edge_processes(&nats, name, false);
     assert_eq!(
         a.fingerprint, b.fingerprint,
         "one state directory, one identity"
@@ -326,11 +339,7 @@ async fn the_page_moves_to_another_edge_when_its_edge_is_killed() {
     let terrain = flat();
     let name = "page-moves";
     let world = start_world(&terrain, &bus(&nats, name), None).await;
-    let state = std::env::temp_dir().join(format!("roam-page-edges-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&state);
-    let exe = env!("CARGO_BIN_EXE_roam-test-edge");
-    let a = EdgeProcess::start_web(exe, &nats, name, &state);
-    let b = EdgeProcess::start_web(exe, &nats, name, &state);
+    let (a, b, state) = edge_processes(&nats, name, true);
     let (a_web, b_web) = (a.web.expect("serves the page"), b.web.expect("the page"));
     let (report, mut reports) = browser::reports().await;
     let url = format!(

@@ -20,14 +20,14 @@ use std::time::{Duration, Instant};
 
 use roam_client::color_cache::Keep;
 use roam_client::headless::{self, ViewerOptions};
-use roam_client::session::{KeySource, Patience, Session, State, Status};
+use roam_client::session::{KeySource, Patience, Session, State};
 use roam_link::{tls, wire};
 use roam_protocol::ColorLayout;
 use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome, WorldNews};
 use roam_server::net::{Options, Server};
 use roam_server::terrain::variance::VarianceTree;
 use roam_tests::fixtures::{TOKEN, flat, pyramid};
-use roam_tests::fixtures::{bounded, frame, key_frame};
+use roam_tests::fixtures::{bounded, frame, key_frame, status_when};
 use roam_tests::relay::{LinkConfig, Relay};
 
 /// One pair of servers with their 100 Hz worlds at a time: on a 2-core machine none
@@ -90,15 +90,6 @@ async fn join(addrs: &[SocketAddr], fingerprint: [u8; 32]) -> Session {
     )
     .await
     .expect("joins")
-}
-
-/// The session's status once `f` holds.
-async fn status_when(s: &Session, what: &str, f: impl Fn(&Status) -> bool) -> Status {
-    let mut changes = s.status_changes();
-    bounded(what, changes.wait_for(|st| f(st)))
-        .await
-        .expect("the session is there")
-        .clone()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

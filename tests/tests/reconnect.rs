@@ -18,14 +18,14 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use roam_client::session::{KeySource, Patience, Session, State, Status};
+use roam_client::session::{KeySource, Patience, Session, State};
 use roam_link::tls;
 use roam_protocol::messages::VehicleView;
 use roam_server::net::{Options, Server};
 use roam_server::sim::world_core::Snapshot;
 use roam_server::terrain::variance::VarianceTree;
 use roam_tests::fixtures::flat;
-use roam_tests::fixtures::{bounded, frame};
+use roam_tests::fixtures::{bounded, frame, status_when};
 use roam_tests::relay::{LinkConfig, Relay};
 use tokio::sync::watch;
 
@@ -108,15 +108,6 @@ async fn frame_where(s: &Session, id: u16, f: impl Fn(&VehicleView) -> bool) -> 
             return v;
         }
     }
-}
-
-/// The session's status once `f` holds.
-async fn status_when(s: &Session, what: &str, f: impl Fn(&Status) -> bool) -> Status {
-    let mut changes = s.status_changes();
-    bounded(what, changes.wait_for(|st| f(st)))
-        .await
-        .expect("the session is there")
-        .clone()
 }
 
 /// The server's snapshot once `f` holds.

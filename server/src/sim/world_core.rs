@@ -345,9 +345,7 @@ impl WorldCore {
     /// The vehicles that have a driver (held ones included), by id: every vehicle in the
     /// world, always.
     pub fn drivers(&self) -> Vec<VehicleId> {
-        let mut ids: Vec<VehicleId> = self.drivers.iter().map(|d| d.id).collect();
-        ids.sort_unstable();
-        ids
+        self.drivers.iter().map(|d| d.id).collect()
     }
 
     /// The recording's file being written; `None` when not recorded or after a failure.
@@ -430,7 +428,9 @@ impl WorldCore {
         }
         // The next id not in use (ids wrap after 65,536 joins).
         let drivers = &self.drivers;
-        let id = free_id(&mut self.next_id, |id| drivers.iter().any(|d| d.id == id))?;
+        let id = free_id(&mut self.next_id, |id| {
+            drivers.binary_search_by_key(&id, |d| d.id).is_ok()
+        })?;
         let slot = (0u32..)
             .find(|s| drivers.iter().all(|d| d.slot != *s))
             .expect("fewer than 2^32 vehicles");
