@@ -194,14 +194,25 @@ async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
     );
     // A viewer killed mid-stream (no goodbye) has its vehicle held for it to come back
     // to (`tests/tests/reconnect.rs` takes it back, and sees it freed after the hold).
-    let stalled_vehicle = r.server.snapshot().vehicles.first().map(|v| v.id);
+    // Which vehicle is the stalled driver's: the one left once the good viewer's goodbye
+    // has freed its own (the two hellos may be seated in either order).
+    let mut world = r.server.watch();
+    let stalled_vehicle = tokio::time::timeout(
+        Duration::from_secs(10),
+        world.wait_for(|s| s.vehicles.len() == 1),
+    )
+    .await
+    .expect("the good viewer's vehicle is freed by its goodbye")
+    .expect("the world runs")
+    .vehicles
+    .first()
+    .map(|v| v.id);
     assert!(
         stalled_vehicle.is_some(),
         "the stalled driver has a vehicle"
     );
     stalled.close(0u32.into(), b"killed");
     drop(stalled);
-    let mut world = r.server.watch();
     let held = tokio::time::timeout(
         Duration::from_secs(10),
         world.wait_for(|s| !s.held.is_empty()),
