@@ -512,6 +512,9 @@ impl Supervisor {
             if let Some(view) = *lock(&self.link.view) {
                 fresh.set_view(view);
             }
+            if let Some(ticks) = core.morph_ticks() {
+                fresh.set_morph(ticks);
+            }
             self.link
                 .bytes_before
                 .fetch_add(core.bytes_in(), Ordering::Relaxed);

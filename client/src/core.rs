@@ -56,9 +56,9 @@ use roam_protocol::keys::{KeyLatch, KeyStep, Keys};
 use roam_protocol::messages::{
     self, ClientMessage, Frame, KeyDatagram, KeyState, VehicleView, ViewChange, Welcome,
 };
-use roam_protocol::{Follower, Grid, LiveMesh, mesh};
+use roam_protocol::{DiamondMap, Follower, Grid, LiveMesh, mesh};
 
-use crate::render::{Scene, TerrainVertices};
+use crate::render::{Morph, Scene, TerrainVertices};
 
 /// Decoded frames kept as bases: the server codes against the newest one acknowledged, or
 /// its newest key frame while that is on its way, and never against a frame more than its
@@ -256,6 +256,12 @@ pub struct ClientCore {
     limit: u32,
     outbox: VecDeque<ClientMessage>,
     bytes_in: u64,
+    /// The cut as drawn, with geomorphs ([`ClientCore::set_morph`]): the diamonds the
+    /// frames toggled since it last followed them (each once, with its height), and the
+    /// tick it last followed.
+    morph: Option<Morph>,
+    pending: DiamondMap<u16>,
+    morph_tick: Option<u64>,
 }
 
 /// The keys: the latch the window's key events go into, the numbered states, the history
@@ -293,7 +299,37 @@ impl ClientCore {
             limit: budget,
             outbox: VecDeque::new(),
             bytes_in: 0,
+            morph: None,
+            pending: DiamondMap::new(),
+            morph_tick: None,
         })
+    }
+
+    /// Draws the cut through a [`Morph`] whose geomorphs take `ticks` world ticks (0: the
+    /// decoded cut as it is, through the same drawing); without a call, the decoded cut
+    /// is drawn directly (a viewer that draws nothing pays nothing). Starts from the
+    /// decoded cut as it is now, shown at once.
+    pub fn set_morph(&mut self, ticks: u16) {
+        if self.morph_ticks() == Some(ticks) {
+            return;
+        }
+        self.pending.clear();
+        let mut m = Morph::new(self.grid, ticks);
+        let now: Vec<(u32, u16)> = self.cut.split().collect();
+        let cut = &self.cut;
+        m.step(&now, |d| cut.contains(d), |i| cut.height(i), None);
+        self.morph = Some(m);
+        self.morph_tick = self.newest_tick;
+    }
+
+    /// The geomorphs' length in ticks, when the cut is drawn through a [`Morph`].
+    pub fn morph_ticks(&self) -> Option<u16> {
+        self.morph.as_ref().map(Morph::ticks)
+    }
+
+    /// The cut as drawn (with geomorphs), when drawn so.
+    pub fn morph(&self) -> Option<&Morph> {
+        self.morph.as_ref()
     }
 
     pub fn grid(&self) -> &Grid {
@@ -320,9 +356,23 @@ impl ClientCore {
     /// Brings `terrain` up to date with the newest decoded mesh on `scene`'s scales:
     /// rewrites the slots the frames decoded since its last update changed (all of them
     /// the first time). One `terrain` follows a core: the slots rewritten are forgotten.
+    /// With geomorphs, the vertices are the drawn cut's, advanced to the newest frame's
+    /// tick (by the ticks since the last update: never by a clock).
     pub fn update_vertices(&mut self, scene: &Scene, terrain: &mut TerrainVertices) {
         let cut = &self.cut;
-        terrain.update(scene, &mut self.live, |i| cut.height(i));
+        let Some(morph) = self.morph.as_mut() else {
+            terrain.update(scene, &mut self.live, |i| cut.height(i), |_| 0.0);
+            return;
+        };
+        let changes: Vec<(u32, u16)> = self.pending.iter().collect();
+        self.pending.clear();
+        let ticks = match (self.morph_tick, self.newest_tick) {
+            (Some(a), Some(b)) => Some(b.saturating_sub(a)),
+            _ => None,
+        };
+        morph.step(&changes, |d| cut.contains(d), |i| cut.height(i), ticks);
+        self.morph_tick = self.newest_tick;
+        morph.draw(scene, terrain, |i| cut.height(i));
     }
 
     /// Bytes the decoder and the mesh hold (the cut, the bases' logs, the slots).
@@ -478,6 +528,11 @@ impl ClientCore {
             let cut = &self.cut;
             self.live
                 .update(&self.grid, cut.toggled(), |i| cut.contains(i));
+            if self.morph.is_some() {
+                for &(d, h) in cut.toggled_heights() {
+                    self.pending.toggle(d, h);
+                }
+            }
             triangles = self.live.triangle_count();
             if triangles != info.triangles as usize {
                 return Err(Broken::Inconsistent {

@@ -69,6 +69,12 @@ struct Cli {
     /// --size offscreen) on a drive and print them as JSON (with --headless).
     #[arg(long)]
     bench: bool,
+    /// Geomorphs' length in world ticks (100 a second): a vertex a split adds rises from
+    /// its edge's midpoint, and one a merge removes sinks back, over this many ticks. 0
+    /// draws every change at once (the viewer before geomorphs). The window and --bench
+    /// draw with them; other headless viewers draw nothing.
+    #[arg(long, default_value_t = roam_client::render::MORPH_TICKS)]
+    morph_ticks: u16,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
@@ -242,6 +248,7 @@ fn run(cli: Cli) -> Result<()> {
                 fov_y_deg: cli.fov,
                 toggles: cli.toggles(),
                 inputs,
+                morph_ticks: cli.morph_ticks,
             };
             let report = roam_client::bench::run(addr, fingerprint, opts).await;
             if let Some(server) = server {
@@ -446,6 +453,7 @@ fn window(
         roam_client::session::Patience::default(),
         roam_client::color_cache::Keep::Texels,
     ))?;
+    session.set_morph(cli.morph_ticks);
     let name = match &cli.connect {
         Some(Addresses(a)) => a
             .iter()

@@ -545,6 +545,12 @@ impl Session {
         self.flush(&mut core);
     }
 
+    /// Draws the cut with geomorphs taking `ticks` world ticks (0: none), on this
+    /// connection and the next ([`ClientCore::set_morph`]).
+    pub fn set_morph(&self, ticks: u16) {
+        self.core().set_morph(ticks);
+    }
+
     pub fn key_down(&self, keys: Keys) {
         lock(&self.link.keys).key_down(keys);
     }

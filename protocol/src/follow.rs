@@ -166,6 +166,12 @@ impl Follower {
         self.split.iter()
     }
 
+    /// The diamonds the newest frame toggled, each with its height (split or merged, from
+    /// the cut before it): a merged diamond's height is no longer in the cut.
+    pub fn toggled_heights(&self) -> &[(u32, u16)] {
+        self.logs.back().map_or(&[][..], |l| &l.toggles[..])
+    }
+
     /// The diamonds the newest frame toggled (split or merged, from the cut before it).
     pub fn toggled(&self) -> impl ExactSizeIterator<Item = u32> + '_ {
         self.logs

@@ -189,6 +189,25 @@ impl LiveMesh {
         &self.triangles[at..at + SLOT_TRIANGLES]
     }
 
+    /// The slot of diamond `d`'s triangles: split (or the root, always slot 0), `None`
+    /// for a diamond not split.
+    pub fn slot_of(&self, d: u32) -> Option<u32> {
+        if self.owner.first() == Some(&d) {
+            return Some(0);
+        }
+        self.slot_of.get(d)
+    }
+
+    /// Marks `slot` rewritten without changing it (its triangles' vertices moved: a
+    /// drawing that places vertices by more than their heights, as a geomorph does).
+    pub fn touch(&mut self, slot: u32) {
+        let s = slot as usize;
+        if s < self.is_dirty.len() && !self.is_dirty[s] {
+            self.is_dirty[s] = true;
+            self.dirty.push(slot);
+        }
+    }
+
     /// The triangles, in slot order.
     pub fn triangles(&self) -> impl Iterator<Item = [u32; 3]> + '_ {
         self.triangles.iter().copied().filter(|t| *t != NO_TRIANGLE)

@@ -382,8 +382,10 @@ pub fn live(
     script: Option<Vec<KeyStep>>,
     silence: Duration,
 ) -> Result<Shared, String> {
-    let core = ClientCore::new(&joined.welcome, budget)
+    let mut core = ClientCore::new(&joined.welcome, budget)
         .ok_or_else(|| format!("a grid of 2^{} + 1", joined.welcome.levels))?;
+    // The page draws with geomorphs, as the window does.
+    core.set_morph(roam_client::render::MORPH_TICKS);
     let fresh = joined.colors.fresh();
     Ok(Rc::new(RefCell::new(Live {
         core,
@@ -577,8 +579,14 @@ async fn serve(live: &Shared, joined: Joined) -> End {
             l.bytes_before += l.core.bytes_in();
             l.color_bytes_before += l.colors.bytes();
             let budget = l.core.budget();
+            let morph = l.core.morph_ticks();
             match ClientCore::new(&welcome, budget) {
-                Some(core) => l.core = core,
+                Some(core) => {
+                    l.core = core;
+                    if let Some(ticks) = morph {
+                        l.core.set_morph(ticks);
+                    }
+                }
                 None => {
                     session.close(close::BYE, "another grid");
                     return End::Final("the server's grid changed".into());

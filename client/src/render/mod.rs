@@ -16,8 +16,9 @@
 //! grey rather than failing.
 
 mod gpu;
-mod math;
+pub(crate) mod math;
 mod pipelines;
+pub mod morph;
 pub mod vertices;
 
 use anyhow::{Context, Result};
@@ -28,6 +29,7 @@ use crate::color_cache::{ColorUpdate, LevelState, MASK_WORDS, layer_side};
 
 pub use gpu::{Gpu, NO_ADAPTER, configure_surface};
 use vertices::Vertex;
+pub use morph::{MORPH_TICKS, Morph};
 pub use vertices::{TerrainUpdate, TerrainVertices};
 
 /// What does not change during a session: the map's scales, sun, fog, water and colours.
@@ -276,7 +278,7 @@ pub struct Renderer {
 
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 /// Near plane, world units.
-const NEAR: f32 = 0.5;
+pub(crate) const NEAR: f32 = 0.5;
 
 /// An sRGB colour as linear RGBA bytes (the shader works in linear light).
 fn linear_rgba(c: [u8; 3]) -> [u8; 4] {
@@ -625,7 +627,7 @@ impl Renderer {
 }
 
 /// A 2D texture to render into, of `size` pixels, with `usage` besides that.
-fn target_texture(
+pub(crate) fn target_texture(
     gpu: &Gpu,
     label: &str,
     size: (u32, u32),

@@ -47,6 +47,7 @@ fn vertex(
     scene: &Scene,
     grid: &Grid,
     (x, z, y): (u32, u32, u16),
+    lift: f32,
     height: impl Fn(u32, u32) -> Option<u16>,
 ) -> Vertex {
     let (hs, vs) = (scene.h_scale as f32, scene.v_scale as f32);
@@ -84,7 +85,7 @@ fn vertex(
     };
     let k = vs / hs;
     Vertex {
-        pos: [x as f32 * hs, centre * vs, z as f32 * hs],
+        pos: [x as f32 * hs, (centre + lift) * vs, z as f32 * hs],
         normal: pack(normalize([-gx * k, 1.0, -gz * k])),
     }
 }
@@ -171,7 +172,9 @@ impl TerrainVertices {
             .zip(&mesh.heights)
             .map(|(p, &y)| {
                 let (x, z) = (u32::from(p[0]), u32::from(p[1]));
-                vertex(scene, &grid, (x, z, y), |x, z| held.get(&(x, z)).copied())
+                vertex(scene, &grid, (x, z, y), 0.0, |x, z| {
+                    held.get(&(x, z)).copied()
+                })
             })
             .collect();
         let n = packed.len();
@@ -190,12 +193,15 @@ impl TerrainVertices {
 
     /// Follows `live` (the slots it rewrote since its last update, or every slot when
     /// these vertices were built otherwise), with heights from `height` (a grid index's,
-    /// `None` for one not in the cut): O(slots rewritten).
+    /// `None` for one not in the cut), each vertex drawn `lift(i)` samples above its
+    /// height (a geomorph's, [`super::Morph`]; the normals are the heights'):
+    /// O(slots rewritten).
     pub fn update(
         &mut self,
         scene: &Scene,
         live: &mut LiveMesh,
         height: impl Fn(u32) -> Option<u16>,
+        lift: impl Fn(u32) -> f32,
     ) {
         let Some(grid) = Grid::new(scene.levels) else {
             return;
@@ -225,7 +231,8 @@ impl TerrainVertices {
                 }
                 for (c, &i) in out.iter_mut().zip(t) {
                     let (x, z) = grid.coords(i);
-                    *c = vertex(scene, &grid, (x, z, height(i).unwrap_or(0)), look);
+                    let y = height(i).unwrap_or(0);
+                    *c = vertex(scene, &grid, (x, z, y), lift(i), look);
                 }
             }
             self.mark(slot);
@@ -455,7 +462,7 @@ mod tests {
                 let corner = x % 64 == 0 && z % 64 == 0;
                 (corner || now.contains(i)).then(|| height(i))
             };
-            terrain.update(&scene, &mut live, held);
+            terrain.update(&scene, &mut live, held, |_| 0.0);
             copy.apply(&terrain.take_update());
             assert_eq!(copy.corners, terrain.corners, "round {round}");
             assert_eq!(copy.triangles(), live.triangle_count());
