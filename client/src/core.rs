@@ -58,7 +58,7 @@ use roam_protocol::messages::{
 };
 use roam_protocol::{DiamondMap, Follower, Grid, LiveMesh, mesh};
 
-use crate::render::{Morph, Scene, TerrainVertices};
+use crate::render::{Morph, MorphView, Scene, TerrainVertices};
 
 /// Decoded frames kept as bases: the server codes against the newest one acknowledged, or
 /// its newest key frame while that is on its way, and never against a frame more than its
@@ -320,6 +320,14 @@ impl ClientCore {
         m.step(&now, |d| cut.contains(d), |i| cut.height(i), None);
         self.morph = Some(m);
         self.morph_tick = self.newest_tick;
+    }
+
+    /// The camera the next geomorph steps measure their speed on screen from (the frame's:
+    /// [`MorphView::of_vehicle`]); `None` keeps the last one.
+    pub fn set_morph_view(&mut self, view: Option<MorphView>) {
+        if let (Some(m), Some(v)) = (self.morph.as_mut(), view) {
+            m.set_view(Some(v));
+        }
     }
 
     /// The geomorphs' length in ticks, when the cut is drawn through a [`Morph`].

@@ -14,7 +14,7 @@ use tokio::sync::mpsc;
 
 use crate::camera::LocalGround;
 use crate::color_cache::ColorUpdate;
-use crate::render::{TerrainUpdate, TerrainVertices};
+use crate::render::{MorphView, TerrainUpdate, TerrainVertices};
 use crate::session::{Session, Taken};
 
 /// What the render thread asks of the network task.
@@ -205,7 +205,18 @@ async fn run(
             Event::Frame(Ok(Taken::Frame(r))) => r,
         };
         let started = Instant::now();
-        session.core().update_vertices(&session.scene, &mut terrain);
+        let seen = MorphView::of_vehicle(
+            &session.scene,
+            &r.vehicles,
+            session.vehicle(),
+            session.fov_y_deg(),
+            session.viewport()[1],
+        );
+        {
+            let mut core = session.core();
+            core.set_morph_view(seen);
+            core.update_vertices(&session.scene, &mut terrain);
+        }
         let update = terrain.take_update();
         let me = session.vehicle();
         let ground = match r.vehicles.iter().find(|v| v.id == me) {

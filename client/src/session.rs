@@ -275,6 +275,9 @@ pub(crate) fn secs(d: Duration) -> String {
 /// A joined viewer.
 pub struct Session {
     pub scene: Scene,
+    /// The hello's viewport and field of view (the geomorphs' camera).
+    viewport: [u32; 2],
+    fov_y_deg: f32,
     link: Arc<Link>,
     control: mpsc::UnboundedSender<Outgoing>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
@@ -335,6 +338,7 @@ impl Session {
         let ipv6 = endpoint.local_addr().is_ok_and(|a| a.is_ipv6());
         let mut hello = hello;
         hello.budget = messages::clamp_budget(hello.budget);
+        let (viewport, fov_y_deg) = (hello.viewport, hello.fov_y_deg);
         let (i, joined) = first_join(&endpoint, &addresses, hello.clone(), keep).await?;
         addresses.set_current(i);
         let addr = *addresses.current();
@@ -407,6 +411,8 @@ impl Session {
         }
         Ok(Session {
             scene,
+            viewport,
+            fov_y_deg,
             link,
             control,
             tasks,
@@ -543,6 +549,16 @@ impl Session {
         let mut core = self.core();
         core.set_view(view);
         self.flush(&mut core);
+    }
+
+    /// The viewport the hello asked for, pixels.
+    pub fn viewport(&self) -> [u32; 2] {
+        self.viewport
+    }
+
+    /// The vertical field of view the hello asked for, degrees.
+    pub fn fov_y_deg(&self) -> f32 {
+        self.fov_y_deg
     }
 
     /// Draws the cut with geomorphs taking `ticks` world ticks (0: none), on this

@@ -348,6 +348,14 @@ impl App {
                     }
                 }
                 l.gaps.frame(r.arrived);
+                let seen = roam_client::render::MorphView::of_vehicle(
+                    self.renderer.scene(),
+                    &r.vehicles,
+                    l.welcome.vehicle,
+                    60.0,
+                    self.gfx.config.height,
+                );
+                l.core.set_morph_view(seen);
                 l.core
                     .update_vertices(self.renderer.scene(), &mut self.terrain);
                 drop(l);

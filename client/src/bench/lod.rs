@@ -31,7 +31,7 @@ pub fn view_proj(view: &View, size: (u32, u32)) -> Mat {
 }
 
 /// A drawn cut's surface height at grid vertex `i`, samples: its drawn height if it is a
-/// vertex of the cut (a map corner's from `corner`), else the mean of its hypotenuse
+/// vertex of the cut (a map corner's from `corner`, which may know more vertices), else the mean of its hypotenuse
 /// ends' (memoised in `memo`).
 fn surface(
     m: &Morph,
@@ -42,14 +42,14 @@ fn surface(
     if let Some(h) = m.height(i) {
         return f32::from(h) + m.lift(i);
     }
-    if let Some(h) = corner(i) {
-        return f32::from(h);
+    let grid: &Grid = m.grid();
+    let (x, z) = grid.coords(i);
+    if x.is_multiple_of(grid.size()) && z.is_multiple_of(grid.size()) {
+        return f32::from(corner(i).unwrap_or(0));
     }
     if let Some(&y) = memo.get(&i) {
         return y;
     }
-    let grid: &Grid = m.grid();
-    let (x, z) = grid.coords(i);
     let [a, b] = grid.hypotenuse(x, z);
     let y = 0.5
         * (surface(m, corner, grid.index(a.0, a.1), memo)
@@ -95,7 +95,8 @@ pub fn pop_px(
     visit.sort_unstable();
     visit.dedup();
     let (hs, vs) = (scene.h_scale as f32, scene.v_scale as f32);
-    let inside = |(x, y): (f32, f32)| x >= 0.0 && y >= 0.0 && x < size.0 as f32 && y < size.1 as f32;
+    let inside =
+        |(x, y): (f32, f32)| x >= 0.0 && y >= 0.0 && x < size.0 as f32 && y < size.1 as f32;
     let (mut memo_a, mut memo_b) = (HashMap::new(), HashMap::new());
     let mut worst = 0.0f32;
     for i in visit {
@@ -109,7 +110,8 @@ pub fn pop_px(
         if let (Some(a), Some(b)) = (at(ya), at(yb))
             && (inside(a) || inside(b))
         {
-            worst = worst.max(((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt());
+            let px = ((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt();
+            worst = worst.max(px);
         }
     }
     worst
@@ -145,9 +147,8 @@ mod tests {
     use roam_protocol::BitSet;
 
     fn check_luma(a: &[[u8; 3]], b: &[[u8; 3]], sky: &[[u8; 3]], expected: f64) {
-        let rgba = |v: &[[u8; 3]]| -> Vec<u8> {
-            v.iter().flat_map(|p| [p[0], p[1], p[2], 255]).collect()
-        };
+        let rgba =
+            |v: &[[u8; 3]]| -> Vec<u8> { v.iter().flat_map(|p| [p[0], p[1], p[2], 255]).collect() };
         let got = luma_diff(&rgba(a), &rgba(b), &rgba(sky));
         assert!((got - expected).abs() < 1e-4, "{got} != {expected}");
     }
@@ -158,7 +159,12 @@ mod tests {
         // Sky everywhere: nothing to count.
         check_luma(&[s, s], &[s, s], &[s, s], 0.0);
         // One terrain pixel, unchanged; one changed by 10 grey levels.
-        check_luma(&[[50; 3], [60; 3], s], &[[50; 3], [70; 3], s], &[s, s, s], 5.0);
+        check_luma(
+            &[[50; 3], [60; 3], s],
+            &[[50; 3], [70; 3], s],
+            &[s, s, s],
+            5.0,
+        );
         // A pixel that is sky in one image and terrain in the other counts.
         check_luma(&[s], &[[109; 3]], &[s], 100.0);
     }

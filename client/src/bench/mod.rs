@@ -29,7 +29,7 @@ use roam_protocol::stats::quantile;
 
 use crate::color_cache::ColorUpdate;
 use crate::render::{
-    self, Gpu, Morph, Renderer, TerrainUpdate, TerrainVertices, Toggles, View,
+    self, Gpu, Morph, MorphView, Renderer, TerrainUpdate, TerrainVertices, Toggles, View,
 };
 use crate::session::{KeySource, Session, Taken};
 
@@ -100,15 +100,23 @@ pub async fn run(
             Taken::Nothing | Taken::Dropped(_) => continue,
             Taken::Frame(r) => r,
         };
-        let t0 = Instant::now();
-        session
-            .core()
-            .update_vertices(&session.scene, &mut vertices);
-        let t1 = Instant::now();
         let me = session.vehicle();
+        let seen =
+            MorphView::of_vehicle(&session.scene, &r.vehicles, me, opts.fov_y_deg, opts.size.1);
+        let t0 = Instant::now();
+        {
+            let mut core = session.core();
+            core.set_morph_view(seen);
+            core.update_vertices(&session.scene, &mut vertices);
+        }
+        let t1 = Instant::now();
         if let Some(v) = r.vehicles.iter().find(|v| v.id == me) {
             view = Some(View {
-                eye: [v.x as f32, v.y as f32 + 1.5, v.z as f32],
+                eye: [
+                    v.x as f32,
+                    (v.y + crate::camera::EYE_ABOVE_VEHICLE) as f32,
+                    v.z as f32,
+                ],
                 yaw_deg: v.heading as f32,
                 pitch_deg: DEFAULT_PITCH_DEG as f32,
                 fov_y_deg: opts.fov_y_deg,
@@ -119,7 +127,9 @@ pub async fn run(
             continue; // not seated yet: nothing to look from
         };
         let core = session.core();
-        let drawn = core.morph().expect("set above: the cut is drawn through a morph");
+        let drawn = core
+            .morph()
+            .expect("set above: the cut is drawn through a morph");
         if let Some((frame, ref old)) = before {
             if frame + 1 == r.frame {
                 let cut = core.cut();

@@ -17,8 +17,8 @@
 
 mod gpu;
 pub(crate) mod math;
-mod pipelines;
 pub mod morph;
+mod pipelines;
 pub mod vertices;
 
 use anyhow::{Context, Result};
@@ -28,8 +28,8 @@ use wgpu::util::DeviceExt;
 use crate::color_cache::{ColorUpdate, LevelState, MASK_WORDS, layer_side};
 
 pub use gpu::{Gpu, NO_ADAPTER, configure_surface};
+pub use morph::{MORPH_PX_PER_TICK, MORPH_TICKS, Morph, MorphView};
 use vertices::Vertex;
-pub use morph::{MORPH_TICKS, Morph};
 pub use vertices::{TerrainUpdate, TerrainVertices};
 
 /// What does not change during a session: the map's scales, sun, fog, water and colours.
