@@ -44,6 +44,8 @@ struct PathCase {
     start: (f64, f64, f64, f64),
     budget: u32,
     threshold: f32,
+    /// Fog density, per world unit (the maps are 160 to 1,280 units wide).
+    density: f32,
     path: Vec<Step>,
 }
 
@@ -55,16 +57,18 @@ fn path_case() -> impl Strategy<Value = PathCase> {
         (0.1f64..0.9, 0.1f64..0.9, 2.0f64..200.0, 0.0f64..360.0),
         16u32..3000,
         prop_oneof![3 => Just(0.0f32), 1 => 0.2f32..4.0],
+        prop_oneof![1 => Just(0.0f32), 1 => 1e-4f32..2e-2],
         prop::collection::vec(step(), 1..40),
     )
         .prop_map(
-            |(levels, seed, rough, start, budget, threshold, path)| PathCase {
+            |(levels, seed, rough, start, budget, threshold, density, path)| PathCase {
                 levels,
                 seed,
                 rough,
                 start,
                 budget,
                 threshold,
+                density,
                 path,
             },
         )
@@ -104,6 +108,7 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
         let limits = Limits {
             budget,
             threshold_px: case.threshold,
+            fog_density: case.density,
         };
         let mode = a.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
         if b.frame(&hf, &vt, scales(), &cam, limits, false, &pool) != mode
@@ -154,8 +159,9 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
     Ok(ratios)
 }
 
-/// Along many random paths (fixed seeds), the served cut's measured screen-space error is
-/// within 1.1x of split-only from scratch at p99 over all frames. A single frame can be
+/// Along many random paths (fixed seeds; half of them in fog, the error then the fogged
+/// one), the served cut's measured screen-space error is within 1.1x of split-only from
+/// scratch at p99 over all frames. A single frame can be
 /// worse: a diamond whose loose bounding prism pokes into the view below a parent wholly
 /// outside keeps both split (split-only from scratch never reaches it), which costs budget
 /// elsewhere until it is merged.
@@ -202,12 +208,13 @@ proptest! {
         fov in 20.0f64..100.0,
         budget in 2u32..6000,
         threshold in prop_oneof![Just(0.0f32), 0.0f32..4.0],
+        density in prop_oneof![Just(0.0f32), 1e-4f32..2e-2],
     ) {
         let hf = terrain(levels, seed, rough);
         let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
         let size = f64::from(hf.size());
         let cam = camera(&hf, gx * size, gz * size, above, yaw, pitch, fov);
-        let limits = Limits { budget, threshold_px: threshold };
+        let limits = Limits { budget, threshold_px: threshold, fog_density: density };
         let (mesh, mut t) = run(&hf, &vt, &cam, limits);
         check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| TestCaseError::fail(e.to_string()))?;
         prop_assert!(mesh.triangle_count() <= budget as usize);
@@ -230,7 +237,7 @@ proptest! {
     }
 
     /// The split/merge tessellator along random camera paths (small steps, turns, pitch,
-    /// jumps, budget changes): after every frame the cut is conforming, within budget,
+    /// jumps, budget changes; half of them in fog): after every frame the cut is conforming, within budget,
     /// splits nothing outside the view pyramid unless forced, keeps its frontiers exactly,
     /// knows its own error, and its change logs add up to it; the same path gives the same
     /// cuts and logs.
@@ -276,6 +283,7 @@ fn flat_ground_needs_two_triangles() {
         Limits {
             budget: 1000,
             threshold_px: 0.0,
+            fog_density: 0.0,
         },
     );
     assert_eq!(mesh.triangle_count(), 2);
@@ -298,6 +306,7 @@ fn one_spike_is_refined_down_to_full_resolution() {
         Limits {
             budget: 10_000,
             threshold_px: 0.0,
+            fog_density: 0.0,
         },
     );
     check_mesh(&mesh.vertices, &mesh.indices, hf.size()).expect("conforming");
@@ -331,6 +340,7 @@ fn the_ground_under_the_eye_is_exact() {
             Limits {
                 budget: 2000,
                 threshold_px: 1e9,
+                fog_density: 0.0,
             },
         );
         let under = mesh
@@ -375,6 +385,7 @@ fn the_budget_is_reached_on_rough_ground_and_never_passed() {
             Limits {
                 budget,
                 threshold_px: 0.0,
+                fog_density: 0.0,
             },
         );
         let n = mesh.triangle_count() as u32;
@@ -401,6 +412,7 @@ fn a_higher_threshold_gives_fewer_triangles_and_a_bound_below_it() {
             Limits {
                 budget: 1 << 20,
                 threshold_px: threshold,
+                fog_density: 0.0,
             },
         );
         assert!(

@@ -3,7 +3,8 @@
 //! On x86-64 the lanes are an SSE register (SSE2 is part of the baseline, and the
 //! x86-64-v3 build encodes the same operations with VEX); elsewhere they are an array.
 //! Every operation is the IEEE operation of each lane, so both give bit-identical results,
-//! and equal to the same arithmetic on scalars.
+//! and equal to the same arithmetic on scalars; [`exp_neg`] (the fog's transmission) is
+//! built from such operations too, not taken from the platform's library.
 
 #[cfg(target_arch = "x86_64")]
 mod imp {
@@ -196,6 +197,37 @@ impl F4 {
     pub fn max_lane(self) -> f32 {
         self.to_array().into_iter().fold(0f32, f32::max)
     }
+
+    /// [`exp_neg`] of each lane.
+    #[inline(always)]
+    pub fn exp_neg(self) -> F4 {
+        F4::new(self.to_array().map(exp_neg))
+    }
+}
+
+/// `exp(−x)` for `x >= 0` (0 for NaN and past 87, where it is below the smallest normal
+/// `f32`), from IEEE arithmetic and bit operations alone, so that every build and machine
+/// gives the same bits (a library `expf` may differ between machines, and its FMA variant
+/// from the one without). Relative error below 1e-5 (the rounding of `x · log2 e`; the
+/// polynomial's own is 2e-7); exactly 1 at 0.
+#[inline(always)]
+pub fn exp_neg(x: f32) -> f32 {
+    // exp(−x) = 2^−t = 2^−n · 2^−f, with t = x · log2 e, n = round(t), |f| <= 1/2.
+    let t = x * std::f32::consts::LOG2_E;
+    if t >= 126.0 || t.is_nan() {
+        return 0.0;
+    }
+    let t = t.max(0.0);
+    let n = (t + 0.5) as u32; // t >= 0: truncation rounds down
+    let f = t - n as f32;
+    // 2^−f = e^u, u = −f · ln 2 in [−0.35, 0.35]: Taylor to u^6 (error u^7 / 7! < 2e-7).
+    let u = -f * std::f32::consts::LN_2;
+    let p = 1.0
+        + u * (1.0
+            + u * (1.0 / 2.0
+                + u * (1.0 / 6.0 + u * (1.0 / 24.0 + u * (1.0 / 120.0 + u * (1.0 / 720.0))))));
+    // 2^−n, n <= 126: a normal float built from its exponent.
+    p * f32::from_bits((127 - n) << 23)
 }
 
 #[cfg(test)]
@@ -239,6 +271,31 @@ mod tests {
         assert_eq!(
             F4::from_u32([0, 1, 1 << 23, 1025]).to_array(),
             [0.0, 1.0, 8388608.0, 1025.0]
+        );
+    }
+
+    /// `exp(−x)` within 1e-5 of the exact value over the range fog gives it, exactly 1 at
+    /// 0, 0 past the normal floats, the same in every lane as on scalars.
+    #[test]
+    fn exp_neg_is_close_and_exact_at_0() {
+        assert_eq!(super::exp_neg(0.0).to_bits(), 1f32.to_bits());
+        assert_eq!(super::exp_neg(-0.0).to_bits(), 1f32.to_bits());
+        assert_eq!(super::exp_neg(88.0), 0.0);
+        assert_eq!(super::exp_neg(f32::INFINITY), 0.0);
+        assert_eq!(super::exp_neg(f32::NAN), 0.0);
+        let mut worst = 0f64;
+        for i in 0..200_000 {
+            let x = i as f32 * 4.3e-4; // 0 .. 86
+            let got = f64::from(super::exp_neg(x));
+            let want = (-f64::from(x)).exp();
+            worst = worst.max((got - want).abs() / want);
+        }
+        assert!(worst < 1e-5, "relative error {worst}");
+        let v = [0.0, 0.25, 3.0, 40.0];
+        let lanes = F4::new(v).exp_neg().to_array();
+        assert_eq!(
+            lanes.map(f32::to_bits),
+            v.map(super::exp_neg).map(f32::to_bits)
         );
     }
 
