@@ -25,9 +25,10 @@
 //! `L = ln(1 + r)`: 1 % tighter than today for no gain, so the fog term is the one
 //! bounded. As `ρ·d` grows, `δ` tends to `r / ((1 + r)·ρ)`: the fog, not the distance,
 //! limits how far the eye may go. Measured on `kossou` at 32,768 triangles (`bench
-//! --fog-priority off` / `on`, the figures in `cli/tess.rs`): the tighter bound costs no
-//! evaluations, since the fog-aware cut holds fewer far diamonds to fall due (a frame's
-//! median 20 → 18; 32 viewers in turn 453 → 346 a frame on average), and the served cut's
+//! --fog-priority off` / `on`, the figures in `cli/tess.rs`): the tighter bound cost no
+//! evaluations there, fewer fall due with fog (a frame's median 20 → 18; 32 viewers in
+//! turn 453 → 346 a frame on average; not analysed further: the fog-aware cut holds
+//! fewer far diamonds, which turning sweeps in), and the served cut's
 //! reported error stays within 2.5 % of a fresh measurement (`tests/tessellate.rs` and
 //! `tests/fog.rs`, with fog).
 
