@@ -1,9 +1,10 @@
 //! What a viewer does each display frame, minus the window: the keys by name (the window's
 //! and the browser page's keys are spelled alike: `ArrowUp`, `Escape`, `f`, `+`), the
 //! toggles and the budget, every vehicle replayed smoothly ([`Interpolator`]), the damped
-//! camera ([`Rig`]) on the drawn ground, when to tell the server the camera moved, and the
-//! HUD's rates. The native window ([`crate::window`]) and the page (`roam-web`) differ
-//! only in where the keys come from and what is drawn into; both keep one [`Cockpit`].
+//! camera ([`Rig`]) on the drawn ground, when to tell the server the camera moved or the
+//! fog was toggled (it weighs errors by the fog only while it is drawn), and the HUD's
+//! rates. The native window ([`crate::window`]) and the page (`roam-web`) differ only in
+//! where the keys come from and what is drawn into; both keep one [`Cockpit`].
 //! Time is a parameter (local seconds), never read here.
 
 use std::collections::{HashMap, HashSet};
@@ -196,17 +197,21 @@ impl Cockpit {
             Some(v) => {
                 let ground = &self.ground;
                 let pose = self.rig.update(now, v, |x, z| ground.height(x, z));
-                // The server tessellates for this camera, told when it has moved enough.
+                // The server tessellates for this camera, told when it has moved enough, and
+                // at once when the fog is turned on or off (it weighs errors by the fog
+                // only while it is drawn).
                 let change = ViewChange {
                     pitch_deg: pose.pitch_deg as f32,
                     eye_above: (pose.eye[1] - v.y) as f32,
                     viewport: [size.0, size.1],
+                    fog: self.toggles.fog,
                 };
                 let moved = self.told.is_none_or(|(at, t)| {
-                    now - at >= 0.1
-                        && ((t.pitch_deg - change.pitch_deg).abs() > 0.5
-                            || (t.eye_above - change.eye_above).abs() > 0.5
-                            || t.viewport != change.viewport)
+                    t.fog != change.fog
+                        || (now - at >= 0.1
+                            && ((t.pitch_deg - change.pitch_deg).abs() > 0.5
+                                || (t.eye_above - change.eye_above).abs() > 0.5
+                                || t.viewport != change.viewport))
                 });
                 if moved {
                     tell = Some(change);
@@ -339,6 +344,16 @@ mod tests {
         assert!(c.frame(1.05, 3, (800, 600), 1000.0).tell.is_none());
         assert!(c.frame(1.5, 3, (800, 600), 1000.0).tell.is_none());
         assert!(c.frame(1.6, 3, (1024, 600), 1000.0).tell.is_some());
+        // The fog toggled is told at once (within the 0.1 s too), both ways.
+        let fog = Toggles::default().fog;
+        assert!(f.tell.is_some_and(|t| t.fog == fog));
+        c.press("f");
+        let told = c.frame(1.61, 3, (1024, 600), 1000.0).tell;
+        assert!(told.is_some_and(|t| t.fog != fog), "{told:?}");
+        assert!(c.frame(1.62, 3, (1024, 600), 1000.0).tell.is_none());
+        c.press("F");
+        let told = c.frame(1.63, 3, (1024, 600), 1000.0).tell;
+        assert!(told.is_some_and(|t| t.fog == fog), "{told:?}");
         let n = c.numbers(1.6, f.followed.as_ref());
         assert_eq!((n.speed, n.budget), (5.0, 20_000));
         // A frame without vehicle 7 forgets it.

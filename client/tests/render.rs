@@ -92,6 +92,7 @@ fn view_and_mesh(t: &Terrain) -> (View, roam_protocol::Mesh) {
         Limits {
             budget: 20_000,
             threshold_px: 0.0,
+            fog_density: 0.0,
         },
         &mut mesh,
     );

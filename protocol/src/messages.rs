@@ -35,8 +35,9 @@ pub use crate::tiles::{ColorLayout, MAX_TILE_BYTES, MAX_WINDOW};
 /// [`ServerMessage::ColorTile`]) instead of whole; a hello says the window it can hold
 /// ([`Hello::color_window`]). 6: an edge server (`roam-server edge`) tells its viewers
 /// how the world behind it stands and where the world's other edges are
-/// ([`ServerMessage::World`]).
-pub const VERSION: u16 = 6;
+/// ([`ServerMessage::World`]). 7: a view change says whether the viewer draws its fog
+/// ([`ViewChange::fog`]): the server weighs far errors by the fog only while it does.
+pub const VERSION: u16 = 7;
 /// The largest message (a frame with its mesh).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.
@@ -181,7 +182,7 @@ pub enum ClientMessage {
     KeyFrame,
     Bye(Reason),
     /// The viewer's camera changed (it damps its pitch over rough ground, its window was
-    /// resized): tessellate for this view from now on.
+    /// resized, its fog was turned on or off): tessellate for this view from now on.
     View(ViewChange),
 }
 
@@ -194,6 +195,10 @@ pub struct ViewChange {
     pub eye_above: f32,
     /// Window size, pixels.
     pub viewport: [u32; 2],
+    /// The viewer draws its fog (key `f` toggles it). While it does, the server spends
+    /// less of the budget where the fog hides the error; while it does not, the fog must
+    /// not lower any priority. Before the first view change the server assumes it does.
+    pub fog: bool,
 }
 
 /// Server to viewer, on the control stream.

@@ -61,6 +61,13 @@ fn every_message_round_trips() {
             pitch_deg: -12.5,
             eye_above: 1.5,
             viewport: [800, 600],
+            fog: true,
+        }),
+        ClientMessage::View(messages::ViewChange {
+            pitch_deg: 3.0,
+            eye_above: -0.5,
+            viewport: [1920, 1080],
+            fog: false,
         }),
         ClientMessage::Bye(Reason::Quit),
         ClientMessage::Bye(Reason::Protocol("bad".into())),
@@ -241,7 +248,21 @@ fn limits() {
     let mut bad_utf8 = token(2);
     // The token's first byte, after the hello's head and the token's length.
     bad_utf8[hello_head.len() + 1] = 0xff;
+    // A view change ends with its fog flag: one byte, 0 or 1.
+    let view = |fog: u8| {
+        let mut v = encoded(&ClientMessage::View(messages::ViewChange {
+            pitch_deg: -5.0,
+            eye_above: 0.0,
+            viewport: [640, 480],
+            fog: true,
+        }));
+        *v.last_mut().expect("a message has bytes") = fog;
+        v
+    };
     for (name, kind, input, want) in [
+        ("a view change without fog", As::Client, view(0), Value),
+        ("a view change with fog", As::Client, view(1), Value),
+        ("a view change whose fog is 2", As::Client, view(2), Error),
         ("a 128-byte token", As::Client, token(128), Value),
         (
             "a 129-byte token",

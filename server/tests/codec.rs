@@ -37,6 +37,7 @@ fn drive(name: &str, budget: u32, skip: usize) -> Vec<f64> {
     let limits = Limits {
         budget,
         threshold_px: 0.0,
+        fog_density: 0.0,
     };
     let (mut server, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let mut acked: Option<BitSet> = None;

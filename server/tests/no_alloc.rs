@@ -127,6 +127,8 @@ fn warm_tessellator_does_not_allocate() {
     let limits = Limits {
         budget: 20_000,
         threshold_px: 0.0,
+        // The map's fog: the fog-aware priority allocates nothing either.
+        fog_density: terrain.map.fog_density as f32,
     };
     let mut tess = Tessellator::new(hf.side());
     let mut mesh = Mesh::default();

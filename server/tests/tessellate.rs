@@ -1,157 +1,14 @@
 //! Property and data-driven tests of the variance tree and the tessellator.
 
+mod tess;
+
 use proptest::prelude::*;
 use roam_protocol::validate::check_mesh;
 use roam_server::Heightfield;
 use roam_server::terrain::variance::{VarianceTree, triangle_error};
-use roam_server::tessellate::camera::Camera;
-use roam_server::tessellate::diamond::{Diamond, Triangle};
-use roam_server::tessellate::{
-    Coherent, Limits, Mesh, Scales, Scratch, Tessellator, measured_error,
-};
-
-/// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
-fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
-    let side = (1u32 << levels) + 1;
-    let mut state = seed;
-    let mut rnd = || {
-        state = state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
-    };
-    let bumps: Vec<[f64; 4]> = (0..4)
-        .map(|_| {
-            [
-                rnd() * side as f64,
-                rnd() * side as f64,
-                2.0 + rnd() * side as f64 / 3.0,
-                rnd() * 20000.0,
-            ]
-        })
-        .collect();
-    let floor = rnd() * 8000.0;
-    let mut samples = Vec::with_capacity((side * side) as usize);
-    for z in 0..side {
-        for x in 0..side {
-            let mut h = 10000.0 + roughness * rnd() * 3000.0;
-            for [bx, bz, r, a] in &bumps {
-                let d2 = ((x as f64 - bx).powi(2) + (z as f64 - bz).powi(2)) / (r * r);
-                h += a * (-d2).exp();
-            }
-            samples.push(h.max(10000.0 + floor).min(65535.0) as u16);
-        }
-    }
-    Heightfield::new(side, samples).expect("side is 2^N + 1")
-}
-
-fn scales() -> Scales {
-    Scales { h: 10.0, v: 0.02 }
-}
-
-/// Camera at grid position (gx, gz), `above` world units over the ground.
-fn camera(
-    hf: &Heightfield,
-    gx: f64,
-    gz: f64,
-    above: f64,
-    yaw: f64,
-    pitch: f64,
-    fov: f64,
-) -> Camera {
-    let s = scales();
-    let (cx, cz) = (
-        gx.clamp(0.0, hf.size() as f64) as u32,
-        gz.clamp(0.0, hf.size() as f64) as u32,
-    );
-    let ground = f64::from(hf.get(cx, cz)) * s.v;
-    Camera {
-        eye: [gx * s.h, ground + above, gz * s.h],
-        yaw_deg: yaw,
-        pitch_deg: pitch,
-        fov_y_deg: fov,
-        width: 640,
-        height: 480,
-    }
-}
-
-fn run(hf: &Heightfield, vt: &VarianceTree, cam: &Camera, limits: Limits) -> (Mesh, Tessellator) {
-    let mut t = Tessellator::new(hf.side());
-    let mut mesh = Mesh::default();
-    t.tessellate(hf, vt, scales(), cam, limits, &mut mesh);
-    (mesh, t)
-}
-
-/// Every diamond split without being forced (no split child needs it) must not lie wholly
-/// outside the frustum, unless it holds the eye's ground position.
-fn check_frustum(
-    hf: &Heightfield,
-    vt: &VarianceTree,
-    cam: &Camera,
-    split: impl Iterator<Item = (u32, u32)>,
-) -> Result<(), String> {
-    let size = hf.size();
-    let s = scales();
-    let split: std::collections::HashSet<(u32, u32)> = split.collect();
-    let forced: std::collections::HashSet<(u32, u32)> = split
-        .iter()
-        .flat_map(|&(x, z)| {
-            Diamond::at(x, z, size)
-                .expect("split diamonds exist")
-                .parents(size)
-        })
-        .flatten()
-        .collect();
-    // The view pyramid: the near plane adds nothing to culling (the apex is the eye).
-    let planes = &cam.frustum()[1..];
-    for &(x, z) in &split {
-        if forced.contains(&(x, z)) {
-            continue;
-        }
-        let d = Diamond::at(x, z, size).expect("split diamonds exist");
-        let tris = d.triangles(size);
-        let e = f64::from(vt.error(hf, x, z));
-        let hts: Vec<f64> = tris
-            .iter()
-            .flat_map(|t| t.vertices())
-            .map(|(vx, vz)| f64::from(hf.get(vx, vz)))
-            .collect();
-        let lo = (hts.iter().copied().fold(f64::INFINITY, f64::min) - e) * s.v;
-        let hi = (hts.iter().copied().fold(f64::NEG_INFINITY, f64::max) + e) * s.v;
-        let h = f64::from(d.h());
-        let foot: Vec<(f64, f64)> = match d.shape {
-            roam_server::tessellate::diamond::Shape::Square => {
-                vec![(-h, -h), (h, -h), (-h, h), (h, h)]
-            }
-            _ => vec![(-h, 0.0), (h, 0.0), (0.0, -h), (0.0, h)],
-        };
-        let (ex, ez) = (
-            cam.eye[0] / s.h - f64::from(x),
-            cam.eye[2] / s.h - f64::from(z),
-        );
-        let under = match d.shape {
-            roam_server::tessellate::diamond::Shape::Square => ex.abs() <= h && ez.abs() <= h,
-            _ => ex.abs() + ez.abs() <= h,
-        };
-        if under {
-            continue;
-        }
-        for p in planes {
-            let outside = foot.iter().all(|&(dx, dz)| {
-                [lo, hi].iter().all(|&y| {
-                    p.distance([(f64::from(x) + dx) * s.h, y, (f64::from(z) + dz) * s.h]) < -1e-3
-                })
-            });
-            if outside {
-                return Err(format!(
-                    "diamond ({x}, {z}) h {h} is outside the frustum but split"
-                ));
-            }
-        }
-    }
-    Ok(())
-}
+use roam_server::tessellate::diamond::Triangle;
+use roam_server::tessellate::{Coherent, Limits, Mesh, Scratch, Tessellator, measured_error};
+use tess::{camera, check_frustum, run, scales, terrain};
 
 /// One step of a camera path.
 #[derive(Clone, Debug)]
@@ -187,6 +44,8 @@ struct PathCase {
     start: (f64, f64, f64, f64),
     budget: u32,
     threshold: f32,
+    /// Fog density, per world unit (the maps are 160 to 1,280 units wide).
+    density: f32,
     path: Vec<Step>,
 }
 
@@ -198,16 +57,18 @@ fn path_case() -> impl Strategy<Value = PathCase> {
         (0.1f64..0.9, 0.1f64..0.9, 2.0f64..200.0, 0.0f64..360.0),
         16u32..3000,
         prop_oneof![3 => Just(0.0f32), 1 => 0.2f32..4.0],
+        prop_oneof![1 => Just(0.0f32), 1 => 1e-4f32..2e-2],
         prop::collection::vec(step(), 1..40),
     )
         .prop_map(
-            |(levels, seed, rough, start, budget, threshold, path)| PathCase {
+            |(levels, seed, rough, start, budget, threshold, density, path)| PathCase {
                 levels,
                 seed,
                 rough,
                 start,
                 budget,
                 threshold,
+                density,
                 path,
             },
         )
@@ -247,6 +108,7 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
         let limits = Limits {
             budget,
             threshold_px: case.threshold,
+            fog_density: case.density,
         };
         let mode = a.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
         if b.frame(&hf, &vt, scales(), &cam, limits, false, &pool) != mode
@@ -297,8 +159,9 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
     Ok(ratios)
 }
 
-/// Along many random paths (fixed seeds), the served cut's measured screen-space error is
-/// within 1.1x of split-only from scratch at p99 over all frames. A single frame can be
+/// Along many random paths (fixed seeds; half of them in fog, the error then the fogged
+/// one), the served cut's measured screen-space error is within 1.1x of split-only from
+/// scratch at p99 over all frames. A single frame can be
 /// worse: a diamond whose loose bounding prism pokes into the view below a parent wholly
 /// outside keeps both split (split-only from scratch never reaches it), which costs budget
 /// elsewhere until it is merged.
@@ -345,12 +208,13 @@ proptest! {
         fov in 20.0f64..100.0,
         budget in 2u32..6000,
         threshold in prop_oneof![Just(0.0f32), 0.0f32..4.0],
+        density in prop_oneof![Just(0.0f32), 1e-4f32..2e-2],
     ) {
         let hf = terrain(levels, seed, rough);
         let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
         let size = f64::from(hf.size());
         let cam = camera(&hf, gx * size, gz * size, above, yaw, pitch, fov);
-        let limits = Limits { budget, threshold_px: threshold };
+        let limits = Limits { budget, threshold_px: threshold, fog_density: density };
         let (mesh, mut t) = run(&hf, &vt, &cam, limits);
         check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| TestCaseError::fail(e.to_string()))?;
         prop_assert!(mesh.triangle_count() <= budget as usize);
@@ -373,7 +237,7 @@ proptest! {
     }
 
     /// The split/merge tessellator along random camera paths (small steps, turns, pitch,
-    /// jumps, budget changes): after every frame the cut is conforming, within budget,
+    /// jumps, budget changes; half of them in fog): after every frame the cut is conforming, within budget,
     /// splits nothing outside the view pyramid unless forced, keeps its frontiers exactly,
     /// knows its own error, and its change logs add up to it; the same path gives the same
     /// cuts and logs.
@@ -419,6 +283,7 @@ fn flat_ground_needs_two_triangles() {
         Limits {
             budget: 1000,
             threshold_px: 0.0,
+            fog_density: 0.0,
         },
     );
     assert_eq!(mesh.triangle_count(), 2);
@@ -441,6 +306,7 @@ fn one_spike_is_refined_down_to_full_resolution() {
         Limits {
             budget: 10_000,
             threshold_px: 0.0,
+            fog_density: 0.0,
         },
     );
     check_mesh(&mesh.vertices, &mesh.indices, hf.size()).expect("conforming");
@@ -474,6 +340,7 @@ fn the_ground_under_the_eye_is_exact() {
             Limits {
                 budget: 2000,
                 threshold_px: 1e9,
+                fog_density: 0.0,
             },
         );
         let under = mesh
@@ -518,6 +385,7 @@ fn the_budget_is_reached_on_rough_ground_and_never_passed() {
             Limits {
                 budget,
                 threshold_px: 0.0,
+                fog_density: 0.0,
             },
         );
         let n = mesh.triangle_count() as u32;
@@ -544,6 +412,7 @@ fn a_higher_threshold_gives_fewer_triangles_and_a_bound_below_it() {
             Limits {
                 budget: 1 << 20,
                 threshold_px: threshold,
+                fog_density: 0.0,
             },
         );
         assert!(

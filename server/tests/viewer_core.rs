@@ -468,9 +468,99 @@ fn budget_view_and_jumps_steer_the_cut() {
         pitch_deg: -89.0,
         eye_above: 0.0,
         viewport: [640, 480],
+        fog: true,
     }));
     let down = core.make_frame(&scene, &bounced);
     assert!(down.triangles < before, "{} !< {before}", down.triangles);
+}
+
+/// The priority weighs errors by the map's fog while the viewer draws it: its view change
+/// turning the fog off rebuilds the cut as the fog-unaware priority makes it (from
+/// scratch at density 0, split for split), turning it on again as the fog-aware one, and a
+/// server serving with `fog_priority` off never weighs by the fog.
+#[test]
+fn the_viewers_fog_steers_the_priority() {
+    use roam_protocol::messages::{DEFAULT_PITCH_DEG, ViewChange};
+    use roam_server::tessellate::{Limits, Scales, Tessellator};
+    use roam_server::viewer::ViewerLimits;
+    let fx = Fixture::new(257, 9);
+    let scene = fx.scene();
+    let density = fx.terrain.map.fog_density as f32;
+    assert!(density > 0.0, "synthetic maps have fog");
+    let drive = fx.drive(12);
+    let mut core = fx.core(3000);
+    assert_eq!(
+        core.fog_density(&scene),
+        density,
+        "fog until told otherwise"
+    );
+    let scales = Scales {
+        h: fx.terrain.map.h_scale,
+        v: fx.terrain.map.v_scale,
+    };
+    let mut t = Tessellator::new(fx.terrain.heights.side());
+    let mut scratch = |core: &ViewerCore, v: &VehicleState, fog_density: f32| {
+        let limits = Limits {
+            budget: 3000,
+            threshold_px: 0.0,
+            fog_density,
+        };
+        let cam = core.camera_at(&scene, v);
+        t.tessellate(
+            &fx.terrain.heights,
+            &fx.variance,
+            scales,
+            &cam,
+            limits,
+            &mut Mesh::default(),
+        );
+        let mut split: Vec<(u32, u32)> = t.split_diamonds().collect();
+        split.sort_unstable();
+        split
+    };
+    let cut = |core: &ViewerCore| {
+        let mut split: Vec<(u32, u32)> = core.cut().split_diamonds().collect();
+        split.sort_unstable();
+        split
+    };
+    // The default camera, the fog as given.
+    let view = |fog: bool| {
+        Event::View(ViewChange {
+            pitch_deg: DEFAULT_PITCH_DEG as f32,
+            eye_above: 0.0,
+            viewport: [640, 480],
+            fog,
+        })
+    };
+    for v in &drive[..4] {
+        core.make_frame(&scene, v);
+    }
+    core.handle(view(false));
+    assert_eq!(core.fog_density(&scene), 0.0);
+    assert_eq!(core.make_frame(&scene, &drive[4]).mode, Mode::Rebuild);
+    let plain = scratch(&core, &drive[4], 0.0);
+    assert_eq!(cut(&core), plain, "fog off: the fog-unaware cut");
+    assert_eq!(core.make_frame(&scene, &drive[5]).mode, Mode::Update);
+    core.handle(view(true));
+    assert_eq!(core.make_frame(&scene, &drive[6]).mode, Mode::Rebuild);
+    let fogged = scratch(&core, &drive[6], density);
+    assert_eq!(cut(&core), fogged, "fog on: the fog-aware cut");
+    assert_ne!(
+        fogged,
+        scratch(&core, &drive[6], 0.0),
+        "the fog changes the cut"
+    );
+    // A server serving without fog priority: density 0 whatever the viewer draws.
+    let caps = ViewerLimits {
+        fog_priority: false,
+        ..ViewerLimits::default()
+    };
+    let mut off = fx.core(3000).with_caps(caps);
+    assert_eq!(off.fog_density(&scene), 0.0);
+    off.handle(view(true));
+    assert_eq!(off.fog_density(&scene), 0.0);
+    off.make_frame(&scene, &drive[6]);
+    assert_eq!(cut(&off), scratch(&off, &drive[6], 0.0));
 }
 
 /// A frame begun in line (on the server's async workers) is made there only when it is

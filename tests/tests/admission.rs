@@ -275,6 +275,7 @@ async fn a_viewer_asking_more_than_the_caps_is_served_the_caps() {
         limits: roam_server::viewer::ViewerLimits {
             max_budget: MAX_BUDGET,
             max_fps: MAX_FPS,
+            ..Default::default()
         },
         ..o
     });

@@ -264,6 +264,7 @@ async fn the_viewer_steers_the_servers_budget_and_camera() {
         pitch_deg,
         eye_above: 0.0,
         viewport: [1280, 720],
+        fog: true,
     };
     s.set_view(down(-89.0));
     until(&s, "the view straight down", |t| t < 500).await;

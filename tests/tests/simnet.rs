@@ -501,6 +501,7 @@ fn budget_and_view_changes_arrive_over_a_lossy_link() {
             pitch_deg,
             eye_above: 0.0,
             viewport: [640, 480],
+            fog: true,
         };
         sim.set_view(d, down(-89.0));
         let took = until_triangles(&mut sim, d, |t| t < 400);

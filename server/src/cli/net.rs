@@ -81,6 +81,10 @@ pub struct ServeArgs {
     /// Most frames a second a viewer is served, whatever it asks.
     #[arg(long, default_value_t = roam_server::viewer::MAX_FPS)]
     pub max_fps: u16,
+    /// Weigh each diamond's error by what the map's fog lets through of it, for viewers
+    /// drawing their fog (`on`), or not (`off`: the fog-unaware priority, for comparisons).
+    #[arg(long, value_enum, default_value_t = super::tess::FogPriority::On)]
+    pub fog_priority: super::tess::FogPriority,
     /// Seconds a driver's vehicle is held after its connection drops, for it to come back.
     #[arg(long, default_value_t = net::HOLD.as_secs_f64(), value_parser = seconds)]
     pub hold: f64,
@@ -187,6 +191,7 @@ impl ServeArgs {
         let limits = ViewerLimits {
             max_budget: self.max_budget,
             max_fps: self.max_fps,
+            fog_priority: self.fog_priority.on(),
         };
         anyhow::ensure!(
             limits.clamped() == limits,

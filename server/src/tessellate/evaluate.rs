@@ -1,5 +1,14 @@
 //! Queuing the children of a split diamond: their corner heights and stored errors, the
 //! frustum test and the priority, for all of a split's children at once (one per lane).
+//!
+//! **Fog** (issue 24): the priority is the screen-space error `e · px / d` times the fog's
+//! transmission `exp(−density · max(clear, 0))`, `clear` the distance from the eye to the
+//! bounding prism (nearest: the transmission is the largest the diamond's error could be
+//! seen with). The viewer's fog hides far error anyway, so the budget goes nearer. Without
+//! fog (density 0: the map has none, the viewer turned it off, or `--fog-priority off`)
+//! the product is skipped and the cut is bit for bit the fog-unaware one (`tests/fog.rs`
+//! pins digests taken before). The transmission is [`F4::exp_neg`], IEEE arithmetic
+//! only, so every build and machine still ranks alike.
 
 use super::lanes::F4;
 use super::{Frame, MIN_DISTANCE, Tessellator, pack};
@@ -37,7 +46,7 @@ pub(super) struct Shape4 {
 
 /// A batch's priorities and what decides how long they stay true.
 pub(super) struct Priority {
-    /// Screen-space error in pixels.
+    /// Screen-space error in pixels, weighed by the fog's transmission.
     pub prio: F4,
     /// Lanes wholly outside one frustum plane, and lanes whose footprint holds the eye's
     /// ground position.
@@ -57,7 +66,8 @@ pub(super) struct Priority {
     pub ez: F4,
 }
 
-/// The priority of each lane (screen-space error in pixels), and the masks of lanes wholly
+/// The priority of each lane (screen-space error in pixels, times the fog's transmission
+/// `exp(−density · max(clear, 0))`), and the masks of lanes wholly
 /// outside one frustum plane and of lanes whose footprint holds the eye's ground position.
 /// One computation for the from-scratch and the frame-coherent tessellators, so both rank
 /// a diamond identically, bit for bit (what a caller does not read is compiled out).
@@ -95,8 +105,17 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
     let dist = dx.mul(dx).add(dy.mul(dy)).add(dz.mul(dz)).sqrt();
     let clear = dist.sub(reach);
     let d = clear.max(F4::splat(MIN_DISTANCE));
+    let prio = b.e.mul(f.px).div(d);
+    // What the fog lets through of the error, at the nearest distance to the prism: the
+    // most of it the diamond could show. Without fog nothing is multiplied (by `exp(0)` =
+    // 1 it would be exact too): the priority is the fog-unaware one, bit for bit.
+    let prio = if f.fogged {
+        prio.mul(clear.max(F4::splat(0.0)).mul(f.fog).exp_neg())
+    } else {
+        prio
+    };
     Priority {
-        prio: b.e.mul(f.px).div(d),
+        prio,
         outside,
         under,
         clear,

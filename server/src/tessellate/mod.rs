@@ -12,7 +12,10 @@
 //!
 //! **Priority** is the screen-space error in pixels: the diamond's error bound (variance
 //! tree, world units) over the distance from the eye to the diamond's bounding volume, times
-//! `height / (2 tan(fov_y / 2))`. A diamond whose bounding prism (its square footprint ×
+//! `height / (2 tan(fov_y / 2))`, times what the viewer's fog lets through of it,
+//! `exp(−density · distance)` over the same (nearest) distance: the most of its error the
+//! diamond could show through the fog ([`Limits::fog_density`]; 0 without fog, when the
+//! priority is bit for bit the fog-unaware one, see `evaluate.rs`). A diamond whose bounding prism (its square footprint ×
 //! its height bounds, which follow from its corner heights and error) lies wholly outside one
 //! frustum plane is never queued, so it is split only when a split elsewhere forces it. A
 //! diamond whose footprint contains the eye's ground position gets the top priority.
@@ -46,7 +49,7 @@ mod lanes;
 pub mod queue;
 mod scratch;
 
-pub use coherent::{Coherent, CoherentStats, Mode, Step, measured_error};
+pub use coherent::{Coherent, CoherentStats, Mode, Step, fogged_error_px, measured_error};
 pub use scratch::Scratch;
 
 use lanes::F4;
@@ -61,6 +64,10 @@ pub struct Limits {
     pub budget: u32,
     /// Do not split diamonds whose screen-space error is below this, in pixels.
     pub threshold_px: f32,
+    /// The viewer's fog, per world unit (transmission `exp(−density · distance)`): each
+    /// diamond's error is weighed by the fog's transmission over the nearest distance to
+    /// its bounding prism. 0 (or anything not a positive finite number) for none.
+    pub fog_density: f32,
 }
 
 /// World scales of a heightfield: `(h_scale·x, v_scale·sample, h_scale·z)`.
@@ -154,6 +161,9 @@ struct Frame<'a> {
     /// `v_scale · pixels_per_radian`: turns sample-unit error over world distance into px.
     px: F4,
     threshold: F4,
+    /// The fog's density, per world unit (0: none), and whether it is not 0.
+    fog: F4,
+    fogged: bool,
 }
 
 /// A frustum plane in grid units: `a·x_grid + b·sample + c·z_grid + d >= 0` inside; `|b|`,
@@ -612,6 +622,12 @@ impl<'a> Frame<'a> {
             })
         });
         let plane_offsets = offsets_scalar.map(|o| o.map(F4::splat));
+        let fog = limits.fog_density;
+        let fog = if fog.is_finite() && fog > 0.0 {
+            fog
+        } else {
+            0.0
+        };
         let mut square_offset = [0; 16];
         let mut rotated_offset = [0; 16];
         for (m, (so, ro)) in variance
@@ -642,6 +658,8 @@ impl<'a> Frame<'a> {
             vs: F4::splat(scales.v as f32),
             px: F4::splat((scales.v * camera.pixels_per_radian()) as f32),
             threshold: F4::splat(limits.threshold_px),
+            fog: F4::splat(fog),
+            fogged: fog > 0.0,
         }
     }
 }

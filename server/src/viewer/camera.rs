@@ -60,6 +60,7 @@ mod tests {
             pitch_deg,
             eye_above,
             viewport,
+            fog: true,
         };
         check(v(12.0, 1.5, [800, 600]), 12.0, 21.5, (800, 600));
         check(

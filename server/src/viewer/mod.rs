@@ -5,7 +5,9 @@
 //!
 //! Each frame: the camera at the followed vehicle (the viewer's [`ViewChange`] applied),
 //! the cut carried from the last frame by the split/merge tessellator ([`Coherent`]: it
-//! rebuilds from scratch on a jump), and the frame's mesh payload:
+//! rebuilds from scratch on a jump), its priority weighing each error by the map's fog
+//! while the viewer draws it ([`ViewerCore::fog_density`]: a toggle rebuilds the cut),
+//! and the frame's mesh payload:
 //!
 //! - a **change frame** (protocol format 2) against its base: the newer of the newest
 //!   frame the viewer acknowledged and the pending key frame (below). It is coded from
@@ -157,13 +159,16 @@ pub enum KeyCause {
 }
 
 /// What the server serves one viewer at most, whatever it asks (`serve --max-budget`,
-/// `--max-fps`).
+/// `--max-fps`), and how (`--fog-priority`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ViewerLimits {
     /// Triangles per frame, within [`messages::MIN_BUDGET`]`..=`[`messages::MAX_BUDGET`].
     pub max_budget: u32,
     /// Frames per second, within 1 ..= [`MAX_FPS`].
     pub max_fps: u16,
+    /// The priority weighs each diamond's error by what the map's fog lets through of it
+    /// (while the viewer draws its fog); off, the fog-unaware priority (for comparisons).
+    pub fog_priority: bool,
 }
 
 /// The most frames a second any viewer gets.
@@ -174,6 +179,7 @@ impl Default for ViewerLimits {
         ViewerLimits {
             max_budget: messages::MAX_BUDGET,
             max_fps: MAX_FPS,
+            fog_priority: true,
         }
     }
 }
@@ -184,6 +190,7 @@ impl ViewerLimits {
         ViewerLimits {
             max_budget: messages::clamp_budget(self.max_budget),
             max_fps: self.max_fps.clamp(1, MAX_FPS),
+            fog_priority: self.fog_priority,
         }
     }
 
@@ -229,16 +236,21 @@ impl ViewerCore {
         hello: &Hello,
         caps: ViewerLimits,
     ) -> ViewerCore {
-        let mut core = ViewerCore::new(
+        ViewerCore::new(
             terrain.heights.levels(),
             height_step,
             hello.fov_y_deg,
             hello.viewport,
             hello.budget,
-        );
-        core.caps = caps.clamped();
-        core.budget = core.caps.budget(hello.budget);
-        core
+        )
+        .with_caps(caps)
+    }
+
+    /// This core served within `caps` (its budget clamped by them).
+    pub fn with_caps(mut self, caps: ViewerLimits) -> ViewerCore {
+        self.caps = caps.clamped();
+        self.budget = self.caps.budget(self.budget);
+        self
     }
 
     /// The frames a second a viewer gets: what its hello asked for, within 1 ..=
@@ -329,6 +341,18 @@ impl ViewerCore {
         cam
     }
 
+    /// The fog density the priority weighs errors by (per world unit): the map's while the
+    /// viewer draws its fog (until its first [`ViewChange`] says, it does), 0 when it does
+    /// not or the server's `fog_priority` is off.
+    pub fn fog_density(&self, scene: &Scene) -> f32 {
+        let fog = self.caps.fog_priority && self.view.is_none_or(|v| v.fog);
+        if fog {
+            scene.terrain.map.fog_density as f32
+        } else {
+            0.0
+        }
+    }
+
     /// The cut carried from the last frame (for tests and benchmarks).
     pub fn cut(&self) -> &Coherent {
         &self.coherent
@@ -412,6 +436,7 @@ impl ViewerCore {
         let limits = Limits {
             budget: self.budget,
             threshold_px: 0.0,
+            fog_density: self.fog_density(scene),
         };
         let step = self.coherent.begin(
             scene.heights(),

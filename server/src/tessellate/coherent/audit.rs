@@ -1,5 +1,7 @@
 //! A check of the carried cut against what it must be, recomputed from the split set
-//! alone: for tests (it walks the whole map).
+//! alone: for tests (it walks the whole map). And the error a cut leaves, measured the
+//! same way for any cut ([`measured_error`]; [`fogged_error_px`] through the viewer's fog,
+//! whichever priority chose the cut): for tests and benchmarks.
 
 use super::eval::fixed;
 use super::frontier::Frontier;
@@ -225,7 +227,9 @@ fn queued(
 /// with a split parent) and are worth splitting (in view or under the eye, with error).
 /// Split-only from scratch reports only what its queue reached, which misses a diamond
 /// poking into the view below a parent wholly outside it; this measure does not, so the
-/// served cut and the from-scratch one are compared fairly. Slow (a walk of the cut): for tests and benchmarks.
+/// served cut and the from-scratch one are compared fairly. The priority is `limits`'s:
+/// with a fog density, the error the fog lets through. Slow (a walk of the cut): for
+/// tests and benchmarks.
 pub fn measured_error(
     hf: &Heightfield,
     variance: &VarianceTree,
@@ -254,9 +258,66 @@ pub fn measured_error(
     candidates.sort_unstable();
     candidates.dedup();
     let f = Frame::new(hf, variance, scales, camera, limits);
+    worst(&c, &f, &candidates)
+}
+
+/// The screen-space error a cut shows through the viewer's fog, in pixels, whichever
+/// priority chose the cut: the largest `e · px / d · exp(−density · max(clear, 0))` over
+/// the diamonds that hold the mesh's triangles (unsplit, with a split parent) and are in
+/// view or under the eye, `clear` the distance from the eye to the diamond's bounding
+/// prism (`d` that, at least 1 mm). The fog-aware priority's error bound is this, for the
+/// fog-unaware one it is not.
+///
+/// The cut is `is_split`: whether the diamond centred at row-major grid index `i` (`z ·
+/// side + x`, as `roam_protocol::Grid::index` numbers it and a decoded `Cut`'s split set
+/// holds it) is split; it must be closed under parent, as every cut the tessellators make
+/// and the codec decodes is (a split diamond below an unsplit one is not reached).
+/// `camera` is the one the server tessellated that frame for (its eye, yaw, pitch, field
+/// of view and viewport), `fog_density` the map's (the viewer's `Welcome::fog_density`),
+/// per world unit. Slow (a walk of the cut from the root): for tests and benchmarks.
+pub fn fogged_error_px(
+    hf: &Heightfield,
+    variance: &VarianceTree,
+    scales: Scales,
+    camera: &Camera,
+    fog_density: f32,
+    is_split: impl Fn(u32) -> bool,
+) -> f32 {
+    let c = Coherent::new(hf.side());
+    let side = hf.side();
+    let split = |p: u32| {
+        let (x, z) = unpack(p);
+        is_split(z * side + x)
+    };
+    let mut seen = std::collections::HashSet::from([c.root()]);
+    let (mut stack, mut candidates) = (vec![c.root()], Vec::new());
+    while let Some(p) = stack.pop() {
+        if !split(p) {
+            candidates.push(p);
+            continue;
+        }
+        let (x, z) = unpack(p);
+        for ch in c.children(x, z).into_iter().flatten() {
+            if seen.insert(ch) {
+                stack.push(ch);
+            }
+        }
+    }
+    candidates.sort_unstable();
+    let limits = Limits {
+        budget: 2,
+        threshold_px: 0.0,
+        fog_density,
+    };
+    let f = Frame::new(hf, variance, scales, camera, limits);
+    worst(&c, &f, &candidates)
+}
+
+/// The highest priority among `candidates` in view (or under the eye) with error.
+fn worst(c: &Coherent, f: &Frame, candidates: &[u32]) -> f32 {
     let mut worst = 0f32;
     for chunk in candidates.chunks(4) {
-        let lanes = c.evaluate_at(&f, chunk);
+        let lanes = c.evaluate_at(f, chunk);
         for (i, p) in lanes.prio.iter().enumerate().take(chunk.len()) {
             if (lanes.wanted | lanes.dropped) >> i & 1 != 0 {
                 worst = worst.max(*p);

@@ -13,11 +13,11 @@
 //!    very function the from-scratch tessellator uses ([`super::evaluate::priority`]),
 //!    four at a time, and queued again (ROAM's deferred priority recomputation, §7.3):
 //!    each evaluation also says how far the eye may travel, and how far it may turn,
-//!    before the diamond's priority could drift by 2 % (its distance changes by at most
-//!    the eye's travel), its frustum verdict could flip (a plane through the eye moves a
-//!    point at distance `r` by at most travel + `r` × turn, and the verdict holds while
-//!    that stays under the prism's margin to the plane), or the eye could enter or leave
-//!    its footprint; two odometers (travel and turn, summed over frames) say when, and
+//!    before the diamond's priority could drift by 2 % (its distance, and with it the
+//!    fog's transmission, changes by at most the eye's travel: `eval.rs`), its frustum
+//!    verdict could flip (a plane through the eye moves a point at distance `r` by at
+//!    most travel + `r` × turn, and the verdict holds while that stays under the prism's
+//!    margin to the plane), or the eye could enter or leave its footprint; two odometers (travel and turn, summed over frames) say when, and
 //!    two schedules ([`buckets::Schedule`]) hand out exactly the diamonds due. Diamonds
 //!    under the eye are due every frame, exact ones never again. Splits are queued
 //!    highest first, merges lowest first. Merge candidates that are exact, wholly outside
@@ -34,7 +34,8 @@
 //!
 //! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
 //! the bound, a camera jump (a turn of more than 30°, a move of more than 64 grid cells),
-//! a new field of view or viewport, a budget change of more than ×2, or the caller's say
+//! a new field of view or viewport, a new threshold or fog density (the viewer turned its
+//! fog on or off), a budget change of more than ×2, or the caller's say
 //! rebuilds the cut from scratch with split-only ROAM, the spec's algorithm, on a
 //! tessellator borrowed from the server's [`Scratch`], and logs the difference from the
 //! old cut.
@@ -79,7 +80,7 @@ mod eval;
 mod frontier;
 mod ops;
 
-pub use audit::measured_error;
+pub use audit::{fogged_error_px, measured_error};
 
 use self::frontier::{DROPPED, Frontier};
 use super::frontier::PosSet;
@@ -124,8 +125,7 @@ pub struct CoherentStats {
 #[derive(Clone, Copy)]
 struct Last {
     camera: Camera,
-    budget: u32,
-    threshold_px: f32,
+    limits: Limits,
 }
 
 /// A frame [`Coherent::begin`] left for [`Coherent::finish`].
@@ -399,8 +399,7 @@ impl Coherent {
         }
         self.last = Some(Last {
             camera: *camera,
-            budget: limits.budget,
-            threshold_px: limits.threshold_px,
+            limits,
         });
         if jump {
             self.left = Some(Left::Rebuild);
@@ -422,10 +421,7 @@ impl Coherent {
         scratch: &Scratch,
     ) -> Mode {
         let last = self.last.expect("a frame was begun");
-        let limits = Limits {
-            budget: last.budget,
-            threshold_px: last.threshold_px,
-        };
+        let limits = last.limits;
         let f = Frame::new(hf, variance, scales, &last.camera, limits);
         if let Some(Left::Update { changes }) = self.left.take()
             && let Step::Done(mode) = self.run(&f, limits, changes, u32::MAX)
@@ -463,16 +459,17 @@ impl Coherent {
         let Some(last) = self.last else {
             return true;
         };
-        let c = &last.camera;
+        let (c, l) = (&last.camera, &last.limits);
         let (moved, yaw, pitch) = motion(c, camera);
         yaw > JUMP_DEGREES
             || pitch > JUMP_DEGREES
             || moved > JUMP_CELLS * scales.h
             || camera.fov_y_deg != c.fov_y_deg
             || (camera.width, camera.height) != (c.width, c.height)
-            || limits.threshold_px != last.threshold_px
-            || limits.budget > 2 * last.budget
-            || 2 * limits.budget < last.budget
+            || limits.threshold_px != l.threshold_px
+            || limits.fog_density.to_bits() != l.fog_density.to_bits()
+            || limits.budget > 2 * l.budget
+            || 2 * limits.budget < l.budget
     }
 
     /// From scratch: split-only ROAM on a borrowed tessellator, then the difference from
@@ -671,6 +668,7 @@ mod tests {
         let limits = Limits {
             budget: 600,
             threshold_px: 0.0,
+            fog_density: 0.0,
         };
         let scratch = Scratch::new(side);
         let mut c = Coherent::new(side);
