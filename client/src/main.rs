@@ -75,6 +75,10 @@ struct Cli {
     /// draw with them; other headless viewers draw nothing.
     #[arg(long, default_value_t = roam_client::render::MORPH_TICKS)]
     morph_ticks: u16,
+    /// Whether the in-process server weighs each diamond's error by the fog's transmission
+    /// (`serve --fog-priority`): `off` tessellates as before issue 24, for comparisons.
+    #[arg(long, default_value = "on", value_parser = ["on", "off"])]
+    fog_priority: String,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
@@ -224,7 +228,11 @@ fn run(cli: Cli) -> Result<()> {
         bail!("{}", roam_client::window::NO_DISPLAY);
     }
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
-    let (server, addrs, token, fingerprint) = runtime.block_on(serve(&cli))?;
+    let (local, addrs, token, fingerprint) = runtime.block_on(serve(&cli))?;
+    let (server, truth) = match local {
+        Some((server, truth)) => (Some(server), Some(truth)),
+        None => (None, None),
+    };
     let addr = addrs[0];
     if !cli.headless {
         let shown = window(&runtime, &cli, &addrs, &token, fingerprint);
@@ -249,6 +257,7 @@ fn run(cli: Cli) -> Result<()> {
                 toggles: cli.toggles(),
                 inputs,
                 morph_ticks: cli.morph_ticks,
+                truth,
             };
             let report = roam_client::bench::run(addr, fingerprint, opts).await;
             if let Some(server) = server {
@@ -368,7 +377,14 @@ fn write_report(cli: &Cli, report: &serde_json::Value) -> Result<()> {
 
 /// An in-process server (`--local`, the default) or the ones given (`--connect`): the
 /// addresses (at least one), token and certificate fingerprint.
-async fn serve(cli: &Cli) -> Result<(Option<Server>, Vec<SocketAddr>, String, [u8; 32])> {
+async fn serve(
+    cli: &Cli,
+) -> Result<(
+    Option<(Server, roam_client::bench::Truth)>,
+    Vec<SocketAddr>,
+    String,
+    [u8; 32],
+)> {
     Ok(match &cli.connect {
         None => {
             let dir = cli.local.clone().unwrap_or_else(bundled);
@@ -393,19 +409,25 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, Vec<SocketAddr>, String, [u
             .with_context(|| format!("the colour tiles of {}", dir.display()))?;
             let identity = tls::generate()?;
             let token = net::random_token();
+            let truth = roam_client::bench::Truth {
+                terrain: Arc::new(terrain),
+                variance: Arc::new(vt),
+            };
+            let mut options = Options::new(
+                "127.0.0.1:0".parse().expect("a valid address"),
+                token.clone(),
+            );
+            options.limits.fog_priority = cli.fog_priority == "on";
             let server = Server::start(
-                Arc::new(terrain),
-                Arc::new(vt),
+                truth.terrain.clone(),
+                truth.variance.clone(),
                 Arc::new(pyramid),
                 &identity,
-                Options::new(
-                    "127.0.0.1:0".parse().expect("a valid address"),
-                    token.clone(),
-                ),
+                options,
             )?;
             let fp = tls::parse_fingerprint(&identity.fingerprint())?;
             let addr = server.addr;
-            (Some(server), vec![addr], token, fp)
+            (Some((server, truth)), vec![addr], token, fp)
         }
         Some(Addresses(addrs)) => {
             let fp = tls::parse_fingerprint(cli.fingerprint.as_deref().unwrap_or_default())?;

@@ -17,13 +17,16 @@
 //! `lod_luma_diff_p99`. `pop_px_p99`/`pop_px_max` are computed from the two drawn cuts
 //! ([`lod::pop_px`]). `frame_ms_*` time the drawing of t+1's mesh alone, as before.
 
+mod fogged;
 mod lod;
+
+pub use fogged::Truth;
 
 use std::net::SocketAddr;
 use std::time::Instant;
 
 use anyhow::Result;
-use roam_protocol::messages::{DEFAULT_PITCH_DEG, Hello, Role, VERSION};
+use roam_protocol::messages::{DEFAULT_PITCH_DEG, Hello, Role, VERSION, VehicleView};
 use roam_protocol::script::Script;
 use roam_protocol::stats::quantile;
 
@@ -49,12 +52,17 @@ pub struct Options {
     pub inputs: Script,
     /// Geomorphs' length, ticks (0: none, today's viewer before issue 24).
     pub morph_ticks: u16,
+    /// The data set served (a `--local` server's), for `fogged_error_px_*`.
+    pub truth: Option<Truth>,
 }
 
 /// A frame taken, as the drawing pass needs it.
 struct Recorded {
     frame: u64,
     view: View,
+    /// The viewer's vehicle, and the diamonds the frame toggled (with their heights).
+    vehicle: VehicleView,
+    toggled: Vec<(u32, u16)>,
     terrain: TerrainUpdate,
     colors: ColorUpdate,
 }
@@ -79,6 +87,10 @@ pub async fn run(
             wgpu::Limits::default().max_texture_dimension_2d,
         ),
     };
+    let mut fogged = opts
+        .truth
+        .clone()
+        .map(|t| fogged::FoggedError::new(t, &hello));
     let session = Session::join(
         addr,
         fingerprint,
@@ -94,6 +106,7 @@ pub async fn run(
     let mut before: Option<(u64, Morph)> = None;
     let mut view: Option<View> = None;
     let mut skipped = 0u64;
+    let mut carry: Vec<(u32, u16)> = Vec::new();
     let mut bytes = 0usize;
     while (recorded.len() as u64) < opts.frames {
         let r = match session.next_frame(true).await? {
@@ -123,7 +136,9 @@ pub async fn run(
                 time_s: recorded.len() as f32 / 60.0,
             });
         }
-        let Some(view) = view else {
+        // The cut's changes, carried to the next frame recorded when this one is not.
+        carry.extend_from_slice(session.core().cut().toggled_heights());
+        let (Some(view), Some(vehicle)) = (view, r.vehicles.iter().find(|v| v.id == me)) else {
             continue; // not seated yet: nothing to look from
         };
         let core = session.core();
@@ -155,14 +170,27 @@ pub async fn run(
             build.push((t1 - t0).as_secs_f64() * 1e3);
             tris.push(r.triangles as f64);
         }
+        let toggled = std::mem::take(&mut carry);
         recorded.push(Recorded {
             frame: r.frame,
             view,
+            vehicle: *vehicle,
+            toggled,
             terrain: vertices.take_update(),
             colors: session.colors().drain(MAX_UPLOADS),
         });
     }
     session.quit().await;
+    // The fogged error of each frame's cut (slow: a walk of the cut a frame).
+    let mut fog = Vec::new();
+    if let Some(f) = fogged.as_mut() {
+        for (k, r) in recorded.iter().enumerate() {
+            let e = f.frame(&r.toggled, &r.vehicle);
+            if k > 5 {
+                fog.push(f64::from(e));
+            }
+        }
+    }
     // Drawing: `now` has each frame's mesh, `then` the one before.
     let gpu = Gpu::headless()?;
     let format = wgpu::TextureFormat::Rgba8UnormSrgb;
@@ -236,5 +264,7 @@ pub async fn run(
         "lod_luma_diff_p99": quantile(&luma, 0.99),
         "lod_luma_diff_median": median(&luma),
         "drawn_cut_bytes_max": bytes,
+        "fogged_error_px_p99": (!fog.is_empty()).then(|| quantile(&fog, 0.99)),
+        "fogged_error_px_median": (!fog.is_empty()).then(|| median(&fog)),
     }))
 }
