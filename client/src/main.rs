@@ -366,9 +366,9 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, Vec<SocketAddr>, String, [u
         None => {
             let dir = cli.local.clone().unwrap_or_else(bundled);
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            // Heights, variance tree and colour tiles from the data set's cache (built and
-            // cached the first time), as `roam-server serve` opens them.
-            let (terrain, vt, _) =
+            // Heights, variance tree, colour and normal tiles from the data set's cache
+            // (built and cached the first time), as `roam-server serve` opens them.
+            let (terrain, vt, report) =
                 roam_server::terrain::dataset::open_cached(&dir, threads, &mut |_, _, _| {})
                     .with_context(|| format!("loading {}", dir.display()))?;
             let cells = terrain.heights.size();
@@ -384,6 +384,16 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, Vec<SocketAddr>, String, [u
                 &mut |_, _| {},
             )
             .with_context(|| format!("the colour tiles of {}", dir.display()))?;
+            let (normals, _) = roam_server::terrain::normal_pyramid::NormalPyramid::open_or_build(
+                &dir,
+                &terrain.heights,
+                (terrain.map.h_scale, terrain.map.v_scale),
+                &report.heights_hash,
+                roam_protocol::tiles::DEFAULT_TILE,
+                threads,
+                &mut |_, _| {},
+            )
+            .with_context(|| format!("the normal tiles of {}", dir.display()))?;
             let identity = tls::generate()?;
             let token = net::random_token();
             let server = Server::start(
@@ -391,10 +401,13 @@ async fn serve(cli: &Cli) -> Result<(Option<Server>, Vec<SocketAddr>, String, [u
                 Arc::new(vt),
                 Arc::new(pyramid),
                 &identity,
-                Options::new(
-                    "127.0.0.1:0".parse().expect("a valid address"),
-                    token.clone(),
-                ),
+                Options {
+                    normals: Some(Arc::new(normals)),
+                    ..Options::new(
+                        "127.0.0.1:0".parse().expect("a valid address"),
+                        token.clone(),
+                    )
+                },
             )?;
             let fp = tls::parse_fingerprint(&identity.fingerprint())?;
             let addr = server.addr;

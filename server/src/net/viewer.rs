@@ -22,7 +22,9 @@
 //! [`ColorScheduler`] picks for the followed vehicle's position, paced by a token bucket
 //! whose rate is the viewer's share of the server-wide colour budget
 //! ([`super::color_budget`]: [`super::Options::color_total`] shared equally by the viewers
-//! still wanting tiles, each at most [`super::Options::color_rate`]), cut to a trickle
+//! still wanting tiles, each at most [`super::Options::color_rate`]; each tile's normals
+//! right after it, out of the same bytes, the coarsest tile's first thing after the first
+//! frame), cut to a trickle
 //! while any viewer's frame starts behind its tick (frames first); a burst of a quarter
 //! second, and at least the largest tile. A tile is written whole and awaited before the
 //! next, so the send buffer holds little more than a tile; the control stream's last word
@@ -124,7 +126,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         .pyramid
         .layout(shared.color_window.min(hello.color_window.max(1)))
         .expect("the pyramid's layout was checked at start with a larger window");
-    let mut colors = ColorScheduler::new(layout);
+    let mut colors = ColorScheduler::with_normals(layout);
     let send = Arc::new(tokio::sync::Mutex::new(send));
     let welcomed = welcome(
         &mut *send.lock().await,
