@@ -18,8 +18,12 @@
 //! | g4097 | 40–52 ms | 145 KB | 1.23 MB/s (148 tiles in 10 s) | 28.6 MB coded, built in 0.68 s |
 //! | g16385 | 65 ms | 210 KB | 2.00 MB/s (the rate cap; 254 tiles in 10 s) | 454 MB coded, built in 15.4 s, then mapped |
 //!
-//! Those were taken before the heights and variance tree were cached; the figures with
-//! the cache are in the README ("Large terrain").
+//! Those were taken before the heights and variance tree were cached, and before each
+//! colour tile's normals came with it (issue 24: since, the coarsest tile's normals wait
+//! for the first frame, and the normals share the rate, so at the cap the colour comes
+//! slower: g4097, 121 colour and 122 normal tiles in 10 s; kossou unchanged, 20 and 21 in
+//! 8 s, the normal pyramid 1.39 MB); the figures with the cache are in the README ("Large
+//! terrain").
 
 use std::path::PathBuf;
 use std::sync::Arc;

@@ -139,14 +139,20 @@ pub(super) async fn tell_news(
 /// How often the colour task looks at the camera and its budget.
 const COLOR_TICK: Duration = Duration::from_millis(50);
 
-/// Streams colour tiles to the viewer following `vehicle`, as its scheduler picks them,
-/// within the byte rate; ends when the control stream fails.
+/// Streams colour tiles (and their normals) to the viewer following `vehicle`, as its
+/// scheduler picks them, within the byte rate, from the viewer's first frame on (`made`:
+/// the frames made); ends when the control stream fails.
 pub(super) async fn stream_color(
     send: Arc<tokio::sync::Mutex<SendStream>>,
     shared: Arc<Shared>,
     mut colors: ColorScheduler,
-    vehicle: VehicleId,
+    (vehicle, mut made): (VehicleId, tokio::sync::watch::Receiver<u64>),
 ) {
+    // Nothing before the first frame: the coarsest tile's normals, owed first, would
+    // only share the link with it (a viewer lights per vertex until they come).
+    if made.wait_for(|&n| n > 0).await.is_err() {
+        return;
+    }
     // A tile and its normals go out together.
     let largest = 2.0 * roam_protocol::colormap::max_len(colors.layout().tile) as f64;
     let h_scale = shared.terrain.map.h_scale;

@@ -20,11 +20,19 @@
 //!   slot; the levels above them on the calling thread. The bytes do not depend on the
 //!   thread count (a test checks).
 //! - **Coded by the colour map codec** ([`roam_protocol::normals::encode_tile`]):
-//!   lossless, already on both ends, decoded within the same limits. Measured on the
-//!   bundled sets (T = 256): kossou (1024², 3 levels, 21 tiles) 1.02 MB of normals
-//!   beside 1.90 MB of colour, 49 KB a tile against 90 KB (0.75 bytes a texel against
-//!   1.4; the raw codes are 2); synth-257 (256², one tile) 42 KB against 109 KB. Built
-//!   in 0.16 s for kossou (2 shared cores, debug 1.1 s).
+//!   lossless, already on both ends, decoded within the same limits. Measured with
+//!   `roam-server color-bench` (T = 256, 2 shared cores, the dev profile, which is
+//!   optimised): kossou (1024², 3 levels, 21 tiles) 1.39 MB of normals beside 1.92 MB of
+//!   colour, 66 KB a tile against 91 KB (1.01 bytes a texel against 1.39; the raw codes
+//!   are 2), built and cached in 0.11 s; a generated 4097² (5 levels, 341 tiles, fBm
+//!   down to the sample) 28.9 MB against 28.6 MB (1.29 bytes a texel against 1.28), in
+//!   1.9 s; synth-257 (one tile) 88 KB against 104 KB. A mapped cache opens in under a
+//!   millisecond.
+//! - **What it costs the colour**: the normals come out of the colour's bytes
+//!   (`--color-rate`), so where that cap binds, colour tiles come slower: driving on the
+//!   4097² set, 121 colour tiles (and 122 normal tiles, the coarsest's included) in 10 s
+//!   at 2 MB/s, against 148 colour tiles before. On kossou the whole pyramid still comes
+//!   in 8 s (20 colour tiles and 21 normal tiles after the first frame).
 //! - **Cached like the colour** ([`super::tile_store`]): `DIR/.cache/normal-tiles.bin`,
 //!   memory-mapped, its header keyed by the heights' content hash (the one
 //!   `cache::CacheReport::heights_hash` gives, so a warm start reads no heights to check
