@@ -8,10 +8,11 @@
 //! Decisions:
 //!
 //! - **The layout is the heightfield's, not the colour map's**: `cells` is the grid's
-//!   `side − 1` and the tile size the colour's, so a data set served without a colour map
-//!   would have its normals all the same; the server checks the two layouts agree (they
-//!   do: a colour map has one texel per cell, `Terrain::validate`). One layout means one
-//!   scheduler, one set of window messages and one slot per tile on the viewer for both.
+//!   `side − 1` (the normals need nothing from the colour map, so a data set without one
+//!   would have them all the same; today `color.ppm` is required) and the tile size the
+//!   colour's. The two layouts are then one (a colour map has one texel per cell,
+//!   `Terrain::validate`; `Server::start` checks it): one scheduler, one set of window
+//!   messages and one slot per tile on the viewer for both, no second window protocol.
 //! - **Built by quadtree, not by level**: a tile's normals are computed from its four
 //!   children's (level 0's from the heights), depth first, so the build holds a tile per
 //!   level on the way down instead of whole levels (at 16385², level 0 alone would be
