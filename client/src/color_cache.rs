@@ -1,8 +1,15 @@
 //! The viewer's colour cache, with no socket, task or clock: what the server's
-//! [`ServerMessage::ColorWindow`] and [`ServerMessage::ColorTile`] messages leave resident,
-//! per level of the colour pyramid ([`ColorLayout`]), and the texture uploads the renderer
-//! owes the GPU. The session feeds it from the control stream; the renderer drains it
-//! ([`ColorCache::drain`]) into its clipmap texture array.
+//! [`ServerMessage::ColorWindow`], [`ServerMessage::ColorTile`] and
+//! [`ServerMessage::NormalTile`] messages leave resident, per level of the colour pyramid
+//! ([`ColorLayout`]), and the texture uploads the renderer owes the GPU. The session feeds
+//! it from the control stream; the renderer drains it ([`ColorCache::drain`]) into its
+//! clipmap texture arrays, one for colour and one for normals.
+//!
+//! **Normals** ([`roam_protocol::normals`]) are a second kind of tile in the same slots
+//! ([`crate::tile_slots`]): the same layout, the same windows (a window move drops both
+//! kinds' tiles outside it), the same checks, kept apart so either may come without the
+//! other (a damaged tile on the server is not sent). Their texels are the two-byte codes
+//! (an `Rg8Unorm` texel), half a colour texel's four.
 //!
 //! **Addressing.** Every level has a layer of `S × S` texels, `S = min(W·T, cells)` (W the
 //! window in tiles, T the tile side); texel `(u, v)` of level `l` lives at `(u mod S,
@@ -18,26 +25,27 @@
 //! outside its level or the level's current window, a payload longer than
 //! [`ColorLayout::max_tile_bytes`] or one that does not decode to the tile's side.
 //!
-//! **Bounded.** At most one tile per slot: `Σ_l min(tiles_l, W)²` tiles, so never more than
-//! `levels × S²` texels (in RGBA, waiting to be uploaded; plus the coarsest tile's RGB, at
-//! most `T² · 3` bytes, which a reconnection compares), and the upload queue holds at
-//! most one entry per slot (an entry is removed with its tile when a window moves). With
+//! **Bounded.** At most one tile of each kind per slot: `Σ_l min(tiles_l, W)²` tiles, so
+//! never more than `levels × S²` texels of each (6 bytes a texel in all, RGBA and the
+//! normal's code, waiting to be uploaded; plus the coarsest tile's RGB, at most `T² · 3`
+//! bytes, which a reconnection compares), and each upload queue holds at most one entry
+//! per slot (an entry is removed with its tile when a window moves). With
 //! [`Keep::Masks`] (a headless viewer that never draws) no texel is kept at all: tiles are
 //! decoded to check them, counted, and dropped. Uploaded texels are freed here (the GPU has
 //! them); the masks the shader reads ([`LevelState::drawn`]) only name tiles already
 //! handed to the renderer, so a tile never shows before its texels do.
 //!
 //! Decision: the renderer is fed by draining, not by reading a CPU copy of every layer:
-//! a window at W = 8 over a 16385² map holds 7 layers of 2048² texels (112 MiB in RGBA) —
-//! worth keeping on the GPU, not twice. The cost: a renderer made after a drain cannot
+//! a window at W = 8 over a 16385² map holds 7 layers of 2048² texels (112 MiB in RGBA,
+//! and 56 MiB of normals) — worth keeping on the GPU, not twice. The cost: a renderer made after a drain cannot
 //! be filled again (one renderer per session, as the window, the benchmark and the
 //! headless screenshot each have).
 
-use std::collections::VecDeque;
-
-use roam_protocol::colormap;
 use roam_protocol::messages::ServerMessage;
 use roam_protocol::tiles::{ColorLayout, MAX_WINDOW};
+use roam_protocol::{colormap, normals};
+
+use crate::tile_slots::TileSlots;
 
 /// The most window bits a level has: [`MAX_WINDOW`]², as `u32` words.
 pub const MASK_WORDS: usize = (MAX_WINDOW as usize * MAX_WINDOW as usize).div_ceil(32);
@@ -64,59 +72,47 @@ fn refuse(field: &'static str, message: String) -> ColorError {
     ColorError { field, message }
 }
 
-/// One texture upload: `size × size` RGBA texels at `(x, y)` of layer `layer`.
+/// One texture upload: `size × size` texels at `(x, y)` of layer `layer`, the tile of
+/// window slot `slot`: RGBA (4 bytes a texel) for colour, the normal's two-byte code for
+/// normals.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Upload {
     pub layer: u32,
+    pub slot: u32,
     pub x: u32,
     pub y: u32,
     pub size: u32,
-    pub rgba: Vec<u8>,
+    pub texels: Vec<u8>,
 }
 
 /// What the shader needs of a level: the window's origin (tiles) and the tiles it may
-/// sample (bit `(z mod W)·W + (x mod W)`).
+/// sample (bit `(z mod W)·W + (x mod W)`), of colour and of normals.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct LevelState {
     pub origin: [u32; 2],
     pub drawn: [u32; MASK_WORDS],
+    pub normals: [u32; MASK_WORDS],
 }
 
-/// What [`ColorCache::drain`] hands the renderer: uploads, then every level's state once
-/// they are written.
+/// What [`ColorCache::drain`] hands the renderer: uploads (colour, normals), then every
+/// level's state once they are written.
 #[derive(Clone, Debug, Default)]
 pub struct ColorUpdate {
     pub uploads: Vec<Upload>,
+    pub normals: Vec<Upload>,
     pub levels: Vec<LevelState>,
 }
 
-#[derive(Clone, Debug)]
-struct Slot {
-    x: u32,
-    z: u32,
-    /// RGBA texels not yet taken by the renderer.
-    texels: Option<Vec<u8>>,
-    /// Handed to the renderer.
-    drawn: bool,
-}
-
-#[derive(Clone, Debug)]
-struct Level {
-    origin: (u32, u32),
-    slots: Vec<Option<Slot>>,
-}
-
-/// The resident colour tiles of one connection (a reconnection starts a fresh one).
+/// The resident colour and normal tiles of one connection (a reconnection starts a fresh
+/// one).
 #[derive(Clone, Debug)]
 pub struct ColorCache {
     layout: ColorLayout,
     keep: Keep,
-    levels: Vec<Level>,
-    /// (level, slot) of tiles whose texels wait for the renderer, in arrival order.
-    queue: VecDeque<(u8, u16)>,
-    bytes: u64,
-    received: u64,
-    resident: u32,
+    /// Per level, the window's origin (tiles).
+    origins: Vec<(u32, u32)>,
+    colors: TileSlots,
+    normals: TileSlots,
     scratch: Vec<u8>,
     /// The coarsest level's tile (RGB): what a reconnection compares to know the map.
     coarsest: Vec<u8>,
@@ -154,20 +150,12 @@ impl ColorCache {
     }
 
     fn empty(layout: ColorLayout, keep: Keep) -> ColorCache {
-        let w = usize::from(layout.window);
         ColorCache {
             layout,
             keep,
-            levels: (0..layout.levels)
-                .map(|_| Level {
-                    origin: (0, 0),
-                    slots: (0..w * w).map(|_| None).collect(),
-                })
-                .collect(),
-            queue: VecDeque::new(),
-            bytes: 0,
-            received: 0,
-            resident: 0,
+            origins: vec![(0, 0); usize::from(layout.levels)],
+            colors: TileSlots::new(&layout, 4),
+            normals: TileSlots::new(&layout, 2),
             scratch: Vec::new(),
             coarsest: Vec::new(),
         }
@@ -178,9 +166,7 @@ impl ColorCache {
     /// its later tiles must still be taken).
     pub fn fresh(&self) -> ColorCache {
         let mut c = ColorCache::empty(self.layout, self.keep);
-        for (new, old) in c.levels.iter_mut().zip(&self.levels) {
-            new.origin = old.origin;
-        }
+        c.origins.clone_from(&self.origins);
         c
     }
 
@@ -198,19 +184,34 @@ impl ColorCache {
         layer_side(&self.layout)
     }
 
-    /// Tile payload bytes received.
+    /// Colour tile payload bytes received.
     pub fn bytes(&self) -> u64 {
-        self.bytes
+        self.colors.bytes()
     }
 
-    /// Tiles received (those dropped since included).
+    /// Colour tiles received (those dropped since included).
     pub fn received(&self) -> u64 {
-        self.received
+        self.colors.received()
     }
 
-    /// Tiles resident now.
+    /// Colour tiles resident now.
     pub fn resident(&self) -> u32 {
-        self.resident
+        self.colors.resident()
+    }
+
+    /// Normal tile payload bytes received.
+    pub fn normal_bytes(&self) -> u64 {
+        self.normals.bytes()
+    }
+
+    /// Normal tiles received (those dropped since included).
+    pub fn normals_received(&self) -> u64 {
+        self.normals.received()
+    }
+
+    /// Normal tiles resident now.
+    pub fn normals_resident(&self) -> u32 {
+        self.normals.resident()
     }
 
     /// The most tiles that can be resident: one per slot.
@@ -222,18 +223,22 @@ impl ColorCache {
 
     /// RGBA texels held, waiting for the renderer.
     pub fn texels_held(&self) -> usize {
-        self.levels
-            .iter()
-            .flat_map(|l| &l.slots)
-            .flatten()
-            .filter_map(|s| s.texels.as_ref())
-            .map(|t| t.len() / 4)
-            .sum()
+        self.colors.texels_held()
     }
 
-    /// Uploads waiting.
+    /// Normal texels held (two bytes each), waiting for the renderer.
+    pub fn normal_texels_held(&self) -> usize {
+        self.normals.texels_held()
+    }
+
+    /// Colour uploads waiting.
     pub fn queued(&self) -> usize {
-        self.queue.len()
+        self.colors.queued()
+    }
+
+    /// Normal uploads waiting.
+    pub fn normals_queued(&self) -> usize {
+        self.normals.queued()
     }
 
     /// Whether the coarsest level's single tile is resident (every point has a colour).
@@ -247,48 +252,50 @@ impl ColorCache {
         ((z % w) * w + (x % w)) as usize
     }
 
-    /// Tiles of `level` resident (bit `(z mod W)·W + (x mod W)`).
+    /// Colour tiles of `level` resident (bit `(z mod W)·W + (x mod W)`).
     pub fn resident_mask(&self, level: u8) -> [u32; MASK_WORDS] {
-        self.mask(level, |_| true)
+        self.colors.mask(level, false)
     }
 
-    /// Tiles of `level` handed to the renderer.
+    /// Colour tiles of `level` handed to the renderer.
     pub fn drawn_mask(&self, level: u8) -> [u32; MASK_WORDS] {
-        self.mask(level, |s| s.drawn)
+        self.colors.mask(level, true)
     }
 
-    fn mask(&self, level: u8, f: impl Fn(&Slot) -> bool) -> [u32; MASK_WORDS] {
-        let mut m = [0; MASK_WORDS];
-        if let Some(l) = self.levels.get(usize::from(level)) {
-            for (i, s) in l.slots.iter().enumerate() {
-                if s.as_ref().is_some_and(&f) {
-                    m[i / 32] |= 1 << (i % 32);
-                }
-            }
-        }
-        m
+    /// Normal tiles of `level` resident.
+    pub fn normals_mask(&self, level: u8) -> [u32; MASK_WORDS] {
+        self.normals.mask(level, false)
     }
 
     /// The window origin of `level`, in tiles.
     pub fn origin(&self, level: u8) -> Option<(u32, u32)> {
-        self.levels.get(usize::from(level)).map(|l| l.origin)
+        self.origins.get(usize::from(level)).copied()
     }
 
-    /// Whether tile `(x, z)` of `level` is resident.
+    /// Whether colour tile `(x, z)` of `level` is resident.
     pub fn is_resident(&self, level: u8, x: u32, z: u32) -> bool {
-        let slot = self.slot_of(x, z);
-        self.levels
-            .get(usize::from(level))
-            .and_then(|l| l.slots[slot].as_ref())
-            .is_some_and(|s| (s.x, s.z) == (x, z))
+        self.colors.is_resident(level, self.slot_of(x, z), x, z)
     }
 
-    /// A colour message from the server; anything else is not for the cache (`Ok(false)`).
+    /// Whether normal tile `(x, z)` of `level` is resident.
+    pub fn has_normals(&self, level: u8, x: u32, z: u32) -> bool {
+        self.normals.is_resident(level, self.slot_of(x, z), x, z)
+    }
+
+    /// A colour or normal message from the server; anything else is not for the cache
+    /// (`Ok(false)`).
     pub fn apply(&mut self, msg: &ServerMessage) -> Result<bool, ColorError> {
         match msg {
             ServerMessage::ColorWindow { level, x0, z0 } => self.apply_window(*level, *x0, *z0)?,
             ServerMessage::ColorTile { level, x, z, data } => {
                 self.apply_tile(*level, *x, *z, data)?
+            }
+            ServerMessage::NormalTile { level, x, z, data } => {
+                let mut codes = std::mem::take(&mut self.scratch);
+                let decoded = decode_normal_tile(&self.layout, *level, *x, *z, data, &mut codes)
+                    .and_then(|()| self.put_normals_decoded(*level, *x, *z, &codes, data.len()));
+                self.scratch = codes;
+                decoded?
             }
             _ => return Ok(false),
         }
@@ -336,20 +343,10 @@ impl ColorCache {
         }
         let origin = (x0, z0);
         let layout = self.layout;
-        let lv = &mut self.levels[usize::from(level)];
-        lv.origin = origin;
-        let mut dropped = 0;
-        for (i, slot) in lv.slots.iter_mut().enumerate() {
-            if slot
-                .as_ref()
-                .is_some_and(|s| !layout.in_window(level, origin, s.x, s.z))
-            {
-                *slot = None;
-                dropped += 1;
-                self.queue.retain(|&q| q != (level, i as u16));
-            }
-        }
-        self.resident -= dropped;
+        self.origins[usize::from(level)] = origin;
+        let keep = |x, z| layout.in_window(level, origin, x, z);
+        self.colors.keep_window(level, keep);
+        self.normals.keep_window(level, keep);
         Ok(())
     }
 
@@ -359,8 +356,7 @@ impl ColorCache {
         let mut rgb = std::mem::take(&mut self.scratch);
         let decoded = decode_tile(&self.layout, level, x, z, data, &mut rgb);
         if decoded.is_ok() {
-            self.bytes += data.len() as u64;
-            self.put(level, x, z, &rgb);
+            self.put(level, x, z, &rgb, data.len());
         }
         self.scratch = rgb;
         decoded
@@ -384,8 +380,7 @@ impl ColorCache {
                 format!("{} texel bytes, expected {side}² · 3", rgb.len()),
             ));
         }
-        self.bytes += payload as u64;
-        self.put(level, x, z, rgb);
+        self.put(level, x, z, rgb, payload);
         Ok(())
     }
 
@@ -401,13 +396,15 @@ impl ColorCache {
                 format!("{} bytes, expected {side}² · 3", rgb.len()),
             ));
         }
-        self.put(level, x, z, rgb);
+        self.put(level, x, z, rgb, 0);
         Ok(())
     }
 
     fn check_tile(&self, what: &'static str, level: u8, x: u32, z: u32) -> Result<(), ColorError> {
         let (level_field, xz_field) = match what {
             "ColorTile" => ("ColorTile.level", "ColorTile.x/z"),
+            "NormalTile" => ("NormalTile.level", "NormalTile.x/z"),
+            "put_normals" => ("put_normals.level", "put_normals.x/z"),
             _ => ("put_tile.level", "put_tile.x/z"),
         };
         self.check_level(level_field, level)?;
@@ -418,7 +415,7 @@ impl ColorCache {
                 format!("({x}, {z}), outside level {level} of {tiles} tiles a side"),
             ));
         }
-        let origin = self.levels[usize::from(level)].origin;
+        let origin = self.origins[usize::from(level)];
         if !self.layout.in_window(level, origin, x, z) {
             return Err(refuse(
                 xz_field,
@@ -433,9 +430,9 @@ impl ColorCache {
         Ok(())
     }
 
-    /// Makes tile `(x, z)` of `level` resident with these RGB texels (checked).
-    fn put(&mut self, level: u8, x: u32, z: u32, rgb: &[u8]) {
-        self.received += 1;
+    /// Makes tile `(x, z)` of `level` resident with these RGB texels (checked), counting
+    /// `payload` bytes.
+    fn put(&mut self, level: u8, x: u32, z: u32, rgb: &[u8], payload: usize) {
         if level + 1 == self.layout.levels {
             self.coarsest.clear();
             self.coarsest.extend_from_slice(rgb);
@@ -446,59 +443,80 @@ impl ColorCache {
                 .flat_map(|c| [c[0], c[1], c[2], 255])
                 .collect::<Vec<u8>>()
         });
-        let lv = &mut self.levels[usize::from(level)];
-        let was = lv.slots[slot].replace(Slot {
-            x,
-            z,
-            texels,
-            drawn: false,
-        });
-        let queued = was.as_ref().is_some_and(|s| s.texels.is_some());
-        if was.is_none() {
-            self.resident += 1;
-        }
-        if self.keep == Keep::Texels && !queued {
-            self.queue.push_back((level, slot as u16));
-        }
+        self.colors.put(level, slot, (x, z), texels, payload as u64);
     }
 
-    /// Takes at most `most` uploads (oldest first: the server sends coarse levels first),
-    /// and every level's state once they are written.
-    pub fn drain(&mut self, most: usize) -> ColorUpdate {
-        let mut uploads = Vec::new();
-        let s = self.layer_side();
-        let t = self.layout.tile;
-        while uploads.len() < most {
-            let Some((level, slot)) = self.queue.pop_front() else {
-                break;
-            };
-            let size = self.layout.tile_side(level);
-            let Some(tile) = self.levels[usize::from(level)].slots[usize::from(slot)].as_mut()
-            else {
-                continue;
-            };
-            let Some(rgba) = tile.texels.take() else {
-                continue;
-            };
-            tile.drawn = true;
-            uploads.push(Upload {
-                layer: u32::from(level),
-                x: (tile.x * t) % s,
-                y: (tile.z * t) % s,
-                size,
-                rgba,
-            });
+    /// Normal tile `(x, z)` of `level` decoded by [`decode_normal_tile`] from `payload`
+    /// bytes (`side² · 2` code bytes): checked against the window now, made resident.
+    pub fn put_normals_decoded(
+        &mut self,
+        level: u8,
+        x: u32,
+        z: u32,
+        codes: &[u8],
+        payload: usize,
+    ) -> Result<(), ColorError> {
+        self.check_tile("NormalTile", level, x, z)?;
+        let side = self.layout.tile_side(level) as usize;
+        if codes.len() != side * side * 2 {
+            return Err(refuse(
+                "NormalTile.data",
+                format!("{} code bytes, expected {side}² · 2", codes.len()),
+            ));
         }
+        self.put_codes(level, x, z, codes, payload);
+        Ok(())
+    }
+
+    /// Normal tile `(x, z)` of `level` from codes made elsewhere (`side² · 2` bytes,
+    /// [`normals::encode`] per texel, row 0 north): a local map, a test.
+    pub fn put_normals(
+        &mut self,
+        level: u8,
+        x: u32,
+        z: u32,
+        codes: &[u8],
+    ) -> Result<(), ColorError> {
+        self.check_tile("put_normals", level, x, z)?;
+        let side = self.layout.tile_side(level) as usize;
+        if codes.len() != side * side * 2 {
+            return Err(refuse(
+                "put_normals.codes",
+                format!("{} bytes, expected {side}² · 2", codes.len()),
+            ));
+        }
+        self.put_codes(level, x, z, codes, 0);
+        Ok(())
+    }
+
+    fn put_codes(&mut self, level: u8, x: u32, z: u32, codes: &[u8], payload: usize) {
+        let slot = self.slot_of(x, z);
+        let texels = (self.keep == Keep::Texels).then(|| codes.to_vec());
+        self.normals
+            .put(level, slot, (x, z), texels, payload as u64);
+    }
+
+    /// Takes at most `most` colour uploads and `most` normal uploads (oldest first: the
+    /// server sends coarse levels first), and every level's state once they are written.
+    pub fn drain(&mut self, most: usize) -> ColorUpdate {
+        let s = self.layer_side();
+        let uploads = self.colors.drain(most, &self.layout, s);
+        let normals = self.normals.drain(most, &self.layout, s);
         let levels = (0..self.layout.levels)
             .map(|l| {
-                let (x0, z0) = self.levels[usize::from(l)].origin;
+                let (x0, z0) = self.origins[usize::from(l)];
                 LevelState {
                     origin: [x0, z0],
-                    drawn: self.drawn_mask(l),
+                    drawn: self.colors.mask(l, true),
+                    normals: self.normals.mask(l, true),
                 }
             })
             .collect();
-        ColorUpdate { uploads, levels }
+        ColorUpdate {
+            uploads,
+            normals,
+            levels,
+        }
     }
 }
 
@@ -513,16 +531,44 @@ pub fn decode_tile(
     data: &[u8],
     rgb: &mut Vec<u8>,
 ) -> Result<(), ColorError> {
+    check_payload(layout, "ColorTile", level, x, z, data)?;
+    let side = layout.tile_side(level);
+    colormap::decode(side, data, rgb).map_err(|e| {
+        refuse(
+            "ColorTile.data",
+            format!("tile ({x}, {z}) of level {level} ({side}² texels): {e}"),
+        )
+    })
+}
+
+/// What the layout alone decides of a tile message (`what`: `ColorTile`, `NormalTile`):
+/// the level, the tile inside it and the payload's length.
+fn check_payload(
+    layout: &ColorLayout,
+    what: &'static str,
+    level: u8,
+    x: u32,
+    z: u32,
+    data: &[u8],
+) -> Result<(), ColorError> {
+    let field = |f: &'static str| match (what, f) {
+        ("NormalTile", "level") => "NormalTile.level",
+        ("NormalTile", "x/z") => "NormalTile.x/z",
+        ("NormalTile", _) => "NormalTile.data",
+        (_, "level") => "ColorTile.level",
+        (_, "x/z") => "ColorTile.x/z",
+        _ => "ColorTile.data",
+    };
     if level >= layout.levels {
         return Err(refuse(
-            "ColorTile.level",
+            field("level"),
             format!("{level}, but the colour map has {} levels", layout.levels),
         ));
     }
     let tiles = layout.tiles(level);
     if x >= tiles || z >= tiles {
         return Err(refuse(
-            "ColorTile.x/z",
+            field("x/z"),
             format!("({x}, {z}), outside level {level} of {tiles} tiles a side"),
         ));
     }
@@ -530,17 +576,32 @@ pub fn decode_tile(
     let most = layout.max_tile_bytes(level);
     if data.len() > most {
         return Err(refuse(
-            "ColorTile.data",
+            field("data"),
             format!(
                 "{} bytes for a tile of {side}² texels, at most {most}",
                 data.len()
             ),
         ));
     }
-    colormap::decode(side, data, rgb).map_err(|e| {
+    Ok(())
+}
+
+/// Decodes normal tile `(x, z)` of `level`'s payload into `codes` (`side² · 2` bytes),
+/// with [`decode_tile`]'s checks; the window is [`ColorCache::put_normals_decoded`]'s.
+pub fn decode_normal_tile(
+    layout: &ColorLayout,
+    level: u8,
+    x: u32,
+    z: u32,
+    data: &[u8],
+    codes: &mut Vec<u8>,
+) -> Result<(), ColorError> {
+    check_payload(layout, "NormalTile", level, x, z, data)?;
+    let side = layout.tile_side(level);
+    normals::decode_tile(side, data, codes).map_err(|e| {
         refuse(
-            "ColorTile.data",
-            format!("tile ({x}, {z}) of level {level} ({side}² texels): {e}"),
+            "NormalTile.data",
+            format!("normals of tile ({x}, {z}) of level {level} ({side}² texels): {e}"),
         )
     })
 }
@@ -625,3 +686,7 @@ impl ColorCache {
 #[cfg(test)]
 #[path = "color_cache_tests.rs"]
 mod tests;
+
+#[cfg(test)]
+#[path = "color_cache_normals_tests.rs"]
+mod normals_tests;

@@ -77,8 +77,8 @@ fn tiles_set_their_slot_bits_and_are_uploaded_where_the_toroid_puts_them() {
         (second.layer, second.x, second.y, second.size),
         (0, 8, 8, 8)
     );
-    assert_eq!(second.rgba.len(), 8 * 8 * 4);
-    assert_eq!(&second.rgba[..4], &[2, 0, 6, 255]);
+    assert_eq!(second.texels.len(), 8 * 8 * 4);
+    assert_eq!(&second.texels[..4], &[2, 0, 6, 255]);
     assert_eq!(u.levels[0].origin, [3, 5]);
     assert!(bit(&u.levels[0].drawn, 3) && !bit(&u.levels[0].drawn, 0));
     assert_eq!(c.texels_held(), 64, "the uploaded texels are freed");
@@ -328,7 +328,7 @@ fn a_whole_map_fills_every_window_with_its_pyramid() {
     assert_eq!(u.uploads.len() as u32, c.capacity());
     let coarsest = u.uploads.iter().find(|u| u.layer == 3).expect("level 3");
     // Level 3 is 8 texels a side: texel (0, 0) averages the 8 × 8 block at the origin.
-    assert_eq!(&coarsest.rgba[..4], &[4, 4, 7, 255]);
+    assert_eq!(&coarsest.texels[..4], &[4, 4, 7, 255]);
     assert!(ColorCache::whole(l, &rgb[3..]).is_err());
     assert_eq!(window_for(8192), 8);
     assert_eq!(window_for(2048), 8);

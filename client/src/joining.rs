@@ -36,6 +36,12 @@ pub fn name(m: &ServerMessage) -> String {
                 data.len()
             )
         }
+        ServerMessage::NormalTile { level, x, z, data } => {
+            format!(
+                "a normal tile ({} bytes, level {level} at ({x}, {z}))",
+                data.len()
+            )
+        }
         ServerMessage::Refused(r) => format!("Refused({r:?})"),
         ServerMessage::Bye(r) => format!("Bye({r:?})"),
         ServerMessage::World(WorldNews::Gone(why)) => format!("news of the world gone ({why})"),
@@ -175,8 +181,9 @@ impl TerrainId {
     }
 }
 
-/// Takes a server message that comes during the session: colour windows and tiles into the
-/// colour cache, which `colors` lends (twice for a tile: it decodes into `rgb` in between,
+/// Takes a server message that comes during the session: colour windows, colour tiles and
+/// normal tiles into the colour cache, which `colors` lends (twice for a tile: it decodes
+/// into `rgb` in between,
 /// without the cache, which the display drains meanwhile); an edge's news of its world is
 /// handed back (`Ok(Some(news))`) for the session to take. `Err` with the reason when the
 /// message ends the session: a goodbye, anything else not colour, or colour the cache
@@ -195,6 +202,11 @@ pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
             let layout = *colors().layout();
             crate::color_cache::decode_tile(&layout, *level, *x, *z, data, rgb)
                 .and_then(|()| colors().put_decoded(*level, *x, *z, rgb, data.len()))
+        }
+        ServerMessage::NormalTile { level, x, z, data } => {
+            let layout = *colors().layout();
+            crate::color_cache::decode_normal_tile(&layout, *level, *x, *z, data, rgb)
+                .and_then(|()| colors().put_normals_decoded(*level, *x, *z, rgb, data.len()))
         }
         ServerMessage::ColorWindow { .. } => colors().apply(msg).map(|_| ()),
         other => {

@@ -16,6 +16,7 @@ pub mod edges;
 pub mod hud;
 pub mod joining;
 pub mod render;
+mod tile_slots;
 
 #[cfg(not(target_arch = "wasm32"))]
 pub mod bench;

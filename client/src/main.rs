@@ -389,9 +389,9 @@ async fn serve(
         None => {
             let dir = cli.local.clone().unwrap_or_else(bundled);
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-            // Heights, variance tree and colour tiles from the data set's cache (built and
-            // cached the first time), as `roam-server serve` opens them.
-            let (terrain, vt, _) =
+            // Heights, variance tree, colour and normal tiles from the data set's cache
+            // (built and cached the first time), as `roam-server serve` opens them.
+            let (terrain, vt, report) =
                 roam_server::terrain::dataset::open_cached(&dir, threads, &mut |_, _, _| {})
                     .with_context(|| format!("loading {}", dir.display()))?;
             let cells = terrain.heights.size();
@@ -407,6 +407,16 @@ async fn serve(
                 &mut |_, _| {},
             )
             .with_context(|| format!("the colour tiles of {}", dir.display()))?;
+            let (normals, _) = roam_server::terrain::normal_pyramid::NormalPyramid::open_or_build(
+                &dir,
+                &terrain.heights,
+                (terrain.map.h_scale, terrain.map.v_scale),
+                &report.heights_hash,
+                roam_protocol::tiles::DEFAULT_TILE,
+                threads,
+                &mut |_, _| {},
+            )
+            .with_context(|| format!("the normal tiles of {}", dir.display()))?;
             let identity = tls::generate()?;
             let token = net::random_token();
             let truth = roam_client::bench::Truth {
@@ -418,6 +428,7 @@ async fn serve(
                 token.clone(),
             );
             options.limits.fog_priority = cli.fog_priority == "on";
+            options.normals = Some(Arc::new(normals));
             let server = Server::start(
                 truth.terrain.clone(),
                 truth.variance.clone(),

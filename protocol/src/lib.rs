@@ -1,5 +1,6 @@
 //! roam-protocol: what crosses the wire between a roam server and its viewers, the mesh
-//! codec and the colour map codec. Pure: no I/O, no sockets, no async runtime, no clock.
+//! codec, the colour map codec and the terrain normals' code. Pure: no I/O, no sockets, no
+//! async runtime, no clock.
 //! Any byte string decodes to a value or an error, never a panic, and never allocates
 //! beyond the decode's limit (a message's fields are read by `bounded`).
 
@@ -16,6 +17,7 @@ pub mod format;
 pub mod keys;
 pub mod mesh;
 pub mod messages;
+pub mod normals;
 mod range;
 mod rans;
 pub mod script;

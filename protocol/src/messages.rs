@@ -12,8 +12,8 @@
 //!
 //! Every decode has a byte limit ([`Checked::MAX_BYTES`]), and every variable-length field
 //! one of its own: the join token [`MAX_TOKEN`] bytes, a reason [`MAX_REASON`], a key
-//! datagram [`KEY_HISTORY`] states, a frame [`MAX_VEHICLES`] vehicles, a colour tile
-//! [`MAX_TILE_BYTES`] bytes, a frame's mesh what the message holds. A length or count that
+//! datagram [`KEY_HISTORY`] states, a frame [`MAX_VEHICLES`] vehicles, a colour or normal
+//! tile [`MAX_TILE_BYTES`] bytes, a frame's mesh what the message holds. A length or count that
 //! claims more than its limit is [`DecodeError::TooLong`], naming the field, before
 //! anything is allocated for it; a list reserves little until its items arrive (see
 //! `bounded`). Decoding borrows from the input, so no string or byte string is allocated
@@ -36,7 +36,9 @@ pub use crate::tiles::{ColorLayout, MAX_TILE_BYTES, MAX_WINDOW};
 /// ([`Hello::color_window`]). 6: an edge server (`roam-server edge`) tells its viewers
 /// how the world behind it stands and where the world's other edges are
 /// ([`ServerMessage::World`]). 7: a view change says whether the viewer draws its fog
-/// ([`ViewChange::fog`]): the server weighs far errors by the fog only while it does.
+/// ([`ViewChange::fog`]): the server weighs far errors by the fog only while it does; and
+/// each colour tile's normals follow it ([`ServerMessage::NormalTile`],
+/// [`crate::normals`]), for lighting per pixel.
 pub const VERSION: u16 = 7;
 /// The largest message (a frame with its mesh).
 pub const MAX_MESSAGE: usize = 16 << 20;
@@ -227,6 +229,17 @@ pub enum ServerMessage {
     Bye(Reason),
     /// News of the world behind an edge server (never sent by `serve`).
     World(WorldNews),
+    /// The normals of tile `(x, z)` of level `level` ([`crate::normals::encode_tile`]: a
+    /// code per texel, the colour tile's side), right after that tile's
+    /// [`ServerMessage::ColorTile`] (the coarsest tile's after the first frame); held and
+    /// dropped with it, by the same windows.
+    NormalTile {
+        level: u8,
+        x: u32,
+        z: u32,
+        #[serde(deserialize_with = "normal_tile")]
+        data: Vec<u8>,
+    },
 }
 
 /// What an edge server says of its world ([`ServerMessage::World`]).
@@ -407,6 +420,10 @@ pub(crate) fn edge_list<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<String>, 
 
 fn tile<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
     bounded::list(d, "colour tile bytes", MAX_TILE_BYTES)
+}
+
+fn normal_tile<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+    bounded::list(d, "normal tile bytes", MAX_TILE_BYTES)
 }
 
 fn vehicles<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<VehicleView>, D::Error> {

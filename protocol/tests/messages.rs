@@ -109,6 +109,12 @@ fn every_message_round_trips() {
             z: 128,
             data: vec![7; 1000],
         },
+        ServerMessage::NormalTile {
+            level: 3,
+            x: 5,
+            z: 0,
+            data: vec![9; 700],
+        },
         ServerMessage::Refused(Reason::WrongToken),
         ServerMessage::Refused(Reason::Version { server: 1 }),
         ServerMessage::Bye(Reason::Shutdown),
@@ -228,6 +234,14 @@ fn limits() {
             data: vec![3; n],
         })
     };
+    let normals = |n: usize| {
+        encoded(&ServerMessage::NormalTile {
+            level: 0,
+            x: 0,
+            z: 0,
+            data: vec![3; n],
+        })
+    };
     let keys = |n: usize| {
         encoded(&KeyDatagram {
             states: vec![
@@ -313,6 +327,25 @@ fn limits() {
             // Variant 2 (a tile), level 0, x 0, z 0, then the payload's length.
             claiming(&[2, 0, 0, 0], mb16, &[]),
             TooLong("colour tile bytes", 16 << 20, MAX_TILE_BYTES),
+        ),
+        (
+            "a normal tile of the largest payload",
+            As::Server,
+            normals(MAX_TILE_BYTES),
+            Value,
+        ),
+        (
+            "a normal tile a byte longer",
+            As::Server,
+            normals(MAX_TILE_BYTES + 1),
+            TooLong("normal tile bytes", MAX_TILE_BYTES + 1, MAX_TILE_BYTES),
+        ),
+        (
+            "a normal tile claiming 16 MiB",
+            As::Server,
+            // Variant 6 (a tile's normals), level 0, x 0, z 0, then the payload's length.
+            claiming(&[6, 0, 0, 0], mb16, &[]),
+            TooLong("normal tile bytes", 16 << 20, MAX_TILE_BYTES),
         ),
         (
             "a frame claiming 65,537 vehicles",

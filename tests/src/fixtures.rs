@@ -1,5 +1,6 @@
 //! What the tests share: a small terrain ([`flat`]), the bundled real one ([`kossou`]), a
-//! server on loopback ([`serve`], [`serve_tiled`]), its colour pyramid ([`pyramid`]), and the seeded generator the relay and the simulated
+//! server on loopback ([`serve`], [`serve_tiled`]), its colour and normal pyramids
+//! ([`pyramid`], [`normals`]), and the seeded generator the relay and the simulated
 //! network draw every random choice from ([`SplitMix64`]).
 
 use std::sync::Arc;
@@ -7,6 +8,7 @@ use std::sync::Arc;
 use roam_link::tls;
 use roam_server::net::{Options, Server};
 use roam_server::terrain::color_pyramid::ColorPyramid;
+use roam_server::terrain::normal_pyramid::NormalPyramid;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::{ColorMap, Heightfield, MapParams, Terrain};
 
@@ -65,6 +67,15 @@ pub fn pyramid(terrain: &Terrain, tile: u32) -> Arc<ColorPyramid> {
     let color = (terrain.color.as_ref()).expect("the test terrains are loaded whole");
     let p = ColorPyramid::build(color, tile, 2, &mut |_, _| {})
         .expect("the test terrains' colour maps are powers of two");
+    Arc::new(p)
+}
+
+/// `terrain`'s normal pyramid in tiles of `tile` texels (what a server it is given to
+/// builds when not given one).
+pub fn normals(terrain: &Terrain, tile: u32) -> Arc<NormalPyramid> {
+    let scales = (terrain.map.h_scale, terrain.map.v_scale);
+    let p = NormalPyramid::build(&terrain.heights, scales, tile, 2, &mut |_, _| {})
+        .expect("the test terrains' grids are 2^N + 1");
     Arc::new(p)
 }
 

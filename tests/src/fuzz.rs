@@ -180,6 +180,12 @@ pub fn seeds(grid: Grid) -> Vec<Vec<u8>> {
             x0: 2,
             z0: 1000,
         }),
+        encoded(&ServerMessage::NormalTile {
+            level: 2,
+            x: 1,
+            z: 0,
+            data: vec![2; 48],
+        }),
         encoded(&frame(Some(2), vec![9; 40])),
         encoded(&KeyDatagram {
             states: vec![
@@ -526,7 +532,7 @@ impl Following {
                 .is_ok();
             if got {
                 live.update(grid, f.toggled(), |i| f.contains(i));
-                vertices.update(scene, live, |i| f.height(i));
+                vertices.update(scene, live, |i| f.height(i), |_| 0.0);
                 vertices.forget_changes();
             }
             got && live.triangle_count() == f.triangles() as usize

@@ -1,9 +1,11 @@
 //! End to end, at the protocol: a real server on `127.0.0.1:0` streams a generated 257²
 //! set's colour in tiles of 16 texels (5 levels: 16, 8, 4, 2 and 1 tiles a side) with
 //! windows of 4 tiles. A viewer speaking the protocol directly (quinn) gets the welcome's
-//! layout, the coarsest tile next and before any frame, then the rest of every level's
-//! window, each tile inside its window and equal to the pyramid's
-//! (decoding to the box-filtered texels is `color_pyramid`'s unit test).
+//! layout, the coarsest tile next and before any frame, then its normals, then the rest of
+//! every level's window, each tile inside its window and equal to the pyramid's, each
+//! followed at once by its normals, equal to the normal pyramid's (decoding to the
+//! box-filtered texels and the averaged normals is `color_pyramid`'s and
+//! `normal_pyramid`'s unit tests): as many normal tiles as colour tiles, never more.
 
 use std::collections::BTreeSet;
 use std::sync::Arc;
@@ -11,8 +13,8 @@ use std::time::Duration;
 
 use roam_client::headless;
 use roam_link::wire;
-use roam_protocol::colormap;
 use roam_protocol::messages::{ClientMessage, Hello, MAX_MESSAGE, Role, ServerMessage, VERSION};
+use roam_protocol::{colormap, normals};
 use roam_server::net::Options;
 use roam_tests::fixtures;
 
@@ -34,6 +36,7 @@ async fn next(recv: &mut quinn::RecvStream) -> (ServerMessage, usize) {
 async fn the_coarsest_tile_comes_before_the_first_frame_then_the_windows_fill() {
     let terrain = Arc::new(roam_server::terrain::generate::synthetic(257, 7));
     let pyramid = fixtures::pyramid(&terrain, TILE);
+    let normal_tiles = fixtures::normals(&terrain, TILE);
     let r = fixtures::serve_tiled(terrain, TILE, |o| Options {
         color_rate: 100_000,
         color_window: 6,
@@ -91,9 +94,26 @@ async fn the_coarsest_tile_comes_before_the_first_frame_then_the_windows_fill() 
     })
     .await
     .expect("a frame in time");
+    // The coarsest tile's normals: the first tile after it (windows may move first).
+    let mut origins = vec![(0u32, 0u32); usize::from(layout.levels)];
+    let mut codes = Vec::new();
+    loop {
+        match next(&mut recv).await.0 {
+            ServerMessage::ColorWindow { level, x0, z0 } => {
+                assert!(layout.origin_valid(level, x0, z0), "{level} ({x0}, {z0})");
+                origins[usize::from(level)] = (x0, z0);
+            }
+            ServerMessage::NormalTile { level, x, z, data } => {
+                assert_eq!((level, x, z), (4, 0, 0));
+                assert_eq!(Some(data.as_slice()), normal_tiles.tile(4, 0, 0));
+                normals::decode_tile(TILE, &data, &mut codes).expect("the normals decode");
+                break;
+            }
+            other => panic!("expected the coarsest tile's normals, got {other:?}"),
+        }
+    }
     // Then the rest of every window: levels 3 (2 × 2) and 2 (4 × 4) whole, levels 1
     // and 0 the 4 × 4 around the vehicle (in the order the scheduler's tests check).
-    let mut origins = vec![(0u32, 0u32); usize::from(layout.levels)];
     let mut held = BTreeSet::from([(4u8, 0u32, 0u32)]);
     let want = 1 + 4 + 16 + 16 + 16;
     for _ in 0..500 {
@@ -114,6 +134,20 @@ async fn the_coarsest_tile_comes_before_the_first_frame_then_the_windows_fill() 
                 colormap::decode(layout.tile_side(level), &data, &mut texels)
                     .expect("a tile decodes");
                 assert!(held.insert((level, x, z)), "({level}, {x}, {z}) twice");
+                // Its normals, next.
+                let ServerMessage::NormalTile {
+                    level: l,
+                    x: nx,
+                    z: nz,
+                    data,
+                } = next(&mut recv).await.0
+                else {
+                    panic!("expected the normals of ({level}, {x}, {z})");
+                };
+                assert_eq!((l, nx, nz), (level, x, z));
+                assert_eq!(Some(data.as_slice()), normal_tiles.tile(level, x, z));
+                normals::decode_tile(layout.tile_side(level), &data, &mut codes)
+                    .expect("the normals decode");
             }
             other => panic!("expected colour, got {other:?}"),
         }
@@ -131,6 +165,7 @@ async fn the_coarsest_tile_comes_before_the_first_frame_then_the_windows_fill() 
     );
     let counts = r.server.counts();
     assert_eq!(counts.color_tiles, want as u64);
+    assert_eq!(counts.normal_tiles, counts.color_tiles);
     conn.close(0u32.into(), b"done");
     r.server.shutdown().await.expect("stops");
 }

@@ -14,10 +14,18 @@
 //! `levels × S²` texels (7 × 2048² × 4 B = 112 MiB at 16385² and W = 8); a layout that
 //! does not fit the device (S past `max_texture_dimension_2d`, too many layers) is drawn
 //! grey rather than failing.
+//!
+//! **Light: normals per pixel** ([`normals`]): a second clipmap of the same shape holds
+//! each cell's normal (2 bytes a texel), streamed with the colour; the terrain is lit with
+//! it wherever a tile has come, faded in over half a second, and with the vertex normal
+//! (from the cut, [`vertices`]) elsewhere. So the light on a slope does not change when the
+//! cut under it does.
 
+mod buffer;
 mod gpu;
 pub(crate) mod math;
 pub mod morph;
+mod normals;
 mod pipelines;
 pub mod vertices;
 
@@ -27,9 +35,10 @@ use wgpu::util::DeviceExt;
 
 use crate::color_cache::{ColorUpdate, LevelState, MASK_WORDS, layer_side};
 
+use buffer::Buffer;
 pub use gpu::{Gpu, NO_ADAPTER, configure_surface};
 pub use morph::{MORPH_PX_PER_TICK, MORPH_TICKS, Morph, MorphView};
-use vertices::Vertex;
+pub use normals::{FADE_S, fade_byte};
 pub use vertices::{TerrainUpdate, TerrainVertices};
 
 /// What does not change during a session: the map's scales, sun, fog, water and colours.
@@ -192,63 +201,6 @@ fn fits(layout: &ColorLayout, limits: &wgpu::Limits) -> bool {
         && u32::from(layout.levels) <= limits.max_texture_array_layers
 }
 
-/// A vertex buffer that grows as needed and is otherwise reused.
-struct Buffer {
-    label: &'static str,
-    buffer: Option<wgpu::Buffer>,
-    count: u32,
-}
-
-impl Buffer {
-    fn new(label: &'static str) -> Buffer {
-        Buffer {
-            label,
-            buffer: None,
-            count: 0,
-        }
-    }
-
-    fn write(&mut self, gpu: &Gpu, bytes: &[u8], count: usize) {
-        let need = bytes.len() as u64;
-        if self.buffer.as_ref().is_none_or(|b| b.size() < need) {
-            // Room for growth: meshes vary frame to frame.
-            self.buffer = Some(
-                gpu.device.create_buffer(&wgpu::BufferDescriptor {
-                    label: Some(self.label),
-                    size: (need + need / 2)
-                        .max(256)
-                        .next_multiple_of(wgpu::COPY_BUFFER_ALIGNMENT),
-                    usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
-                    mapped_at_creation: false,
-                }),
-            );
-        }
-        if let Some(b) = &self.buffer {
-            gpu.queue.write_buffer(b, 0, bytes);
-        }
-        self.count = count as u32;
-    }
-
-    /// Writes `bytes` at `offset` (bytes) of a buffer of `count` vertices in all; false
-    /// when the buffer is too small (the caller writes the whole instead).
-    fn write_at(&mut self, gpu: &Gpu, offset: u64, bytes: &[u8], count: usize) -> bool {
-        let need = (count * std::mem::size_of::<Vertex>()) as u64;
-        match &self.buffer {
-            Some(b) if b.size() >= need => {
-                gpu.queue.write_buffer(b, offset, bytes);
-                self.count = count as u32;
-                true
-            }
-            _ => false,
-        }
-    }
-
-    fn slice(&self) -> Option<(wgpu::BufferSlice<'_>, u32)> {
-        let b = self.buffer.as_ref().filter(|_| self.count > 0)?;
-        Some((b.slice(..), self.count))
-    }
-}
-
 /// Draws a scene's meshes.
 pub struct Renderer {
     pipelines: pipelines::Pipelines,
@@ -274,6 +226,8 @@ pub struct Renderer {
     colors: Option<wgpu::Texture>,
     color_uniform: wgpu::Buffer,
     color_levels: ColorLevels,
+    /// The normal clipmap beside it, and its tiles' fades.
+    normals: normals::NormalMaps,
 }
 
 const DEPTH: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
@@ -346,8 +300,14 @@ impl Renderer {
             usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let (pipelines, bind_group) =
-            pipelines::Pipelines::new(device, format, &uniforms, &texture, &color_uniform);
+        let normals = normals::NormalMaps::new(device, fit, side, layers);
+        let (pipelines, bind_group) = pipelines::Pipelines::new(
+            device,
+            format,
+            &uniforms,
+            (&texture, &color_uniform),
+            (normals.texture(), normals.uniform()),
+        );
         let model_vertices = vertices::marker_model();
         let model = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("marker model"),
@@ -372,11 +332,27 @@ impl Renderer {
             colors: fit.then_some(texture),
             color_uniform,
             color_levels,
+            normals,
         }
     }
 
+    /// Bytes of the colour and normal clipmaps on the GPU (4 and 2 a texel).
+    pub fn clipmap_bytes(&self) -> (u64, u64) {
+        let colors = self.colors.as_ref().map_or(0, |t| {
+            let s = t.size();
+            u64::from(s.width) * u64::from(s.height) * u64::from(s.depth_or_array_layers) * 4
+        });
+        let normals = if self.colors.is_some() {
+            self.normals.bytes()
+        } else {
+            0
+        };
+        (colors, normals)
+    }
+
     /// Writes a colour update ([`crate::color_cache::ColorCache::drain`]): each tile into
-    /// its layer, then every level's window and mask. Ignored when the layout did not fit.
+    /// its layer (colour, normals), then every level's window and masks. Ignored when the
+    /// layout did not fit.
     pub fn update_colors(&mut self, gpu: &Gpu, update: &ColorUpdate) {
         let Some(texture) = &self.colors else {
             return;
@@ -388,7 +364,7 @@ impl Renderer {
             let fits = u.layer < layers
                 && u.x + u.size <= side
                 && u.y + u.size <= side
-                && u.rgba.len() as u64 == u64::from(u.size) * u64::from(u.size) * 4;
+                && u.texels.len() as u64 == u64::from(u.size) * u64::from(u.size) * 4;
             if !fits {
                 continue;
             }
@@ -403,7 +379,7 @@ impl Renderer {
                     },
                     aspect: wgpu::TextureAspect::All,
                 },
-                &u.rgba,
+                &u.texels,
                 wgpu::TexelCopyBufferLayout {
                     offset: 0,
                     bytes_per_row: Some(u.size * 4),
@@ -416,8 +392,9 @@ impl Renderer {
                 },
             );
         }
+        self.normals.update(gpu, &update.normals, &update.levels);
         for (l, state) in update.levels.iter().take(layers as usize).enumerate() {
-            let LevelState { origin, drawn } = *state;
+            let LevelState { origin, drawn, .. } = *state;
             let level = &mut self.color_levels.level[l];
             level.origin[0] = origin[0];
             level.origin[1] = origin[1];
@@ -471,7 +448,7 @@ impl Renderer {
         let mut whole = false;
         let buffer = &mut self.terrain;
         terrain.take_ranges(|first, corners| {
-            let offset = (first * std::mem::size_of::<Vertex>()) as u64;
+            let offset = (first * std::mem::size_of::<vertices::Vertex>()) as u64;
             whole |= !buffer.write_at(gpu, offset, bytemuck::cast_slice(corners), len);
         });
         if whole {
@@ -553,6 +530,7 @@ impl Renderer {
         };
         gpu.queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));
+        self.normals.frame(gpu, view.time_s);
         let markers = toggles.vehicles && !self.markers.is_empty();
         if markers {
             let instances: Vec<Instance> = self

@@ -1,5 +1,6 @@
 //! The render pipelines and their shared bind group (uniforms, the colour clipmap as a 2D
-//! array, its repeating sampler, the colour levels' uniform).
+//! array, its repeating sampler, the colour levels' uniform, the normal clipmap and its
+//! tiles' fades).
 
 use super::DEPTH;
 use super::vertices::Vertex;
@@ -24,8 +25,8 @@ impl Pipelines {
         device: &wgpu::Device,
         format: wgpu::TextureFormat,
         uniforms: &wgpu::Buffer,
-        colors: &wgpu::Texture,
-        color_levels: &wgpu::Buffer,
+        (colors, color_levels): (&wgpu::Texture, &wgpu::Buffer),
+        (normals, fades): (&wgpu::Texture, &wgpu::Buffer),
     ) -> (Pipelines, wgpu::BindGroup) {
         let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
             label: Some("roam"),
@@ -79,12 +80,34 @@ impl Pipelines {
                     },
                     count: None,
                 },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 4,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: true },
+                        view_dimension: wgpu::TextureViewDimension::D2Array,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 5,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
             ],
         });
-        let view = colors.create_view(&wgpu::TextureViewDescriptor {
+        let array = wgpu::TextureViewDescriptor {
             dimension: Some(wgpu::TextureViewDimension::D2Array),
             ..Default::default()
-        });
+        };
+        let view = colors.create_view(&array);
+        let normal_view = normals.create_view(&array);
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("scene"),
             layout: &layout,
@@ -104,6 +127,14 @@ impl Pipelines {
                 wgpu::BindGroupEntry {
                     binding: 3,
                     resource: color_levels.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 4,
+                    resource: wgpu::BindingResource::TextureView(&normal_view),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 5,
+                    resource: fades.as_entire_binding(),
                 },
             ],
         });

@@ -3,7 +3,9 @@
 // fades into at the horizon; wireframe: edges found from barycentrics (derived from the
 // vertex index, the mesh being drawn unindexed), so it works on every adapter. Depth is
 // reversed (1 near, 0 at infinity). Colour: a clipmap, a texture-array layer per level of
-// the colour pyramid, addressed toroidally (see `color_at`).
+// the colour pyramid, addressed toroidally (see `color_at`). Light: the terrain's normals
+// per pixel from a second clipmap of the same shape, each tile faded in over the vertex
+// normal (see `normal_at`).
 
 struct Uniforms {
     view_proj: mat4x4<f32>,
@@ -75,17 +77,21 @@ fn footprint_drawn(l: u32, p: vec2<f32>) -> bool {
         && tile_drawn(l, b.x, b.y);
 }
 
-// The ground's colour at level-0 cell coordinate `cell`: the finest level at or above the
-// screen-space level of detail (log2 of level-0 texels per pixel) whose footprint is
-// drawn, down to the coarsest; grey before any colour.
-fn color_at(cell: vec2<f32>) -> vec3<f32> {
-    // Derivatives first, in uniform control flow.
+// The screen-space level of detail at level-0 cell coordinate `cell`: log2 of level-0
+// texels per pixel (derivatives: call in uniform control flow).
+fn lod_at(cell: vec2<f32>) -> f32 {
     let d = max(length(dpdx(cell)), length(dpdy(cell)));
+    return max(log2(max(d, 1e-6)), 0.0);
+}
+
+// The ground's colour at level-0 cell coordinate `cell`: the finest level at or above the
+// screen-space level of detail `lod` whose footprint is drawn, down to the coarsest; grey
+// before any colour.
+fn color_at(cell: vec2<f32>, lod: f32) -> vec3<f32> {
     let levels = cl.info.x;
     if (levels == 0u) {
         return vec3<f32>(0.5);
     }
-    let lod = max(log2(max(d, 1e-6)), 0.0);
     var l = min(u32(lod), levels - 1u);
     loop {
         let side = f32(cl.level[l].origin.z);
@@ -100,6 +106,85 @@ fn color_at(cell: vec2<f32>) -> vec3<f32> {
         l += 1u;
     }
     return vec3<f32>(0.5);
+}
+
+// Normals: the fade of each tile (a byte per level and window slot, 0: none), and the
+// normal clipmap (each texel's hemi-octahedral code, `roam_protocol::normals`).
+struct NormalFades {
+    // Byte l·256 + slot, four to a word.
+    fade: array<vec4<u32>, 256>,
+};
+
+@group(0) @binding(4) var normal_maps: texture_2d_array<f32>;
+@group(0) @binding(5) var<uniform> nf: NormalFades;
+
+// The fade of tile (tx, tz)'s normals at level l (0 outside the window or without them).
+fn tile_fade(l: u32, tx: u32, tz: u32) -> f32 {
+    let w = cl.info.y;
+    let o = cl.level[l].origin;
+    if (tx - o.x >= w || tz - o.y >= w) {
+        return 0.0;
+    }
+    let i = l * 256u + (tz % w) * w + (tx % w);
+    let word = nf.fade[i / 16u][(i / 4u) % 4u];
+    return f32((word >> ((i % 4u) * 8u)) & 255u) / 255.0;
+}
+
+// The least fade over the bilinear footprint at p (texels of level l), as for colour.
+fn footprint_fade(l: u32, p: vec2<f32>) -> f32 {
+    let last = cl.level[l].origin.z - 1u;
+    let lo = vec2<u32>(max(p - 0.5, vec2<f32>(0.0)));
+    let hi = min(vec2<u32>(p + 0.5), vec2<u32>(last));
+    let t = cl.info.z;
+    let a = lo / t;
+    let b = hi / t;
+    return min(min(tile_fade(l, a.x, a.y), tile_fade(l, b.x, a.y)),
+        min(tile_fade(l, a.x, b.y), tile_fade(l, b.x, b.y)));
+}
+
+// A normal from its code's two bytes (as unorm, bilinearly filtered).
+fn decode_normal(e: vec2<f32>) -> vec3<f32> {
+    let ab = clamp((e * 255.0 - 128.0) / 127.0, vec2<f32>(-1.0), vec2<f32>(1.0));
+    let p = vec2<f32>(ab.x + ab.y, ab.x - ab.y) * 0.5;
+    return normalize(vec3<f32>(p.x, max(1.0 - abs(p.x) - abs(p.y), 0.0), p.y));
+}
+
+// The ground's normal at level-0 cell coordinate `cell`: from the levels either side of
+// `lod` (trilinear: the finer one weighted by one minus `lod`'s fraction, so the light
+// moves smoothly as the level of detail does, which the cut drawn changes too), a level
+// without normals under its footprint giving way to the next coarser, composited over
+// the coarser levels' and finally the vertex normal `vn` by each one's fade, front to
+// back: tiles fully faded in hide everything behind them (two samples, the usual case).
+fn normal_at(cell: vec2<f32>, lod: f32, vn: vec3<f32>) -> vec3<f32> {
+    let levels = cl.info.x;
+    if (levels == 0u) {
+        return vn;
+    }
+    var acc = vec3<f32>(0.0);
+    var left = 1.0;
+    var l = min(u32(lod), levels - 1u);
+    // The finer level's share; the coarsest level takes all.
+    var share = select(1.0 - fract(lod), 1.0, l + 1u >= levels);
+    loop {
+        let side = f32(cl.level[l].origin.z);
+        let p = clamp(cell / f32(1u << l), vec2<f32>(0.5), vec2<f32>(side - 0.5));
+        let f = footprint_fade(l, p) * share;
+        share = 1.0;
+        if (f > 0.0) {
+            let uv = p / f32(cl.info.w);
+            let e = textureSampleLevel(normal_maps, colors_sampler, uv, i32(l), 0.0).rg;
+            acc += left * f * decode_normal(e);
+            left *= 1.0 - f;
+            if (left <= 0.0) {
+                break;
+            }
+        }
+        if (l + 1u >= levels) {
+            break;
+        }
+        l += 1u;
+    }
+    return normalize(acc + left * vn);
 }
 
 fn fogged(c: vec3<f32>, dist: f32) -> vec3<f32> {
@@ -188,12 +273,14 @@ fn terrain_vs(
 @fragment
 fn terrain_fs(in: TerrainOut) -> @location(0) vec4<f32> {
     let cells = f32(cl.level[0].origin.z);
-    var base = color_at(in.world.xz / u.map.x * cells);
+    let cell = in.world.xz / u.map.x * cells;
+    let lod = lod_at(cell);
+    var base = color_at(cell, lod);
     let dist = length(in.world - u.eye.xyz);
     if (u.map.w > 0.5) {
         base *= detail(in.world.xz, dist);
     }
-    var c = lit(base, normalize(in.normal));
+    var c = lit(base, normal_at(cell, lod, normalize(in.normal)));
     if (u.params.w > 0.5) {
         let w = fwidth(in.bary);
         let e = smoothstep(vec3<f32>(0.0), w * 1.5, in.bary);

@@ -1,5 +1,6 @@
-//! `serve`: the QUIC server. The colour pyramid is mapped from the data set's cache
-//! (`.cache/color-tiles.bin`), or built (with a progress bar) and cached there. On glibc,
+//! `serve`: the QUIC server. The colour and normal pyramids are mapped from the data set's
+//! cache (`.cache/color-tiles.bin`, `.cache/normal-tiles.bin`), or built (with a progress
+//! bar) and cached there. On glibc,
 //! `malloc` is told to keep mapping large blocks on their own (`keep_large_blocks_mapped`:
 //! what freed viewers' tables go back to the system, measured there).
 //!
@@ -26,6 +27,7 @@ use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
 use roam_server::terrain::dataset::{HashSource, Terrain};
+use roam_server::terrain::normal_pyramid::NormalPyramid;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::viewer::ViewerLimits;
 use roam_server::viewer::admission::viewer_bytes;
@@ -258,11 +260,13 @@ pub fn data_hash(
 }
 
 /// A data set opened for serving: heights and variance tree mapped from its cache, the
-/// colour tiles mapped from theirs (each built on first use, with progress bars).
+/// colour and normal tiles mapped from theirs (each built on first use, with progress
+/// bars).
 pub struct Served {
     pub terrain: Terrain,
     pub variance: VarianceTree,
     pub pyramid: ColorPyramid,
+    pub normals: NormalPyramid,
     /// What the cache did (its `heights_hash` keys the data set's cached hash).
     pub report: roam_server::terrain::cache::CacheReport,
 }
@@ -324,10 +328,37 @@ pub fn open_served(dir: &Path) -> Result<Served> {
         mapped = pyramid.is_mapped(),
         "colour pyramid"
     );
+    let mut p = super::progress::Progress::new("normal tiles");
+    let (normals, outcome) = NormalPyramid::open_or_build(
+        dir,
+        &terrain.heights,
+        (terrain.map.h_scale, terrain.map.v_scale),
+        &report.heights_hash,
+        roam_protocol::tiles::DEFAULT_TILE,
+        threads,
+        &mut p.callback(),
+    )
+    .with_context(|| dir.display().to_string())?;
+    drop(p);
+    match outcome {
+        CacheOutcome::Mapped => {}
+        CacheOutcome::Built => tracing::info!("normal tiles cached"),
+        CacheOutcome::Rebuilt(why) => tracing::warn!("normal tile cache rebuilt: {why}"),
+        CacheOutcome::InMemory(why) => {
+            tracing::warn!("normal tiles kept in memory, not cached: {why}")
+        }
+    }
+    tracing::info!(
+        levels = normals.levels(),
+        kbytes = normals.coded_bytes() / 1000,
+        mapped = normals.is_mapped(),
+        "normal pyramid"
+    );
     Ok(Served {
         terrain,
         variance,
         pyramid,
+        normals,
         report,
     })
 }
@@ -507,6 +538,7 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
         terrain,
         variance: vt,
         pyramid,
+        normals,
         report,
     } = open_served(&args.dir)?;
     let hash = data_hash(&args.dir, &terrain, &report)?;
@@ -543,6 +575,7 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
                     RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash)
                 }),
                 remote: remote.clone(),
+                normals: Some(Arc::new(normals)),
                 ..args.options(token.clone(), None)?
             },
         )?;

@@ -1,6 +1,7 @@
 //! What a viewer's task writes on its control stream after the welcome, beside the last
-//! words ([`super::viewer`]): the colour tiles ([`stream_color`], [`write_color`]: the
-//! viewer's [`ColorScheduler`] picks them for the followed vehicle's position, paced by a
+//! words ([`super::viewer`]): the colour tiles, each followed by its normals
+//! ([`stream_color`], [`write_color`]: the viewer's [`ColorScheduler`] picks them for the
+//! followed vehicle's position, paced by a
 //! token bucket whose rate is the viewer's share of the server-wide colour budget,
 //! [`super::color_budget`]; a tile is written whole and awaited before the next), and on
 //! an edge the news of the world ([`tell_news`]: its edges, the world gone and back; a
@@ -18,32 +19,19 @@ use crate::sim::world::VehicleId;
 use crate::terrain::color_pyramid::TileError;
 use crate::viewer::color::{ColorScheduler, ColorSend};
 
-/// Writes one colour message (a tile's payload from the pyramid), counting it.
+/// Writes one colour message (a tile's colour or normals from their pyramid), counting it.
 pub(super) async fn write_color(
     send: &mut SendStream,
     shared: &Shared,
     m: ColorSend,
 ) -> Result<(), wire::WireError> {
+    let stats = &shared.stats;
     let msg = match m {
         ColorSend::Window { level, x0, z0 } => ServerMessage::ColorWindow { level, x0, z0 },
         ColorSend::Tile { level, x, z } => {
-            let data = match shared.pyramid.served_tile(level, x, z) {
-                Ok(data) => data,
-                Err(e) => {
-                    // Not sent: the viewer draws a coarser level there (the scheduler
-                    // counts it as held, so it is not asked for again).
-                    if e == (TileError::Damaged { first: true }) {
-                        tracing::error!(
-                            level,
-                            x,
-                            z,
-                            "colour tile not served: {e}; restart the server to rebuild it"
-                        );
-                    }
-                    return Ok(());
-                }
+            let Some(data) = served("colour", shared.pyramid.served_tile(level, x, z), m) else {
+                return Ok(());
             };
-            let stats = &shared.stats;
             stats.add(&stats.color_tiles, 1);
             stats.add(&stats.color_bytes, data.len() as u64);
             ServerMessage::ColorTile {
@@ -53,8 +41,38 @@ pub(super) async fn write_color(
                 data: data.to_vec(),
             }
         }
+        ColorSend::Normals { level, x, z } => {
+            let Some(data) = served("normal", shared.normals.served_tile(level, x, z), m) else {
+                return Ok(());
+            };
+            stats.add(&stats.normal_tiles, 1);
+            stats.add(&stats.normal_bytes, data.len() as u64);
+            ServerMessage::NormalTile {
+                level,
+                x,
+                z,
+                data: data.to_vec(),
+            }
+        }
     };
     send.write_msg(&msg).await
+}
+
+/// A tile's payload to send, or `None` (logged the first time when damaged). A tile not
+/// sent is counted as held by the scheduler, so it is not asked for again: the viewer
+/// draws a coarser level's colour there, or lights it per vertex.
+fn served<'p>(what: &str, tile: Result<&'p [u8], TileError>, m: ColorSend) -> Option<&'p [u8]> {
+    match tile {
+        Ok(data) => Some(data),
+        Err(e) => {
+            if e == (TileError::Damaged { first: true }) {
+                tracing::error!(
+                    "{what} tile not served ({m:?}): {e}; restart the server to rebuild it"
+                );
+            }
+            None
+        }
+    }
 }
 
 /// Why a driver on an edge is let go when its world restarts.
@@ -121,23 +139,36 @@ pub(super) async fn tell_news(
 /// How often the colour task looks at the camera and its budget.
 const COLOR_TICK: Duration = Duration::from_millis(50);
 
-/// Streams colour tiles to the viewer following `vehicle`, as its scheduler picks them,
-/// within the byte rate; ends when the control stream fails.
+/// Streams colour tiles (and their normals) to the viewer following `vehicle`, as its
+/// scheduler picks them, within the byte rate, from the viewer's first frame on (`made`:
+/// the frames made); ends when the control stream fails.
 pub(super) async fn stream_color(
     send: Arc<tokio::sync::Mutex<SendStream>>,
     shared: Arc<Shared>,
     mut colors: ColorScheduler,
-    vehicle: VehicleId,
+    (vehicle, mut made): (VehicleId, tokio::sync::watch::Receiver<u64>),
 ) {
-    let largest = roam_protocol::colormap::max_len(colors.layout().tile) as f64;
+    // Nothing before the first frame: the coarsest tile's normals, owed first, would
+    // only share the link with it (a viewer lights per vertex until they come).
+    if made.wait_for(|&n| n > 0).await.is_err() {
+        return;
+    }
+    // A tile and its normals go out together.
+    let largest = 2.0 * roam_protocol::colormap::max_len(colors.layout().tile) as f64;
     let h_scale = shared.terrain.map.h_scale;
     let mut tokens = 0.0f64;
     let mut last = tokio::time::Instant::now();
     let mut tick = tokio::time::interval(COLOR_TICK);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let pyramid = shared.pyramid.clone();
-    let cost =
-        move |level: u8, x: u32, z: u32| pyramid.tile(level, x, z).map_or(0, |t| t.len() as u64);
+    let (pyramid, normals) = (shared.pyramid.clone(), shared.normals.clone());
+    let cost = move |m: ColorSend| {
+        let tile = match m {
+            ColorSend::Tile { level, x, z } => pyramid.tile(level, x, z),
+            ColorSend::Normals { level, x, z } => normals.tile(level, x, z),
+            ColorSend::Window { .. } => None,
+        };
+        tile.map_or(0, |t| t.len() as u64)
+    };
     // Counted among the viewers sharing the budget while its windows are not full.
     let mut want = Wanting {
         shared: shared.clone(),

@@ -32,6 +32,7 @@ use tokio::sync::watch;
 use crate::Terrain;
 use crate::sim::world_core::Snapshot;
 use crate::terrain::color_pyramid::ColorPyramid;
+use crate::terrain::normal_pyramid::NormalPyramid;
 use crate::terrain::variance::VarianceTree;
 use crate::viewer::admission::{Admission, PendingId};
 use roam_protocol::messages::Ticket;
@@ -70,12 +71,12 @@ pub struct Options {
     pub hold: std::time::Duration,
     /// How often the summary line is logged.
     pub summary_every: std::time::Duration,
-    /// Colour tile bytes a second at most, per viewer (the coarsest tile, sent before the
-    /// first frame, is outside it).
+    /// Colour tile bytes a second at most, per viewer, each tile's normals included (the
+    /// coarsest tile, sent before the first frame, is outside it).
     pub color_rate: u64,
-    /// Colour tile bytes a second at most, every viewer together: shared equally by the
-    /// viewers still wanting tiles, and sent only while no frame is behind
-    /// ([`color_budget`]).
+    /// Colour tile bytes a second at most (normals included), every viewer together:
+    /// shared equally by the viewers still wanting tiles, and sent only while no frame is
+    /// behind ([`color_budget`]).
     pub color_total: u64,
     /// The colour window (tiles a side per level) offered; a viewer asking less gets its
     /// own ([`roam_protocol::messages::Hello::color_window`]).
@@ -86,6 +87,10 @@ pub struct Options {
     /// snapshots served and its tickets handed out. `None`: the world runs in this process
     /// (`serve`), and [`Options::record`] records it.
     pub remote: Option<Arc<bus::edge::Remote>>,
+    /// The terrain's normal tiles ([`crate::terrain::normal_pyramid`]), with the colour
+    /// pyramid's layout; `None`: built in memory from the terrain when the server starts
+    /// (`serve` maps them from the data set's cache).
+    pub normals: Option<Arc<NormalPyramid>>,
 }
 
 /// [`Options::max_viewers`] unless told otherwise.
@@ -124,6 +129,7 @@ impl Options {
             color_window: roam_protocol::tiles::DEFAULT_WINDOW,
             web: None,
             remote: None,
+            normals: None,
         }
     }
 }
@@ -138,6 +144,8 @@ pub struct Shared {
     pub height_step: u16,
     /// The colour map's tiles, coded once ([`crate::terrain::color_pyramid`]).
     pub pyramid: Arc<ColorPyramid>,
+    /// The normals' tiles, in the same layout ([`crate::terrain::normal_pyramid`]).
+    pub normals: Arc<NormalPyramid>,
     /// The colour budget every viewer shares ([`Options::color_rate`] and
     /// [`Options::color_total`]), and [`Options::color_window`].
     pub color: color_budget::ColorBudget,
@@ -234,6 +242,13 @@ pub enum ServeError {
     ColorLayout(#[from] roam_protocol::tiles::LayoutError),
     #[error("the colour pyramid is of a {got}² map, the terrain's colour map is {expected}²")]
     ColorPyramid { got: u32, expected: u32 },
+    #[error("the normal tiles: {0}")]
+    Normals(#[from] crate::terrain::normal_pyramid::NormalError),
+    #[error("the normal tiles are laid out as {got:?}, the colour as {expected:?}")]
+    NormalLayout {
+        got: roam_protocol::ColorLayout,
+        expected: roam_protocol::ColorLayout,
+    },
     #[error(
         "a grid of {side}² samples: this server serves at most {max}² (2^{levels} + 1), \
          the protocol's largest colour map; import it again with a smaller side"
@@ -310,6 +325,26 @@ impl Server {
                 expected: terrain.heights.size(),
             });
         }
+        let normals = match options.normals {
+            Some(n) => n,
+            None => {
+                let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+                Arc::new(NormalPyramid::build(
+                    &terrain.heights,
+                    (terrain.map.h_scale, terrain.map.v_scale),
+                    layout.tile,
+                    threads,
+                    &mut |_, _| {},
+                )?)
+            }
+        };
+        let normal_layout = normals.layout(options.color_window)?;
+        if normal_layout != layout {
+            return Err(ServeError::NormalLayout {
+                got: normal_layout,
+                expected: layout,
+            });
+        }
         let config = tls::server_config(identity)?;
         let endpoint = quinn::Endpoint::server(config, options.listen).map_err(|error| {
             ServeError::Listen {
@@ -351,6 +386,7 @@ impl Server {
             scratch: crate::tessellate::Scratch::new(terrain.heights.side()),
             height_step: roam_protocol::height_step(terrain.heights.samples()),
             pyramid,
+            normals,
             color: color_budget::ColorBudget::new(
                 options.color_rate,
                 options.color_total,
@@ -558,6 +594,7 @@ async fn summary_loop(
             late_ms_max = format_args!("{late_ms_max:.1}"),
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
             color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
+            normal_kbytes_per_s = format_args!("{:.1}", s.normal_bytes_per_s / 1e3),
             pending,
             pending_longest_ms,
             junk_closed = s.junk,

@@ -1,7 +1,7 @@
 //! What the server counts while it serves, and the periodic summary it logs from them:
 //! viewers, frames a second served, CPU per frame (the whole process's, from
 //! [`process_cpu`], over the frames served in the interval), bytes out a second (and the
-//! colour tiles' share of them), and what admission did with connections that never said hello.
+//! colour and normal tiles' shares of them), and what admission did with connections that never said hello.
 //!
 //! Counters are relaxed atomics: each is a plain count that nothing else is ordered by.
 
@@ -28,6 +28,10 @@ pub struct ServeStats {
     /// coarsest tile sent before the first frame included).
     pub color_tiles: AtomicU64,
     pub color_bytes: AtomicU64,
+    /// Normal tile messages written (one after each colour tile: never more tiles than
+    /// the colour's), and their bytes.
+    pub normal_tiles: AtomicU64,
+    pub normal_bytes: AtomicU64,
     /// Viewers welcomed.
     pub joins: AtomicU64,
     /// Hellos refused (token, version, full, nothing to follow).
@@ -69,6 +73,8 @@ pub struct Counts {
     pub key_larger: u64,
     pub color_tiles: u64,
     pub color_bytes: u64,
+    pub normal_tiles: u64,
+    pub normal_bytes: u64,
     pub joins: u64,
     pub refused: u64,
     pub retried: u64,
@@ -125,6 +131,8 @@ impl ServeStats {
             key_larger: get(&self.key_larger),
             color_tiles: get(&self.color_tiles),
             color_bytes: get(&self.color_bytes),
+            normal_tiles: get(&self.normal_tiles),
+            normal_bytes: get(&self.normal_bytes),
             joins: get(&self.joins),
             refused: get(&self.refused),
             retried: get(&self.retried),
@@ -165,6 +173,8 @@ pub struct Summary {
     pub bytes_out_per_s: f64,
     /// Colour tile bytes a second.
     pub color_bytes_per_s: f64,
+    /// Normal tile bytes a second.
+    pub normal_bytes_per_s: f64,
     /// Process CPU per frame served, microseconds (`None` without frames or a CPU clock).
     pub cpu_per_frame_us: Option<f64>,
     /// Time making a frame, microseconds, on average.
@@ -184,6 +194,7 @@ impl Summary {
             frames_per_s: frames as f64 / seconds,
             bytes_out_per_s: (b.bytes_out - a.bytes_out) as f64 / seconds,
             color_bytes_per_s: (b.color_bytes - a.color_bytes) as f64 / seconds,
+            normal_bytes_per_s: (b.normal_bytes - a.normal_bytes) as f64 / seconds,
             cpu_per_frame_us: cpu.and_then(|c| per_frame(c.as_secs_f64() * 1e6)),
             make_us: per_frame((b.make_ns - a.make_ns) as f64 / 1e3),
             junk: (b.timed_out + b.evicted_closed + b.failed)
@@ -213,6 +224,7 @@ mod tests {
             make_ns: 600_000_000,
             timed_out: 5,
             color_bytes: 20_000,
+            normal_bytes: 10_000,
             evicted_closed: 1,
             retried: 4,
             ..Counts::default()
@@ -221,6 +233,7 @@ mod tests {
         assert_eq!(s.frames_per_s, 60.0);
         assert_eq!(s.bytes_out_per_s, 6_000.0);
         assert_eq!(s.color_bytes_per_s, 2_000.0);
+        assert_eq!(s.normal_bytes_per_s, 1_000.0);
         assert_eq!(s.cpu_per_frame_us, Some(500.0));
         assert_eq!(s.make_us, Some(1_000.0));
         assert_eq!((s.junk, s.retried, s.refused), (3, 4, 0));

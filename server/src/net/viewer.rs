@@ -18,11 +18,13 @@
 //!
 //! The colour map streams on the control stream, at a priority below every frame's so
 //! that colour never delays a frame: the welcome, then the coarsest tile (before the
-//! first frame), then a task ([`stream_color`], in [`super::control`]) sending what the viewer's
+//! first frame), then, once the first frame is made, a task ([`stream_color`], in [`super::control`]) sending what the viewer's
 //! [`ColorScheduler`] picks for the followed vehicle's position, paced by a token bucket
 //! whose rate is the viewer's share of the server-wide colour budget
 //! ([`super::color_budget`]: [`super::Options::color_total`] shared equally by the viewers
-//! still wanting tiles, each at most [`super::Options::color_rate`]), cut to a trickle
+//! still wanting tiles, each at most [`super::Options::color_rate`]; each tile's normals
+//! right after it, out of the same bytes, the coarsest tile's first thing after the first
+//! frame), cut to a trickle
 //! while any viewer's frame starts behind its tick (frames first); a burst of a quarter
 //! second, and at least the largest tile. A tile is written whole and awaited before the
 //! next, so the send buffer holds little more than a tile; the control stream's last word
@@ -124,7 +126,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         .pyramid
         .layout(shared.color_window.min(hello.color_window.max(1)))
         .expect("the pyramid's layout was checked at start with a larger window");
-    let mut colors = ColorScheduler::new(layout);
+    let mut colors = ColorScheduler::with_normals(layout);
     let send = Arc::new(tokio::sync::Mutex::new(send));
     let welcomed = welcome(
         &mut *send.lock().await,
@@ -140,13 +142,16 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         conn.close(close::PROTOCOL, b"the welcome could not be sent");
         return;
     }
+    // Frames made: the colour task starts once the first is (what it sends is of no use
+    // before, and would only share the link with it).
+    let (sent, made) = tokio::sync::watch::channel(0u64);
     // Aborted when this task ends by any path, unwinding included: the colour task holds
     // the shared state (the world's inbox) and never ends on its own.
     let color = AbortOnDrop(tokio::spawn(stream_color(
         send.clone(),
         shared.clone(),
         colors,
-        vehicle,
+        (vehicle, made),
     )));
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(
@@ -158,11 +163,10 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     let mut ctl = tokio::spawn(read_control(recv, control.clone()));
     let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
     let rate = ViewerCore::frame_rate(&hello, shared.limits);
-    let mut sent = 0u64;
     // A driver whose vehicle vanishes on an edge after a world restart is told why.
     let restarts = shared.remote.as_ref().map(|r| r.restarts());
     let why: String = tokio::select! {
-        end = frames(&conn, &shared, (control, &mut seat), core, rate, (vehicle, driver), &mut sent) => {
+        end = frames(&conn, &shared, (control, &mut seat), core, rate, (vehicle, driver), &sent) => {
             match end {
                 FramesEnd::ConnectionLost => {
                     leave.hold = conn.hold_after().then(silent);
@@ -245,7 +249,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         vehicle,
         reason = %why,
         held,
-        frames = sent,
+        frames = *sent.borrow(),
         seconds = started.elapsed().as_secs(),
         "left"
     );
@@ -441,7 +445,7 @@ async fn frames(
     core: ViewerCore,
     rate: u16,
     (vehicle, driver): (VehicleId, bool),
-    sent: &mut u64,
+    sent: &tokio::sync::watch::Sender<u64>,
 ) -> FramesEnd {
     let mut core = Some(core);
     let mut bytes_out = conn.quic().stats().udp_tx.bytes;
@@ -486,7 +490,7 @@ async fn frames(
         // was begun, a first frame that waited behind many joins (1.6 s for 40 at once)
         // showed a place the vehicle had long left, so the second frame rebuilt and was a
         // key frame again (41 of 81 key frames for 40 joins, `key_larger`).
-        let first = *sent == 0;
+        let first = *sent.borrow() == 0;
         let inline = if first {
             None
         } else {
@@ -526,7 +530,7 @@ async fn frames(
         let stats = &shared.stats;
         stats.add(&stats.make_ns, started.elapsed().as_nanos() as u64);
         stats.add(&stats.frames, 1);
-        *sent += 1;
+        sent.send_modify(|n| *n += 1);
         let tx = conn.quic().stats().udp_tx.bytes;
         stats.add(&stats.bytes_out, tx.saturating_sub(bytes_out));
         bytes_out = tx;

@@ -10,22 +10,16 @@
 //!   to its tile's slot, so the bytes do not depend on the thread count (a test checks).
 //!   Levels are averaged on the same threads, a band of rows each.
 //! - The coded tiles of a data set are cached in `DIR/.cache/color-tiles.bin` and
-//!   memory-mapped (memmap2): a restart serves without coding anything, and the payloads
-//!   stay in the page cache, not the heap. The file: a header (magic, format version,
-//!   cells, tile, levels, `color.ppm`'s length and a digest of its length, mtime, ctime,
-//!   inode and device (`cache::FileStamp`), the tile count), a
-//!   blake3 hash of the header and the index, the index ((offset, length) per tile,
-//!   levels finest first, rows then columns) and the payloads, back to back. It is
-//!   written to a temporary file and renamed (a torn write is never seen), and checked
-//!   before it is used: the hash, every entry inside the file, contiguous and within
-//!   `colormap::max_len` of its tile. A stale (another `color.ppm`, another tile size) or
-//!   damaged cache is rebuilt with a warning; a directory that cannot be written keeps
-//!   the pyramid in memory. The payloads are not hashed at open (hundreds of
-//!   megabytes at 16385², which would also make them all resident): each index entry
-//!   carries its payload's check, verified the first time the tile is served
-//!   ([`ColorPyramid::served_tile`]); a damaged tile is never sent (the viewer keeps
-//!   drawing a coarser level there) and is reported once. The coarsest tile, which every
-//!   viewer gets before its first frame, is verified at open.
+//!   memory-mapped (memmap2) through [`super::tile_store`] (shared with the normal
+//!   pyramid, which documents the file): a restart serves without coding anything, and the
+//!   payloads stay in the page cache, not the heap. Its key is `color.ppm`'s length and a
+//!   digest of its length, mtime, ctime, inode and device (`cache::FileStamp`). A stale
+//!   (another `color.ppm`, another tile size) or damaged cache is rebuilt with a warning;
+//!   a directory that cannot be written keeps the pyramid in memory. Each tile's payload
+//!   is checked the first time it is served ([`ColorPyramid::served_tile`]); a damaged
+//!   tile is never sent (the viewer keeps drawing a coarser level there) and is reported
+//!   once. The coarsest tile, which every viewer gets before its first frame, is verified
+//!   at open.
 //! - Measured (`measure` profile, 2 shared cores, T = 256, `roam-server color-bench`):
 //!   kossou (1024², 3 levels) 1.9 MB coded (1.39 MB whole: per-tile tables and the
 //!   coarser levels cost the rest) in 0.06 s; 4096² (5 levels) 28.6 MB in 0.68 s;
@@ -33,42 +27,37 @@
 
 use std::borrow::Cow;
 use std::fs;
-use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
-use std::sync::atomic::{AtomicU8, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use roam_protocol::colormap;
 use roam_protocol::tiles::{self, ColorLayout};
 
 use crate::terrain::cache::FileStamp;
 use crate::terrain::dataset::{COLOR_FILE, ColorMap};
+use crate::terrain::tile_store::{self as store, Kind, TileStore};
+pub use crate::terrain::tile_store::{CACHE_DIR, CacheOutcome, TileError};
+#[cfg(test)]
+use crate::terrain::tile_store::{ENTRY, HASH};
 
 /// The cache's file name inside the data set's `.cache` folder.
 pub const CACHE_FILE: &str = "color-tiles.bin";
-/// The data set's cache folder.
-pub const CACHE_DIR: &str = ".cache";
-const MAGIC: &[u8; 8] = b"roamCT\0\0";
-/// The cache's format version. 2: the source's stamp is a digest of its length, mtime,
+/// The colour cache: format 2: the source's stamp is a digest of its length, mtime,
 /// ctime, inode and device (1 kept its mtime only). 3: each index entry carries its
-/// payload's check.
-const CACHE_VERSION: u32 = 3;
-/// Header bytes: magic, version, cells, tile, levels, source length, source mtime, tiles.
+/// payload's check. Its key: `color.ppm`'s length and stamp digest (two `u64`s).
+const KIND: Kind = Kind {
+    magic: b"roamCT\0\0",
+    version: 3,
+    file: CACHE_FILE,
+    what: "colour tile cache",
+    source: COLOR_FILE,
+    key_len: 16,
+    max_len: colormap::max_len,
+};
+/// Header bytes: magic, version, cells, tile, levels, source length, source stamp, tiles.
+#[cfg(test)]
 const HEADER: usize = 8 + 4 * 4 + 8 * 3;
-const HASH: usize = 32;
-/// An index entry: offset (u64), length (u32), check (u64: the payload's blake3, cut).
-const ENTRY: usize = 20;
-
-/// Why a tile is not served.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
-pub enum TileError {
-    #[error("no such tile")]
-    Outside,
-    /// Its payload does not match its check (a damaged cache file); `first`: the first
-    /// time this tile was found so.
-    #[error("its payload does not match its check: the cache file is damaged")]
-    Damaged { first: bool },
-}
 
 /// Why a pyramid could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -81,40 +70,9 @@ pub enum PyramidError {
     Source(#[from] crate::terrain::dataset::DataError),
 }
 
-/// Where a pyramid's payloads live.
-enum Payloads {
-    Memory(Vec<u8>),
-    Mapped(memmap2::Mmap),
-}
-
 /// Every tile of a colour map's pyramid, coded.
 pub struct ColorPyramid {
-    cells: u32,
-    tile: u32,
-    levels: u8,
-    /// Per tile (levels finest first, then rows, then columns): offset and length in
-    /// `payloads`, and the payload's check ([`check_of`]).
-    index: Vec<(u64, u32, u64)>,
-    /// Per tile: 0 not verified against its check yet, 1 verified, 2 damaged.
-    verified: Vec<AtomicU8>,
-    /// Where each level's tiles start in `index`.
-    first: Vec<usize>,
-    payloads: Payloads,
-    /// Where the payloads start in `payloads` (after the cache's header and index).
-    base: usize,
-}
-
-/// What [`ColorPyramid::open_or_build`] did with the cache.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub enum CacheOutcome {
-    /// A valid cache was mapped.
-    Mapped,
-    /// No cache: built and written.
-    Built,
-    /// The cache was stale or damaged (why): rebuilt and written.
-    Rebuilt(String),
-    /// Built, but the cache could not be written (why): served from memory.
-    InMemory(String),
+    store: TileStore,
 }
 
 impl ColorPyramid {
@@ -128,7 +86,7 @@ impl ColorPyramid {
     ) -> Result<ColorPyramid, PyramidError> {
         let layout = ColorLayout::new(color.cells(), tile, 1)?;
         let threads = threads.max(1);
-        let first = firsts(&layout);
+        let first = store::firsts(&layout);
         let total = *first.last().expect("one entry past the last level");
         let mut coded: Vec<Vec<u8>> = vec![Vec::new(); total];
         let mut level: Vec<[u8; 3]> = Vec::new();
@@ -143,21 +101,8 @@ impl ColorPyramid {
                 progress((first[usize::from(l)] + done) as u64, total as u64)
             })?;
         }
-        let mut index = Vec::with_capacity(total);
-        let mut blob = Vec::with_capacity(coded.iter().map(Vec::len).sum());
-        for c in coded {
-            index.push((blob.len() as u64, c.len() as u32, check_of(&c)));
-            blob.extend_from_slice(&c);
-        }
         Ok(ColorPyramid {
-            cells: layout.cells,
-            tile,
-            levels: layout.levels,
-            verified: (0..index.len()).map(|_| AtomicU8::new(1)).collect(),
-            index,
-            first,
-            payloads: Payloads::Memory(blob),
-            base: 0,
+            store: TileStore::from_coded(layout, coded),
         })
     }
 
@@ -191,241 +136,68 @@ impl ColorPyramid {
         load: impl FnOnce() -> Result<Cow<'c, ColorMap>, crate::terrain::dataset::DataError>,
         progress: &mut dyn FnMut(u64, u64),
     ) -> Result<(ColorPyramid, CacheOutcome), PyramidError> {
-        let source = source_stamp(&dir.join(COLOR_FILE));
-        let path = cache_path(dir);
-        let stale = match (&source, fs::File::open(&path)) {
-            (None, _) => None,
-            (Some(_), Err(e)) if e.kind() == io::ErrorKind::NotFound => None,
-            (Some(_), Err(e)) => Some(format!("{}: {e}", path.display())),
-            (Some(stamp), Ok(file)) => match Self::open(&file, cells, tile, *stamp) {
-                Ok(p) => return Ok((p, CacheOutcome::Mapped)),
-                Err(why) => Some(format!("{}: {why}", path.display())),
-            },
-        };
-        let color = load()?;
-        let pyramid = Self::build(&color, tile, threads, progress)?;
-        drop(color);
-        let Some(stamp) = source else {
-            let why = format!(
-                "{}: cannot be read for its date",
-                dir.join(COLOR_FILE).display()
-            );
-            return Ok((pyramid, CacheOutcome::InMemory(why)));
-        };
-        let outcome = match pyramid.write_cache(&path, stamp) {
-            Ok(()) => match stale {
-                Some(why) => CacheOutcome::Rebuilt(why),
-                None => CacheOutcome::Built,
-            },
-            Err(e) => CacheOutcome::InMemory(format!("{}: {e}", path.display())),
-        };
-        Ok((pyramid, outcome))
-    }
-
-    /// Maps `file` if it is a valid cache of a `cells` map in `tile` tiles coded from the
-    /// source with `stamp`; why not otherwise.
-    fn open(
-        file: &fs::File,
-        cells: u32,
-        tile: u32,
-        stamp: (u64, u64),
-    ) -> Result<ColorPyramid, String> {
-        let layout = ColorLayout::new(cells, tile, 1).map_err(|e| e.to_string())?;
-        // SAFETY: the map is read only, and the file is ours: written once by
-        // `write_cache` and replaced by renaming, never changed in place. Another process
-        // truncating it under us is outside what this server guards against.
-        let map = unsafe { memmap2::Mmap::map(file) }.map_err(|e| format!("mapping: {e}"))?;
-        let head = map.get(..HEADER).ok_or("shorter than its header")?;
-        if &head[..8] != MAGIC {
-            return Err("not a colour tile cache".into());
-        }
-        let u32_at = |at: usize| u32::from_le_bytes(head[at..at + 4].try_into().expect("4"));
-        let u64_at = |at: usize| u64::from_le_bytes(head[at..at + 8].try_into().expect("8"));
-        let version = u32_at(8);
-        if version != CACHE_VERSION {
-            return Err(format!("format {version}, expected {CACHE_VERSION}"));
-        }
-        let got = (u32_at(12), u32_at(16), u32_at(20));
-        let want = (cells, tile, u32::from(layout.levels));
-        if got != want {
-            return Err(format!(
-                "for {} cells in tiles of {} ({} levels), expected {} in tiles of {}",
-                got.0, got.1, got.2, cells, tile
-            ));
-        }
-        if (u64_at(24), u64_at(32)) != stamp {
-            return Err(format!("stale: {COLOR_FILE} changed since it was built"));
-        }
-        let first = firsts(&layout);
-        let total = *first.last().expect("one entry past the last level");
-        if u64_at(40) != total as u64 {
-            return Err(format!("{} tiles, expected {total}", u64_at(40)));
-        }
-        let base = HEADER + HASH + total * ENTRY;
-        let index_bytes = map.get(HEADER + HASH..base).ok_or("index cut short")?;
-        let mut hasher = blake3::Hasher::new();
-        hasher.update(head);
-        hasher.update(index_bytes);
-        if hasher.finalize().as_bytes() != &map[HEADER..HEADER + HASH] {
-            return Err("header or index damaged (hash mismatch)".into());
-        }
-        let payload_len = (map.len() - base) as u64;
-        let mut index = Vec::with_capacity(total);
-        let mut end = 0u64;
-        for l in 0..layout.levels {
-            let limit = colormap::max_len(layout.tile_side(l));
-            for e in index_bytes
-                .chunks_exact(ENTRY)
-                .take(first[usize::from(l) + 1])
-                .skip(first[usize::from(l)])
-            {
-                let offset = u64::from_le_bytes(e[..8].try_into().expect("8"));
-                let len = u32::from_le_bytes(e[8..12].try_into().expect("4"));
-                let check = u64::from_le_bytes(e[12..].try_into().expect("8"));
-                if offset != end || len as usize > limit || len < 16 {
-                    return Err(format!("index entry {} out of order or size", index.len()));
-                }
-                end += u64::from(len);
-                index.push((offset, len, check));
-            }
-        }
-        if end != payload_len {
-            return Err(format!("{payload_len} payload bytes, the index says {end}"));
-        }
-        let pyramid = ColorPyramid {
+        let key = source_stamp(&dir.join(COLOR_FILE))
+            .map(|(len, digest)| [len.to_le_bytes(), digest.to_le_bytes()].concat())
+            .ok_or_else(|| {
+                format!(
+                    "{}: cannot be read for its date",
+                    dir.join(COLOR_FILE).display()
+                )
+            });
+        let (store, outcome) = store::open_or_make(
+            dir,
+            &KIND,
             cells,
             tile,
-            levels: layout.levels,
-            verified: (0..index.len()).map(|_| AtomicU8::new(0)).collect(),
-            index,
-            first,
-            payloads: Payloads::Mapped(map),
-            base,
-        };
-        // The coarsest tile goes to every viewer before its first frame: checked now, so a
-        // damaged one is rebuilt rather than served. Others are checked when first served.
-        let coarsest = layout.levels - 1;
-        if let Err(e) = pyramid.served_tile(coarsest, 0, 0) {
-            return Err(format!("the coarsest tile: {e}"));
-        }
-        Ok(pyramid)
+            key.as_deref().map_err(Clone::clone),
+            || {
+                let color = load()?;
+                Self::build(&color, tile, threads, progress).map(|p| p.store)
+            },
+        )?;
+        Ok((ColorPyramid { store }, outcome))
     }
 
-    /// Writes the cache to `path` (a temporary file, then renamed).
-    fn write_cache(&self, path: &Path, stamp: (u64, u64)) -> io::Result<()> {
-        let dir = path.parent().expect("the cache path has a folder");
-        fs::create_dir_all(dir)?;
-        let mut head = Vec::with_capacity(HEADER + HASH + self.index.len() * ENTRY);
-        head.extend_from_slice(MAGIC);
-        for v in [CACHE_VERSION, self.cells, self.tile, u32::from(self.levels)] {
-            head.extend_from_slice(&v.to_le_bytes());
-        }
-        for v in [stamp.0, stamp.1, self.index.len() as u64] {
-            head.extend_from_slice(&v.to_le_bytes());
-        }
-        let mut index = Vec::with_capacity(self.index.len() * ENTRY);
-        for &(offset, len, check) in &self.index {
-            index.extend_from_slice(&offset.to_le_bytes());
-            index.extend_from_slice(&len.to_le_bytes());
-            index.extend_from_slice(&check.to_le_bytes());
-        }
-        let mut hasher = blake3::Hasher::new();
-        hasher.update(&head);
-        hasher.update(&index);
-        head.extend_from_slice(hasher.finalize().as_bytes());
-        head.extend_from_slice(&index);
-        // Unique per process and per write: two builds of one data set in one process (or
-        // in two) never write into the same temporary file.
-        static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-        let n = WRITES.fetch_add(1, Ordering::Relaxed);
-        let tmp = dir.join(format!("{CACHE_FILE}.{}.{n}.tmp", std::process::id()));
-        let written = (|| {
-            let mut f = io::BufWriter::new(fs::File::create(&tmp)?);
-            f.write_all(&head)?;
-            f.write_all(self.payload_bytes())?;
-            f.into_inner().map_err(|e| e.into_error())?.sync_all()?;
-            fs::rename(&tmp, path)
-        })();
-        if written.is_err() {
-            let _ = fs::remove_file(&tmp);
-        }
-        written
-    }
-
+    #[cfg(test)]
     fn payload_bytes(&self) -> &[u8] {
-        match &self.payloads {
-            Payloads::Memory(v) => v,
-            Payloads::Mapped(m) => &m[self.base..],
-        }
+        self.store.payload_bytes()
     }
 
     /// The layout viewers are told, with windows of `window` tiles.
     pub fn layout(&self, window: u8) -> Result<ColorLayout, tiles::LayoutError> {
-        ColorLayout::new(self.cells, self.tile, window)
+        self.store.layout(window)
     }
 
     /// Levels in the pyramid.
     pub fn levels(&self) -> u8 {
-        self.levels
+        self.store.layout.levels
     }
 
     /// Tile `(x, z)` of `level`, coded; `None` outside the pyramid.
     pub fn tile(&self, level: u8, x: u32, z: u32) -> Option<&[u8]> {
-        let layout = ColorLayout::new(self.cells, self.tile, 1).ok()?;
-        let n = layout.tiles(level);
-        if level >= self.levels || x >= n || z >= n {
-            return None;
-        }
-        let i = self.first[usize::from(level)] + (z * n + x) as usize;
-        let (offset, len, _) = self.index[i];
-        let start = offset as usize;
-        self.payload_bytes().get(start..start + len as usize)
+        self.store.tile(level, x, z)
     }
 
     /// [`Self::tile`] for a viewer: its payload checked against the index the first time
     /// (hundreds of megabytes at 16385² are not hashed at open; a tile is 20–40 µs).
     pub fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
-        let data = self.tile(level, x, z).ok_or(TileError::Outside)?;
-        let layout = ColorLayout::new(self.cells, self.tile, 1).map_err(|_| TileError::Outside)?;
-        let i = self.first[usize::from(level)] + (z * layout.tiles(level) + x) as usize;
-        match self.verified[i].load(Ordering::Relaxed) {
-            1 => Ok(data),
-            2 => Err(TileError::Damaged { first: false }),
-            _ if check_of(data) == self.index[i].2 => {
-                self.verified[i].store(1, Ordering::Relaxed);
-                Ok(data)
-            }
-            _ => {
-                let first = self.verified[i].swap(2, Ordering::Relaxed) != 2;
-                Err(TileError::Damaged { first })
-            }
-        }
+        self.store.served_tile(level, x, z)
     }
 
     /// Coded bytes of all tiles.
     pub fn coded_bytes(&self) -> u64 {
-        self.payload_bytes().len() as u64
+        self.store.coded_bytes()
     }
 
     /// Whether the payloads are memory-mapped from the cache.
     pub fn is_mapped(&self) -> bool {
-        matches!(self.payloads, Payloads::Mapped(_))
+        self.store.is_mapped()
     }
-}
-
-/// A payload's check: its blake3 hash, cut to 64 bits.
-fn check_of(payload: &[u8]) -> u64 {
-    let h = blake3::hash(payload);
-    u64::from_le_bytes(
-        h.as_bytes()[..8]
-            .try_into()
-            .expect("a blake3 hash is 32 bytes"),
-    )
 }
 
 /// The cache's path for the data set in `dir`.
 pub fn cache_path(dir: &Path) -> PathBuf {
-    dir.join(CACHE_DIR).join(CACHE_FILE)
+    store::cache_path(dir, &KIND)
 }
 
 /// A file's length and modification time (ns since the epoch), or `None`.
@@ -437,16 +209,6 @@ pub fn cache_path(dir: &Path) -> PathBuf {
 fn source_stamp(path: &Path) -> Option<(u64, u64)> {
     let stamp = FileStamp::of(&fs::metadata(path).ok()?);
     Some((stamp.len(), stamp.digest()))
-}
-
-/// Where each level's tiles start in the index, and the count after the last.
-fn firsts(layout: &ColorLayout) -> Vec<usize> {
-    let mut first = vec![0];
-    for l in 0..layout.levels {
-        let n = layout.tiles(l) as usize;
-        first.push(first[usize::from(l)] + n * n);
-    }
-    first
 }
 
 /// The 2×2 box average of a `side × side` level (side ≥ 2), rounded half up.

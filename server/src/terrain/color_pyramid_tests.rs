@@ -86,7 +86,7 @@ fn the_bytes_do_not_depend_on_the_thread_count() {
     let one = ColorPyramid::build(&color, 32, 1, &mut no_progress()).expect("a valid map");
     let three = ColorPyramid::build(&color, 32, 3, &mut no_progress()).expect("a valid map");
     assert_eq!(one.payload_bytes(), three.payload_bytes());
-    assert_eq!(one.index, three.index);
+    assert_eq!(one.store.index, three.store.index);
 }
 
 #[test]

@@ -1,7 +1,8 @@
 //! The terrain: a data set on disk (`map`, `hf.pgm`, `color.ppm`) loaded into a `Terrain`,
 //! the synthetic generator, the source readers and raster pipeline of `import`, and the
 //! variance tree built once from the heights and kept in the data set's cache (`.cache/`,
-//! memory-mapped when served).
+//! memory-mapped when served), and the colour and normal tile pyramids streamed to viewers
+//! (cached there too, through `tile_store`).
 
 pub mod backing;
 pub mod cache;
@@ -13,11 +14,13 @@ pub mod geotiff;
 pub mod heightfield;
 pub mod hgt;
 pub mod map;
+pub mod normal_pyramid;
 pub mod png16;
 pub mod pnm;
 pub mod raster;
 pub mod source;
 pub(crate) mod stamp;
+pub(crate) mod tile_store;
 pub mod variance;
 
 pub use cache::{CacheReport, Source};

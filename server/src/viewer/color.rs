@@ -29,6 +29,15 @@
 //! - **Budget**: [`ColorScheduler::step`] returns tiles while their payloads fit the
 //!   allowance and stops at the first that does not (it never skips ahead to a smaller
 //!   tile: priority order is kept). Window messages cost nothing here (a few bytes).
+//! - **Normals travel with their colour tile** ([`ColorScheduler::with_normals`]): a
+//!   tile's [`ColorSend::Normals`] right after its [`ColorSend::Tile`], the two charged
+//!   together against the allowance (both fit or neither goes), held and dropped by the
+//!   same windows. So normals arrive in the colour's order, never outpace it (tiles a
+//!   second: one normal tile per colour tile, a test counts them), and need no window
+//!   messages or state of their own. The coarsest tile's normals are the exception in
+//!   time only: its colour goes before the first frame ([`ColorScheduler::first`]), its
+//!   normals first thing after (the next [`ColorScheduler::step`]) — lighting per vertex
+//!   until they come costs nothing, and a first frame waiting for them would.
 //! - "In front of the camera first" is not done: the heading is not known here and the
 //!   window is small (2048 texels at W = 8, T = 256); nearest first already gives the
 //!   ground under and around the vehicle first.
@@ -42,6 +51,8 @@ pub enum ColorSend {
     Window { level: u8, x0: u32, z0: u32 },
     /// Tile `(x, z)` of `level`.
     Tile { level: u8, x: u32, z: u32 },
+    /// The normals of tile `(x, z)` of `level` (after its colour).
+    Normals { level: u8, x: u32, z: u32 },
 }
 
 /// One viewer's colour streaming state.
@@ -52,6 +63,10 @@ pub struct ColorScheduler {
     origins: Vec<(u32, u32)>,
     /// Per level: which tiles were sent (row-major over the level) and are still held.
     sent: Vec<Vec<bool>>,
+    /// Whether each tile's normals follow it.
+    normals: bool,
+    /// The coarsest tile's normals, owed since [`Self::first`].
+    owed: Option<(u8, u32, u32)>,
 }
 
 impl ColorScheduler {
@@ -64,6 +79,16 @@ impl ColorScheduler {
             sent: (0..layout.levels)
                 .map(|l| vec![false; (layout.tiles(l) as usize).pow(2)])
                 .collect(),
+            normals: false,
+            owed: None,
+        }
+    }
+
+    /// [`Self::new`], each tile's normals sent with it (see the module's header).
+    pub fn with_normals(layout: ColorLayout) -> ColorScheduler {
+        ColorScheduler {
+            normals: true,
+            ..ColorScheduler::new(layout)
         }
     }
 
@@ -77,17 +102,21 @@ impl ColorScheduler {
     pub fn first(&mut self) -> ColorSend {
         let level = self.layout.levels - 1;
         self.sent[usize::from(level)][0] = true;
+        if self.normals {
+            self.owed = Some((level, 0, 0));
+        }
         ColorSend::Tile { level, x: 0, z: 0 }
     }
 
     /// The messages for a camera at level-0 texel `(cx, cz)` with `allowance` bytes to
-    /// spend, `cost(level, x, z)` being a tile's payload bytes: windows moved, then tiles
-    /// in priority order while they fit. Returns them and the bytes spent.
+    /// spend, `cost(m)` being a tile message's payload bytes: windows moved, the coarsest
+    /// tile's normals if owed, then tiles (each with its normals) in priority order while
+    /// they fit. Returns them and the bytes spent.
     pub fn step(
         &mut self,
         (cx, cz): (f64, f64),
         allowance: u64,
-        cost: &dyn Fn(u8, u32, u32) -> u64,
+        cost: &dyn Fn(ColorSend) -> u64,
     ) -> (Vec<ColorSend>, u64) {
         let mut out = Vec::new();
         for level in 0..self.layout.levels {
@@ -96,22 +125,35 @@ impl ColorScheduler {
             }
         }
         let mut spent = 0;
+        if let Some((level, x, z)) = self.owed {
+            let m = ColorSend::Normals { level, x, z };
+            spent = cost(m);
+            if spent > allowance {
+                return (out, 0);
+            }
+            self.owed = None;
+            out.push(m);
+        }
         for (level, x, z) in self.unsent((cx, cz)) {
-            let c = cost(level, x, z);
+            let tile = ColorSend::Tile { level, x, z };
+            let normals = self.normals.then_some(ColorSend::Normals { level, x, z });
+            let c = cost(tile) + normals.map_or(0, cost);
             if spent + c > allowance {
                 return (out, spent);
             }
             spent += c;
             let n = self.layout.tiles(level);
             self.sent[usize::from(level)][(z * n + x) as usize] = true;
-            out.push(ColorSend::Tile { level, x, z });
+            out.push(tile);
+            out.extend(normals);
         }
         (out, spent)
     }
 
-    /// Whether every tile of every window has been sent.
+    /// Whether every tile of every window has been sent (with its normals).
     pub fn complete(&self) -> bool {
-        (0..self.layout.levels).all(|l| self.held_in(l).count() == self.window_count(l))
+        self.owed.is_none()
+            && (0..self.layout.levels).all(|l| self.held_in(l).count() == self.window_count(l))
     }
 
     /// The tiles the viewer holds, as `(level, x, z)`: level by level, rows then columns.

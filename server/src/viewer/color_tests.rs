@@ -1,6 +1,6 @@
-//! Tests of the colour scheduler: coarsest first then ring by ring, within the budget, windows that follow the
-//! camera without flapping, and a belief of what the viewer holds that equals a replay of
-//! the messages.
+//! Tests of the colour scheduler: coarsest first then ring by ring, within the budget,
+//! windows that follow the camera without flapping, a belief of what the viewer holds that
+//! equals a replay of the messages, and each tile's normals sent right after it.
 
 use std::collections::BTreeSet;
 
@@ -12,8 +12,12 @@ fn layout() -> ColorLayout {
     ColorLayout::new(256, 16, 4).expect("a valid layout")
 }
 
-fn cost(level: u8, x: u32, z: u32) -> u64 {
-    100 + u64::from(level) * 7 + u64::from(x + z)
+fn cost(m: ColorSend) -> u64 {
+    match m {
+        ColorSend::Tile { level, x, z } => 100 + u64::from(level) * 7 + u64::from(x + z),
+        ColorSend::Normals { level, x, z } => 40 + u64::from(level) * 3 + u64::from(x * z),
+        ColorSend::Window { .. } => 0,
+    }
 }
 
 /// What a viewer holds, from the messages alone (as the viewer keeps it).
@@ -21,6 +25,10 @@ struct Replica {
     layout: ColorLayout,
     origins: Vec<(u32, u32)>,
     held: BTreeSet<(u8, u32, u32)>,
+    /// Tiles whose normals came.
+    lit: BTreeSet<(u8, u32, u32)>,
+    /// The message before, for the normals' "right after their tile".
+    last: Option<ColorSend>,
 }
 
 impl Replica {
@@ -29,6 +37,8 @@ impl Replica {
             layout,
             origins: vec![(0, 0); usize::from(layout.levels)],
             held: BTreeSet::new(),
+            lit: BTreeSet::new(),
+            last: None,
         }
     }
 
@@ -50,7 +60,23 @@ impl Replica {
                 );
                 assert!(self.held.insert((level, x, z)), "{m:?} sent twice");
             }
+            ColorSend::Normals { level, x, z } => {
+                // Right after its tile, or the coarsest tile's, whose colour went first.
+                let coarsest = level + 1 == self.layout.levels;
+                assert!(
+                    self.last == Some(ColorSend::Tile { level, x, z }) || coarsest,
+                    "{m:?} after {:?}",
+                    self.last
+                );
+                assert!(self.held.contains(&(level, x, z)), "{m:?} without its tile");
+                assert!(self.lit.insert((level, x, z)), "{m:?} sent twice");
+            }
         }
+        let layout = self.layout;
+        let origins = self.origins.clone();
+        self.lit
+            .retain(|&(l, x, z)| layout.in_window(l, origins[usize::from(l)], x, z));
+        self.last = Some(m);
     }
 }
 
@@ -72,7 +98,7 @@ fn the_coarsest_tile_comes_first_then_tiles_ring_by_ring() {
         .iter()
         .filter_map(|m| match *m {
             ColorSend::Tile { level, x, z } => Some((level, x, z)),
-            ColorSend::Window { .. } => None,
+            ColorSend::Window { .. } | ColorSend::Normals { .. } => None,
         })
         .collect();
     // Level 3 (2×2), 2 (4×4), 1 and 0 (4×4 windows): 4 + 16 + 16 + 16.
@@ -103,10 +129,7 @@ fn the_coarsest_tile_comes_first_then_tiles_ring_by_ring() {
 }
 
 fn msg_cost(m: &ColorSend) -> u64 {
-    match *m {
-        ColorSend::Tile { level, x, z } => cost(level, x, z),
-        ColorSend::Window { .. } => 0,
-    }
+    cost(*m)
 }
 
 #[test]
@@ -207,4 +230,71 @@ fn what_it_believes_the_viewer_holds_is_what_the_messages_give() {
             assert_eq!(held, replica.held, "{cells} {tile} {window}");
         }
     }
+}
+
+/// With normals, every tile's normals come right after it, charged with it: never more
+/// normal tiles than colour tiles (the coarsest's come first thing after the first
+/// frame), and whatever the allowance, a viewer that holds a tile's normals holds the tile.
+#[test]
+fn each_tile_s_normals_follow_it() {
+    for (cells, tile, window) in [(256, 16, 4), (512, 16, 3), (16, 16, 8)] {
+        let l = ColorLayout::new(cells, tile, window).expect("a valid layout");
+        let mut s = ColorScheduler::with_normals(l);
+        let mut replica = Replica::new(l);
+        replica.apply(s.first());
+        assert!(!s.complete(), "the coarsest tile's normals are owed");
+        // An allowance too small for them sends nothing.
+        let coarsest = ColorSend::Normals {
+            level: l.levels - 1,
+            x: 0,
+            z: 0,
+        };
+        let (msgs, spent) = s.step((8.0, 8.0), cost(coarsest) - 1, &cost);
+        assert_eq!(spent, 0);
+        for m in msgs {
+            assert!(matches!(m, ColorSend::Window { .. }), "{m:?}");
+            replica.apply(m);
+        }
+        let (msgs, spent) = s.step((8.0, 8.0), cost(coarsest), &cost);
+        assert_eq!((msgs, spent), (vec![coarsest], cost(coarsest)));
+        replica.apply(coarsest);
+        let (mut tiles, mut lit) = (1, 1);
+        let mut rng = 0x2545_f491_4f6c_dd1du64;
+        let mut cam = (f64::from(cells) / 2.0, f64::from(cells) / 2.0);
+        for _ in 0..300 {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            let step = |r: u64| (r % 1000) as f64 / 500.0 - 1.0;
+            cam.0 = (cam.0 + 12.0 * step(rng)).clamp(0.0, f64::from(cells));
+            cam.1 = (cam.1 + 12.0 * step(rng >> 20)).clamp(0.0, f64::from(cells));
+            let allowance = rng >> 54;
+            let (msgs, spent) = s.step(cam, allowance, &cost);
+            assert!(spent <= allowance);
+            assert_eq!(spent, msgs.iter().map(msg_cost).sum::<u64>());
+            for m in msgs {
+                match m {
+                    ColorSend::Tile { .. } => tiles += 1,
+                    ColorSend::Normals { .. } => lit += 1,
+                    ColorSend::Window { .. } => {}
+                }
+                replica.apply(m);
+            }
+            assert_eq!(tiles, lit, "normal tiles sent = colour tiles sent");
+            let held: BTreeSet<_> = s.held().into_iter().collect();
+            assert_eq!(held, replica.held);
+            assert_eq!(replica.lit, replica.held, "every held tile has its normals");
+        }
+        let (_, _) = s.step(cam, u64::MAX, &cost);
+        assert!(s.complete());
+    }
+}
+
+#[test]
+fn without_normals_none_are_sent() {
+    let mut s = ColorScheduler::new(layout());
+    s.first();
+    let (msgs, _) = s.step((40.0, 24.0), u64::MAX, &cost);
+    assert!(!msgs.iter().any(|m| matches!(m, ColorSend::Normals { .. })));
+    assert!(s.complete());
 }

@@ -96,6 +96,7 @@ impl Sim {
                             // Colour, and an edge's news (`serve`'s cores send none).
                             Ok(
                                 ServerMessage::ColorTile { .. }
+                                | ServerMessage::NormalTile { .. }
                                 | ServerMessage::ColorWindow { .. }
                                 | ServerMessage::World(_),
                             ) => {}

@@ -1,0 +1,368 @@
+//! A pyramid of coded tiles and its cache file, whatever the tiles hold: what the colour
+//! pyramid ([`super::color_pyramid`]) and the normal pyramid ([`super::normal_pyramid`])
+//! share. Tiles are laid out as [`ColorLayout`] says (levels finest first, then rows, then
+//! columns); the store keeps their payloads back to back, in memory or memory-mapped from
+//! the cache, each with a check verified the first time it is served.
+//!
+//! The cache file (one per kind, in `DIR/.cache/`): a header (magic, format version,
+//! cells, tile, levels, the kind's key of its source — `color.ppm`'s length and stamp
+//! digest; the heights' hash and the scales — and the tile count), a blake3 hash of the
+//! header and the index, the index ((offset u64, length u32, check u64) per tile) and the
+//! payloads. It is written to a temporary file and renamed (a torn write is never seen),
+//! and checked before it is used: the hash, every entry inside the file, contiguous and
+//! within the kind's `max_len` of its tile. The payloads are not hashed at open (hundreds
+//! of megabytes at 16385², which would also make them all resident): each entry's check is
+//! verified the first time its tile is served ([`TileStore::served_tile`]); the coarsest
+//! tile, which every viewer gets first, is verified at open. A stale or damaged cache is
+//! rebuilt (with the reason, for a warning); a folder that cannot be written keeps the
+//! pyramid in memory ([`CacheOutcome`]). The colour cache's bytes are those of its format
+//! 3 before this module existed: its key is the 16 bytes it always held.
+
+use std::fs;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU8, Ordering};
+
+use roam_protocol::tiles::{self, ColorLayout};
+
+/// The data set's cache folder.
+pub const CACHE_DIR: &str = ".cache";
+/// Bytes of the header before the kind's key: magic, version, cells, tile, levels.
+pub(crate) const HEAD: usize = 8 + 4 * 4;
+/// Bytes of the header's hash.
+pub(crate) const HASH: usize = 32;
+/// An index entry: offset (u64), length (u32), check (u64: the payload's blake3, cut).
+pub(crate) const ENTRY: usize = 20;
+
+/// What a kind of tile cache is.
+pub(crate) struct Kind {
+    pub magic: &'static [u8; 8],
+    pub version: u32,
+    /// The file's name in the cache folder.
+    pub file: &'static str,
+    /// What the file is, for "not a …" ("colour tile cache").
+    pub what: &'static str,
+    /// What it was built from, for "stale: … changed since it was built".
+    pub source: &'static str,
+    /// Bytes of the key.
+    pub key_len: usize,
+    /// The most bytes a tile of a side may take.
+    pub max_len: fn(u32) -> usize,
+}
+
+impl Kind {
+    /// Header bytes: [`HEAD`], the key, the tile count.
+    pub(crate) fn header(&self) -> usize {
+        HEAD + self.key_len + 8
+    }
+}
+
+/// Why a tile is not served.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum TileError {
+    #[error("no such tile")]
+    Outside,
+    /// Its payload does not match its check (a damaged cache file); `first`: the first
+    /// time this tile was found so.
+    #[error("its payload does not match its check: the cache file is damaged")]
+    Damaged { first: bool },
+}
+
+/// What opening a pyramid did with its cache.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum CacheOutcome {
+    /// A valid cache was mapped.
+    Mapped,
+    /// No cache: built and written.
+    Built,
+    /// The cache was stale or damaged (why): rebuilt and written.
+    Rebuilt(String),
+    /// Built, but the cache could not be written (why): served from memory.
+    InMemory(String),
+}
+
+/// Where a store's payloads live.
+enum Payloads {
+    Memory(Vec<u8>),
+    Mapped(memmap2::Mmap),
+}
+
+/// Every tile of a pyramid, coded.
+pub(crate) struct TileStore {
+    pub(crate) layout: ColorLayout,
+    /// Per tile: offset and length in `payloads`, and the payload's check ([`check_of`]).
+    pub(crate) index: Vec<(u64, u32, u64)>,
+    /// Per tile: 0 not verified against its check yet, 1 verified, 2 damaged.
+    verified: Vec<AtomicU8>,
+    /// Where each level's tiles start in `index`.
+    first: Vec<usize>,
+    payloads: Payloads,
+    /// Where the payloads start in `payloads` (after the cache's header and index).
+    base: usize,
+}
+
+impl TileStore {
+    /// The store of `coded` tiles (in index order) of `layout`.
+    pub(crate) fn from_coded(layout: ColorLayout, coded: Vec<Vec<u8>>) -> TileStore {
+        let mut index = Vec::with_capacity(coded.len());
+        let mut blob = Vec::with_capacity(coded.iter().map(Vec::len).sum());
+        for c in coded {
+            index.push((blob.len() as u64, c.len() as u32, check_of(&c)));
+            blob.extend_from_slice(&c);
+        }
+        TileStore {
+            layout,
+            verified: (0..index.len()).map(|_| AtomicU8::new(1)).collect(),
+            index,
+            first: firsts(&layout),
+            payloads: Payloads::Memory(blob),
+            base: 0,
+        }
+    }
+
+    /// Maps `file` if it is a valid `kind` cache of a `cells` map in `tile` tiles, built
+    /// from the source whose key is `key`; why not otherwise.
+    pub(crate) fn open(
+        file: &fs::File,
+        kind: &Kind,
+        cells: u32,
+        tile: u32,
+        key: &[u8],
+    ) -> Result<TileStore, String> {
+        let layout = ColorLayout::new(cells, tile, 1).map_err(|e| e.to_string())?;
+        let header = kind.header();
+        // SAFETY: the map is read only, and the file is ours: written once by `write` and
+        // replaced by renaming, never changed in place. Another process truncating it
+        // under us is outside what this server guards against.
+        let map = unsafe { memmap2::Mmap::map(file) }.map_err(|e| format!("mapping: {e}"))?;
+        let head = map.get(..header).ok_or("shorter than its header")?;
+        if &head[..8] != kind.magic {
+            return Err(format!("not a {}", kind.what));
+        }
+        let u32_at = |at: usize| u32::from_le_bytes(head[at..at + 4].try_into().expect("4"));
+        let version = u32_at(8);
+        if version != kind.version {
+            return Err(format!("format {version}, expected {}", kind.version));
+        }
+        let got = (u32_at(12), u32_at(16), u32_at(20));
+        let want = (cells, tile, u32::from(layout.levels));
+        if got != want {
+            return Err(format!(
+                "for {} cells in tiles of {} ({} levels), expected {} in tiles of {}",
+                got.0, got.1, got.2, cells, tile
+            ));
+        }
+        if &head[HEAD..HEAD + kind.key_len] != key {
+            return Err(format!("stale: {} changed since it was built", kind.source));
+        }
+        let first = firsts(&layout);
+        let total = *first.last().expect("one entry past the last level");
+        let count_at = HEAD + kind.key_len;
+        let count = u64::from_le_bytes(head[count_at..count_at + 8].try_into().expect("8"));
+        if count != total as u64 {
+            return Err(format!("{count} tiles, expected {total}"));
+        }
+        let base = header + HASH + total * ENTRY;
+        let index_bytes = map.get(header + HASH..base).ok_or("index cut short")?;
+        let mut hasher = blake3::Hasher::new();
+        hasher.update(head);
+        hasher.update(index_bytes);
+        if hasher.finalize().as_bytes() != &map[header..header + HASH] {
+            return Err("header or index damaged (hash mismatch)".into());
+        }
+        let payload_len = (map.len() - base) as u64;
+        let mut index = Vec::with_capacity(total);
+        let mut end = 0u64;
+        for l in 0..layout.levels {
+            let limit = (kind.max_len)(layout.tile_side(l));
+            for e in index_bytes
+                .chunks_exact(ENTRY)
+                .take(first[usize::from(l) + 1])
+                .skip(first[usize::from(l)])
+            {
+                let offset = u64::from_le_bytes(e[..8].try_into().expect("8"));
+                let len = u32::from_le_bytes(e[8..12].try_into().expect("4"));
+                let check = u64::from_le_bytes(e[12..].try_into().expect("8"));
+                if offset != end || len as usize > limit || len < 16 {
+                    return Err(format!("index entry {} out of order or size", index.len()));
+                }
+                end += u64::from(len);
+                index.push((offset, len, check));
+            }
+        }
+        if end != payload_len {
+            return Err(format!("{payload_len} payload bytes, the index says {end}"));
+        }
+        let store = TileStore {
+            layout,
+            verified: (0..index.len()).map(|_| AtomicU8::new(0)).collect(),
+            index,
+            first,
+            payloads: Payloads::Mapped(map),
+            base,
+        };
+        // The coarsest tile goes to every viewer first: checked now, so a damaged one is
+        // rebuilt rather than served. Others are checked when first served.
+        let coarsest = layout.levels - 1;
+        if let Err(e) = store.served_tile(coarsest, 0, 0) {
+            return Err(format!("the coarsest tile: {e}"));
+        }
+        Ok(store)
+    }
+
+    /// Writes the cache to `path` (a temporary file, then renamed).
+    pub(crate) fn write(&self, path: &Path, kind: &Kind, key: &[u8]) -> io::Result<()> {
+        let dir = path.parent().expect("the cache path has a folder");
+        fs::create_dir_all(dir)?;
+        let l = &self.layout;
+        let mut head = Vec::with_capacity(kind.header() + HASH + self.index.len() * ENTRY);
+        head.extend_from_slice(kind.magic);
+        for v in [kind.version, l.cells, l.tile, u32::from(l.levels)] {
+            head.extend_from_slice(&v.to_le_bytes());
+        }
+        head.extend_from_slice(key);
+        head.extend_from_slice(&(self.index.len() as u64).to_le_bytes());
+        let mut index = Vec::with_capacity(self.index.len() * ENTRY);
+        for &(offset, len, check) in &self.index {
+            index.extend_from_slice(&offset.to_le_bytes());
+            index.extend_from_slice(&len.to_le_bytes());
+            index.extend_from_slice(&check.to_le_bytes());
+        }
+        let mut hasher = blake3::Hasher::new();
+        hasher.update(&head);
+        hasher.update(&index);
+        head.extend_from_slice(hasher.finalize().as_bytes());
+        head.extend_from_slice(&index);
+        // Unique per process and per write: two builds of one data set in one process (or
+        // in two) never write into the same temporary file.
+        static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let n = WRITES.fetch_add(1, Ordering::Relaxed);
+        let tmp = dir.join(format!("{}.{}.{n}.tmp", kind.file, std::process::id()));
+        let written = (|| {
+            let mut f = io::BufWriter::new(fs::File::create(&tmp)?);
+            f.write_all(&head)?;
+            f.write_all(self.payload_bytes())?;
+            f.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+            fs::rename(&tmp, path)
+        })();
+        if written.is_err() {
+            let _ = fs::remove_file(&tmp);
+        }
+        written
+    }
+
+    pub(crate) fn payload_bytes(&self) -> &[u8] {
+        match &self.payloads {
+            Payloads::Memory(v) => v,
+            Payloads::Mapped(m) => &m[self.base..],
+        }
+    }
+
+    /// The layout viewers are told, with windows of `window` tiles.
+    pub(crate) fn layout(&self, window: u8) -> Result<ColorLayout, tiles::LayoutError> {
+        ColorLayout::new(self.layout.cells, self.layout.tile, window)
+    }
+
+    /// Where tile `(x, z)` of `level` is in the index; `None` outside the pyramid.
+    fn slot(&self, level: u8, x: u32, z: u32) -> Option<usize> {
+        let n = self.layout.tiles(level);
+        (level < self.layout.levels && x < n && z < n)
+            .then(|| self.first[usize::from(level)] + (z * n + x) as usize)
+    }
+
+    /// Tile `(x, z)` of `level`, coded; `None` outside the pyramid.
+    pub(crate) fn tile(&self, level: u8, x: u32, z: u32) -> Option<&[u8]> {
+        let (offset, len, _) = self.index[self.slot(level, x, z)?];
+        let start = offset as usize;
+        self.payload_bytes().get(start..start + len as usize)
+    }
+
+    /// [`Self::tile`] for a viewer: its payload checked against the index the first time.
+    pub(crate) fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
+        let data = self.tile(level, x, z).ok_or(TileError::Outside)?;
+        let i = self.slot(level, x, z).ok_or(TileError::Outside)?;
+        match self.verified[i].load(Ordering::Relaxed) {
+            1 => Ok(data),
+            2 => Err(TileError::Damaged { first: false }),
+            _ if check_of(data) == self.index[i].2 => {
+                self.verified[i].store(1, Ordering::Relaxed);
+                Ok(data)
+            }
+            _ => {
+                let first = self.verified[i].swap(2, Ordering::Relaxed) != 2;
+                Err(TileError::Damaged { first })
+            }
+        }
+    }
+
+    /// Coded bytes of all tiles.
+    pub(crate) fn coded_bytes(&self) -> u64 {
+        self.payload_bytes().len() as u64
+    }
+
+    /// Whether the payloads are memory-mapped from the cache.
+    pub(crate) fn is_mapped(&self) -> bool {
+        matches!(self.payloads, Payloads::Mapped(_))
+    }
+}
+
+/// Opens the `kind` cache in `dir`'s cache folder for a `cells` map in `tile` tiles
+/// built from the source keyed `key` (`Err(why)`: the source cannot be keyed, so nothing
+/// is cached), or makes the store with `make` (only then) and caches it.
+pub(crate) fn open_or_make<E>(
+    dir: &Path,
+    kind: &Kind,
+    cells: u32,
+    tile: u32,
+    key: Result<&[u8], String>,
+    make: impl FnOnce() -> Result<TileStore, E>,
+) -> Result<(TileStore, CacheOutcome), E> {
+    let path = cache_path(dir, kind);
+    let stale = match (&key, fs::File::open(&path)) {
+        (Err(_), _) => None,
+        (Ok(_), Err(e)) if e.kind() == io::ErrorKind::NotFound => None,
+        (Ok(_), Err(e)) => Some(format!("{}: {e}", path.display())),
+        (Ok(key), Ok(file)) => match TileStore::open(&file, kind, cells, tile, key) {
+            Ok(store) => return Ok((store, CacheOutcome::Mapped)),
+            Err(why) => Some(format!("{}: {why}", path.display())),
+        },
+    };
+    let store = make()?;
+    let key = match key {
+        Ok(key) => key,
+        Err(why) => return Ok((store, CacheOutcome::InMemory(why))),
+    };
+    let outcome = match store.write(&path, kind, key) {
+        Ok(()) => match stale {
+            Some(why) => CacheOutcome::Rebuilt(why),
+            None => CacheOutcome::Built,
+        },
+        Err(e) => CacheOutcome::InMemory(format!("{}: {e}", path.display())),
+    };
+    Ok((store, outcome))
+}
+
+/// The `kind` cache's path for the data set in `dir`.
+pub(crate) fn cache_path(dir: &Path, kind: &Kind) -> PathBuf {
+    dir.join(CACHE_DIR).join(kind.file)
+}
+
+/// A payload's check: its blake3 hash, cut to 64 bits.
+fn check_of(payload: &[u8]) -> u64 {
+    let h = blake3::hash(payload);
+    u64::from_le_bytes(
+        h.as_bytes()[..8]
+            .try_into()
+            .expect("a blake3 hash is 32 bytes"),
+    )
+}
+
+/// Where each level's tiles start in the index, and the count after the last.
+pub(crate) fn firsts(layout: &ColorLayout) -> Vec<usize> {
+    let mut first = vec![0];
+    for l in 0..layout.levels {
+        let n = layout.tiles(l) as usize;
+        first.push(first[usize::from(l)] + n * n);
+    }
+    first
+}
