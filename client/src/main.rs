@@ -123,6 +123,10 @@ struct Cli {
     /// Start without the ground's detail texture.
     #[arg(long)]
     no_detail: bool,
+    /// Light with the vertex normals alone, not per pixel from the normal tiles (the
+    /// viewer before issue 24, for comparisons).
+    #[arg(long)]
+    no_normal_tiles: bool,
     /// Vertical field of view, degrees.
     #[arg(long, default_value_t = 60.0)]
     fov: f32,
@@ -137,6 +141,7 @@ impl Cli {
             water: !self.no_water,
             vehicles: !self.no_vehicles,
             detail: !self.no_detail,
+            normals: !self.no_normal_tiles,
         }
     }
 

@@ -195,6 +195,7 @@ fn lighting_off_shades_flat_and_wireframe_shows_lines() {
         water: false,
         vehicles: false,
         detail: false,
+        normals: true,
     };
     let lit = Toggles {
         lighting: true,
@@ -444,6 +445,7 @@ fn draw_clipmap(gpu: &Gpu, tiles: &[(u8, u32, u32, [u8; 3])]) -> Vec<[u8; 3]> {
         water: false,
         vehicles: false,
         detail: false,
+        normals: false,
     };
     let rgba = render::render_offscreen(gpu, &mut r, SIZE, &view, off).expect("renders");
     rgba.chunks(4).map(|p| [p[0], p[1], p[2]]).collect()

@@ -88,6 +88,7 @@ const LIT: Toggles = Toggles {
     water: false,
     vehicles: false,
     detail: false,
+    normals: true,
 };
 
 /// The camera high over the map's west edge, looking east and down across it.

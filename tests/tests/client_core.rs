@@ -1,8 +1,9 @@
 //! The viewer's frame core ([`ClientCore`]) fed frames by hand, with no network (the
 //! clock read once, only to stamp their arrival): a key frame that comes after the frames
 //! coded against it is taken first, a base that never comes asks for a key frame, frame
-//! numbers no server could send are reported and never wedge the core, and the session's
-//! [`Gaps`] count reconnections and the time without frames.
+//! numbers no server could send are reported and never wedge the core, the session's
+//! [`Gaps`] count reconnections and the time without frames, and geomorphs change only
+//! what is drawn.
 
 use std::time::{Duration, Instant};
 
@@ -299,4 +300,80 @@ fn gaps_count_reconnections_and_the_time_without_frames() {
     g.lost(ms(3_000));
     g.reconnected(false);
     assert_eq!((g.reconnects, g.resumed), (2, 1));
+}
+
+/// Geomorphs are drawing only: a core drawing through a [`roam_client::render::Morph`]
+/// decodes, acknowledges and holds exactly the mesh a core without does, frame by frame,
+/// while the cut grows and shrinks; the drawn cut holds the decoded one meanwhile, and
+/// once the frames' ticks have run past the morphs' length it is the decoded one, with
+/// every vertex at its height (the vertices the same triangles, corner for corner).
+#[test]
+fn geomorphs_change_the_drawing_and_nothing_decoded() {
+    use roam_client::render::{MORPH_TICKS, Scene, TerrainVertices};
+    let (grid, heights, welcome) = small_grid();
+    let cuts = growing_cuts(grid, 9);
+    // Up and back down, a frame each: splits, then merges.
+    let order: Vec<usize> = (0..9).chain((0..8).rev()).collect();
+    let scene = Scene::of(&welcome);
+    let (mut plain, mut drawn) = (
+        ClientCore::new(&welcome, 1_000).expect("a valid grid"),
+        ClientCore::new(&welcome, 1_000).expect("a valid grid"),
+    );
+    drawn.set_morph(MORPH_TICKS);
+    let (mut vp, mut vd) = (TerrainVertices::default(), TerrainVertices::default());
+    let now = Instant::now();
+    let sorted = |v: &TerrainVertices| {
+        let mut t: Vec<Vec<u32>> = v
+            .corners
+            .chunks_exact(3)
+            .filter(|t| t.iter().any(|c| *c != Default::default()))
+            .map(|t| {
+                let mut k: Vec<u32> = t
+                    .iter()
+                    .flat_map(|c| c.pos.iter().map(|p| p.to_bits()))
+                    .collect();
+                k.sort_unstable();
+                k
+            })
+            .collect();
+        t.sort_unstable();
+        t
+    };
+    let mut last = 0;
+    for (f, &k) in order.iter().enumerate() {
+        let f = f as u64;
+        let base = f.checked_sub(1).map(|b| (b, &cuts[order[b as usize]]));
+        let bytes = frame_bytes(grid, &heights, f, &cuts[k], base);
+        for core in [&mut plain, &mut drawn] {
+            core.offer(&bytes, now);
+            assert!(matches!(core.take(true), Ok(Taken::Frame(_))), "frame {f}");
+        }
+        assert_eq!(plain.mesh(), drawn.mesh(), "frame {f}: the decoded mesh");
+        assert_eq!(plain.poll_control(), drawn.poll_control(), "frame {f}");
+        plain.update_vertices(&scene, &mut vp);
+        drawn.update_vertices(&scene, &mut vd);
+        let m = drawn.morph().expect("drawn through a morph");
+        for i in cuts[k].iter() {
+            assert!(m.contains(i), "frame {f}: decoded diamond {i} drawn");
+        }
+        last = f;
+    }
+    let morphing = drawn.morph().map_or(0, |m| m.morphing());
+    assert!(morphing > 0, "the last frames' merges are still morphing");
+    // The same cut again, a morph's length of ticks later.
+    let k = *order.last().expect("frames");
+    let later = frame_bytes(grid, &heights, last + 1, &cuts[k], Some((last, &cuts[k])));
+    let mut f: Frame = messages::decode(&later).expect("a frame");
+    f.tick = last + 1 + u64::from(MORPH_TICKS);
+    let mut later = Vec::new();
+    messages::encode(&f, &mut later).expect("within the limits");
+    for (core, v) in [(&mut plain, &mut vp), (&mut drawn, &mut vd)] {
+        core.offer(&later, now);
+        assert!(matches!(core.take(true), Ok(Taken::Frame(_))));
+        core.update_vertices(&scene, v);
+    }
+    let m = drawn.morph().expect("drawn through a morph");
+    assert_eq!(m.morphing(), 0);
+    assert_eq!(m.len(), cuts[k].len(), "the drawn cut is the decoded one");
+    assert_eq!(sorted(&vp), sorted(&vd), "every vertex at its height");
 }

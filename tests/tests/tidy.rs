@@ -144,7 +144,7 @@ fn may_read_a_clock(f: &Path) -> bool {
         "client/src/live.rs",
         "client/src/window.rs",
         "client/src/headless.rs",
-        "client/src/bench.rs",
+        "client/src/bench/mod.rs",
         "client/src/main.rs",
         "link/src/",
         "tests/",

@@ -216,6 +216,10 @@ pub async fn run(
         ..opts.toggles
     };
     for (k, f) in recorded.iter().enumerate() {
+        // The three renderers keep one clock, so a tile's normals fade alike in each.
+        for r in [&mut now, &mut then, &mut sky] {
+            r.set_time(&gpu, f.view.time_s);
+        }
         let t0 = Instant::now();
         now.apply(&gpu, &f.terrain);
         now.update_colors(&gpu, &f.colors);

@@ -104,6 +104,9 @@ pub struct Toggles {
     pub vehicles: bool,
     /// The detail texture on the ground near the camera.
     pub detail: bool,
+    /// Light per pixel from the normal tiles (off: the vertex normals alone, as before
+    /// issue 24, for comparisons).
+    pub normals: bool,
 }
 
 impl Default for Toggles {
@@ -115,6 +118,7 @@ impl Default for Toggles {
             water: true,
             vehicles: true,
             detail: true,
+            normals: true,
         }
     }
 }
@@ -350,6 +354,13 @@ impl Renderer {
         (colors, normals)
     }
 
+    /// Sets the renderer's clock to `time_s` (a frame's `View::time_s`) without drawing:
+    /// tiles written next are stamped with it, and their normals fade in from then. Two
+    /// renderers given the same times and updates fade alike, whichever draws.
+    pub fn set_time(&mut self, gpu: &Gpu, time_s: f32) {
+        self.normals.frame(gpu, time_s);
+    }
+
     /// Writes a colour update ([`crate::color_cache::ColorCache::drain`]): each tile into
     /// its layer (colour, normals), then every level's window and masks. Ignored when the
     /// layout did not fit.
@@ -526,7 +537,7 @@ impl Renderer {
                 view.time_s,
                 flag(toggles.detail),
             ],
-            output: [flag(self.encode_srgb), 0.0, 0.0, 0.0],
+            output: [flag(self.encode_srgb), flag(toggles.normals), 0.0, 0.0],
         };
         gpu.queue
             .write_buffer(&self.uniforms, 0, bytemuck::bytes_of(&u));

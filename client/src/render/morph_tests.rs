@@ -1,3 +1,6 @@
+//! The geomorphs' unit tests: a random split/merge stream conforms at every step, a vertex
+//! appears on its edge and ends exactly at its height, a reversal continues where it is.
+
 use std::collections::{BTreeMap, BTreeSet};
 
 use roam_protocol::{BitSet, Grid, LiveMesh};

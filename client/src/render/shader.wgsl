@@ -18,7 +18,7 @@ struct Uniforms {
     params: vec4<f32>,
     // x: map size (world units), y: water level, z: time (s), w: detail texture on
     map: vec4<f32>,
-    // x: the target is not sRGB: encode here
+    // x: the target is not sRGB: encode here; y: light per pixel from the normal tiles
     output: vec4<f32>,
 };
 
@@ -157,7 +157,7 @@ fn decode_normal(e: vec2<f32>) -> vec3<f32> {
 // back: tiles fully faded in hide everything behind them (two samples, the usual case).
 fn normal_at(cell: vec2<f32>, lod: f32, vn: vec3<f32>) -> vec3<f32> {
     let levels = cl.info.x;
-    if (levels == 0u) {
+    if (levels == 0u || u.output.y < 0.5) {
         return vn;
     }
     var acc = vec3<f32>(0.0);
