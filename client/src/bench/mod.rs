@@ -267,6 +267,7 @@ pub async fn run(
         "pop_px_max": pops.iter().copied().fold(0.0, f64::max),
         "lod_luma_diff_p99": quantile(&luma, 0.99),
         "lod_luma_diff_median": median(&luma),
+        "lod_luma_diff_mean": luma.iter().sum::<f64>() / luma.len().max(1) as f64,
         "drawn_cut_bytes_max": bytes,
         "fogged_error_px_p99": (!fog.is_empty()).then(|| quantile(&fog, 0.99)),
         "fogged_error_px_median": (!fog.is_empty()).then(|| median(&fog)),
