@@ -262,6 +262,8 @@ pub struct ClientCore {
     morph: Option<Morph>,
     pending: DiamondMap<u16>,
     morph_tick: Option<u64>,
+    /// Scratch: `pending` as a list, for the morph's step.
+    changes: Vec<(u32, u16)>,
 }
 
 /// The keys: the latch the window's key events go into, the numbered states, the history
@@ -302,6 +304,7 @@ impl ClientCore {
             morph: None,
             pending: DiamondMap::new(),
             morph_tick: None,
+            changes: Vec::new(),
         })
     }
 
@@ -372,13 +375,14 @@ impl ClientCore {
             terrain.update(scene, &mut self.live, |i| cut.height(i), |_| 0.0);
             return;
         };
-        let changes: Vec<(u32, u16)> = self.pending.iter().collect();
+        self.changes.clear();
+        self.changes.extend(self.pending.iter());
         self.pending.clear();
         let ticks = match (self.morph_tick, self.newest_tick) {
             (Some(a), Some(b)) => Some(b.saturating_sub(a)),
             _ => None,
         };
-        morph.step(&changes, |d| cut.contains(d), |i| cut.height(i), ticks);
+        morph.step(&self.changes, |d| cut.contains(d), |i| cut.height(i), ticks);
         self.morph_tick = self.newest_tick;
         morph.draw(scene, terrain, |i| cut.height(i));
     }

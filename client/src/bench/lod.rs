@@ -17,18 +17,9 @@ use std::collections::HashMap;
 
 use roam_protocol::Grid;
 
-use crate::render::math::{self, Mat};
-use crate::render::{Morph, NEAR, Scene, View};
-
-/// The view-projection matrix `view` has on a `size` target, as the renderer draws it.
-pub fn view_proj(view: &View, size: (u32, u32)) -> Mat {
-    let aspect = size.0 as f32 / size.1.max(1) as f32;
-    let fov = view.fov_y_deg.clamp(1.0, 179.0).to_radians();
-    math::mul(
-        math::perspective(fov, aspect, NEAR),
-        math::look(view.eye, view.yaw_deg, view.pitch_deg),
-    )
-}
+use crate::render::math::Mat;
+pub use crate::render::math::view_proj;
+use crate::render::{Morph, NEAR, Scene};
 
 /// A drawn cut's surface height at grid vertex `i`, samples: its drawn height if it is a
 /// vertex of the cut (a map corner's from `corner`, which may know more vertices), else the mean of its hypotenuse
@@ -144,6 +135,7 @@ pub fn luma_diff(a: &[u8], b: &[u8], sky: &[u8]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::render::View;
     use roam_protocol::BitSet;
 
     fn check_luma(a: &[[u8; 3]], b: &[[u8; 3]], sky: &[[u8; 3]], expected: f64) {

@@ -104,7 +104,6 @@ pub async fn run(
     let mut recorded: Vec<Recorded> = Vec::new();
     let mut vertices = TerrainVertices::default();
     let mut before: Option<(u64, Morph)> = None;
-    let mut view: Option<View> = None;
     let mut skipped = 0u64;
     let mut carry: Vec<(u32, u16)> = Vec::new();
     let mut bytes = 0usize;
@@ -114,8 +113,19 @@ pub async fn run(
             Taken::Frame(r) => r,
         };
         let me = session.vehicle();
-        let seen =
-            MorphView::of_vehicle(&session.scene, &r.vehicles, me, opts.fov_y_deg, opts.size.1);
+        let vehicle = r.vehicles.iter().find(|v| v.id == me).copied();
+        let view = vehicle.map(|v| View {
+            eye: [
+                v.x as f32,
+                (v.y + crate::camera::EYE_ABOVE_VEHICLE) as f32,
+                v.z as f32,
+            ],
+            yaw_deg: v.heading as f32,
+            pitch_deg: DEFAULT_PITCH_DEG as f32,
+            fov_y_deg: opts.fov_y_deg,
+            time_s: recorded.len() as f32 / 60.0,
+        });
+        let seen = view.map(|v| MorphView::new(&session.scene, v.eye, v.fov_y_deg, opts.size.1));
         let t0 = Instant::now();
         {
             let mut core = session.core();
@@ -123,22 +133,9 @@ pub async fn run(
             core.update_vertices(&session.scene, &mut vertices);
         }
         let t1 = Instant::now();
-        if let Some(v) = r.vehicles.iter().find(|v| v.id == me) {
-            view = Some(View {
-                eye: [
-                    v.x as f32,
-                    (v.y + crate::camera::EYE_ABOVE_VEHICLE) as f32,
-                    v.z as f32,
-                ],
-                yaw_deg: v.heading as f32,
-                pitch_deg: DEFAULT_PITCH_DEG as f32,
-                fov_y_deg: opts.fov_y_deg,
-                time_s: recorded.len() as f32 / 60.0,
-            });
-        }
         // The cut's changes, carried to the next frame recorded when this one is not.
         carry.extend_from_slice(session.core().cut().toggled_heights());
-        let (Some(view), Some(vehicle)) = (view, r.vehicles.iter().find(|v| v.id == me)) else {
+        let (Some(view), Some(vehicle)) = (view, vehicle) else {
             continue; // not seated yet: nothing to look from
         };
         let core = session.core();
@@ -174,7 +171,7 @@ pub async fn run(
         recorded.push(Recorded {
             frame: r.frame,
             view,
-            vehicle: *vehicle,
+            vehicle,
             toggled,
             terrain: vertices.take_update(),
             colors: session.colors().drain(MAX_UPLOADS),

@@ -65,6 +65,17 @@ pub fn perspective_inverse(fov_y: f32, aspect: f32, near: f32) -> Mat {
     ]
 }
 
+/// The view-projection matrix `view` has on a `size` target, as the renderer draws it
+/// (the pop measure projects with the same).
+pub fn view_proj(view: &super::View, size: (u32, u32)) -> Mat {
+    let aspect = size.0 as f32 / size.1.max(1) as f32;
+    let fov = view.fov_y_deg.clamp(1.0, 179.0).to_radians();
+    mul(
+        perspective(fov, aspect, super::NEAR),
+        look(view.eye, view.yaw_deg, view.pitch_deg),
+    )
+}
+
 /// The unit direction of a heading (0 faces south, +Z; 90 east, +X) and pitch (up positive).
 pub fn forward(yaw_deg: f32, pitch_deg: f32) -> [f32; 3] {
     let (yaw, pitch) = (yaw_deg.to_radians(), pitch_deg.to_radians());

@@ -500,10 +500,7 @@ impl Renderer {
         }
         let aspect = size.0 as f32 / size.1.max(1) as f32;
         let fov = view.fov_y_deg.clamp(1.0, 179.0).to_radians();
-        let view_proj = math::mul(
-            math::perspective(fov, aspect, NEAR),
-            math::look(view.eye, view.yaw_deg, view.pitch_deg),
-        );
+        let view_proj = math::view_proj(view, size);
         let inv_view_proj = math::mul(
             math::look_inverse(view.eye, view.yaw_deg, view.pitch_deg),
             math::perspective_inverse(fov, aspect, NEAR),

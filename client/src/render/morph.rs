@@ -264,19 +264,12 @@ impl Morph {
         for &(d, h) in changes {
             let now = split(d);
             match self.drawn.get(d) {
-                Some(mut v) if now => {
-                    // Split again while morphing out: back up from where it is, as fast.
-                    v.out = false;
-                    v.h = h;
-                    v.left = if snap { 0 } else { full.saturating_sub(v.left) };
-                    self.drawn.insert(d, v);
-                    self.list(d);
-                    self.touched.push(d);
-                }
                 Some(mut v) => {
+                    // Split again while morphing out: back up from where it is, as fast.
                     // Merged: back to its midpoint first (at once for a new cut); it
                     // leaves the drawn cut there, after its children.
-                    v.out = true;
+                    v.out = !now;
+                    v.h = h;
                     v.left = if snap { 0 } else { full.saturating_sub(v.left) };
                     self.drawn.insert(d, v);
                     self.list(d);
@@ -336,10 +329,7 @@ impl Morph {
     /// from the moving list the ones at their heights.
     fn remove_finished(&mut self) {
         let grid = self.grid;
-        let depth = |d: u32| {
-            let (x, z) = grid.coords(d);
-            grid.depth(x, z)
-        };
+        let depth = |d: u32| depth_of(&grid, d);
         let mut moving = std::mem::take(&mut self.moving);
         moving.sort_unstable_by_key(|&d| (std::cmp::Reverse(depth(d)), d));
         moving.retain(|&d| {
@@ -375,10 +365,7 @@ impl Morph {
     /// its edge as drawn. A vertex is at its target exactly when its deadline comes.
     fn place(&mut self, corner: &impl Fn(u32) -> Option<u16>, ticks: Option<u16>) {
         let grid = self.grid;
-        let depth = |d: u32| {
-            let (x, z) = grid.coords(d);
-            grid.depth(x, z)
-        };
+        let depth = |d: u32| depth_of(&grid, d);
         self.moving.sort_unstable_by_key(|&d| (depth(d), d));
         for k in 0..self.moving.len() {
             let d = self.moving[k];
@@ -472,6 +459,12 @@ impl Morph {
             }
         }
     }
+}
+
+/// Diamond `d`'s depth (coarse first: 0 for the root).
+fn depth_of(grid: &Grid, d: u32) -> u32 {
+    let (x, z) = grid.coords(d);
+    grid.depth(x, z)
 }
 
 #[cfg(test)]
