@@ -79,6 +79,12 @@ struct Cli {
     /// (`serve --fog-priority`): `off` tessellates as before issue 24, for comparisons.
     #[arg(long, default_value = "on", value_parser = ["on", "off"])]
     fog_priority: String,
+    /// The in-process server's guard band (`serve --guard-deg`): each cut refined this many
+    /// degrees beyond either side of the view, so what the driver turns towards is detailed
+    /// before it comes into view; 0 culls at the view's edges (as before issue 24).
+    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
+          value_parser = clap::value_parser!(u8).range(0..=30))]
+    guard_deg: u8,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
@@ -433,6 +439,7 @@ async fn serve(
                 token.clone(),
             );
             options.limits.fog_priority = cli.fog_priority == "on";
+            options.limits.guard_deg = cli.guard_deg;
             options.normals = Some(Arc::new(normals));
             let server = Server::start(
                 truth.terrain.clone(),

@@ -93,6 +93,7 @@ fn view_and_mesh(t: &Terrain) -> (View, roam_protocol::Mesh) {
             budget: 20_000,
             threshold_px: 0.0,
             fog_density: 0.0,
+            guard_deg: 0.0,
         },
         &mut mesh,
     );

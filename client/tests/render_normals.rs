@@ -129,6 +129,7 @@ fn cut(t: &Terrain, budget: u32) -> roam_protocol::Mesh {
         budget,
         threshold_px: 0.0,
         fog_density: 0.0,
+        guard_deg: 0.0,
     };
     tess.tessellate(&t.heights, &vt, scales, &cam, limits, &mut mesh);
     let heights = mesh

@@ -38,6 +38,7 @@ fn drive(name: &str, budget: u32, skip: usize) -> Vec<f64> {
         budget,
         threshold_px: 0.0,
         fog_density: 0.0,
+        guard_deg: 0.0,
     };
     let (mut server, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let mut acked: Option<BitSet> = None;

@@ -19,6 +19,7 @@ fn limits(budget: u32, threshold_px: f32, fog_density: f32) -> Limits {
         budget,
         threshold_px,
         fog_density,
+        guard_deg: 0.0,
     }
 }
 

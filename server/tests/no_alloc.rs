@@ -129,6 +129,7 @@ fn warm_tessellator_does_not_allocate() {
         threshold_px: 0.0,
         // The map's fog: the fog-aware priority allocates nothing either.
         fog_density: terrain.map.fog_density as f32,
+        guard_deg: 0.0,
     };
     let mut tess = Tessellator::new(hf.side());
     let mut mesh = Mesh::default();

@@ -109,6 +109,7 @@ fn walk(case: &PathCase) -> Result<Vec<f32>, String> {
             budget,
             threshold_px: case.threshold,
             fog_density: case.density,
+            guard_deg: 0.0,
         };
         let mode = a.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
         if b.frame(&hf, &vt, scales(), &cam, limits, false, &pool) != mode
@@ -214,7 +215,7 @@ proptest! {
         let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
         let size = f64::from(hf.size());
         let cam = camera(&hf, gx * size, gz * size, above, yaw, pitch, fov);
-        let limits = Limits { budget, threshold_px: threshold, fog_density: density };
+        let limits = Limits { budget, threshold_px: threshold, fog_density: density, guard_deg: 0.0 };
         let (mesh, mut t) = run(&hf, &vt, &cam, limits);
         check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| TestCaseError::fail(e.to_string()))?;
         prop_assert!(mesh.triangle_count() <= budget as usize);
@@ -284,6 +285,7 @@ fn flat_ground_needs_two_triangles() {
             budget: 1000,
             threshold_px: 0.0,
             fog_density: 0.0,
+            guard_deg: 0.0,
         },
     );
     assert_eq!(mesh.triangle_count(), 2);
@@ -307,6 +309,7 @@ fn one_spike_is_refined_down_to_full_resolution() {
             budget: 10_000,
             threshold_px: 0.0,
             fog_density: 0.0,
+            guard_deg: 0.0,
         },
     );
     check_mesh(&mesh.vertices, &mesh.indices, hf.size()).expect("conforming");
@@ -341,6 +344,7 @@ fn the_ground_under_the_eye_is_exact() {
                 budget: 2000,
                 threshold_px: 1e9,
                 fog_density: 0.0,
+                guard_deg: 0.0,
             },
         );
         let under = mesh
@@ -386,6 +390,7 @@ fn the_budget_is_reached_on_rough_ground_and_never_passed() {
                 budget,
                 threshold_px: 0.0,
                 fog_density: 0.0,
+                guard_deg: 0.0,
             },
         );
         let n = mesh.triangle_count() as u32;
@@ -413,6 +418,7 @@ fn a_higher_threshold_gives_fewer_triangles_and_a_bound_below_it() {
                 budget: 1 << 20,
                 threshold_px: threshold,
                 fog_density: 0.0,
+                guard_deg: 0.0,
             },
         );
         assert!(

@@ -504,6 +504,7 @@ fn the_viewers_fog_steers_the_priority() {
             budget: 3000,
             threshold_px: 0.0,
             fog_density,
+            guard_deg: 0.0,
         };
         let cam = core.camera_at(&scene, v);
         t.tessellate(

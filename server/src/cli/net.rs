@@ -87,6 +87,12 @@ pub struct ServeArgs {
     /// drawing their fog (`on`), or not (`off`: the fog-unaware priority, for comparisons).
     #[arg(long, value_enum, default_value_t = super::tess::FogPriority::On)]
     pub fog_priority: super::tess::FogPriority,
+    /// A guard band: each viewer's cut is refined this many degrees beyond either side of
+    /// its view, so that what it turns towards is detailed before it is seen (0: cull at
+    /// the view's edges, the spec's split-only ROAM).
+    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
+          value_parser = clap::value_parser!(u8).range(0..=30))]
+    pub guard_deg: u8,
     /// Seconds a driver's vehicle is held after its connection drops, for it to come back.
     #[arg(long, default_value_t = net::HOLD.as_secs_f64(), value_parser = seconds)]
     pub hold: f64,
@@ -194,6 +200,7 @@ impl ServeArgs {
             max_budget: self.max_budget,
             max_fps: self.max_fps,
             fog_priority: self.fog_priority.on(),
+            guard_deg: self.guard_deg,
         };
         anyhow::ensure!(
             limits.clamped() == limits,

@@ -108,6 +108,9 @@ pub struct MeshArgs {
     /// Weigh each error by the map's fog (`on`), or not (`off`: the fog-unaware priority).
     #[arg(long, value_enum, default_value_t = FogPriority::On)]
     pub fog_priority: FogPriority,
+    /// A guard band: the frustum widened by this many degrees either side (0: none).
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=30))]
+    pub guard_deg: u8,
     /// Output Wavefront OBJ (world coordinates, faces counter-clockwise from above).
     #[arg(long)]
     pub obj: PathBuf,
@@ -130,6 +133,11 @@ pub struct BenchArgs {
     /// for before/after comparisons); `serve_fogged_error_px_p99` measures both alike.
     #[arg(long, value_enum, default_value_t = FogPriority::On)]
     pub fog_priority: FogPriority,
+    /// A guard band for the serving figures: the frustum widened by this many degrees
+    /// either side, as `serve --guard-deg` (0: none; the from-scratch figures have none).
+    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
+          value_parser = clap::value_parser!(u8).range(0..=30))]
+    pub guard_deg: u8,
     /// One fixed camera instead of the fly-over path (needs `--eye`).
     #[command(flatten)]
     pub camera: CameraArgs,
@@ -221,6 +229,7 @@ pub fn mesh(args: MeshArgs) -> Result<()> {
         budget: args.budget,
         threshold_px: args.threshold,
         fog_density: args.fog_priority.density(&terrain),
+        guard_deg: f32::from(args.guard_deg),
     };
     tess.tessellate(
         &terrain.heights,
@@ -277,6 +286,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         budget: args.budget,
         threshold_px: args.threshold,
         fog_density: args.fog_priority.density(&terrain),
+        guard_deg: 0.0,
     };
     let mut tess = Tessellator::new(terrain.heights.side());
     let mut mesh = Mesh::default();
@@ -311,6 +321,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     };
     let caps = ViewerLimits {
         fog_priority: args.fog_priority.on(),
+        guard_deg: args.guard_deg,
         ..ViewerLimits::default()
     };
     let serve = serve_bench(&terrain, &vt, limits, caps, &script)?;

@@ -30,6 +30,9 @@ impl WorldPlane {
 /// Distance of the near plane in front of the eye, world units.
 pub const NEAR: f64 = 0.5;
 
+/// The widest guard band, degrees ([`Camera::frustum_widened`]).
+pub const MAX_GUARD_DEG: f64 = 30.0;
+
 impl Camera {
     /// Unit view direction.
     pub fn forward(&self) -> [f64; 3] {
@@ -49,6 +52,19 @@ impl Camera {
 
     /// The near, left, right, bottom and top planes (no far plane), normals pointing in.
     pub fn frustum(&self) -> [WorldPlane; 5] {
+        self.frustum_widened(0.0)
+    }
+
+    /// [`Camera::frustum`] with its left and right planes turned out by `guard_deg` degrees
+    /// each: a guard band, what a viewer turning is about to see (a camera turns only about
+    /// the vertical: its pitch is the driver's fixed one). 0, or anything not a finite
+    /// positive number, for none; at most [`MAX_GUARD_DEG`].
+    pub fn frustum_widened(&self, guard_deg: f64) -> [WorldPlane; 5] {
+        let guard = if guard_deg.is_finite() && guard_deg > 0.0 {
+            guard_deg.min(MAX_GUARD_DEG).to_radians()
+        } else {
+            0.0
+        };
         let f = self.forward();
         // Right = forward × up, normalised; up' = right × forward.
         let r = normalize([-f[2], 0.0, f[0]]);
@@ -60,7 +76,8 @@ impl Camera {
         let u = cross(r, f);
         let half_v = (self.fov_y_deg.to_radians() / 2.0).clamp(1e-6, 1.5);
         let aspect = f64::from(self.width.max(1)) / f64::from(self.height.max(1));
-        let half_h = (half_v.tan() * aspect).atan();
+        // Under a right angle: the side planes stay apart.
+        let half_h = ((half_v.tan() * aspect).atan() + guard).min(1.55);
         let through_eye = |n: [f64; 3]| WorldPlane {
             n,
             d: -dot(n, self.eye),
@@ -160,5 +177,36 @@ mod tests {
         };
         assert!(planes.iter().all(|p| p.distance(at(40.0)) > 0.0));
         assert!(planes.iter().any(|p| p.distance(at(59.0)) < 0.0));
+    }
+
+    /// A guard band turns the side planes out by its angle, and only them: at 10°, a
+    /// point 50° off-axis (out of the view's ~45.7°) is in and one at 60° still out; the
+    /// near, top and bottom planes are the view's; nothing, a bad angle, is no guard.
+    #[test]
+    fn a_guard_band_widens_the_sides_only() {
+        let c = cam(90.0, -10.0);
+        let at = |deg: f64, up: f64| {
+            let a = (90.0 - deg).to_radians();
+            [
+                c.eye[0] + 100.0 * a.sin(),
+                c.eye[1] + 100.0 * up,
+                c.eye[2] + 100.0 * a.cos(),
+            ]
+        };
+        let inside = |planes: &[WorldPlane; 5], p| planes.iter().all(|pl| pl.distance(p) > 0.0);
+        let (view, guarded) = (c.frustum(), c.frustum_widened(10.0));
+        for deg in [50.0, -50.0] {
+            assert!(!inside(&view, at(deg, -0.17)), "{deg}° is out of the view");
+            assert!(
+                inside(&guarded, at(deg, -0.17)),
+                "{deg}° is in the guard band"
+            );
+        }
+        assert!(!inside(&guarded, at(60.0, -0.17)));
+        assert_eq!(view[0], guarded[0]);
+        assert_eq!(view[3..], guarded[3..]);
+        for bad in [0.0, -5.0, f64::NAN, f64::INFINITY] {
+            assert_eq!(c.frustum_widened(bad), view, "{bad}");
+        }
     }
 }

@@ -68,6 +68,11 @@ pub struct Limits {
     /// diamond's error is weighed by the fog's transmission over the nearest distance to
     /// its bounding prism. 0 (or anything not a positive finite number) for none.
     pub fog_density: f32,
+    /// A guard band: the frustum's left and right planes turned out by this many degrees
+    /// each, so that what a turning viewer is about to see is refined before it comes into
+    /// view ([`Camera::frustum_widened`]). 0 (or anything not a positive finite number) for
+    /// none, the spec's culling.
+    pub guard_deg: f32,
 }
 
 /// World scales of a heightfield: `(h_scale·x, v_scale·sample, h_scale·z)`.
@@ -592,7 +597,7 @@ impl<'a> Frame<'a> {
         camera: &Camera,
         limits: Limits,
     ) -> Frame<'a> {
-        let planes = camera.frustum();
+        let planes = camera.frustum_widened(f64::from(limits.guard_deg));
         let grid = |i: usize| {
             let p = &planes[i + 1];
             (p.n[0] * scales.h, p.n[1] * scales.v, p.n[2] * scales.h, p.d)

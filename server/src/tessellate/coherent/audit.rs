@@ -308,6 +308,7 @@ pub fn fogged_error_px(
         budget: 2,
         threshold_px: 0.0,
         fog_density,
+        guard_deg: 0.0,
     };
     let f = Frame::new(hf, variance, scales, camera, limits);
     worst(&c, &f, &candidates)

@@ -34,7 +34,7 @@
 //!
 //! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
 //! the bound, a camera jump (a turn of more than 30°, a move of more than 64 grid cells),
-//! a new field of view or viewport, a new threshold or fog density (the viewer turned its
+//! a new field of view or viewport, a new threshold, guard band or fog density (the viewer turned its
 //! fog on or off), a budget change of more than ×2, or the caller's say
 //! rebuilds the cut from scratch with split-only ROAM, the spec's algorithm, on a
 //! tessellator borrowed from the server's [`Scratch`], and logs the difference from the
@@ -468,6 +468,7 @@ impl Coherent {
             || (camera.width, camera.height) != (c.width, c.height)
             || limits.threshold_px != l.threshold_px
             || limits.fog_density.to_bits() != l.fog_density.to_bits()
+            || limits.guard_deg.to_bits() != l.guard_deg.to_bits()
             || limits.budget > 2 * l.budget
             || 2 * limits.budget < l.budget
     }
@@ -669,6 +670,7 @@ mod tests {
             budget: 600,
             threshold_px: 0.0,
             fog_density: 0.0,
+            guard_deg: 0.0,
         };
         let scratch = Scratch::new(side);
         let mut c = Coherent::new(side);
