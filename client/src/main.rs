@@ -83,7 +83,7 @@ struct Cli {
     /// degrees beyond either side of the view, so what the driver turns towards is detailed
     /// before it comes into view; 0 culls at the view's edges (as before issue 24).
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
-          value_parser = clap::value_parser!(u8).range(0..=30))]
+          value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     guard_deg: u8,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).

@@ -91,7 +91,7 @@ pub struct ServeArgs {
     /// its view, so that what it turns towards is detailed before it is seen (0: cull at
     /// the view's edges, the spec's split-only ROAM).
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
-          value_parser = clap::value_parser!(u8).range(0..=30))]
+          value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     pub guard_deg: u8,
     /// Seconds a driver's vehicle is held after its connection drops, for it to come back.
     #[arg(long, default_value_t = net::HOLD.as_secs_f64(), value_parser = seconds)]

@@ -109,7 +109,7 @@ pub struct MeshArgs {
     #[arg(long, value_enum, default_value_t = FogPriority::On)]
     pub fog_priority: FogPriority,
     /// A guard band: the frustum widened by this many degrees either side (0: none).
-    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=30))]
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     pub guard_deg: u8,
     /// Output Wavefront OBJ (world coordinates, faces counter-clockwise from above).
     #[arg(long)]
@@ -136,7 +136,7 @@ pub struct BenchArgs {
     /// A guard band for the serving figures: the frustum widened by this many degrees
     /// either side, as `serve --guard-deg` (0: none; the from-scratch figures have none).
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
-          value_parser = clap::value_parser!(u8).range(0..=30))]
+          value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     pub guard_deg: u8,
     /// One fixed camera instead of the fly-over path (needs `--eye`).
     #[command(flatten)]

@@ -31,7 +31,7 @@ impl WorldPlane {
 pub const NEAR: f64 = 0.5;
 
 /// The widest guard band, degrees ([`Camera::frustum_widened`]).
-pub const MAX_GUARD_DEG: f64 = 30.0;
+pub const MAX_GUARD_DEG: u8 = 30;
 
 impl Camera {
     /// Unit view direction.
@@ -61,7 +61,7 @@ impl Camera {
     /// positive number, for none; at most [`MAX_GUARD_DEG`].
     pub fn frustum_widened(&self, guard_deg: f64) -> [WorldPlane; 5] {
         let guard = if guard_deg.is_finite() && guard_deg > 0.0 {
-            guard_deg.min(MAX_GUARD_DEG).to_radians()
+            guard_deg.min(f64::from(MAX_GUARD_DEG)).to_radians()
         } else {
             0.0
         };

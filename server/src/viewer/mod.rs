@@ -174,8 +174,7 @@ pub struct ViewerLimits {
     pub guard_deg: u8,
 }
 
-/// The widest guard band a server serves, degrees.
-pub const MAX_GUARD_DEG: u8 = 30;
+pub use crate::tessellate::camera::MAX_GUARD_DEG;
 
 /// The guard band served unless told otherwise, degrees each side: none yet. At 10° the
 /// driver sees a third of the level of detail's changes along the bench drive (README:

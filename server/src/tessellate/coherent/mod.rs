@@ -34,8 +34,8 @@
 //!
 //! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
 //! the bound, a camera jump (a turn of more than 30°, a move of more than 64 grid cells),
-//! a new field of view or viewport, a new threshold, guard band or fog density (the viewer turned its
-//! fog on or off), a budget change of more than ×2, or the caller's say
+//! a new field of view or viewport, a new threshold, guard band or fog density (the viewer
+//! turned its fog on or off), a budget change of more than ×2, or the caller's say
 //! rebuilds the cut from scratch with split-only ROAM, the spec's algorithm, on a
 //! tessellator borrowed from the server's [`Scratch`], and logs the difference from the
 //! old cut.
