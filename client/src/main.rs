@@ -433,6 +433,7 @@ async fn serve(
             let truth = roam_client::bench::Truth {
                 terrain: Arc::new(terrain),
                 variance: Arc::new(vt),
+                guard_deg: f32::from(cli.guard_deg),
             };
             let mut options = Options::new(
                 "127.0.0.1:0".parse().expect("a valid address"),

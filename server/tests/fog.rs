@@ -143,7 +143,15 @@ fn check(levels: u32, seed: u64, rough: f64, at: At, budget: u32, density: f32) 
     check_frustum(&hf, &vt, &cam, t.split_diamonds()).unwrap_or_else(|e| panic!("{name}: {e}"));
     let split: Vec<(u32, u32)> = t.split_diamonds().collect();
     let measured = measured_error(&hf, &vt, scales(), &cam, l, split.iter().copied());
-    let fogged = fogged_error_px(&hf, &vt, scales(), &cam, density, is_split(&hf, &split));
+    let fogged = fogged_error_px(
+        &hf,
+        &vt,
+        scales(),
+        &cam,
+        density,
+        0.0,
+        is_split(&hf, &split),
+    );
     assert_eq!(measured.to_bits(), fogged.to_bits(), "{name}");
     // From scratch reports what its queue reached, which the measure includes.
     assert!(mesh.error_bound_px <= measured, "{name}");
@@ -172,7 +180,15 @@ fn check(levels: u32, seed: u64, rough: f64, at: At, budget: u32, density: f32) 
             .unwrap_or_else(|e| panic!("{name}, frame {k}: {e}"));
         let split: Vec<(u32, u32)> = c.split_diamonds().collect();
         let measured = measured_error(&hf, &vt, scales(), &cam, l, split.iter().copied());
-        let fogged = fogged_error_px(&hf, &vt, scales(), &cam, density, is_split(&hf, &split));
+        let fogged = fogged_error_px(
+            &hf,
+            &vt,
+            scales(),
+            &cam,
+            density,
+            0.0,
+            is_split(&hf, &split),
+        );
         assert_eq!(measured.to_bits(), fogged.to_bits(), "{name}, frame {k}");
         let bound = c.error_bound_px();
         assert!(
@@ -299,7 +315,7 @@ fn with_fog_the_far_ground_is_refined_less() {
                     beyond(&d0)
                 );
                 let seen = |split: &[(u32, u32)]| {
-                    fogged_error_px(&hf, &vt, scales(), &cam, density, is_split(&hf, split))
+                    fogged_error_px(&hf, &vt, scales(), &cam, density, 0.0, is_split(&hf, split))
                 };
                 let (e0, e1) = (seen(&without), seen(&with));
                 assert!(

@@ -19,6 +19,8 @@ use roam_server::viewer::{Scene, ViewerCore, ViewerLimits};
 pub struct Truth {
     pub terrain: Arc<Terrain>,
     pub variance: Arc<VarianceTree>,
+    /// The guard band the server's cut is made with (`--guard-deg`), degrees.
+    pub guard_deg: f32,
 }
 
 impl std::fmt::Debug for Truth {
@@ -78,6 +80,7 @@ impl FoggedError {
             },
             &camera,
             map.fog_density as f32,
+            t.guard_deg,
             |i| split.contains(i),
         )
     }

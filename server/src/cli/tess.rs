@@ -523,6 +523,11 @@ fn serve_bench(
     use roam_server::tessellate::{Mode, fogged_error_px, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
     let cameras = flyover::drive(terrain, script, 60);
+    // The served cut's guard band, for the from-scratch cut beside it and the measures.
+    let limits = Limits {
+        guard_deg: f32::from(caps.guard_deg),
+        ..limits
+    };
     let sc = scales(terrain);
     let levels = terrain.heights.levels();
     let step = roam_protocol::height_step(terrain.heights.samples());
@@ -599,7 +604,13 @@ fn serve_bench(
         let cut = core.cut();
         let is_split = |i: u32| cut.is_split(i % side, i / side);
         fogged.push(f64::from(fogged_error_px(
-            h, vt, sc, cam, density, is_split,
+            h,
+            vt,
+            sc,
+            cam,
+            density,
+            limits.guard_deg,
+            is_split,
         )));
         let plain = Limits {
             fog_density: 0.0,

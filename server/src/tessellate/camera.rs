@@ -209,4 +209,42 @@ mod tests {
             assert_eq!(c.frustum_widened(bad), view, "{bad}");
         }
     }
+
+    /// Whatever the guard, the widened frustum holds the view's (what the error measures
+    /// rely on to cull with both: `coherent/audit.rs`), though a side plane turned out
+    /// drops points behind the eye that the view's kept: every point of a lattice around
+    /// the eye in the view is in every guarded frustum, and some point the view's left or
+    /// right plane keeps is dropped by the guarded one.
+    #[test]
+    fn a_guarded_frustum_holds_the_view() {
+        for (yaw, pitch, fov) in [(90.0, -10.0, 60.0), (200.0, -35.0, 40.0), (10.0, 5.0, 90.0)] {
+            let c = Camera {
+                fov_y_deg: fov,
+                ..cam(yaw, pitch)
+            };
+            let view = c.frustum();
+            let mut dropped = 0;
+            for guard in [1.0, 10.0, 30.0] {
+                let wide = c.frustum_widened(guard);
+                for i in -12..=12 {
+                    for j in -12..=12 {
+                        for k in -12..=12 {
+                            let v = [f64::from(i), f64::from(j) * 0.5, f64::from(k)];
+                            let p = [c.eye[0] + v[0], c.eye[1] + v[1], c.eye[2] + v[2]];
+                            if view.iter().all(|pl| pl.distance(p) >= 0.0) {
+                                assert!(
+                                    wide.iter().all(|pl| pl.distance(p) >= -1e-9),
+                                    "{p:?} at {yaw}°, {pitch}°, guard {guard}°"
+                                );
+                            }
+                            dropped += (1..3)
+                                .any(|s| view[s].distance(p) >= 0.0 && wide[s].distance(p) < 0.0)
+                                as u32;
+                        }
+                    }
+                }
+            }
+            assert!(dropped > 0, "{yaw}°: a side plane turned out drops nothing");
+        }
+    }
 }

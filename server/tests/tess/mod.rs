@@ -94,6 +94,17 @@ pub fn check_frustum(
     cam: &Camera,
     split: impl Iterator<Item = (u32, u32)>,
 ) -> Result<(), String> {
+    check_frustum_guarded(hf, vt, cam, 0.0, split)
+}
+
+/// [`check_frustum`] with the frustum's sides turned out by a guard band of `guard_deg`.
+pub fn check_frustum_guarded(
+    hf: &Heightfield,
+    vt: &VarianceTree,
+    cam: &Camera,
+    guard_deg: f64,
+    split: impl Iterator<Item = (u32, u32)>,
+) -> Result<(), String> {
     let size = hf.size();
     let s = scales();
     let split: std::collections::HashSet<(u32, u32)> = split.collect();
@@ -107,7 +118,7 @@ pub fn check_frustum(
         .flatten()
         .collect();
     // The view pyramid: the near plane adds nothing to culling (the apex is the eye).
-    let planes = &cam.frustum()[1..];
+    let planes = &cam.frustum_widened(guard_deg)[1..];
     for &(x, z) in &split {
         if forced.contains(&(x, z)) {
             continue;
