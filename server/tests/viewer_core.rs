@@ -504,7 +504,8 @@ fn the_viewers_fog_steers_the_priority() {
             budget: 3000,
             threshold_px: 0.0,
             fog_density,
-            guard_deg: 0.0,
+            // The guard band the core serves by default.
+            guard_deg: f32::from(ViewerLimits::default().guard_deg),
         };
         let cam = core.camera_at(&scene, v);
         t.tessellate(

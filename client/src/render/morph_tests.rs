@@ -173,6 +173,17 @@ fn root_split() -> (Grid, u32, f32, BitSet, BitSet) {
     (grid, d, mid, empty, split)
 }
 
+/// Starts `m` from the empty cut and splits `d` (to the cut `split`) a tick later.
+fn start_split(m: &mut Morph, grid: &Grid, d: u32, split: &BitSet) {
+    m.step(&[], |_| false, corner(grid), None);
+    m.step(
+        &[(d, height(d))],
+        |i| split.contains(i),
+        corner(grid),
+        Some(1),
+    );
+}
+
 /// A split vertex appears at its midpoint, moves linearly with the ticks and ends exactly
 /// at its height after [`MORPH_TICKS`]; merged, it goes back and leaves at its midpoint.
 #[test]
@@ -181,13 +192,7 @@ fn a_vertex_appears_at_its_midpoint_and_ends_exactly_at_its_height() {
     let h = f32::from(height(d));
     assert_ne!(h, mid, "the test map makes the split visible");
     let mut m = Morph::new(grid, T);
-    m.step(&[], |_| false, corner(&grid), None);
-    m.step(
-        &[(d, height(d))],
-        |i| split.contains(i),
-        corner(&grid),
-        Some(1),
-    );
+    start_split(&mut m, &grid, d, &split);
     assert_eq!(drawn_y(&m, d), mid, "appears where the surface was");
     for k in 1..=T {
         m.step(&[], |i| split.contains(i), corner(&grid), Some(1));
@@ -224,13 +229,7 @@ fn a_re_split_mid_morph_continues_from_where_the_vertex_is() {
     let h = f32::from(height(d));
     let at = |k: u16| mid + (h - mid) * (f32::from(k) / f32::from(T));
     let mut m = Morph::new(grid, T);
-    m.step(&[], |_| false, corner(&grid), None);
-    m.step(
-        &[(d, height(d))],
-        |i| split.contains(i),
-        corner(&grid),
-        Some(1),
-    );
+    start_split(&mut m, &grid, d, &split);
     m.step(&[], |i| split.contains(i), corner(&grid), Some(10));
     let y = drawn_y(&m, d);
     assert!((y - at(10)).abs() < 1e-2);
@@ -293,4 +292,60 @@ fn a_vertex_appears_on_its_edge_as_drawn() {
             "vertex {i} on its edge as drawn"
         );
     }
+}
+
+/// Seen from a camera, a vertex moves at [`MORPH_PX_PER_TICK`] on screen, within its
+/// deadline ([`MORPH_TICKS`]) and never faster than over [`MORPH_MIN_TICKS`]: the root
+/// split seen from far (a change of a hundredth of a pixel takes the least length,
+/// linearly), from near (the deadline, linearly) and in between (the screen speed: as
+/// many ticks as its pixels take).
+#[test]
+fn a_vertex_seen_moves_at_the_screen_speed_within_its_least_and_most_lengths() {
+    let (grid, d, mid, _, split) = root_split();
+    let h = f32::from(height(d));
+    let gap = (h - mid).abs();
+    // One world unit a sample and a grid step; the eye far enough that its distance
+    // hardly changes as the vertex moves.
+    let dist = 1e7f32;
+    let (x, z) = grid.coords(d);
+    let arrival = |px_per_unit: f32| {
+        let mut m = Morph::new(grid, T);
+        m.set_view(Some(MorphView {
+            eye: [x as f32, h + dist, z as f32],
+            px_per_unit,
+            h_scale: 1.0,
+            v_scale: 1.0,
+        }));
+        start_split(&mut m, &grid, d, &split);
+        let mut path = vec![drawn_y(&m, d)];
+        for k in 1..=T {
+            m.step(&[], |i| split.contains(i), corner(&grid), Some(1));
+            path.push(drawn_y(&m, d));
+            if m.lift(d) == 0.0 {
+                return (k, path);
+            }
+        }
+        panic!("not at its height by its deadline");
+    };
+    // The pixels the whole change covers from there, and so the ticks it takes at speed.
+    let px = |px_per_unit: f32| gap * px_per_unit / dist;
+    let check = |px_per_unit: f32, ticks: u16| {
+        let (k, path) = arrival(px_per_unit);
+        assert_eq!(k, ticks, "{} px", px(px_per_unit));
+        // Evenly: each tick the same share, never back.
+        for (j, w) in path.windows(2).enumerate() {
+            let step = (w[1] - w[0]).abs();
+            assert!(
+                (step - gap / f32::from(ticks)).abs() < 1e-2 * gap.max(1.0),
+                "{} px, tick {j}: moved {step} of {gap}",
+                px(px_per_unit)
+            );
+        }
+    };
+    let at = |pixels: f32| pixels * dist / gap;
+    check(at(0.01), MORPH_MIN_TICKS);
+    check(at(1000.0), T);
+    // Between the two: as many ticks as its pixels take at the screen speed.
+    let ticks = (MORPH_MIN_TICKS + T) / 2;
+    check(at(MORPH_PX_PER_TICK * f32::from(ticks)), ticks);
 }

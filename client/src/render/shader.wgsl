@@ -84,15 +84,11 @@ fn lod_at(cell: vec2<f32>) -> f32 {
     return max(log2(max(d, 1e-6)), 0.0);
 }
 
-// The ground's colour at level-0 cell coordinate `cell`: the finest level at or above the
-// screen-space level of detail `lod` whose footprint is drawn, down to the coarsest; grey
-// before any colour.
-fn color_at(cell: vec2<f32>, lod: f32) -> vec3<f32> {
+// The ground's colour at level-0 cell coordinate `cell` from level `l` or, where its
+// footprint is not drawn, the finest coarser level whose footprint is; grey before any.
+fn color_from(cell: vec2<f32>, first: u32) -> vec3<f32> {
     let levels = cl.info.x;
-    if (levels == 0u) {
-        return vec3<f32>(0.5);
-    }
-    var l = min(u32(lod), levels - 1u);
+    var l = first;
     loop {
         let side = f32(cl.level[l].origin.z);
         let p = clamp(cell / f32(1u << l), vec2<f32>(0.5), vec2<f32>(side - 0.5));
@@ -106,6 +102,25 @@ fn color_at(cell: vec2<f32>, lod: f32) -> vec3<f32> {
         l += 1u;
     }
     return vec3<f32>(0.5);
+}
+
+// The ground's colour at level-0 cell coordinate `cell`, trilinear: the levels either side
+// of the screen-space level of detail `lod`, the finer weighted by one minus its fraction
+// (as `normal_at`). Taking the finer level alone (the first version) switched a pixel
+// between two levels wherever `lod` crossed a whole number, and a surface moving by a
+// fraction of a pixel (a geomorph, the vehicle's motion) moves where it crosses: the
+// colour flickered along those lines.
+fn color_at(cell: vec2<f32>, lod: f32) -> vec3<f32> {
+    let levels = cl.info.x;
+    if (levels == 0u) {
+        return vec3<f32>(0.5);
+    }
+    let l = min(u32(lod), levels - 1u);
+    let fine = color_from(cell, l);
+    if (l + 1u >= levels) {
+        return fine;
+    }
+    return mix(fine, color_from(cell, l + 1u), fract(lod));
 }
 
 // Normals: the fade of each tile (a byte per level and window slot, 0: none), and the
