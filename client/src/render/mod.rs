@@ -9,8 +9,9 @@
 //! repeats, so the wrap costs nothing. Per level a uniform holds the window's origin and
 //! the mask of tiles drawn. The fragment shader takes the screen-space level of detail
 //! (the log2 of level-0 texels per pixel, from the derivatives of its cell coordinate) and
-//! draws the finest level at or above it whose texels under the bilinear footprint are all
-//! resident, down to the coarsest, which is resident from the join on. The texture needs
+//! blends the two levels either side of it (trilinear), each the finest level at or above
+//! it whose texels under the bilinear footprint are all resident, down to the coarsest,
+//! which is resident from the join on. The texture needs
 //! `levels × S²` texels (7 × 2048² × 4 B = 112 MiB at 16385² and W = 8); a layout that
 //! does not fit the device (S past `max_texture_dimension_2d`, too many layers) is drawn
 //! grey rather than failing.

@@ -25,13 +25,14 @@
 //! level a frame, and the morphs of a vertex and of its ancestors (the edge it rises from
 //! is itself rising) add up. Bounding each vertex's motion on screen bounds the sum, since
 //! a vertex's position is absolute. At 0.09 px a tick (0.15 px a 60 Hz frame, under
-//! what the eye can tell from the surface's own motion as the vehicle moves), a 1–3 px
-//! pop (the most the budget leaves on rough terrain) takes 0.1–0.3 s; a far one of a
-//! hundredth of a pixel would take a tick; nothing takes more than a second. A reversal
-//! keeps the speed (its deadline is the time spent so far on the way out).
+//! what the eye can tell from the surface's own motion as the vehicle moves), a pop of
+//! more than 5.9 px takes longer than 0.65 s; nothing takes more than a second. A
+//! reversal keeps the speed: its deadline is the time spent so far on the way out, and
+//! it takes no less than that (nor than 0.65 s, if that is less).
 //!
-//! **Nothing takes less than 0.65 s** ([`MORPH_MIN_TICKS`]): a change smaller on screen
-//! than that speed covers in 0.65 s moves linearly over it. Along the bench drive the
+//! **Nothing takes less than 0.65 s** ([`MORPH_MIN_TICKS`], or the deadline if shorter:
+//! `--morph-ticks`): a change smaller on screen than that speed covers in 0.65 s (a 1–3 px
+//! pop, the most the budget leaves on rough terrain) moves linearly over it. Along the bench drive the
 //! server changes up to a hundred diamonds in a frame, most of them far and small on
 //! screen, and while the vehicle is fast it does so frame after frame: each change alone
 //! is invisible, but at the screen speed alone they all finished within the tick, and the
@@ -128,6 +129,9 @@ struct Drawn {
     y: f32,
     /// Ticks left before it must be at its target (0: there, or to be put there).
     left: u16,
+    /// Ticks left before it may be at its target ([`MORPH_MIN_TICKS`], or on a way back
+    /// the time spent on the way out if less).
+    least: u16,
     /// Just added: drawn this step where the surface is.
     fresh: bool,
     /// Morphing out (merged in the decoded cut, still drawn).
@@ -287,6 +291,7 @@ impl Morph {
                     v.out = !now;
                     v.h = h;
                     v.left = if snap { 0 } else { full.saturating_sub(v.left) };
+                    v.least = MORPH_MIN_TICKS.min(v.left);
                     self.drawn.insert(d, v);
                     self.list(d);
                     self.touched.push(d);
@@ -298,6 +303,7 @@ impl Morph {
                             h,
                             y: f32::from(h),
                             left: if snap { 0 } else { full },
+                            least: if snap { 0 } else { MORPH_MIN_TICKS.min(full) },
                             fresh: !snap,
                             out: false,
                             listed: false,
@@ -413,13 +419,12 @@ impl Morph {
                             .map_or(0.0, |view| view.reach(x, z, v.y, f32::from(t)));
                         // Not there before its least length: what is left of the gap
                         // over what is left of that, linearly.
-                        let spent = self.ticks.saturating_sub(v.left);
-                        let rest = MORPH_MIN_TICKS.min(self.ticks).saturating_sub(spent);
-                        let gentle = if t < rest {
-                            gap.abs() * f32::from(t) / f32::from(rest)
+                        let gentle = if t < v.least {
+                            gap.abs() * f32::from(t) / f32::from(v.least)
                         } else {
                             gap.abs()
                         };
+                        v.least = v.least.saturating_sub(t);
                         let step = due.abs().max(fast.min(gentle)).min(gap.abs());
                         v.y = if step >= gap.abs() {
                             target

@@ -336,7 +336,7 @@ fn a_vertex_seen_moves_at_the_screen_speed_within_its_least_and_most_lengths() {
         for (j, w) in path.windows(2).enumerate() {
             let step = (w[1] - w[0]).abs();
             assert!(
-                (step - gap / f32::from(ticks)).abs() < 1e-2 * gap.max(1.0),
+                (step - gap / f32::from(ticks)).abs() < 1e-2 * gap / f32::from(ticks),
                 "{} px, tick {j}: moved {step} of {gap}",
                 px(px_per_unit)
             );
@@ -348,4 +348,50 @@ fn a_vertex_seen_moves_at_the_screen_speed_within_its_least_and_most_lengths() {
     // Between the two: as many ticks as its pixels take at the screen speed.
     let ticks = (MORPH_MIN_TICKS + T) / 2;
     check(at(MORPH_PX_PER_TICK * f32::from(ticks)), ticks);
+}
+
+/// Seen from a camera, a far vertex merged mid-morph goes back in the time it spent on
+/// the way out, not at once: a reversal keeps its least length too.
+#[test]
+fn a_reversal_seen_from_far_takes_as_long_as_the_way_out() {
+    let (grid, d, mid, empty, split) = root_split();
+    let h = f32::from(height(d));
+    let (x, z) = grid.coords(d);
+    let mut m = Morph::new(grid, T);
+    // So far that the whole change is a hundredth of a pixel.
+    let dist = 1e7f32;
+    m.set_view(Some(MorphView {
+        eye: [x as f32, h + dist, z as f32],
+        px_per_unit: 0.01 * dist / (h - mid).abs(),
+        h_scale: 1.0,
+        v_scale: 1.0,
+    }));
+    start_split(&mut m, &grid, d, &split);
+    let out: u16 = 10;
+    m.step(
+        &[],
+        |i| split.contains(i),
+        corner(&grid),
+        Some(u64::from(out)),
+    );
+    let y = drawn_y(&m, d);
+    let want = mid + (h - mid) * f32::from(out) / f32::from(MORPH_MIN_TICKS);
+    assert!(
+        (y - want).abs() < 1e-2 * (h - mid).abs(),
+        "{y} out of {want}"
+    );
+    m.step(
+        &[(d, height(d))],
+        |i| empty.contains(i),
+        corner(&grid),
+        Some(0),
+    );
+    for k in 1..out {
+        m.step(&[], |i| empty.contains(i), corner(&grid), Some(1));
+        assert!(m.contains(d), "back at tick {k} of {out}");
+        let back = y + (mid - y) * f32::from(k) / f32::from(out);
+        assert!((drawn_y(&m, d) - back).abs() < 1e-2 * (h - mid).abs());
+    }
+    m.step(&[], |i| empty.contains(i), corner(&grid), Some(1));
+    assert!(!m.contains(d), "gone once back at its midpoint");
 }

@@ -1,9 +1,9 @@
 //! The terrain's normal maps on the GPU: a second clipmap beside the colour's (the same
 //! layout, windows and toroidal addressing: [`crate::color_cache`]), one `Rg8Unorm` layer
 //! per level holding each texel's two-byte normal code ([`roam_protocol::normals`]), and
-//! the uniform of every tile's fade. The fragment shader lights each pixel with the normal
-//! of the finest level at or above the screen's level of detail whose footprint has
-//! normals, blended over the coarser levels' and over the vertex normal by the tiles'
+//! the uniform of every tile's fade. The fragment shader lights each pixel with the normals
+//! of the two levels either side of the screen's level of detail (trilinear), each the
+//! finest level at or above it whose footprint has normals, blended over the coarser levels' and over the vertex normal by the tiles'
 //! fades (`normal_at` in `shader.wgsl`): the light no longer depends on the cut drawn.
 //!
 //! Decisions:

@@ -84,7 +84,7 @@ fn lod_at(cell: vec2<f32>) -> f32 {
     return max(log2(max(d, 1e-6)), 0.0);
 }
 
-// The ground's colour at level-0 cell coordinate `cell` from level `l` or, where its
+// The ground's colour at level-0 cell coordinate `cell` from level `first` or, where its
 // footprint is not drawn, the finest coarser level whose footprint is; grey before any.
 fn color_from(cell: vec2<f32>, first: u32) -> vec3<f32> {
     let levels = cl.info.x;

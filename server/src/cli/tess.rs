@@ -134,7 +134,8 @@ pub struct BenchArgs {
     #[arg(long, value_enum, default_value_t = FogPriority::On)]
     pub fog_priority: FogPriority,
     /// A guard band for the serving figures: the frustum widened by this many degrees
-    /// either side, as `serve --guard-deg` (0: none; the from-scratch figures have none).
+    /// either side, as `serve --guard-deg` (0: none), and of the from-scratch cut they are
+    /// compared with; the from-scratch timing figures have none.
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
           value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     pub guard_deg: u8,
