@@ -9,10 +9,8 @@ use roam_protocol::validate::check_mesh;
 use roam_server::Heightfield;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
-use roam_server::tessellate::{
-    Coherent, Limits, Mesh, Mode, Scratch, fogged_error_px, measured_error,
-};
-use tess::{camera, check_frustum, run, scales, terrain};
+use roam_server::tessellate::{Coherent, Limits, Mesh, Mode, Scratch, fogged_error_px};
+use tess::{camera, check_frustum, is_split, measured_both, run, scales, terrain};
 
 fn limits(budget: u32, threshold_px: f32, fog_density: f32) -> Limits {
     Limits {
@@ -142,17 +140,7 @@ fn check(levels: u32, seed: u64, rough: f64, at: At, budget: u32, density: f32) 
     assert!(mesh.triangle_count() <= budget as usize, "{name}");
     check_frustum(&hf, &vt, &cam, t.split_diamonds()).unwrap_or_else(|e| panic!("{name}: {e}"));
     let split: Vec<(u32, u32)> = t.split_diamonds().collect();
-    let measured = measured_error(&hf, &vt, scales(), &cam, l, split.iter().copied());
-    let fogged = fogged_error_px(
-        &hf,
-        &vt,
-        scales(),
-        &cam,
-        density,
-        0.0,
-        is_split(&hf, &split),
-    );
-    assert_eq!(measured.to_bits(), fogged.to_bits(), "{name}");
+    let measured = measured_both(&hf, &vt, &cam, l, &split, &name);
     // From scratch reports what its queue reached, which the measure includes.
     assert!(mesh.error_bound_px <= measured, "{name}");
     let pool = Scratch::new(hf.side());
@@ -179,30 +167,13 @@ fn check(levels: u32, seed: u64, rough: f64, at: At, budget: u32, density: f32) 
         check_frustum(&hf, &vt, &cam, c.split_diamonds())
             .unwrap_or_else(|e| panic!("{name}, frame {k}: {e}"));
         let split: Vec<(u32, u32)> = c.split_diamonds().collect();
-        let measured = measured_error(&hf, &vt, scales(), &cam, l, split.iter().copied());
-        let fogged = fogged_error_px(
-            &hf,
-            &vt,
-            scales(),
-            &cam,
-            density,
-            0.0,
-            is_split(&hf, &split),
-        );
-        assert_eq!(measured.to_bits(), fogged.to_bits(), "{name}, frame {k}");
+        let measured = measured_both(&hf, &vt, &cam, l, &split, &format!("{name}, frame {k}"));
         let bound = c.error_bound_px();
         assert!(
             (bound - measured).abs() <= 0.025 * measured,
             "{name}, frame {k}: {bound} px reported, {measured} measured"
         );
     }
-}
-
-/// `is_split` over row-major grid indices, for a list of split diamonds.
-fn is_split(hf: &Heightfield, split: &[(u32, u32)]) -> impl Fn(u32) -> bool {
-    let side = hf.side();
-    let set: std::collections::HashSet<u32> = split.iter().map(|&(x, z)| z * side + x).collect();
-    move |i| set.contains(&i)
 }
 
 #[test]

@@ -218,32 +218,31 @@ mod tests {
     /// right plane keeps is dropped by the guarded one.
     #[test]
     fn a_guarded_frustum_holds_the_view() {
+        // Offsets from the eye: a lattice 12 units either way, half as tall.
+        let lattice: Vec<[f64; 3]> = (-12..=12)
+            .flat_map(|i| (-12..=12).flat_map(move |j| (-12..=12).map(move |k| (i, j, k))))
+            .map(|(i, j, k)| [f64::from(i), f64::from(j) * 0.5, f64::from(k)])
+            .collect();
         for (yaw, pitch, fov) in [(90.0, -10.0, 60.0), (200.0, -35.0, 40.0), (10.0, 5.0, 90.0)] {
             let c = Camera {
                 fov_y_deg: fov,
                 ..cam(yaw, pitch)
             };
+            // The pyramid the tessellator culls with: the side planes.
             let view = c.frustum();
+            let seen = |p| view[1..].iter().all(|pl| pl.distance(p) >= 0.0);
             let mut dropped = 0;
             for guard in [1.0, 10.0, 30.0] {
                 let wide = c.frustum_widened(guard);
-                for i in -12..=12 {
-                    for j in -12..=12 {
-                        for k in -12..=12 {
-                            let v = [f64::from(i), f64::from(j) * 0.5, f64::from(k)];
-                            let p = [c.eye[0] + v[0], c.eye[1] + v[1], c.eye[2] + v[2]];
-                            // The pyramid the tessellator culls with: the side planes.
-                            if view[1..].iter().all(|pl| pl.distance(p) >= 0.0) {
-                                assert!(
-                                    wide[1..].iter().all(|pl| pl.distance(p) >= -1e-9),
-                                    "{p:?} at {yaw}°, {pitch}°, guard {guard}°"
-                                );
-                            }
-                            dropped += (1..3)
-                                .any(|s| view[s].distance(p) >= 0.0 && wide[s].distance(p) < 0.0)
-                                as u32;
-                        }
-                    }
+                for v in &lattice {
+                    let p = [c.eye[0] + v[0], c.eye[1] + v[1], c.eye[2] + v[2]];
+                    assert!(
+                        !seen(p) || wide[1..].iter().all(|pl| pl.distance(p) >= -1e-9),
+                        "{p:?} at {yaw}°, {pitch}°, guard {guard}°"
+                    );
+                    dropped += (1..3)
+                        .any(|s| view[s].distance(p) >= 0.0 && wide[s].distance(p) < 0.0)
+                        as u32;
                 }
             }
             assert!(dropped > 0, "{yaw}°: a side plane turned out drops nothing");

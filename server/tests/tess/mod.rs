@@ -1,12 +1,13 @@
-//! Helpers shared by the tessellator's tests (`tessellate.rs`, `fog.rs`): random
-//! terrain, cameras over it, and the frustum check of a cut.
+//! Helpers shared by the tessellator's tests (`tessellate.rs`, `fog.rs`, `guard.rs`):
+//! random terrain, cameras over it, the frustum check of a cut, and its error measured
+//! both ways.
 #![allow(dead_code)] // each test file uses its own subset
 
 use roam_server::Heightfield;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::diamond::Diamond;
-use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
+use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator, fogged_error_px, measured_error};
 
 /// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
 pub fn terrain(levels: u32, seed: u64, roughness: f64) -> Heightfield {
@@ -165,4 +166,35 @@ pub fn check_frustum_guarded(
         }
     }
     Ok(())
+}
+
+/// `is_split` over row-major grid indices, for a list of split diamonds.
+pub fn is_split(hf: &Heightfield, split: &[(u32, u32)]) -> impl Fn(u32) -> bool + use<> {
+    let side = hf.side();
+    let set: std::collections::HashSet<u32> = split.iter().map(|&(x, z)| z * side + x).collect();
+    move |i| set.contains(&i)
+}
+
+/// The error `split` leaves at `cam` under `limits`, measured both ways (`measured_error`
+/// over the list, `fogged_error_px` over grid indices), which must agree bit for bit.
+pub fn measured_both(
+    hf: &Heightfield,
+    vt: &VarianceTree,
+    cam: &Camera,
+    limits: Limits,
+    split: &[(u32, u32)],
+    what: &str,
+) -> f32 {
+    let measured = measured_error(hf, vt, scales(), cam, limits, split.iter().copied());
+    let fogged = fogged_error_px(
+        hf,
+        vt,
+        scales(),
+        cam,
+        limits.fog_density,
+        limits.guard_deg,
+        is_split(hf, split),
+    );
+    assert_eq!(measured.to_bits(), fogged.to_bits(), "{what}");
+    measured
 }
