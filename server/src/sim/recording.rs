@@ -421,6 +421,18 @@ fn parse_event(kind: u8, payload: &[u8], at: usize) -> Result<Event, FormatError
 /// Parses a recording. A file cut inside a record gives the whole records before it (and
 /// says where the cut is); everything else wrong is an error with its byte offset.
 pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
+    let (recording, damaged) = parse_valid(bytes)?;
+    match damaged {
+        Some(e) => Err(e),
+        None => Ok(recording),
+    }
+}
+
+/// Parses a recording's valid part: the records before the first wrong one, and what is
+/// wrong with that one (`None`: every whole record is right; a cut inside the last is
+/// [`Recording::truncated_at`], as [`parse`] says it). A file whose header is wrong has no
+/// valid part: that is the error.
+pub fn parse_valid(bytes: &[u8]) -> Result<(Recording, Option<FormatError>), FormatError> {
     let too_short = || FormatError::TruncatedHeader {
         len: bytes.len() as u64,
     };
@@ -437,7 +449,7 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
     if !(MIN_VERSION..=VERSION).contains(&version) {
         return Err(FormatError::Version { found: version });
     }
-    let (kind, payload, mut at) = next_record(bytes, 12, version)?.ok_or_else(too_short)?;
+    let (kind, payload, at) = next_record(bytes, 12, version)?.ok_or_else(too_short)?;
     if kind != HEADER {
         return Err(corrupt(
             12,
@@ -445,9 +457,36 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
         ));
     }
     let header = parse_header(payload, 12, version)?;
-    let interval = u64::from(header.checkpoint_interval);
     let mut events: Vec<Event> = Vec::new();
     let mut truncated_at = None;
+    let damaged = read_events(
+        bytes,
+        (at, version),
+        &header,
+        &mut events,
+        &mut truncated_at,
+    )
+    .err();
+    Ok((
+        Recording {
+            header,
+            events,
+            truncated_at,
+        },
+        damaged,
+    ))
+}
+
+/// Reads the event records from byte `at` into `events`, up to the end of the bytes (a
+/// cut inside the last record: `truncated_at`) or the first wrong record (the error).
+fn read_events(
+    bytes: &[u8],
+    (mut at, version): (usize, u32),
+    header: &Header,
+    events: &mut Vec<Event>,
+    truncated_at: &mut Option<u64>,
+) -> Result<(), FormatError> {
+    let interval = u64::from(header.checkpoint_interval);
     // The writer checkpoints every `interval` ticks: no event lies further than that past
     // the last checkpoint, which also bounds how far a replay steps per record.
     let mut checkpointed = header.start_tick;
@@ -456,7 +495,7 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
             return Err(corrupt(at, "bytes after the end record"));
         }
         let Some((kind, payload, end)) = next_record(bytes, at, version)? else {
-            truncated_at = Some(at as u64);
+            *truncated_at = Some(at as u64);
             break;
         };
         let event = parse_event(kind, payload, at)?;
@@ -501,11 +540,7 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
         events.push(event);
         at = end;
     }
-    Ok(Recording {
-        header,
-        events,
-        truncated_at,
-    })
+    Ok(())
 }
 
 pub use crate::sim::recorder::{RecordError, RecordedWorld, Recorder, header_of};

@@ -50,43 +50,86 @@ fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
-/// Replays `recording` on `ground`, whose data set hash is `data_hash`, checking every
-/// checkpoint.
-pub fn replay<G: Ground>(
-    recording: &Recording,
-    ground: G,
-    data_hash: &[u8; 32],
-) -> Result<Outcome, ReplayError> {
-    let header = &recording.header;
-    if &header.data_hash != data_hash {
-        return Err(ReplayError::DataSet {
-            recorded: hex(&header.data_hash),
-            actual: hex(data_hash),
-        });
-    }
-    if header.steps_per_second != STEPS_PER_SECOND {
-        return Err(ReplayError::Rate {
-            found: header.steps_per_second,
-        });
-    }
-    let mut world = World::at_tick(ground, header.start_tick);
-    for &(id, state) in &header.vehicles {
-        world.add(id, state).map_err(|error| ReplayError::World {
-            tick: header.start_tick,
-            error,
-        })?;
-    }
-    let mut inputs = Inputs::new();
-    let (mut checkpoints, mut agreed, mut ended) = (0, header.start_tick, false);
-    // A wait or twice is for the next step only.
-    let run_to = |world: &mut World<G>, inputs: &mut Inputs, tick: u64| {
-        while world.tick() < tick {
-            world::step(world, inputs);
-            inputs.clear_extra();
+/// A recording being replayed: the world its header gives, then its events applied in
+/// order ([`Player::play`]), each checkpoint checked. `replay` plays a whole recording
+/// with it; [`crate::sim::watch`] plays one at a viewer's pace, and keeps copies of it to
+/// seek from.
+#[derive(Clone, Debug)]
+pub struct Player<G> {
+    world: World<G>,
+    inputs: Inputs,
+    /// Checkpoints (and the end record) that matched.
+    checkpoints: u32,
+    /// The last tick whose checkpoint matched (the start's, before any).
+    agreed: u64,
+    /// The end record has been played.
+    ended: bool,
+}
+
+impl<G: Ground> Player<G> {
+    /// The world at the start of `recording`, on `ground` whose data set hash is
+    /// `data_hash`: refused for another data set or another physics rate.
+    pub fn start(
+        recording: &Recording,
+        ground: G,
+        data_hash: &[u8; 32],
+    ) -> Result<Player<G>, ReplayError> {
+        let header = &recording.header;
+        if &header.data_hash != data_hash {
+            return Err(ReplayError::DataSet {
+                recorded: hex(&header.data_hash),
+                actual: hex(data_hash),
+            });
         }
-    };
-    for event in &recording.events {
-        run_to(&mut world, &mut inputs, event.tick());
+        if header.steps_per_second != STEPS_PER_SECOND {
+            return Err(ReplayError::Rate {
+                found: header.steps_per_second,
+            });
+        }
+        let mut world = World::at_tick(ground, header.start_tick);
+        for &(id, state) in &header.vehicles {
+            world.add(id, state).map_err(|error| ReplayError::World {
+                tick: header.start_tick,
+                error,
+            })?;
+        }
+        Ok(Player {
+            world,
+            inputs: Inputs::new(),
+            checkpoints: 0,
+            agreed: header.start_tick,
+            ended: false,
+        })
+    }
+
+    pub fn world(&self) -> &World<G> {
+        &self.world
+    }
+
+    /// Checkpoints (and the end record) matched so far.
+    pub fn checkpoints(&self) -> u32 {
+        self.checkpoints
+    }
+
+    /// Whether the end record has been played.
+    pub fn ended(&self) -> bool {
+        self.ended
+    }
+
+    /// Steps the world until it has reached `tick` (nothing when it has), with the keys
+    /// the events so far gave (a wait or twice is for the next step only).
+    pub fn run_to(&mut self, tick: u64) {
+        while self.world.tick() < tick {
+            world::step(&mut self.world, &self.inputs);
+            self.inputs.clear_extra();
+        }
+    }
+
+    /// Steps to `event`'s tick and applies it; a checkpoint or end record is checked
+    /// against the world's digest.
+    pub fn play(&mut self, event: &Event) -> Result<(), ReplayError> {
+        self.run_to(event.tick());
+        let world = &mut self.world;
         let tick = world.tick();
         let fail = |error| ReplayError::World { tick, error };
         match *event {
@@ -94,24 +137,24 @@ pub fn replay<G: Ground>(
                 if world.vehicle(vehicle).is_none() {
                     return Err(fail(WorldError::Missing(vehicle)));
                 }
-                inputs.set(vehicle, keys)
+                self.inputs.set(vehicle, keys)
             }
             Event::Wait { vehicle, .. } | Event::Twice { vehicle, .. }
                 if world.vehicle(vehicle).is_none() =>
             {
                 return Err(fail(WorldError::Missing(vehicle)));
             }
-            Event::Wait { vehicle, .. } => inputs.set_extra(vehicle, Extra::Wait),
+            Event::Wait { vehicle, .. } => self.inputs.set_extra(vehicle, Extra::Wait),
             Event::Twice {
                 vehicle,
                 first,
                 second,
                 ..
-            } => inputs.set_extra(vehicle, Extra::Twice(first, second)),
+            } => self.inputs.set_extra(vehicle, Extra::Twice(first, second)),
             Event::Join { vehicle, state, .. } => world.add(vehicle, state).map_err(fail)?,
             Event::Leave { vehicle, .. } => {
                 world.remove(vehicle).map_err(fail)?;
-                inputs.set(vehicle, Keys::NONE);
+                self.inputs.set(vehicle, Keys::NONE);
             }
             Event::Checkpoint { digest, .. } | Event::End { digest, .. } => {
                 let replayed = world.digest();
@@ -120,22 +163,37 @@ pub fn replay<G: Ground>(
                         tick,
                         recorded: digest,
                         replayed,
-                        agreed,
+                        agreed: self.agreed,
                     });
                 }
-                checkpoints += 1;
-                agreed = tick;
-                ended = matches!(event, Event::End { .. });
+                self.checkpoints += 1;
+                self.agreed = tick;
+                self.ended = matches!(event, Event::End { .. });
             }
         }
+        Ok(())
     }
+}
+
+/// Replays `recording` on `ground`, whose data set hash is `data_hash`, checking every
+/// checkpoint.
+pub fn replay<G: Ground>(
+    recording: &Recording,
+    ground: G,
+    data_hash: &[u8; 32],
+) -> Result<Outcome, ReplayError> {
+    let mut player = Player::start(recording, ground, data_hash)?;
+    for event in &recording.events {
+        player.play(event)?;
+    }
+    let world = player.world();
     Ok(Outcome {
-        start_tick: header.start_tick,
+        start_tick: recording.header.start_tick,
         tick: world.tick(),
         vehicles: world.vehicles().to_vec(),
         digest: world.digest(),
-        checkpoints,
-        ended,
+        checkpoints: player.checkpoints,
+        ended: player.ended,
         truncated_at: recording.truncated_at,
     })
 }
