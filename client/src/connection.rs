@@ -35,7 +35,7 @@ use crate::color_cache::Keep;
 use crate::core::ClientCore;
 use crate::edges::{HANDSHAKE_MANY, SILENCE_MANY, Silences};
 use crate::join::{self, JoinError, Joined, TerrainId};
-use crate::joining::{next_hello, take_control};
+use crate::joining::{Told, next_hello, take_control};
 use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Patience, State, Steps, lock, secs};
 
 pub use crate::core::MAX_FRAME;
@@ -131,7 +131,9 @@ pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mp
         link.heard();
         match take_control(&msg, &mut rgb, || lock(&link.colors)) {
             Ok(None) => {}
-            Ok(Some(news)) => link.news(news),
+            Ok(Some(Told::News(news))) => link.news(news),
+            Ok(Some(Told::Following(v))) => link.following(v),
+            Ok(Some(Told::Replay(s))) => link.replay(s),
             Err(why) if msg == ServerMessage::Bye(Reason::Shutdown) => break End::Shutdown(why),
             Err(why) => break End::Final(why),
         }

@@ -39,7 +39,8 @@
 //! order: it would make every later frame look old (latest wins) and wedge the viewer. It
 //! is dropped, never taken into account, and [`ClientCore::take`] reports it as an error,
 //! as it does a frame coded against a base that is not before it, and a frame showing an
-//! older tick than the frame taken before it. The session ends on such an error (the
+//! older tick than the frame taken before it (unless the server said it serves a recording
+//! being watched, whose clock is sought back: [`ClientCore::set_replay`]). The session ends on such an error (the
 //! server is broken or hostile); the core itself goes on with the frames after it.
 //!
 //! **Across connections**: a [`ClientCore`] lives for one connection (frame numbers start
@@ -48,6 +49,10 @@
 //! do the [`Gaps`], which count reconnections and measure the time without frames.
 
 use std::collections::VecDeque;
+
+/// More ticks than this between two frames of a watched recording is a seek (8× at 60
+/// frames a second moves 14 a frame).
+const SOUGHT_TICKS: u64 = 100;
 use std::time::Duration;
 
 use web_time::Instant;
@@ -249,6 +254,9 @@ pub struct ClientCore {
     broken: Option<Broken>,
     /// The tick of the newest frame taken.
     newest_tick: Option<u64>,
+    /// Watching a recording: its clock may be sought back, so a frame may show an older
+    /// tick than the one before it ([`ClientCore::set_replay`]).
+    replay: bool,
     /// The most triangles the server serves ([`Welcome::max_budget`]).
     max_budget: u32,
     budget: u32,
@@ -296,6 +304,7 @@ impl ClientCore {
             offered: None,
             broken: None,
             newest_tick: None,
+            replay: false,
             max_budget: welcome.max_budget,
             budget,
             limit: budget,
@@ -331,6 +340,12 @@ impl ClientCore {
         if let (Some(m), Some(v)) = (self.morph.as_mut(), view) {
             m.set_view(Some(v));
         }
+    }
+
+    /// This connection serves a recording being watched (the server said so): its clock
+    /// may go back when sought, and a jump of it shows the cut there at once.
+    pub fn set_replay(&mut self) {
+        self.replay = true;
     }
 
     /// The geomorphs' length in ticks, when the cut is drawn through a [`Morph`].
@@ -378,8 +393,11 @@ impl ClientCore {
         self.changes.clear();
         self.changes.extend(self.pending.iter());
         self.pending.clear();
+        // A watched recording's clock sought (back, or more than a second on): the cut
+        // there is shown at once, as a first frame is.
         let ticks = match (self.morph_tick, self.newest_tick) {
-            (Some(a), Some(b)) => Some(b.saturating_sub(a)),
+            (Some(a), Some(b)) if b < a || (self.replay && b - a > SOUGHT_TICKS) => None,
+            (Some(a), Some(b)) => Some(b - a),
             _ => None,
         };
         morph.step(&self.changes, |d| cut.contains(d), |i| cut.height(i), ticks);
@@ -500,6 +518,7 @@ impl ClientCore {
         }
         if let (Some(newest), Some(newest_tick)) = (self.newest, self.newest_tick)
             && frame.tick < newest_tick
+            && !self.replay
         {
             return Err(Broken::TickBackwards {
                 frame: frame.frame,

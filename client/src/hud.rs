@@ -86,6 +86,8 @@ pub struct Numbers {
     /// last seen).
     pub world_gone: Option<String>,
     pub adapter: String,
+    /// Watching a recording: its line ([`crate::watching::replay_line`]).
+    pub replay: Option<String>,
 }
 
 /// The HUD's first line: the connection, a reconnection going on, or the ones there were.
@@ -148,6 +150,7 @@ pub fn lines(n: &Numbers) -> Vec<String> {
         .map(|why| format!("the world does not answer ({why}): showing it as last seen"));
     [connection_line(n)]
         .into_iter()
+        .chain(n.replay.clone())
         .chain(world)
         .chain([
             format!(
@@ -185,7 +188,11 @@ pub fn lines(n: &Numbers) -> Vec<String> {
                 on(t.detail, "detail", 'd'),
             ]
             .join("  "),
-            "arrows drive · [h] hides this · [q]/Esc quits".to_string(),
+            if n.replay.is_some() {
+                "[Tab]/[1]–[9] follow · [h] hides this · [q]/Esc quits".to_string()
+            } else {
+                "arrows drive · [h] hides this · [q]/Esc quits".to_string()
+            },
         ])
         .collect()
 }

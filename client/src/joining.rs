@@ -7,7 +7,9 @@
 //! QUIC) and the browser viewer (`roam-web`, over WebTransport), which differ only in how
 //! the bytes travel.
 
-use roam_protocol::messages::{Hello, Reason, Role, ServerMessage, Welcome, WorldNews};
+use roam_protocol::messages::{
+    Hello, Reason, ReplayStatus, Role, ServerMessage, Welcome, WorldNews,
+};
 
 use crate::color_cache::{ColorCache, Keep};
 
@@ -49,7 +51,20 @@ pub fn name(m: &ServerMessage) -> String {
         ServerMessage::World(WorldNews::Edges(e)) => {
             format!("news of the world's edges ({} addresses)", e.len())
         }
+        ServerMessage::Following(v) => format!("following vehicle {v}"),
+        ServerMessage::Replay(s) => format!("a replay's status (tick {})", s.tick),
     }
+}
+
+/// What a server message during the session tells the session, beyond colour.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Told<'m> {
+    /// An edge's news of its world.
+    News(&'m WorldNews),
+    /// The frames follow this vehicle from now on.
+    Following(u16),
+    /// A watched recording's state.
+    Replay(&'m ReplayStatus),
 }
 
 /// The answer to a hello: a welcome, or a refusal (or anything else) in words.
@@ -184,17 +199,20 @@ impl TerrainId {
 /// Takes a server message that comes during the session: colour windows, colour tiles and
 /// normal tiles into the colour cache, which `colors` lends (twice for a tile: it decodes
 /// into `rgb` in between,
-/// without the cache, which the display drains meanwhile); an edge's news of its world is
-/// handed back (`Ok(Some(news))`) for the session to take. `Err` with the reason when the
+/// without the cache, which the display drains meanwhile); an edge's news of its world, the
+/// vehicle followed and a watched recording's state are handed back (`Ok(Some(told))`)
+/// for the session to take. `Err` with the reason when the
 /// message ends the session: a goodbye, anything else not colour, or colour the cache
 /// refuses.
 pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
     msg: &'m ServerMessage,
     rgb: &mut Vec<u8>,
     mut colors: impl FnMut() -> C,
-) -> Result<Option<&'m WorldNews>, String> {
+) -> Result<Option<Told<'m>>, String> {
     let taken = match msg {
-        ServerMessage::World(news) => return Ok(Some(news)),
+        ServerMessage::World(news) => return Ok(Some(Told::News(news))),
+        ServerMessage::Following(v) => return Ok(Some(Told::Following(*v))),
+        ServerMessage::Replay(s) => return Ok(Some(Told::Replay(s))),
         ServerMessage::Bye(reason) => {
             return Err(format!("the server said goodbye: {}", describe(reason)));
         }

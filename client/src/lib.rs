@@ -4,7 +4,7 @@
 //! renders offscreen with the same renderer.
 
 //!
-//! The clock-free core ([`core`], [`color_cache`], [`camera`], [`edges`]), the [`render`]er and the
+//! The clock-free core ([`core`], [`color_cache`], [`camera`], [`edges`], [`watching`]), the [`render`]er and the
 //! [`hud`] also build for `wasm32` (the browser viewer's beginning, issue 15); the I/O
 //! modules (QUIC, the window, the headless runs) are native only.
 
@@ -17,6 +17,7 @@ pub mod hud;
 pub mod joining;
 pub mod render;
 mod tile_slots;
+pub mod watching;
 
 #[cfg(not(target_arch = "wasm32"))]
 pub mod bench;

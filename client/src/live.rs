@@ -24,6 +24,10 @@ pub enum Command {
     Budget(u32),
     /// The camera the server should tessellate for.
     View(roam_protocol::messages::ViewChange),
+    /// Follow this vehicle (a spectator).
+    Follow(u16),
+    /// Steer a watched recording's clock.
+    Replay(roam_protocol::messages::ReplayControl),
     /// Say goodbye and stop.
     Quit,
 }
@@ -193,6 +197,14 @@ async fn run(
             }
             Event::Command(Some(Command::View(v))) => {
                 session.set_view(v);
+                continue;
+            }
+            Event::Command(Some(Command::Follow(v))) => {
+                session.follow(v);
+                continue;
+            }
+            Event::Command(Some(Command::Replay(c))) => {
+                session.replay_control(c);
                 continue;
             }
             Event::Command(Some(Command::Quit) | None) => break "quit".to_string(),

@@ -39,6 +39,19 @@ struct Cli {
     /// (the default: the bundled data/kossou).
     #[arg(long)]
     local: Option<PathBuf>,
+    /// Watch this recording (a session a server recorded, or `roam-server simulate
+    /// --record`), served in this process as `--local` serves a live world: pause, speed
+    /// and seek it, follow any vehicle. Spectating is implied.
+    #[arg(long, value_name = "FILE", conflicts_with = "connect")]
+    replay: Option<PathBuf>,
+    /// The data set --replay was recorded on (default: the bundled data/kossou).
+    #[arg(
+        long,
+        value_name = "DIR",
+        requires = "replay",
+        conflicts_with = "local"
+    )]
+    data: Option<PathBuf>,
     /// Run without a window: decode and check every frame, then write stats.
     #[arg(long)]
     headless: bool,
@@ -152,7 +165,7 @@ impl Cli {
     }
 
     fn role(&self) -> Role {
-        if self.spectate {
+        if self.spectate || self.replay.is_some() {
             Role::Spectator { follow: None }
         } else {
             Role::Driver
@@ -398,7 +411,11 @@ async fn serve(
 )> {
     Ok(match &cli.connect {
         None => {
-            let dir = cli.local.clone().unwrap_or_else(bundled);
+            let dir = cli
+                .local
+                .clone()
+                .or_else(|| cli.data.clone())
+                .unwrap_or_else(bundled);
             let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
             // Heights, variance tree, colour and normal tiles from the data set's cache
             // (built and cached the first time), as `roam-server serve` opens them.
@@ -428,6 +445,20 @@ async fn serve(
                 &mut |_, _| {},
             )
             .with_context(|| format!("the normal tiles of {}", dir.display()))?;
+            // The data set's hash, as `serve` takes it (from its cache), for a recording.
+            let hash = match &cli.replay {
+                Some(_) => Some(
+                    roam_server::terrain::dataset::content_hash_cached(
+                        &dir,
+                        &terrain,
+                        &report,
+                        &mut |_, _| {},
+                    )
+                    .with_context(|| format!("hashing {}", dir.display()))?
+                    .0,
+                ),
+                None => None,
+            };
             let identity = tls::generate()?;
             let token = net::random_token();
             let truth = roam_client::bench::Truth {
@@ -442,6 +473,19 @@ async fn serve(
             options.limits.fog_priority = cli.fog_priority == "on";
             options.limits.guard_deg = cli.guard_deg;
             options.normals = Some(Arc::new(normals));
+            if let (Some(file), Some(hash)) = (&cli.replay, hash) {
+                let watch = roam_server::sim::watch::open_file(file, truth.terrain.clone(), &hash)
+                    .with_context(|| format!("watching {}", file.display()))?;
+                eprintln!(
+                    "replaying {}: {}",
+                    file.display(),
+                    roam_server::sim::watch::describe(&watch)
+                );
+                options.replay = Some(net::replay::Replaying {
+                    watch,
+                    control_token: None,
+                });
+            }
             let server = Server::start(
                 truth.terrain.clone(),
                 truth.variance.clone(),
@@ -486,7 +530,7 @@ fn window(
             wgpu::Limits::default().max_texture_dimension_2d,
         ),
     };
-    let keys = if cli.spectate {
+    let keys = if cli.spectate || cli.replay.is_some() {
         KeySource::None
     } else {
         KeySource::Latch
@@ -521,7 +565,7 @@ fn window(
             toggles: cli.toggles(),
             server: name,
             edges: addrs.len() > 1,
-            driver: !cli.spectate,
+            driver: !cli.spectate && cli.replay.is_none(),
             fov_y_deg: cli.fov,
         },
     )

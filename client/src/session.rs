@@ -48,7 +48,9 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 use roam_protocol::keys::{KeyStep, Keys};
-use roam_protocol::messages::{self, Hello, ViewChange, Welcome, WorldNews, close};
+use roam_protocol::messages::{
+    self, ClientMessage, Hello, ReplayControl, ReplayStatus, ViewChange, Welcome, WorldNews, close,
+};
 use roam_protocol::script::Script;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 
@@ -121,6 +123,8 @@ pub struct Status {
     pub world: World,
     /// Addresses learned from the edges ([`WorldNews::Edges`]), in the rotation.
     pub edges_learned: usize,
+    /// A watched recording's state, as the server last said it (`serve --replay`).
+    pub replay: Option<ReplayStatus>,
 }
 
 /// Set once Ctrl-C is pressed in the terminal; a second Ctrl-C exits at once (130), not
@@ -255,6 +259,25 @@ impl Link {
         }
     }
 
+    /// The server's frames follow vehicle `v` from now on (a reconnection asks for it).
+    pub(crate) fn following(&self, v: u16) {
+        self.status.send_if_modified(|s| {
+            let changed = s.welcome.vehicle != v;
+            s.welcome.vehicle = v;
+            changed
+        });
+    }
+
+    /// A watched recording's state changed.
+    pub(crate) fn replay(&self, status: &ReplayStatus) {
+        lock(&self.core).set_replay();
+        self.status.send_if_modified(|s| {
+            let changed = s.replay.as_ref() != Some(status);
+            s.replay = Some(status.clone());
+            changed
+        });
+    }
+
     /// Closes the current connection, if any.
     pub(crate) fn close(&self, code: u32, why: &[u8]) {
         if let Some(conn) = lock(&self.conn).take() {
@@ -357,6 +380,7 @@ impl Session {
             addr,
             world: World::default(),
             edges_learned: 0,
+            replay: None,
         });
         let link = Arc::new(Link {
             core: Mutex::new(core),
@@ -533,6 +557,27 @@ impl Session {
             }
             notified.await;
         }
+    }
+
+    /// Asks the server to make this spectator's frames follow vehicle `v` (the session's
+    /// [`Session::vehicle`] changes when the server says it does).
+    pub fn follow(&self, v: u16) {
+        let _ = self
+            .control
+            .send(Outgoing::Message(ClientMessage::Follow(v)));
+    }
+
+    /// Steers a watched recording's clock (heeded from the viewer holding the controls:
+    /// [`ReplayStatus::control`]).
+    pub fn replay_control(&self, c: ReplayControl) {
+        let _ = self
+            .control
+            .send(Outgoing::Message(ClientMessage::Replay(c)));
+    }
+
+    /// A watched recording's state as the server last said it; `None` for a live world.
+    pub fn replay(&self) -> Option<ReplayStatus> {
+        self.link.status.borrow().replay.clone()
     }
 
     /// Asks for `budget` triangles from now on (on this connection and the next).

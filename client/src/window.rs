@@ -70,6 +70,8 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
         occluded: false,
         rest_until: 0.0,
         error: None,
+        tick: 0,
+        ids: Vec::new(),
     };
     event_loop
         .run_app(&mut app)
@@ -122,6 +124,9 @@ struct App {
     /// No surface texture was to be had: no drawing until then (local seconds).
     rest_until: f64,
     error: Option<anyhow::Error>,
+    /// The newest frame's tick and vehicles (for the watching keys and the HUD).
+    tick: u64,
+    ids: Vec<u16>,
 }
 
 impl App {
@@ -187,9 +192,34 @@ impl App {
             Key::Named(NamedKey::ArrowLeft) => "ArrowLeft",
             Key::Named(NamedKey::ArrowRight) => "ArrowRight",
             Key::Named(NamedKey::Escape) => "Escape",
+            Key::Named(NamedKey::Space) => "Space",
+            Key::Named(NamedKey::Tab) => "Tab",
+            Key::Named(NamedKey::Home) => "Home",
+            Key::Named(NamedKey::End) => "End",
             Key::Character(c) => c.as_str(),
             _ => return,
         };
+        // A spectator's keys: following, and a watched recording's clock.
+        if !self.opts.driver {
+            if event.state == ElementState::Pressed && !event.repeat {
+                let status = self.shared.status();
+                let replay = status.replay.as_ref().map(|r| (r, self.tick));
+                match crate::watching::key(name, self.shared.vehicle(), &self.ids, replay) {
+                    Some(crate::watching::Ask::Follow(v)) => {
+                        let _ = self.commands.send(Command::Follow(v));
+                        return;
+                    }
+                    Some(crate::watching::Ask::Replay(c)) => {
+                        let _ = self.commands.send(Command::Replay(c));
+                        return;
+                    }
+                    None => {}
+                }
+            }
+            if cockpit::drive_keys(name).is_some() {
+                return;
+            }
+        }
         if let Some(k) = cockpit::drive_keys(name) {
             match event.state {
                 ElementState::Pressed if !event.repeat => self.shared.key_down(k),
@@ -227,6 +257,8 @@ impl App {
             let upload_ms = started.elapsed().as_secs_f64() * 1e3;
             self.cockpit.costs(now, a.decode_ms, upload_ms);
             let at = now - a.at.elapsed().as_secs_f64();
+            self.tick = a.tick;
+            self.ids = a.vehicles.iter().map(|v| v.id).collect();
             self.cockpit.arrived(now, at, a.tick, &a.vehicles, a.ground);
         }
         let (colors, color_bytes, color_tiles, color_capacity) = self.shared.colors(MAX_UPLOADS);
@@ -332,6 +364,10 @@ impl App {
                     (Link::Ended(why), _) => format!("disconnected: {why}"),
                 },
                 adapter: format!("{} ({:?})", gfx.gpu.adapter.name, gfx.gpu.adapter.backend),
+                replay: status
+                    .replay
+                    .as_ref()
+                    .map(|r| crate::watching::replay_line(r, self.tick)),
                 ..self.cockpit.numbers(now, followed.as_ref())
             }
         });

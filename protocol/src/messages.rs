@@ -186,6 +186,46 @@ pub enum ClientMessage {
     /// The viewer's camera changed (it damps its pitch over rough ground, its window was
     /// resized, its fog was turned on or off): tessellate for this view from now on.
     View(ViewChange),
+    /// A spectator follows another vehicle (Tab, number keys): the server answers with
+    /// [`ServerMessage::Following`] once its frames are made for it.
+    Follow(u16),
+    /// The one watching a recording steers its clock (`serve --replay`); from a viewer
+    /// that does not hold the controls, ignored ([`ReplayStatus::control`]).
+    Replay(ReplayControl),
+}
+
+/// What the one watching a recording asks of its clock.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum ReplayControl {
+    Pause,
+    Resume,
+    /// Speed in quarters: 1 (¼×) ..= 32 (8×); others are clamped.
+    Speed(u8),
+    /// To this world tick (clamped to the recording's valid part).
+    Seek(u64),
+    /// To the next join or leave after the clock (`true`), or the last before it.
+    SeekMark {
+        forward: bool,
+    },
+}
+
+/// Where a watched recording stands, sent when it changes other than by its clock running
+/// (the clock is each frame's tick).
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ReplayStatus {
+    /// The clock when this was sent.
+    pub tick: u64,
+    /// The recording's valid part, first and last tick.
+    pub start: u64,
+    pub end: u64,
+    /// Quarters (4: 1×).
+    pub speed: u8,
+    pub paused: bool,
+    /// This viewer holds the controls.
+    pub control: bool,
+    /// Who holds them, in words (a peer's address, or none yet).
+    #[serde(deserialize_with = "reason")]
+    pub controller: String,
 }
 
 /// How the viewer's camera differs from the default one at the followed vehicle.
@@ -240,6 +280,12 @@ pub enum ServerMessage {
         #[serde(deserialize_with = "normal_tile")]
         data: Vec<u8>,
     },
+    /// The vehicle this spectator's frames follow from now on (after a
+    /// [`ClientMessage::Follow`], or when the one followed left a watched recording).
+    Following(u16),
+    /// A watched recording's state (`serve --replay`): at the welcome, then when it
+    /// changes.
+    Replay(ReplayStatus),
 }
 
 /// What an edge server says of its world ([`ServerMessage::World`]).

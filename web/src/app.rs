@@ -126,6 +126,9 @@ struct App {
     said: Option<(State, Option<String>, [usize; 3])>,
     /// Recent key change → frame showing it, milliseconds.
     latencies: std::collections::VecDeque<f64>,
+    /// The newest frame's tick and vehicles (for the watching keys and the HUD).
+    tick: u64,
+    ids: Vec<u16>,
 }
 
 /// Starts the display, the keys and the key sender; they run as long as the page.
@@ -147,6 +150,8 @@ pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(
         reported: false,
         said: None,
         latencies: std::collections::VecDeque::new(),
+        tick: 0,
+        ids: Vec::new(),
     }));
     keys(&app)?;
     if app.borrow().driver {
@@ -175,8 +180,38 @@ fn keys(app: &Rc<RefCell<App>>) -> Result<(), String> {
     let down = {
         let app = app.clone();
         Closure::<dyn FnMut(KeyboardEvent)>::new(move |e: KeyboardEvent| {
-            let name = e.key();
+            let key = e.key();
+            // The page's key names as the window's.
+            let name = match key.as_str() {
+                " " => "Space",
+                other => other,
+            };
             let mut a = app.borrow_mut();
+            // A spectator's keys (a replay serves everyone as one): following, and a
+            // watched recording's clock.
+            let watching = !a.driver || a.live.borrow().replay.is_some();
+            if watching && !e.repeat() {
+                let ask = {
+                    let l = a.live.borrow();
+                    let replay = l.replay.as_ref().map(|r| (r, a.tick));
+                    roam_client::watching::key(name, l.welcome.vehicle, &a.ids, replay)
+                };
+                let msg = match ask {
+                    Some(roam_client::watching::Ask::Follow(v)) => {
+                        Some(roam_protocol::messages::ClientMessage::Follow(v))
+                    }
+                    Some(roam_client::watching::Ask::Replay(c)) => {
+                        Some(roam_protocol::messages::ClientMessage::Replay(c))
+                    }
+                    None => None,
+                };
+                if let Some(msg) = msg {
+                    e.prevent_default(); // Tab, Space, Home do not move the page
+                    a.live.borrow_mut().send(msg);
+                    return;
+                }
+            }
+            let name = name.to_string();
             if let Some(k) = cockpit::drive_keys(&name) {
                 e.prevent_default(); // the arrows do not scroll the page
                 if !e.repeat() && a.driver {
@@ -374,6 +409,8 @@ impl App {
                 let upload_ms = uploading.elapsed().as_secs_f64() * 1e3;
                 self.cockpit.costs(now, decode_ms, upload_ms);
                 let at = now - r.arrived.elapsed().as_secs_f64();
+                self.tick = r.tick;
+                self.ids = r.vehicles.iter().map(|v| v.id).collect();
                 self.cockpit.arrived(now, at, r.tick, &r.vehicles, ground);
                 self.decoded += 1;
             }
@@ -494,6 +531,10 @@ impl App {
                 ),
             },
             adapter: self.gfx.adapter(),
+            replay: l
+                .replay
+                .as_ref()
+                .map(|r| roam_client::watching::replay_line(r, self.tick)),
             ..self.cockpit.numbers(now, followed)
         }
     }

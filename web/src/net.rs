@@ -94,6 +94,8 @@ pub struct Live {
     pub world: World,
     /// The edges the page connects to in turn: its own origin's, then those learned.
     pub edges: Addresses<WebEdge>,
+    /// A watched recording's state, as the server last said it (`serve --replay`).
+    pub replay: Option<roam_protocol::messages::ReplayStatus>,
 }
 
 pub type Shared = Rc<RefCell<Live>>;
@@ -153,6 +155,19 @@ impl Live {
             other => {
                 self.world.apply(other, Instant::now());
             }
+        }
+    }
+
+    /// The server's frames follow vehicle `v` from now on (the next connection asks for
+    /// it).
+    fn following(&mut self, v: u16) {
+        self.welcome.vehicle = v;
+    }
+
+    /// Sends a control message on the connection that is up (dropped while reconnecting).
+    pub fn send(&mut self, msg: ClientMessage) {
+        if let Some(tx) = &self.control {
+            let _ = tx.unbounded_send(msg);
         }
     }
 
@@ -407,6 +422,7 @@ pub fn live(
         streams: 0,
         world: World::default(),
         edges: Addresses::new([edge]).ok_or("no edge to connect to")?,
+        replay: None,
     })))
 }
 
@@ -719,7 +735,13 @@ async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: Unbounde
         let colors = || std::cell::RefMut::map(live.borrow_mut(), |l| &mut l.colors);
         match joining::take_control(&msg, &mut rgb, colors) {
             Ok(None) => {}
-            Ok(Some(news)) => live.borrow_mut().news(news),
+            Ok(Some(joining::Told::News(news))) => live.borrow_mut().news(news),
+            Ok(Some(joining::Told::Following(v))) => live.borrow_mut().following(v),
+            Ok(Some(joining::Told::Replay(s))) => {
+                let mut l = live.borrow_mut();
+                l.core.set_replay();
+                l.replay = Some(s.clone());
+            }
             Err(why) => break End::Final(why),
         }
     };

@@ -130,6 +130,15 @@ pub struct ServeArgs {
     /// The private key (PEM) of --web-cert.
     #[arg(long, value_name = "PEM", requires = "web_cert", requires = "web")]
     pub web_key: Option<PathBuf>,
+    /// Serve this recording instead of a live world, from its start at 1×: every viewer
+    /// watches it as a spectator, the one holding the controls pauses, speeds and seeks it
+    /// for all; nothing is recorded. A recording of another data set is refused.
+    #[arg(long, value_name = "FILE")]
+    pub replay: Option<PathBuf>,
+    /// With --replay: the viewer joining with this token (instead of the join token)
+    /// holds the controls. Without it, the first viewer to join does (then the next).
+    #[arg(long, value_name = "TOKEN", requires = "replay")]
+    pub control: Option<String>,
 }
 
 /// A number of seconds: finite, positive and at most a day.
@@ -517,6 +526,31 @@ fn keep_large_blocks_mapped() {
 #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
 fn keep_large_blocks_mapped() {}
 
+/// Opens `file` to serve it (`serve --replay`), logging how far it is valid.
+fn open_replay(
+    file: &Path,
+    control: &Option<String>,
+    terrain: &Arc<roam_server::Terrain>,
+    hash: &[u8; 32],
+) -> Result<net::replay::Replaying> {
+    if let Some(t) = control {
+        super::token::check(t).map_err(|e| anyhow::anyhow!("--control: {e}"))?;
+    }
+    let name = file.display();
+    let started = std::time::Instant::now();
+    let watch = roam_server::sim::watch::open_file(file, terrain.clone(), hash)
+        .with_context(|| format!("watching {name}"))?;
+    tracing::info!(
+        "replaying {name}: {} (opened in {:.0} ms)",
+        roam_server::sim::watch::describe(&watch),
+        started.elapsed().as_secs_f64() * 1e3
+    );
+    Ok(net::replay::Replaying {
+        watch,
+        control_token: control.clone(),
+    })
+}
+
 pub fn serve(args: ServeArgs) -> Result<()> {
     serve_on(args, None)
 }
@@ -553,10 +587,16 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
         Some(identity) => identity,
         None => tls::load_or_create(&args.state_dir)?,
     };
-    // An edge records nothing: its world does.
-    let recording = match bus {
-        None => Some(record_files(&args.state_dir, args.record_dir.as_deref())?),
-        Some(_) => None,
+    let terrain = Arc::new(terrain);
+    let replay = match (&args.replay, &bus) {
+        (Some(file), None) => Some(open_replay(file, &args.control, &terrain, &hash)?),
+        (Some(_), Some(_)) => anyhow::bail!("an edge serves its world's recording, not --replay"),
+        (None, _) => None,
+    };
+    // An edge records nothing: its world does; nor does a replay.
+    let recording = match (&bus, &replay) {
+        (None, None) => Some(record_files(&args.state_dir, args.record_dir.as_deref())?),
+        _ => None,
     };
     let made = recording
         .as_ref()
@@ -572,7 +612,7 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
         // (`roam_protocol::height_step`), most of a warm start at 16385² and more.
         let started = std::time::Instant::now();
         let server = Server::start(
-            Arc::new(terrain),
+            terrain,
             Arc::new(vt),
             Arc::new(pyramid),
             &identity,
@@ -583,6 +623,7 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
                 }),
                 remote: remote.clone(),
                 normals: Some(Arc::new(normals)),
+                replay,
                 ..args.options(token.clone(), None)?
             },
         )?;

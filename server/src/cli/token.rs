@@ -120,7 +120,7 @@ impl TokenArgs {
 }
 
 /// Why `token` is refused, if it is (the reason completes "the join token from X …").
-fn check(token: &str) -> Result<(), String> {
+pub fn check(token: &str) -> Result<(), String> {
     if token.is_empty() {
         return Err("is empty, which would let anyone join".to_owned());
     }

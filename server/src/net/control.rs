@@ -139,14 +139,17 @@ pub(super) async fn tell_news(
 /// How often the colour task looks at the camera and its budget.
 const COLOR_TICK: Duration = Duration::from_millis(50);
 
-/// Streams colour tiles (and their normals) to the viewer following `vehicle`, as its
+/// Streams colour tiles (and their normals) to the viewer following `followed`, as its
 /// scheduler picks them, within the byte rate, from the viewer's first frame on (`made`:
 /// the frames made); ends when the control stream fails.
 pub(super) async fn stream_color(
     send: Arc<tokio::sync::Mutex<SendStream>>,
     shared: Arc<Shared>,
     mut colors: ColorScheduler,
-    (vehicle, mut made): (VehicleId, tokio::sync::watch::Receiver<u64>),
+    (followed, mut made): (
+        tokio::sync::watch::Receiver<VehicleId>,
+        tokio::sync::watch::Receiver<u64>,
+    ),
 ) {
     // Nothing before the first frame: the coarsest tile's normals, owed first, would
     // only share the link with it (a viewer lights per vertex until they come).
@@ -183,6 +186,7 @@ pub(super) async fn stream_color(
         tokens = (tokens + rate * now.duration_since(last).as_secs_f64()).min(burst);
         last = now;
         let camera = {
+            let vehicle = *followed.borrow();
             let snap = shared.snapshots.borrow();
             snap.vehicles
                 .iter()

@@ -173,7 +173,11 @@ async fn handshake(
     // The hello is in: the connection is no longer pending. Version and token first (a
     // peer without the token never takes a seat), then a seat, or a refusal when full.
     drop(pending);
-    let role = role_name(&hello.role);
+    // Watching a recording, everyone is a spectator.
+    let role = match shared.replay {
+        Some(_) => "spectator",
+        None => role_name(&hello.role),
+    };
     let refuse = async |send: &mut SendStream, reason: Reason, why: &str| {
         // One line per refusal, up to a bound per summary interval: a peer without the
         // token can send hellos as fast as handshakes, and must not fill the disk.
@@ -194,7 +198,13 @@ async fn handshake(
         );
         return refuse(&mut send, Reason::Version { server: VERSION }, &why).await;
     }
-    if !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
+    let control_token = shared
+        .replay
+        .as_ref()
+        .and_then(|r| r.control_token.as_deref());
+    let controller =
+        control_token.is_some_and(|t| constant_time_eq(hello.token.as_bytes(), t.as_bytes()));
+    if !controller && !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
         return refuse(&mut send, Reason::WrongToken, "wrong token").await;
     }
     // A driver coming back while its old connection still holds a seat (this server has
@@ -225,7 +235,7 @@ async fn handshake(
         }
     };
     let joined = match join(&shared, &hello).await {
-        Ok(j) => j,
+        Ok(j) => Joined { controller, ..j },
         Err(Refusal::Shutdown) => {
             conn.close(close::SHUTDOWN, b"the server is shutting down");
             return;
@@ -379,6 +389,8 @@ pub(super) struct Joined {
     /// (the viewer came back before this server saw the old connection die): it ends,
     /// has its vehicle held, then answers on the sender it was given.
     pub replaced: Option<oneshot::Receiver<oneshot::Sender<()>>>,
+    /// Watching a recording, this viewer presented the control token (`serve --control`).
+    pub controller: bool,
 }
 
 /// What a ticket names: the vehicle, and how to end the connection driving it now.
@@ -398,6 +410,30 @@ const REPLACE_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 /// A driver takes its held vehicle back with its ticket, or gets a new one; a spectator
 /// follows the vehicle it asked for (or the first).
 async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
+    if let Some(replay) = &shared.replay {
+        // Watching a recording: everyone is a spectator, of the vehicle asked for if it is
+        // there, else the first there, else the first the recording has.
+        let follow = match hello.role {
+            Role::Spectator { follow } => follow,
+            Role::Driver => None,
+        };
+        let snap = shared.snapshots.borrow().clone();
+        let there = |id: u16| snap.vehicles.iter().any(|v| v.id == id);
+        let vehicle = follow
+            .filter(|&id| there(id))
+            .or_else(|| snap.vehicles.first().map(|v| v.id))
+            .or(replay.first_vehicle)
+            .ok_or_else(|| Refusal::Unavailable("the recording has no vehicle".into()))?;
+        return Ok(Joined {
+            vehicle,
+            driver: false,
+            ticket: None,
+            resumed: false,
+            claim: 0,
+            replaced: None,
+            controller: false,
+        });
+    }
     if let Role::Spectator { follow } = hello.role {
         let snap = shared.snapshots.borrow().clone();
         let target = match follow {
@@ -412,6 +448,7 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
                 resumed: false,
                 claim: 0,
                 replaced: None,
+                controller: false,
             }),
             None => Err(Refusal::Unavailable("no vehicle to follow".into())),
         };
@@ -443,6 +480,7 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
         resumed,
         claim,
         replaced: Some(replaced),
+        controller: false,
     })
 }
 

@@ -17,6 +17,7 @@ mod control;
 mod handshake;
 pub mod link;
 pub mod makers;
+pub mod replay;
 pub mod stats;
 pub mod viewer;
 pub mod web;
@@ -91,6 +92,9 @@ pub struct Options {
     /// pyramid's layout; `None`: built in memory from the terrain when the server starts
     /// (`serve` maps them from the data set's cache).
     pub normals: Option<Arc<NormalPyramid>>,
+    /// A recording to serve instead of a live world (`serve --replay`): every viewer
+    /// watches it as a spectator, and [`Options::record`] is not used ([`replay`]).
+    pub replay: Option<replay::Replaying>,
 }
 
 /// [`Options::max_viewers`] unless told otherwise.
@@ -130,6 +134,7 @@ impl Options {
             web: None,
             remote: None,
             normals: None,
+            replay: None,
         }
     }
 }
@@ -164,6 +169,8 @@ pub struct Shared {
     tickets: Mutex<HashMap<Ticket, handshake::Claim>>,
     /// The world, when it is elsewhere ([`Options::remote`]).
     remote: Option<Arc<bus::edge::Remote>>,
+    /// The recording served instead of a world ([`Options::replay`]).
+    replay: Option<Arc<replay::ReplayShared>>,
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
     /// Streaming viewers' frames before joining viewers' first ones ([`makers`]).
@@ -361,24 +368,33 @@ impl Server {
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let world_stats = Arc::new(world_loop::WorldStats::default());
-        let world = match options.remote.clone() {
+        let (world, replaying) = match (options.replay, options.remote.clone()) {
+            (Some(r), _) => {
+                let (thread, shared) = replay::start(r, inbox_rx, snap_tx, world_stats.clone())
+                    .map_err(ServeError::World)?;
+                (thread, Some(shared))
+            }
             // Vehicles at most, held ones included: a seat each.
-            None => world_loop::start(
-                terrain.clone(),
-                options.record,
-                (options.hold, options.max_viewers, false),
-                inbox_rx,
-                snap_tx,
-                world_stats.clone(),
-            )
-            .map_err(ServeError::World)?,
-            Some(remote) => {
+            (None, None) => (
+                world_loop::start(
+                    terrain.clone(),
+                    options.record,
+                    (options.hold, options.max_viewers, false),
+                    inbox_rx,
+                    snap_tx,
+                    world_stats.clone(),
+                )
+                .map_err(ServeError::World)?,
+                None,
+            ),
+            (None, Some(remote)) => {
                 let terrain = terrain.clone();
                 let runtime = tokio::runtime::Handle::current();
-                std::thread::Builder::new()
+                let thread = std::thread::Builder::new()
                     .name("roam-edge".into())
                     .spawn(move || bus::edge::run(remote, terrain, runtime, inbox_rx, snap_tx))
-                    .map_err(ServeError::World)?
+                    .map_err(ServeError::World)?;
+                (thread, None)
             }
         };
         let (stop, shutdown) = watch::channel(false);
@@ -409,6 +425,7 @@ impl Server {
             }),
             tickets: Mutex::new(HashMap::new()),
             remote: options.remote,
+            replay: replaying,
             makers: Arc::new(makers::Makers::new(makers())),
             unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),

@@ -145,13 +145,30 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     // Frames made: the colour task starts once the first is (what it sends is of no use
     // before, and would only share the link with it).
     let (sent, made) = tokio::sync::watch::channel(0u64);
+    // The vehicle followed: a spectator may change it, and so may a replay (its vehicle
+    // left); the colour task streams around it.
+    let (follow, followed) = tokio::sync::watch::channel(vehicle);
+    // Watching a recording: this viewer's place among those sharing its clock, and the
+    // task telling it the replay's state.
+    let replay_seat = shared
+        .replay
+        .as_ref()
+        .map(|r| r.enter(peer.to_string(), joined.controller));
+    let _tell = match (&shared.replay, &replay_seat) {
+        (Some(r), Some(seat)) => Some(AbortOnDrop(tokio::spawn(super::replay::tell(
+            send.clone(),
+            r.clone(),
+            seat.id,
+        )))),
+        _ => None,
+    };
     // Aborted when this task ends by any path, unwinding included: the colour task holds
     // the shared state (the world's inbox) and never ends on its own.
     let color = AbortOnDrop(tokio::spawn(stream_color(
         send.clone(),
         shared.clone(),
         colors,
-        (vehicle, made),
+        (followed, made),
     )));
     let control = Arc::new(Mutex::new(Mailbox::default()));
     let keys = tokio::spawn(read_keys(
@@ -166,7 +183,15 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     // A driver whose vehicle vanishes on an edge after a world restart is told why.
     let restarts = shared.remote.as_ref().map(|r| r.restarts());
     let why: String = tokio::select! {
-        end = frames(&conn, &shared, (control, &mut seat), core, rate, (vehicle, driver), &sent) => {
+        end = frames(
+            &conn,
+            &shared,
+            (control, &mut seat),
+            core,
+            rate,
+            (&follow, driver, replay_seat.as_ref().map(|s| s.id)),
+            (&sent, &send),
+        ) => {
             match end {
                 FramesEnd::ConnectionLost => {
                     leave.hold = conn.hold_after().then(silent);
@@ -444,9 +469,16 @@ async fn frames(
     (control, seat): (Arc<Mutex<Mailbox>>, &mut Seat),
     core: ViewerCore,
     rate: u16,
-    (vehicle, driver): (VehicleId, bool),
-    sent: &tokio::sync::watch::Sender<u64>,
+    (follow, driver, replay): (&tokio::sync::watch::Sender<VehicleId>, bool, Option<u64>),
+    (sent, send): (
+        &tokio::sync::watch::Sender<u64>,
+        &Arc<tokio::sync::Mutex<SendStream>>,
+    ),
 ) -> FramesEnd {
+    let mut vehicle = *follow.borrow();
+    // Where the followed vehicle was last: a replay's camera stays there while it has none
+    // to follow (sought to before any joined).
+    let mut parked = crate::sim::world::start_state(&shared.terrain, 0);
     let mut core = Some(core);
     let mut bytes_out = conn.quic().stats().udp_tx.bytes;
     let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
@@ -464,14 +496,44 @@ async fn frames(
         shared.color.frame_started(due, now);
         shared.stats.frame_late(now.saturating_duration_since(due));
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
-        let Some(v) = snap.vehicles.iter().find(|v| v.id == vehicle) else {
+        let (asked, controls) = {
+            let mut m = control.lock().unwrap_or_else(|e| e.into_inner());
+            (m.take_follow(), m.take_replay())
+        };
+        if let (Some(r), Some(id)) = (&shared.replay, replay) {
+            for c in controls {
+                r.control(id, c);
+            }
+        }
+        let there = |id: VehicleId| snap.vehicles.iter().any(|v| v.id == id);
+        // A spectator follows the vehicle it asks for, if there; a replay's spectator whose
+        // vehicle left follows the first there.
+        let switch = match asked {
+            Some(a) if !driver && a != vehicle && there(a) => Some(a),
+            _ if shared.replay.is_some() && !there(vehicle) => snap.vehicles.first().map(|v| v.id),
+            _ => None,
+        };
+        if let Some(to) = switch {
+            vehicle = to;
+            follow.send_replace(to);
+            let send = send.clone();
+            tokio::spawn(async move {
+                let _ = send
+                    .lock()
+                    .await
+                    .write_msg(&ServerMessage::Following(to))
+                    .await;
+            });
+        }
+        let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
+            Some(v) => v.state,
+            None if shared.replay.is_some() => parked,
             // A new driver's vehicle appears with the next tick; a spectator's was there
             // when it joined.
-            if seen || !driver {
-                return FramesEnd::VehicleLeft;
-            }
-            continue;
+            None if seen || !driver => return FramesEnd::VehicleLeft,
+            None => continue,
         };
+        parked = state;
         seen = true;
         let mut c = core.take().expect("put back below");
         for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
@@ -494,7 +556,7 @@ async fn frames(
         let inline = if first {
             None
         } else {
-            c.begin_frame(&scene, &v.state)
+            c.begin_frame(&scene, &state)
         };
         let (c, made, snap) = match inline {
             Some(made) => (c, made, snap),
@@ -515,8 +577,12 @@ async fn frames(
                         return Some((c, made, snap));
                     }
                     let snap: Arc<Snapshot> = shared2.snapshots.borrow().clone();
-                    let v = snap.vehicles.iter().find(|v| v.id == vehicle)?;
-                    let made = c.make_frame(&scene, &v.state);
+                    let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
+                        Some(v) => v.state,
+                        None if shared2.replay.is_some() => state,
+                        None => return None,
+                    };
+                    let made = c.make_frame(&scene, &state);
                     Some((c, made, snap))
                 })
                 .await

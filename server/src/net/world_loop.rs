@@ -60,6 +60,11 @@ impl WorldStats {
         self.late.load(Ordering::Relaxed)
     }
 
+    /// A tick made (by a replay's thread, which counts as the live world's does).
+    pub(super) fn count_tick(&self) {
+        self.ticks.fetch_add(1, Ordering::Relaxed);
+    }
+
     /// The held vehicles joins freed since the last call.
     pub fn take_evicted(&self) -> Vec<VehicleId> {
         std::mem::take(&mut *self.evicted.lock().unwrap_or_else(|e| e.into_inner()))

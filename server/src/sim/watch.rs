@@ -381,9 +381,33 @@ pub fn open_bytes<G: Ground + Clone>(
     Ok(Watch::open(&recording, damaged, ground, data_hash)?)
 }
 
+/// Reads `path` (at most [`recording::MAX_FILE_BYTES`]) and opens it to watch.
+pub fn open_file<G: Ground + Clone>(
+    path: &std::path::Path,
+    ground: G,
+    data_hash: &[u8; 32],
+) -> Result<Watch<G>, OpenError> {
+    use std::io::Read;
+    let file = std::fs::File::open(path)?;
+    let mut bytes = Vec::new();
+    file.take(recording::MAX_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > recording::MAX_FILE_BYTES {
+        return Err(OpenError::TooLarge);
+    }
+    open_bytes(&bytes, ground, data_hash)
+}
+
 /// Why a recording cannot be watched.
 #[derive(Debug, thiserror::Error)]
 pub enum OpenError {
+    #[error("reading it: {0}")]
+    Io(#[from] std::io::Error),
+    #[error(
+        "more than the {} bytes a recording may have",
+        recording::MAX_FILE_BYTES
+    )]
+    TooLarge,
     #[error(transparent)]
     Format(#[from] FormatError),
     #[error(transparent)]

@@ -7,7 +7,8 @@
 use std::time::Instant;
 
 use roam_protocol::messages::{
-    self, ClientMessage, ColorLayout, Frame, KeyDatagram, VERSION, VehicleView, ViewChange, Welcome,
+    self, ClientMessage, ColorLayout, Frame, KeyDatagram, ReplayControl, VERSION, VehicleView,
+    ViewChange, Welcome,
 };
 
 use super::{Event, Made, ViewerLimits};
@@ -25,7 +26,16 @@ pub struct Mailbox {
     acked: Option<u64>,
     key_frame: bool,
     view: Option<ViewChange>,
+    /// The newest vehicle a spectator asked to follow.
+    follow: Option<u16>,
+    /// A watched recording's controls, in order, at most [`MAX_REPLAY_CONTROLS`] (the
+    /// newest).
+    replay: Vec<ReplayControl>,
 }
+
+/// Replay controls kept between two frames: a viewer pressing keys faster than its frames
+/// come loses its oldest.
+pub const MAX_REPLAY_CONTROLS: usize = 8;
 
 /// What a control message means for the connection.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -47,9 +57,26 @@ impl Mailbox {
                 self.acked = None;
             }
             ClientMessage::View(v) => self.view = Some(v),
+            ClientMessage::Follow(v) => self.follow = Some(v),
+            ClientMessage::Replay(c) => {
+                if self.replay.len() == MAX_REPLAY_CONTROLS {
+                    self.replay.remove(0);
+                }
+                self.replay.push(c);
+            }
             ClientMessage::Bye(_) | ClientMessage::Hello(_) => return Control::End,
         }
         Control::Continue
+    }
+
+    /// The vehicle a spectator asked to follow since the last call (the newest).
+    pub fn take_follow(&mut self) -> Option<u16> {
+        self.follow.take()
+    }
+
+    /// The replay controls since the last call, oldest first.
+    pub fn take_replay(&mut self) -> Vec<ReplayControl> {
+        std::mem::take(&mut self.replay)
     }
 
     /// The viewer decoded `frame` (the highest acknowledgement wins).
@@ -60,7 +87,9 @@ impl Mailbox {
     /// The events for the core, emptying the mailbox: the budget and view first (they may
     /// rebuild the cut), then a key-frame request, then the acknowledgement.
     pub fn drain(&mut self) -> impl Iterator<Item = Event> + use<> {
+        let (follow, replay) = (self.follow.take(), std::mem::take(&mut self.replay));
         let m = std::mem::take(self);
+        (self.follow, self.replay) = (follow, replay);
         [
             m.budget.map(Event::Budget),
             m.view.map(Event::View),

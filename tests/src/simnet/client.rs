@@ -93,12 +93,15 @@ impl Sim {
                                     client_offer(v, epoch + at, bytes);
                                 }
                             }
-                            // Colour, and an edge's news (`serve`'s cores send none).
+                            // Colour, an edge's news and a replay's (`serve`'s live
+                            // cores send none).
                             Ok(
                                 ServerMessage::ColorTile { .. }
                                 | ServerMessage::NormalTile { .. }
                                 | ServerMessage::ColorWindow { .. }
-                                | ServerMessage::World(_),
+                                | ServerMessage::World(_)
+                                | ServerMessage::Following(_)
+                                | ServerMessage::Replay(_),
                             ) => {}
                             Ok(ServerMessage::Refused(r) | ServerMessage::Bye(r)) => {
                                 v.client.closed = Some(format!("{r:?}"));

@@ -1,0 +1,248 @@
+//! Serving a recording (`serve --replay FILE`): the world thread plays a [`Watch`]
+//! instead of running a [`crate::sim::world_core::WorldCore`], and publishes its
+//! snapshots the same way, so every viewer task serves it as it serves a live world. Every
+//! viewer is a spectator (a driver's hello is served as a spectator's); nothing is
+//! recorded.
+//!
+//! **One clock, one holder of the controls.** The viewers share the replay's clock. The
+//! controls ([`ReplayControl`]) are heeded from one viewer: the first to join that
+//! presented the `--control` token, or without one the first to join still connected;
+//! when it leaves, the next. Each viewer is told the state ([`ReplayStatus`]: the valid
+//! part, the speed, paused, whether it holds the controls and who does) at its welcome
+//! and whenever it changes other than by the clock running (the clock is each frame's
+//! tick), a seek included.
+//!
+//! **The thread** wakes every 10 ms as the live world's does, takes the controls that came,
+//! moves the clock by the speed, publishes the snapshot (the same one while paused: frames
+//! keep flowing at each viewer's rate) and logs `replay ended at tick N, digest HEX` when
+//! the clock reaches the valid part's end.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, Sender, TryRecvError};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use roam_protocol::messages::{ReplayControl, ReplayStatus, ServerMessage};
+use tokio::sync::watch;
+
+use super::link::SendStream;
+use super::world_loop::{Inbound, WorldStats};
+use crate::Terrain;
+use crate::sim::physics::STEPS_PER_SECOND;
+use crate::sim::watch::{Control, Status, Watch};
+use crate::sim::world::World;
+use crate::sim::world_core::Snapshot;
+
+/// A recording to serve, opened ([`crate::sim::watch::open_bytes`]), and the token whose
+/// viewer holds the controls (`--control`).
+pub struct Replaying {
+    pub watch: Watch<Arc<Terrain>>,
+    pub control_token: Option<String>,
+}
+
+/// What the viewer tasks share of a replay.
+pub(super) struct ReplayShared {
+    controls: Mutex<Sender<Control>>,
+    status: watch::Receiver<Status>,
+    /// The viewers in the order they joined: an id, the peer in words, whether it
+    /// presented the control token.
+    viewers: Mutex<Vec<(u64, String, bool)>>,
+    /// The viewer holding the controls (0: none).
+    holder: watch::Sender<u64>,
+    pub(super) control_token: Option<String>,
+    /// The vehicle a viewer follows when none is in the world yet: the first the
+    /// recording has (`None`: it has none).
+    pub(super) first_vehicle: Option<u16>,
+    next_id: AtomicU64,
+}
+
+/// A viewer's place among those watching: it leaves the list when dropped.
+pub(super) struct Seat {
+    shared: Arc<ReplayShared>,
+    pub(super) id: u64,
+}
+
+impl Drop for Seat {
+    fn drop(&mut self) {
+        let mut v = self
+            .shared
+            .viewers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner());
+        v.retain(|(id, ..)| *id != self.id);
+        self.shared.elect(&v);
+    }
+}
+
+impl ReplayShared {
+    /// A viewer (`peer`, and whether it presented the control token) starts watching.
+    pub(super) fn enter(self: &Arc<Self>, peer: String, controller: bool) -> Seat {
+        let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
+        let mut v = self.viewers.lock().unwrap_or_else(|e| e.into_inner());
+        v.push((id, peer, controller));
+        self.elect(&v);
+        Seat {
+            shared: self.clone(),
+            id,
+        }
+    }
+
+    /// The holder: the first with the control token, else the first.
+    fn elect(&self, viewers: &[(u64, String, bool)]) {
+        let holder = viewers
+            .iter()
+            .find(|v| v.2)
+            .or_else(|| viewers.first())
+            .map_or(0, |v| v.0);
+        self.holder
+            .send_if_modified(|h| std::mem::replace(h, holder) != holder);
+    }
+
+    /// Takes viewer `id`'s control: heeded only from the holder.
+    pub(super) fn control(&self, id: u64, c: ReplayControl) -> bool {
+        if *self.holder.borrow() != id {
+            return false;
+        }
+        let c = match c {
+            ReplayControl::Pause => Control::Pause,
+            ReplayControl::Resume => Control::Resume,
+            ReplayControl::Speed(q) => Control::Speed(q),
+            ReplayControl::Seek(t) => Control::Seek(t),
+            ReplayControl::SeekMark { forward } => Control::SeekMark { forward },
+        };
+        let tx = self.controls.lock().unwrap_or_else(|e| e.into_inner());
+        tx.send(c).is_ok()
+    }
+
+    /// The state as viewer `id` is told it.
+    pub(super) fn status_for(&self, id: u64) -> ReplayStatus {
+        let s = *self.status.borrow();
+        let holder = *self.holder.borrow();
+        let controller = self
+            .viewers
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .iter()
+            .find(|v| v.0 == holder)
+            .map_or_else(|| "nobody".to_string(), |v| v.1.clone());
+        ReplayStatus {
+            tick: s.tick,
+            start: s.start,
+            end: s.end,
+            speed: s.speed,
+            paused: s.paused,
+            control: holder == id,
+            controller,
+        }
+    }
+}
+
+/// Tells viewer `id` the replay's state when it changes (the clock's running aside); ends
+/// when the control stream fails.
+pub(super) async fn tell(
+    send: Arc<tokio::sync::Mutex<SendStream>>,
+    shared: Arc<ReplayShared>,
+    id: u64,
+) {
+    let mut status = shared.status.clone();
+    let mut holder = shared.holder.subscribe();
+    let mut last: Option<ReplayStatus> = None;
+    loop {
+        let now = shared.status_for(id);
+        let same = last.as_ref().is_some_and(|l| {
+            ReplayStatus {
+                tick: now.tick,
+                ..l.clone()
+            } == now
+        });
+        if !same {
+            let msg = ServerMessage::Replay(now.clone());
+            let mut s = send.lock().await;
+            if s.write_msg(&msg).await.is_err() {
+                return;
+            }
+            last = Some(now);
+        }
+        tokio::select! {
+            r = status.changed() => if r.is_err() { return },
+            r = holder.changed() => if r.is_err() { return },
+        }
+    }
+}
+
+/// The world thread of a replay, started: plays `replaying` (see the module docs) until
+/// `inbox` closes; returns the shared state the viewer tasks use.
+pub(super) fn start(
+    replaying: Replaying,
+    inbox: Receiver<Inbound>,
+    snapshots: watch::Sender<Arc<Snapshot>>,
+    stats: Arc<WorldStats>,
+) -> std::io::Result<(std::thread::JoinHandle<World>, Arc<ReplayShared>)> {
+    let Replaying {
+        mut watch,
+        control_token,
+    } = replaying;
+    let first_vehicle = watch
+        .world()
+        .vehicles()
+        .first()
+        .map(|v| v.id)
+        .or_else(|| watch.marks().iter().find(|m| m.join).map(|m| m.vehicle));
+    let (controls, controls_rx) = std::sync::mpsc::channel();
+    let (status_tx, status) = watch::channel(watch.status());
+    snapshots.send_replace(Arc::new(watch.snapshot()));
+    let shared = Arc::new(ReplayShared {
+        controls: Mutex::new(controls),
+        status,
+        viewers: Mutex::new(Vec::new()),
+        holder: watch::Sender::new(0),
+        control_token,
+        first_vehicle,
+        next_id: AtomicU64::new(0),
+    });
+    let handle = std::thread::Builder::new()
+        .name("roam-replay".into())
+        .spawn(move || {
+            let tick = Duration::from_millis(1000 / u64::from(STEPS_PER_SECOND));
+            let mut due = Instant::now() + tick;
+            loop {
+                let wait = due.saturating_duration_since(Instant::now());
+                if !wait.is_zero() {
+                    std::thread::sleep(wait);
+                }
+                // Nothing comes on the inbox from spectators; its closing stops the thread.
+                loop {
+                    match inbox.try_recv() {
+                        Ok(_) => {}
+                        Err(TryRecvError::Empty) => break,
+                        Err(TryRecvError::Disconnected) => return watch.world().clone(),
+                    }
+                }
+                let mut told = false;
+                while let Ok(c) = controls_rx.try_recv() {
+                    watch.control(c);
+                    told = true;
+                }
+                watch.advance();
+                if let Some((tick, digest)) = watch.take_ended() {
+                    tracing::info!("replay ended at tick {tick}, digest {digest}");
+                }
+                snapshots.send_replace(Arc::new(watch.snapshot()));
+                let now = watch.status();
+                status_tx.send_if_modified(|s| {
+                    let changed = told
+                        || (s.start, s.end, s.speed, s.paused)
+                            != (now.start, now.end, now.speed, now.paused);
+                    *s = now;
+                    changed
+                });
+                stats.count_tick();
+                due += tick;
+                let now = Instant::now();
+                if now > due + Duration::from_millis(250) {
+                    due = now + tick;
+                }
+            }
+        })?;
+    Ok((handle, shared))
+}
