@@ -239,6 +239,29 @@ pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
         .map_err(|e| format!("the server broke the protocol: {e}"))
 }
 
+/// A first hello: `role` with `token`, a `viewport` seen with a 60° field of view,
+/// `budget` triangles, 60 frames a second, and the colour window a device whose textures
+/// are at most `max_texture` texels a side can hold.
+pub fn hello(
+    role: Role,
+    token: String,
+    viewport: [u32; 2],
+    budget: u32,
+    max_texture: u32,
+) -> Hello {
+    Hello {
+        version: roam_protocol::messages::VERSION,
+        role,
+        token,
+        viewport,
+        fov_y_deg: 60.0,
+        budget,
+        frame_rate: 60,
+        resume: None,
+        color_window: crate::color_cache::window_for(max_texture),
+    }
+}
+
 /// The hello of the connection after one welcomed with `welcome`: a driver presents its
 /// ticket, a spectator asks for the vehicle it followed.
 pub fn next_hello(mut hello: Hello, welcome: &Welcome) -> Hello {

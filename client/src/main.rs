@@ -44,6 +44,9 @@ struct Cli {
     /// and seek it, follow any vehicle. Spectating is implied.
     #[arg(long, value_name = "FILE", conflicts_with = "connect")]
     replay: Option<PathBuf>,
+    /// With --replay: the recording is still being written: follow it as it grows.
+    #[arg(long, requires = "replay")]
+    follow: bool,
     /// The data set --replay was recorded on (default: the bundled data/kossou).
     #[arg(
         long,
@@ -79,7 +82,9 @@ struct Cli {
     #[arg(long)]
     spectate: bool,
     /// Measure the viewer's own costs per frame (decode, vertex build, upload, drawing at
-    /// --size offscreen) on a drive and print them as JSON (with --headless).
+    /// --size offscreen) on a drive and print them as JSON (with --headless). With
+    /// --replay: what watching costs (open to the first frame, frames a second at 8×,
+    /// seeks).
     #[arg(long)]
     bench: bool,
     /// Geomorphs' length in world ticks (100 a second): a vertex a split adds rises from
@@ -221,6 +226,7 @@ fn main() -> std::process::ExitCode {
 }
 
 fn run(cli: Cli) -> Result<()> {
+    let started = std::time::Instant::now();
     if !cli.headless {
         for (flag, given) in [
             ("--screenshot", cli.screenshot.is_some()),
@@ -266,6 +272,19 @@ fn run(cli: Cli) -> Result<()> {
         return shown;
     }
     runtime.block_on(async {
+        if cli.bench && cli.replay.is_some() {
+            let report = roam_client::bench::watch::run(
+                addr,
+                fingerprint,
+                (token.clone(), cli.budget, cli.size),
+                started,
+            )
+            .await;
+            if let Some(server) = server {
+                server.shutdown().await?;
+            }
+            return write_report(&cli, &report?);
+        }
         if cli.bench {
             let inputs = match script.clone() {
                 Some(s) => s,
@@ -474,8 +493,15 @@ async fn serve(
             options.limits.guard_deg = cli.guard_deg;
             options.normals = Some(Arc::new(normals));
             if let (Some(file), Some(hash)) = (&cli.replay, hash) {
-                let watch = roam_server::sim::watch::open_file(file, truth.terrain.clone(), &hash)
-                    .with_context(|| format!("watching {}", file.display()))?;
+                let (watch, follow) = if cli.follow {
+                    let (w, f) = net::replay::open_following(file, truth.terrain.clone(), &hash)
+                        .with_context(|| format!("watching {}", file.display()))?;
+                    (w, Some(f))
+                } else {
+                    let w = roam_server::sim::watch::open_file(file, truth.terrain.clone(), &hash)
+                        .with_context(|| format!("watching {}", file.display()))?;
+                    (w, None)
+                };
                 eprintln!(
                     "replaying {}: {}",
                     file.display(),
@@ -484,6 +510,7 @@ async fn serve(
                 options.replay = Some(net::replay::Replaying {
                     watch,
                     control_token: None,
+                    follow,
                 });
             }
             let server = Server::start(

@@ -462,3 +462,52 @@ fn bench_json() {
         &["tessellate_ms_median", "resident_bytes_per_sample"],
     );
 }
+
+#[test]
+fn serve_replay_refuses_what_it_cannot_watch() {
+    let dir = TempDir::new("replay-state");
+    let state = dir.str();
+    let golden = "server/tests/golden/drive.rec";
+    // The controls and following are for a replay.
+    check(
+        &["serve", "data/synth-65", "--control", "0123456789abcdef"],
+        2,
+        &["--replay"],
+    );
+    check(&["serve", "data/synth-65", "--follow"], 2, &["--replay"]);
+    // Recorded on synth-65: another data set is refused, naming both hashes.
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_roam-server"))
+        .args([
+            "serve",
+            "data/synth-257",
+            "--replay",
+            golden,
+            "--state-dir",
+            state,
+        ])
+        .current_dir(root())
+        .output()
+        .expect("run roam-server");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains(&format!("watching {golden}")), "{stderr}");
+    assert!(
+        stderr.contains("the recording was made on another data set (its hash "),
+        "{stderr}"
+    );
+    // A control token must be a good token.
+    check(
+        &[
+            "serve",
+            "data/synth-65",
+            "--replay",
+            golden,
+            "--control",
+            "short",
+            "--state-dir",
+            state,
+        ],
+        1,
+        &["--control", "16"],
+    );
+}

@@ -323,3 +323,77 @@ fn a_diverging_file_plays_to_its_last_matching_checkpoint() {
 fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
+
+#[test]
+fn a_growing_file_is_followed_to_its_newest_tick_and_its_end() {
+    let terrain = load("synth-65");
+    let s = session(&terrain);
+    // The file as its writer leaves it: the header, then pieces of any size.
+    let header_end = 12 + 5 + 52 + 34 + 8;
+    let mut reader = recording::Reader::open(&s.bytes[..header_end + 300]).expect("a header");
+    let mut events = Vec::new();
+    reader.read(&mut events).expect("whole records");
+    let recording = recording::Recording {
+        header: reader.header().clone(),
+        events,
+        truncated_at: reader.cut_at(),
+    };
+    let mut w =
+        Watch::open(&recording, None, terrain.clone(), &terrain.content_hash()).expect("opens");
+    w.follow();
+    w.control(Control::Speed(32));
+    let mut at = header_end + 300;
+    let mut last_end = w.status().end;
+    while at < s.bytes.len() {
+        let piece = (at * 7 % 997 + 1).min(s.bytes.len() - at);
+        let mut more = Vec::new();
+        reader
+            .feed(&s.bytes[at..at + piece], &mut more)
+            .expect("whole records");
+        at += piece;
+        w.append(&more, None, reader.cut_at());
+        let st = w.status();
+        assert!(st.end >= last_end, "the valid part only grows");
+        last_end = st.end;
+        for _ in 0..3 {
+            w.advance();
+            let tick = w.status().tick;
+            assert!(tick <= w.status().end);
+            if tick < w.status().end {
+                assert_eq!(
+                    w.world().vehicles(),
+                    &s.worlds[tick as usize][..],
+                    "tick {tick}"
+                );
+            }
+            if at < s.bytes.len() {
+                assert_eq!(w.take_ended(), None, "not ended while the file grows");
+            }
+        }
+    }
+    assert_eq!(*w.stop(), Stop::Closed);
+    while !w.at_end() {
+        w.advance();
+    }
+    let outcome = replayed(&s.bytes, &terrain);
+    assert_eq!(w.take_ended(), Some((TICKS, outcome.digest)));
+    // A damaged record met while following stops it there.
+    let mut reader = recording::Reader::open(&s.bytes[..header_end]).expect("a header");
+    let mut bad = s.bytes[header_end..].to_vec();
+    bad[2000] ^= 0x55;
+    let mut events = Vec::new();
+    let err = reader.feed(&bad, &mut events).expect_err("damaged");
+    let recording = recording::Recording {
+        header: reader.header().clone(),
+        events: Vec::new(),
+        truncated_at: None,
+    };
+    let mut w =
+        Watch::open(&recording, None, terrain.clone(), &terrain.content_hash()).expect("opens");
+    w.follow();
+    w.append(&events, Some(err), None);
+    assert!(matches!(w.stop(), Stop::Damaged(_)), "{:?}", w.stop());
+    assert!(!w.growing());
+    w.seek(u64::MAX);
+    assert_eq!(w.take_ended().map(|e| e.0), Some(w.status().end));
+}

@@ -73,6 +73,7 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
         replay: Some(Replaying {
             watch: w,
             control_token: None,
+            follow: None,
         }),
         ..o
     });
@@ -117,13 +118,7 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
     }
     // A seek, paused: the frames show the recorded world there.
     for target in [2500, 700, 1999, 2000, 5] {
-        s.replay_control(ReplayControl::Seek(target));
-        let f = loop {
-            let f = frame(&s).await;
-            if f.tick == target {
-                break f;
-            }
-        };
+        let f = seek_to(&s, target).await;
         assert_eq!(f.vehicles, seen(&worlds[target as usize], &terrain));
     }
     // A second viewer is told who holds the controls.
@@ -149,12 +144,7 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
         }
     };
     assert_eq!(f.vehicles.len(), 2, "the join shows from the next tick");
-    s.replay_control(ReplayControl::Seek(601));
-    loop {
-        if frame(&s).await.tick == 601 {
-            break;
-        }
-    }
+    seek_to(&s, 601).await;
     assert_ne!(s.vehicle(), 2);
     s.follow(2);
     status_when(&s, "following vehicle 2", |st| st.welcome.vehicle == 2).await;
@@ -184,4 +174,66 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
     other.quit().await;
     s.quit().await;
     r.server.shutdown().await.expect("stops");
+}
+
+/// A session still being written (`--follow`): watched up to its newest whole tick, and on
+/// as the file grows.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_growing_recording_is_followed() {
+    use std::io::Write;
+    let terrain = fixtures::flat();
+    let (bytes, worlds) = session(&terrain);
+    let dir = std::env::temp_dir().join(format!("roam-follow-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).expect("a temp dir");
+    let path = dir.join("growing.rec");
+    let half = bytes.len() / 2 + 7; // inside a record
+    std::fs::write(&path, &bytes[..half]).expect("written");
+    let (w, follow) =
+        roam_server::net::replay::open_following(&path, terrain.clone(), &terrain.content_hash())
+            .expect("opens");
+    let r = fixtures::serve(terrain.clone(), |o| Options {
+        replay: Some(Replaying {
+            watch: w,
+            control_token: None,
+            follow: Some(follow),
+        }),
+        ..o
+    });
+    let hello = fixtures::driver_hello(&r.token);
+    let s = Session::join(r.server.addr, r.fingerprint, hello, KeySource::None)
+        .await
+        .expect("joins");
+    let st = status_when(&s, "the replay's status", |st| st.replay.is_some()).await;
+    let end = st.replay.expect("waited for").end;
+    assert!(end > 0 && end < TICKS, "part of the session: {end}");
+    s.replay_control(ReplayControl::Pause);
+    let f = seek_to(&s, end - 1).await;
+    assert_eq!(f.vehicles, seen(&worlds[end as usize - 1], &terrain));
+    // The rest is written: the valid part grows to the end.
+    let mut file = std::fs::OpenOptions::new()
+        .append(true)
+        .open(&path)
+        .expect("opens");
+    file.write_all(&bytes[half..]).expect("written");
+    drop(file);
+    status_when(&s, "the whole session", |st| {
+        st.replay.as_ref().is_some_and(|r| r.end == TICKS)
+    })
+    .await;
+    let f = seek_to(&s, TICKS - 1).await;
+    assert_eq!(f.vehicles, seen(&worlds[TICKS as usize - 1], &terrain));
+    s.quit().await;
+    r.server.shutdown().await.expect("stops");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Asks for a seek to `target` and waits for the frame showing it.
+async fn seek_to(s: &Session, target: u64) -> roam_client::session::Received {
+    s.replay_control(ReplayControl::Seek(target));
+    loop {
+        let f = frame(s).await;
+        if f.tick == target {
+            return f;
+        }
+    }
 }

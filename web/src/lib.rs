@@ -20,7 +20,7 @@ mod net;
 mod page;
 mod wire;
 
-use roam_protocol::messages::{Hello, Role, VERSION};
+use roam_protocol::messages::Role;
 use wasm_bindgen::prelude::*;
 
 /// What the page says when the browser has no WebTransport.
@@ -68,23 +68,17 @@ async fn run(options: page::Options) -> Result<(), String> {
     }
     let size = app::pixel_size(&canvas);
     let budget = options.budget.unwrap_or(65_536);
-    let hello = Hello {
-        version: VERSION,
-        role: if options.spectator {
+    let hello = roam_client::joining::hello(
+        if options.spectator {
             Role::Spectator { follow: None }
         } else {
             Role::Driver
         },
-        token: options.token.clone(),
-        viewport: [size.0, size.1],
-        fov_y_deg: 60.0,
+        options.token.clone(),
+        [size.0, size.1],
         budget,
-        frame_rate: 60,
-        resume: None,
-        color_window: roam_client::color_cache::window_for(
-            gfx.gpu.device.limits().max_texture_dimension_2d,
-        ),
-    };
+        gfx.gpu.device.limits().max_texture_dimension_2d,
+    );
     let edge = endpoint.edge()?;
     let mut joined = net::join(&edge, hello.clone(), net::HANDSHAKE_MS)
         .await

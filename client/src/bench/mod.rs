@@ -19,6 +19,7 @@
 
 mod fogged;
 mod lod;
+pub mod watch;
 
 pub use fogged::Truth;
 

@@ -139,6 +139,10 @@ pub struct ServeArgs {
     /// holds the controls. Without it, the first viewer to join does (then the next).
     #[arg(long, value_name = "TOKEN", requires = "replay")]
     pub control: Option<String>,
+    /// With --replay: the recording is still being written (a session going on): watch it
+    /// up to its newest whole tick and follow it as it grows, until its end record.
+    #[arg(long, requires = "replay")]
+    pub follow: bool,
 }
 
 /// A number of seconds: finite, positive and at most a day.
@@ -527,9 +531,9 @@ fn keep_large_blocks_mapped() {
 fn keep_large_blocks_mapped() {}
 
 /// Opens `file` to serve it (`serve --replay`), logging how far it is valid.
-fn open_replay(
+pub fn open_replay(
     file: &Path,
-    control: &Option<String>,
+    (control, follow): (&Option<String>, bool),
     terrain: &Arc<roam_server::Terrain>,
     hash: &[u8; 32],
 ) -> Result<net::replay::Replaying> {
@@ -538,16 +542,27 @@ fn open_replay(
     }
     let name = file.display();
     let started = std::time::Instant::now();
-    let watch = roam_server::sim::watch::open_file(file, terrain.clone(), hash)
-        .with_context(|| format!("watching {name}"))?;
+    let (watch, follower) = if follow {
+        let (w, f) = net::replay::open_following(file, terrain.clone(), hash)
+            .with_context(|| format!("watching {name}"))?;
+        (w, Some(f))
+    } else {
+        let w = roam_server::sim::watch::open_file(file, terrain.clone(), hash)
+            .with_context(|| format!("watching {name}"))?;
+        (w, None)
+    };
     tracing::info!(
         "replaying {name}: {} (opened in {:.0} ms)",
         roam_server::sim::watch::describe(&watch),
         started.elapsed().as_secs_f64() * 1e3
     );
+    if follow && watch.growing() {
+        tracing::info!("following {name} as it grows");
+    }
     Ok(net::replay::Replaying {
         watch,
         control_token: control.clone(),
+        follow: follower,
     })
 }
 
@@ -589,7 +604,12 @@ pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()
     };
     let terrain = Arc::new(terrain);
     let replay = match (&args.replay, &bus) {
-        (Some(file), None) => Some(open_replay(file, &args.control, &terrain, &hash)?),
+        (Some(file), None) => Some(open_replay(
+            file,
+            (&args.control, args.follow),
+            &terrain,
+            &hash,
+        )?),
         (Some(_), Some(_)) => anyhow::bail!("an edge serves its world's recording, not --replay"),
         (None, _) => None,
     };

@@ -31,6 +31,34 @@ pub struct SimulateArgs {
     /// Write the CSV (`tick,x,z,y,speed,heading`) here instead of to stdout.
     #[arg(long)]
     pub csv: Option<PathBuf>,
+    /// Vehicles driving (a multi-driver session, to record and watch): vehicle i joins
+    /// at tick 100 × i from start slot i and drives the script from its segment i on,
+    /// round again when it ends. The CSV then has a `vehicle` column after the tick.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u16).range(1..=64))]
+    pub vehicles: u16,
+    /// Run this many ticks, the script played round again as often as it takes (default:
+    /// the script once).
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..=360_000_000))]
+    pub ticks: Option<u64>,
+}
+
+/// Vehicle `i`'s keys at each tick from its join on: `script` from its segment `i` (modulo
+/// their count), round again, for `ticks` ticks.
+fn keys_of(script: &script::Script, i: usize, ticks: u64) -> Vec<Keys> {
+    let segments = &script.segments;
+    let mut out = Vec::new();
+    if segments.is_empty() {
+        out.resize(ticks as usize, Keys::NONE);
+        return out;
+    }
+    for &(n, k) in segments.iter().cycle().skip(i % segments.len()) {
+        if out.len() as u64 >= ticks {
+            break;
+        }
+        let take = n.min(ticks - out.len() as u64);
+        out.extend(std::iter::repeat_n(k, take as usize));
+    }
+    out
 }
 
 #[derive(Args)]
@@ -60,18 +88,27 @@ struct Csv {
 }
 
 impl Csv {
-    fn row(&mut self, tick: u64, w: &World, v: &world::Vehicle) -> Result<()> {
-        if self.closed {
-            return Ok(());
+    /// The rows of tick `tick`: vehicle 0's, or (`many`) every vehicle's with its id.
+    fn rows(&mut self, tick: u64, w: &World, many: bool) -> Result<()> {
+        for v in w.vehicles() {
+            if self.closed || (!many && v.id != 0) {
+                continue;
+            }
+            let s = &v.state;
+            let y = w.altitude(s);
+            let id = if many {
+                format!("{},", v.id)
+            } else {
+                String::new()
+            };
+            let r = writeln!(
+                self.out,
+                "{tick},{id}{},{},{y},{},{}",
+                s.x, s.z, s.speed, s.heading
+            );
+            self.check(r)?;
         }
-        let s = &v.state;
-        let y = w.altitude(s);
-        let r = writeln!(
-            self.out,
-            "{tick},{},{},{y},{},{}",
-            s.x, s.z, s.speed, s.heading
-        );
-        self.check(r)
+        Ok(())
     }
 
     fn check(&mut self, r: io::Result<()>) -> Result<()> {
@@ -92,6 +129,8 @@ pub fn simulate(args: SimulateArgs) -> Result<()> {
     let script =
         script::parse_bytes(&text).with_context(|| format!("{}", args.inputs.display()))?;
     let terrain = load(&args.dir)?;
+    let total = args.ticks.unwrap_or_else(|| script.keys().count() as u64);
+    let many = args.vehicles > 1;
     let mut world = World::new(terrain.clone());
     world.add(0, world::start_state(&terrain, 0))?;
     let mut csv = match &args.csv {
@@ -108,9 +147,14 @@ pub fn simulate(args: SimulateArgs) -> Result<()> {
             closed: false,
         },
     };
-    let r = writeln!(csv.out, "tick,x,z,y,speed,heading");
+    let header = if many {
+        "tick,vehicle,x,z,y,speed,heading"
+    } else {
+        "tick,x,z,y,speed,heading"
+    };
+    let r = writeln!(csv.out, "{header}");
     csv.check(r)?;
-    csv.row(0, &world, &world.vehicles()[0])?;
+    csv.rows(0, &world, many)?;
     let mut driver = match &args.record {
         Some(path) => {
             let file =
@@ -123,12 +167,29 @@ pub fn simulate(args: SimulateArgs) -> Result<()> {
         }
         None => Driver::Plain(world),
     };
+    // Each vehicle's keys from its join on (vehicle i joins at tick 100 i).
+    let join_at = |i: u16| u64::from(i) * 100;
+    let keys: Vec<Vec<Keys>> = (0..args.vehicles)
+        .map(|i| keys_of(&script, usize::from(i), total.saturating_sub(join_at(i))))
+        .collect();
     let mut inputs = Inputs::new();
-    for keys in script.keys() {
-        inputs.set(0, keys);
+    for tick in 0..total {
+        for i in 1..args.vehicles {
+            if join_at(i) == tick {
+                driver
+                    .join(i, world::start_state(&terrain, u32::from(i)))
+                    .context("writing the recording")?;
+            }
+        }
+        for (i, k) in keys.iter().enumerate() {
+            let i = i as u16;
+            if let Some(&k) = tick.checked_sub(join_at(i)).and_then(|t| k.get(t as usize)) {
+                inputs.set(i, k);
+            }
+        }
         driver.step(&inputs).context("writing the recording")?;
         let w = driver.world();
-        csv.row(w.tick(), w, &w.vehicles()[0])?;
+        csv.rows(w.tick(), w, many)?;
     }
     let r = csv.out.flush();
     csv.check(r)?;
@@ -167,6 +228,14 @@ impl Driver {
             }
             Driver::Recorded(r) => r.step(inputs),
         }
+    }
+
+    fn join(&mut self, id: u16, state: roam_server::sim::physics::VehicleState) -> Result<()> {
+        match self {
+            Driver::Plain(w) => w.add(id, state)?,
+            Driver::Recorded(r) => r.join(id, state)?,
+        }
+        Ok(())
     }
 
     fn world(&self) -> &World {

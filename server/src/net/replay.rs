@@ -33,11 +33,91 @@ use crate::sim::watch::{Control, Status, Watch};
 use crate::sim::world::World;
 use crate::sim::world_core::Snapshot;
 
-/// A recording to serve, opened ([`crate::sim::watch::open_bytes`]), and the token whose
-/// viewer holds the controls (`--control`).
+/// A recording to serve, opened ([`crate::sim::watch::open_file`], or [`open_following`]
+/// for one still being written), and the token whose viewer holds the controls
+/// (`--control`).
 pub struct Replaying {
     pub watch: Watch<Arc<Terrain>>,
     pub control_token: Option<String>,
+    /// The file followed as it grows (`--follow`).
+    pub follow: Option<Follower>,
+}
+
+/// How often a followed file is read for more, in world ticks (250 ms).
+const FOLLOW_EVERY: u64 = 25;
+
+/// A recording file followed as its server writes it: read for more every
+/// [`FOLLOW_EVERY`] ticks, its whole records handed to the [`Watch`].
+pub struct Follower {
+    path: std::path::PathBuf,
+    file: std::fs::File,
+    reader: crate::sim::recording::Reader,
+}
+
+impl Follower {
+    /// Reads what the file has gained and hands its whole records to `watch`. An error
+    /// reading it ends the following (logged): the valid part stays what it was.
+    fn poll(&mut self, watch: &mut Watch<Arc<Terrain>>) -> Result<(), String> {
+        use std::io::Read;
+        let room = crate::sim::recording::MAX_FILE_BYTES.saturating_sub(self.reader.len());
+        let mut more = Vec::new();
+        (&mut self.file)
+            .take(room + 1)
+            .read_to_end(&mut more)
+            .map_err(|e| format!("reading {}: {e}", self.path.display()))?;
+        if more.is_empty() {
+            return Ok(());
+        }
+        if more.len() as u64 > room {
+            return Err(format!(
+                "{} grew past the {} bytes a recording may have",
+                self.path.display(),
+                crate::sim::recording::MAX_FILE_BYTES
+            ));
+        }
+        let mut events = Vec::new();
+        let damaged = self.reader.feed(&more, &mut events).err();
+        watch.append(&events, damaged, self.reader.cut_at());
+        Ok(())
+    }
+}
+
+/// Opens `path` to watch as it grows (`--follow`): its valid part so far, and the
+/// [`Follower`] that reads the rest as it comes.
+pub fn open_following(
+    path: &std::path::Path,
+    ground: Arc<Terrain>,
+    data_hash: &[u8; 32],
+) -> Result<(Watch<Arc<Terrain>>, Follower), crate::sim::watch::OpenError> {
+    use crate::sim::recording::{MAX_FILE_BYTES, Reader, Recording};
+    use crate::sim::watch::OpenError;
+    use std::io::Read;
+    let mut file = std::fs::File::open(path)?;
+    let mut bytes = Vec::new();
+    (&mut file)
+        .take(MAX_FILE_BYTES + 1)
+        .read_to_end(&mut bytes)?;
+    if bytes.len() as u64 > MAX_FILE_BYTES {
+        return Err(OpenError::TooLarge);
+    }
+    let mut reader = Reader::open(&bytes)?;
+    let mut events = Vec::new();
+    let damaged = reader.read(&mut events).err();
+    let recording = Recording {
+        header: reader.header().clone(),
+        events,
+        truncated_at: reader.cut_at(),
+    };
+    let mut watch = Watch::open(&recording, damaged, ground, data_hash)?;
+    watch.follow();
+    Ok((
+        watch,
+        Follower {
+            path: path.to_path_buf(),
+            file,
+            reader,
+        },
+    ))
 }
 
 /// What the viewer tasks share of a replay.
@@ -181,6 +261,7 @@ pub(super) fn start(
     let Replaying {
         mut watch,
         control_token,
+        mut follow,
     } = replaying;
     let first_vehicle = watch
         .world()
@@ -205,7 +286,17 @@ pub(super) fn start(
         .spawn(move || {
             let tick = Duration::from_millis(1000 / u64::from(STEPS_PER_SECOND));
             let mut due = Instant::now() + tick;
+            let mut ticks = 0u64;
             loop {
+                ticks += 1;
+                if ticks.is_multiple_of(FOLLOW_EVERY)
+                    && watch.growing()
+                    && let Some(f) = follow.as_mut()
+                    && let Err(why) = f.poll(&mut watch)
+                {
+                    tracing::warn!("no longer following the recording: {why}");
+                    follow = None;
+                }
                 let wait = due.saturating_duration_since(Instant::now());
                 if !wait.is_zero() {
                     std::thread::sleep(wait);

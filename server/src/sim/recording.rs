@@ -433,114 +433,161 @@ pub fn parse(bytes: &[u8]) -> Result<Recording, FormatError> {
 /// [`Recording::truncated_at`], as [`parse`] says it). A file whose header is wrong has no
 /// valid part: that is the error.
 pub fn parse_valid(bytes: &[u8]) -> Result<(Recording, Option<FormatError>), FormatError> {
-    let too_short = || FormatError::TruncatedHeader {
-        len: bytes.len() as u64,
-    };
-    match bytes.get(..8) {
-        Some(m) if m == MAGIC => {}
-        Some(_) => return Err(FormatError::Magic),
-        None if MAGIC.starts_with(bytes) => return Err(too_short()),
-        None => return Err(FormatError::Magic),
-    }
-    let version = bytes
-        .get(8..12)
-        .map(|v| u32::from_le_bytes([v[0], v[1], v[2], v[3]]))
-        .ok_or_else(too_short)?;
-    if !(MIN_VERSION..=VERSION).contains(&version) {
-        return Err(FormatError::Version { found: version });
-    }
-    let (kind, payload, at) = next_record(bytes, 12, version)?.ok_or_else(too_short)?;
-    if kind != HEADER {
-        return Err(corrupt(
-            12,
-            format!("the first record is of kind {kind}, not a header"),
-        ));
-    }
-    let header = parse_header(payload, 12, version)?;
-    let mut events: Vec<Event> = Vec::new();
-    let mut truncated_at = None;
-    let damaged = read_events(
-        bytes,
-        (at, version),
-        &header,
-        &mut events,
-        &mut truncated_at,
-    )
-    .err();
+    let mut reader = Reader::open(bytes)?;
+    let mut events = Vec::new();
+    let damaged = reader.read(&mut events).err();
     Ok((
         Recording {
-            header,
+            header: reader.header.clone(),
             events,
-            truncated_at,
+            truncated_at: reader.cut_at(),
         },
         damaged,
     ))
 }
 
-/// Reads the event records from byte `at` into `events`, up to the end of the bytes (a
-/// cut inside the last record: `truncated_at`) or the first wrong record (the error).
-fn read_events(
-    bytes: &[u8],
-    (mut at, version): (usize, u32),
-    header: &Header,
-    events: &mut Vec<Event>,
-    truncated_at: &mut Option<u64>,
-) -> Result<(), FormatError> {
-    let interval = u64::from(header.checkpoint_interval);
-    // The writer checkpoints every `interval` ticks: no event lies further than that past
-    // the last checkpoint, which also bounds how far a replay steps per record.
-    let mut checkpointed = header.start_tick;
-    while at < bytes.len() {
-        if let Some(Event::End { .. }) = events.last() {
-            return Err(corrupt(at, "bytes after the end record"));
-        }
-        let Some((kind, payload, end)) = next_record(bytes, at, version)? else {
-            *truncated_at = Some(at as u64);
-            break;
+/// A recording read as it grows (a session still being written): its header, then its
+/// event records as its bytes come ([`Reader::feed`]), each checked as [`parse`] checks
+/// it. It holds the bytes read (a recording is at most [`MAX_FILE_BYTES`]).
+#[derive(Clone, Debug)]
+pub struct Reader {
+    bytes: Vec<u8>,
+    version: u32,
+    header: Header,
+    /// Where the next record starts.
+    at: usize,
+    /// The last checkpoint's tick (the start's before any).
+    checkpointed: u64,
+    last_tick: Option<u64>,
+    ended: bool,
+}
+
+impl Reader {
+    /// Reads the magic, the version and the header from `bytes` (the file so far), and
+    /// keeps the rest for [`Reader::read`].
+    pub fn open(bytes: &[u8]) -> Result<Reader, FormatError> {
+        let too_short = || FormatError::TruncatedHeader {
+            len: bytes.len() as u64,
         };
-        let event = parse_event(kind, payload, at)?;
-        let tick = event.tick();
-        if tick < header.start_tick {
+        match bytes.get(..8) {
+            Some(m) if m == MAGIC => {}
+            Some(_) => return Err(FormatError::Magic),
+            None if MAGIC.starts_with(bytes) => return Err(too_short()),
+            None => return Err(FormatError::Magic),
+        }
+        let version = bytes
+            .get(8..12)
+            .map(|v| u32::from_le_bytes([v[0], v[1], v[2], v[3]]))
+            .ok_or_else(too_short)?;
+        if !(MIN_VERSION..=VERSION).contains(&version) {
+            return Err(FormatError::Version { found: version });
+        }
+        let (kind, payload, at) = next_record(bytes, 12, version)?.ok_or_else(too_short)?;
+        if kind != HEADER {
             return Err(corrupt(
-                at,
-                format!(
-                    "tick {tick} comes before the recording's start (tick {})",
-                    header.start_tick
-                ),
+                12,
+                format!("the first record is of kind {kind}, not a header"),
             ));
         }
-        if let Some(last) = events.last()
-            && tick < last.tick()
-        {
-            return Err(corrupt(
-                at,
-                format!("tick {tick} comes after tick {}", last.tick()),
-            ));
-        }
-        if tick > checkpointed + interval {
-            return Err(corrupt(
-                at,
-                format!(
-                    "tick {tick} is more than {interval} ticks past the last checkpoint (tick {checkpointed})"
-                ),
-            ));
-        }
-        if let Event::Checkpoint { .. } = event {
-            if tick != checkpointed + interval {
+        let header = parse_header(payload, 12, version)?;
+        Ok(Reader {
+            bytes: bytes.to_vec(),
+            version,
+            checkpointed: header.start_tick,
+            header,
+            at,
+            last_tick: None,
+            ended: false,
+        })
+    }
+
+    pub fn header(&self) -> &Header {
+        &self.header
+    }
+
+    /// Bytes taken so far.
+    pub fn len(&self) -> u64 {
+        self.bytes.len() as u64
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.bytes.is_empty()
+    }
+
+    /// Whether the end record has been read.
+    pub fn ended(&self) -> bool {
+        self.ended
+    }
+
+    /// Where a record the bytes end inside starts (`None`: they end between records).
+    pub fn cut_at(&self) -> Option<u64> {
+        (self.at < self.bytes.len()).then_some(self.at as u64)
+    }
+
+    /// Takes the file's next bytes and reads the whole records they complete into
+    /// `events`; an error for the first wrong record (nothing after it is read).
+    pub fn feed(&mut self, more: &[u8], events: &mut Vec<Event>) -> Result<(), FormatError> {
+        self.bytes.extend_from_slice(more);
+        self.read(events)
+    }
+
+    /// Reads the whole records not read yet into `events`, up to the end of the bytes (a
+    /// cut inside the last record: [`Reader::cut_at`]) or the first wrong record (the
+    /// error).
+    pub fn read(&mut self, events: &mut Vec<Event>) -> Result<(), FormatError> {
+        let interval = u64::from(self.header.checkpoint_interval);
+        let start = self.header.start_tick;
+        // The writer checkpoints every `interval` ticks: no event lies further than that
+        // past the last checkpoint, which also bounds how far a replay steps per record.
+        while self.at < self.bytes.len() {
+            let at = self.at;
+            if self.ended {
+                return Err(corrupt(at, "bytes after the end record"));
+            }
+            let Some((kind, payload, end)) = next_record(&self.bytes, at, self.version)? else {
+                break;
+            };
+            let event = parse_event(kind, payload, at)?;
+            let tick = event.tick();
+            if tick < start {
+                return Err(corrupt(
+                    at,
+                    format!("tick {tick} comes before the recording's start (tick {start})"),
+                ));
+            }
+            if let Some(last) = self.last_tick
+                && tick < last
+            {
+                return Err(corrupt(at, format!("tick {tick} comes after tick {last}")));
+            }
+            let checkpointed = self.checkpointed;
+            if tick > checkpointed + interval {
                 return Err(corrupt(
                     at,
                     format!(
-                        "a checkpoint at tick {tick}, expected tick {}",
-                        checkpointed + interval
+                        "tick {tick} is more than {interval} ticks past the last checkpoint (tick {checkpointed})"
                     ),
                 ));
             }
-            checkpointed = tick;
+            if let Event::Checkpoint { .. } = event {
+                if tick != checkpointed + interval {
+                    return Err(corrupt(
+                        at,
+                        format!(
+                            "a checkpoint at tick {tick}, expected tick {}",
+                            checkpointed + interval
+                        ),
+                    ));
+                }
+                self.checkpointed = tick;
+            }
+            self.ended = matches!(event, Event::End { .. });
+            self.last_tick = Some(tick);
+            events.push(event);
+            self.at = end;
         }
-        events.push(event);
-        at = end;
+        Ok(())
     }
-    Ok(())
 }
 
 pub use crate::sim::recorder::{RecordError, RecordedWorld, Recorder, header_of};

@@ -128,6 +128,12 @@ pub struct Watch<G> {
     events: Vec<Event>,
     /// A copy every [`KEY_EVERY`] ticks from the start, the first at the start.
     keys: Vec<Key<G>>,
+    /// The pass that checks the events as they come, after the last one, and the tick of
+    /// the next copy it keeps.
+    tail: Player<G>,
+    next_key: u64,
+    /// Events through the last checkpoint that matched.
+    verified: usize,
     player: Player<G>,
     /// The first event not played.
     next: usize,
@@ -141,6 +147,8 @@ pub struct Watch<G> {
     owed: u8,
     /// The end has been reached since the last [`Watch::take_ended`] said so.
     ended_told: bool,
+    /// Following a recording still being written ([`Watch::follow`]).
+    following: bool,
 }
 
 impl<G: Ground + Clone> Watch<G> {
@@ -157,75 +165,99 @@ impl<G: Ground + Clone> Watch<G> {
     ) -> Result<Watch<G>, ReplayError> {
         let start = recording.header.start_tick;
         let first = Player::start(recording, ground, data_hash)?;
-        let mut player = first.clone();
-        let mut keys = vec![Key {
-            player: first.clone(),
-            next: 0,
-        }];
-        let mut next_key = start + KEY_EVERY;
-        // The events through the last checkpoint that matched, if the replay fails.
-        let mut verified = 0;
-        let mut failed = None;
-        for (i, event) in recording.events.iter().enumerate() {
-            while event.tick() >= next_key {
-                player.run_to(next_key);
-                keys.push(Key {
-                    player: player.clone(),
-                    next: i,
-                });
-                next_key += KEY_EVERY;
-            }
-            if let Err(e) = player.play(event) {
-                failed = Some(e);
-                break;
-            }
-            if matches!(event, Event::Checkpoint { .. } | Event::End { .. }) {
-                verified = i + 1;
-            }
-        }
-        let (events, stop) = match (failed, damaged) {
-            (Some(e), _) => (&recording.events[..verified], Stop::Failed(e)),
-            (None, Some(e)) => (&recording.events[..], Stop::Damaged(e)),
-            (None, None) if player.ended() => (&recording.events[..], Stop::Closed),
-            (None, None) => (
-                &recording.events[..],
-                Stop::Open {
-                    cut_at: recording.truncated_at,
-                },
-            ),
-        };
-        let end = events.last().map_or(start, Event::tick);
-        keys.retain(|k| k.player.world().tick() <= end && k.next <= events.len());
-        let marks = events
-            .iter()
-            .filter_map(|e| match *e {
-                Event::Join { tick, vehicle, .. } => Some(Mark {
-                    tick,
-                    vehicle,
-                    join: true,
-                }),
-                Event::Leave { tick, vehicle } => Some(Mark {
-                    tick,
-                    vehicle,
-                    join: false,
-                }),
-                _ => None,
-            })
-            .collect();
-        Ok(Watch {
-            events: events.to_vec(),
-            keys,
+        let mut watch = Watch {
+            events: Vec::new(),
+            keys: vec![Key {
+                player: first.clone(),
+                next: 0,
+            }],
+            tail: first.clone(),
+            next_key: start + KEY_EVERY,
+            verified: 0,
             player: first,
             next: 0,
             start,
-            end,
-            stop,
-            marks,
+            end: start,
+            stop: Stop::Open { cut_at: None },
+            marks: Vec::new(),
             speed: NORMAL_SPEED,
             paused: false,
             owed: 0,
             ended_told: false,
-        })
+            following: false,
+        };
+        watch.append(&recording.events, damaged, recording.truncated_at);
+        Ok(watch)
+    }
+
+    /// Follows a recording still being written: [`Watch::append`] gives its new events as
+    /// they come, and its end is not said ended until its end record comes.
+    pub fn follow(&mut self) {
+        self.following = true;
+    }
+
+    /// Whether the valid part may still grow (no end record, nothing wrong yet).
+    pub fn growing(&self) -> bool {
+        matches!(self.stop, Stop::Open { .. })
+    }
+
+    /// More of the recording: `events` after those taken so far (from a
+    /// [`recording::Reader`]), played through once as at open (copies kept, checkpoints
+    /// checked); `damaged` the reader's error if it met a wrong record, and `cut_at` where
+    /// a partial record starts. Nothing once the valid part has stopped (an end record,
+    /// a damaged record, a failed replay). A clock held at the end plays on into them.
+    pub fn append(&mut self, events: &[Event], damaged: Option<FormatError>, cut_at: Option<u64>) {
+        if !self.growing() {
+            return;
+        }
+        let mut failed = None;
+        for event in events {
+            while event.tick() >= self.next_key {
+                self.tail.run_to(self.next_key);
+                self.keys.push(Key {
+                    player: self.tail.clone(),
+                    next: self.events.len(),
+                });
+                self.next_key += KEY_EVERY;
+            }
+            if let Err(e) = self.tail.play(event) {
+                failed = Some(e);
+                break;
+            }
+            self.events.push(*event);
+            match *event {
+                Event::Join { tick, vehicle, .. } => self.marks.push(Mark {
+                    tick,
+                    vehicle,
+                    join: true,
+                }),
+                Event::Leave { tick, vehicle } => self.marks.push(Mark {
+                    tick,
+                    vehicle,
+                    join: false,
+                }),
+                Event::Checkpoint { .. } | Event::End { .. } => self.verified = self.events.len(),
+                _ => {}
+            }
+        }
+        self.stop = match (failed, damaged) {
+            (Some(e), _) => {
+                // To the last checkpoint that matched.
+                self.events.truncate(self.verified);
+                Stop::Failed(e)
+            }
+            (None, Some(e)) => Stop::Damaged(e),
+            (None, None) if self.tail.ended() => Stop::Closed,
+            (None, None) => Stop::Open { cut_at },
+        };
+        self.end = self.events.last().map_or(self.start, Event::tick);
+        let (end, len) = (self.end, self.events.len());
+        self.keys
+            .retain(|k| k.player.world().tick() <= end && k.next <= len);
+        self.marks.retain(|m| m.tick <= end);
+        if self.next > len || self.player.world().tick() > end {
+            self.seek(end);
+        }
     }
 
     /// Where the valid part stops, and why.
@@ -305,6 +337,9 @@ impl<G: Ground + Clone> Watch<G> {
     /// The end, the first time it is reached since the last seek before it: its tick and
     /// the world's digest (the one `roam-server replay` prints for the file).
     pub fn take_ended(&mut self) -> Option<(u64, Digest)> {
+        if self.following && self.growing() {
+            return None;
+        }
         if self.at_end() && !self.ended_told {
             self.ended_told = true;
             let world = self.player.world();
