@@ -282,3 +282,69 @@ fn simulate_rejects_bad_input() {
     );
     check(&["simulate", "data/synth-65"], 2, &["--inputs"]);
 }
+
+#[test]
+fn simulate_drives_many_vehicles_for_any_length_and_records_them() {
+    let dir = TempDir::new("many");
+    fs::write(dir.path("drive.txt"), "250 U\n100 UR\n80 -\n").expect("write");
+    let rec = dir.path("many.rec");
+    let rec = rec.to_str().expect("UTF-8");
+    let csv = dir.path("many.csv");
+    let sim = check(
+        &[
+            "simulate",
+            "data/synth-257",
+            "--inputs",
+            dir.path("drive.txt").to_str().expect("UTF-8"),
+            "--vehicles",
+            "3",
+            "--ticks",
+            "1000",
+            "--record",
+            rec,
+            "--csv",
+            csv.to_str().expect("UTF-8"),
+        ],
+        0,
+        &["1000 ticks"],
+    );
+    // Every vehicle's row at every tick from its join (vehicle i at tick 100 i) on.
+    let text = fs::read_to_string(&csv).expect("the CSV");
+    let mut lines = text.lines();
+    assert_eq!(lines.next(), Some("tick,vehicle,x,z,y,speed,heading"));
+    let rows: Vec<(u64, u16)> = lines
+        .map(|l| {
+            let mut f = l.split(',');
+            let tick = f.next().and_then(|t| t.parse().ok()).expect("a tick");
+            let id = f.next().and_then(|v| v.parse().ok()).expect("a vehicle");
+            (tick, id)
+        })
+        .collect();
+    let expected: Vec<(u64, u16)> = (0..=1000u64)
+        .flat_map(|t| {
+            (0..3u16)
+                .filter(move |&i| t > 100 * u64::from(i) || i == 0)
+                .map(move |i| (t, i))
+        })
+        .collect();
+    assert_eq!(rows, expected);
+    // The recording replays to the same world, its joins in it.
+    let replayed = check(
+        &["replay", rec, "--data", "data/synth-257"],
+        0,
+        &["replayed 1000 ticks", "closed cleanly", "vehicle 2: x "],
+    );
+    assert_eq!(digest_of(&replayed), digest_of(&sim));
+    check(
+        &[
+            "simulate",
+            "data/synth-257",
+            "--inputs",
+            "x",
+            "--vehicles",
+            "0",
+        ],
+        2,
+        &["--vehicles"],
+    );
+}
