@@ -517,6 +517,11 @@ impl Supervisor {
             if let Some(ticks) = core.morph_ticks() {
                 fresh.set_morph(ticks);
             }
+            // A watched recording stays one across a reconnection (its status may come
+            // after the new connection's first frames).
+            if core.is_replay() {
+                fresh.set_replay();
+            }
             self.link
                 .bytes_before
                 .fetch_add(core.bytes_in(), Ordering::Relaxed);

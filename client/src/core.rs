@@ -348,6 +348,11 @@ impl ClientCore {
         self.replay = true;
     }
 
+    /// Whether the server said it serves a recording being watched.
+    pub fn is_replay(&self) -> bool {
+        self.replay
+    }
+
     /// The geomorphs' length in ticks, when the cut is drawn through a [`Morph`].
     pub fn morph_ticks(&self) -> Option<u16> {
         self.morph.as_ref().map(Morph::ticks)

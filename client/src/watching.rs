@@ -98,8 +98,10 @@ fn speed(quarters: u8) -> String {
 
 /// The HUD's line for a watched recording whose newest frame shows `tick`.
 pub fn replay_line(status: &ReplayStatus, tick: u64) -> String {
-    let at = tick.clamp(status.start, status.end) - status.start;
-    let length = status.end - status.start;
+    // (A server saying its end comes before its start is shown as a recording of none.)
+    let end = status.end.max(status.start);
+    let at = tick.clamp(status.start, end) - status.start;
+    let length = end - status.start;
     let state = if status.paused {
         "paused".to_string()
     } else if tick >= status.end {
@@ -219,5 +221,12 @@ mod tests {
                 .contains("×¼ · the controls are 127.0.0.1:5000's")
         );
         assert!(replay_line(&s, s.end).contains("at its end"));
+        // Nonsense from a server is shown, not a panic.
+        let upside_down = ReplayStatus {
+            start: 500,
+            end: 100,
+            ..s
+        };
+        assert!(replay_line(&upside_down, 0).starts_with("replay 0:00.0 / 0:00.0"));
     }
 }

@@ -199,10 +199,11 @@ impl App {
             Key::Character(c) => c.as_str(),
             _ => return,
         };
-        // A spectator's keys: following, and a watched recording's clock.
-        if !self.opts.driver {
+        // A spectator's keys (a replay serves everyone as one): following, and a watched
+        // recording's clock.
+        let status = self.shared.status();
+        if !self.opts.driver || status.replay.is_some() {
             if event.state == ElementState::Pressed && !event.repeat {
-                let status = self.shared.status();
                 let replay = status.replay.as_ref().map(|r| (r, self.tick));
                 match crate::watching::key(name, self.shared.vehicle(), &self.ids, replay) {
                     Some(crate::watching::Ask::Follow(v)) => {

@@ -38,8 +38,11 @@ pub use crate::tiles::{ColorLayout, MAX_TILE_BYTES, MAX_WINDOW};
 /// ([`ServerMessage::World`]). 7: a view change says whether the viewer draws its fog
 /// ([`ViewChange::fog`]): the server weighs far errors by the fog only while it does; and
 /// each colour tile's normals follow it ([`ServerMessage::NormalTile`],
-/// [`crate::normals`]), for lighting per pixel.
-pub const VERSION: u16 = 7;
+/// [`crate::normals`]), for lighting per pixel. 8: a spectator may follow another vehicle
+/// ([`ClientMessage::Follow`], [`ServerMessage::Following`]), and a server serving a
+/// recording (`serve --replay`) says how it stands and takes its controls
+/// ([`ServerMessage::Replay`], [`ClientMessage::Replay`]).
+pub const VERSION: u16 = 8;
 /// The largest message (a frame with its mesh).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.

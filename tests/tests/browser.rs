@@ -205,3 +205,66 @@ async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
     assert_eq!(back["vehicle"], vehicle, "{back}");
     assert_eq!(running.server.counts().joins, 2);
 }
+
+/// A recording served (`serve --replay`) is watched in the page: the page's hello (a
+/// driver's) is served as a spectator's, every frame decodes, the server's replay state
+/// reaches the page (the first viewer holds the controls) and its HUD line says it, and the
+/// frames show the recording's vehicles.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_page_watches_a_recording() {
+    use roam_server::sim::physics::Keys;
+    use roam_server::sim::recording::RecordedWorld;
+    use roam_server::sim::world::{self, Inputs, World};
+    let terrain = fixtures::kossou();
+    let mut w = World::new(terrain.clone());
+    for id in 0..2 {
+        w.add(id, world::start_state(&terrain, u32::from(id)))
+            .expect("on the map");
+    }
+    let mut rec = RecordedWorld::start(w, Vec::new(), terrain.content_hash(), 100)
+        .expect("memory does not fail");
+    let mut inputs = Inputs::new();
+    inputs.set(0, Keys::UP);
+    inputs.set(1, Keys::UP.union(Keys::LEFT));
+    const TICKS: u64 = 6000;
+    for _ in 0..TICKS {
+        rec.step(&inputs).expect("memory does not fail");
+    }
+    let (_, bytes) = rec.finish().expect("memory does not fail");
+    let watch =
+        roam_server::sim::watch::open_bytes(&bytes, terrain.clone(), &terrain.content_hash())
+            .expect("opens");
+    let running = fixtures::serve(terrain, |o| roam_server::net::Options {
+        web: Some(WebOptions {
+            listen: "127.0.0.1:0".parse().expect("an address"),
+            page: built_page(),
+            cert: WebCert::Made {
+                names: vec!["localhost".into(), "127.0.0.1".into()],
+            },
+        }),
+        replay: Some(roam_server::net::replay::Replaying {
+            watch,
+            control_token: None,
+            follow: None,
+        }),
+        ..o
+    });
+    let (r, _browser) = open(&running, &running.token.clone(), GpuPath::WebGl2).await;
+    assert!(r.get("error").is_none(), "the page failed: {r}");
+    assert!(r["frames"].as_u64() >= Some(FRAMES), "{r}");
+    assert_eq!(r["decode_errors"], 0, "{r}");
+    assert!(r["vehicle"].as_u64() < Some(2), "a recorded vehicle: {r}");
+    let replay = &r["replay"];
+    assert_eq!(replay["start"], 0, "{r}");
+    assert_eq!(replay["end"], TICKS, "{r}");
+    assert_eq!(
+        replay["control"], true,
+        "the only viewer holds the controls: {r}"
+    );
+    let line = replay["line"].as_str().expect("the HUD's line");
+    assert!(
+        line.starts_with("replay 0:") && line.contains("/ 1:00.0"),
+        "{line}"
+    );
+    assert!(r["tick"].as_u64() > Some(0), "the clock runs: {r}");
+}

@@ -108,13 +108,15 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
     );
     // Paused: frames keep coming, at one tick.
     s.replay_control(ReplayControl::Pause);
-    status_when(&s, "paused", |st| {
+    let st = status_when(&s, "paused", |st| {
         st.replay.as_ref().is_some_and(|r| r.paused)
     })
     .await;
-    let first = frame(&s).await.tick;
+    // The clock where it stopped (frames made before the pause may still come first).
+    let stopped = st.replay.expect("waited for").tick;
+    until_tick(&s, stopped).await;
     for _ in 0..10 {
-        assert_eq!(frame(&s).await.tick, first, "paused");
+        assert_eq!(frame(&s).await.tick, stopped, "paused");
     }
     // A seek, paused: the frames show the recorded world there.
     for target in [2500, 700, 1999, 2000, 5] {
@@ -137,12 +139,7 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
     );
     // To the next join, then a spectator follows the vehicle that joined.
     s.replay_control(ReplayControl::SeekMark { forward: true });
-    let f = loop {
-        let f = frame(&s).await;
-        if f.tick == 600 {
-            break f;
-        }
-    };
+    let f = until_tick(&s, 600).await;
     assert_eq!(f.vehicles.len(), 2, "the join shows from the next tick");
     seek_to(&s, 601).await;
     assert_ne!(s.vehicle(), 2);
@@ -157,12 +154,7 @@ async fn a_recorded_session_watched_as_recorded_with_its_controls() {
     s.replay_control(ReplayControl::Speed(32));
     s.replay_control(ReplayControl::Seek(TICKS - 100));
     s.replay_control(ReplayControl::Resume);
-    let f = loop {
-        let f = frame(&s).await;
-        if f.tick == TICKS {
-            break f;
-        }
-    };
+    let f = until_tick(&s, TICKS).await;
     assert_eq!(f.vehicles, seen(&worlds[TICKS as usize], &terrain));
     let outcome = roam_server::sim::replay::replay(
         &roam_server::sim::recording::parse(&bytes).expect("whole"),
@@ -230,10 +222,16 @@ async fn a_growing_recording_is_followed() {
 /// Asks for a seek to `target` and waits for the frame showing it.
 async fn seek_to(s: &Session, target: u64) -> roam_client::session::Received {
     s.replay_control(ReplayControl::Seek(target));
-    loop {
+    until_tick(s, target).await
+}
+
+/// The first frame showing `tick`, within 10 s of frames.
+async fn until_tick(s: &Session, tick: u64) -> roam_client::session::Received {
+    for _ in 0..600 {
         let f = frame(s).await;
-        if f.tick == target {
+        if f.tick == tick {
             return f;
         }
     }
+    panic!("no frame showed tick {tick}");
 }

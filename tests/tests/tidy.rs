@@ -145,6 +145,7 @@ fn may_read_a_clock(f: &Path) -> bool {
         "client/src/window.rs",
         "client/src/headless.rs",
         "client/src/bench/mod.rs",
+        "client/src/bench/watch.rs",
         "client/src/main.rs",
         "link/src/",
         "tests/",

@@ -558,6 +558,16 @@ impl App {
             "backend": format!("{:?}", self.gfx.gpu.adapter.backend),
             "triangles": self.renderer.triangles(),
             "vehicle": l.welcome.vehicle,
+            "tick": self.tick,
+            // Watching a recording: what the server said of it, and the HUD's line.
+            "replay": l.replay.as_ref().map(|r| serde_json::json!({
+                "start": r.start,
+                "end": r.end,
+                "speed": r.speed,
+                "paused": r.paused,
+                "control": r.control,
+                "line": roam_client::watching::replay_line(r, self.tick),
+            })),
             "edge": l.edges.current().url,
             "edges": l.edges.len(),
             "speed": n.speed,

@@ -596,11 +596,16 @@ async fn serve(live: &Shared, joined: Joined) -> End {
             l.color_bytes_before += l.colors.bytes();
             let budget = l.core.budget();
             let morph = l.core.morph_ticks();
+            let replay = l.core.is_replay();
             match ClientCore::new(&welcome, budget) {
                 Some(core) => {
                     l.core = core;
                     if let Some(ticks) = morph {
                         l.core.set_morph(ticks);
+                    }
+                    // A watched recording stays one across a reconnection.
+                    if replay {
+                        l.core.set_replay();
                     }
                 }
                 None => {

@@ -136,11 +136,13 @@ pub struct ServeArgs {
     #[arg(long, value_name = "FILE")]
     pub replay: Option<PathBuf>,
     /// With --replay: the viewer joining with this token (instead of the join token)
-    /// holds the controls. Without it, the first viewer to join does (then the next).
+    /// holds the controls (the first of them still there; nobody while none is). Without
+    /// it, the first viewer to join does (then the next).
     #[arg(long, value_name = "TOKEN", requires = "replay")]
     pub control: Option<String>,
     /// With --replay: the recording is still being written (a session going on): watch it
-    /// up to its newest whole tick and follow it as it grows, until its end record.
+    /// from its newest whole tick on, following it as it grows, until its end record
+    /// (seek back as in any recording).
     #[arg(long, requires = "replay")]
     pub follow: bool,
 }

@@ -42,23 +42,46 @@ pub struct SimulateArgs {
     pub ticks: Option<u64>,
 }
 
-/// Vehicle `i`'s keys at each tick from its join on: `script` from its segment `i` (modulo
-/// their count), round again, for `ticks` ticks.
-fn keys_of(script: &script::Script, i: usize, ticks: u64) -> Vec<Keys> {
-    let segments = &script.segments;
-    let mut out = Vec::new();
-    if segments.is_empty() {
-        out.resize(ticks as usize, Keys::NONE);
-        return out;
-    }
-    for &(n, k) in segments.iter().cycle().skip(i % segments.len()) {
-        if out.len() as u64 >= ticks {
-            break;
+/// A script played round again from one of its segments on: a vehicle's keys, a tick at a
+/// time (no buffer the run's length).
+struct Looped<'a> {
+    segments: &'a [(u64, Keys)],
+    at: usize,
+    left: u64,
+}
+
+impl<'a> Looped<'a> {
+    /// `script` from its segment `i` (modulo their count) on.
+    fn new(script: &'a script::Script, i: usize) -> Looped<'a> {
+        let segments = &script.segments[..];
+        let at = if segments.is_empty() {
+            0
+        } else {
+            i % segments.len()
+        };
+        Looped {
+            segments,
+            at,
+            left: segments.get(at).map_or(0, |s| s.0),
         }
-        let take = n.min(ticks - out.len() as u64);
-        out.extend(std::iter::repeat_n(k, take as usize));
     }
-    out
+
+    /// The next tick's keys (none for an empty script).
+    fn next_keys(&mut self) -> Keys {
+        // Segments of no ticks are skipped; a script of only those holds no keys.
+        for _ in 0..=self.segments.len() {
+            if self.left > 0 {
+                self.left -= 1;
+                return self.segments[self.at].1;
+            }
+            if self.segments.is_empty() {
+                break;
+            }
+            self.at = (self.at + 1) % self.segments.len();
+            self.left = self.segments[self.at].0;
+        }
+        Keys::NONE
+    }
 }
 
 #[derive(Args)]
@@ -169,8 +192,8 @@ pub fn simulate(args: SimulateArgs) -> Result<()> {
     };
     // Each vehicle's keys from its join on (vehicle i joins at tick 100 i).
     let join_at = |i: u16| u64::from(i) * 100;
-    let keys: Vec<Vec<Keys>> = (0..args.vehicles)
-        .map(|i| keys_of(&script, usize::from(i), total.saturating_sub(join_at(i))))
+    let mut keys: Vec<Looped> = (0..args.vehicles)
+        .map(|i| Looped::new(&script, usize::from(i)))
         .collect();
     let mut inputs = Inputs::new();
     for tick in 0..total {
@@ -181,10 +204,10 @@ pub fn simulate(args: SimulateArgs) -> Result<()> {
                     .context("writing the recording")?;
             }
         }
-        for (i, k) in keys.iter().enumerate() {
+        for (i, k) in keys.iter_mut().enumerate() {
             let i = i as u16;
-            if let Some(&k) = tick.checked_sub(join_at(i)).and_then(|t| k.get(t as usize)) {
-                inputs.set(i, k);
+            if tick >= join_at(i) {
+                inputs.set(i, k.next_keys());
             }
         }
         driver.step(&inputs).context("writing the recording")?;

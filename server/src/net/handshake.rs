@@ -412,7 +412,8 @@ const REPLACE_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
     if let Some(replay) = &shared.replay {
         // Watching a recording: everyone is a spectator, of the vehicle asked for if it is
-        // there, else the first there, else the first the recording has.
+        // there, else the first there, else the first the recording has (or, a session
+        // still empty, vehicle 0: the frames follow the first to come).
         let follow = match hello.role {
             Role::Spectator { follow } => follow,
             Role::Driver => None,
@@ -423,7 +424,7 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
             .filter(|&id| there(id))
             .or_else(|| snap.vehicles.first().map(|v| v.id))
             .or(replay.first_vehicle)
-            .ok_or_else(|| Refusal::Unavailable("the recording has no vehicle".into()))?;
+            .unwrap_or(0);
         return Ok(Joined {
             vehicle,
             driver: false,

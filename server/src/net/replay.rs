@@ -5,12 +5,12 @@
 //! recorded.
 //!
 //! **One clock, one holder of the controls.** The viewers share the replay's clock. The
-//! controls ([`ReplayControl`]) are heeded from one viewer: the first to join that
-//! presented the `--control` token, or without one the first to join still connected;
-//! when it leaves, the next. Each viewer is told the state ([`ReplayStatus`]: the valid
-//! part, the speed, paused, whether it holds the controls and who does) at its welcome
-//! and whenever it changes other than by the clock running (the clock is each frame's
-//! tick), a seek included.
+//! controls ([`ReplayControl`]) are heeded from one viewer: with `--control`, the first
+//! still connected that presented its token (nobody while none is there: the join token
+//! alone never steers); without, the first to join still connected, then the next. Each
+//! viewer is told the state ([`ReplayStatus`]: the valid part, the speed, paused, whether
+//! it holds the controls and who does) at its welcome and whenever it changes other than
+//! by the clock (the clock is each frame's tick).
 //!
 //! **The thread** wakes every 10 ms as the live world's does, takes the controls that came,
 //! moves the clock by the speed, publishes the snapshot (the same one while paused: frames
@@ -110,6 +110,8 @@ pub fn open_following(
     };
     let mut watch = Watch::open(&recording, damaged, ground, data_hash)?;
     watch.follow();
+    // Watched live: from the newest whole tick, on as the file grows.
+    watch.seek(watch.status().end);
     Ok((
         watch,
         Follower {
@@ -167,13 +169,14 @@ impl ReplayShared {
         }
     }
 
-    /// The holder: the first with the control token, else the first.
+    /// The holder: with a control token, the first viewer that presented it (none while
+    /// none there); without, the first.
     fn elect(&self, viewers: &[(u64, String, bool)]) {
-        let holder = viewers
-            .iter()
-            .find(|v| v.2)
-            .or_else(|| viewers.first())
-            .map_or(0, |v| v.0);
+        let holder = match self.control_token {
+            Some(_) => viewers.iter().find(|v| v.2),
+            None => viewers.first(),
+        }
+        .map_or(0, |v| v.0);
         self.holder
             .send_if_modified(|h| std::mem::replace(h, holder) != holder);
     }
@@ -295,6 +298,7 @@ pub(super) fn start(
                     && let Err(why) = f.poll(&mut watch)
                 {
                     tracing::warn!("no longer following the recording: {why}");
+                    watch.unfollow();
                     follow = None;
                 }
                 let wait = due.saturating_duration_since(Instant::now());

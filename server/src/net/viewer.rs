@@ -154,6 +154,13 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         .replay
         .as_ref()
         .map(|r| r.enter(peer.to_string(), joined.controller));
+    // A spectator is told whom its frames follow when that changes (the newest, in order).
+    let _following = (!driver).then(|| {
+        AbortOnDrop(tokio::spawn(tell_following(
+            send.clone(),
+            follow.subscribe(),
+        )))
+    });
     let _tell = match (&shared.replay, &replay_seat) {
         (Some(r), Some(seat)) => Some(AbortOnDrop(tokio::spawn(super::replay::tell(
             send.clone(),
@@ -190,7 +197,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
             core,
             rate,
             (&follow, driver, replay_seat.as_ref().map(|s| s.id)),
-            (&sent, &send),
+            &sent,
         ) => {
             match end {
                 FramesEnd::ConnectionLost => {
@@ -283,6 +290,21 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     drop(replaced);
     if let Some(done) = answer {
         let _ = done.send(()); // the vehicle's hold is on its way to the world
+    }
+}
+
+/// Tells a spectator the vehicle its frames follow each time that changes (a switch
+/// asked for, or a replay's vehicle gone): one writer, so the newest is said last.
+async fn tell_following(
+    send: Arc<tokio::sync::Mutex<SendStream>>,
+    mut followed: tokio::sync::watch::Receiver<VehicleId>,
+) {
+    while followed.changed().await.is_ok() {
+        let to = *followed.borrow_and_update();
+        let msg = ServerMessage::Following(to);
+        if send.lock().await.write_msg(&msg).await.is_err() {
+            return;
+        }
     }
 }
 
@@ -470,10 +492,7 @@ async fn frames(
     core: ViewerCore,
     rate: u16,
     (follow, driver, replay): (&tokio::sync::watch::Sender<VehicleId>, bool, Option<u64>),
-    (sent, send): (
-        &tokio::sync::watch::Sender<u64>,
-        &Arc<tokio::sync::Mutex<SendStream>>,
-    ),
+    sent: &tokio::sync::watch::Sender<u64>,
 ) -> FramesEnd {
     let mut vehicle = *follow.borrow();
     // Where the followed vehicle was last: a replay's camera stays there while it has none
@@ -514,16 +533,9 @@ async fn frames(
             _ => None,
         };
         if let Some(to) = switch {
+            // The viewer is told by `tell_following`, the newest switch once.
             vehicle = to;
             follow.send_replace(to);
-            let send = send.clone();
-            tokio::spawn(async move {
-                let _ = send
-                    .lock()
-                    .await
-                    .write_msg(&ServerMessage::Following(to))
-                    .await;
-            });
         }
         let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
             Some(v) => v.state,

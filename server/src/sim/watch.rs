@@ -196,6 +196,11 @@ impl<G: Ground + Clone> Watch<G> {
         self.following = true;
     }
 
+    /// Stops following (the file can no longer be read): its end is the end.
+    pub fn unfollow(&mut self) {
+        self.following = false;
+    }
+
     /// Whether the valid part may still grow (no end record, nothing wrong yet).
     pub fn growing(&self) -> bool {
         matches!(self.stop, Stop::Open { .. })
@@ -242,8 +247,14 @@ impl<G: Ground + Clone> Watch<G> {
         }
         self.stop = match (failed, damaged) {
             (Some(e), _) => {
-                // To the last checkpoint that matched.
+                // To the last checkpoint that matched (a join or leave recorded after it,
+                // at its tick, goes too).
                 self.events.truncate(self.verified);
+                let joins_and_leaves = self
+                    .events
+                    .iter()
+                    .filter(|e| matches!(e, Event::Join { .. } | Event::Leave { .. }));
+                self.marks.truncate(joins_and_leaves.count());
                 Stop::Failed(e)
             }
             (None, Some(e)) => Stop::Damaged(e),
@@ -254,7 +265,6 @@ impl<G: Ground + Clone> Watch<G> {
         let (end, len) = (self.end, self.events.len());
         self.keys
             .retain(|k| k.player.world().tick() <= end && k.next <= len);
-        self.marks.retain(|m| m.tick <= end);
         if self.next > len || self.player.world().tick() > end {
             self.seek(end);
         }
