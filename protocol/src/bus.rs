@@ -5,7 +5,7 @@
 //! the field, never a panic.
 //!
 //! ```text
-//! edge ──ask (request-reply: hello every ½ s, join, resume, leave, hold)──► world
+//! edge ──ask (request-reply: hello every ½ s, join, resume, leave, hold, replay)──► world
 //! edge ──keys (publish: its drivers' key states, all it had queued, as one message)──► world
 //! edge ◄──snapshot (publish, each tick: supersedes the one before)── world
 //! ```
@@ -107,6 +107,19 @@ pub struct Snapshot {
     /// Vehicles held for a driver whose connection dropped, the oldest hold first.
     #[serde(deserialize_with = "held")]
     pub held: Vec<u16>,
+    /// The world is a recording being watched (`world --replay`): how its clock stands.
+    pub replay: Option<Replay>,
+}
+
+/// How a watched recording's clock stands ([`Snapshot::replay`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Replay {
+    /// The valid part, first and last tick.
+    pub start: u64,
+    pub end: u64,
+    /// Quarters (4: 1×).
+    pub speed: u8,
+    pub paused: bool,
 }
 
 /// Drivers' key states, as their datagrams brought them to one edge: what the edge had
@@ -161,6 +174,9 @@ pub enum Ask {
         claim: u64,
         silent: u64,
     },
+    /// The viewer holding an edge's controls steers a watched recording's clock (a world
+    /// serving a recording: [`Snapshot::replay`]).
+    Replay(crate::messages::ReplayControl),
 }
 
 /// The world's answer to an [`Ask`].
@@ -193,7 +209,7 @@ pub enum Answer {
 }
 
 /// A snapshot of the most vehicles: `MAX_VEHICLES` of them at 42 bytes or less each.
-const MAX_SNAPSHOT: usize = 80 + MAX_VEHICLES * (1 + 4 * 9 + 3 + 5 + 3 + 3);
+const MAX_SNAPSHOT: usize = 120 + MAX_VEHICLES * (1 + 4 * 9 + 3 + 5 + 3 + 3);
 
 impl Checked for Snapshot {
     const MAX_BYTES: usize = MAX_SNAPSHOT;
@@ -263,8 +279,24 @@ mod tests {
             }],
             applied: vec![(3, 77)],
             held: vec![5, 9],
+            replay: None,
         };
         assert_eq!(decode::<Snapshot>(&bytes(&snap)).expect("decodes"), snap);
+        let watched = Snapshot {
+            replay: Some(Replay {
+                start: 7,
+                end: u64::MAX,
+                speed: 32,
+                paused: true,
+            }),
+            ..snap.clone()
+        };
+        assert_eq!(
+            decode::<Snapshot>(&bytes(&watched)).expect("decodes"),
+            watched
+        );
+        let ask = Ask::Replay(crate::messages::ReplayControl::Seek(u64::MAX));
+        assert_eq!(decode::<Ask>(&bytes(&ask)).expect("decodes"), ask);
         let keys = Keys {
             drivers: vec![
                 DriverKeys {
@@ -392,6 +424,7 @@ mod tests {
             ],
             applied: vec![(1, 2)],
             held: vec![1],
+            replay: Some(Replay::default()),
         });
         for n in 0..msg.len() {
             let _ = decode::<Snapshot>(&msg[..n]);

@@ -47,6 +47,7 @@ async fn start_world(
         record,
         hold: Duration::from_secs(30),
         max_vehicles: 64,
+        replay: None,
     };
     WorldServer::start(terrain.clone(), terrain.content_hash(), options, bus)
         .await
@@ -616,4 +617,113 @@ async fn the_world_gone_is_told_and_a_restarted_world_lets_drivers_go() {
     assert_eq!(remote.news().borrow().gone, None, "the world answers again");
     a.server.shutdown().await.expect("the edge stops");
     again.shutdown().await.expect("the world stops");
+}
+
+/// `world --replay`: the world serves a recording to its edges. A viewer on an edge (a
+/// driver's hello) watches it as a spectator: the replay's clock reaches the edge with the
+/// snapshots, the edge's first viewer holds its controls, and its seek, sent over the bus,
+/// lands every edge's frames on the recorded world; a join asked of the world is refused.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_world_serving_a_recording_is_watched_through_its_edge() {
+    use roam_client::session::{KeySource, Session, Taken};
+    use roam_protocol::messages::ReplayControl;
+    use roam_server::sim::physics::Keys;
+    use roam_server::sim::recording::RecordedWorld;
+    use roam_server::sim::world::{self, Inputs, Vehicle, World};
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    // Two drivers for 2,000 ticks, recorded, and the world at every tick.
+    let mut w = World::new(terrain.clone());
+    w.add(0, world::start_state(&terrain, 0))
+        .expect("on the map");
+    w.add(1, world::start_state(&terrain, 1))
+        .expect("on the map");
+    let mut rec = RecordedWorld::start(w, Vec::new(), terrain.content_hash(), 100)
+        .expect("memory does not fail");
+    let mut inputs = Inputs::new();
+    let mut worlds: Vec<Vec<Vehicle>> = Vec::new();
+    for tick in 0..2000u32 {
+        worlds.push(rec.world().vehicles().to_vec());
+        inputs.set(
+            0,
+            if tick % 300 < 200 {
+                Keys::UP
+            } else {
+                Keys::UP.union(Keys::LEFT)
+            },
+        );
+        inputs.set(1, Keys::UP.union(Keys::RIGHT));
+        rec.step(&inputs).expect("memory does not fail");
+    }
+    let (_, bytes) = rec.finish().expect("memory does not fail");
+    let watch =
+        roam_server::sim::watch::open_bytes(&bytes, terrain.clone(), &terrain.content_hash())
+            .expect("opens");
+    let bus = bus(&nats, "watched");
+    let options = WorldOptions {
+        record: None,
+        hold: Duration::from_secs(30),
+        max_vehicles: 64,
+        replay: Some(roam_server::net::replay::Replaying {
+            watch,
+            control_token: None,
+            follow: None,
+        }),
+    };
+    let world = WorldServer::start(terrain.clone(), terrain.content_hash(), options, &bus)
+        .await
+        .expect("the world starts");
+    let (a, remote) = edge_and_remote(terrain.clone(), &bus).await;
+    assert!(remote.join().await.is_err(), "no driving a recording");
+    // Until the edge has the world's snapshots, it does not know it serves a recording.
+    let mut clock = remote.replay_clock();
+    tokio::time::timeout(Duration::from_secs(10), clock.wait_for(|c| c.is_some()))
+        .await
+        .expect("the clock within 10 s")
+        .expect("the edge runs");
+    let hello = fixtures::driver_hello(&a.token);
+    let s = Session::join(a.server.addr, a.fingerprint, hello, KeySource::None)
+        .await
+        .expect("joins");
+    assert_eq!(s.welcome().ticket, None, "served as a spectator");
+    let st = fixtures::status_when(&s, "the replay's status", |st| st.replay.is_some()).await;
+    let rs = st.replay.expect("waited for");
+    assert_eq!((rs.start, rs.end), (0, 2000));
+    assert!(rs.control, "the edge's first viewer holds its controls");
+    let seen = |tick: u64| -> Vec<(u16, f64, f64)> {
+        worlds[tick as usize]
+            .iter()
+            .map(|v| (v.id, v.state.x, v.state.z))
+            .collect()
+    };
+    // The frames show the recorded world at their ticks.
+    for _ in 0..20 {
+        let f = fixtures::frame(&s).await;
+        let got: Vec<(u16, f64, f64)> = f.vehicles.iter().map(|v| (v.id, v.x, v.z)).collect();
+        assert_eq!(got, seen(f.tick), "tick {}", f.tick);
+    }
+    // Paused and sought through the bus: the world's clock, every edge's frames.
+    s.replay_control(ReplayControl::Pause);
+    s.replay_control(ReplayControl::Seek(1500));
+    let mut shown = None;
+    for _ in 0..600 {
+        if let Ok(Taken::Frame(f)) = s.next_frame(true).await
+            && f.tick == 1500
+        {
+            shown = Some(f);
+            break;
+        }
+    }
+    let f = shown.expect("a frame at tick 1500 within 600");
+    let got: Vec<(u16, f64, f64)> = f.vehicles.iter().map(|v| (v.id, v.x, v.z)).collect();
+    assert_eq!(got, seen(1500));
+    let mut snaps = world.watch();
+    when(&mut snaps, 5, "the world's clock at 1500", |w| {
+        w.tick == 1500
+    })
+    .await;
+    s.quit().await;
+    a.server.shutdown().await.expect("the edge stops");
+    world.shutdown().await.expect("the world stops");
 }

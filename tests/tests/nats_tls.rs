@@ -100,6 +100,7 @@ async fn a_world_and_an_edge_meet_over_tls_with_the_ca_given() {
         record: None,
         hold: Duration::from_secs(30),
         max_vehicles: 8,
+        replay: None,
     };
     let world = tokio::time::timeout(
         PROMPT,

@@ -73,6 +73,15 @@ pub struct WorldArgs {
     /// is refused.
     #[arg(long, default_value_t = 1024)]
     pub max_vehicles: usize,
+    /// Serve this recording to the edges instead of a live world, from its start at 1×:
+    /// every edge's viewers watch it as spectators, the viewer holding an edge's controls
+    /// (its first) pauses, speeds and seeks it for all; nothing is recorded. A recording of
+    /// another data set is refused.
+    #[arg(long, value_name = "FILE")]
+    pub replay: Option<PathBuf>,
+    /// With --replay: the recording is still being written: follow it as it grows.
+    #[arg(long, requires = "replay")]
+    pub follow: bool,
 }
 
 #[derive(Args)]
@@ -152,29 +161,55 @@ pub fn world(args: WorldArgs) -> Result<()> {
     );
     let served = super::net::open_served(&args.dir)?;
     let hash = super::net::data_hash(&args.dir, &served.terrain, &served.report)?;
-    let (record_dir, files) =
-        super::net::record_files(&args.state_dir, args.record_dir.as_deref())?;
-    let made = files.made();
     let terrain = Arc::new(served.terrain);
+    // A replay records nothing.
+    let replay = match &args.replay {
+        Some(file) => Some(super::net::open_replay(
+            file,
+            (&None, args.follow),
+            &terrain,
+            &hash,
+        )?),
+        None => None,
+    };
+    let recording = match replay {
+        None => Some(super::net::record_files(
+            &args.state_dir,
+            args.record_dir.as_deref(),
+        )?),
+        Some(_) => None,
+    };
+    let made = recording.as_ref().map(|(_, files)| files.made());
+    let (record_dir, record) = match recording {
+        Some((dir, files)) => (
+            Some(dir),
+            Some(RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash)),
+        ),
+        None => (None, None),
+    };
     let runtime = tokio::runtime::Runtime::new().context("starting the async runtime")?;
     runtime.block_on(async {
         let world = WorldServer::start(
             terrain,
             hash,
             WorldOptions {
-                record: Some(
-                    RecordOptions::new(files, args.record_max_bytes).with_terrain_hash(hash),
-                ),
+                record,
                 hold: Duration::from_secs_f64(args.hold),
                 max_vehicles: args.max_vehicles,
+                replay,
             },
             &bus,
         )
         .await?;
         say!("world {:?} on NATS at {}", bus.world, bus.url);
         say!("data set {}", roam_link::tls::hex(&hash));
-        let first = made.list().first().map(|p| p.display().to_string());
-        say!("recording to {}", first.as_deref().unwrap_or("nothing"));
+        match &made {
+            Some(made) => {
+                let first = made.list().first().map(|p| p.display().to_string());
+                say!("recording to {}", first.as_deref().unwrap_or("nothing"));
+            }
+            None => say!("serving a recording: its viewers watch it"),
+        }
         say!(
             "serve it with: roam-server edge {} --nats {} --world {}",
             args.dir.display(),
@@ -186,12 +221,15 @@ pub fn world(args: WorldArgs) -> Result<()> {
             .context("waiting for Ctrl-C")?;
         say!("shutting down");
         let world = world.shutdown().await?;
-        say!(
-            "stopped at tick {}; each recording file in {} replays with: roam-server replay FILE --data {}",
-            world.tick(),
-            record_dir.display(),
-            args.dir.display()
-        );
+        match &record_dir {
+            Some(record_dir) => say!(
+                "stopped at tick {}; each recording file in {} replays with: roam-server replay FILE --data {}",
+                world.tick(),
+                record_dir.display(),
+                args.dir.display()
+            ),
+            None => say!("stopped (the recording at tick {})", world.tick()),
+        }
         Ok(())
     })
 }

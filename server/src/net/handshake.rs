@@ -174,7 +174,7 @@ async fn handshake(
     // peer without the token never takes a seat), then a seat, or a refusal when full.
     drop(pending);
     // Watching a recording, everyone is a spectator.
-    let role = match shared.replay {
+    let role = match shared.watching() {
         Some(_) => "spectator",
         None => role_name(&hello.role),
     };
@@ -410,7 +410,7 @@ const REPLACE_WAIT: std::time::Duration = std::time::Duration::from_secs(1);
 /// A driver takes its held vehicle back with its ticket, or gets a new one; a spectator
 /// follows the vehicle it asked for (or the first).
 async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
-    if let Some(replay) = &shared.replay {
+    if let Some(replay) = shared.watching() {
         // Watching a recording: everyone is a spectator, of the vehicle asked for if it is
         // there, else the first there, else the first the recording has (or, a session
         // still empty, vehicle 0: the frames follow the first to come).

@@ -196,6 +196,12 @@ impl Shared {
         self.gate.lock().unwrap_or_else(|e| e.into_inner())
     }
 
+    /// The recording served now, if viewers watch one (`serve --replay`; on an edge,
+    /// while its world serves one).
+    fn watching(&self) -> Option<&Arc<replay::ReplayShared>> {
+        self.replay.as_ref().filter(|r| r.active())
+    }
+
     fn tickets(&self) -> MutexGuard<'_, HashMap<Ticket, handshake::Claim>> {
         self.tickets.lock().unwrap_or_else(|e| e.into_inner())
     }
@@ -390,11 +396,14 @@ impl Server {
             (None, Some(remote)) => {
                 let terrain = terrain.clone();
                 let runtime = tokio::runtime::Handle::current();
+                // The world may serve a recording (`world --replay`): watched here while
+                // its snapshots say so.
+                let replay = replay::ReplayShared::for_edge(remote.clone(), remote.replay_clock());
                 let thread = std::thread::Builder::new()
                     .name("roam-edge".into())
                     .spawn(move || bus::edge::run(remote, terrain, runtime, inbox_rx, snap_tx))
                     .map_err(ServeError::World)?;
-                (thread, None)
+                (thread, Some(replay))
             }
         };
         let (stop, shutdown) = watch::channel(false);

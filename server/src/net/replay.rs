@@ -122,10 +122,19 @@ pub fn open_following(
     ))
 }
 
+/// Where a replay's controls go: its thread here, or the world over the bus (an edge of
+/// `world --replay`).
+enum Controls {
+    Here(Mutex<Sender<Control>>),
+    World(Arc<super::bus::edge::Remote>),
+}
+
 /// What the viewer tasks share of a replay.
-pub(super) struct ReplayShared {
-    controls: Mutex<Sender<Control>>,
+pub struct ReplayShared {
+    controls: Controls,
     status: watch::Receiver<Status>,
+    /// An edge's: whether its world serves a recording now (a `serve --replay`'s always).
+    active: watch::Receiver<bool>,
     /// The viewers in the order they joined: an id, the peer in words, whether it
     /// presented the control token.
     viewers: Mutex<Vec<(u64, String, bool)>>,
@@ -139,7 +148,7 @@ pub(super) struct ReplayShared {
 }
 
 /// A viewer's place among those watching: it leaves the list when dropped.
-pub(super) struct Seat {
+pub struct Seat {
     shared: Arc<ReplayShared>,
     pub(super) id: u64,
 }
@@ -181,11 +190,36 @@ impl ReplayShared {
             .send_if_modified(|h| std::mem::replace(h, holder) != holder);
     }
 
+    /// Whether viewers are served a recording now (an edge's world may be a live one).
+    pub(super) fn active(&self) -> bool {
+        *self.active.borrow()
+    }
+
     /// Takes viewer `id`'s control: heeded only from the holder.
     pub(super) fn control(&self, id: u64, c: ReplayControl) -> bool {
         if *self.holder.borrow() != id {
             return false;
         }
+        match &self.controls {
+            Controls::Here(_) => self.control_here(c),
+            Controls::World(remote) => {
+                let remote = remote.clone();
+                tokio::spawn(async move {
+                    if let Err(why) = remote.replay_control(c).await {
+                        tracing::info!("a replay control not taken by the world: {why}");
+                    }
+                });
+                true
+            }
+        }
+    }
+
+    /// Takes a control for the replay's thread here, whoever it comes from (an edge of
+    /// `world --replay`, which heeds only its own holder's).
+    pub(super) fn control_here(&self, c: ReplayControl) -> bool {
+        let Controls::Here(tx) = &self.controls else {
+            return false;
+        };
         let c = match c {
             ReplayControl::Pause => Control::Pause,
             ReplayControl::Resume => Control::Resume,
@@ -193,8 +227,62 @@ impl ReplayShared {
             ReplayControl::Seek(t) => Control::Seek(t),
             ReplayControl::SeekMark { forward } => Control::SeekMark { forward },
         };
-        let tx = self.controls.lock().unwrap_or_else(|e| e.into_inner());
+        let tx = tx.lock().unwrap_or_else(|e| e.into_inner());
         tx.send(c).is_ok()
+    }
+
+    /// The clock as the bus carries it (`world --replay`'s snapshots).
+    pub(super) fn wire_status(&self) -> roam_protocol::bus::Replay {
+        let s = *self.status.borrow();
+        roam_protocol::bus::Replay {
+            start: s.start,
+            end: s.end,
+            speed: s.speed,
+            paused: s.paused,
+        }
+    }
+
+    /// An edge's share of its world's replay: active while the world's snapshots say it
+    /// serves a recording (`replay`: their clock, from [`super::bus::edge::Remote`]), the
+    /// controls sent to the world. Each edge has its holder (its first viewer).
+    pub(super) fn for_edge(
+        remote: Arc<super::bus::edge::Remote>,
+        mut replay: watch::Receiver<Option<roam_protocol::bus::Replay>>,
+    ) -> Arc<ReplayShared> {
+        let (status_tx, status) = watch::channel(Status::default());
+        let (active_tx, active) = watch::channel(replay.borrow().is_some());
+        tokio::spawn(async move {
+            loop {
+                let now = *replay.borrow_and_update();
+                active_tx
+                    .send_if_modified(|a| std::mem::replace(a, now.is_some()) != now.is_some());
+                if let Some(r) = now {
+                    status_tx.send_if_modified(|s| {
+                        let new = Status {
+                            tick: s.tick,
+                            start: r.start,
+                            end: r.end,
+                            speed: r.speed,
+                            paused: r.paused,
+                        };
+                        std::mem::replace(s, new) != new
+                    });
+                }
+                if replay.changed().await.is_err() {
+                    return;
+                }
+            }
+        });
+        Arc::new(ReplayShared {
+            controls: Controls::World(remote),
+            status,
+            active,
+            viewers: Mutex::new(Vec::new()),
+            holder: watch::Sender::new(0),
+            control_token: None,
+            first_vehicle: None,
+            next_id: AtomicU64::new(0),
+        })
     }
 
     /// The state as viewer `id` is told it.
@@ -254,8 +342,9 @@ pub(super) async fn tell(
 }
 
 /// The world thread of a replay, started: plays `replaying` (see the module docs) until
-/// `inbox` closes; returns the shared state the viewer tasks use.
-pub(super) fn start(
+/// `inbox` closes; returns the shared state the viewer tasks (or `world --replay`'s
+/// answers to its edges) use.
+pub(crate) fn start(
     replaying: Replaying,
     inbox: Receiver<Inbound>,
     snapshots: watch::Sender<Arc<Snapshot>>,
@@ -276,8 +365,9 @@ pub(super) fn start(
     let (status_tx, status) = watch::channel(watch.status());
     snapshots.send_replace(Arc::new(watch.snapshot()));
     let shared = Arc::new(ReplayShared {
-        controls: Mutex::new(controls),
+        controls: Controls::Here(Mutex::new(controls)),
         status,
+        active: watch::channel(true).1,
         viewers: Mutex::new(Vec::new()),
         holder: watch::Sender::new(0),
         control_token,

@@ -151,8 +151,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     // Watching a recording: this viewer's place among those sharing its clock, and the
     // task telling it the replay's state.
     let replay_seat = shared
-        .replay
-        .as_ref()
+        .watching()
         .map(|r| r.enter(peer.to_string(), joined.controller));
     // A spectator is told whom its frames follow when that changes (the newest, in order).
     let _following = (!driver).then(|| {
@@ -529,7 +528,7 @@ async fn frames(
         // vehicle left follows the first there.
         let switch = match asked {
             Some(a) if !driver && a != vehicle && there(a) => Some(a),
-            _ if shared.replay.is_some() && !there(vehicle) => snap.vehicles.first().map(|v| v.id),
+            _ if replay.is_some() && !there(vehicle) => snap.vehicles.first().map(|v| v.id),
             _ => None,
         };
         if let Some(to) = switch {
@@ -539,7 +538,7 @@ async fn frames(
         }
         let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
             Some(v) => v.state,
-            None if shared.replay.is_some() => parked,
+            None if replay.is_some() => parked,
             // A new driver's vehicle appears with the next tick; a spectator's was there
             // when it joined.
             None if seen || !driver => return FramesEnd::VehicleLeft,
@@ -591,7 +590,7 @@ async fn frames(
                     let snap: Arc<Snapshot> = shared2.snapshots.borrow().clone();
                     let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
                         Some(v) => v.state,
-                        None if shared2.replay.is_some() => state,
+                        None if replay.is_some() => state,
                         None => return None,
                     };
                     let made = c.make_frame(&scene, &state);

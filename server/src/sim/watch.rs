@@ -102,7 +102,7 @@ pub enum Control {
 }
 
 /// Where the watching stands.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct Status {
     /// The clock: the tick shown.
     pub tick: u64,

@@ -86,6 +86,8 @@ pub struct Remote {
     /// gone, whatever its snapshots say.
     mismatch: std::sync::atomic::AtomicBool,
     news: watch::Sender<News>,
+    /// The world serves a recording (`world --replay`): its clock, from its snapshots.
+    replay: watch::Sender<Option<wire::Replay>>,
 }
 
 /// What [`tell_in_order`] asks.
@@ -131,6 +133,7 @@ impl Remote {
             heard: Mutex::new(tokio::time::Instant::now()),
             mismatch: Default::default(),
             news: watch::Sender::new(News::default()),
+            replay: watch::Sender::new(None),
         };
         let hello = remote.hello();
         let deadline = tokio::time::Instant::now() + wait;
@@ -234,6 +237,27 @@ impl Remote {
             edge: self.edge,
             addresses: lock(&self.addresses).clone(),
             vehicles,
+        }
+    }
+
+    /// Whether the world serves a recording, and its clock, as its snapshots say.
+    pub fn replay_clock(&self) -> watch::Receiver<Option<wire::Replay>> {
+        self.replay.subscribe()
+    }
+
+    /// Steers the world's recording (the viewer holding this edge's controls asked);
+    /// `Err` says why not.
+    pub async fn replay_control(
+        &self,
+        c: roam_protocol::messages::ReplayControl,
+    ) -> Result<(), String> {
+        match ask(&self.client, &self.subjects, &Ask::Replay(c)).await {
+            Ok(Answer::Done) => Ok(()),
+            Ok(Answer::Refused { reason }) => Err(reason),
+            Ok(other) => Err(format!(
+                "the world answered a replay control with {other:?}"
+            )),
+            Err(e) => Err(e.to_string()),
         }
     }
 
@@ -522,6 +546,9 @@ async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Sn
             Ok(s) => {
                 // Before the snapshot: a viewer task missing its vehicle in it knows why.
                 remote.heard_world(s.world);
+                remote
+                    .replay
+                    .send_if_modified(|r| std::mem::replace(r, s.replay) != s.replay);
                 snapshots.send_replace(from_wire(s));
             }
             Err(e) => malformed.note(&e),

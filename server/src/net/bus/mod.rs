@@ -272,7 +272,13 @@ async fn creds(
 
 /// A snapshot of world process `world` as it goes on the bus.
 pub fn to_wire(s: &Snapshot, world: u64) -> wire::Snapshot {
+    to_wire_watched(s, world, None)
+}
+
+/// [`to_wire`], with a watched recording's clock (`world --replay`).
+pub fn to_wire_watched(s: &Snapshot, world: u64, replay: Option<wire::Replay>) -> wire::Snapshot {
     wire::Snapshot {
+        replay,
         world,
         tick: s.tick,
         vehicles: s

@@ -28,7 +28,7 @@ use roam_protocol::bus::{Answer, Ask, Keys, MAX_EDGES, Subjects};
 use roam_protocol::messages::{Ticket, decode};
 use tokio::sync::{oneshot, watch};
 
-use super::{BusError, BusOptions, Malformed, encode, to_wire};
+use super::{BusError, BusOptions, Malformed, encode};
 use crate::Terrain;
 use crate::net::world_loop::{self, Inbound, WorldStats};
 use crate::sim::session::RecordOptions;
@@ -90,6 +90,10 @@ pub struct WorldOptions {
     pub hold: std::time::Duration,
     /// Vehicles at most, held ones included.
     pub max_vehicles: usize,
+    /// A recording to serve instead of a live world (`world --replay`): its clock goes
+    /// with every snapshot, the edges' controls come as [`Ask::Replay`], and joins are
+    /// refused (the edges serve every viewer as a spectator). `record` is not used.
+    pub replay: Option<crate::net::replay::Replaying>,
 }
 
 /// What the request tasks share.
@@ -107,6 +111,8 @@ struct State {
     inbox: Sender<Inbound>,
     snapshots: watch::Receiver<Arc<Snapshot>>,
     stats: Arc<WorldStats>,
+    /// The recording served (`world --replay`).
+    replay: Option<Arc<crate::net::replay::ReplayShared>>,
 }
 
 /// A running world.
@@ -147,15 +153,26 @@ impl WorldServer {
         let (inbox, inbox_rx) = std::sync::mpsc::channel();
         let (snap_tx, snapshots) = watch::channel(Arc::new(Snapshot::default()));
         let stats = Arc::new(WorldStats::default());
-        let thread = world_loop::start(
-            terrain,
-            options.record,
-            (options.hold, options.max_vehicles, true),
-            inbox_rx,
-            snap_tx,
-            stats.clone(),
-        )
-        .map_err(BusError::World)?;
+        let (thread, replay) = match options.replay {
+            Some(r) => {
+                let (thread, shared) =
+                    crate::net::replay::start(r, inbox_rx, snap_tx, stats.clone())
+                        .map_err(BusError::World)?;
+                (thread, Some(shared))
+            }
+            None => (
+                world_loop::start(
+                    terrain,
+                    options.record,
+                    (options.hold, options.max_vehicles, true),
+                    inbox_rx,
+                    snap_tx,
+                    stats.clone(),
+                )
+                .map_err(BusError::World)?,
+                None,
+            ),
+        };
         let state = Arc::new(State {
             drivers: Mutex::new(Drivers::default()),
             edges: Mutex::new(HashMap::new()),
@@ -165,6 +182,7 @@ impl WorldServer {
             inbox: inbox.clone(),
             snapshots: snapshots.clone(),
             stats: stats.clone(),
+            replay: replay.clone(),
         });
         let tasks = vec![
             tokio::spawn(answer_asks(asks, client.clone(), state.clone())),
@@ -173,7 +191,7 @@ impl WorldServer {
                 client.clone(),
                 subjects,
                 snapshots.clone(),
-                state.id,
+                (state.id, replay),
             )),
             tokio::spawn(watch_edges(client.clone(), state.clone())),
         ];
@@ -287,6 +305,14 @@ async fn answer(state: &State, ask: Ask) -> Answer {
                 edges: live_addresses(state),
             }
         }
+        Ask::Join | Ask::Resume { .. } if state.replay.is_some() => {
+            refused("the world serves a recording: its viewers watch it as spectators")
+        }
+        Ask::Replay(c) => match &state.replay {
+            Some(r) if r.control_here(c) => Answer::Done,
+            Some(_) => refused("the recording has stopped"),
+            None => refused("the world is live, not a recording"),
+        },
         Ask::Join => {
             // At the limit the world frees the oldest held vehicle first
             // ([`WorldCore::with_limit`]), in the order the joins reach it.
@@ -478,12 +504,16 @@ async fn publish(
     client: async_nats::Client,
     subjects: Subjects,
     mut snapshots: watch::Receiver<Arc<Snapshot>>,
-    world: u64,
+    (world, replay): (u64, Option<Arc<crate::net::replay::ReplayShared>>),
 ) {
     while snapshots.changed().await.is_ok() {
         let snap = snapshots.borrow_and_update().clone();
+        let clock = replay.as_ref().map(|r| r.wire_status());
         if let Err(e) = client
-            .publish(subjects.snapshots.clone(), encode(&to_wire(&snap, world)))
+            .publish(
+                subjects.snapshots.clone(),
+                encode(&super::to_wire_watched(&snap, world, clock)),
+            )
             .await
         {
             tracing::warn!(tick = snap.tick, "publishing the snapshot: {e}");
