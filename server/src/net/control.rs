@@ -178,6 +178,7 @@ pub(super) async fn stream_color(
         on: false,
     };
     want.set(true);
+    let mut parked: Option<(f64, f64)> = None;
     loop {
         tick.tick().await;
         let now = tokio::time::Instant::now();
@@ -193,7 +194,12 @@ pub(super) async fn stream_color(
                 .find(|v| v.id == vehicle)
                 .map(|v| (v.state.x / h_scale, v.state.z / h_scale))
         };
-        let Some(camera) = camera else { continue };
+        // With no vehicle (a replay sought to before anyone joined), the camera stays
+        // where it was, and so does the colour around it.
+        if camera.is_some() {
+            parked = camera;
+        }
+        let Some(camera) = parked else { continue };
         let mut msgs = Vec::new();
         let spent =
             shared
