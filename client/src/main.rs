@@ -493,25 +493,20 @@ async fn serve(
             options.limits.guard_deg = cli.guard_deg;
             options.normals = Some(Arc::new(normals));
             if let (Some(file), Some(hash)) = (&cli.replay, hash) {
-                let (watch, follow) = if cli.follow {
-                    let (w, f) = net::replay::open_following(file, truth.terrain.clone(), &hash)
-                        .with_context(|| format!("watching {}", file.display()))?;
-                    (w, Some(f))
-                } else {
-                    let w = roam_server::sim::watch::open_file(file, truth.terrain.clone(), &hash)
-                        .with_context(|| format!("watching {}", file.display()))?;
-                    (w, None)
-                };
+                let replaying = net::replay::Replaying::open(
+                    file,
+                    cli.follow,
+                    None,
+                    truth.terrain.clone(),
+                    &hash,
+                )
+                .with_context(|| format!("watching {}", file.display()))?;
                 eprintln!(
                     "replaying {}: {}",
                     file.display(),
-                    roam_server::sim::watch::describe(&watch)
+                    roam_server::sim::watch::describe(&replaying.watch)
                 );
-                options.replay = Some(net::replay::Replaying {
-                    watch,
-                    control_token: None,
-                    follow,
-                });
+                options.replay = Some(replaying);
             }
             let server = Server::start(
                 truth.terrain.clone(),

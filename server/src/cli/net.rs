@@ -544,28 +544,18 @@ pub fn open_replay(
     }
     let name = file.display();
     let started = std::time::Instant::now();
-    let (watch, follower) = if follow {
-        let (w, f) = net::replay::open_following(file, terrain.clone(), hash)
+    let replaying =
+        net::replay::Replaying::open(file, follow, control.clone(), terrain.clone(), hash)
             .with_context(|| format!("watching {name}"))?;
-        (w, Some(f))
-    } else {
-        let w = roam_server::sim::watch::open_file(file, terrain.clone(), hash)
-            .with_context(|| format!("watching {name}"))?;
-        (w, None)
-    };
     tracing::info!(
         "replaying {name}: {} (opened in {:.0} ms)",
-        roam_server::sim::watch::describe(&watch),
+        roam_server::sim::watch::describe(&replaying.watch),
         started.elapsed().as_secs_f64() * 1e3
     );
-    if follow && watch.growing() {
+    if follow && replaying.watch.growing() {
         tracing::info!("following {name} as it grows");
     }
-    Ok(net::replay::Replaying {
-        watch,
-        control_token: control.clone(),
-        follow: follower,
-    })
+    Ok(replaying)
 }
 
 pub fn serve(args: ServeArgs) -> Result<()> {

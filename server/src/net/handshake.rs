@@ -393,6 +393,21 @@ pub(super) struct Joined {
     pub controller: bool,
 }
 
+impl Joined {
+    /// A spectator following `vehicle`.
+    fn spectator(vehicle: VehicleId) -> Joined {
+        Joined {
+            vehicle,
+            driver: false,
+            ticket: None,
+            resumed: false,
+            claim: 0,
+            replaced: None,
+            controller: false,
+        }
+    }
+}
+
 /// What a ticket names: the vehicle, and how to end the connection driving it now.
 pub(super) struct Claim {
     pub(super) vehicle: VehicleId,
@@ -425,15 +440,7 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
             .or_else(|| snap.vehicles.first().map(|v| v.id))
             .or(replay.first_vehicle)
             .unwrap_or(0);
-        return Ok(Joined {
-            vehicle,
-            driver: false,
-            ticket: None,
-            resumed: false,
-            claim: 0,
-            replaced: None,
-            controller: false,
-        });
+        return Ok(Joined::spectator(vehicle));
     }
     if let Role::Spectator { follow } = hello.role {
         let snap = shared.snapshots.borrow().clone();
@@ -442,15 +449,7 @@ async fn join(shared: &Shared, hello: &Hello) -> Result<Joined, Refusal> {
             None => snap.vehicles.first(),
         };
         return match target {
-            Some(v) => Ok(Joined {
-                vehicle: v.id,
-                driver: false,
-                ticket: None,
-                resumed: false,
-                claim: 0,
-                replaced: None,
-                controller: false,
-            }),
+            Some(v) => Ok(Joined::spectator(v.id)),
             None => Err(Refusal::Unavailable("no vehicle to follow".into())),
         };
     }

@@ -20,7 +20,6 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
 
 use roam_protocol::messages::{ReplayControl, ReplayStatus, ServerMessage};
 use tokio::sync::watch;
@@ -28,7 +27,6 @@ use tokio::sync::watch;
 use super::link::SendStream;
 use super::world_loop::{Inbound, WorldStats};
 use crate::Terrain;
-use crate::sim::physics::STEPS_PER_SECOND;
 use crate::sim::watch::{Control, Status, Watch};
 use crate::sim::world::World;
 use crate::sim::world_core::Snapshot;
@@ -41,6 +39,30 @@ pub struct Replaying {
     pub control_token: Option<String>,
     /// The file followed as it grows (`--follow`).
     pub follow: Option<Follower>,
+}
+
+impl Replaying {
+    /// Opens `path` to serve: whole, or (`follow`) as it grows, from its newest tick
+    /// ([`open_following`]); the viewer presenting `control_token` holds the controls.
+    pub fn open(
+        path: &std::path::Path,
+        follow: bool,
+        control_token: Option<String>,
+        ground: Arc<Terrain>,
+        data_hash: &[u8; 32],
+    ) -> Result<Replaying, crate::sim::watch::OpenError> {
+        let (watch, follow) = if follow {
+            let (w, f) = open_following(path, ground, data_hash)?;
+            (w, Some(f))
+        } else {
+            (crate::sim::watch::open_file(path, ground, data_hash)?, None)
+        };
+        Ok(Replaying {
+            watch,
+            control_token,
+            follow,
+        })
+    }
 }
 
 /// How often a followed file is read for more, in world ticks (250 ms).
@@ -100,7 +122,7 @@ pub fn open_following(
     if bytes.len() as u64 > MAX_FILE_BYTES {
         return Err(OpenError::TooLarge);
     }
-    let mut reader = Reader::open(&bytes)?;
+    let mut reader = Reader::open_owned(bytes)?;
     let mut events = Vec::new();
     let damaged = reader.read(&mut events).err();
     let recording = Recording {
@@ -219,13 +241,6 @@ impl ReplayShared {
     pub(super) fn control_here(&self, c: ReplayControl) -> bool {
         let Controls::Here(tx) = &self.controls else {
             return false;
-        };
-        let c = match c {
-            ReplayControl::Pause => Control::Pause,
-            ReplayControl::Resume => Control::Resume,
-            ReplayControl::Speed(q) => Control::Speed(q),
-            ReplayControl::Seek(t) => Control::Seek(t),
-            ReplayControl::SeekMark { forward } => Control::SeekMark { forward },
         };
         let tx = tx.lock().unwrap_or_else(|e| e.into_inner());
         tx.send(c).is_ok()
@@ -377,8 +392,7 @@ pub(crate) fn start(
     let handle = std::thread::Builder::new()
         .name("roam-replay".into())
         .spawn(move || {
-            let tick = Duration::from_millis(1000 / u64::from(STEPS_PER_SECOND));
-            let mut due = Instant::now() + tick;
+            let mut pacer = super::world_loop::Pacer::new();
             let mut ticks = 0u64;
             loop {
                 ticks += 1;
@@ -391,10 +405,7 @@ pub(crate) fn start(
                     watch.unfollow();
                     follow = None;
                 }
-                let wait = due.saturating_duration_since(Instant::now());
-                if !wait.is_zero() {
-                    std::thread::sleep(wait);
-                }
+                pacer.wait();
                 // Nothing comes on the inbox from spectators; its closing stops the thread.
                 loop {
                     match inbox.try_recv() {
@@ -403,6 +414,7 @@ pub(crate) fn start(
                         Err(TryRecvError::Disconnected) => return watch.world().clone(),
                     }
                 }
+                pacer.begin(&stats);
                 let mut told = false;
                 while let Ok(c) = controls_rx.try_recv() {
                     watch.control(c);
@@ -421,12 +433,7 @@ pub(crate) fn start(
                     *s = now;
                     changed
                 });
-                stats.count_tick();
-                due += tick;
-                let now = Instant::now();
-                if now > due + Duration::from_millis(250) {
-                    due = now + tick;
-                }
+                pacer.made(&stats);
             }
         })?;
     Ok((handle, shared))

@@ -60,11 +60,6 @@ impl WorldStats {
         self.late.load(Ordering::Relaxed)
     }
 
-    /// A tick made (by a replay's thread, which counts as the live world's does).
-    pub(super) fn count_tick(&self) {
-        self.ticks.fetch_add(1, Ordering::Relaxed);
-    }
-
     /// The held vehicles joins freed since the last call.
     pub fn take_evicted(&self) -> Vec<VehicleId> {
         std::mem::take(&mut *self.evicted.lock().unwrap_or_else(|e| e.into_inner()))
@@ -160,8 +155,7 @@ pub fn run(
         log_all(core);
     };
     log_all(&mut core);
-    let tick = Duration::from_millis(1000 / u64::from(STEPS_PER_SECOND));
-    let mut due = Instant::now() + tick;
+    let mut pacer = Pacer::new();
     loop {
         // Asleep until the tick is due, then the events that came meanwhile, in order: a
         // key datagram does not wake this thread (every driver sends 100 a second; woken
@@ -169,10 +163,7 @@ pub fn run(
         // server's core), and an event belongs to the tick it arrived before either way.
         // A join's answer waits for the tick (at most 10 ms; its vehicle appears with the
         // tick's snapshot anyway).
-        let wait = due.saturating_duration_since(Instant::now());
-        if !wait.is_zero() {
-            std::thread::sleep(wait);
-        }
+        pacer.wait();
         for _ in 0..MAX_EVENTS_PER_TICK {
             match inbox.try_recv() {
                 Ok(inbound) => handle(&mut core, inbound),
@@ -184,20 +175,56 @@ pub fn run(
                 }
             }
         }
-        if Instant::now() > due + tick {
-            stats.late.fetch_add(1, Ordering::Relaxed);
-        }
+        pacer.begin(stats);
         let snapshot = core.tick();
         log_all(&mut core);
-        stats.ticks.fetch_add(1, Ordering::Relaxed);
         snapshots.send_replace(Arc::new(snapshot));
-        due += tick;
+        pacer.made(stats);
+    }
+}
+
+/// The world thread's clock: a tick every 10 ms by this thread's clock, the late ones
+/// and the skipped ones counted in [`WorldStats`] (a replay's thread keeps time with it
+/// too, [`super::replay`]).
+pub(super) struct Pacer {
+    tick: Duration,
+    due: Instant,
+}
+
+impl Pacer {
+    pub(super) fn new() -> Pacer {
+        let tick = Duration::from_millis(1000 / u64::from(STEPS_PER_SECOND));
+        Pacer {
+            tick,
+            due: Instant::now() + tick,
+        }
+    }
+
+    /// Sleeps until the next tick is due (not at all when it is).
+    pub(super) fn wait(&self) {
+        let wait = self.due.saturating_duration_since(Instant::now());
+        if !wait.is_zero() {
+            std::thread::sleep(wait);
+        }
+    }
+
+    /// The tick begins: counted late if more than a tick after it was due.
+    pub(super) fn begin(&self, stats: &WorldStats) {
+        if Instant::now() > self.due + self.tick {
+            stats.late.fetch_add(1, Ordering::Relaxed);
+        }
+    }
+
+    /// The tick was made: the next is due a tick on, or, far behind (the machine
+    /// stalled), a tick from now, the backlog skipped rather than raced through.
+    pub(super) fn made(&mut self, stats: &WorldStats) {
+        stats.ticks.fetch_add(1, Ordering::Relaxed);
+        self.due += self.tick;
         let now = Instant::now();
-        let skipped = skipped(due, now, tick);
+        let skipped = skipped(self.due, now, self.tick);
         if skipped > 0 {
-            // Far behind (the machine stalled): skip the backlog rather than race.
             stats.dropped.fetch_add(skipped, Ordering::Relaxed);
-            due = now + tick;
+            self.due = now + self.tick;
         }
     }
 }

@@ -466,13 +466,18 @@ impl Reader {
     /// Reads the magic, the version and the header from `bytes` (the file so far), and
     /// keeps the rest for [`Reader::read`].
     pub fn open(bytes: &[u8]) -> Result<Reader, FormatError> {
+        Reader::open_owned(bytes.to_vec())
+    }
+
+    /// [`Reader::open`] on the file's bytes read already, kept without a copy.
+    pub fn open_owned(bytes: Vec<u8>) -> Result<Reader, FormatError> {
         let too_short = || FormatError::TruncatedHeader {
             len: bytes.len() as u64,
         };
         match bytes.get(..8) {
             Some(m) if m == MAGIC => {}
             Some(_) => return Err(FormatError::Magic),
-            None if MAGIC.starts_with(bytes) => return Err(too_short()),
+            None if MAGIC.starts_with(&bytes) => return Err(too_short()),
             None => return Err(FormatError::Magic),
         }
         let version = bytes
@@ -482,7 +487,7 @@ impl Reader {
         if !(MIN_VERSION..=VERSION).contains(&version) {
             return Err(FormatError::Version { found: version });
         }
-        let (kind, payload, at) = next_record(bytes, 12, version)?.ok_or_else(too_short)?;
+        let (kind, payload, at) = next_record(&bytes, 12, version)?.ok_or_else(too_short)?;
         if kind != HEADER {
             return Err(corrupt(
                 12,
@@ -491,7 +496,7 @@ impl Reader {
         }
         let header = parse_header(payload, 12, version)?;
         Ok(Reader {
-            bytes: bytes.to_vec(),
+            bytes,
             version,
             checkpointed: header.start_tick,
             header,

@@ -86,20 +86,10 @@ pub struct Mark {
     pub join: bool,
 }
 
-/// What the one watching asks.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Control {
-    Pause,
-    Resume,
-    /// Speed in quarters, clamped to [`MIN_SPEED`] ..= [`MAX_SPEED`].
-    Speed(u8),
-    /// To this tick (clamped to the valid part).
-    Seek(u64),
-    /// To the next join or leave after the clock (`true`), or the last before it.
-    SeekMark {
-        forward: bool,
-    },
-}
+/// What the one watching asks: the protocol's own `ReplayControl`, taken as it
+/// comes (a speed in quarters clamped to [`MIN_SPEED`] ..= [`MAX_SPEED`], a seek to the
+/// valid part).
+pub use roam_protocol::messages::ReplayControl as Control;
 
 /// Where the watching stands.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
@@ -440,7 +430,16 @@ pub fn open_file<G: Ground + Clone>(
     if bytes.len() as u64 > recording::MAX_FILE_BYTES {
         return Err(OpenError::TooLarge);
     }
-    open_bytes(&bytes, ground, data_hash)
+    // The bytes read become the reader's (no second copy of a file of up to 256 MiB).
+    let mut reader = recording::Reader::open_owned(bytes)?;
+    let mut events = Vec::new();
+    let damaged = reader.read(&mut events).err();
+    let recording = Recording {
+        header: reader.header().clone(),
+        events,
+        truncated_at: reader.cut_at(),
+    };
+    Ok(Watch::open(&recording, damaged, ground, data_hash)?)
 }
 
 /// Why a recording cannot be watched.
