@@ -12,6 +12,11 @@ use roam_tests::browser::{Browser, GpuPath, Image, built_page, next, numbers, re
 use roam_tests::fixtures::{self, Running};
 use serde_json::Value;
 
+/// The tests whose pictures depend on where the drive has got to when the page reports
+/// run one at a time: two browsers decoding at once on a 2-core machine slow each page
+/// enough that its vehicle drives on past the shore by then.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
 /// Frames the page decodes before it reports.
 const FRAMES: u64 = 90;
 
@@ -108,6 +113,7 @@ fn check_drive(running: &Running, r: &Value, gpu: GpuPath, backend: &str) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_drives_over_webgpu() {
+    let _turn = ONE_AT_A_TIME.lock().await;
     let running = serve();
     let (r, _browser) = open(&running, &running.token.clone(), GpuPath::WebGpu).await;
     check_drive(&running, &r, GpuPath::WebGpu, "BrowserWebGpu");
@@ -115,6 +121,7 @@ async fn the_page_drives_over_webgpu() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_drives_over_webgl2() {
+    let _turn = ONE_AT_A_TIME.lock().await;
     let running = serve();
     let (r, _browser) = open(&running, &running.token.clone(), GpuPath::WebGl2).await;
     check_drive(&running, &r, GpuPath::WebGl2, "Gl");
@@ -212,6 +219,7 @@ async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
 /// frames show the recording's vehicles.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_watches_a_recording() {
+    let _turn = ONE_AT_A_TIME.lock().await;
     use roam_server::sim::physics::Keys;
     use roam_server::sim::recording::RecordedWorld;
     use roam_server::sim::world::{self, Inputs, World};
