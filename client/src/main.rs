@@ -103,6 +103,12 @@ struct Cli {
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
           value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     guard_deg: u8,
+    /// The in-process server's swap margin (`serve --swap-margin`), percent: once the cut is
+    /// at its budget, a merge makes room for a split only when the split's priority beats
+    /// the merge's by more than this; 0 trades at any gain (as before issue 24).
+    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_SWAP_MARGIN_PCT,
+          value_parser = clap::value_parser!(u16).range(0..=i64::from(roam_server::viewer::MAX_SWAP_MARGIN_PCT)))]
+    swap_margin: u16,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
@@ -491,6 +497,7 @@ async fn serve(
             );
             options.limits.fog_priority = cli.fog_priority == "on";
             options.limits.guard_deg = cli.guard_deg;
+            options.limits.swap_margin_pct = cli.swap_margin;
             options.normals = Some(Arc::new(normals));
             if let (Some(file), Some(hash)) = (&cli.replay, hash) {
                 let replaying = net::replay::Replaying::open(

@@ -677,3 +677,49 @@ fn a_driving_viewers_state_stays_within_its_admission_estimate() {
         }
     }
 }
+
+/// A swap margin: along a drive (throttle, turns both ways), a cut at its budget trades
+/// fewer diamonds of nearly equal priority, so fewer change, and its error stays within
+/// the margin of what the budget allows.
+#[test]
+fn a_swap_margin_trades_less_along_a_drive() {
+    use roam_server::viewer::ViewerLimits;
+    let fx = Fixture::new(513, 3);
+    let scene = fx.scene();
+    let drive = fx.drive(600);
+    let run = |pct: u16| {
+        let caps = ViewerLimits {
+            swap_margin_pct: pct,
+            ..ViewerLimits::default()
+        };
+        let mut core = fx.core(8000).with_caps(caps);
+        let (mut changes, mut error) = (0u64, 0f64);
+        for (k, v) in drive.iter().enumerate() {
+            let made = core.make_frame(&scene, v);
+            if k > 0 {
+                assert_eq!(made.mode, Mode::Update, "frame {k}");
+                changes += u64::from(made.changes);
+                error += f64::from(core.cut().error_bound_px());
+            }
+        }
+        (changes, error / (drive.len() - 1) as f64)
+    };
+    let ((plain, plain_error), (fewer, error)) = (run(0), run(30));
+    let wild = ViewerLimits {
+        swap_margin_pct: u16::MAX,
+        ..ViewerLimits::default()
+    };
+    assert_eq!(
+        wild.clamped().swap_margin_pct,
+        roam_server::viewer::MAX_SWAP_MARGIN_PCT,
+        "a margin past the most a server takes is served as the most"
+    );
+    assert!(
+        (fewer as f64) < 0.9 * plain as f64,
+        "{fewer} changes with the margin, {plain} without"
+    );
+    assert!(
+        error <= 1.3 * plain_error,
+        "error left {error} px with the margin, {plain_error} px without"
+    );
+}

@@ -93,6 +93,13 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
           value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     pub guard_deg: u8,
+    /// Once a viewer's cut is at its budget, a merge makes room for a split only when the
+    /// split's priority beats the merge's by more than this many percent, so diamonds of
+    /// nearly equal priority are not traded back and forth as the eye moves (0: ROAM's
+    /// rule, any gain, as before issue 24).
+    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_SWAP_MARGIN_PCT,
+          value_parser = clap::value_parser!(u16).range(0..=i64::from(roam_server::viewer::MAX_SWAP_MARGIN_PCT)))]
+    pub swap_margin: u16,
     /// Seconds a driver's vehicle is held after its connection drops, for it to come back.
     #[arg(long, default_value_t = net::HOLD.as_secs_f64(), value_parser = seconds)]
     pub hold: f64,
@@ -216,6 +223,7 @@ impl ServeArgs {
             max_fps: self.max_fps,
             fog_priority: self.fog_priority.on(),
             guard_deg: self.guard_deg,
+            swap_margin_pct: self.swap_margin,
         };
         anyhow::ensure!(
             limits.clamped() == limits,

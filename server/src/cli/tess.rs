@@ -139,6 +139,13 @@ pub struct BenchArgs {
     #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
           value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
     pub guard_deg: u8,
+    /// For the serving figures, as `serve --swap-margin`: once a viewer's cut is at its budget, a merge makes room for a split only when the
+    /// split's priority beats the merge's by more than this many percent, so diamonds of
+    /// nearly equal priority are not traded back and forth as the eye moves (0: ROAM's
+    /// rule, any gain, as before issue 24).
+    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_SWAP_MARGIN_PCT,
+          value_parser = clap::value_parser!(u16).range(0..=i64::from(roam_server::viewer::MAX_SWAP_MARGIN_PCT)))]
+    pub swap_margin: u16,
     /// One fixed camera instead of the fly-over path (needs `--eye`).
     #[command(flatten)]
     pub camera: CameraArgs,
@@ -323,6 +330,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let caps = ViewerLimits {
         fog_priority: args.fog_priority.on(),
         guard_deg: args.guard_deg,
+        swap_margin_pct: args.swap_margin,
         ..ViewerLimits::default()
     };
     let serve = serve_bench(&terrain, &vt, limits, caps, &script)?;
@@ -386,6 +394,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
             serde_json::json!(if caps.fog_priority { "on" } else { "off" }),
         ),
         ("fog_density", serde_json::json!(terrain.map.fog_density)),
+        ("swap_margin_pct", serde_json::json!(caps.swap_margin_pct)),
         ("serve_many_frame_us_median", serde_json::json!(many.median)),
         ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
         ("serve_many_frame_us_p90", serde_json::json!(many.p90)),

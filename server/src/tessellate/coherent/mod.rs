@@ -27,7 +27,9 @@
 //! 2. While over budget, the lowest merge candidate is merged. Otherwise the highest split
 //!    candidate is split (with its forced splits, exactly as from scratch) if it fits the
 //!    budget; if it does not, the lowest merge candidate is merged instead when its
-//!    priority is strictly below the split's, and the loop stops when it is not.
+//!    priority is below the split's by more than the swap margin
+//!    ([`Coherent::set_swap_margin`]; with none, ROAM's rule: strictly below), and the
+//!    loop stops when it is not.
 //!    Splits and merges update both frontiers and queue the diamonds they uncover.
 //! 3. The frame's changes are logged in order (a diamond may appear twice: split, then
 //!    merged); the codec composes logs into the difference from any base a viewer holds.
@@ -219,6 +221,9 @@ pub struct Coherent {
     left: Option<Left>,
     mode: Mode,
     stats: CoherentStats,
+    /// A merge makes room for a split only when the split's priority exceeds the merge's
+    /// times this (1: ROAM's rule).
+    swap_margin: f32,
 }
 
 /// A frame's log keeps at most this much reserved into the next frame.
@@ -250,7 +255,18 @@ impl Coherent {
             left: None,
             mode: Mode::Rebuild,
             stats: CoherentStats::default(),
+            swap_margin: 1.0,
         }
+    }
+
+    /// A merge makes room for a split, once the cut is at its budget, only when the split's
+    /// priority exceeds the merge's by more than `pct` percent (0, the default: ROAM's
+    /// rule, any gain). Diamonds of nearly equal priority are then not traded back and
+    /// forth as the eye moves: the cut changes less, and what it leaves is at most this
+    /// much worse than the budget could have (`serve --swap-margin`, README: what the
+    /// driver sees). Rebuilds are the spec's split-only ROAM either way.
+    pub fn set_swap_margin(&mut self, pct: u16) {
+        self.swap_margin = 1.0 + f32::from(pct) / 100.0;
     }
 
     /// Triangles in the cut.
@@ -580,7 +596,7 @@ impl Coherent {
             // It does not fit: make room if a merge costs less error than the split gains.
             let gain = if bucket == TOP { f32::INFINITY } else { prio };
             match self.peek_merge() {
-                Some((_, loss)) if loss < gain => {
+                Some((_, loss)) if loss * self.swap_margin < gain => {
                     let merged = self.pop_merge().expect("peeked above");
                     self.merge(f, merged);
                     changes += 1;
