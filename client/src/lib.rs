@@ -5,7 +5,7 @@
 
 //!
 //! The clock-free core ([`core`], [`color_cache`], [`camera`], [`edges`], [`watching`]), the [`render`]er and the
-//! [`hud`] also build for `wasm32` (the browser viewer's beginning, issue 15); the I/O
+//! [`hud`] also build for `wasm32`, where the browser viewer (`web/`) uses them; the I/O
 //! modules (QUIC, the window, the headless runs) are native only.
 
 pub mod camera;

@@ -1,7 +1,12 @@
-//! roam-server: terrain data sets, the variance tree and the split-only ROAM tessellator.
+//! roam-server: terrain data sets, the variance tree, the ROAM tessellators (split-only
+//! from scratch, and the frame-coherent split/merge one), the simulation and the
+//! per-viewer and world decisions, and the shells that serve them.
 //!
-//! Everything here is plain library code: no clocks, no sockets, no threads of its own
-//! beyond scoped workers in builds. See `ARCHITECTURE.md` for the map.
+//! `terrain`, `tessellate`, `sim` and `viewer` are sans-IO cores: no clocks, no sockets,
+//! no threads of their own beyond scoped workers in builds (the tidy test holds the clock
+//! reads to the files it names). `net` (QUIC, tokio, the clock, NATS) and `web` (the
+//! browser viewer's WebTransport and page server) are the I/O shells that feed them. See
+//! `ARCHITECTURE.md` for the map.
 
 pub mod net;
 pub mod sim;

@@ -1,6 +1,8 @@
-//! Split-only ROAM, rebuilt every frame from the two root triangles.
+//! Split-only ROAM from the two root triangles: the spec's algorithm, and what the
+//! frame-coherent tessellator ([`Coherent`]) rebuilds from on a jump (a viewer's cut is
+//! otherwise carried from frame to frame by splits and merges).
 //!
-//! The mesh is the set of split ("active") diamonds; see [`diamond`]. Each frame:
+//! The mesh is the set of split ("active") diamonds; see [`diamond`]. From scratch:
 //!
 //! 1. Queue the root diamond. Repeatedly pop the diamond of highest priority and split it.
 //!    Splitting first splits, recursively, any parent diamond not yet split (ROAM's forced
