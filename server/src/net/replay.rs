@@ -111,26 +111,7 @@ pub fn open_following(
     ground: Arc<Terrain>,
     data_hash: &[u8; 32],
 ) -> Result<(Watch<Arc<Terrain>>, Follower), crate::sim::watch::OpenError> {
-    use crate::sim::recording::{MAX_FILE_BYTES, Reader, Recording};
-    use crate::sim::watch::OpenError;
-    use std::io::Read;
-    let mut file = std::fs::File::open(path)?;
-    let mut bytes = Vec::new();
-    (&mut file)
-        .take(MAX_FILE_BYTES + 1)
-        .read_to_end(&mut bytes)?;
-    if bytes.len() as u64 > MAX_FILE_BYTES {
-        return Err(OpenError::TooLarge);
-    }
-    let mut reader = Reader::open_owned(bytes)?;
-    let mut events = Vec::new();
-    let damaged = reader.read(&mut events).err();
-    let recording = Recording {
-        header: reader.header().clone(),
-        events,
-        truncated_at: reader.cut_at(),
-    };
-    let mut watch = Watch::open(&recording, damaged, ground, data_hash)?;
+    let (mut watch, file, reader) = crate::sim::watch::open_file_reading(path, ground, data_hash)?;
     watch.follow();
     // Watched live: from the newest whole tick, on as the file grows.
     watch.seek(watch.status().end);

@@ -422,10 +422,21 @@ pub fn open_file<G: Ground + Clone>(
     ground: G,
     data_hash: &[u8; 32],
 ) -> Result<Watch<G>, OpenError> {
+    open_file_reading(path, ground, data_hash).map(|(watch, _, _)| watch)
+}
+
+/// As [`open_file`], and the file and the reader that read it, positioned at its end so
+/// far: for following a file still being written.
+pub fn open_file_reading<G: Ground + Clone>(
+    path: &std::path::Path,
+    ground: G,
+    data_hash: &[u8; 32],
+) -> Result<(Watch<G>, std::fs::File, recording::Reader), OpenError> {
     use std::io::Read;
-    let file = std::fs::File::open(path)?;
+    let mut file = std::fs::File::open(path)?;
     let mut bytes = Vec::new();
-    file.take(recording::MAX_FILE_BYTES + 1)
+    (&mut file)
+        .take(recording::MAX_FILE_BYTES + 1)
         .read_to_end(&mut bytes)?;
     if bytes.len() as u64 > recording::MAX_FILE_BYTES {
         return Err(OpenError::TooLarge);
@@ -439,7 +450,8 @@ pub fn open_file<G: Ground + Clone>(
         events,
         truncated_at: reader.cut_at(),
     };
-    Ok(Watch::open(&recording, damaged, ground, data_hash)?)
+    let watch = Watch::open(&recording, damaged, ground, data_hash)?;
+    Ok((watch, file, reader))
 }
 
 /// Why a recording cannot be watched.
