@@ -1,7 +1,7 @@
 //! The messages between a roam server and its viewers, and their byte encoding (bincode 2
 //! over serde, standard configuration: little-endian varints).
 //!
-//! Where they travel (see `DESIGN.md`):
+//! Where they travel (see ARCHITECTURE.md, "Bird's-eye view"):
 //!
 //! - the **control stream** (reliable, ordered, one per connection): [`ClientMessage`]s one
 //!   way, [`ServerMessage`]s the other, each preceded by its length as a `u32`;

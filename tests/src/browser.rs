@@ -1,6 +1,6 @@
 //! What the browser tests need besides the server: the built page (`web/dist`, made by
 //! `scripts/build-web`), headless Chromium (Debian's `chromium`) with the flags that give
-//! it WebGPU or WebGL2 without a GPU (`../shared/STACK.md`, "Browser"), killed with its
+//! it WebGPU or WebGL2 without a GPU (SwiftShader; `GpuPath::flags`), killed with its
 //! whole process group when dropped, and a local HTTP endpoint the page posts its results
 //! to (`--dump-dom` does not wait for GPU work). A missing browser or page fails the test
 //! with the command that provides it.
