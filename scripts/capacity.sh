@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Viewers served per server core (README, command E), every viewer driving.
+# Viewers served per server core (docs/figures.md, command E), every viewer driving.
 #
 # The server runs pinned to CPU 0; the load generator (`roam-client --headless --viewers N
 # --skip-decode`: N viewers that acknowledge every frame without decoding it) runs pinned

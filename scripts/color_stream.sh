@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Colour streamed by view (README, "Colour streamed by view"): for each data set, connect to
+# Colour streamed by view (docs/figures.md, "Colour streamed by view"): for each data set, connect to
 # first frame, bytes received before it, and colour bytes a second while a vehicle drives
 # (`roam-server color-bench`: the server in process on loopback, a driver speaking the
 # protocol, Up held). One JSON line per data set. The first run of a set builds its colour

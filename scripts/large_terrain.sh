@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Large terrain (README, "Large terrain"): for each data set, one JSON line with
+# Large terrain (docs/data.md and docs/figures.md, "Large terrain"): for each data set, one JSON line with
 #   - generate_s: `roam-server generate` time, when the script had to make the set;
 #   - check_cold_s / check_warm_s: `check` building the cache (only when there was none) and
 #     opening it (`.cache/`: heights, variance tree);

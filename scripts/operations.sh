@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The figures of README's "Security and operations": what a junk flood costs a running
+# The figures of docs/operations.md: what a junk flood costs a running
 # server while a real viewer joins through it (`roam-flood`, one JSON line), and whether
 # eight viewers asking the most triangles at the most frames a second slow the world
 # (one JSON line from the server's summary log: its ticks a second and dropped ticks),

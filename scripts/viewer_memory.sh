@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Server memory per viewer (README, command I): the server's anonymous RSS while 1 and
+# Server memory per viewer (docs/figures.md, command I): the server's anonymous RSS while 1 and
 # then 5 viewers drive at 65,536 triangles over a 4097² data set; per viewer is
 # (RSS with 5 − RSS with 1) ÷ 4. Prints one JSON line.
 #
