@@ -7,8 +7,9 @@
 //!   way, [`ServerMessage`]s the other, each preceded by its length as a `u32`;
 //! - **key-state datagrams** ([`KeyDatagram`]): the latest key states, repeated, so a lost
 //!   datagram costs nothing and a transient press survives;
-//! - **one unidirectional stream per frame** ([`Frame`]), abandoned (reset) when a newer
-//!   frame is ready first.
+//! - **frames** ([`Frame`]): one QUIC datagram each when the frame fits one (nearly all
+//!   change frames do), otherwise a unidirectional stream of its own, abandoned (reset)
+//!   when a newer frame is ready first.
 //!
 //! Every decode has a byte limit ([`Checked::MAX_BYTES`]), and every variable-length field
 //! one of its own: the join token [`MAX_TOKEN`] bytes, a reason [`MAX_REASON`], a key

@@ -6,7 +6,7 @@
 //! borrows a [`Tessellator`] from the [`Scratch`] only for what needs a bitset over the
 //! map: a rebuild (split-only ROAM from scratch), a key frame (the codec walks a bitset)
 //! and, for tests and benchmarks, the mesh. Those run on the server's blocking frame
-//! makers, at most one per core, so the pool holds at most that many; measured at
+//! makers, at most one fewer than the cores (`net/makers.rs`), so the pool holds at most that many; measured at
 //! 32769², a viewer carried its own (145 MB) before.
 //!
 //! A lent tessellator is left as [`Tessellator::cut`] expects it: its `active_list`
