@@ -52,8 +52,8 @@
 //!
 //! # Size
 //!
-//! Measured by the `sizes` test (`cargo test -p roam-protocol --test change_sizes --
-//! --nocapture`), on viewpoint-dependent cuts of 44k to 200k triangles with the eye moving
+//! Measured by `cargo bench -p roam-protocol --bench change_sizes` (one JSON line a
+//! case), on viewpoint-dependent cuts of 44k to 200k triangles with the eye moving
 //! between frames: at 60 to 130 changes a frame, 2.2 to 3.0 bytes a change, header
 //! included (1.5 to 1.75 of it the position), 30 to 55 % smaller than format 1's delta;
 //! at 250 to 500 changes, 1.7 to 2.3 bytes a change, about format 1's size; past 1,000

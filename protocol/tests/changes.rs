@@ -1,7 +1,7 @@
 //! Change frames (format 2) on random conforming cuts: exact round trips of random closed
 //! split sets and toggle sequences, chains of frames each coded against a random earlier
 //! one, wrong bases, damage, truncation, hostile headers, no allocation once warm.
-//! What a change costs is printed by `change_sizes.rs`.
+//! What a change costs is measured by `benches/change_sizes.rs`.
 
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::cell::Cell;

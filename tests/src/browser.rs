@@ -177,14 +177,21 @@ pub async fn next(reports: &mut mpsc::UnboundedReceiver<String>) -> serde_json::
     serde_json::from_str(&body).expect("the page reports JSON")
 }
 
-/// The page's numbers, after any state report before them (an error fails).
+/// Reports a wait may pass over before it fails (the page posts one for each change of its
+/// state, a few in a run).
+pub const REPORTS: usize = 50;
+
+/// The page's numbers, after any state report before them (an error fails, and so do
+/// [`REPORTS`] reports without the numbers).
 pub async fn numbers(reports: &mut mpsc::UnboundedReceiver<String>) -> serde_json::Value {
-    let mut r = next(reports).await;
-    while r.get("frames").is_none() {
+    for _ in 0..REPORTS {
+        let r = next(reports).await;
+        if r.get("frames").is_some() {
+            return r;
+        }
         assert!(r.get("error").is_none(), "{r}");
-        r = next(reports).await;
     }
-    r
+    panic!("no numbers from the page in {REPORTS} reports");
 }
 
 /// A local HTTP endpoint taking POSTed bodies (as text/plain, so without a CORS

@@ -247,10 +247,16 @@ pub async fn status_when(
         .clone()
 }
 
-/// The next frame `s` takes (frames that fail to decode are not expected).
+/// Frames [`frame`] may see passed over ([`Taken::Nothing`](roam_client::session::Taken):
+/// older than one taken, or coded against a base not taken yet) before it fails: ten
+/// times the viewer's patience for a base (`AWAIT_BASE`, 60 frames).
+pub const PASSED_OVER: usize = 600;
+
+/// The next frame `s` takes (frames that fail to decode are not expected), each take
+/// within [`BOUND`], at most [`PASSED_OVER`] passed over first.
 pub async fn frame(s: &roam_client::session::Session) -> roam_client::session::Received {
     use roam_client::session::Taken;
-    loop {
+    for _ in 0..=PASSED_OVER {
         match bounded("a frame", s.next_frame(true)).await {
             Ok(Taken::Frame(r)) => return r,
             Ok(Taken::Nothing) => {}
@@ -258,6 +264,7 @@ pub async fn frame(s: &roam_client::session::Session) -> roam_client::session::R
             Err(e) => panic!("the session ended: {e:#}"),
         }
     }
+    panic!("no frame taken: {PASSED_OVER} in a row passed over");
 }
 
 /// What a fake server welcomes with: the 65² grid of [`key_frame`], colour in `color`.

@@ -189,15 +189,19 @@ impl EdgeProcess {
                 let _ = tx.send(line);
             }
         });
-        let said = |what: &str| loop {
-            match rx.recv_timeout(READY_WAIT) {
-                Ok(line) => {
-                    if let Some(rest) = line.strip_prefix(what) {
-                        break rest.trim().to_owned();
+        // Each line within READY_WAIT, and the one wanted within 100 lines.
+        let said = |what: &str| {
+            for _ in 0..100 {
+                match rx.recv_timeout(READY_WAIT) {
+                    Ok(line) => {
+                        if let Some(rest) = line.strip_prefix(what) {
+                            return rest.trim().to_owned();
+                        }
                     }
+                    Err(_) => panic!("{exe} did not say {what:?} in {READY_WAIT:?}"),
                 }
-                Err(_) => panic!("{exe} did not say {what:?} in {READY_WAIT:?}"),
             }
+            panic!("{exe} did not say {what:?} in 100 lines");
         };
         let addr = said("listening on").parse().expect("an address");
         let fingerprint =

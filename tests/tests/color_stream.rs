@@ -97,7 +97,9 @@ async fn the_coarsest_tile_comes_before_the_first_frame_then_the_windows_fill() 
     // The coarsest tile's normals: the first tile after it (windows may move first).
     let mut origins = vec![(0u32, 0u32); usize::from(layout.levels)];
     let mut codes = Vec::new();
-    loop {
+    // Windows may move first, a few times at most: bounded, so a missing tile fails.
+    for n in 0.. {
+        assert!(n < 100, "no normal tile in 100 control messages");
         match next(&mut recv).await.0 {
             ServerMessage::ColorWindow { level, x0, z0 } => {
                 assert!(layout.origin_valid(level, x0, z0), "{level} ({x0}, {z0})");

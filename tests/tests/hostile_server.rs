@@ -145,6 +145,11 @@ async fn answer(incoming: quinn::Incoming, scripts: Scripts, n: usize) {
     conn.close(0u32.into(), b"done");
 }
 
+/// Takes of a frame a wait may make (each within a minute) before it fails: far more than
+/// any fake here sends frames (five at most), so a session that neither ends nor shows a
+/// frame fails the test, never hangs it.
+const TAKES: usize = 64;
+
 /// `f`, or a failed test after a minute (a regression fails, never hangs).
 async fn bounded<T>(f: impl std::future::Future<Output = T>) -> T {
     tokio::time::timeout(std::time::Duration::from_secs(60), f)
@@ -317,15 +322,18 @@ async fn junk_frames_are_dropped_and_the_end_is_noticed() {
         .expect("joins");
     assert!(s.colors().has_coarsest(), "the coarsest tile is resident");
     let mut dropped = 0;
-    // Bounded: two streams, then the server hangs up and `wait` must say so.
-    let ended = loop {
-        match bounded(s.next_frame(true)).await {
-            Ok(Taken::Dropped(_)) => dropped += 1,
-            Ok(Taken::Frame(f)) => panic!("junk decoded as frame {}", f.frame),
-            Ok(Taken::Nothing) => {}
-            Err(e) => break format!("{e:#}"),
+    // Two streams, then the server hangs up and `next_frame` must say so.
+    let ended = 'end: {
+        for _ in 0..TAKES {
+            match bounded(s.next_frame(true)).await {
+                Ok(Taken::Dropped(_)) => dropped += 1,
+                Ok(Taken::Frame(f)) => panic!("junk decoded as frame {}", f.frame),
+                Ok(Taken::Nothing) => {}
+                Err(e) => break 'end format!("{e:#}"),
+            }
+            assert!(dropped <= 2, "only two streams were sent");
         }
-        assert!(dropped <= 2, "only two streams were sent");
+        panic!("the session did not end within {TAKES} takes");
     };
     assert!(dropped >= 1, "the junk was seen and dropped");
     assert!(
@@ -356,12 +364,15 @@ async fn a_server_that_goes_silent_is_given_up_on() {
     .await
     .expect("joins");
     let mut changes = s.status_changes();
-    let err = loop {
-        match bounded(s.next_frame(true)).await {
-            Ok(Taken::Frame(f)) => panic!("the silent server sent frame {}", f.frame),
-            Ok(_) => {}
-            Err(e) => break format!("{e:#}"),
+    let err = 'end: {
+        for _ in 0..TAKES {
+            match bounded(s.next_frame(true)).await {
+                Ok(Taken::Frame(f)) => panic!("the silent server sent frame {}", f.frame),
+                Ok(_) => {}
+                Err(e) => break 'end format!("{e:#}"),
+            }
         }
+        panic!("the session did not end within {TAKES} takes");
     };
     for want in [
         &format!("lost the server at {addr}"),
@@ -398,14 +409,17 @@ async fn a_poisoned_frame_number_ends_the_session_and_never_wedges_it() {
         .await
         .expect("joins");
     let mut taken = Vec::new();
-    let err = loop {
-        match bounded(s.next_frame(true)).await {
-            Ok(Taken::Frame(f)) => taken.push(f.frame),
-            Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
-            Ok(Taken::Nothing) => {}
-            Err(e) => break format!("{e:#}"),
+    let err = 'end: {
+        for _ in 0..TAKES {
+            match bounded(s.next_frame(true)).await {
+                Ok(Taken::Frame(f)) => taken.push(f.frame),
+                Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
+                Ok(Taken::Nothing) => {}
+                Err(e) => break 'end format!("{e:#}"),
+            }
+            assert!(taken.len() <= 4, "only four good frames were sent");
         }
-        assert!(taken.len() <= 4, "only four good frames were sent");
+        panic!("the session did not end within {TAKES} takes: frames {taken:?}");
     };
     for want in [
         format!("the server at {addr}"),
@@ -474,13 +488,16 @@ async fn reconnected(addr: SocketAddr, fp: [u8; 32]) -> (Session, anyhow::Result
         .await
         .expect("the session is there");
     // The core is the new connection's once the reconnection counts.
-    let end = loop {
-        match bounded(s.next_frame(true)).await {
-            Ok(Taken::Frame(f)) => break Ok(f.frame),
-            Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
-            Ok(Taken::Nothing) => {}
-            Err(e) => break Err(e),
+    let end = 'end: {
+        for _ in 0..TAKES {
+            match bounded(s.next_frame(true)).await {
+                Ok(Taken::Frame(f)) => break 'end Ok(f.frame),
+                Ok(Taken::Dropped(why)) => panic!("a good frame dropped: {why}"),
+                Ok(Taken::Nothing) => {}
+                Err(e) => break 'end Err(e),
+            }
         }
+        panic!("no frame and no end within {TAKES} takes");
     };
     (s, end)
 }

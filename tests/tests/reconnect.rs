@@ -11,8 +11,9 @@
 //!   gone), comes back as a new driver with a new vehicle at the start.
 //!
 //! Nothing sleeps to wait: the tests wait on the session's status, the server's snapshots
-//! and frames. The cut is held open only until the viewer (first test) or the server
-//! (second) has seen it.
+//! and frames, each wait bounded (frames by count: a vehicle the keys no longer move fails
+//! the test, never hangs it). The cut is held open only until the viewer (first test) or
+//! the server (second) has seen it.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -99,15 +100,26 @@ async fn driver(r: &Running) -> Session {
     .expect("joins")
 }
 
-/// The first frame showing vehicle `id` where `f` holds.
-async fn frame_where(s: &Session, id: u16, f: impl Fn(&VehicleView) -> bool) -> VehicleView {
-    loop {
+/// Frames a wait on the vehicle may take: 10 s of frames at the driver's 60 a second (the
+/// drive takes it 4 m from its start within about one).
+const WITHIN: usize = 600;
+
+/// The first frame showing vehicle `id` where `f` holds, within [`WITHIN`] frames (else a
+/// panic naming `what`: a vehicle the keys no longer move fails, never waits).
+async fn frame_where(
+    s: &Session,
+    id: u16,
+    what: &str,
+    f: impl Fn(&VehicleView) -> bool,
+) -> VehicleView {
+    for _ in 0..WITHIN {
         if let Some(v) = frame(s).await.vehicles.into_iter().find(|v| v.id == id)
             && f(&v)
         {
             return v;
         }
     }
+    panic!("{what}: not within {WITHIN} frames");
 }
 
 /// The server's snapshot once `f` holds.
@@ -130,8 +142,11 @@ fn from(a: &VehicleView, b: &VehicleView) -> f64 {
 /// silent. The driver's vehicle, its start and where it had got to.
 async fn drive_then_cut(r: &Running, s: &Session) -> (u16, VehicleView, VehicleView) {
     let id = s.vehicle();
-    let start = frame_where(s, id, |_| true).await;
-    let away = frame_where(s, id, |v| from(v, &start) > 4.0).await;
+    let start = frame_where(s, id, "the vehicle in the frames", |_| true).await;
+    let away = frame_where(s, id, "the vehicle 4 m from its start", |v| {
+        from(v, &start) > 4.0
+    })
+    .await;
     r.relay.cut();
     let lost = status_when(s, "the viewer finds the server silent", |st| {
         matches!(st.state, State::Reconnecting { .. })
@@ -164,7 +179,13 @@ async fn a_driver_back_within_the_hold_gets_its_vehicle_back() {
     assert_eq!(back.gaps.resumed, 1);
     assert!(back.welcome.ticket.is_some(), "a ticket for the next time");
     // Its frames go on, with the vehicle where it had driven to, not back at the start.
-    let v = frame_where(&s, id, |_| true).await;
+    let v = frame_where(
+        &s,
+        id,
+        "the vehicle in the frames after the reconnection",
+        |_| true,
+    )
+    .await;
     assert!(
         from(&v, &start) >= from(&away, &start) - 1e-6,
         "the vehicle is back at {v:?}, it had got to {away:?} from {start:?}"
@@ -198,7 +219,7 @@ async fn a_driver_back_after_the_hold_gets_a_new_vehicle() {
     let new = back.welcome.vehicle;
     assert_eq!(s.vehicle(), new);
     // A new vehicle at the start (the id may be the old one's, free again).
-    let v = frame_where(&s, new, |_| true).await;
+    let v = frame_where(&s, new, "the new vehicle in the frames", |_| true).await;
     assert!(
         from(&v, &start) < from(&away, &start),
         "the new vehicle is at {v:?}; the old one had got to {away:?} from {start:?}"

@@ -1,17 +1,26 @@
 //! Tidy: rules about the source tree itself, checked on every `cargo test` (in the spirit of
-//! rust-analyzer's tidy test). Each rule names the files that break it.
+//! rust-analyzer's tidy test). The sources are the `.rs` files of the packages in [`ROOTS`]
+//! (`target/` and hidden directories aside); a line counts unless it starts with `//`.
+//! Each rule fails naming the files or lines that break it:
 //!
-//! - every source file starts with a `//!` comment saying what it is;
-//! - no test is switched off or made to expect a panic;
-//! - `roam-protocol` is pure: no clock, socket or async runtime, in its code or its
-//!   dependencies;
-//! - only the I/O shells read a clock: the cores (terrain, tessellation, simulation, the
-//!   per-viewer and world cores, the viewer's connection core, camera, HUD, renderer)
-//!   take time as a parameter;
-//! - the workspace's lints are set once, in the root `Cargo.toml`, and every package
-//!   takes them.
+//! - every source file starts with a `//!` comment;
+//! - no test is switched off (`#[ignore]`) or made to expect a panic (`#[should_panic]`);
+//! - `roam-protocol` is pure: `protocol/src` names no clock (`std::time`, `Instant`,
+//!   `SystemTime`), socket (`std::net`, `UdpSocket`, `TcpStream`), async runtime (`tokio`,
+//!   `quinn`, `async`), thread (`std::thread`) or file system (`std::fs`), and
+//!   `protocol/Cargo.toml` no `tokio`, `quinn`, `async` or `mio`;
+//! - a clock is read or waited on ([`CLOCK_WORDS`]: `Instant::now`, `.elapsed()`,
+//!   `SystemTime::now`, anything of `tokio::time`, a thread's sleep, the browser's clock and
+//!   timers) only in the files [`CLOCK_READERS`] names, each with why; and every entry
+//!   there still exempts a file that reads one;
+//! - the workspace's lints are set once, in the root `Cargo.toml`
+//!   (`[workspace.lints.rust]` and `[workspace.lints.clippy]`), and every package's
+//!   manifest takes them (`[lints] workspace = true`).
 
 use std::path::{Path, PathBuf};
+
+/// The workspace's packages, whose sources the rules read.
+const ROOTS: &[&str] = &["protocol", "server", "client", "tests", "link", "web"];
 
 fn root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -24,7 +33,7 @@ fn root() -> PathBuf {
 fn sources() -> Vec<PathBuf> {
     let root = root();
     let mut out = Vec::new();
-    let mut dirs: Vec<PathBuf> = ["protocol", "server", "client", "tests", "link"]
+    let mut dirs: Vec<PathBuf> = ROOTS
         .iter()
         .map(|d| root.join(d))
         .filter(|d| d.is_dir())
@@ -131,43 +140,209 @@ fn the_protocol_crate_is_pure() {
     check("clocks, sockets or async in roam-protocol", bad);
 }
 
-/// Where a clock may be read: the I/O shells (the server's network shell and command
-/// line, the viewer's connection I/O, window and measuring front ends, the shared QUIC
-/// crate), benchmarks and the end-to-end tests, which measure real time.
-fn may_read_a_clock(f: &Path) -> bool {
-    let shells = [
-        "server/src/net/",
-        "server/src/cli/",
-        "server/src/main.rs",
+/// The words that read or wait on a clock: std's and `web_time`'s `Instant::now` and
+/// `.elapsed()`, `SystemTime::now`, anything of `tokio::time` (its `sleep`, `interval`,
+/// `timeout`, `Instant`), a thread's sleep, and the browser's clock and timers.
+const CLOCK_WORDS: &[&str] = &[
+    "Instant::now",
+    "SystemTime::now",
+    ".elapsed()",
+    "tokio::time",
+    "time::sleep",
+    "time::timeout",
+    "time::interval",
+    "sleep_until",
+    "thread::sleep",
+    "performance()",
+    "Date::now",
+    "set_timeout",
+    "set_interval",
+    "request_animation_frame",
+];
+
+/// Every file (or, for tests, directory: a path ending in `/`) that may read a clock, and
+/// why. Everything else is a core that takes time as a parameter.
+const CLOCK_READERS: &[(&str, &str)] = &[
+    // The server's network shell.
+    (
+        "server/src/net/mod.rs",
+        "the server's shell: the accept loop's pauses, shutdown's waits, the summaries' ticker",
+    ),
+    (
+        "server/src/net/world_loop.rs",
+        "the world thread: paces the world core every 10 ms by its own clock",
+    ),
+    (
+        "server/src/net/handshake.rs",
+        "admission: one deadline for a connection's handshake and hello",
+    ),
+    (
+        "server/src/net/viewer.rs",
+        "a viewer's connection: its silence watched, its last words waited for",
+    ),
+    (
+        "server/src/net/control.rs",
+        "a viewer's control stream: the colour stream's ticks",
+    ),
+    (
+        "server/src/net/color_budget.rs",
+        "the budget takes `now`; its tests start it from a real `Instant`",
+    ),
+    (
+        "server/src/net/web.rs",
+        "the page's server: TLS and connection time limits, waits between retries",
+    ),
+    (
+        "server/src/net/bus/world.rs",
+        "the world process: edges not heard from for a while",
+    ),
+    (
+        "server/src/net/bus/edge.rs",
+        "an edge's link to the world: when it was last heard, reconnection deadlines",
+    ),
+    // The server's command line.
+    (
+        "server/src/cli/net.rs",
+        "`serve`: times loading the data set",
+    ),
+    (
+        "server/src/cli/progress.rs",
+        "progress bars, shown once a load takes a second",
+    ),
+    (
+        "server/src/cli/sim.rs",
+        "`simulate` and `replay`: how long they took",
+    ),
+    ("server/src/cli/tess.rs", "`bench`: times the tessellator"),
+    (
+        "server/src/cli/color_bench.rs",
+        "`color-bench`: times a colour stream",
+    ),
+    (
+        "server/src/cli/bus_load.rs",
+        "`bus-load`: a load generator pacing its keys and timing the replies",
+    ),
+    // The native viewer's I/O.
+    (
         "client/src/session.rs",
+        "the session: frames and keys stamped as they arrive, for the clock-free core",
+    ),
+    (
         "client/src/connection.rs",
+        "a connection's tasks and the reconnection supervisor: tokio timers bound the \
+         handshake, the join and control writes, pace the key sender, watch the silence and \
+         back off between attempts",
+    ),
+    (
         "client/src/live.rs",
+        "the window's network task: the costs and latencies it shows",
+    ),
+    (
         "client/src/window.rs",
+        "the window: the display clock each frame is drawn at",
+    ),
+    (
         "client/src/headless.rs",
+        "the headless viewer: its run's length and time to the first frame",
+    ),
+    ("client/src/main.rs", "the command line: the run's length"),
+    (
         "client/src/bench/mod.rs",
+        "`--bench`: times decoding, uploads and drawing",
+    ),
+    (
         "client/src/bench/watch.rs",
-        "client/src/main.rs",
-        "link/src/",
-        "tests/",
+        "`--replay --bench`: times opening, playing and seeking a recording",
+    ),
+    // The browser viewer's I/O.
+    (
+        "web/src/app.rs",
+        "the page's display loop: its frame clock and the costs it shows",
+    ),
+    (
+        "web/src/net.rs",
+        "the page's WebTransport session: arrivals stamped, the silence watched, the \
+         reconnection's deadline",
+    ),
+    (
+        "web/src/page.rs",
+        "the browser's clock and timers (`performance.now`, `setTimeout`)",
+    ),
+    // Tests and benchmarks, which measure or bound real time.
+    (
+        "tests/tests/",
+        "end-to-end tests over loopback: every wait bounded by a timeout",
+    ),
+    (
+        "tests/src/fixtures.rs",
+        "`bounded`: a session test's waits fail after `BOUND`",
+    ),
+    ("tests/src/relay.rs", "the lossy relay delays datagrams"),
+    (
+        "tests/src/flood.rs",
+        "junk connections: how long the server takes to close them",
+    ),
+    (
+        "tests/src/nats.rs",
+        "nats-server's log and an edge process's lines read within a bound",
+    ),
+    (
+        "tests/src/browser.rs",
+        "the page's report awaited within a bound",
+    ),
+    ("tests/src/web.rs", "a WebTransport client's reads bounded"),
+    (
+        "tests/src/simnet/mod.rs",
+        "virtual time counts from one real `Instant`, its epoch; nothing waits on it",
+    ),
+    ("tests/src/bin/roam-flood.rs", "the flood's pace and length"),
+    ("tests/benches/fuzz.rs", "a benchmark: times itself"),
+    (
+        "protocol/benches/colormap.rs",
+        "a benchmark: times the codec",
+    ),
+    (
+        "server/tests/world_loop.rs",
+        "the real world thread, awaited within a bound",
+    ),
+    (
         "client/tests/window.rs",
-    ];
-    let s = f.to_string_lossy();
-    shells.iter().any(|p| s.starts_with(p)) || s.contains("/benches/")
+        "a real window under Xvfb, awaited within a deadline",
+    ),
+];
+
+/// Whether `f` is `entry` or, for an entry ending in `/`, under it.
+fn names(entry: &str, f: &Path) -> bool {
+    let f = f.to_string_lossy();
+    if entry.ends_with('/') {
+        f.starts_with(entry)
+    } else {
+        f == entry
+    }
 }
 
 #[test]
-fn only_the_io_shells_read_a_clock() {
-    let words = [
-        "Instant::now",
-        "SystemTime::now",
-        ".elapsed()",
-        "time::sleep",
-    ];
+fn only_the_files_named_read_a_clock() {
     let mut bad = Vec::new();
-    for f in sources().iter().filter(|f| !may_read_a_clock(f)) {
-        bad.extend(uses(f, &read(f), &words));
+    let mut used = vec![false; CLOCK_READERS.len()];
+    for f in sources() {
+        let found = uses(&f, &read(&f), CLOCK_WORDS);
+        if found.is_empty() {
+            continue;
+        }
+        match CLOCK_READERS.iter().position(|(e, _)| names(e, &f)) {
+            Some(i) => used[i] = true,
+            None => bad.extend(found),
+        }
     }
-    check("a clock read outside the I/O shells", bad);
+    check("a clock read outside the files CLOCK_READERS names", bad);
+    let stale = CLOCK_READERS
+        .iter()
+        .zip(used)
+        .filter(|(_, used)| !used)
+        .map(|((e, _), _)| format!("{e}: reads no clock (or is gone)"))
+        .collect();
+    check("CLOCK_READERS entries that exempt nothing", stale);
 }
 
 #[test]
@@ -179,7 +354,7 @@ fn lints_are_set_once_for_the_workspace() {
         "Cargo.toml: expected [workspace.lints.rust] and [workspace.lints.clippy]"
     );
     let mut bad = Vec::new();
-    for pkg in ["protocol", "server", "client", "tests", "link"] {
+    for pkg in ROOTS {
         let manifest = Path::new(pkg).join("Cargo.toml");
         if !root().join(&manifest).exists() {
             continue;

@@ -117,6 +117,8 @@ struct App {
     terrain: TerrainVertices,
     /// Frames taken and decoded.
     decoded: u64,
+    /// Pictures drawn and presented.
+    drawn: u64,
     first_frame_ms: Option<f64>,
     hud_at: f64,
     reported: bool,
@@ -145,6 +147,7 @@ pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(
         clock: Instant::now(),
         terrain: TerrainVertices::default(),
         decoded: 0,
+        drawn: 0,
         first_frame_ms: None,
         hud_at: 0.0,
         reported: false,
@@ -343,6 +346,7 @@ impl App {
             self.cockpit.toggles,
         );
         self.gfx.gpu.queue.present(texture);
+        self.drawn += 1;
         self.cockpit
             .drawn(now, started.elapsed().as_secs_f64() * 1e3);
         if self.renderer.triangles() > 0 && self.first_frame_ms.is_none() {
@@ -550,6 +554,7 @@ impl App {
         let l = self.live.borrow();
         let body = serde_json::json!({
             "frames": self.decoded,
+            "drawn": self.drawn,
             "decode_errors": l.dropped,
             "fps": n.fps,
             "server_fps": n.server_fps,

@@ -1,6 +1,10 @@
-//! What a change frame costs (printed, not asserted): bytes a change on clustered toggles,
-//! and change frames against format 1's delta for viewpoint-dependent cuts as the eye moves.
+//! `cargo bench -p roam-protocol --bench change_sizes`: what a change frame costs, in
+//! bytes (no time is measured): bytes a change on clustered toggles, and change frames
+//! against format 1's delta for viewpoint-dependent cuts as the eye moves, on a synthetic
+//! 2^12 + 1 grid and the bundled `data/kossou`. Prints one JSON object a line. Every frame
+//! it codes is also decoded and checked (the round trip of `tests/common`).
 
+#[path = "../tests/common/mod.rs"]
 mod common;
 
 use common::*;
@@ -69,9 +73,7 @@ fn positions_only(grid: &Grid, h: &[u16], step: u16, base: &BitSet, now: &BitSet
     out.len() - 26
 }
 
-/// Prints what change frames cost (run with `--nocapture`); asserts only round trips.
-#[test]
-fn sizes() {
+fn main() {
     // ~20 random toggles clustered in a 64-wide window of a 2^12 + 1 grid, against a
     // viewpoint-dependent cut.
     let grid = Grid::new(12).expect("valid");
@@ -95,9 +97,7 @@ fn sizes() {
         splits += list.iter().filter(|&&i| now.contains(i)).count();
     }
     println!(
-        "2^12+1 synthetic, clustered toggles against a cut of {} triangles: {:.1} changes \
-         ({:.1} splits) a frame, {:.2} bytes a change ({:.2} of it the position), plus the \
-         26-byte header",
+        "{{\"case\":\"clustered toggles\",\"terrain\":\"2^12+1 synthetic\",\"triangles\":{},\"changes_per_frame\":{:.1},\"splits_per_frame\":{:.1},\"bytes_per_change\":{:.2},\"position_bytes_per_change\":{:.2},\"header_bytes\":26}}",
         base.triangles,
         changed as f64 / 50.0,
         splits as f64 / 50.0,
@@ -155,9 +155,7 @@ fn sizes() {
                 }
                 let frames = sets.len() - 4;
                 println!(
-                    "{name}, eye moving {speed} cells a frame, k {k}, against frame t-{back}: \
-                     {} triangles, {} changes, change frame {} bytes ({:.2} a change, {:.2} \
-                     of it the position, header included), format 1 delta {} bytes",
+                    "{{\"case\":\"moving eye\",\"terrain\":\"{name}\",\"cells_per_frame\":{speed},\"k\":{k},\"against\":\"t-{back}\",\"triangles\":{},\"changes\":{},\"change_frame_bytes\":{},\"bytes_per_change\":{:.2},\"position_bytes_per_change\":{:.2},\"format1_delta_bytes\":{}}}",
                     tris / frames,
                     n / frames,
                     v2 / frames,
