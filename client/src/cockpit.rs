@@ -3,7 +3,7 @@
 //! toggles and the budget, every vehicle replayed smoothly ([`Interpolator`]), the damped
 //! camera ([`Rig`]) on the drawn ground, when to tell the server the camera moved or the
 //! fog was toggled (it weighs errors by the fog only while it is drawn), and the HUD's
-//! rates. The native window ([`crate::window`]) and the page (`roam-web`) differ only in
+//! rates. The native window (`window.rs`) and the page (`roam-web`) differ only in
 //! where the keys come from and what is drawn into; both keep one [`Cockpit`].
 //! Time is a parameter (local seconds), never read here.
 
@@ -246,7 +246,7 @@ impl Cockpit {
     }
 
     /// The HUD's numbers that the cockpit keeps (rates, the budget, the toggles, the
-    /// followed vehicle's speed and heading); the caller fills in the link's.
+    /// followed vehicle's speed and heading); the caller fills in the connection's.
     pub fn numbers(&mut self, now: f64, followed: Option<&VehicleView>) -> Numbers {
         let (speed, heading_deg) = followed.map_or((0.0, 0.0), |v| (v.speed, v.heading));
         Numbers {

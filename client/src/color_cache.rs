@@ -6,7 +6,7 @@
 //! clipmap texture arrays, one for colour and one for normals.
 //!
 //! **Normals** ([`roam_protocol::normals`]) are a second kind of tile in the same slots
-//! ([`crate::tile_slots`]): the same layout, the same windows (a window move drops both
+//! ([`tile_slots`]): the same layout, the same windows (a window move drops both
 //! kinds' tiles outside it), the same checks, kept apart so either may come without the
 //! other (a damaged tile on the server is not sent). Their texels are the two-byte codes
 //! (an `Rg8Unorm` texel), half a colour texel's four.
@@ -45,7 +45,9 @@ use roam_protocol::messages::ServerMessage;
 use roam_protocol::tiles::{ColorLayout, MAX_WINDOW};
 use roam_protocol::{colormap, normals};
 
-use crate::tile_slots::TileSlots;
+mod tile_slots;
+
+use tile_slots::TileSlots;
 
 /// The most window bits a level has: [`MAX_WINDOW`]², as `u32` words.
 pub const MASK_WORDS: usize = (MAX_WINDOW as usize * MAX_WINDOW as usize).div_ceil(32);

@@ -222,19 +222,3 @@ fn normals_never_exceed_the_bound() {
             .sum::<u32>()
     );
 }
-
-/// The session's path: a normal tile during the session is decoded outside the cache's
-/// lock and put in ([`crate::joining::take_control`]).
-#[test]
-fn the_session_takes_normal_tiles() {
-    let c = std::cell::RefCell::new(cache(Keep::Texels));
-    let mut scratch = Vec::new();
-    let msg = tile(2, 1, 0, 11);
-    assert_eq!(
-        crate::joining::take_control(&msg, &mut scratch, || c.borrow_mut()),
-        Ok(None)
-    );
-    assert!(c.borrow().has_normals(2, 1, 0));
-    let bad = tile(9, 0, 0, 1);
-    assert!(crate::joining::take_control(&bad, &mut scratch, || c.borrow_mut()).is_err());
-}

@@ -1,44 +1,46 @@
-//! Each connection's tasks and words, and the [`Supervisor`] that runs them one
-//! connection after another. A connection's tasks have no clock (the supervisor bounds
-//! them in time): the frames read into the session's core (datagrams, and streams read to
+//! The native session's I/O: what its tasks share ([`Shared`]: the connection's clock-free
+//! cores, the keys, the status, the addresses), each connection's tasks, and
+//! [`Connections`], which drives one connection after another as the reconnection
+//! supervisor ([`crate::supervisor::Supervisor`], shared with the page) decides.
+//!
+//! A connection's tasks: the frames read into the core (datagrams, and streams read to
 //! their end, each chunk news of the server), the server's control messages after the
 //! join (colour windows and tiles into the colour cache, each tile decoded outside its
-//! lock; an edge's news of its world to the session; a goodbye ends the session; a colour
-//! message the cache refuses ends it as the server's protocol error), the goodbye said
-//! when the viewer quits, and how a connection ended ([`End`]: quit, lost, the server
-//! shutting down, or for good); one attempt to join (bounded by the session's timeouts),
-//! and the key sender.
-//!
-//! **The supervisor** ([`crate::session`] starts it) drives each connection (the readers
-//! above, the core's control messages written in order, the silence watched:
-//! [`Patience::silence`], or [`SILENCE_MANY`] when there are other addresses), and when
-//! one is lost, reconnects: to the next address in turn ([`Addresses::after_loss`]), each
-//! handshake within 5 s ([`HANDSHAKE_MANY`] with other addresses), backing off from
-//! 100 ms to 2 s, for [`Patience::reconnect_for`]; the silence rule counted per address
-//! ([`Silences`]). With other addresses, a server shutting down is a loss too (the next
-//! edge takes the viewer); alone, it ends the session.
-//!
-//! [`Addresses::after_loss`]: crate::edges::Addresses::after_loss
+//! lock; an edge's news of its world to the status; a goodbye ends the connection, and a
+//! colour message the cache refuses ends it as the server's protocol error), the core's
+//! control messages written in order (each within [`CONTROL_TIMEOUT`]), the goodbye said
+//! when the viewer quits, and the silence watched
+//! ([`crate::supervisor::Patience::allowed_silence`]); one attempt to join ([`attempt`]:
+//! the handshake and then the welcome bounded); and the key sender, every 10 ms on the
+//! process's grid. This is a shell: it reads the clock (when the server was last heard,
+//! when a frame arrived, the key clock, the timeouts) and hands the instants to the cores
+//! and the supervisor; the supervisor decides whether a connection's end ends the session.
 
 use std::net::SocketAddr;
-use std::sync::Arc;
-use std::sync::atomic::Ordering;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
 use roam_link::wire;
-use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage, close};
-use tokio::sync::{mpsc, oneshot};
+use roam_protocol::keys::KeyStep;
+use roam_protocol::messages::{
+    self, ClientMessage, Hello, Reason, ReplayStatus, Role, ServerMessage, ViewChange, Welcome,
+    WorldNews, close,
+};
+use tokio::sync::{Notify, mpsc, oneshot, watch};
 use tokio::task::JoinSet;
 
-use crate::color_cache::Keep;
-use crate::core::ClientCore;
-use crate::edges::{HANDSHAKE_MANY, SILENCE_MANY, Silences};
-use crate::join::{self, JoinError, Joined, TerrainId};
-use crate::joining::{Told, next_hello, take_control};
-use crate::session::{CONTROL_TIMEOUT, JOIN_TIMEOUT, Link, Patience, State, Steps, lock, secs};
+use crate::color_cache::{ColorCache, Keep};
+use crate::conversation::{TerrainId, Told, next_hello, take_control};
+use crate::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
+use crate::edges::{Addresses, World, native_edges};
+use crate::quic::{self, JoinError, Joined};
+use crate::supervisor::{End, JOIN_TIMEOUT, State, Supervisor, secs};
 
-pub use crate::core::MAX_FRAME;
+/// How long a control message may take to leave (a server that stops reading does not
+/// hold the viewer).
+pub(crate) const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// What the control writer is asked to do.
 pub enum Outgoing {
@@ -47,31 +49,157 @@ pub enum Outgoing {
     Quit(oneshot::Sender<bool>),
 }
 
-/// How a connection ended.
-pub enum End {
-    /// The viewer quit (or the session was dropped).
-    Quit,
-    /// Lost: worth connecting again. `silent`: the server went silent.
-    Lost { why: String, silent: bool },
-    /// The server is shutting down (it said goodbye so, or closed with that code): for
-    /// good when there is no other address to go to.
-    Shutdown(String),
-    /// For good.
-    Final(String),
+/// What a session shows of itself: its state, its gaps, its newest welcome, where it is
+/// connected and what the edge said of its world.
+#[derive(Clone, Debug)]
+pub struct Status {
+    pub state: State,
+    pub gaps: Gaps,
+    /// The newest connection's welcome (the vehicle may change on a reconnection that
+    /// did not get it back).
+    pub welcome: Welcome,
+    /// The newest connection's address.
+    pub addr: SocketAddr,
+    /// The world behind the server: `world.gone` says why when the edge said it does not
+    /// answer (frames go on, showing it as last seen); the time gone in all.
+    pub world: World,
+    /// Addresses learned from the edges ([`WorldNews::Edges`]), in the rotation.
+    pub edges_learned: usize,
+    /// A watched recording's state, as the server last said it (`serve --replay`).
+    pub replay: Option<ReplayStatus>,
 }
 
-impl End {
-    pub fn of(e: &quinn::ConnectionError) -> End {
-        if let quinn::ConnectionError::ApplicationClosed(c) = e
-            && c.error_code == close::SHUTDOWN.into()
-        {
-            return End::Shutdown(join::ending(e).1);
-        }
-        match join::ending(e) {
-            (true, why) => End::Lost { why, silent: false },
-            (false, why) => End::Final(why),
+/// Each physics step's keys, taken from the core's latch or a script.
+pub(crate) type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
+
+/// What a session's tasks and its handle share.
+pub(crate) struct Shared {
+    /// The connection's frames; replaced with each connection.
+    pub(crate) core: Mutex<ClientCore>,
+    /// The connection's colour tiles; replaced with each connection. Locked apart from
+    /// the frames (and never while a tile decodes): the render thread drains it.
+    pub(crate) colors: Mutex<ColorCache>,
+    /// Colour bytes of the connections before this one.
+    pub(crate) color_bytes_before: AtomicU64,
+    /// Locked apart from the frames: a key state never waits on a decode. For the session.
+    pub(crate) keys: Mutex<KeyCore>,
+    /// Woken when a frame is offered or the session ends.
+    pub(crate) notify: Notify,
+    /// Bumped (under the core's lock) with each connection: bytes of an older one are not
+    /// offered to the new core.
+    pub(crate) epoch: AtomicU64,
+    /// The connection the keys go on; none while reconnecting.
+    pub(crate) conn: Mutex<Option<quinn::Connection>>,
+    /// When the server was last heard (a frame's bytes, a control message, the welcome).
+    pub(crate) heard: Mutex<Instant>,
+    /// Frames offered, all connections together.
+    pub(crate) frames: AtomicU64,
+    /// Frame bytes of the connections before this one.
+    pub(crate) bytes_before: AtomicU64,
+    /// The newest view asked for, sent again on a new connection.
+    pub(crate) view: Mutex<Option<ViewChange>>,
+    pub(crate) status: watch::Sender<Status>,
+    /// The addresses tried in turn, the one in use among them.
+    pub(crate) addresses: Mutex<Addresses<SocketAddr>>,
+    /// Whether the endpoint reaches IPv6 addresses (learned ones it cannot are skipped).
+    pub(crate) ipv6: bool,
+}
+
+impl Shared {
+    /// The session ends with `why` (the first reason given stands).
+    pub(crate) fn end(&self, why: String) {
+        self.status.send_if_modified(|s| {
+            if matches!(s.state, State::Ended(_)) {
+                return false;
+            }
+            s.state = State::Ended(why);
+            true
+        });
+        self.notify.notify_one();
+    }
+
+    pub(crate) fn ended(&self) -> Option<String> {
+        match &self.status.borrow().state {
+            State::Ended(why) => Some(why.clone()),
+            _ => None,
         }
     }
+
+    /// The server was heard from, now.
+    pub(crate) fn heard(&self) {
+        *lock(&self.heard) = Instant::now();
+    }
+
+    /// Bytes of a frame of connection `epoch` arrived.
+    pub(crate) fn offer(&self, epoch: u64, bytes: &[u8]) {
+        {
+            let mut core = lock(&self.core);
+            if self.epoch.load(Ordering::Acquire) != epoch {
+                return;
+            }
+            core.offer(bytes, Instant::now());
+        }
+        self.frames.fetch_add(1, Ordering::Relaxed);
+        self.heard();
+        self.notify.notify_one();
+    }
+
+    /// An edge's news of its world: its other edges join the rotation; the world gone or
+    /// back goes into the status (waking its watchers).
+    pub(crate) fn news(&self, news: &WorldNews) {
+        let now = Instant::now();
+        match news {
+            WorldNews::Edges(edges) => {
+                let reachable = native_edges(edges)
+                    .into_iter()
+                    .filter(|a| self.ipv6 || a.is_ipv4());
+                let learned = {
+                    let mut a = lock(&self.addresses);
+                    a.learn(reachable);
+                    a.learned()
+                };
+                self.status.send_if_modified(|s| {
+                    let changed = s.edges_learned != learned;
+                    s.edges_learned = learned;
+                    changed
+                });
+            }
+            other => {
+                self.status
+                    .send_if_modified(|s| s.world.apply(other, now).is_some());
+            }
+        }
+    }
+
+    /// The server's frames follow vehicle `v` from now on (a reconnection asks for it).
+    pub(crate) fn following(&self, v: u16) {
+        self.status.send_if_modified(|s| {
+            let changed = s.welcome.vehicle != v;
+            s.welcome.vehicle = v;
+            changed
+        });
+    }
+
+    /// A watched recording's state changed.
+    pub(crate) fn replay(&self, status: &ReplayStatus) {
+        lock(&self.core).set_replay();
+        self.status.send_if_modified(|s| {
+            let changed = s.replay.as_ref() != Some(status);
+            s.replay = Some(status.clone());
+            changed
+        });
+    }
+
+    /// Closes the current connection, if any.
+    pub(crate) fn close(&self, code: u32, why: &[u8]) {
+        if let Some(conn) = lock(&self.conn).take() {
+            conn.close(code.into(), why);
+        }
+    }
+}
+
+pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Returns once the viewer quits (answering that the server did not hear: there is no
@@ -94,7 +222,7 @@ pub async fn quit_asked(outgoing: &mut mpsc::UnboundedReceiver<Outgoing>) {
 /// did, if it did; else for good (the server stopped reading).
 pub fn failed_write(conn: &quinn::Connection, e: anyhow::Error) -> End {
     match conn.close_reason() {
-        Some(e) => End::of(&e),
+        Some(e) => quic::end_of(&e),
         None => End::Final(format!("{e:#}")),
     }
 }
@@ -117,9 +245,13 @@ pub async fn goodbye(send: &mut quinn::SendStream) -> bool {
 
 /// The server's control messages after the join: each is news of the server; colour
 /// windows and tiles go to the colour cache, an edge's news of its world to the session
-/// ([`Link::news`]); a goodbye ends the session, and so does anything else (not the
+/// ([`Shared::news`]); a goodbye ends the session, and so does anything else (not the
 /// protocol). Ends with the stream.
-pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mpsc::Sender<End>) {
+pub async fn read_control(
+    mut recv: quinn::RecvStream,
+    shared: Arc<Shared>,
+    ends: mpsc::Sender<End>,
+) {
     let mut rgb = Vec::new();
     let end = loop {
         let msg = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
@@ -128,12 +260,12 @@ pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mp
             Err(wire::WireError::Closed | wire::WireError::Read(_)) => return,
             Err(e) => break End::Final(format!("the server's control stream: {e}")),
         };
-        link.heard();
-        match take_control(&msg, &mut rgb, || lock(&link.colors)) {
+        shared.heard();
+        match take_control(&msg, &mut rgb, || lock(&shared.colors)) {
             Ok(None) => {}
-            Ok(Some(Told::News(news))) => link.news(news),
-            Ok(Some(Told::Following(v))) => link.following(v),
-            Ok(Some(Told::Replay(s))) => link.replay(s),
+            Ok(Some(Told::News(news))) => shared.news(news),
+            Ok(Some(Told::Following(v))) => shared.following(v),
+            Ok(Some(Told::Replay(s))) => shared.replay(s),
             Err(why) if msg == ServerMessage::Bye(Reason::Shutdown) => break End::Shutdown(why),
             Err(why) => break End::Final(why),
         }
@@ -143,17 +275,17 @@ pub async fn read_control(mut recv: quinn::RecvStream, link: Arc<Link>, ends: mp
 
 /// Reads frames into the core as they arrive: datagrams (small frames), and streams, each
 /// read to its end in a task of its own (a stream the server abandons is skipped). Every
-/// chunk counts as news of the server (a large frame on a slow link is not silence).
-pub async fn read_frames(conn: quinn::Connection, link: Arc<Link>, epoch: u64) {
+/// chunk counts as news of the server (a large frame on a slow path is not silence).
+pub async fn read_frames(conn: quinn::Connection, shared: Arc<Shared>, epoch: u64) {
     let datagrams = async {
         while let Ok(bytes) = conn.read_datagram().await {
-            link.offer(epoch, &bytes);
+            shared.offer(epoch, &bytes);
         }
     };
     let streams = async {
         let mut readers = JoinSet::new();
         while let Ok(stream) = conn.accept_uni().await {
-            readers.spawn(read_stream(stream, link.clone(), epoch));
+            readers.spawn(read_stream(stream, shared.clone(), epoch));
             while readers.try_join_next().is_some() {}
         }
     };
@@ -164,12 +296,12 @@ pub async fn read_frames(conn: quinn::Connection, link: Arc<Link>, epoch: u64) {
 }
 
 /// One frame's stream, read to its end (at most [`MAX_FRAME`] bytes) and offered.
-async fn read_stream(mut stream: quinn::RecvStream, link: Arc<Link>, epoch: u64) {
+async fn read_stream(mut stream: quinn::RecvStream, shared: Arc<Shared>, epoch: u64) {
     let mut bytes = Vec::new();
     loop {
         match stream.read_chunk(MAX_FRAME, true).await {
             Ok(Some(chunk)) => {
-                link.heard();
+                shared.heard();
                 if bytes.len() + chunk.bytes.len() > MAX_FRAME {
                     let _ = stream.stop(0u32.into());
                     return;
@@ -180,7 +312,7 @@ async fn read_stream(mut stream: quinn::RecvStream, link: Arc<Link>, epoch: u64)
             Err(_) => return,
         }
     }
-    link.offer(epoch, &bytes);
+    shared.offer(epoch, &bytes);
 }
 
 /// One attempt to join: the handshake within `handshake`, the welcome and the coarsest
@@ -198,7 +330,7 @@ pub async fn attempt(
     let conn = match tokio::time::timeout(handshake, connecting).await {
         Ok(Ok(conn)) => conn,
         Ok(Err(e)) => {
-            let (lost, why) = join::ending(&e);
+            let (lost, why) = quic::ending(&e);
             return Err(JoinError { lost, message: why });
         }
         Err(_) => {
@@ -208,7 +340,7 @@ pub async fn attempt(
             )));
         }
     };
-    match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn.clone(), hello, keep)).await {
+    match tokio::time::timeout(JOIN_TIMEOUT, quic::hello(conn.clone(), hello, keep)).await {
         Ok(r) => r.inspect_err(|_| conn.close(close::BYE.into(), b"bye")),
         Err(_) => {
             conn.close(0u32.into(), b"too slow");
@@ -232,8 +364,8 @@ pub async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) ->
 /// `steps`, on whichever connection is up: the core numbers the state and repeats the
 /// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
 /// are numbered) unsent. Ends with the session. With a `phase`, the clock ticks at that
-/// offset on the process's 10 ms grid ([`KeySource::ScriptAt`]); without, from now.
-pub async fn send_keys(link: Arc<Link>, mut steps: Steps, phase: Option<Duration>) {
+/// offset on the process's 10 ms grid (`KeySource::ScriptAt`); without, from now.
+pub async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Duration>) {
     const STEP: Duration = Duration::from_millis(10);
     let start = match phase {
         Some(phase) => on_grid(tokio::time::Instant::now(), STEP, phase),
@@ -243,15 +375,15 @@ pub async fn send_keys(link: Arc<Link>, mut steps: Steps, phase: Option<Duration
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
         tick.tick().await;
-        if link.ended().is_some() {
+        if shared.ended().is_some() {
             return;
         }
         let datagram = {
-            let mut keys = lock(&link.keys);
+            let mut keys = lock(&shared.keys);
             let step = steps(&mut keys);
             keys.key_datagram(step, Instant::now())
         };
-        let conn = lock(&link.conn).clone();
+        let conn = lock(&shared.conn).clone();
         let mut bytes = Vec::new();
         if let Some(conn) = conn
             && messages::encode(&datagram, &mut bytes).is_ok()
@@ -281,31 +413,22 @@ fn grid_after(since: u128, step: u128, phase: u128) -> u128 {
     since.saturating_sub(offset).div_ceil(step) * step + offset
 }
 
-/// The first pause between reconnection attempts, doubled after each up to the second.
-const BACKOFF_FIRST: Duration = Duration::from_millis(100);
-const BACKOFF_MOST: Duration = Duration::from_secs(2);
-/// A reconnection's QUIC handshake, at most, with one address (the next attempt starts
-/// afresh; the last may end this much after [`Patience::reconnect_for`]).
-const HANDSHAKE: Duration = Duration::from_secs(5);
-
-/// The connection's life and the reconnections: owns the control stream's writing end.
-pub(crate) struct Supervisor {
+/// A session's connections, one after another: each driven until it ends, then the
+/// supervisor asked whether and how to connect again. Owns the control stream's writing
+/// end.
+pub(crate) struct Connections {
     pub(crate) endpoint: quinn::Endpoint,
     /// The hello of the next connection (the newest ticket, the vehicle followed).
     pub(crate) hello: Hello,
-    pub(crate) patience: Patience,
     /// What the colour caches keep.
     pub(crate) keep: Keep,
-    /// The first connection's terrain: every later one must show it.
-    pub(crate) terrain: TerrainId,
-    pub(crate) link: Arc<Link>,
+    pub(crate) supervisor: Supervisor,
+    pub(crate) shared: Arc<Shared>,
     pub(crate) outgoing: mpsc::UnboundedReceiver<Outgoing>,
 }
 
-impl Supervisor {
+impl Connections {
     pub(crate) async fn run(mut self, mut joined: Joined) {
-        // The addresses silent since the last frame: the same one silent again ends it.
-        let mut silences = Silences::default();
         loop {
             let Joined {
                 conn,
@@ -315,63 +438,44 @@ impl Supervisor {
             } = joined;
             let end = self.drive(&conn, &mut send, recv).await;
             let (here, many) = {
-                let a = lock(&self.link.addresses);
+                let a = lock(&self.shared.addresses);
                 (a.index(), a.many())
             };
-            let addr = self.addr();
-            let (why, silent) = match end {
-                End::Quit => return self.link.end("quit".into()),
-                // Another edge takes the viewer.
-                End::Shutdown(why) if many => (why, false),
-                End::Final(why) | End::Shutdown(why) => {
-                    conn.close(close::BYE.into(), b"bye");
-                    return self.link.end(why);
-                }
-                End::Lost { why, silent } => (why, silent),
-            };
-            conn.close(0u32.into(), b"lost");
-            *lock(&self.link.conn) = None;
-            if silent && silences.silent(here, self.link.frames.load(Ordering::Relaxed)) {
-                return self.link.end(format!(
-                    "lost the server at {addr}: {why}, again right after reconnecting, with \
-                     no frame between: the server welcomes but sends nothing"
-                ));
+            let again = end.worth_reconnecting(many);
+            let quit = end == End::Quit;
+            let frames = self.shared.frames.load(Ordering::Relaxed);
+            let verdict =
+                self.supervisor
+                    .ended(end, &self.addr(), here, many, frames, Instant::now());
+            if again {
+                // Not a goodbye: the server holds a driver's vehicle for the reconnection.
+                conn.close(0u32.into(), b"lost");
+                *lock(&self.shared.conn) = None;
+            } else if !quit {
+                conn.close(close::BYE.into(), b"bye");
             }
-            self.link.status.send_modify(|s| {
-                s.gaps.lost(Instant::now());
-                s.state = State::Reconnecting {
-                    why: why.clone(),
-                    attempts: 0,
-                };
-            });
-            joined = match self.reconnect(&why).await {
+            if let Err(why) = verdict {
+                return self.shared.end(why);
+            }
+            joined = match self.reconnect(Instant::now()).await {
                 Ok(Some(j)) => j,
-                Ok(None) => return self.link.end("quit".into()),
-                Err(why) => return self.link.end(why),
+                Ok(None) => return self.shared.end("quit".into()),
+                Err(why) => return self.shared.end(why),
             };
-            if self.link.ended().is_some() {
+            if self.shared.ended().is_some() {
                 joined.conn.close(close::BYE.into(), b"bye");
                 return;
             }
             if let Err(why) = self.adopt(&mut joined) {
                 joined.conn.close(close::BYE.into(), b"bye");
-                return self.link.end(why);
+                return self.shared.end(why);
             }
         }
     }
 
     /// The address in use.
     fn addr(&self) -> SocketAddr {
-        *lock(&self.link.addresses).current()
-    }
-
-    /// How long a silence may last: shorter when there are other addresses to go to.
-    fn silence(&self) -> Duration {
-        if lock(&self.link.addresses).many() {
-            self.patience.silence.min(SILENCE_MANY)
-        } else {
-            self.patience.silence
-        }
+        *lock(&self.shared.addresses).current()
     }
 
     /// Serves one connection until it ends: frames into the core, the server's control
@@ -382,15 +486,15 @@ impl Supervisor {
         send: &mut quinn::SendStream,
         recv: quinn::RecvStream,
     ) -> End {
-        let epoch = self.link.epoch.load(Ordering::Acquire);
+        let epoch = self.shared.epoch.load(Ordering::Acquire);
         let (ends_tx, mut ends) = mpsc::channel(1);
         // Dropped on return: the readers stop with the connection's end.
         let mut tasks = JoinSet::new();
-        tasks.spawn(read_frames(conn.clone(), self.link.clone(), epoch));
-        tasks.spawn(read_control(recv, self.link.clone(), ends_tx));
+        tasks.spawn(read_frames(conn.clone(), self.shared.clone(), epoch));
+        tasks.spawn(read_control(recv, self.shared.clone(), ends_tx));
         // A view to tell the new connection.
         let mut outbox = Vec::new();
-        while let Some(m) = lock(&self.link.core).poll_control() {
+        while let Some(m) = lock(&self.shared.core).poll_control() {
             outbox.push(m);
         }
         for m in outbox {
@@ -400,8 +504,9 @@ impl Supervisor {
         }
         loop {
             // Edges learned meanwhile shorten it.
-            let silence = self.silence();
-            let quiet_until = *lock(&self.link.heard) + silence;
+            let many = lock(&self.shared.addresses).many();
+            let silence = self.supervisor.patience().allowed_silence(many);
+            let quiet_until = *lock(&self.shared.heard) + silence;
             tokio::select! {
                 o = self.outgoing.recv() => match o {
                     Some(Outgoing::Message(m)) => {
@@ -416,46 +521,36 @@ impl Supervisor {
                     None => return End::Quit,
                 },
                 Some(end) = ends.recv() => return end,
-                e = conn.closed() => return End::of(&e),
+                e = conn.closed() => return quic::end_of(&e),
                 () = tokio::time::sleep_until(quiet_until.into()) => {
-                    if lock(&self.link.heard).elapsed() >= silence {
-                        return End::Lost {
-                            why: format!(
-                                "no frame or message from the server for {}",
-                                secs(silence)
-                            ),
-                            silent: true,
-                        };
+                    if lock(&self.shared.heard).elapsed() >= silence {
+                        return End::silence(silence);
                     }
                 }
             }
         }
     }
 
-    /// Connects again, each attempt to the next address in turn, until a connection
-    /// joins, the session quits (`None`), or the time runs out or a server refuses (an
-    /// error, in words).
-    async fn reconnect(&mut self, why: &str) -> Result<Option<Joined>, String> {
-        let deadline = Instant::now() + self.patience.reconnect_for;
-        let mut backoff = BACKOFF_FIRST;
-        let mut attempts = 0u32;
-        let from = self.addr();
-        let lost = |more: String| format!("lost the server at {from}: {why}; {more}");
+    /// Connects again, each attempt to the next address in turn, as the supervisor says,
+    /// until a connection joins, the session quits (`None`), or the supervisor gives up
+    /// (an error, in words). `lost_at`: when the connection was lost.
+    async fn reconnect(&mut self, lost_at: Instant) -> Result<Option<Joined>, String> {
+        let mut lost_at = Some(lost_at);
         loop {
-            attempts += 1;
-            self.link.status.send_modify(|s| {
-                if let State::Reconnecting { attempts: a, .. } = &mut s.state {
-                    *a = attempts;
-                }
-            });
-            // An attempt begun before the deadline has its whole handshake.
-            let hello = self.hello_now();
-            let (addr, handshake) = {
-                let mut a = lock(&self.link.addresses);
-                let addr = *a.after_loss();
-                (addr, if a.many() { HANDSHAKE_MANY } else { HANDSHAKE })
+            let (addr, many) = {
+                let mut a = lock(&self.shared.addresses);
+                (*a.after_loss(), a.many())
             };
-            let attempt = attempt(&self.endpoint, addr, handshake, hello, self.keep);
+            let next = self.supervisor.attempt(many);
+            let state = self.supervisor.state();
+            self.shared.status.send_modify(|s| {
+                if let Some(at) = lost_at.take() {
+                    s.gaps.lost(at);
+                }
+                s.state = state;
+            });
+            let hello = self.hello_now();
+            let attempt = attempt(&self.endpoint, addr, next.handshake, hello, self.keep);
             let result = tokio::select! {
                 r = attempt => r,
                 () = quit_asked(&mut self.outgoing) => {
@@ -466,39 +561,36 @@ impl Supervisor {
                     return Ok(None);
                 }
             };
-            let last = match result {
+            let e = match result {
                 Ok(j) => {
                     let found = TerrainId::of(&j.welcome, j.colors.coarsest());
-                    return match self.terrain.differences(&found) {
-                        None => Ok(Some(j)),
-                        Some(d) => {
+                    return match self.supervisor.joined(&found) {
+                        Ok(()) => Ok(Some(j)),
+                        Err(why) => {
                             j.conn.close(close::BYE.into(), b"another terrain");
-                            Err(lost(format!("the server changed its terrain: {d}")))
+                            Err(why)
                         }
                     };
                 }
-                Err(e) if !e.lost => return Err(lost(format!("reconnecting to {addr}: {e}"))),
-                Err(e) => format!("{addr}: {}", e.message),
+                Err(e) => e,
             };
-            let left = deadline.saturating_duration_since(Instant::now());
-            if left.is_zero() || self.link.ended().is_some() {
-                return Err(lost(format!(
-                    "tried to reconnect for {} s ({attempts} attempts; the last: {last})",
-                    self.patience.reconnect_for.as_secs()
-                )));
+            let pause = self
+                .supervisor
+                .failed(&addr, e.lost, &e.message, Instant::now())?;
+            if self.shared.ended().is_some() {
+                return Ok(None);
             }
             tokio::select! {
-                () = tokio::time::sleep(backoff.min(left)) => {}
+                () = tokio::time::sleep(pause) => {}
                 () = quit_asked(&mut self.outgoing) => return Ok(None),
             }
-            backoff = (backoff * 2).min(BACKOFF_MOST);
         }
     }
 
     /// The next hello, asking for the budget asked so far.
     fn hello_now(&self) -> Hello {
         Hello {
-            budget: lock(&self.link.core).budget(),
+            budget: lock(&self.shared.core).budget(),
             ..self.hello.clone()
         }
     }
@@ -508,10 +600,10 @@ impl Supervisor {
     fn adopt(&mut self, joined: &mut Joined) -> Result<(), String> {
         let welcome = joined.welcome.clone();
         {
-            let mut core = lock(&self.link.core);
+            let mut core = lock(&self.shared.core);
             let mut fresh = ClientCore::new(&welcome, core.budget())
                 .ok_or_else(|| format!("a grid of 2^{} + 1", welcome.levels))?;
-            if let Some(view) = *lock(&self.link.view) {
+            if let Some(view) = *lock(&self.shared.view) {
                 fresh.set_view(view);
             }
             if let Some(ticks) = core.morph_ticks() {
@@ -522,26 +614,26 @@ impl Supervisor {
             if core.is_replay() {
                 fresh.set_replay();
             }
-            self.link
+            self.shared
                 .bytes_before
                 .fetch_add(core.bytes_in(), Ordering::Relaxed);
-            self.link.epoch.fetch_add(1, Ordering::AcqRel);
+            self.shared.epoch.fetch_add(1, Ordering::AcqRel);
             *core = fresh;
         }
         {
-            let mut colors = lock(&self.link.colors);
+            let mut colors = lock(&self.shared.colors);
             let joined_colors = std::mem::replace(&mut joined.colors, colors.fresh());
-            self.link
+            self.shared
                 .color_bytes_before
                 .fetch_add(colors.bytes(), Ordering::Relaxed);
             *colors = joined_colors;
         }
-        self.link.heard();
-        *lock(&self.link.conn) = Some(joined.conn.clone());
+        self.shared.heard();
+        *lock(&self.shared.conn) = Some(joined.conn.clone());
         let driver = self.hello.role == Role::Driver;
         let addr = self.addr();
         let now = Instant::now();
-        self.link.status.send_modify(|s| {
+        self.shared.status.send_modify(|s| {
             s.gaps.reconnected(driver && welcome.resumed);
             s.state = State::Connected;
             s.welcome = welcome.clone();
@@ -550,7 +642,7 @@ impl Supervisor {
             s.world.back(now);
         });
         for news in std::mem::take(&mut joined.news) {
-            self.link.news(&news);
+            self.shared.news(&news);
         }
         self.hello = next_hello(self.hello.clone(), &welcome);
         Ok(())

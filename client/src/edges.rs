@@ -1,9 +1,9 @@
 //! A world served by several edge servers, as a viewer sees it, without I/O or a clock
 //! (instants come in): the addresses it tries in turn ([`Addresses`]: the ones given,
 //! then those the edges told of, [`native_edges`] for QUIC and [`web_edges`] for the
-//! page's WebTransport), the silence rule counted per address ([`Silences`]), and what the
-//! edge said of its world ([`World`]: gone, why, for how long in all). Shared by the native
-//! viewer ([`crate::session`]) and the browser viewer (`roam-web`).
+//! page's WebTransport) and what the edge said of its world ([`World`]: gone, why, for how
+//! long in all). Shared by the native viewer's session and the browser viewer
+//! (`roam-web`); the silence rule counted per address is the reconnection supervisor's.
 //!
 //! **The order.** The first connection tries the addresses in the order given; after
 //! losing address `i`, the next attempt goes to `i + 1`, then `i + 2`, … wrapping around
@@ -20,18 +20,6 @@ use web_time::Instant;
 
 /// The most addresses a viewer keeps in its rotation.
 pub const MAX_ADDRESSES: usize = 64;
-
-/// How long a viewer with other addresses to try waits on a silent server (no frame, no
-/// message) before moving on: the server sends frames at the viewer's rate whatever the
-/// world does, so 48 frame intervals of silence at 60 Hz are an edge gone, not a quiet
-/// world. Instead of [`crate::session::Patience::silence`] (10 s), unless that is
-/// shorter. 0.8 s, not 1: the move (silence, then a loopback handshake and a resume) took
-/// 1.01 s with 1 s (`tests/tests/cluster.rs`, an edge killed), the aim being 1 s at most.
-pub const SILENCE_MANY: Duration = Duration::from_millis(800);
-
-/// How long one handshake may take when there are other addresses to try (a single
-/// address has 5 s).
-pub const HANDSHAKE_MANY: Duration = Duration::from_secs(1);
 
 /// The address tried after address `i` of `n` (wrapping); 0 when there are none.
 pub fn next_address(i: usize, n: usize) -> usize {
@@ -124,36 +112,6 @@ impl<T: Clone + PartialEq> Addresses<T> {
     /// The addresses learned from the edges (not given).
     pub fn learned(&self) -> usize {
         self.list.len() - self.given
-    }
-}
-
-/// The rule "silence reconnects once", counted per address: a server that welcomes and
-/// then stays silent twice with no frame between is stuck, and the session ends; but a
-/// silence on *another* address is news of that one only. So the session ends on a
-/// silence when this address was already silent since the last frame (one address: the
-/// second silence in a row, as before); with several, each gets its second chance, and
-/// a rotation through welcoming but silent addresses still ends.
-#[derive(Clone, Debug, Default)]
-pub struct Silences {
-    /// The frame count at the silences below.
-    frames: Option<u64>,
-    /// The addresses silent since then.
-    silent: Vec<usize>,
-}
-
-impl Silences {
-    /// Address `i` was silent, `frames` having been received so far in the session: true
-    /// when the session should end.
-    pub fn silent(&mut self, i: usize, frames: u64) -> bool {
-        if self.frames != Some(frames) {
-            self.frames = Some(frames);
-            self.silent.clear();
-        }
-        if self.silent.contains(&i) {
-            return true;
-        }
-        self.silent.push(i);
-        false
     }
 }
 
@@ -312,30 +270,6 @@ mod tests {
         assert_eq!(big.learn(many), MAX_ADDRESSES - 1);
         assert_eq!(big.len(), MAX_ADDRESSES);
         assert_eq!(big.learn(["y".to_owned()]), 0);
-    }
-
-    #[test]
-    fn silence_ends_a_session_only_when_the_same_address_is_silent_again() {
-        // One address: the second silence with no frame between ends it.
-        let mut s = Silences::default();
-        assert!(!s.silent(0, 10));
-        assert!(s.silent(0, 10));
-        // A frame between: a fresh chance.
-        let mut s = Silences::default();
-        assert!(!s.silent(0, 10));
-        assert!(!s.silent(0, 11));
-        // Two addresses: a silence on the other is not the same one's second.
-        let mut s = Silences::default();
-        assert!(!s.silent(0, 5));
-        assert!(!s.silent(1, 5));
-        assert!(s.silent(0, 5));
-        let mut s = Silences::default();
-        assert!(!s.silent(0, 5));
-        assert!(!s.silent(1, 5));
-        assert!(
-            !s.silent(0, 6),
-            "frames came from 1 before 0 was silent again"
-        );
     }
 
     #[test]

@@ -48,13 +48,14 @@ pub struct Arrived {
     pub at: Instant,
 }
 
-/// How a session that quit ends: [`Link::Ended`] with this, and more when the goodbye
+/// How a session that quit ends: [`Connection::Ended`] with this, and more when the goodbye
 /// was not heard.
 pub const QUIT: &str = "quit";
 
-/// The connection's state, in words for the HUD.
+/// Whether the task still has its session, in words for the HUD (reconnections are the
+/// session's own [`crate::session::State`]).
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub enum Link {
+pub enum Connection {
     Connected,
     Ended(String),
 }
@@ -64,7 +65,7 @@ pub struct Shared {
     pub arrived: Mutex<Option<Arrived>>,
     /// The session: its core latches the window's keys for the key sender.
     session: Arc<Session>,
-    pub link: Mutex<Link>,
+    pub connection: Mutex<Connection>,
     /// Frames taken from the stream and decoded.
     pub frames: AtomicU64,
     /// Frames that could not be decoded (a key frame was asked for).
@@ -84,8 +85,8 @@ impl Shared {
         lock(&self.arrived).take()
     }
 
-    pub fn link(&self) -> Link {
-        lock(&self.link).clone()
+    pub fn connection(&self) -> Connection {
+        lock(&self.connection).clone()
     }
 
     pub fn key_down(&self, k: Keys) {
@@ -150,7 +151,7 @@ pub fn spawn(
     let shared = Arc::new(Shared {
         arrived: Mutex::new(None),
         session: session.clone(),
-        link: Mutex::new(Link::Connected),
+        connection: Mutex::new(Connection::Connected),
         frames: AtomicU64::new(0),
         dropped: AtomicU64::new(0),
         latencies: Mutex::new(VecDeque::new()),
@@ -265,12 +266,12 @@ async fn run(
     };
     if ended == "quit" {
         let told = session.quit().await;
-        *lock(&shared.link) = Link::Ended(if told {
+        *lock(&shared.connection) = Connection::Ended(if told {
             QUIT.into()
         } else {
             format!("{QUIT}, but the server did not acknowledge the goodbye")
         });
     } else {
-        *lock(&shared.link) = Link::Ended(ended);
+        *lock(&shared.connection) = Connection::Ended(ended);
     }
 }

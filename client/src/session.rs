@@ -1,13 +1,12 @@
-//! The viewer's I/O: QUIC, tasks and the clock around the clock-free cores
-//! ([`ClientCore`] and [`ColorCache`] per connection, [`KeyCore`] and [`Gaps`] per
-//! session). It joins ([`crate::join`]: hello, welcome, the colour layout checked against
-//! the grid, the coarsest colour tile), then runs beside the caller: a **supervisor**
-//! (in `connection.rs`) that drives the connection (reading frames into the core, the
-//! server's control messages — colour windows and tiles into the colour cache, an edge's
-//! news of its world into the [`Status`] —, writing the core's control messages in order)
-//! and reconnects when it is lost, and a **key sender** that sends a key datagram every
-//! 10 ms (the physics' step) from the core's latch or a script. The window, the headless
-//! viewer and `--bench` take frames with [`Session::next_frame`].
+//! A native viewer's session with a server, the API the window, the headless viewer and
+//! `--bench` use: [`Session::join`] (and its variants) joins over QUIC (`quic.rs`: the
+//! hello, the welcome, the colour layout checked against the grid, the coarsest colour
+//! tile), then starts the tasks that run beside the caller (`connection.rs`): one that
+//! drives each connection in turn (frames into the core, the server's control messages,
+//! the core's control messages out, the silence watched) and reconnects as the
+//! reconnection [`Supervisor`] says when one is lost, and a **key sender** that sends a
+//! key datagram every 10 ms (the physics' step) from the core's latch or a script. The
+//! caller takes frames with [`Session::next_frame`] and reads the [`Status`].
 //!
 //! **Addresses.** A session has one address or several ([`Session::join_any`]: the edges
 //! of one world, `roam-client --connect A,B,…`), all behind the one certificate pin and
@@ -15,31 +14,23 @@
 //! ([`crate::edges::Addresses`]). The first connection tries them in turn (each handshake
 //! within [`HANDSHAKE_MANY`] when there are several); [`Session::addr`] is the one in use.
 //!
-//! **Reconnecting.** A connection is *lost* when QUIC says so (idle timeout, reset,
-//! transport error) or when the server is *silent*: no frame, no control message and no
-//! frame bytes for [`Patience::silence`] (10 s; [`SILENCE_MANY`], 0.8 s, when there are other
-//! addresses, unless the patience is shorter) after the welcome (the server sends frames
-//! at the viewer's rate whatever the world does, so silence means a stuck path or server).
-//! Then the session connects again to the next address in turn (the same one when it has
-//! one), from the same endpoint, with the same certificate pin and token, presenting the
-//! driver's ticket ([`Hello::resume`]; a spectator asks to follow the same vehicle), at
-//! once, then after 100 ms, doubling to 2 s between attempts, each handshake bounded to
-//! 5 s (1 s with other addresses), for [`Patience::reconnect_for`] (35 s: the server's 30 s
-//! hold and a margin), and then gives up with an error naming the server. The new
+//! **Reconnecting** follows the [`Supervisor`] (`supervisor.rs`, the page's too): a lost
+//! or silent connection ([`Patience::silence`], 10 s; [`SILENCE_MANY`] with other
+//! addresses) is made again at the next address in turn, from the same endpoint, with the
+//! same certificate pin and token, presenting the driver's ticket ([`Hello::resume`]; a
+//! spectator asks to follow the same vehicle), backing off from 100 ms to 2 s, for
+//! [`Patience::reconnect_for`] (35 s: the server's 30 s hold and a margin). The new
 //! connection starts a fresh [`ClientCore`] (frame numbers start again at 0) with the
 //! budget and view asked so far; the keys go on (their numbers keep rising, so a resumed
 //! vehicle's queue takes them as new). Its welcome must show the same terrain (grid,
 //! scales, colour layout and coarsest tile), else the session ends. A new connection also
 //! starts a fresh colour cache: the server sends the colour pyramid again from its
-//! coarsest tile.
+//! coarsest tile. Never reconnected after: a refusal, the server closing the connection
+//! (a goodbye; shutting down, unless there are other addresses), a frame the server could
+//! not have sent ([`Broken`]: the session ends with the server and the numbers named), the
+//! viewer quitting, or the same address silent twice with no frame between.
 //!
-//! Never reconnected after: a refusal (wrong token, version, a full server), the server
-//! closing the connection (a goodbye; shutting down, unless there are other addresses), a
-//! frame the server could not have sent ([`crate::core::Broken`]: the session ends with the
-//! server and the numbers named), the viewer quitting. **Silence reconnects once** per
-//! address: it may be a stuck path, but a server that welcomes again and then stays
-//! silent (the same address silent twice with no frame between) is stuck itself, and the
-//! session ends ([`crate::edges::Silences`]).
+//! [`WorldNews::Edges`]: roam_protocol::messages::WorldNews::Edges
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -49,83 +40,26 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, anyhow, bail};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{
-    self, ClientMessage, Hello, ReplayControl, ReplayStatus, ViewChange, Welcome, WorldNews, close,
+    self, ClientMessage, Hello, ReplayControl, ReplayStatus, ViewChange, Welcome, close,
 };
 use roam_protocol::script::Script;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 
 use crate::color_cache::{ColorCache, Keep};
-pub use crate::connection::MAX_FRAME;
-use crate::connection::{Outgoing, Supervisor, attempt, send_keys};
-pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, Received, Taken};
-use crate::edges::{Addresses, native_edges};
-pub use crate::edges::{HANDSHAKE_MANY, SILENCE_MANY, World};
-use crate::join::{self, Joined, TerrainId};
-pub use crate::join::{connect, describe};
-use crate::joining::next_hello;
+pub use crate::connection::Status;
+use crate::connection::{Connections, Outgoing, Shared, Steps, attempt, lock, send_keys};
+pub use crate::conversation::describe;
+use crate::conversation::{TerrainId, next_hello};
+pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, MAX_FRAME, Received, Taken};
+use crate::edges::Addresses;
+pub use crate::edges::World;
+pub use crate::quic::connect;
+use crate::quic::{self, Joined};
 use crate::render::Scene;
-
-/// How long a control message may take to leave (a server that stops reading does not
-/// hold the viewer).
-pub(crate) const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
-/// How long the welcome and the coarsest colour tile may take.
-pub(crate) const JOIN_TIMEOUT: Duration = Duration::from_secs(30);
-/// [`Patience::silence`] unless told otherwise.
-pub const SILENCE: Duration = Duration::from_secs(10);
-/// [`Patience::reconnect_for`] unless told otherwise: the server's hold (30 s) and a margin.
-pub const RECONNECT_FOR: Duration = Duration::from_secs(35);
-
-/// How long a session waits on its server.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Patience {
-    /// After the welcome, this long without a frame or a control message: the connection
-    /// is lost.
-    pub silence: Duration,
-    /// How long after a loss to keep trying to connect again.
-    pub reconnect_for: Duration,
-}
-
-impl Default for Patience {
-    fn default() -> Self {
-        Patience {
-            silence: SILENCE,
-            reconnect_for: RECONNECT_FOR,
-        }
-    }
-}
-
-/// Where a session stands.
-#[derive(Clone, Debug, PartialEq, Eq)]
-pub enum State {
-    Connected,
-    /// The connection was lost (`why`); `attempts` to connect again so far.
-    Reconnecting {
-        why: String,
-        attempts: u32,
-    },
-    /// No more frames will come: why.
-    Ended(String),
-}
-
-/// What a session shows of itself: its state, its gaps, its newest welcome, where it is
-/// connected and what the edge said of its world.
-#[derive(Clone, Debug)]
-pub struct Status {
-    pub state: State,
-    pub gaps: Gaps,
-    /// The newest connection's welcome (the vehicle may change on a reconnection that
-    /// did not get it back).
-    pub welcome: Welcome,
-    /// The newest connection's address.
-    pub addr: SocketAddr,
-    /// The world behind the server: `world.gone` says why when the edge said it does not
-    /// answer (frames go on, showing it as last seen); the time gone in all.
-    pub world: World,
-    /// Addresses learned from the edges ([`WorldNews::Edges`]), in the rotation.
-    pub edges_learned: usize,
-    /// A watched recording's state, as the server last said it (`serve --replay`).
-    pub replay: Option<ReplayStatus>,
-}
+pub use crate::supervisor::{
+    HANDSHAKE_MANY, Patience, RECONNECT_FOR, SILENCE, SILENCE_MANY, State,
+};
+use crate::supervisor::{JOIN_TIMEOUT, Supervisor};
 
 /// Set once Ctrl-C is pressed in the terminal; a second Ctrl-C exits at once (130), not
 /// waiting for goodbyes. For the headless viewer and the window alike.
@@ -157,151 +91,13 @@ pub enum KeySource {
     ScriptAt(Script, std::time::Duration),
 }
 
-/// Each physics step's keys, taken from the core's latch or a script.
-pub(crate) type Steps = Box<dyn FnMut(&mut KeyCore) -> KeyStep + Send>;
-
-/// What the tasks and the caller share.
-pub(crate) struct Link {
-    /// The connection's frames; replaced with each connection.
-    pub(crate) core: Mutex<ClientCore>,
-    /// The connection's colour tiles; replaced with each connection. Locked apart from
-    /// the frames (and never while a tile decodes): the render thread drains it.
-    pub(crate) colors: Mutex<ColorCache>,
-    /// Colour bytes of the connections before this one.
-    pub(crate) color_bytes_before: AtomicU64,
-    /// Locked apart from the frames: a key state never waits on a decode. For the session.
-    pub(crate) keys: Mutex<KeyCore>,
-    /// Woken when a frame is offered or the session ends.
-    pub(crate) notify: Notify,
-    /// Bumped (under the core's lock) with each connection: bytes of an older one are not
-    /// offered to the new core.
-    pub(crate) epoch: AtomicU64,
-    /// The connection the keys go on; none while reconnecting.
-    pub(crate) conn: Mutex<Option<quinn::Connection>>,
-    /// When the server was last heard (a frame's bytes, a control message, the welcome).
-    pub(crate) heard: Mutex<Instant>,
-    /// Frames offered, all connections together.
-    pub(crate) frames: AtomicU64,
-    /// Frame bytes of the connections before this one.
-    pub(crate) bytes_before: AtomicU64,
-    /// The newest view asked for, sent again on a new connection.
-    pub(crate) view: Mutex<Option<ViewChange>>,
-    pub(crate) status: watch::Sender<Status>,
-    /// The addresses tried in turn, the one in use among them.
-    pub(crate) addresses: Mutex<Addresses<SocketAddr>>,
-    /// Whether the endpoint reaches IPv6 addresses (learned ones it cannot are skipped).
-    ipv6: bool,
-}
-
-impl Link {
-    /// The session ends with `why` (the first reason given stands).
-    pub(crate) fn end(&self, why: String) {
-        self.status.send_if_modified(|s| {
-            if matches!(s.state, State::Ended(_)) {
-                return false;
-            }
-            s.state = State::Ended(why);
-            true
-        });
-        self.notify.notify_one();
-    }
-
-    pub(crate) fn ended(&self) -> Option<String> {
-        match &self.status.borrow().state {
-            State::Ended(why) => Some(why.clone()),
-            _ => None,
-        }
-    }
-
-    /// The server was heard from, now.
-    pub(crate) fn heard(&self) {
-        *lock(&self.heard) = Instant::now();
-    }
-
-    /// Bytes of a frame of connection `epoch` arrived.
-    pub(crate) fn offer(&self, epoch: u64, bytes: &[u8]) {
-        {
-            let mut core = lock(&self.core);
-            if self.epoch.load(Ordering::Acquire) != epoch {
-                return;
-            }
-            core.offer(bytes, Instant::now());
-        }
-        self.frames.fetch_add(1, Ordering::Relaxed);
-        self.heard();
-        self.notify.notify_one();
-    }
-
-    /// An edge's news of its world: its other edges join the rotation; the world gone or
-    /// back goes into the status (waking its watchers).
-    pub(crate) fn news(&self, news: &WorldNews) {
-        let now = Instant::now();
-        match news {
-            WorldNews::Edges(edges) => {
-                let reachable = native_edges(edges)
-                    .into_iter()
-                    .filter(|a| self.ipv6 || a.is_ipv4());
-                let learned = {
-                    let mut a = lock(&self.addresses);
-                    a.learn(reachable);
-                    a.learned()
-                };
-                self.status.send_if_modified(|s| {
-                    let changed = s.edges_learned != learned;
-                    s.edges_learned = learned;
-                    changed
-                });
-            }
-            other => {
-                self.status
-                    .send_if_modified(|s| s.world.apply(other, now).is_some());
-            }
-        }
-    }
-
-    /// The server's frames follow vehicle `v` from now on (a reconnection asks for it).
-    pub(crate) fn following(&self, v: u16) {
-        self.status.send_if_modified(|s| {
-            let changed = s.welcome.vehicle != v;
-            s.welcome.vehicle = v;
-            changed
-        });
-    }
-
-    /// A watched recording's state changed.
-    pub(crate) fn replay(&self, status: &ReplayStatus) {
-        lock(&self.core).set_replay();
-        self.status.send_if_modified(|s| {
-            let changed = s.replay.as_ref() != Some(status);
-            s.replay = Some(status.clone());
-            changed
-        });
-    }
-
-    /// Closes the current connection, if any.
-    pub(crate) fn close(&self, code: u32, why: &[u8]) {
-        if let Some(conn) = lock(&self.conn).take() {
-            conn.close(code.into(), why);
-        }
-    }
-}
-
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Seconds, as people read them.
-pub(crate) fn secs(d: Duration) -> String {
-    format!("{:.1} s", d.as_secs_f64())
-}
-
 /// A joined viewer.
 pub struct Session {
     pub scene: Scene,
     /// The hello's viewport and field of view (the geomorphs' camera).
     viewport: [u32; 2],
     fov_y_deg: f32,
-    link: Arc<Link>,
+    shared: Arc<Shared>,
     control: mpsc::UnboundedSender<Outgoing>,
     tasks: Vec<tokio::task::JoinHandle<()>>,
 }
@@ -357,7 +153,7 @@ impl Session {
         let Some(mut addresses) = Addresses::new(addrs.iter().copied()) else {
             bail!("no address to connect to");
         };
-        let endpoint = join::endpoint_for(addresses.all(), fingerprint)?;
+        let endpoint = quic::endpoint_for(addresses.all(), fingerprint)?;
         let ipv6 = endpoint.local_addr().is_ok_and(|a| a.is_ipv6());
         let mut hello = hello;
         hello.budget = messages::clamp_budget(hello.budget);
@@ -382,7 +178,7 @@ impl Session {
             edges_learned: 0,
             replay: None,
         });
-        let link = Arc::new(Link {
+        let shared = Arc::new(Shared {
             core: Mutex::new(core),
             colors: Mutex::new(colors),
             color_bytes_before: AtomicU64::new(0),
@@ -399,19 +195,18 @@ impl Session {
             ipv6,
         });
         for news in std::mem::take(&mut joined.news) {
-            link.news(&news);
+            shared.news(&news);
         }
         let (control, outgoing) = mpsc::unbounded_channel();
-        let supervisor = Supervisor {
+        let connections = Connections {
             endpoint,
             hello: next_hello(hello, &welcome),
-            patience,
             keep,
-            terrain,
-            link: link.clone(),
+            supervisor: Supervisor::new(patience, terrain),
+            shared: shared.clone(),
             outgoing,
         };
-        let mut tasks = vec![tokio::spawn(supervisor.run(joined))];
+        let mut tasks = vec![tokio::spawn(connections.run(joined))];
         let phase = match &keys {
             KeySource::ScriptAt(_, phase) => Some(*phase),
             _ => None,
@@ -431,13 +226,13 @@ impl Session {
             }
         };
         if let Some(steps) = steps {
-            tasks.push(tokio::spawn(send_keys(link.clone(), steps, phase)));
+            tasks.push(tokio::spawn(send_keys(shared.clone(), steps, phase)));
         }
         Ok(Session {
             scene,
             viewport,
             fov_y_deg,
-            link,
+            shared,
             control,
             tasks,
         })
@@ -446,63 +241,63 @@ impl Session {
     /// The address of the server connected now (the newest connection's, while
     /// reconnecting).
     pub fn addr(&self) -> SocketAddr {
-        self.link.status.borrow().addr
+        self.shared.status.borrow().addr
     }
 
     /// Every address the session may go to, in turn: those given, then those learned.
     pub fn addresses(&self) -> Vec<SocketAddr> {
-        lock(&self.link.addresses).all().to_vec()
+        lock(&self.shared.addresses).all().to_vec()
     }
 
     /// The core (the newest mesh, the grid, the budget) of the current connection: held
     /// briefly, never across an await.
     pub fn core(&self) -> MutexGuard<'_, ClientCore> {
-        lock(&self.link.core)
+        lock(&self.shared.core)
     }
 
     /// The current connection's colour cache: held briefly (the renderer drains it), never
     /// across an await.
     pub fn colors(&self) -> MutexGuard<'_, ColorCache> {
-        lock(&self.link.colors)
+        lock(&self.shared.colors)
     }
 
     /// The current connection's colour cache, taken (an empty one of the same layout left
     /// in its place): for a renderer made after the session (a screenshot).
     pub fn take_colors(&self) -> ColorCache {
-        let mut c = lock(&self.link.colors);
+        let mut c = lock(&self.shared.colors);
         let empty = c.fresh();
         std::mem::replace(&mut *c, empty)
     }
 
     /// Colour tile bytes received so far, every connection's.
     pub fn color_bytes(&self) -> u64 {
-        self.link.color_bytes_before.load(Ordering::Relaxed) + self.colors().bytes()
+        self.shared.color_bytes_before.load(Ordering::Relaxed) + self.colors().bytes()
     }
 
     /// Where the session stands, its gaps and its newest welcome.
     pub fn status(&self) -> Status {
-        self.link.status.borrow().clone()
+        self.shared.status.borrow().clone()
     }
 
     /// The status as it changes (the state, reconnections; not each frame): to wait for a
     /// loss or a reconnection without polling.
     pub fn status_changes(&self) -> watch::Receiver<Status> {
-        self.link.status.subscribe()
+        self.shared.status.subscribe()
     }
 
     /// The newest connection's welcome.
     pub fn welcome(&self) -> Welcome {
-        self.link.status.borrow().welcome.clone()
+        self.shared.status.borrow().welcome.clone()
     }
 
     /// Connections made again after one was lost, so far.
     pub fn reconnects(&self) -> u32 {
-        self.link.status.borrow().gaps.reconnects
+        self.shared.status.borrow().gaps.reconnects
     }
 
     /// The vehicle driven or followed now.
     pub fn vehicle(&self) -> u16 {
-        self.link.status.borrow().welcome.vehicle
+        self.shared.status.borrow().welcome.vehicle
     }
 
     /// Sends what the core has for the control stream.
@@ -519,10 +314,10 @@ impl Session {
     /// ends, naming the server and the frame).
     pub async fn next_frame(&self, decode: bool) -> Result<Taken> {
         loop {
-            let notified = self.link.notify.notified();
+            let notified = self.shared.notify.notified();
             tokio::pin!(notified);
             notified.as_mut().enable();
-            if let Some(why) = self.link.ended() {
+            if let Some(why) = self.shared.ended() {
                 bail!("{why}");
             }
             {
@@ -536,10 +331,10 @@ impl Session {
                         Ok(Taken::Frame(mut r)) => {
                             r.decode_s = started.elapsed().as_secs_f64();
                             if let Some(seq) = r.input_seq {
-                                r.latencies_ms = lock(&self.link.keys).applied(seq, r.arrived);
+                                r.latencies_ms = lock(&self.shared.keys).applied(seq, r.arrived);
                             }
                             // Not a change to wake watchers for: read with `status`.
-                            self.link.status.send_if_modified(|s| {
+                            self.shared.status.send_if_modified(|s| {
                                 s.gaps.frame(r.arrived);
                                 false
                             });
@@ -548,8 +343,8 @@ impl Session {
                         Ok(other) => Ok(other),
                         Err(broken) => {
                             let why = format!("the server at {}: {broken}", self.addr());
-                            self.link.end(why.clone());
-                            self.link.close(close::PROTOCOL, b"a frame out of order");
+                            self.shared.end(why.clone());
+                            self.shared.close(close::PROTOCOL, b"a frame out of order");
                             Err(anyhow!(why))
                         }
                     };
@@ -577,7 +372,7 @@ impl Session {
 
     /// A watched recording's state as the server last said it; `None` for a live world.
     pub fn replay(&self) -> Option<ReplayStatus> {
-        self.link.status.borrow().replay.clone()
+        self.shared.status.borrow().replay.clone()
     }
 
     /// Asks for `budget` triangles from now on (on this connection and the next).
@@ -590,7 +385,7 @@ impl Session {
     /// Tells the server how the camera differs from the default at the vehicle (this
     /// connection, and the next).
     pub fn set_view(&self, view: ViewChange) {
-        *lock(&self.link.view) = Some(view);
+        *lock(&self.shared.view) = Some(view);
         let mut core = self.core();
         core.set_view(view);
         self.flush(&mut core);
@@ -613,22 +408,22 @@ impl Session {
     }
 
     pub fn key_down(&self, keys: Keys) {
-        lock(&self.link.keys).key_down(keys);
+        lock(&self.shared.keys).key_down(keys);
     }
 
     pub fn key_up(&self, keys: Keys) {
-        lock(&self.link.keys).key_up(keys);
+        lock(&self.shared.keys).key_up(keys);
     }
 
     /// Every key released (the window lost focus: nothing stays held).
     pub fn keys_released(&self) {
-        lock(&self.link.keys).keys_released();
+        lock(&self.shared.keys).keys_released();
     }
 
     /// Frame bytes received so far, every connection's.
     pub fn bytes_in(&self) -> u64 {
         let core = self.core();
-        self.link.bytes_before.load(Ordering::Relaxed) + core.bytes_in()
+        self.shared.bytes_before.load(Ordering::Relaxed) + core.bytes_in()
     }
 
     /// Says goodbye and closes the connection. True when the server heard: it took the
@@ -644,8 +439,8 @@ impl Session {
         } else {
             false
         };
-        self.link.end("quit".into());
-        self.link.close(close::BYE, b"quit");
+        self.shared.end("quit".into());
+        self.shared.close(close::BYE, b"quit");
         heard
     }
 }
@@ -656,7 +451,7 @@ impl Drop for Session {
         for t in &self.tasks {
             t.abort();
         }
-        self.link.close(close::BYE, b"bye");
+        self.shared.close(close::BYE, b"bye");
     }
 }
 
@@ -676,7 +471,7 @@ async fn first_join(
             .with_context(|| format!("connecting to {addr}"))?
             .await
             .with_context(|| format!("connecting to {addr}"))?;
-        return match tokio::time::timeout(JOIN_TIMEOUT, join::hello(conn, hello, keep)).await {
+        return match tokio::time::timeout(JOIN_TIMEOUT, quic::hello(conn, hello, keep)).await {
             Ok(j) => Ok((0, j.map_err(|e| anyhow!("{e}"))?)),
             Err(_) => bail!(
                 "the server sent no welcome and coarsest colour tile within {} s",

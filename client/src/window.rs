@@ -14,7 +14,7 @@ use winit::window::{Window, WindowId};
 
 use crate::cockpit::{self, Action, Cockpit, Framed};
 use crate::hud::{Numbers, Overlay};
-use crate::live::{self, Command, Link, Shared};
+use crate::live::{self, Command, Connection, Shared};
 use crate::render::{Gpu, Renderer, Scene, Toggles};
 use crate::session::{Session, State};
 
@@ -80,12 +80,12 @@ pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -
     // the viewer).
     let _ = app.commands.send(Command::Quit);
     let _ = runtime.block_on(async { tokio::time::timeout(Duration::from_secs(2), task).await });
-    match app.shared.link() {
-        Link::Ended(why) if why == live::QUIT => {
+    match app.shared.connection() {
+        Connection::Ended(why) if why == live::QUIT => {
             println!("roam-client: quit; the server heard the goodbye")
         }
-        Link::Ended(why) => println!("roam-client: {why}"),
-        Link::Connected => {
+        Connection::Ended(why) => println!("roam-client: {why}"),
+        Connection::Connected => {
             println!("roam-client: quit without a goodbye (the server did not answer)")
         }
     }
@@ -317,7 +317,7 @@ impl App {
         gfx.renderer
             .render(&gfx.gpu, &target, size, &view, self.cockpit.toggles);
         let numbers = self.cockpit.hud_shown.then(|| {
-            let link = self.shared.link();
+            let connection = self.shared.connection();
             let status = self.shared.status();
             let reconnecting = matches!(status.state, State::Reconnecting { .. });
             Numbers {
@@ -327,7 +327,7 @@ impl App {
                 color_capacity,
                 latency_ms: self.shared.latency_ms(),
                 max_budget: status.welcome.max_budget,
-                connected: link == Link::Connected && !reconnecting,
+                connected: connection == Connection::Connected && !reconnecting,
                 reconnecting_s: status
                     .gaps
                     .current(Instant::now())
@@ -336,12 +336,12 @@ impl App {
                 reconnects: status.gaps.reconnects,
                 resumed: status.gaps.resumed,
                 world_gone: status.world.gone.clone(),
-                connection: match (link, &status.state) {
-                    (Link::Connected, State::Reconnecting { why, attempts }) => {
+                connection: match (connection, &status.state) {
+                    (Connection::Connected, State::Reconnecting { why, attempts }) => {
                         format!("to {} · {why} · attempt {attempts}", self.opts.server)
                     }
                     // Of several edges, the one in use.
-                    (Link::Connected, _) if self.opts.edges || status.edges_learned > 0 => {
+                    (Connection::Connected, _) if self.opts.edges || status.edges_learned > 0 => {
                         format!(
                             "connected to {} (of {}) · vehicle #{me} · {}",
                             status.addr,
@@ -353,7 +353,7 @@ impl App {
                             }
                         )
                     }
-                    (Link::Connected, _) => format!(
+                    (Connection::Connected, _) => format!(
                         "connected to {} · vehicle #{me} · {}",
                         self.opts.server,
                         if self.opts.driver {
@@ -362,7 +362,7 @@ impl App {
                             "watching"
                         }
                     ),
-                    (Link::Ended(why), _) => format!("disconnected: {why}"),
+                    (Connection::Ended(why), _) => format!("disconnected: {why}"),
                 },
                 adapter: format!("{} ({:?})", gfx.gpu.adapter.name, gfx.gpu.adapter.backend),
                 replay: status
@@ -440,12 +440,12 @@ impl ApplicationHandler for App {
     }
 
     fn about_to_wait(&mut self, event_loop: &ActiveEventLoop) {
-        // Ctrl-C in the terminal: once the goodbye has been said (or the link is gone).
+        // Ctrl-C in the terminal: once the goodbye has been said (or the connection is gone).
         if self
             .shared
             .interrupted
             .load(std::sync::atomic::Ordering::Relaxed)
-            && self.shared.link() != Link::Connected
+            && self.shared.connection() != Connection::Connected
         {
             event_loop.exit();
             return;

@@ -3,7 +3,7 @@
 //! A roam connection is application-limited (a few hundred bytes a frame) and
 //! latency-bound, with bursts: a key frame (tens of kilobytes at the usual budgets) must
 //! leave within a frame or two. Cubic (quinn's default) cuts its window by 30% at each
-//! loss, and on a link that loses packets at random (Wi-Fi, mobile) it sits at its
+//! loss, and on a path that loses packets at random (Wi-Fi, mobile) it sits at its
 //! minimum, two packets; it does not grow back while the sender is application-limited.
 //! A key frame then takes many round trips to leave. The floor keeps a window that
 //! carries a key frame in one round trip; above it, Cubic reacts to congestion as usual.

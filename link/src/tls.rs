@@ -540,7 +540,7 @@ fn provider() -> Arc<CryptoProvider> {
 }
 
 /// Cubic with a floor under its window ([`crate::congestion`]): both ends, so neither the
-/// frames nor the keys and acknowledgements starve on a link that loses packets at random.
+/// frames nor the keys and acknowledgements starve on a path that loses packets at random.
 fn floored_congestion(t: &mut quinn::TransportConfig) {
     t.congestion_controller_factory(Arc::new(crate::congestion::FlooredCubic {
         floor: crate::congestion::MIN_WINDOW,
@@ -622,7 +622,7 @@ pub fn server_transport() -> quinn::TransportConfig {
     t.receive_window(window(SERVER_RECEIVE_WINDOW));
     t.datagram_receive_buffer_size(Some(SERVER_DATAGRAM_RECEIVE as usize));
     // Small frames go as datagrams, which quinn sends first in, first out and drops oldest
-    // first when this buffer is full: room for a few frames only, so on a link that
+    // first when this buffer is full: room for a few frames only, so on a path that
     // cannot keep up the newest frame waits behind at most a few stale ones.
     t.datagram_send_buffer_size(SERVER_DATAGRAM_SEND as usize);
     // What a connection may have sent and not yet had acknowledged: it bounds what the

@@ -15,7 +15,7 @@
 //! - Core NATS is at-most-once. A snapshot supersedes the one before, so a lost one costs
 //!   nothing but its tick; key states travel as the viewer's datagram brings them (the
 //!   newest few at once), so a lost message is covered by the next one, as on the viewer's
-//!   own link; what must not be lost (a join, a resume, a leave, a hold) is a request the
+//!   own path; what must not be lost (a join, a resume, a leave, a hold) is a request the
 //!   world answers, retried by the edge until it is.
 //! - Vehicle states go as `f64` bits, not as the rounded views a frame carries: an edge
 //!   computes its viewers' cameras from exactly what the world simulated.

@@ -7,7 +7,7 @@
 //! viewer ◄── relay.addr() ◄─(to_client: loss, delay, jitter)─── upstream socket per viewer ◄── server
 //! ```
 //!
-//! [`Relay::cut`] black-holes every datagram both ways (as a dropped Wi-Fi link does) until
+//! [`Relay::cut`] black-holes every datagram both ways (as a dropped Wi-Fi connection does) until
 //! [`Relay::restore`]; datagrams already in a delay line still arrive. The flows and their
 //! sockets stay, so a viewer that sends again after the cut reaches the server from the
 //! same address.
@@ -54,7 +54,7 @@ pub struct Direction {
 }
 
 impl Direction {
-    /// A perfect link.
+    /// A perfect direction: no delay, jitter or loss.
     pub const NONE: Direction = Direction {
         delay: Duration::ZERO,
         jitter: Duration::ZERO,
@@ -65,7 +65,7 @@ impl Direction {
 
 /// Both directions' settings and the seed of the drops and jitter.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct LinkConfig {
+pub struct RelayConfig {
     /// Viewer → server.
     pub to_server: Direction,
     /// Server → viewer.
@@ -73,10 +73,10 @@ pub struct LinkConfig {
     pub seed: u64,
 }
 
-impl LinkConfig {
+impl RelayConfig {
     /// The same settings both ways.
-    pub fn symmetric(direction: Direction, seed: u64) -> LinkConfig {
-        LinkConfig {
+    pub fn symmetric(direction: Direction, seed: u64) -> RelayConfig {
+        RelayConfig {
             to_server: direction,
             to_client: direction,
             seed,
@@ -94,7 +94,7 @@ pub struct DirectionStats {
     /// Datagrams dropped because the delay line was full ([`MAX_QUEUED`]), there were too
     /// many flows, or the send failed.
     pub overflowed: u64,
-    /// Datagrams dropped while the link was cut ([`Relay::cut`]).
+    /// Datagrams dropped while the relay was cut ([`Relay::cut`]).
     pub cut: u64,
     /// Bytes delivered.
     pub bytes: u64,
@@ -109,12 +109,12 @@ impl DirectionStats {
 
 /// Both directions' counters.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct LinkStats {
+pub struct RelayStats {
     pub to_server: DirectionStats,
     pub to_client: DirectionStats,
 }
 
-impl std::fmt::Display for LinkStats {
+impl std::fmt::Display for RelayStats {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let one = |d: &DirectionStats| {
             format!(
@@ -227,7 +227,7 @@ struct Line {
     queue: mpsc::Sender<Pending>,
     counters: Arc<Counters>,
     order: Arc<AtomicU64>,
-    /// Set while the link is cut: every datagram is dropped.
+    /// Set while the relay is cut: every datagram is dropped.
     cut: Arc<AtomicBool>,
 }
 
@@ -308,7 +308,7 @@ pub struct Relay {
 impl Relay {
     /// Starts relaying datagrams between clients that send to [`Relay::addr`] (on
     /// `127.0.0.1`, an ephemeral port) and `upstream`.
-    pub async fn start(upstream: SocketAddr, config: LinkConfig) -> Result<Relay> {
+    pub async fn start(upstream: SocketAddr, config: RelayConfig) -> Result<Relay> {
         Relay::start_on(
             "127.0.0.1:0".parse().context("a loopback address")?,
             upstream,
@@ -321,7 +321,7 @@ impl Relay {
     pub async fn start_on(
         listen: SocketAddr,
         upstream: SocketAddr,
-        config: LinkConfig,
+        config: RelayConfig,
     ) -> Result<Relay> {
         for (name, d) in [
             ("to_server", config.to_server),
@@ -393,14 +393,14 @@ impl Relay {
         self.cut.store(false, Ordering::Release);
     }
 
-    /// Whether the link is cut.
+    /// Whether the relay is cut.
     pub fn is_cut(&self) -> bool {
         self.cut.load(Ordering::Acquire)
     }
 
     /// The counters so far.
-    pub fn stats(&self) -> LinkStats {
-        LinkStats {
+    pub fn stats(&self) -> RelayStats {
+        RelayStats {
             to_server: self.to_server.snapshot(),
             to_client: self.to_client.snapshot(),
         }

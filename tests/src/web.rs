@@ -13,7 +13,7 @@ use bytes::Bytes;
 use roam_link::{tls, wire};
 use roam_protocol::messages::{self, ClientMessage, Hello, MAX_MESSAGE, Role, ServerMessage};
 use roam_server::net::Options;
-use roam_server::net::link::{RecvStream, SendStream};
+use roam_server::net::conn::{RecvStream, SendStream};
 use roam_server::net::web::{WebCert, WebOptions};
 use roam_server::web::Page;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -43,7 +43,7 @@ struct Raw {
 }
 
 async fn say_hello(r: &Running, hello: &Hello) -> Raw {
-    let (endpoint, conn) = roam_client::join::connect(r.server.addr, r.fingerprint)
+    let (endpoint, conn) = roam_client::quic::connect(r.server.addr, r.fingerprint)
         .await
         .expect("connects");
     let (mut send, mut recv) = conn.open_bi().await.expect("a control stream");
@@ -152,7 +152,7 @@ async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
     };
     assert!(why.contains("--max-memory"), "{why}");
     assert!(why.contains("65536 triangles"), "{why}");
-    let shown = roam_client::joining::welcome_of(third.answer.clone()).expect_err("refused");
+    let shown = roam_client::conversation::welcome_of(third.answer.clone()).expect_err("refused");
     assert!(shown.contains("--max-memory"), "{shown}");
     assert_eq!(r.server.counts().refused, 1);
     assert_eq!(r.server.load().1, 2);

@@ -175,12 +175,12 @@ async fn the_page_says_why_when_the_server_goes_away() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
-    use roam_tests::relay::{LinkConfig, Relay};
+    use roam_tests::relay::{Relay, RelayConfig};
     let running = serve();
     let web = running.server.web_addr().expect("serving --web");
     // The page's WebTransport goes through a relay the test can cut (`port=`); the page
     // itself still loads from the server.
-    let relay = Relay::start(web, LinkConfig::default())
+    let relay = Relay::start(web, RelayConfig::default())
         .await
         .expect("the relay starts");
     let (report, mut reports) = reports().await;

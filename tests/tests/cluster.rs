@@ -261,7 +261,10 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
         "the longest pause between frames: {} s",
         stats.gap_max_s
     );
-    assert_eq!(stats.reconnects, 0, "the viewer's own link never broke");
+    assert_eq!(
+        stats.reconnects, 0,
+        "the viewer's own connection never broke"
+    );
     // Key states lost with the bus are states the world waited for, then got again: the
     // drive is still exact.
     fixtures::assert_drive_exact(&terrain, stats.last, stats.last_tick);

@@ -4,7 +4,7 @@
 //!
 //! - a first address that never answers is passed for the next one, which joins;
 //! - none answering is an error naming each;
-//! - a session whose server goes silent (its link cut through the relay) moves on to the
+//! - a session whose server goes silent (its path cut through the relay) moves on to the
 //!   next address after a second (not the 10 s a lone address gets) and its frames go on;
 //! - a session whose server shuts down moves on to the next address (alone, it would end);
 //! - an edge's news: the world gone is in the status, the edges it names join the
@@ -28,7 +28,7 @@ use roam_server::net::{Options, Server};
 use roam_server::terrain::variance::VarianceTree;
 use roam_tests::fixtures::{TOKEN, flat, pyramid};
 use roam_tests::fixtures::{bounded, frame, key_frame, status_when};
-use roam_tests::relay::{LinkConfig, Relay};
+use roam_tests::relay::{Relay, RelayConfig};
 
 /// One pair of servers with their 100 Hz worlds at a time: on a 2-core machine none
 /// starves another (a starved viewer would find its server silent, here after a second).
@@ -157,13 +157,13 @@ async fn no_address_answering_is_an_error_naming_each() {
     }
 }
 
-/// A live session on A (through a relay) with [A, B]: A's link is cut, the session finds
+/// A live session on A (through a relay) with [A, B]: A's path is cut, the session finds
 /// it silent within a second (not 10 s: there is another address) and goes on at B.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_server_is_left_for_the_next_address_after_a_second() {
     let _turn = ONE_AT_A_TIME.lock().await;
     let p = pair();
-    let relay = Relay::start(p.a.addr, LinkConfig::default())
+    let relay = Relay::start(p.a.addr, RelayConfig::default())
         .await
         .expect("relays");
     let (via_a, b) = (relay.addr(), p.b.addr);

@@ -27,7 +27,7 @@ use roam_server::sim::world_core::Snapshot;
 use roam_server::terrain::variance::VarianceTree;
 use roam_tests::fixtures::flat;
 use roam_tests::fixtures::{bounded, frame, status_when};
-use roam_tests::relay::{LinkConfig, Relay};
+use roam_tests::relay::{Relay, RelayConfig};
 use tokio::sync::watch;
 
 /// One server with its 100 Hz world at a time: on a 2-core machine none starves another
@@ -70,7 +70,7 @@ async fn start() -> Running {
         },
     )
     .expect("listens");
-    let relay = Relay::start(server.addr, LinkConfig::default())
+    let relay = Relay::start(server.addr, RelayConfig::default())
         .await
         .expect("relays");
     Running {

@@ -5,7 +5,7 @@ use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result};
-use roam_tests::relay::{Direction, LinkConfig, Relay};
+use roam_tests::relay::{Direction, Relay, RelayConfig};
 use tokio::net::UdpSocket;
 
 /// An echo server: each datagram goes back to its sender, prefixed with the sender's port
@@ -37,7 +37,7 @@ async fn delays_each_way_and_keeps_clients_apart() -> Result<()> {
         delay: Duration::from_millis(30),
         ..Direction::NONE
     };
-    let relay = Relay::start(server, LinkConfig::symmetric(delay, 1)).await?;
+    let relay = Relay::start(server, RelayConfig::symmetric(delay, 1)).await?;
     let (a, b) = (client(relay.addr()).await?, client(relay.addr()).await?);
     let mut ports = Vec::new();
     for (socket, text) in [(&a, b"a"), (&b, b"b")] {
@@ -69,7 +69,7 @@ async fn delays_each_way_and_keeps_clients_apart() -> Result<()> {
 /// returns which came back.
 async fn survivors(loss: f64, seed: u64, n: u32) -> Result<Vec<u32>> {
     let (server, _echo) = echo().await?;
-    let config = LinkConfig {
+    let config = RelayConfig {
         to_server: Direction {
             loss,
             ..Direction::NONE
@@ -132,7 +132,7 @@ async fn loses_about_the_loss_the_same_for_a_seed() -> Result<()> {
 #[tokio::test]
 async fn stops_when_stopped() -> Result<()> {
     let (server, _echo) = echo().await?;
-    let relay = Relay::start(server, LinkConfig::default()).await?;
+    let relay = Relay::start(server, RelayConfig::default()).await?;
     let addr = relay.addr();
     let socket = client(addr).await?;
     socket.send(b"x").await?;

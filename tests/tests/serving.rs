@@ -43,7 +43,7 @@ struct Raw {
 }
 
 async fn join(r: &Running) -> Raw {
-    let (endpoint, conn) = roam_client::join::connect(r.server.addr, r.fingerprint)
+    let (endpoint, conn) = roam_client::quic::connect(r.server.addr, r.fingerprint)
         .await
         .expect("connects");
     let (mut send, mut recv) = conn.open_bi().await.expect("a control stream");

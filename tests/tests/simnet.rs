@@ -1,5 +1,5 @@
 //! The server's and the viewer's sans-IO cores over the simulated network
-//! ([`roam_tests::simnet`]): lossy, delayed, jittery and rate-limited links, dead links and
+//! ([`roam_tests::simnet`]): lossy, delayed, jittery and rate-limited paths, dead paths and
 //! steering, all in virtual time: every run is a function of its seed (no sleep, no wall
 //! clock, bounded loops). The viewer's frame core fed frames by hand is tested in
 //! `client_core.rs`.
@@ -14,7 +14,7 @@ use roam_protocol::script::{self, Script};
 use roam_server::Terrain;
 use roam_server::sim::world::{self, Inputs, World};
 use roam_server::terrain::generate;
-use roam_tests::simnet::{Link, Path, Sim, Stats, TakenFrame, TrackPoint, ViewerId};
+use roam_tests::simnet::{Direction, Path, Sim, Stats, TakenFrame, TrackPoint, ViewerId};
 
 /// A synthetic 257² data set: relief to tessellate and to cull.
 fn synth() -> Arc<Terrain> {
@@ -121,13 +121,17 @@ fn keys_are_never_lost_at_10_percent_loss() {
     let mut waits = 0;
     for seed in 1..=10 {
         let mut sim = Sim::new(seed, terrain.clone());
-        let d = sim.add_driver(&script, 3_000, Path::symmetric(Link::lossy(20, 5, 0.10)));
+        let d = sim.add_driver(
+            &script,
+            3_000,
+            Path::symmetric(Direction::lossy(20, 5, 0.10)),
+        );
         sim.run_until(ms(script.ticks() * 10 + 1_000));
         let id = sim.vehicle(d).expect("still driving");
         let track = sim.track(d);
         assert!(
             sim.stats(d).up.lost > 50,
-            "seed {seed}: the link lost key datagrams"
+            "seed {seed}: the path lost key datagrams"
         );
         // Every state applied, in order: none lost or folded, one step each (two in a tick
         // catching up after a wait, none in a tick waiting for a late state).
@@ -201,7 +205,7 @@ fn at_last_state(track: &[TrackPoint], last: u32) -> roam_server::sim::physics::
         .state
 }
 
-/// Test 1 where the world's jitter allowance covers the link: keys delayed 20 to 29 ms
+/// Test 1 where the world's jitter allowance covers the path: keys delayed 20 to 29 ms
 /// (jitter under a tick) and none lost (frames lost at 10 %): the drive ends exactly where
 /// the script, simulated offline as `simulate` does, ends.
 #[test]
@@ -212,8 +216,8 @@ fn a_drive_with_jitter_under_a_tick_ends_where_the_script_does() {
     for seed in 1..=3 {
         let mut sim = Sim::new(seed, terrain.clone());
         let path = Path {
-            up: Link::lossy(20, 9, 0.0),
-            down: Link::lossy(20, 9, 0.10),
+            up: Direction::lossy(20, 9, 0.0),
+            down: Direction::lossy(20, 9, 0.10),
         };
         let d = sim.add_driver(&script, 3_000, path);
         sim.run_until(ms(script.ticks() * 10 + 1_000));
@@ -240,7 +244,11 @@ fn a_drive_with_jitter_under_a_tick_ends_where_the_script_does() {
 fn frames_keep_coming_at_5_percent_loss_and_40_ms() {
     for seed in 1..=3 {
         let mut sim = Sim::new(seed, synth());
-        let d = sim.add_driver(&drive(), 6_000, Path::symmetric(Link::lossy(40, 0, 0.05)));
+        let d = sim.add_driver(
+            &drive(),
+            6_000,
+            Path::symmetric(Direction::lossy(40, 0, 0.05)),
+        );
         sim.run_until(ms(10_000));
         let s = sim.stats(d).clone();
         let first = s.first_frame_at.expect("frames");
@@ -288,7 +296,7 @@ fn flowing(seed: u64, budget: u32, path: Path) -> (Sim, ViewerId) {
 #[test]
 fn a_missing_base_asks_for_a_key_frame_and_decoding_resumes() {
     for seed in 1..=3 {
-        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Link::lossy(30, 5, 0.05)));
+        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Direction::lossy(30, 5, 0.05)));
         sim.skip_decoding(d, 10);
         run_until(&mut sim, ms(1_000), |s| s.stats(d).decode_errors > 0);
         let failed = sim.now();
@@ -318,14 +326,14 @@ fn a_missing_base_asks_for_a_key_frame_and_decoding_resumes() {
     }
 }
 
-/// Test 3b. As 3a, but the key-frame request itself is lost (the link to the server is
+/// Test 3b. As 3a, but the key-frame request itself is lost (the path to the server is
 /// cut for 300 ms just after it leaves, acknowledgements with it): the control stream repairs it
-/// once the link is back, and decoding resumes (the server may already have given up on
+/// once the path is back, and decoding resumes (the server may already have given up on
 /// the missing base by itself: its logs reach back 32 frames, 533 ms).
 #[test]
 fn a_lost_key_frame_request_is_repaired() {
     for seed in 1..=3 {
-        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Link::lossy(30, 5, 0.05)));
+        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Direction::lossy(30, 5, 0.05)));
         sim.skip_decoding(d, 10);
         run_until(&mut sim, ms(1_000), |s| s.stats(d).decode_errors > 0);
         let failed = sim.now();
@@ -359,15 +367,15 @@ fn a_lost_key_frame_request_is_repaired() {
     }
 }
 
-/// Test 3c. The link is cut both ways for a second: no frame comes meanwhile; once it is
+/// Test 3c. The path is cut both ways for a second: no frame comes meanwhile; once it is
 /// back, key frames come (the bases acknowledged before the cut have left the server's
 /// logs) within a round trip and a frame, and none fails to decode.
 #[test]
-fn frames_resume_after_the_link_is_cut_for_a_second() {
+fn frames_resume_after_the_path_is_cut_for_a_second() {
     for seed in 1..=3 {
-        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Link::lossy(30, 5, 0.05)));
+        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Direction::lossy(30, 5, 0.05)));
         let cut = sim.now();
-        sim.cut_link(d, ms(1_000));
+        sim.cut_path(d, ms(1_000));
         sim.run_for(ms(1_000));
         let back = sim.now();
         assert!(
@@ -400,11 +408,11 @@ fn frames_resume_after_the_link_is_cut_for_a_second() {
     }
 }
 
-/// Test 4. A viewer whose link dies is freed once the idle timeout (10 s) has passed, not
+/// Test 4. A viewer whose path dies is freed once the idle timeout (10 s) has passed, not
 /// before; the other driver's frames go on throughout.
 #[test]
-fn a_viewer_whose_link_dies_is_freed_and_the_other_keeps_going() {
-    let path = Path::symmetric(Link::lossy(30, 5, 0.05));
+fn a_viewer_whose_path_dies_is_freed_and_the_other_keeps_going() {
+    let path = Path::symmetric(Direction::lossy(30, 5, 0.05));
     let mut sim = Sim::new(11, synth());
     let a = sim.add_driver(&drive(), 3_000, path);
     let b = sim.add_driver(&drive(), 3_000, path);
@@ -416,7 +424,7 @@ fn a_viewer_whose_link_dies_is_freed_and_the_other_keeps_going() {
     assert_ne!(va, vb);
     assert!(sim.world_has(va) && sim.world_has(vb));
     let killed = sim.now();
-    sim.kill_link(a);
+    sim.kill_path(a);
     sim.run_until(killed + ms(9_900));
     assert!(sim.server_open(a), "freed before the idle timeout");
     assert!(sim.world_has(va));
@@ -446,7 +454,7 @@ fn a_viewer_whose_link_dies_is_freed_and_the_other_keeps_going() {
 /// stream) leaves the world, and the spectator following it is told.
 #[test]
 fn a_driver_that_quits_leaves_and_its_spectator_is_told() {
-    let path = Path::symmetric(Link::lossy(20, 5, 0.10));
+    let path = Path::symmetric(Direction::lossy(20, 5, 0.10));
     let mut sim = Sim::new(5, synth());
     let d = sim.add_driver(&drive(), 3_000, path);
     sim.run_until(ms(200));
@@ -480,9 +488,9 @@ fn until_triangles(sim: &mut Sim, v: ViewerId, ok: impl Fn(usize) -> bool) -> Du
 /// tessellation within a few round trips: a lower budget caps every later frame, and
 /// looking straight down culls most of the terrain.
 #[test]
-fn budget_and_view_changes_arrive_over_a_lossy_link() {
+fn budget_and_view_changes_arrive_over_a_lossy_path() {
     for seed in 1..=3 {
-        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Link::lossy(30, 5, 0.10)));
+        let (mut sim, d) = flowing(seed, 4_000, Path::symmetric(Direction::lossy(30, 5, 0.10)));
         let before = sim.latest(d).expect("frames").triangles;
         assert!(before > 3_000 && before <= 4_000, "seed {seed}: {before}");
         sim.set_budget(d, 1_500);
@@ -529,14 +537,14 @@ type Run = (
     String,
 );
 
-/// Two drivers (one on a lossy, jittery link, one rate-limited and cut for 400 ms) and a
+/// Two drivers (one on a lossy, jittery path, one rate-limited and cut for 400 ms) and a
 /// spectator, a budget change, 3 s.
 fn scenario(seed: u64) -> Run {
     let mut sim = Sim::new(seed, synth());
-    let lossy = Path::symmetric(Link::lossy(25, 10, 0.08));
+    let lossy = Path::symmetric(Direction::lossy(25, 10, 0.08));
     let slow = Path {
-        up: Link::lossy(15, 3, 0.02),
-        down: Link::lossy(15, 3, 0.02).with_rate(1_000_000),
+        up: Direction::lossy(15, 3, 0.02),
+        down: Direction::lossy(15, 3, 0.02).with_rate(1_000_000),
     };
     let a = sim.add_driver(&drive(), 4_000, lossy);
     let b = sim.add_driver(&drive(), 6_000, slow);
@@ -544,7 +552,7 @@ fn scenario(seed: u64) -> Run {
     let c = sim.add_spectator(None, 2_000, lossy);
     sim.run_until(ms(1_500));
     sim.set_budget(a, 2_500);
-    sim.cut_link(b, ms(400));
+    sim.cut_path(b, ms(400));
     sim.run_until(ms(3_000));
     let ids = [a, b, c];
     (
@@ -569,13 +577,13 @@ fn the_same_seed_gives_the_same_run() {
     assert_ne!(one.0, other.0, "the seed changes the losses");
 }
 
-/// A driver over 20 ms each way, no loss, the link down capped at `bytes_per_s`, run for
+/// A driver over 20 ms each way, no loss, the direction down capped at `bytes_per_s`, run for
 /// `run_ms` of virtual time (seed 1, budget 6,000).
 fn rate_limited(bytes_per_s: u64, run_ms: u64) -> (Sim, ViewerId) {
-    let link = Link::lossy(20, 0, 0.0);
+    let direction = Direction::lossy(20, 0, 0.0);
     let path = Path {
-        up: link,
-        down: link.with_rate(bytes_per_s),
+        up: direction,
+        down: direction.with_rate(bytes_per_s),
     };
     let mut sim = Sim::new(1, synth());
     let d = sim.add_driver(&drive(), 6_000, path);
@@ -583,10 +591,10 @@ fn rate_limited(bytes_per_s: u64, run_ms: u64) -> (Sim, ViewerId) {
     (sim, d)
 }
 
-/// A rate-limited link that sends a key frame well within a frame interval: frames flow
+/// A rate-limited path that sends a key frame well within a frame interval: frames flow
 /// (a 4-packet key frame takes 5 ms at 1 MB/s).
 #[test]
-fn a_link_at_1_mb_per_s_carries_the_frames() {
+fn a_path_at_1_mb_per_s_carries_the_frames() {
     let (sim, d) = rate_limited(1_000_000, 3_000);
     let s = sim.stats(d);
     let first = s.first_frame_at.expect("frames");
@@ -597,14 +605,14 @@ fn a_link_at_1_mb_per_s_carries_the_frames() {
     assert_meshes_match(s, "viewer");
 }
 
-/// A link that cannot carry a key frame a frame interval: 200,000 bytes/s down, 20 ms each
+/// A path that cannot carry a key frame a frame interval: 200,000 bytes/s down, 20 ms each
 /// way, no loss. The key frame (about 5.2 kB: 5 packets, 31 ms at this rate) goes on a
 /// stream the server does not abandon while it is pending, and the frames after it are
 /// coded against it: frames flow from the first. (When every frame was a key frame until
 /// one was acknowledged, each reset when the next was made 16.7 ms later, none ever
 /// arrived: 0 frames in 5 s, 299 key frames made and 298 streams reset.)
 #[test]
-fn a_link_too_slow_for_a_key_frame_a_frame_still_gets_frames() {
+fn a_path_too_slow_for_a_key_frame_a_frame_still_gets_frames() {
     let (sim, d) = rate_limited(200_000, 5_000);
     let s = sim.stats(d);
     assert!(
@@ -635,7 +643,11 @@ fn a_link_too_slow_for_a_key_frame_a_frame_still_gets_frames() {
 fn over_a_long_lossy_round_trip_the_key_frame_is_not_abandoned() {
     for seed in 1..=3 {
         let mut sim = Sim::new(seed, synth());
-        let d = sim.add_driver(&drive(), 6_000, Path::symmetric(Link::lossy(80, 0, 0.05)));
+        let d = sim.add_driver(
+            &drive(),
+            6_000,
+            Path::symmetric(Direction::lossy(80, 0, 0.05)),
+        );
         sim.run_until(ms(10_000));
         let s = sim.stats(d);
         let first = s.first_frame_at.expect("frames");

@@ -192,10 +192,10 @@ async fn native_frame(conn: &quinn::Connection) -> Frame {
 async fn a_native_and_a_web_viewer_drive_in_the_same_world() {
     let _turn = ONE_AT_A_TIME.lock().await;
     let r = web::serve_web(flat(), |o| o);
-    let (_endpoint, conn) = roam_client::join::connect(r.server.addr, r.fingerprint)
+    let (_endpoint, conn) = roam_client::quic::connect(r.server.addr, r.fingerprint)
         .await
         .expect("connects natively");
-    let native = roam_client::join::hello(
+    let native = roam_client::quic::hello(
         conn.clone(),
         web::hello(&r.token, Role::Driver),
         roam_client::color_cache::Keep::Masks,

@@ -15,12 +15,13 @@ use roam_client::cockpit::{self, Action, Cockpit};
 use roam_client::core::Taken;
 use roam_client::hud::{self, Numbers};
 use roam_client::render::{Gpu, Renderer, Scene, TerrainVertices, Toggles};
+use roam_client::supervisor::State;
 use wasm_bindgen::JsCast;
 use wasm_bindgen::prelude::*;
 use web_sys::{HtmlCanvasElement, KeyboardEvent};
 use web_time::Instant;
 
-use crate::net::{Shared, State};
+use crate::net::Shared;
 use crate::page::{self, Options};
 
 /// Colour tiles uploaded a display frame at most (as the window).
@@ -456,10 +457,9 @@ impl App {
                 ("joined; waiting for the first frame…".to_owned(), false)
             }
             State::Connected => (String::new(), false),
-            State::Reconnecting { why, attempts } => (
-                format!("{why} — reconnecting (attempt {})…", attempts + 1),
-                true,
-            ),
+            State::Reconnecting { why, attempts } => {
+                (format!("{why} — reconnecting (attempt {attempts})…"), true)
+            }
             State::Ended(why) if why == "quit" => (
                 "You left the server. Reload the page to join again.".to_owned(),
                 false,
@@ -526,7 +526,7 @@ impl App {
             connection: match &l.state {
                 State::Ended(why) => format!("disconnected: {why}"),
                 State::Reconnecting { why, attempts } => {
-                    format!("to {host} · {why} · attempt {}", attempts + 1)
+                    format!("to {host} · {why} · attempt {attempts}")
                 }
                 State::Connected => format!(
                     "connected to {host} · vehicle #{} · {}",

@@ -10,7 +10,8 @@
 //! world's other edges, where the page goes when its connection is lost ([`net`]). It
 //! says clearly what is wrong when the browser lacks WebTransport or both GPU APIs, when
 //! the token is refused, when the connection drops (and reconnects as the native viewer
-//! does), and when an edge says its world is gone.
+//! does, by the same supervisor, `roam_client::supervisor`), and when an edge says its
+//! world is gone.
 //!
 //! Natively this crate is empty: `cargo test --workspace` builds none of it.
 #![cfg(target_arch = "wasm32")]
@@ -20,6 +21,7 @@ mod net;
 mod page;
 mod wire;
 
+use roam_client::supervisor;
 use roam_protocol::messages::Role;
 use wasm_bindgen::prelude::*;
 
@@ -53,7 +55,7 @@ async fn run(options: page::Options) -> Result<(), String> {
     }
     if options.token.is_empty() {
         return Err(
-            "No token in this page's address: open the link roam-server printed \
+            "No token in this page's address: open the URL roam-server printed \
                     (it ends in #token=…)."
                 .into(),
         );
@@ -68,7 +70,7 @@ async fn run(options: page::Options) -> Result<(), String> {
     }
     let size = app::pixel_size(&canvas);
     let budget = options.budget.unwrap_or(65_536);
-    let hello = roam_client::joining::hello(
+    let hello = roam_client::conversation::hello(
         if options.spectator {
             Role::Spectator { follow: None }
         } else {
@@ -80,12 +82,12 @@ async fn run(options: page::Options) -> Result<(), String> {
         gfx.gpu.device.limits().max_texture_dimension_2d,
     );
     let edge = endpoint.edge()?;
-    let mut joined = net::join(&edge, hello.clone(), net::HANDSHAKE_MS)
+    let mut joined = net::join(&edge, hello.clone(), supervisor::HANDSHAKE)
         .await
         .map_err(|e| {
             if e.message.contains("wrong token") {
                 format!(
-                    "The server refused this viewer: wrong token. Open the link roam-server \
+                    "The server refused this viewer: wrong token. Open the URL roam-server \
                  printed, with its #token=…, again ({})",
                     e.message
                 )
@@ -104,7 +106,7 @@ async fn run(options: page::Options) -> Result<(), String> {
     };
     let silence = options
         .silence_s
-        .map_or(net::SILENCE, web_time::Duration::from_secs_f64);
+        .map_or(supervisor::SILENCE, web_time::Duration::from_secs_f64);
     let live = net::live(&mut joined, edge, budget, script, silence)?;
     let scene = roam_client::render::Scene::of(&joined.welcome);
     wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), hello, joined));

@@ -6,19 +6,22 @@
 //! on the page's one thread: tasks are `spawn_local`, the state is one [`Live`] behind a
 //! `RefCell`, never borrowed across an `await`.
 //!
-//! Reconnecting follows the native viewer ([`roam_client::session`]): a connection lost
-//! (the browser says so, or 10 s without a word from the server) is made again with the
-//! driver's ticket after 100 ms, doubling to 2 s, for 35 s; a refusal, the server's
-//! goodbye, or a frame the server could not have sent ends the session for good, with
-//! the reason on the page.
+//! **Reconnecting** is the native viewer's: [`supervise`] drives the same clock-free
+//! [`Supervisor`] (`roam_client::supervisor`, with its constants), handing it each
+//! connection's [`End`] and each attempt's outcome with the time, and does what it says: a
+//! connection lost (the browser says so) or silent ([`Patience::silence`], 10 s unless the
+//! page's address says otherwise) is made again with the driver's ticket, backing off
+//! from 100 ms to 2 s, for 35 s; a refusal, the server's goodbye, a frame the server could
+//! not have sent, or the same edge silent twice with no frame between ends the session
+//! for good, with the reason on the page.
 //!
 //! **Edges.** An edge server names the world's edges ([`WorldNews::Edges`]): their
 //! WebTransport URLs, each with its certificate hashes to pin, join the page's rotation
 //! after its own origin's ([`roam_client::edges::Addresses`]). A lost connection is made
 //! again at the next edge in turn (wrapping), with the page's token; with other edges to
-//! go to, 0.8 s of silence ([`SILENCE_MANY`]) is a loss and a handshake has a second.
-//! The silence rule counts per edge ([`Silences`]). The edge's word that its world is gone
-//! (and back) is kept in [`Live::world`] for the page's message line.
+//! go to, a shorter silence is a loss, a handshake has a second, and an edge shutting
+//! down is a loss too (another edge takes the page). The edge's word that its world is
+//! gone (and back) is kept in [`Live::world`] for the page's message line.
 
 use std::cell::RefCell;
 use std::rc::Rc;
@@ -27,9 +30,10 @@ use bytes::Bytes;
 use futures_channel::mpsc::{self, UnboundedReceiver, UnboundedSender};
 use futures_util::StreamExt;
 use roam_client::color_cache::ColorCache;
+use roam_client::conversation::{self, TerrainId};
 use roam_client::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
-use roam_client::edges::{Addresses, SILENCE_MANY, Silences, WebEdge, World, web_edges};
-use roam_client::joining::{self, TerrainId};
+use roam_client::edges::{Addresses, WebEdge, World, web_edges};
+use roam_client::supervisor::{End, Patience, State, Supervisor};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, ServerMessage, ViewChange, Welcome, WorldNews, close,
@@ -42,31 +46,13 @@ use crate::page;
 use crate::wire::{Reader, write};
 
 mod join;
-use join::ending;
+use join::end_of;
 pub use join::{Joined, has_webtransport, join};
 
-/// [`Live::silence`] unless told otherwise.
-pub const SILENCE: Duration = Duration::from_secs(10);
-/// How long after a loss to keep trying (the server holds a vehicle 30 s).
-const RECONNECT_FOR: Duration = Duration::from_secs(35);
 /// Frame streams read at once, at most: each may hold [`MAX_FRAME`] bytes.
 const MAX_STREAMS: usize = 16;
-/// How long a loss waits for a goodbye that may be behind it, milliseconds.
-const GOODBYE_GRACE_MS: i32 = 300;
-/// A connection's handshake at most, milliseconds (the next attempt starts afresh); with
-/// other edges to go to, [`HANDSHAKE_MANY_MS`].
-pub const HANDSHAKE_MS: i32 = 5_000;
-const HANDSHAKE_MANY_MS: i32 = 1_000;
-/// A join (handshake, welcome, coarsest tile) at most, milliseconds.
-const JOIN_MS: i32 = 30_000;
-
-/// Where the session stands, for the page.
-#[derive(Clone, Debug, PartialEq)]
-pub enum State {
-    Connected,
-    Reconnecting { why: String, attempts: u32 },
-    Ended(String),
-}
+/// How long a loss waits for a goodbye that may be behind it.
+const GOODBYE_GRACE: Duration = Duration::from_millis(300);
 
 /// What the tasks and the display share.
 pub struct Live {
@@ -88,8 +74,10 @@ pub struct Live {
     pub color_bytes_before: u64,
     /// Frames that could not be decoded (a key frame was asked for).
     pub dropped: u64,
-    /// After the welcome, this long without a word from the server: the connection is lost.
-    silence: Duration,
+    /// Frames offered, every connection's (the supervisor's silence rule counts them).
+    frames: u64,
+    /// How long the page waits on the server (the supervisor's).
+    patience: Patience,
     /// The newest camera told, for the next connection.
     view: Option<ViewChange>,
     /// Frame streams being read now (at most [`MAX_STREAMS`]).
@@ -139,16 +127,6 @@ impl Live {
         matches!(self.state, State::Ended(_))
     }
 
-    /// How long the server may be silent: a second when there are other edges to go to
-    /// (unless the page was told less).
-    fn silence(&self) -> Duration {
-        if self.edges.many() {
-            self.silence.min(SILENCE_MANY)
-        } else {
-            self.silence
-        }
-    }
-
     /// An edge's news of its world: the edges it names join the rotation; gone or back
     /// is kept for the page.
     fn news(&mut self, news: &WorldNews) {
@@ -187,6 +165,7 @@ impl Live {
         if epoch == self.epoch {
             self.heard = Instant::now();
             self.core.offer(bytes, Instant::now());
+            self.frames += 1;
         }
     }
 
@@ -229,7 +208,8 @@ impl Live {
     }
 }
 
-/// The first connection's state: joined at `edge`, the page's own.
+/// The first connection's state: joined at `edge`, the page's own; the server may be
+/// silent for `silence` ([`Patience::silence`]).
 pub fn live(
     joined: &mut Joined,
     edge: WebEdge,
@@ -257,7 +237,11 @@ pub fn live(
         bytes_before: 0,
         color_bytes_before: 0,
         dropped: 0,
-        silence,
+        frames: 0,
+        patience: Patience {
+            silence,
+            ..Patience::default()
+        },
         view: None,
         streams: 0,
         world: World::default(),
@@ -266,41 +250,32 @@ pub fn live(
     })))
 }
 
-/// How a connection ended.
-enum End {
-    Lost(String),
-    Final(String),
-}
-
-/// Runs the session: the connection `joined`, then each reconnection, until it ends.
+/// Runs the session: the connection `joined`, then each reconnection the supervisor asks
+/// for, until it ends.
 pub async fn supervise(live: Shared, hello: Hello, mut joined: Joined) {
     // The first connection's terrain, which every later one must show (its colour cache
     // went to `live`).
     let first = TerrainId::of(&joined.welcome, live.borrow().colors.coarsest());
-    let mut hello = joining::next_hello(hello, &joined.welcome);
-    // The edges silent since the last frame bytes: the same one silent again is a stuck
-    // server (as the native viewer's rule).
-    let mut silences = Silences::default();
+    let mut supervisor = Supervisor::new(live.borrow().patience, first);
+    let mut hello = conversation::next_hello(hello, &joined.welcome);
     loop {
         let end = serve(&live, joined).await;
-        let why = match end {
-            End::Final(why) => {
-                live.borrow_mut().end(why);
-                return;
-            }
-            End::Lost(why) => why,
+        let verdict = {
+            let l = live.borrow();
+            supervisor.ended(
+                end,
+                &l.edges.current().url,
+                l.edges.index(),
+                l.edges.many(),
+                l.frames,
+                Instant::now(),
+            )
         };
-        if live.borrow().ended() {
+        if let Err(why) = verdict {
+            live.borrow_mut().end(why);
             return;
         }
-        let (bytes, here) = {
-            let l = live.borrow();
-            (l.bytes_in(), l.edges.index())
-        };
-        if why.contains("silent") && silences.silent(here, bytes) {
-            live.borrow_mut().end(format!(
-                "{why}, again after reconnecting with no frame between: the server is stuck"
-            ));
+        if live.borrow().ended() {
             return;
         }
         // The budget and viewport asked now, not at the page's load.
@@ -311,9 +286,9 @@ pub async fn supervise(live: Shared, hello: Hello, mut joined: Joined) {
                 hello.viewport = v.viewport;
             }
         }
-        match reconnect(&live, &hello, &why, &first).await {
+        match reconnect(&live, &mut supervisor, &hello).await {
             Ok(j) => {
-                hello = joining::next_hello(hello, &j.welcome);
+                hello = conversation::next_hello(hello, &j.welcome);
                 joined = j;
             }
             Err(why) => {
@@ -324,87 +299,64 @@ pub async fn supervise(live: Shared, hello: Hello, mut joined: Joined) {
     }
 }
 
-/// Connects again, each attempt at the next edge in turn, until one joins (showing the
-/// same terrain) or time runs out.
+/// Connects again, each attempt at the next edge in turn, as the supervisor says, until
+/// one joins (showing the same terrain), the page quits, or the supervisor gives up.
 async fn reconnect(
     live: &Shared,
+    supervisor: &mut Supervisor,
     hello: &Hello,
-    why: &str,
-    first: &TerrainId,
 ) -> Result<Joined, String> {
-    let started = Instant::now();
-    live.borrow_mut().gaps.lost(started);
-    let mut pause = 0;
-    let mut attempts = 0;
+    let mut lost_at = Some(Instant::now());
     loop {
-        {
+        let (edge, attempt) = {
             let mut l = live.borrow_mut();
             if l.ended() {
                 return Err("quit".into());
             }
-            l.state = State::Reconnecting {
-                why: why.to_owned(),
-                attempts,
-            };
-        }
-        if pause > 0 {
-            page::sleep(pause).await;
-        }
-        attempts += 1;
-        let left = RECONNECT_FOR.saturating_sub(started.elapsed()).as_millis() as i32;
-        let (edge, handshake) = {
-            let mut l = live.borrow_mut();
             let edge = l.edges.after_loss().clone();
-            (
-                edge,
-                if l.edges.many() {
-                    HANDSHAKE_MANY_MS
-                } else {
-                    HANDSHAKE_MS
-                },
-            )
+            let attempt = supervisor.attempt(l.edges.many());
+            if let Some(at) = lost_at.take() {
+                l.gaps.lost(at);
+            }
+            l.state = supervisor.state();
+            (edge, attempt)
         };
-        let joined = with_timeout(
-            join(&edge, hello.clone(), handshake),
-            left.clamp(1, JOIN_MS),
-        )
-        .await;
+        let joined = join(&edge, hello.clone(), attempt.handshake).await;
         if live.borrow().ended() {
             // Quit (or the page closed) meanwhile: nothing comes back.
-            if let Some(Ok(j)) = joined {
+            if let Ok(j) = joined {
                 j.session.close(close::BYE, "quit");
             }
             return Err("quit".into());
         }
-        match joined {
-            Some(Ok(j)) => {
+        let e = match joined {
+            Ok(j) => {
                 let found = TerrainId::of(&j.welcome, j.colors.coarsest());
-                if let Some(differs) = first.differences(&found) {
-                    j.session.close(close::BYE, "another terrain");
-                    return Err(format!(
-                        "the server came back with another terrain: {differs}"
-                    ));
-                }
-                return Ok(j);
+                return match supervisor.joined(&found) {
+                    Ok(()) => Ok(j),
+                    Err(why) => {
+                        j.session.close(close::BYE, "another terrain");
+                        Err(why)
+                    }
+                };
             }
-            Some(Err(e)) if !e.lost => return Err(e.message),
-            Some(Err(_)) | None => {}
-        }
-        if started.elapsed() >= RECONNECT_FOR {
-            return Err(format!(
-                "{why}; no reconnection within {} s",
-                RECONNECT_FOR.as_secs()
-            ));
-        }
-        pause = (pause * 2).clamp(100, 2000);
+            Err(e) => e,
+        };
+        let pause = supervisor.failed(&edge.url, e.lost, &e.message, Instant::now())?;
+        page::sleep(ms(pause)).await;
     }
 }
 
-/// `fut`, or `None` after `ms`.
-async fn with_timeout<T>(fut: impl std::future::Future<Output = T>, ms: i32) -> Option<T> {
+/// `d` in whole milliseconds, for the browser's timers.
+fn ms(d: Duration) -> i32 {
+    i32::try_from(d.as_millis()).unwrap_or(i32::MAX)
+}
+
+/// `fut`, or `None` after `d`.
+async fn with_timeout<T>(fut: impl std::future::Future<Output = T>, d: Duration) -> Option<T> {
     use futures_util::future::{Either, select};
     let fut = std::pin::pin!(fut);
-    let timer = std::pin::pin!(page::sleep(ms));
+    let timer = std::pin::pin!(page::sleep(ms(d)));
     match select(fut, timer).await {
         Either::Left((v, _)) => Some(v),
         Either::Right(_) => None,
@@ -483,23 +435,19 @@ async fn serve(live: &Shared, joined: Joined) -> End {
         let (session, ends) = (session.clone(), ends.clone());
         spawn_local(async move {
             let e = session.closed().await;
-            let (lost, why) = ending(&e);
-            let _ = ends.unbounded_send(if lost {
-                End::Lost(why)
-            } else {
-                End::Final(why)
-            });
+            let _ = ends.unbounded_send(end_of(&e));
         });
     }
     spawn_local(watch_silence(live.clone(), epoch, ends));
-    let mut end = ended
-        .next()
-        .await
-        .unwrap_or_else(|| End::Lost("the connection's tasks ended".into()));
-    if matches!(end, End::Lost(_)) {
+    let mut end = ended.next().await.unwrap_or_else(|| End::Lost {
+        why: "the connection's tasks ended".into(),
+        silent: false,
+    });
+    if matches!(end, End::Lost { .. }) {
         // A goodbye read just before the connection closed says more than the loss (a
         // busy page may see the close first): give the control reader a moment.
-        if let Some(Some(fin @ End::Final(_))) = with_timeout(ended.next(), GOODBYE_GRACE_MS).await
+        if let Some(Some(fin @ (End::Final(_) | End::Shutdown(_)))) =
+            with_timeout(ended.next(), GOODBYE_GRACE).await
         {
             end = fin;
         }
@@ -509,16 +457,19 @@ async fn serve(live: &Shared, joined: Joined) -> End {
         l.session = None;
         l.control = None;
     }
-    match &end {
-        End::Final(_) => session.close(close::BYE, "bye"),
+    if end.worth_reconnecting(l.edges.many()) {
         // Not a goodbye: the server holds the vehicle for the reconnection (should this
         // close reach it through a path that came back).
-        End::Lost(_) => session.close(0, "lost; reconnecting"),
+        session.close(0, "lost; reconnecting");
+    } else {
+        session.close(close::BYE, "bye");
     }
     end
 }
 
-/// Lost when the server says nothing for [`Live::silence`] (checked ten times a second).
+/// Lost when the server says nothing for as long as the supervisor's patience allows
+/// ([`Patience::allowed_silence`]: shorter with other edges to go to), checked ten times a
+/// second.
 async fn watch_silence(live: Shared, epoch: u64, ends: UnboundedSender<End>) {
     loop {
         page::sleep(100).await;
@@ -526,12 +477,9 @@ async fn watch_silence(live: Shared, epoch: u64, ends: UnboundedSender<End>) {
         if l.epoch != epoch || l.ended() {
             return;
         }
-        let silence = l.silence();
+        let silence = l.patience.allowed_silence(l.edges.many());
         if l.heard.elapsed() >= silence {
-            let _ = ends.unbounded_send(End::Lost(format!(
-                "the server was silent for {:.1} s",
-                silence.as_secs_f64()
-            )));
+            let _ = ends.unbounded_send(End::silence(silence));
             return;
         }
     }
@@ -551,7 +499,7 @@ async fn write_control(
         }
         if bye {
             let _ = send.finish();
-            let _ = with_timeout(session.closed(), 1000).await;
+            let _ = with_timeout(session.closed(), Duration::from_secs(1)).await;
             session.close(close::BYE, "bye");
             return;
         }
@@ -559,7 +507,8 @@ async fn write_control(
 }
 
 /// The server's control messages after the join: colour windows and tiles into the colour
-/// cache; a goodbye (or anything else) ends the session.
+/// cache; a goodbye (the server shutting down, or for good) or anything else ends the
+/// connection.
 async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: UnboundedSender<End>) {
     let mut rgb = Vec::new();
     let end = loop {
@@ -578,15 +527,16 @@ async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: Unbounde
             l.heard = Instant::now();
         }
         let colors = || std::cell::RefMut::map(live.borrow_mut(), |l| &mut l.colors);
-        match joining::take_control(&msg, &mut rgb, colors) {
+        match conversation::take_control(&msg, &mut rgb, colors) {
             Ok(None) => {}
-            Ok(Some(joining::Told::News(news))) => live.borrow_mut().news(news),
-            Ok(Some(joining::Told::Following(v))) => live.borrow_mut().following(v),
-            Ok(Some(joining::Told::Replay(s))) => {
+            Ok(Some(conversation::Told::News(news))) => live.borrow_mut().news(news),
+            Ok(Some(conversation::Told::Following(v))) => live.borrow_mut().following(v),
+            Ok(Some(conversation::Told::Replay(s))) => {
                 let mut l = live.borrow_mut();
                 l.core.set_replay();
                 l.replay = Some(s.clone());
             }
+            Err(why) if msg == ServerMessage::Bye(Reason::Shutdown) => break End::Shutdown(why),
             Err(why) => break End::Final(why),
         }
     };
@@ -625,7 +575,7 @@ async fn read_streams(session: Session, live: Shared, epoch: u64) {
 }
 
 /// One frame's stream, read to its end (at most [`MAX_FRAME`] bytes) and offered; every
-/// chunk is news of the server (a large frame on a slow link is not silence).
+/// chunk is news of the server (a large frame on a slow path is not silence).
 async fn read_stream(mut stream: RecvStream, live: Shared, epoch: u64) {
     let mut bytes: Vec<u8> = Vec::new();
     loop {

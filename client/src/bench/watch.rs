@@ -47,7 +47,7 @@ pub async fn run(
     (token, budget, size): (String, u32, (u32, u32)),
     started: Instant,
 ) -> Result<serde_json::Value> {
-    let hello = crate::joining::hello(
+    let hello = crate::conversation::hello(
         Role::Spectator { follow: None },
         token,
         [size.0, size.1],

@@ -14,7 +14,7 @@ use roam_link::wire;
 use roam_protocol::messages::{ServerMessage, WorldNews};
 
 use super::Shared;
-use super::link::SendStream;
+use super::conn::SendStream;
 use crate::sim::world::VehicleId;
 use crate::terrain::color_pyramid::TileError;
 use crate::viewer::color::{ColorScheduler, ColorSend};
@@ -152,7 +152,7 @@ pub(super) async fn stream_color(
     ),
 ) {
     // Nothing before the first frame: the coarsest tile's normals, owed first, would
-    // only share the link with it (a viewer lights per vertex until they come).
+    // only share the path with it (a viewer lights per vertex until they come).
     if made.wait_for(|&n| n > 0).await.is_err() {
         return;
     }

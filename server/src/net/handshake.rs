@@ -20,7 +20,7 @@
 //! way, by the same gate; after its QUIC handshake and within the same deadline come
 //! HTTP/3's settings and the WebTransport `CONNECT` (to [`crate::web::SESSION_PATH`], any
 //! other path answered 404), and from there on the protocol is the native one
-//! ([`super::link`]).
+//! ([`super::conn`]).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -33,7 +33,7 @@ use tokio::time::Instant;
 use web_transport_quinn as wt;
 
 use super::Shared;
-use super::link::{Conn, RecvStream, SendStream, Via, Web};
+use super::conn::{Conn, RecvStream, SendStream, Via, Web};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::Event;
 use crate::viewer::Event as ViewerEvent;

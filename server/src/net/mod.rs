@@ -9,13 +9,13 @@
 //!
 //! With [`Options::web`], browsers come too: the page over HTTPS and WebTransport sessions
 //! on a second endpoint ([`web`]), admitted and served by the same code as native viewers
-//! ([`link`] hides which), in the same world, under the same limits.
+//! ([`conn`] hides which), in the same world, under the same limits.
 
 pub mod bus;
 pub mod color_budget;
+pub mod conn;
 mod control;
 mod handshake;
-pub mod link;
 pub mod makers;
 pub mod replay;
 pub mod stats;
@@ -558,7 +558,7 @@ impl Server {
 
 async fn accept_loop(endpoint: quinn::Endpoint, shared: Arc<Shared>) {
     while let Some(incoming) = endpoint.accept().await {
-        handshake::arrive(incoming, &shared, link::Via::Quic);
+        handshake::arrive(incoming, &shared, conn::Via::Quic);
     }
 }
 

@@ -24,7 +24,7 @@ use std::sync::{Arc, Mutex};
 use roam_protocol::messages::{ReplayControl, ReplayStatus, ServerMessage};
 use tokio::sync::watch;
 
-use super::link::SendStream;
+use super::conn::SendStream;
 use super::world_loop::{Inbound, WorldStats};
 use crate::Terrain;
 use crate::sim::watch::{Control, Status, Watch};

@@ -44,7 +44,7 @@
 //! fails), the world gone and back; a driver whose world restarted (its vehicle unknown
 //! there) is told so and let go.
 //!
-//! A browser's WebTransport session is served by the same code, through [`super::link`]'s
+//! A browser's WebTransport session is served by the same code, through [`super::conn`]'s
 //! [`Conn`]: only the logs' `via` tells them apart.
 
 use std::net::SocketAddr;
@@ -57,13 +57,13 @@ use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welco
 use tokio::sync::oneshot;
 
 use super::Shared;
+use super::conn::{Conn, DatagramError, RecvStream, SendStream};
 use super::control::{WORLD_RESTARTED, stream_color, tell_news, write_color};
 use super::handshake::{Joined, MAX_CONTROL, Seat};
-use super::link::{Conn, DatagramError, RecvStream, SendStream};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
 use crate::viewer::color::ColorScheduler;
-use crate::viewer::link::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
+use crate::viewer::conversation::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{KeyCause, ViewerCore};
 
 /// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
@@ -256,7 +256,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         _ = shared.shutting_down() => {
             let bye = ServerMessage::Bye(Reason::Shutdown);
             goodbye(&send, &color.0, &bye).await;
-            if conn.via() == super::link::Via::Web {
+            if conn.via() == super::conn::Via::Web {
                 // A browser closes its session on the goodbye; closed from here first, a
                 // busy page may see only "connection lost" (and try to reconnect).
                 let _ = tokio::time::timeout(super::WEB_CLOSE_WAIT, conn.closed()).await;
@@ -394,7 +394,7 @@ async fn welcome(
     let w = Welcome {
         ticket: joined.ticket,
         resumed: joined.resumed,
-        ..link::welcome(&shared.terrain, joined.vehicle, tick, layout, shared.limits)
+        ..conversation::welcome(&shared.terrain, joined.vehicle, tick, layout, shared.limits)
     };
     send.write_msg(&ServerMessage::Welcome(w)).await?;
     let first = colors.first();

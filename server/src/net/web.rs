@@ -28,7 +28,7 @@ use http_body_util::Full;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use tokio::task::JoinHandle;
 
-use super::link::Via;
+use super::conn::Via;
 use super::{ServeError, Shared};
 use crate::web::cert::CertStore;
 use crate::web::{Page, Site};

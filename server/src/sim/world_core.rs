@@ -21,7 +21,7 @@
 //!    - with more than [`PRIME`] + [`CATCH_UP`] queued (a backlog after a wait or a
 //!      stall), it steps **twice**, one step per state, until the backlog is gone;
 //!    - with more than [`PRIME`] queued at every tick for [`TRIM_AFTER`] ticks (slack a
-//!      past wait left that the link has not needed for a second), it steps **twice**
+//!      past wait left that the path has not needed for a second), it steps **twice**
 //!      once, so the queue, and the driver's latency, goes back to [`PRIME`];
 //!    - otherwise one step, with the oldest queued state folded into the driver's latch;
 //!    - a queue longer than [`MAX_QUEUED`] (a viewer whose clock runs fast) is folded into
@@ -79,7 +79,7 @@ pub enum Event {
     },
     /// A driver's connection dropped (not a goodbye): its vehicle stays, waiting, until
     /// resumed or until the hold runs out (then it leaves). Its queued keys are dropped.
-    /// The hold counts from `silent` ticks ago: a link that fell silent is seen dead only
+    /// The hold counts from `silent` ticks ago: a path that fell silent is seen dead only
     /// at its idle timeout, and the driver's time to come back runs from the silence.
     Hold { vehicle: VehicleId, silent: u64 },
     /// A held vehicle's driver is back: [`WorldCore::handle`] gives the vehicle back
@@ -608,7 +608,7 @@ mod tests {
     }
 
     #[test]
-    fn slack_past_prime_the_link_did_not_need_for_a_second_is_trimmed() {
+    fn slack_past_prime_the_path_did_not_need_for_a_second_is_trimmed() {
         let mut c = core(100);
         let id = c.handle(Event::Join).expect("a vehicle");
         // Three states before the first tick (as after a wait): one more than PRIME.
@@ -680,7 +680,7 @@ mod tests {
     }
 
     #[test]
-    fn a_hold_counts_from_when_the_link_fell_silent() {
+    fn a_hold_counts_from_when_the_path_fell_silent() {
         let mut c = core(30);
         let a = c.handle(Event::Join).expect("a vehicle");
         let b = c.handle(Event::Join).expect("a vehicle");

@@ -111,7 +111,7 @@ pub const CUT_BYTES_PER_TRIANGLE: u64 = 64;
 pub const CORE_BYTES: u64 = 512 << 10;
 
 /// What a viewer's connection holds at most besides its cut, bytes: quinn's send window
-/// (everything sent and not yet acknowledged: colour tiles, a key frame on a slow link),
+/// (everything sent and not yet acknowledged: colour tiles, a key frame on a slow path),
 /// its receive windows and datagram buffers ([`roam_link::tls::server_transport`]), and
 /// [`CORE_BYTES`].
 pub const CONNECTION_BYTES: u64 = roam_link::tls::SERVER_SEND_WINDOW

@@ -24,7 +24,7 @@
 //! shell sends it reliably, never abandoned while it is pending, so until the viewer
 //! acknowledges it (or a newer frame) the frames after it are coded against it
 //! ([`ViewerCore::pending_key`]) rather than made as key frames again (each as large as
-//! the first, on a link that may not carry one a frame interval). It stops being pending
+//! the first, on a path that may not carry one a frame interval). It stops being pending
 //! when an acknowledgement reaches it, when the viewer asks for a key frame, or when a
 //! newer key frame supersedes it (the shell then abandons it). Any other lost or abandoned
 //! frame is never a base (only acknowledged frames and the pending key frame are), so it
@@ -58,7 +58,7 @@ use crate::tessellate::{Coherent, Limits, Mode, Scales, Scratch, Step};
 pub mod admission;
 mod camera;
 pub mod color;
-pub mod link;
+pub mod conversation;
 
 pub use camera::apply_view;
 

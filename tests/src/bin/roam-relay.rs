@@ -1,8 +1,8 @@
 //! `roam-relay`: a seeded lossy UDP relay ([`roam_tests::relay`]) for measuring a server
-//! and viewers over a bad link on one machine. The same settings apply each way. Its first
+//! and viewers over a bad network on one machine. The same settings apply each way. Its first
 //! line on stdout is `listening on ADDR`; it runs until Ctrl-C or SIGTERM, then prints what
-//! it forwarded and dropped to stderr. SIGUSR1 cuts the link (every datagram dropped, both
-//! ways, as a dropped Wi-Fi link) or restores it, and says which on stderr: to watch a
+//! it forwarded and dropped to stderr. SIGUSR1 cuts the relay (every datagram dropped, both
+//! ways, as a dropped Wi-Fi connection) or restores it, and says which on stderr: to watch a
 //! viewer reconnect by hand.
 //!
 //! ```sh
@@ -16,7 +16,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Parser;
-use roam_tests::relay::{Direction, LinkConfig, Relay};
+use roam_tests::relay::{Direction, Relay, RelayConfig};
 
 #[derive(Parser)]
 #[command(
@@ -64,7 +64,7 @@ async fn main() -> Result<()> {
     let relay = Relay::start_on(
         cli.listen,
         cli.to,
-        LinkConfig::symmetric(direction, cli.seed),
+        RelayConfig::symmetric(direction, cli.seed),
     )
     .await?;
     {

@@ -11,7 +11,7 @@ use roam_client::core::{ClientCore, KeyCore, Taken};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome};
 
-use super::link::{InOrder, Payload};
+use super::path::{InOrder, Payload};
 use super::server::ServerState;
 use super::{EARLY_BYTES, IDLE_TIMEOUT, Sim, TICK, TakenFrame, Viewer, ViewerId, mesh_hash};
 

@@ -3,7 +3,7 @@
 //! [`Mailbox`] and [`KeyGate`]) and the viewer's sans-IO cores ([`ClientCore`] for frames,
 //! [`KeyCore`] for keys) driven together by virtual time, with no socket, task, thread or
 //! clock. Tests add viewers over [`Path`]s, run virtual time, steer the viewers and break
-//! their links, and read what each viewer took ([`Stats`], [`TakenFrame`]s, a driver's
+//! their paths, and read what each viewer took ([`Stats`], [`TakenFrame`]s, a driver's
 //! [`TrackPoint`]s) and what the world holds.
 //!
 //! **Time.** One `Instant` is read when a [`Sim`] is made (its epoch); from then on "now" is
@@ -11,7 +11,7 @@
 //! the clock again, so a run is a pure function of its seed and what the test does.
 //! Packets arrive at nanosecond times, and are handled in the step that reaches them (a
 //! step: arrivals at the server, the world's tick if due, frames due, arrivals at the
-//! viewers, their keys, takes and control messages, then the links send).
+//! viewers, their keys, takes and control messages, then the paths send).
 //!
 //! **Composition** (as `net::viewer` and `net::world_loop` do it):
 //!
@@ -45,13 +45,13 @@
 //!   has one, [`LAST_WORD`] to arrive, then closes: a close packet (which may be lost),
 //!   and the driver's leave.
 //!
-//! **The link model**, per direction ([`Link`]): a packet (at most [`MAX_DATAGRAM`] payload
+//! **The path model**, per direction ([`Direction`]): a packet (at most [`MAX_DATAGRAM`] payload
 //! bytes plus [`OVERHEAD`] bytes of headers) waits in a FIFO serialisation queue until the
-//! link is free (`rate_bytes_per_s`; none: it leaves at once), is dropped at the tail when
+//! direction is free (`rate_bytes_per_s`; none: it leaves at once), is dropped at the tail when
 //! the queue holds more than `queue_bytes`, is lost with probability `loss`, and arrives
 //! `delay` plus a uniform `[0, jitter]` after it left (so jitter reorders). Each direction
-//! has its own seeded [`SplitMix64`]. A link can be cut for a while or for good
-//! ([`Sim::cut_link`], [`Sim::kill_link`]): every packet that leaves or arrives meanwhile
+//! has its own seeded [`SplitMix64`]. A path can be cut for a while or for good
+//! ([`Sim::cut_path`], [`Sim::kill_path`]): every packet that leaves or arrives meanwhile
 //! is lost.
 //!
 //! - **Datagrams** (key datagrams, small frames, the close packet) are lost for good.
@@ -77,16 +77,16 @@
 //! or a viewer's pacing of takes (a viewer takes a frame in the millisecond it arrives),
 //! and key datagrams still reaching the world during a last word (dropped here).
 //!
-//! **Files:** this one (the harness: time, viewers, what a test does and reads), `link.rs`
-//! (the link and packet model), `server.rs` (the server's cores composed as its shell
+//! **Files:** this one (the harness: time, viewers, what a test does and reads), `path.rs`
+//! (the path and packet model), `server.rs` (the server's cores composed as its shell
 //! composes them) and `client.rs` (the viewer's, as `session.rs` does).
 //!
 //! [`ViewerCore`]: roam_server::viewer::ViewerCore
 //! [`ViewerCore::make_frame`]: roam_server::viewer::ViewerCore::make_frame
 //! [`ViewerCore::pending_key`]: roam_server::viewer::ViewerCore::pending_key
-//! [`Mailbox`]: roam_server::viewer::link::Mailbox
-//! [`KeyGate`]: roam_server::viewer::link::KeyGate
-//! [`frame_message`]: roam_server::viewer::link::frame_message
+//! [`Mailbox`]: roam_server::viewer::conversation::Mailbox
+//! [`KeyGate`]: roam_server::viewer::conversation::KeyGate
+//! [`frame_message`]: roam_server::viewer::conversation::frame_message
 //! [`world_core::Event::Join`]: roam_server::sim::world_core::Event::Join
 use std::collections::{BTreeMap, VecDeque};
 use std::sync::Arc;
@@ -109,7 +109,7 @@ use roam_server::terrain::variance::VarianceTree;
 /// on a 1,280-byte path MTU).
 pub const MAX_DATAGRAM: usize = 1200;
 
-/// Header bytes per packet, counted against a link's rate and queue.
+/// Header bytes per packet, counted against a direction's rate and queue.
 pub const OVERHEAD: usize = 40;
 
 /// Silence after which either side closes a connection (quinn's `max_idle_timeout`).
@@ -150,12 +150,12 @@ macro_rules! encoded {
 }
 
 mod client;
-mod link;
+mod path;
 mod server;
 
 use client::{ClientSide, client_control};
-use link::{InOrder, Wire};
-pub use link::{Link, Path, SplitMix64, WireStats, rto};
+pub use path::{Direction, Path, SplitMix64, WireStats, rto};
+use path::{InOrder, Wire};
 use server::{ServerSide, ServerState};
 
 /// A frame the viewer took.
@@ -238,7 +238,7 @@ struct Viewer {
     dropped: Vec<String>,
 }
 
-/// The server's cores, the viewers' cores, and the links between them, in virtual time.
+/// The server's cores, the viewers' cores, and the paths between them, in virtual time.
 pub struct Sim {
     epoch: Instant,
     now: Duration,
@@ -403,7 +403,7 @@ impl Sim {
     }
 
     /// One millisecond: arrivals at the server, the world's tick if due, frames due, arrivals
-    /// at the viewers, the viewers' keys, takes and control messages, and the links send.
+    /// at the viewers, the viewers' keys, takes and control messages, and the paths send.
     pub fn step(&mut self) {
         self.now += STEP;
         let now = self.now;
@@ -463,32 +463,32 @@ impl Sim {
         v.client.steps = None;
     }
 
-    /// Viewer `i`'s links carry nothing (either way, packets on the way included) for `d`.
-    pub fn cut_link(&mut self, i: ViewerId, d: Duration) {
+    /// Viewer `i`'s path carries nothing (either way, packets on the way included) for `d`.
+    pub fn cut_path(&mut self, i: ViewerId, d: Duration) {
         let until = self.now.saturating_add(d);
         let v = &mut self.viewers[i];
         v.up.down_until = v.up.down_until.max(until);
         v.down.down_until = v.down.down_until.max(until);
     }
 
-    /// Viewer `i`'s link to the server carries nothing (packets on the way included) for
-    /// `d`; the link back works.
+    /// Viewer `i`'s path to the server carries nothing (packets on the way included) for
+    /// `d`; the way back works.
     pub fn cut_up(&mut self, i: ViewerId, d: Duration) {
         let until = self.now.saturating_add(d);
         let v = &mut self.viewers[i];
         v.up.down_until = v.up.down_until.max(until);
     }
 
-    /// Viewer `i`'s links carry nothing, ever again.
-    pub fn kill_link(&mut self, i: ViewerId) {
-        self.cut_link(i, Duration::MAX);
+    /// Viewer `i`'s path carries nothing, ever again.
+    pub fn kill_path(&mut self, i: ViewerId) {
+        self.cut_path(i, Duration::MAX);
     }
 
-    /// Viewer `i`'s links are now `path` (packets on the way keep their arrival times).
+    /// Viewer `i`'s path is now `path` (packets on the way keep their arrival times).
     pub fn set_path(&mut self, i: ViewerId, path: Path) {
         let v = &mut self.viewers[i];
-        v.up.link = path.up;
-        v.down.link = path.down;
+        v.up.direction = path.up;
+        v.down.direction = path.down;
     }
 
     // ---- What a test reads ----

@@ -12,10 +12,10 @@ use roam_server::Terrain;
 use roam_server::sim::world::VehicleId;
 use roam_server::sim::world_core;
 use roam_server::tessellate::Mesh;
-use roam_server::viewer::link::{Control, KeyGate, Mailbox, frame_message};
+use roam_server::viewer::conversation::{Control, KeyGate, Mailbox, frame_message};
 use roam_server::viewer::{Scene, ViewerCore, ViewerLimits};
 
-use super::link::{InOrder, Payload};
+use super::path::{InOrder, Payload};
 use super::{
     IDLE_TIMEOUT, LAST_WORD, MADE_KEPT, MAX_DATAGRAM, Sim, TrackPoint, Viewer, ViewerId, mesh_hash,
 };
@@ -74,7 +74,13 @@ pub(super) fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64) -> Welco
         roam_protocol::tiles::DEFAULT_WINDOW,
     )
     .expect("the test terrains' colour maps are powers of two");
-    roam_server::viewer::link::welcome(terrain, vehicle, tick, color, ViewerLimits::default())
+    roam_server::viewer::conversation::welcome(
+        terrain,
+        vehicle,
+        tick,
+        color,
+        ViewerLimits::default(),
+    )
 }
 
 impl Sim {

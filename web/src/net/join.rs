@@ -1,15 +1,17 @@
 //! Joining a server from the page (the part of [`super`] before a session runs): the
 //! WebTransport handshake within its deadline, the hello, the welcome and the colour
 //! messages up to the coarsest tile ([`join`]), and how a session's end reads
-//! ([`ending`]: worth connecting again, or final).
+//! ([`ending`], [`end_of`]: worth connecting again, the server shutting down, or final).
 
 use roam_client::color_cache::{ColorCache, Keep};
+use roam_client::conversation::{self, Joining};
 use roam_client::edges::WebEdge;
-use roam_client::joining::{self, Joining};
+use roam_client::supervisor::{End, JOIN_TIMEOUT, secs};
 use roam_protocol::messages::{ClientMessage, Hello, ServerMessage, Welcome, WorldNews, close};
+use web_time::Duration;
 use web_transport_wasm::{ClientBuilder, SendStream, Session};
 
-use super::{GOODBYE_GRACE_MS, JOIN_MS, with_timeout};
+use super::{GOODBYE_GRACE, with_timeout};
 use crate::page;
 use crate::wire::{Reader, write};
 
@@ -60,12 +62,26 @@ pub(super) fn ending(e: &web_transport_wasm::Error) -> (bool, String) {
     }
 }
 
+/// How a session ended, for the supervisor: the server shutting down (its close code says
+/// so), lost, or final ([`ending`]).
+pub(super) fn end_of(e: &web_transport_wasm::Error) -> End {
+    if let web_transport_wasm::Error::Session { code, .. } = e
+        && *code == close::SHUTDOWN
+    {
+        return End::Shutdown(ending(e).1);
+    }
+    match ending(e) {
+        (true, why) => End::Lost { why, silent: false },
+        (false, why) => End::Final(why),
+    }
+}
+
 /// Connects to `edge`, says `hello`, and reads the welcome and the coarsest colour tile:
-/// the handshake within `handshake_ms` ([`super::HANDSHAKE_MS`], or [`super::HANDSHAKE_MANY_MS`] with
-/// other edges to go to), the rest within [`JOIN_MS`]. A session that does not join is
-/// closed (the goodbye's code when it was refused or broke the protocol; else 0, so that
-/// a vehicle it took back stays held for the next attempt).
-pub async fn join(edge: &WebEdge, hello: Hello, handshake_ms: i32) -> Result<Joined, JoinError> {
+/// the handshake within `handshake` (the supervisor's: `HANDSHAKE`, or `HANDSHAKE_MANY`
+/// with other edges to go to), the rest within [`JOIN_TIMEOUT`]. A session that does not
+/// join is closed (the goodbye's code when it was refused or broke the protocol; else 0,
+/// so that a vehicle it took back stays held for the next attempt).
+pub async fn join(edge: &WebEdge, hello: Hello, handshake: Duration) -> Result<Joined, JoinError> {
     let fatal = |message: String| JoinError {
         lost: false,
         message,
@@ -79,26 +95,26 @@ pub async fn join(edge: &WebEdge, hello: Hello, handshake_ms: i32) -> Result<Joi
     } else {
         builder.with_server_certificate_hashes(hashes)
     };
-    let session = with_timeout(client.connect(url.clone()), handshake_ms)
+    let session = with_timeout(client.connect(url.clone()), handshake)
         .await
         .ok_or_else(|| JoinError {
             lost: true,
             message: format!(
-                "connecting to {url}: no handshake within {:.1} s",
-                f64::from(handshake_ms) / 1000.0
+                "connecting to {url}: no handshake within {}",
+                secs(handshake)
             ),
         })?
         .map_err(|e| JoinError {
             lost: true,
             message: format!("connecting to {url}: {e}"),
         })?;
-    let joined = match with_timeout(greet(&session, hello), JOIN_MS).await {
+    let joined = match with_timeout(greet(&session, hello), JOIN_TIMEOUT).await {
         Some(r) => r,
         None => Err(JoinError {
             lost: true,
             message: format!(
                 "no welcome and coarsest colour tile within {} s",
-                JOIN_MS / 1000
+                JOIN_TIMEOUT.as_secs()
             ),
         }),
     };
@@ -141,7 +157,7 @@ async fn greet(session: &Session, hello: Hello) -> Result<Greeted, JoinError> {
         buf: Vec::new(),
     };
     let welcome = match recv.message::<ServerMessage>().await {
-        Ok(Some(msg)) => joining::welcome_of(msg).map_err(fatal)?,
+        Ok(Some(msg)) => conversation::welcome_of(msg).map_err(fatal)?,
         Ok(None) => return Err(failed_on(session, "the control stream ended".into()).await),
         Err(e) => return Err(failed_on(session, format!("reading the welcome: {e}")).await),
     };
@@ -162,7 +178,7 @@ async fn greet(session: &Session, hello: Hello) -> Result<Greeted, JoinError> {
 /// moment (a refusal's close may overtake its message), says what happened and whether to
 /// try again; else the connection was lost.
 async fn failed_on(session: &Session, message: String) -> JoinError {
-    match with_timeout(session.closed(), GOODBYE_GRACE_MS).await {
+    match with_timeout(session.closed(), GOODBYE_GRACE).await {
         Some(e) => {
             let (lost, why) = ending(&e);
             JoinError {

@@ -1,12 +1,13 @@
-//! Joining a server, once: the QUIC handshake (pinning the server's certificate), the
-//! hello, the welcome (its colour layout checked against the grid and the window asked,
-//! [`ColorCache::new`]) and the coarsest colour tile, so that the first frame has a colour
-//! everywhere; the rest of the colour pyramid streams during the session
-//! ([`crate::connection::read_control`]). Also whether a reconnection found the same terrain;
-//! and what a connection's end means: **lost** (timed out, reset, a transport error: worth
-//! reconnecting) or **final** (the server closed it, refused the viewer, or broke the
-//! protocol). No clock here: the session ([`crate::session`]) bounds each step in time.
-//! One endpoint serves every address a session tries ([`endpoint_for`]).
+//! The native viewer's QUIC: the client endpoint pinning the server's certificate (one per
+//! session, whatever addresses it tries: [`endpoint_for`]), one join over a connection
+//! ([`hello`]: the hello, the welcome, its colour layout checked against the grid and the
+//! window asked, [`ColorCache::new`], and the coarsest colour tile, so that the first
+//! frame has a colour everywhere; the rest of the colour pyramid streams during the
+//! session), and what a connection's end means ([`ending`], [`end_of`]): **lost** (timed
+//! out, reset, a transport error: worth reconnecting) or **final** (the server closed it,
+//! refused the viewer, or broke the protocol). No clock here: the session's tasks bound
+//! each step in time. What the messages mean is [`crate::conversation`]'s, shared with the
+//! page.
 //!
 //! Grid limit: the viewer takes any grid the protocol has (`2^15 + 1`,
 //! `roam_protocol::Grid::new`); it was `2^13 + 1` while the colour map came whole. Grid
@@ -18,11 +19,13 @@ use std::net::SocketAddr;
 
 use anyhow::{Context, Result};
 use roam_link::{tls, wire};
-use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome, WorldNews};
+use roam_protocol::messages::{
+    self, ClientMessage, Hello, ServerMessage, Welcome, WorldNews, close,
+};
 
 use crate::color_cache::{ColorCache, Keep};
-use crate::joining::{Joining, welcome_of};
-pub use crate::joining::{TerrainId, describe, name};
+use crate::conversation::{Joining, welcome_of};
+use crate::supervisor::End;
 
 /// A client endpoint for `addr`'s address family that accepts only the certificate with
 /// SHA-256 `fingerprint`: one per session, reused by its reconnections (one UDP socket
@@ -82,6 +85,20 @@ pub fn ending(e: &quinn::ConnectionError) -> (bool, String) {
         E::LocallyClosed | E::VersionMismatch | E::CidsExhausted => {
             (false, format!("the connection ended: {e}"))
         }
+    }
+}
+
+/// How a connection ended, for the supervisor: the server shutting down (its close code
+/// says so), lost, or final ([`ending`]).
+pub fn end_of(e: &quinn::ConnectionError) -> End {
+    if let quinn::ConnectionError::ApplicationClosed(c) = e
+        && c.error_code == close::SHUTDOWN.into()
+    {
+        return End::Shutdown(ending(e).1);
+    }
+    match ending(e) {
+        (true, why) => End::Lost { why, silent: false },
+        (false, why) => End::Final(why),
     }
 }
 

@@ -217,12 +217,12 @@ pub const REPEAT_MAX_BYTES: usize = 600;
 /// Packets a loss measurement spans before it counts.
 const LOSS_WINDOW: u64 = 200;
 
-/// Whether to send each small frame twice, a few milliseconds apart: on a link that loses
-/// packets at random (Wi-Fi, a long path), a frame lost is a frame the viewer never shows,
+/// Whether to send each small frame twice, a few milliseconds apart: on a path that loses
+/// packets at random (Wi-Fi, a long one), a frame lost is a frame the viewer never shows,
 /// and at 5 % loss that caps it at 57 frames of 60. A second copy in a packet of its own
 /// makes a loss cost a frame only when both go (0.25 % at 5 %). It doubles a few hundred
 /// bytes a frame, and only while the connection measures loss above
-/// [`REPEAT_ABOVE_LOSS`]; a clean link sends each frame once.
+/// [`REPEAT_ABOVE_LOSS`]; a clean path sends each frame once.
 #[derive(Clone, Debug, Default)]
 pub struct LossMeter {
     /// The transport's counters at the start of the window.
@@ -258,7 +258,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn small_frames_are_repeated_only_while_the_link_loses() {
+    fn small_frames_are_repeated_only_while_the_path_loses() {
         let mut m = LossMeter::default();
         m.update(0, 0);
         assert!(!m.repeat(100), "nothing measured yet");

@@ -1,5 +1,5 @@
 //! One kind of resident tile (colour, or normals) of the viewer's tile cache
-//! ([`crate::color_cache::ColorCache`]): per level, a slot per window position
+//! ([`super::ColorCache`]): per level, a slot per window position
 //! (`(z mod W)·W + (x mod W)`), the texels a tile brought until the renderer takes them,
 //! and the upload queue in arrival order. No checks here (the cache checks every message
 //! before it gets this far) and no window of its own: the cache tells it which tiles a
@@ -12,7 +12,7 @@ use std::collections::VecDeque;
 
 use roam_protocol::tiles::ColorLayout;
 
-use crate::color_cache::{MASK_WORDS, Upload};
+use super::{MASK_WORDS, Upload};
 
 #[derive(Clone, Debug)]
 struct Slot {

@@ -1,11 +1,12 @@
-//! What joining a server means, without the I/O: the welcome checked against the
-//! protocol's grids, the colour messages that follow it taken up to the coarsest tile
-//! ([`Joining`]), the terrain every reconnection must find again ([`TerrainId`]), the next
-//! connection's hello ([`next_hello`]), what a server message means during the session
-//! ([`take_control`]: colour into the cache, an edge's news of its world handed back),
-//! and how the server's refusals and messages read in words. Shared by the native viewer ([`crate::join`], over
-//! QUIC) and the browser viewer (`roam-web`, over WebTransport), which differ only in how
-//! the bytes travel.
+//! The viewer's side of its conversation with a server, without I/O: the hello it opens
+//! with and the next connection's ([`hello`], [`next_hello`]), the welcome checked against
+//! the protocol's grids and the colour messages that follow it taken up to the coarsest
+//! tile ([`Joining`]), the terrain every reconnection must find again ([`TerrainId`]),
+//! what a server message means during the session ([`take_control`]: colour into the
+//! cache; an edge's news of its world, the vehicle followed and a watched recording's
+//! state handed back), and how the server's refusals and messages read in words. Shared
+//! by the native viewer (over QUIC, `quic.rs`) and the browser viewer (`roam-web`, over
+//! WebTransport), which differ only in how the bytes travel.
 
 use roam_protocol::messages::{
     Hello, Reason, ReplayStatus, Role, ServerMessage, Welcome, WorldNews,
@@ -274,4 +275,50 @@ pub fn next_hello(mut hello: Hello, welcome: &Welcome) -> Hello {
         }
     }
     hello
+}
+
+#[cfg(test)]
+mod tests {
+    use roam_protocol::messages::ServerMessage;
+    use roam_protocol::normals;
+    use roam_protocol::tiles::ColorLayout;
+
+    use super::take_control;
+    use crate::color_cache::{ColorCache, Keep};
+
+    /// A normal tile of level `level` at `(x, z)` on the wire, its codes made from `seed`.
+    fn tile(layout: &ColorLayout, level: u8, x: u32, z: u32, seed: u8) -> ServerMessage {
+        let side = layout.tile_side(level);
+        let codes: Vec<[u8; 2]> = (0..side * side)
+            .map(|i| [seed.wrapping_add((i % 13) as u8), 128])
+            .collect();
+        let mut data = Vec::new();
+        normals::encode_tile(side, &codes, &mut data).expect("a valid tile");
+        ServerMessage::NormalTile { level, x, z, data }
+    }
+
+    /// The session's path: a normal tile during the session is decoded outside the
+    /// cache's lock and put in ([`take_control`]); a tile the layout has no place for is
+    /// refused.
+    #[test]
+    fn the_session_takes_normal_tiles() {
+        // 64 cells in tiles of 8, a window of 2: levels of 8, 4, 2, 1 tiles a side.
+        let layout = ColorLayout::new(64, 8, 2).expect("a valid layout");
+        let cache = ColorCache::new(layout, 6, 8, Keep::Texels).expect("the layout fits");
+        let c = std::cell::RefCell::new(cache);
+        let mut scratch = Vec::new();
+        let msg = tile(&layout, 2, 1, 0, 11);
+        assert_eq!(
+            take_control(&msg, &mut scratch, || c.borrow_mut()),
+            Ok(None)
+        );
+        assert!(c.borrow().has_normals(2, 1, 0));
+        let bad = ServerMessage::NormalTile {
+            level: 9,
+            x: 0,
+            z: 0,
+            data: vec![1, 2, 3],
+        };
+        assert!(take_control(&bad, &mut scratch, || c.borrow_mut()).is_err());
+    }
 }

@@ -1,4 +1,4 @@
-//! The simulated network's links: one direction of a viewer's path ([`Link`]: delay,
+//! The simulated network's paths: one direction of a viewer's path ([`Direction`]: delay,
 //! jitter, loss, a bandwidth cap and its queue) and the packets on it ([`Wire`]: queued, on
 //! the way, awaiting retransmission), the control stream's in-order delivery
 //! ([`InOrder`]), and the seeded generator every random choice comes from
@@ -13,23 +13,23 @@ use super::OVERHEAD;
 
 /// One direction of a viewer's path.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Link {
+pub struct Direction {
     /// One-way delay.
     pub delay: Duration,
     /// Extra delay, uniform in `[0, jitter]`, per packet (packets overtake each other).
     pub jitter: Duration,
     /// Probability that a packet is lost.
     pub loss: f64,
-    /// The bandwidth: a packet leaves when the link is free. `None`: no limit.
+    /// The bandwidth: a packet leaves when the direction is free. `None`: no limit.
     pub rate_bytes_per_s: Option<u64>,
     /// The serialisation queue's limit, bytes: a packet that finds it fuller is dropped.
     pub queue_bytes: usize,
 }
 
-impl Default for Link {
+impl Default for Direction {
     /// 10 ms, no jitter, no loss, no bandwidth limit.
-    fn default() -> Link {
-        Link {
+    fn default() -> Direction {
+        Direction {
             delay: Duration::from_millis(10),
             jitter: Duration::ZERO,
             loss: 0.0,
@@ -39,47 +39,47 @@ impl Default for Link {
     }
 }
 
-impl Link {
-    /// A link with this delay, jitter and loss, and no bandwidth limit.
-    pub fn lossy(delay_ms: u64, jitter_ms: u64, loss: f64) -> Link {
-        Link {
+impl Direction {
+    /// A direction with this delay, jitter and loss, and no bandwidth limit.
+    pub fn lossy(delay_ms: u64, jitter_ms: u64, loss: f64) -> Direction {
+        Direction {
             delay: Duration::from_millis(delay_ms),
             jitter: Duration::from_millis(jitter_ms),
             loss,
-            ..Link::default()
+            ..Direction::default()
         }
     }
 
-    /// The same link at `bytes_per_s`.
-    pub fn with_rate(self, bytes_per_s: u64) -> Link {
-        Link {
+    /// The same direction at `bytes_per_s`.
+    pub fn with_rate(self, bytes_per_s: u64) -> Direction {
+        Direction {
             rate_bytes_per_s: Some(bytes_per_s),
             ..self
         }
     }
 }
 
-/// A viewer's path: the link to the server and the link back.
+/// A viewer's path: the direction to the server and the direction back.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct Path {
-    pub up: Link,
-    pub down: Link,
+    pub up: Direction,
+    pub down: Direction,
 }
 
 impl Path {
-    /// The same link both ways.
-    pub fn symmetric(link: Link) -> Path {
+    /// The same settings both ways.
+    pub fn symmetric(direction: Direction) -> Path {
         Path {
-            up: link,
-            down: link,
+            up: direction,
+            down: direction,
         }
     }
 }
 
-/// When a sender learns that a packet on `link` was lost and sends it again: 2 × the
+/// When a sender learns that a packet on `direction` was lost and sends it again: 2 × the
 /// one-way delay + 10 ms after it left.
-pub fn rto(link: &Link) -> Duration {
-    2 * link.delay + Duration::from_millis(10)
+pub fn rto(direction: &Direction) -> Duration {
+    2 * direction.delay + Duration::from_millis(10)
 }
 
 /// What a packet carries.
@@ -124,14 +124,14 @@ impl Payload {
     }
 }
 
-/// Packets through one direction of a link.
+/// Packets through one direction of a path.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct WireStats {
     /// Packets that left (retransmissions included).
     pub packets: u64,
     /// Bytes that left, headers included.
     pub bytes: u64,
-    /// Packets lost on the way (or to a cut link).
+    /// Packets lost on the way (or to a cut path).
     pub lost: u64,
     /// Packets dropped at a full queue.
     pub dropped: u64,
@@ -149,17 +149,17 @@ struct Flying {
 /// One direction of a viewer's path, with its packets queued, on the way and awaiting
 /// retransmission.
 pub(super) struct Wire {
-    pub(super) link: Link,
+    pub(super) direction: Direction,
     rng: SplitMix64,
     /// `(enqueued at, packet)`, first out first.
     queue: VecDeque<(Duration, Payload)>,
     queued_bytes: usize,
-    /// When the link has finished sending what left so far.
+    /// When the direction has finished sending what left so far.
     free_at: Duration,
     flying: Vec<Flying>,
     /// `(due, packet)`: lost packets to send again.
     retransmit: Vec<(Duration, Payload)>,
-    /// The link carries nothing before this time (`Duration::MAX`: never again).
+    /// The direction carries nothing before this time (`Duration::MAX`: never again).
     pub(super) down_until: Duration,
     order: u64,
     /// Streams the sender reset: nothing of theirs is sent again.
@@ -170,9 +170,9 @@ pub(super) struct Wire {
 }
 
 impl Wire {
-    pub(super) fn new(link: Link, seed: u64) -> Wire {
+    pub(super) fn new(direction: Direction, seed: u64) -> Wire {
         Wire {
-            link,
+            direction,
             rng: SplitMix64::new(seed),
             queue: VecDeque::new(),
             queued_bytes: 0,
@@ -200,14 +200,15 @@ impl Wire {
     fn repair(&mut self, at: Duration, payload: Payload) {
         let reset = payload.stream().is_some_and(|s| self.reset.contains(&s));
         if payload.reliable() && !self.closed && !reset {
-            self.retransmit.push((at + rto(&self.link), payload));
+            self.retransmit.push((at + rto(&self.direction), payload));
         }
     }
 
     /// Queues a packet at `now` (it leaves at the next [`Self::pump`]).
     pub(super) fn send(&mut self, now: Duration, payload: Payload) {
         let size = payload.size();
-        if self.link.rate_bytes_per_s.is_some() && self.queued_bytes + size > self.link.queue_bytes
+        if self.direction.rate_bytes_per_s.is_some()
+            && self.queued_bytes + size > self.direction.queue_bytes
         {
             self.stats.dropped += 1;
             self.repair(now, payload);
@@ -225,7 +226,7 @@ impl Wire {
         self.send(now, Payload::Control { seq: this, bytes });
     }
 
-    /// Retransmissions due by `now` are queued, and what the link can send by `now` leaves.
+    /// Retransmissions due by `now` are queued, and what the direction can send by `now` leaves.
     pub(super) fn pump(&mut self, now: Duration) {
         let mut due = Vec::new();
         self.retransmit.retain(|(at, p)| {
@@ -249,7 +250,7 @@ impl Wire {
             let (_, payload) = self.queue.pop_front().expect("front checked");
             let size = payload.size();
             self.queued_bytes -= size;
-            let busy = match self.link.rate_bytes_per_s {
+            let busy = match self.direction.rate_bytes_per_s {
                 Some(rate) => {
                     Duration::from_nanos((size as u64 * 1_000_000_000).div_ceil(rate.max(1)))
                 }
@@ -259,16 +260,17 @@ impl Wire {
             self.free_at = left;
             self.stats.packets += 1;
             self.stats.bytes += size as u64;
-            if self.is_down(left) || self.rng.chance(self.link.loss) {
+            if self.is_down(left) || self.rng.chance(self.direction.loss) {
                 self.lose(left, payload);
                 continue;
             }
-            let jitter =
-                Duration::from_nanos((self.rng.unit() * self.link.jitter.as_nanos() as f64) as u64);
+            let jitter = Duration::from_nanos(
+                (self.rng.unit() * self.direction.jitter.as_nanos() as f64) as u64,
+            );
             self.order += 1;
             self.flying.push(Flying {
                 left,
-                arrive: left + self.link.delay + jitter,
+                arrive: left + self.direction.delay + jitter,
                 order: self.order,
                 payload,
             });

@@ -1,0 +1,212 @@
+//! The reconnection supervisor ([`Supervisor`], shared by the native session and the
+//! page) driven with instants made up from one reading of the clock: the verdict on each
+//! kind of end, the backoff from 100 ms to 2 s and the deadline, a refusal, another
+//! terrain, and a server silent twice with no frame between. No network, no waiting.
+
+use std::time::{Duration, Instant};
+
+use roam_client::conversation::TerrainId;
+use roam_client::supervisor::{
+    Attempt, BACKOFF_FIRST, End, HANDSHAKE, HANDSHAKE_MANY, Patience, SILENCE, State, Supervisor,
+};
+use roam_protocol::messages::{VERSION, Welcome};
+use roam_protocol::tiles::ColorLayout;
+
+fn welcome(h_scale: f64) -> Welcome {
+    Welcome {
+        version: VERSION,
+        levels: 4,
+        h_scale,
+        v_scale: 1.0,
+        sun_dir: [0.0, 1.0, 0.0],
+        sun_color: [255; 3],
+        fog_density: 0.0,
+        fog_color: [0; 3],
+        water_level: None,
+        vehicle: 1,
+        color: ColorLayout {
+            cells: 16,
+            tile: 16,
+            levels: 1,
+            window: 1,
+        },
+        tick: 0,
+        ticket: None,
+        resumed: false,
+        max_budget: 65_536,
+        max_fps: 60,
+    }
+}
+
+fn terrain(h_scale: f64) -> TerrainId {
+    TerrainId::of(&welcome(h_scale), &[7; 16 * 16 * 3])
+}
+
+fn lost(why: &str) -> End {
+    End::Lost {
+        why: why.into(),
+        silent: false,
+    }
+}
+
+fn ms(n: u64) -> Duration {
+    Duration::from_millis(n)
+}
+
+/// Which ends end the session, in whose words, and which make the supervisor reconnect.
+#[test]
+fn a_quit_a_final_end_or_a_lone_shutdown_ends_the_session() {
+    let t0 = Instant::now();
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    assert_eq!(
+        s.ended(End::Quit, &"a", 0, false, 0, t0),
+        Err("quit".into())
+    );
+    let why = "the server is shutting down: bye".to_owned();
+    assert_eq!(
+        s.ended(End::Shutdown(why.clone()), &"a", 0, false, 0, t0),
+        Err(why.clone())
+    );
+    assert_eq!(
+        s.ended(End::Final("refused".into()), &"a", 0, true, 0, t0),
+        Err("refused".into())
+    );
+    assert_eq!(s.state(), State::Connected);
+    // With another address a shutdown is a loss: another edge takes the viewer.
+    assert_eq!(
+        s.ended(End::Shutdown(why.clone()), &"a", 0, true, 0, t0),
+        Ok(())
+    );
+    assert_eq!(s.state(), State::Reconnecting { why, attempts: 0 });
+}
+
+#[test]
+fn attempts_back_off_from_100_ms_to_2_s_until_the_time_is_up() {
+    let patience = Patience {
+        silence: SILENCE,
+        reconnect_for: Duration::from_secs(10),
+    };
+    let t0 = Instant::now();
+    let deadline = t0 + patience.reconnect_for;
+    let mut s = Supervisor::new(patience, terrain(1.0));
+    s.ended(lost("reset"), &"a:1", 0, false, 10, t0)
+        .expect("a loss reconnects");
+    let mut now = t0;
+    let mut pauses = Vec::new();
+    let (attempts, why) = loop {
+        let attempt = s.attempt(false);
+        // Fails rather than loops: 10 s of pauses capped at 2 s is fewer than 20 attempts.
+        assert!(
+            attempt.number < 20,
+            "still trying after {} attempts",
+            attempt.number
+        );
+        assert!(
+            now < deadline,
+            "attempt {} began after the deadline",
+            attempt.number
+        );
+        assert_eq!(attempt.handshake, HANDSHAKE);
+        assert_eq!(
+            s.state(),
+            State::Reconnecting {
+                why: "reset".into(),
+                attempts: attempt.number
+            }
+        );
+        // Each attempt takes 100 ms to fail.
+        now += ms(100);
+        match s.failed(&"a:1", true, "timed out", now) {
+            Ok(pause) => {
+                pauses.push(pause);
+                now += pause;
+            }
+            Err(why) => break (attempt.number, why),
+        }
+    };
+    assert!(now >= deadline);
+    assert_eq!(pauses, [100, 200, 400, 800, 1600, 2000, 2000, 2000].map(ms));
+    assert_eq!(
+        why,
+        format!(
+            "lost the server at a:1: reset; tried to reconnect for 10 s ({attempts} attempts; \
+             the last: a:1: timed out)"
+        )
+    );
+    // A pause never goes past the deadline.
+    let mut s = Supervisor::new(patience, terrain(1.0));
+    s.ended(lost("reset"), &"a:1", 0, false, 0, t0)
+        .expect("a loss");
+    s.attempt(false);
+    assert_eq!(s.failed(&"a:1", true, "x", deadline - ms(30)), Ok(ms(30)));
+    // With other addresses each handshake has a second.
+    let mut s = Supervisor::new(patience, terrain(1.0));
+    s.ended(lost("reset"), &"a:1", 0, true, 0, t0)
+        .expect("a loss");
+    assert_eq!(
+        s.attempt(true),
+        Attempt {
+            number: 1,
+            handshake: HANDSHAKE_MANY
+        }
+    );
+}
+
+#[test]
+fn a_refusal_or_another_terrain_ends_the_reconnection_and_the_same_terrain_ends_it_well() {
+    let t0 = Instant::now();
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    s.ended(lost("reset"), &"a:1", 0, false, 0, t0)
+        .expect("a loss");
+    s.attempt(false);
+    assert_eq!(
+        s.failed(&"a:1", false, "refused: wrong token", t0),
+        Err("lost the server at a:1: reset; reconnecting to a:1: refused: wrong token".into())
+    );
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    s.ended(lost("reset"), &"a:1", 0, false, 0, t0)
+        .expect("a loss");
+    s.attempt(false);
+    let err = s.joined(&terrain(2.0)).expect_err("another terrain");
+    assert!(
+        err.starts_with("lost the server at a:1: reset; the server changed its terrain: scales 2"),
+        "{err}"
+    );
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    s.ended(lost("reset"), &"a:1", 0, false, 0, t0)
+        .expect("a loss");
+    s.attempt(false);
+    assert_eq!(s.joined(&terrain(1.0)), Ok(()));
+    assert_eq!(s.state(), State::Connected);
+    // The next loss starts afresh: its first attempt is number 1, after no pause.
+    s.ended(lost("reset again"), &"a:1", 0, false, 0, t0)
+        .expect("a loss");
+    assert_eq!(s.attempt(false).number, 1);
+    assert_eq!(s.failed(&"a:1", true, "x", t0), Ok(BACKOFF_FIRST));
+}
+
+#[test]
+fn a_server_silent_twice_with_no_frame_between_ends_the_session() {
+    let t0 = Instant::now();
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    let silence = || End::silence(ms(1_000));
+    s.ended(silence(), &"a:1", 0, false, 5, t0).expect("once");
+    s.attempt(false);
+    s.joined(&terrain(1.0)).expect("the same terrain");
+    let err = s
+        .ended(silence(), &"a:1", 0, false, 5, t0)
+        .expect_err("twice");
+    assert_eq!(
+        err,
+        "lost the server at a:1: silent: no frame or message from the server for 1.0 s, again \
+         right after reconnecting, with no frame between: the server welcomes but sends nothing"
+    );
+    // A frame between: another chance.
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    s.ended(silence(), &"a:1", 0, false, 5, t0).expect("once");
+    s.ended(silence(), &"a:1", 0, false, 6, t0)
+        .expect("a frame came between");
+    // A loss that is not a silence is not counted.
+    s.ended(lost("reset"), &"a:1", 0, false, 6, t0)
+        .expect("not a silence");
+}
