@@ -2,42 +2,45 @@
 //! backticks is checked against the repository on every `cargo test`. Each rule fails
 //! listing every offender as `FILE:LINE: token: why`.
 //!
-//! - **Paths** (ARCHITECTURE.md): a token in backticks with a `/` whose last part has an
-//!   extension, ends in `/`, or starts at one of the repository's top-level entries, or a
-//!   bare file name ending in a source extension (`SOURCE_EXTENSIONS` in
-//!   `roam_tests::docs::markdown`), names a file or
-//!   directory that exists (a `*` in its last part matching at least one). It is tried
-//!   against, in turn: the repository's root; the directories the headings above it name
-//!   (a heading naming `tessellate/coherent/` or `roam-client` makes `eval.rs` or
-//!   `core.rs` below it mean a file there, a package's `src/` included); and every
-//!   package's directory and its `src/`, `tests/`, `benches/` and `examples/`. A path
-//!   with `..` is outside the repository and fails. Not checked: absolute paths (URL
-//!   paths, system files), a path with an upper-case placeholder part (`DIR/.cache/…`),
-//!   and the run-time and build outputs [`NOT_IN_THE_REPOSITORY`] names.
-//! - **Rust paths** (ARCHITECTURE.md): `a::b::c` in backticks (the start of the token,
-//!   up to a `(`) resolves. The first part is a workspace crate (`roam_server`, …),
-//!   `crate` (a crate the headings above name, else any), a module of the workspace
-//!   (any module of that name: `sim::world_core`), or a type (`Type::member`). Each
-//!   further part is a child module, an item the module defines (`struct`, `enum`,
-//!   `trait`, `type`, `union`, `fn`, `const`, `static`, `mod`, `macro_rules!`) or
-//!   re-exports (`pub use`, followed), or, after a type, a member of it (a method,
+//! - **Paths** (ARCHITECTURE.md): a code span that is a path (ASCII letters, digits and
+//!   `_.-/*`, not a URL) — one with a `/` whose last part has an extension, that ends in
+//!   `/` or starts with one of the repository's top-level entries, or a bare file name
+//!   with a source extension (`SOURCE_EXTENSIONS` in `roam_tests::docs::markdown`) —
+//!   names a file or directory that exists (a `*` in its last part matching at least
+//!   one). It is tried against, in turn: the repository's root; the directories the
+//!   headings above it name (under a heading naming `tessellate/coherent/` or
+//!   `roam-client`, `eval.rs` or `core.rs` means a file there, a package's `src/`
+//!   included); every package's directory and its `src/`, `tests/`, `benches/` and
+//!   `examples/`. A path with `..` is outside the repository: it fails. Not checked:
+//!   absolute paths (URL paths, system files), a path with an upper-case placeholder
+//!   part (`DIR/.cache/…`), and the run-time and build outputs [`NOT_IN_THE_REPOSITORY`]
+//!   names.
+//! - **Rust paths** (ARCHITECTURE.md): `a::b::c` in backticks (the span, or its start up
+//!   to a `(`) resolves. Its first part is a workspace crate (`roam_server`, …), `crate`
+//!   (the crates the headings above name, else any), a module of the workspace (any
+//!   module of that name: `sim::world_core`), or a type (`Type::member`). Each further
+//!   part is a child module, an item the module defines (`struct`, `enum`, `trait`,
+//!   `type`, `union`, `fn`, `const`, `static`, `mod`, `macro_rules!`) or re-exports (`pub
+//!   use`, `pub(crate) use`, followed), or, after a type, a member of it (a method,
 //!   constant, field or variant in a file that defines or implements the type). A first
-//!   part that is none of these (`std`, `tokio`) is another crate's path: not checked.
+//!   part that is none of these (`std`, `tokio`) starts another crate's path: not checked.
 //! - **Type names** (ARCHITECTURE.md): a single CamelCase identifier in backticks
 //!   (`ViewerCore`) is a type, trait or enum variant defined in the workspace's sources,
 //!   or one [`ELSEWHERE`] names with where it comes from (else write it with its path:
 //!   `wgpu::TextureView`).
 //! - **Commands** (README.md, ARCHITECTURE.md, `docs/*.md`): every line of a ```` ```sh ````
-//!   block and every code span that is a command — starting with a workspace binary
-//!   (`roam-server`, `roam-client`, …, or `target/PROFILE/roam-…`), `cargo run|test|
-//!   bench|build …`, or `scripts/…` — parses: a binary's subcommand exists and every
-//!   `--flag` appears among the options its `--help` lists for that subcommand; `cargo`'s
-//!   `-p` names a package, and `--bin`, `--test` and `--bench` its targets; a script
+//!   block and every code span that is a command — a workspace binary (`roam-server`,
+//!   `roam-client`, …, or `target/PROFILE/roam-…`), `cargo …`, or a script under
+//!   `scripts/` (no extension, or `.sh`), after any `NAME=value` — parses: a binary's
+//!   subcommand exists and every `--flag` is among the options its `--help` lists for that
+//!   subcommand (for a binary whose `--help` lists none, among the flags its answer
+//!   mentions); `cargo`'s `-p` names a package, its `--bin`, `--test` and `--bench` that
+//!   package's targets, and `cargo run`'s arguments after `--` are its binary's; a script
 //!   exists and is executable; an argument naming a path under one of the repository's
 //!   top-level directories (`data/kossou`) exists. Placeholders (`[--hold S]`, `…`) are
-//!   words like any other: flags inside brackets are checked too. The binaries are the
-//!   ones beside this test (`target/debug/`), built first with cargo when missing or
-//!   older than their package's sources.
+//!   words like any other: flags in brackets are checked too. The binaries are those
+//!   beside this test (`target/PROFILE/`), built first by cargo when missing or older
+//!   than their package's sources.
 
 use std::collections::BTreeSet;
 
@@ -478,6 +481,8 @@ roam-server not-a-command --nope
             )]
         );
         assert_eq!(commands("the roam-server binary", &bins), []);
+        assert_eq!(commands("scripts/capacity-drive.txt", &bins), []);
+        assert_eq!(commands("scripts/", &bins), []);
         assert_eq!(
             flags(&words(&[
                 "serve",

@@ -235,8 +235,10 @@ impl Code {
         }
         let files: BTreeMap<PathBuf, String> = paths
             .into_iter()
-            .map(|p| (read(&p), p))
-            .map(|(t, p)| (p, t))
+            .map(|p| {
+                let text = read(&p);
+                (p, text)
+            })
             .collect();
         let mut types = BTreeSet::new();
         for text in files.values() {
@@ -359,8 +361,11 @@ impl Code {
                     || t.lines().any(|l| {
                         let l = l.trim_start();
                         let l = l.strip_prefix("pub ").unwrap_or(l);
+                        // A field (`m: T`) or a variant (`M`, `M(T)`, `M { … }`, `M = 1`).
                         l.strip_prefix(m).is_some_and(|rest| {
-                            rest.is_empty() || rest.starts_with([':', ',', '(', '{', ' '])
+                            rest.is_empty()
+                                || rest.starts_with([':', ',', '(', '{'])
+                                || [" {", " (", " ="].iter().any(|p| rest.starts_with(p))
                         })
                     })
             })
@@ -397,6 +402,7 @@ impl Code {
             return match rest {
                 [] => true,
                 [m] => self.member(first, m),
+                // Past an inline module: taken as it stands.
                 _ => declares(text, "mod", first),
             };
         }
@@ -418,10 +424,8 @@ impl Code {
         if matches!(first, "crate" | "self" | "super") || self.child(file, first).is_some() {
             return self.resolve_in(file, parts, depth);
         }
-        match self.crate_root(first) {
-            Some(r) => self.resolve_in(&r, &parts[1..], depth),
-            None => !self.files[file].contains(&format!("mod {first}")),
-        }
+        self.crate_root(first)
+            .is_none_or(|r| self.resolve_in(&r, &parts[1..], depth))
     }
 
     /// Why `parts` (written under headings naming `crates`) does not resolve, if it does

@@ -217,8 +217,9 @@ pub enum Cmd {
 }
 
 /// The commands in one line of shell (split at `&&`, `||`, `;` and `|` outside
-/// brackets; `NAME=value` and `sudo` before a command dropped; redirections ended);
-/// `binaries` are the workspace's.
+/// brackets; `NAME=value` and `sudo` before a command dropped; redirections ended): a
+/// workspace binary (one of `binaries`, or `target/PROFILE/` and its name), `cargo`, or a
+/// script under `scripts/` (no extension, or `.sh`). Anything else is not ours to check.
 pub fn commands(line: &str, binaries: &BTreeSet<String>) -> Vec<Cmd> {
     let mut pieces = vec![Vec::new()];
     let mut depth = 0i32;
@@ -252,8 +253,12 @@ pub fn commands(line: &str, binaries: &BTreeSet<String>) -> Vec<Cmd> {
             if let Some((sub, rest)) = args.split_first() {
                 out.push(Cmd::Cargo(sub.clone(), rest.to_vec()));
             }
-        } else if head.starts_with("scripts/") && !head.ends_with('/') {
-            out.push(Cmd::Script(head.to_owned(), args));
+        } else if let Some(name) = head.strip_prefix("scripts/") {
+            // A script has no extension or a shell's; `scripts/capacity-drive.txt` is data.
+            let ext = name.rsplit_once('.').map(|(_, e)| e);
+            if !name.is_empty() && !name.ends_with('/') && ext.is_none_or(|e| e == "sh") {
+                out.push(Cmd::Script(head.to_owned(), args));
+            }
         }
     }
     out
