@@ -9,6 +9,7 @@ pub mod identity;
 pub mod import;
 pub mod net;
 pub mod progress;
+pub mod served;
 pub mod sim;
 pub mod tess;
 pub mod token;

@@ -56,10 +56,10 @@ use roam_protocol::ColorLayout;
 use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
 use tokio::sync::oneshot;
 
-use super::Shared;
 use super::control::{WORLD_RESTARTED, stream_color, tell_news, write_color};
-use super::handshake::{Joined, MAX_CONTROL, Seat};
 use super::link::{Conn, DatagramError, RecvStream, SendStream};
+use super::seat::{Joined, MAX_CONTROL, Seat, role_name};
+use super::shared::Shared;
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
 use crate::viewer::color::ColorScheduler;
@@ -74,6 +74,10 @@ const REPEAT_AFTER: Duration = Duration::from_millis(4);
 /// loaded 2-core machine (the page saw the connection lost, not the refusal, in one run
 /// of the whole test suite).
 const LAST_WORD_WAIT: Duration = Duration::from_secs(2);
+
+/// How long a shutdown waits for browsers to close their sessions after the goodbye (the
+/// endpoint waits a little longer, for the viewer tasks' own closes).
+pub(super) const WEB_CLOSE_WAIT: Duration = Duration::from_secs(1);
 
 /// Sends a last message (a refusal, a goodbye) and gives it up to [`LAST_WORD_WAIT`] to
 /// arrive before the connection closes (closing drops what is unsent).
@@ -259,7 +263,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
             if conn.via() == super::link::Via::Web {
                 // A browser closes its session on the goodbye; closed from here first, a
                 // busy page may see only "connection lost" (and try to reconnect).
-                let _ = tokio::time::timeout(super::WEB_CLOSE_WAIT, conn.closed()).await;
+                let _ = tokio::time::timeout(WEB_CLOSE_WAIT, conn.closed()).await;
             }
             conn.close(close::SHUTDOWN, b"the server is shutting down");
             "the server is shutting down".into()
@@ -276,7 +280,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     tracing::info!(
         %peer,
         via = conn.via().name(),
-        role = super::handshake::role_name(&hello.role),
+        role = role_name(&hello.role),
         vehicle,
         reason = %why,
         held,
