@@ -1,15 +1,31 @@
-//! The network shell: the only module that touches QUIC (quinn), an async runtime (tokio) or
-//! a clock for pacing. It turns traffic into the world thread's closed set of events
-//! ([`crate::sim::world_core::Event`]), and snapshots of the world into frames for each viewer.
+//! The network shell: in the library, the only module that touches QUIC (quinn),
+//! WebTransport, NATS, an async runtime (tokio) or a clock for pacing. (The binary's
+//! command line runs it on a tokio runtime, and two of its commands speak to servers
+//! themselves: `cli/color_bench.rs` is a QUIC viewer of a server it starts in process,
+//! `cli/bus_load.rs` stands in for a world's edges on NATS.) It turns traffic into the
+//! world thread's closed set of events ([`crate::sim::world_core::Event`]), and snapshots
+//! of the world into frames for each viewer.
 //!
 //! ```text
-//! viewer ──hello/acks/budget (control stream)──► viewer task ──frames (a uni stream each)──► viewer
-//!        ──key datagrams──────────────────────► world thread (100 Hz) ──snapshot (latest)──┘
+//! viewer ──hello/acks/budget (control stream)──► viewer task ──frames──► viewer
+//!        ──key datagrams──► viewer task ──► world thread (100 Hz) ──snapshot (latest)──┘
 //! ```
+//!
+//! A change frame goes as one datagram when it fits (almost every frame), a larger one and
+//! every key frame on a uni stream of its own; the welcome, the colour tiles and the news
+//! go on the control stream, below every frame ([`viewer`]).
 //!
 //! With [`Options::web`], browsers come too: the page over HTTPS and WebTransport sessions
 //! on a second endpoint ([`web`]), admitted and served by the same code as native viewers
 //! ([`link`] hides which), in the same world, under the same limits.
+//!
+//! The files, each referring only to those before it: `link`, `stats`, `color_budget`,
+//! `makers`, `world_loop` (the world thread), `tickets` and `serve_error`; `bus/mod.rs` and
+//! `bus/edge.rs` (NATS, and an edge's way to its world); `replay`; `bus/world.rs` (the
+//! world served over NATS) and `shared` ([`Shared`], what every connection task shares);
+//! `seat` and `control`; `viewer` (a viewer after its hello); `handshake` (a connection up
+//! to its hello); `web` (the browser viewer's endpoints); `server` ([`Server`] and its
+//! [`Options`]). This file only declares them and re-exports.
 
 pub mod bus;
 pub mod color_budget;

@@ -336,14 +336,10 @@ impl Workspace {
     pub fn edges(&self) -> BTreeSet<Edge> {
         let mut out = BTreeSet::new();
         for (m, u) in &self.pending {
-            // An inline path counts from the crate, a module or a library: one from a name a
-            // `use` binds is that `use`'s reference, already counted.
-            let first = u.segs[0].as_str();
-            if u.inline
-                && !matches!(first, "crate" | "super" | "self")
-                && !self.modules[*m].children.contains_key(first)
-                && !self.libs.contains_key(first)
-            {
+            // An inline path counts from a module (the crate, a module a `use` names, a
+            // library): one from an item a `use` binds is that `use`'s reference, already
+            // counted; one from a local name is none.
+            if u.inline && !matches!(self.first(*m, &u.segs[0], 0), Some(Res::Module(_))) {
                 continue;
             }
             let Some(res) = self.resolve(*m, &u.segs, 0) else {
