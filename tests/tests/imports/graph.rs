@@ -286,19 +286,18 @@ impl Workspace {
             return Some(Res::Item(m));
         }
         for u in &module.uses {
-            if u.name.as_deref() == Some(name) {
-                if let Some(r) = self.resolve(m, &u.segs, guard + 1) {
-                    return Some(r);
-                }
+            if u.name.as_deref() == Some(name)
+                && let Some(r) = self.resolve(m, &u.segs, guard + 1)
+            {
+                return Some(r);
             }
         }
         for u in module.uses.iter().filter(|u| u.name.is_none() && !u.inline) {
-            if let Some(Res::Module(g)) = self.resolve(m, &u.segs, guard + 1) {
-                if g != m {
-                    if let Some(r) = self.lookup(g, name, guard + 1) {
-                        return Some(r);
-                    }
-                }
+            if let Some(Res::Module(g)) = self.resolve(m, &u.segs, guard + 1)
+                && g != m
+                && let Some(r) = self.lookup(g, name, guard + 1)
+            {
+                return Some(r);
             }
         }
         None
