@@ -31,8 +31,8 @@ pub struct Shared {
     pub pyramid: Arc<ColorPyramid>,
     /// The normals' tiles, in the same layout ([`crate::terrain::normal_pyramid`]).
     pub normals: Arc<NormalPyramid>,
-    /// The colour budget every viewer shares ([`Options::color_rate`] and
-    /// [`Options::color_total`]), and [`Options::color_window`].
+    /// The colour budget every viewer shares ([`super::Options::color_rate`] and
+    /// [`super::Options::color_total`]), and [`super::Options::color_window`].
     pub color: color_budget::ColorBudget,
     pub color_window: u8,
     /// The world thread's one inbox: joins, leaves and key states.
@@ -47,9 +47,9 @@ pub struct Shared {
     /// Drivers' tickets: the vehicle each names (on an edge, the world's tickets of the
     /// drivers this edge serves).
     pub(super) tickets: Mutex<HashMap<Ticket, Claim>>,
-    /// The world, when it is elsewhere ([`Options::remote`]).
+    /// The world, when it is elsewhere ([`super::Options::remote`]).
     pub(super) remote: Option<Arc<bus::edge::Remote>>,
-    /// The recording served instead of a world ([`Options::replay`]).
+    /// The recording served instead of a world ([`super::Options::replay`]).
     pub(super) replay: Option<Arc<replay::ReplayShared>>,
     /// Blocking frame makers at once: one fewer than the cores (at least one), so the
     /// world thread always finds a core.
@@ -59,7 +59,7 @@ pub struct Shared {
     /// the serving path, at most one per blocking frame maker).
     pub(super) scratch: crate::tessellate::Scratch,
     /// Evicted connections being finished only to be closed with their reason, at most
-    /// [`Options::max_pending`] at once (past that, one is dropped unfinished): the cap
+    /// [`super::Options::max_pending`] at once (past that, one is dropped unfinished): the cap
     /// bounds the handshakes in flight at twice itself, whatever the rate of arrivals.
     pub(super) unfinished: Arc<tokio::sync::Semaphore>,
     pub(super) stats: Arc<ServeStats>,
