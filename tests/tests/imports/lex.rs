@@ -71,8 +71,9 @@ pub fn lex(text: &str) -> Vec<Token> {
             });
         } else if ch == '\'' {
             if at(i + 1) == '\\' {
-                // An escaped character: up to the closing quote.
-                i += 2;
+                // An escaped character (`'\''`, `'\u{e9}'`): past the escape, up to the
+                // closing quote.
+                i += 3;
                 while i < c.len() && c[i] != '\'' {
                     i += 1;
                 }
