@@ -2,12 +2,19 @@
 //! and the server's layers refer only downwards.
 //!
 //! Every crate of the workspace (each package's library, binaries, tests, benchmarks,
-//! examples and build script) is walked from its root through its `mod` declarations, and
-//! every reference from one file to another is an edge: a `use` (`crate::`, `super::`,
-//! `self::`, a child module's name, another workspace crate's name), a `pub use`
-//! re-export, a glob, and an inline path such as `crate::a::b::f()`. A path is resolved
-//! through re-exports to the file that defines its item or module. Comments (doc links
-//! among them) are not references.
+//! examples and build script) is walked from its root through its `mod` declarations
+//! (`#[path]` ones too; every `.rs` file must be reached), and every reference from one
+//! file to another is an edge, with its line: a `use` (`crate::`, `super::`, `self::`, a
+//! child module's name, another workspace crate's name), a `pub use` re-export, a glob
+//! (to the module's file), an inline path such as `crate::a::b::f()` or `wire::read()`
+//! through a module a `use` names, and a path in an attribute's string
+//! (`deserialize_with = "crate::a::f"`). A path is resolved through re-exports to the
+//! file that defines its item or module. Comments (doc links among them) are not
+//! references; what a macro expands to is not seen (the paths written in its definition
+//! are).
+//!
+//! The detector is `imports/lex.rs` (tokens) and `imports/graph.rs` (module trees, paths
+//! resolved, circles); the tests at the end of this file check it on files in memory.
 //!
 //! A module's file and its children are not a circle: the parent's `mod` declarations and
 //! its `pub use` re-exports of what its descendants define are not edges. Anything else
@@ -114,8 +121,8 @@ fn workspace() -> (Workspace, BTreeMap<PathBuf, String>) {
         walk(Path::new(pkg), &mut files);
     }
     let mut ws = Workspace::default();
-    // Libraries first, so the others' references to them resolve... (resolution happens
-    // after every crate is read, so the order only matters for the map of names).
+    // The libraries, by their crate names, then every other crate root (references are
+    // resolved once all are read).
     for pkg in PACKAGES {
         let lib = Path::new(pkg).join("src/lib.rs");
         if files.contains_key(&lib) {
