@@ -1,7 +1,7 @@
-//! A running server: its [`Options`] and defaults, [`Server::start`] (the checks on the
-//! data set, the QUIC endpoint, the world thread or its replay or remote stand-in, the
-//! browser viewer's endpoint) and [`Server::shutdown`], the accept loop and the summary
-//! logged every minute.
+//! A running server: its [`Options`] and their defaults, [`Server::start`] (the checks on
+//! the data set, the QUIC endpoint, the world thread, a replay or the remote world in its
+//! place, the browser viewer's endpoints) and [`Server::shutdown`], the accept loop, and
+//! the summary logged every [`Options::summary_every`].
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
