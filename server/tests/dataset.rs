@@ -76,7 +76,7 @@ fn write_set(dir: &Path, map: Option<&str>, hf: Option<&[u8]>, color: Option<&[u
     }
 }
 
-fn load(dir: &Path) -> Result<Terrain, dataset::DataError> {
+fn load(dir: &Path) -> Result<Terrain, roam_server::DataError> {
     dataset::load(dir, &mut |_, _| {})
 }
 

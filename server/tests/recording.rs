@@ -12,7 +12,8 @@ use std::sync::Arc;
 use roam_protocol::script::{self, Script};
 use roam_server::Terrain;
 use roam_server::sim::physics::Keys;
-use roam_server::sim::recording::{self, Event, FormatError, RecordedWorld};
+use roam_server::sim::recorder::{RecordedWorld, Recorder};
+use roam_server::sim::recording::{self, Event, FormatError};
 use roam_server::sim::replay::{self, ReplayError};
 use roam_server::sim::world::{self, Digest, Extra, Inputs, World};
 use roam_server::terrain::dataset;
@@ -352,7 +353,7 @@ fn a_corrupt_record_is_reported_at_its_offset() {
 fn with_records(
     terrain: &Arc<Terrain>,
     header: impl FnOnce(&mut recording::Header),
-    write: impl FnOnce(&mut recording::Recorder<Vec<u8>>),
+    write: impl FnOnce(&mut Recorder<Vec<u8>>),
 ) -> Vec<u8> {
     let mut h = recording::Header {
         data_hash: terrain.content_hash(),
@@ -362,7 +363,7 @@ fn with_records(
         vehicles: vec![(0, world::start_state(terrain, 0))],
     };
     header(&mut h);
-    let mut rec = recording::Recorder::new(Vec::new(), &h).expect("memory");
+    let mut rec = Recorder::new(Vec::new(), &h).expect("memory");
     write(&mut rec);
     rec.finish(0, &Digest([0; 32]))
         .map(|mut b| {

@@ -3,10 +3,10 @@
 mod tess;
 
 use proptest::prelude::*;
+use roam_protocol::bintree::Triangle;
 use roam_protocol::validate::check_mesh;
 use roam_server::Heightfield;
 use roam_server::terrain::variance::{VarianceTree, triangle_error};
-use roam_server::tessellate::diamond::Triangle;
 use roam_server::tessellate::{Coherent, Limits, Mesh, Scratch, Tessellator, measured_error};
 use tess::{camera, check_frustum, run, scales, terrain};
 

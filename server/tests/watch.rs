@@ -8,7 +8,8 @@ use std::sync::Arc;
 
 use roam_server::Terrain;
 use roam_server::sim::physics::Keys;
-use roam_server::sim::recording::{self, RecordedWorld};
+use roam_server::sim::recorder::RecordedWorld;
+use roam_server::sim::recording;
 use roam_server::sim::replay::{self, ReplayError};
 use roam_server::sim::watch::{self, Control, OpenError, Stop, Watch};
 use roam_server::sim::world::{self, Inputs, Vehicle, World};

@@ -229,7 +229,7 @@ async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
 async fn the_page_watches_a_recording() {
     let _turn = ONE_AT_A_TIME.lock().await;
     use roam_server::sim::physics::Keys;
-    use roam_server::sim::recording::RecordedWorld;
+    use roam_server::sim::recorder::RecordedWorld;
     use roam_server::sim::world::{self, Inputs, World};
     let terrain = fixtures::kossou();
     let mut w = World::new(terrain.clone());

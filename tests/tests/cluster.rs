@@ -631,7 +631,7 @@ async fn a_world_serving_a_recording_is_watched_through_its_edge() {
     use roam_client::session::{KeySource, Session, Taken};
     use roam_protocol::messages::ReplayControl;
     use roam_server::sim::physics::Keys;
-    use roam_server::sim::recording::RecordedWorld;
+    use roam_server::sim::recorder::RecordedWorld;
     use roam_server::sim::world::{self, Inputs, Vehicle, World};
     let _turn = ONE_AT_A_TIME.lock().await;
     let nats = Nats::start();

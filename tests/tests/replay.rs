@@ -12,7 +12,7 @@ use roam_server::Terrain;
 use roam_server::net::Options;
 use roam_server::net::replay::Replaying;
 use roam_server::sim::physics::Keys;
-use roam_server::sim::recording::RecordedWorld;
+use roam_server::sim::recorder::RecordedWorld;
 use roam_server::sim::watch;
 use roam_server::sim::world::{self, Inputs, Vehicle, World};
 use roam_tests::fixtures::{self, frame, status_when};

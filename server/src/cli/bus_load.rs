@@ -34,7 +34,7 @@
 //! - The world's data hash is learnt from the world's answer to a first hello (the world
 //!   answers any hello with its hash, and takes an edge's vehicles only from a hello with
 //!   the right one); `--data DIR` instead computes it as `serve`, `world` and `edge` do
-//!   (`super::net::data_hash`) and refuses a world whose hash differs.
+//!   (`super::served::data_hash`) and refuses a world whose hash differs.
 //! - `--cpu-pid NAME=PID` reads `/proc/PID/stat` (utime + stime, the process's every
 //!   thread) at the window's two ends here, so the CPU time and the ticks seen (the
 //!   snapshots' `tick` field) cover the same window exactly; `scripts/cluster.sh` reads
@@ -392,8 +392,12 @@ pub fn bus_load(args: BusLoadArgs) -> Result<()> {
     let subjects = Subjects::of(&args.bus.world).context("--world")?;
     let expected = match &args.data {
         Some(dir) => {
-            let served = super::net::open_served(dir)?;
-            Some(super::net::data_hash(dir, &served.terrain, &served.report)?)
+            let served = super::served::open_served(dir)?;
+            Some(super::served::data_hash(
+                dir,
+                &served.terrain,
+                &served.report,
+            )?)
         }
         None => None,
     };

@@ -9,12 +9,11 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use clap::Args;
 use roam_server::net::bus::BusOptions;
-use roam_server::net::bus::edge::Remote;
 use roam_server::net::bus::world::{WorldOptions, WorldServer};
 use roam_server::net::{self};
 use roam_server::sim::session::{self, RecordOptions};
 
-use super::net::ServeArgs;
+use super::net::{Edge, ServeArgs};
 
 /// Which world, on which NATS.
 #[derive(Args, Clone)]
@@ -100,28 +99,6 @@ pub struct EdgeArgs {
     pub advertise: Option<String>,
 }
 
-/// An edge's way to its world, for [`super::net::serve_on`].
-pub struct Edge {
-    bus: BusOptions,
-    wait: Duration,
-    /// The host its viewers reach it at, if given.
-    pub advertise: Option<String>,
-}
-
-impl Edge {
-    /// Reaches the world and checks it serves this data set (`hash`).
-    pub async fn reach(&self, args: &ServeArgs, hash: [u8; 32]) -> Result<Arc<Remote>> {
-        let dir = args.dir.display().to_string();
-        // The addresses follow once the edge listens (its ports may be chosen then).
-        let remote = Remote::connect(&self.bus, hash, &dir, Vec::new(), self.wait).await?;
-        tracing::info!(
-            world = remote.world(),
-            "the world answered: the same data set"
-        );
-        Ok(remote)
-    }
-}
-
 pub fn edge(args: EdgeArgs) -> Result<()> {
     anyhow::ensure!(
         args.serve.record_dir.is_none(),
@@ -159,12 +136,12 @@ pub fn world(args: WorldArgs) -> Result<()> {
         args.max_vehicles >= 1,
         "--max-vehicles: expected at least 1"
     );
-    let served = super::net::open_served(&args.dir)?;
-    let hash = super::net::data_hash(&args.dir, &served.terrain, &served.report)?;
+    let served = super::served::open_served(&args.dir)?;
+    let hash = super::served::data_hash(&args.dir, &served.terrain, &served.report)?;
     let terrain = Arc::new(served.terrain);
     // A replay records nothing.
     let replay = match &args.replay {
-        Some(file) => Some(super::net::open_replay(
+        Some(file) => Some(super::served::open_replay(
             file,
             (&None, args.follow),
             &terrain,
@@ -173,7 +150,7 @@ pub fn world(args: WorldArgs) -> Result<()> {
         None => None,
     };
     let recording = match replay {
-        None => Some(super::net::record_files(
+        None => Some(super::served::record_files(
             &args.state_dir,
             args.record_dir.as_deref(),
         )?),

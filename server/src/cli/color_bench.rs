@@ -1,5 +1,5 @@
 //! `color-bench DIR`: what starting a server and streaming the colour by view cost, as one
-//! JSON line. Opens the data set as `serve` does ([`super::net::open_served`]: heights,
+//! JSON line. Opens the data set as `serve` does ([`super::served::open_served`]: heights,
 //! variance tree and colour tiles mapped from the cache, or built and cached), serves it in
 //! process on loopback, reports the start to listening time and the whole process's peak
 //! RSS, joins as a driver speaking the protocol directly, and measures:
@@ -57,7 +57,7 @@ pub struct ColorBenchArgs {
 pub fn color_bench(args: ColorBenchArgs) -> Result<()> {
     // Opened as `serve` opens it: the cached heights, variance tree and colour tiles.
     let started = Instant::now();
-    let cached = super::net::open_served(&args.dir)?;
+    let cached = super::served::open_served(&args.dir)?;
     let open_s = started.elapsed().as_secs_f64();
     let (terrain, vt, pyramid, normals) = (
         cached.terrain,

@@ -19,16 +19,14 @@ use std::net::{IpAddr, SocketAddr};
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
+use super::served::{Served, data_hash, open_replay, open_served, record_files};
 use anyhow::{Context, Result};
 use clap::Args;
 use roam_link::tls;
+use roam_server::net::bus::BusOptions;
+use roam_server::net::bus::edge::Remote;
 use roam_server::net::{self, Options, Server};
-use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
-use roam_server::terrain::color_pyramid::{CacheOutcome, ColorPyramid};
-use roam_server::terrain::dataset::{HashSource, Terrain};
-use roam_server::terrain::normal_pyramid::NormalPyramid;
-use roam_server::terrain::variance::VarianceTree;
 use roam_server::viewer::ViewerLimits;
 use roam_server::viewer::admission::viewer_bytes;
 use roam_server::web::{Page, cert};
@@ -253,146 +251,6 @@ impl ServeArgs {
     }
 }
 
-/// The recording directory (`record_dir`, else `recordings` in `state_dir`), made if
-/// absent, and its files.
-pub fn record_files(state_dir: &Path, record_dir: Option<&Path>) -> Result<(PathBuf, RecordDir)> {
-    let dir = record_dir.map_or_else(|| state_dir.join("recordings"), Path::to_owned);
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let files = RecordDir::new(&dir, net::world_loop::unix_seconds);
-    Ok((dir, files))
-}
-
-/// The data set's content hash: the recordings name the data set by it (colour included,
-/// as `replay`, which loads it whole, computes it), and a world and its edges check they
-/// serve the same one. Cached in `.cache/content.hash`, so a warm start reads neither
-/// `hf.pgm` nor `color.ppm`.
-pub fn data_hash(
-    dir: &Path,
-    terrain: &Terrain,
-    report: &roam_server::terrain::cache::CacheReport,
-) -> Result<[u8; 32]> {
-    let started = std::time::Instant::now();
-    let mut p = super::progress::Progress::new("hashing");
-    let (hash, source) = roam_server::terrain::dataset::content_hash_cached(
-        dir,
-        terrain,
-        report,
-        &mut p.callback(),
-    )?;
-    let ms = started.elapsed().as_secs_f64() * 1e3;
-    match source {
-        HashSource::Cached => tracing::info!("data set hash cached in {ms:.0} ms"),
-        HashSource::Computed(why) => {
-            tracing::info!("data set hash computed in {ms:.0} ms ({why})")
-        }
-    }
-    Ok(hash)
-}
-
-/// A data set opened for serving: heights and variance tree mapped from its cache, the
-/// colour and normal tiles mapped from theirs (each built on first use, with progress
-/// bars).
-pub struct Served {
-    pub terrain: Terrain,
-    pub variance: VarianceTree,
-    pub pyramid: ColorPyramid,
-    pub normals: NormalPyramid,
-    /// What the cache did (its `heights_hash` keys the data set's cached hash).
-    pub report: roam_server::terrain::cache::CacheReport,
-}
-
-/// Opens `dir` as `serve` does: refused if it is too large to serve before anything but
-/// its headers is read; `color.ppm`'s pixels are read only to build the tile cache.
-pub fn open_served(dir: &Path) -> Result<Served> {
-    // The cache files re-hashed whole since they last changed are trusted (`check`
-    // re-hashes everything).
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    let started = std::time::Instant::now();
-    let (terrain, variance, report) = {
-        let mut p = super::progress::Staged::default();
-        roam_server::terrain::dataset::open_cached_with(
-            dir,
-            threads,
-            roam_server::terrain::cache::Verify::Stamps,
-            &mut p.callback(),
-        )?
-    };
-    let ms = started.elapsed().as_secs_f64() * 1e3;
-    for note in &report.notes {
-        tracing::warn!("{note}");
-    }
-    tracing::info!(
-        "opened {} in {ms:.0} ms (heights {:?}, variance tree {:?})",
-        dir.display(),
-        report.heights,
-        report.variance
-    );
-    net::check_servable(&terrain).with_context(|| dir.display().to_string())?;
-    let mut p = super::progress::Progress::new("colour tiles");
-    let cells = terrain.heights.size();
-    let (pyramid, outcome) = ColorPyramid::open_or_load(
-        dir,
-        cells,
-        roam_protocol::tiles::DEFAULT_TILE,
-        threads,
-        || {
-            let mut p = super::progress::Progress::new("colour");
-            roam_server::terrain::dataset::load_color(dir, cells, &mut p.callback())
-                .map(std::borrow::Cow::Owned)
-        },
-        &mut p.callback(),
-    )
-    .with_context(|| dir.display().to_string())?;
-    drop(p);
-    match outcome {
-        CacheOutcome::Mapped => {}
-        CacheOutcome::Built => tracing::info!("colour tiles cached"),
-        CacheOutcome::Rebuilt(why) => tracing::warn!("colour tile cache rebuilt: {why}"),
-        CacheOutcome::InMemory(why) => {
-            tracing::warn!("colour tiles kept in memory, not cached: {why}")
-        }
-    }
-    tracing::info!(
-        levels = pyramid.levels(),
-        kbytes = pyramid.coded_bytes() / 1000,
-        mapped = pyramid.is_mapped(),
-        "colour pyramid"
-    );
-    let mut p = super::progress::Progress::new("normal tiles");
-    let (normals, outcome) = NormalPyramid::open_or_build(
-        dir,
-        &terrain.heights,
-        (terrain.map.h_scale, terrain.map.v_scale),
-        &report.heights_hash,
-        roam_protocol::tiles::DEFAULT_TILE,
-        threads,
-        &mut p.callback(),
-    )
-    .with_context(|| dir.display().to_string())?;
-    drop(p);
-    match outcome {
-        CacheOutcome::Mapped => {}
-        CacheOutcome::Built => tracing::info!("normal tiles cached"),
-        CacheOutcome::Rebuilt(why) => tracing::warn!("normal tile cache rebuilt: {why}"),
-        CacheOutcome::InMemory(why) => {
-            tracing::warn!("normal tiles kept in memory, not cached: {why}")
-        }
-    }
-    tracing::info!(
-        levels = normals.levels(),
-        kbytes = normals.coded_bytes() / 1000,
-        mapped = normals.is_mapped(),
-        "normal pyramid"
-    );
-    Ok(Served {
-        terrain,
-        variance,
-        pyramid,
-        normals,
-        report,
-    })
-}
-
 /// The browser viewer's options for `--web ADDR`, `--web-cert` and `--web-key`, and the
 /// host its page's address names.
 fn web_options(args: &ServeArgs, listen: SocketAddr) -> Result<(net::web::WebOptions, String)> {
@@ -540,39 +398,35 @@ fn keep_large_blocks_mapped() {
 #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
 fn keep_large_blocks_mapped() {}
 
-/// Opens `file` to serve it (`serve --replay`), logging how far it is valid.
-pub fn open_replay(
-    file: &Path,
-    (control, follow): (&Option<String>, bool),
-    terrain: &Arc<roam_server::Terrain>,
-    hash: &[u8; 32],
-) -> Result<net::replay::Replaying> {
-    if let Some(t) = control {
-        super::token::check(t).map_err(|e| anyhow::anyhow!("--control: {e}"))?;
-    }
-    let name = file.display();
-    let started = std::time::Instant::now();
-    let replaying =
-        net::replay::Replaying::open(file, follow, control.clone(), terrain.clone(), hash)
-            .with_context(|| format!("watching {name}"))?;
-    tracing::info!(
-        "replaying {name}: {} (opened in {:.0} ms)",
-        roam_server::sim::watch::describe(&replaying.watch),
-        started.elapsed().as_secs_f64() * 1e3
-    );
-    if follow && replaying.watch.growing() {
-        tracing::info!("following {name} as it grows");
-    }
-    Ok(replaying)
-}
-
 pub fn serve(args: ServeArgs) -> Result<()> {
     serve_on(args, None)
 }
 
+/// An edge's way to its world (`roam-server edge`, [`super::cluster`]), for [`serve_on`].
+pub struct Edge {
+    pub(super) bus: BusOptions,
+    pub(super) wait: Duration,
+    /// The host its viewers reach it at, if given.
+    pub advertise: Option<String>,
+}
+
+impl Edge {
+    /// Reaches the world and checks it serves this data set (`hash`).
+    pub async fn reach(&self, args: &ServeArgs, hash: [u8; 32]) -> Result<Arc<Remote>> {
+        let dir = args.dir.display().to_string();
+        // The addresses follow once the edge listens (its ports may be chosen then).
+        let remote = Remote::connect(&self.bus, hash, &dir, Vec::new(), self.wait).await?;
+        tracing::info!(
+            world = remote.world(),
+            "the world answered: the same data set"
+        );
+        Ok(remote)
+    }
+}
+
 /// `serve`, or with `bus` an edge of that world (`roam-server edge`): the world's
 /// snapshots served, its tickets handed out, nothing recorded here (the world records).
-pub fn serve_on(args: ServeArgs, bus: Option<super::cluster::Edge>) -> Result<()> {
+pub fn serve_on(args: ServeArgs, bus: Option<Edge>) -> Result<()> {
     keep_large_blocks_mapped();
     // The page and the certificate files (the browser's, and the server's identity when
     // given) first, then the token: each fails before anything is loaded.

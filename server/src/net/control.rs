@@ -13,8 +13,8 @@ use std::time::Duration;
 use roam_link::wire;
 use roam_protocol::messages::{ServerMessage, WorldNews};
 
-use super::Shared;
 use super::conn::SendStream;
+use super::shared::Shared;
 use crate::sim::world::VehicleId;
 use crate::terrain::color_pyramid::TileError;
 use crate::viewer::color::{ColorScheduler, ColorSend};

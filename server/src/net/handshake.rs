@@ -32,15 +32,15 @@ use tokio::sync::oneshot;
 use tokio::time::Instant;
 use web_transport_quinn as wt;
 
-use super::Shared;
+use super::bus::edge::Remote;
 use super::conn::{Conn, RecvStream, SendStream, Via, Web};
+use super::seat::{Joined, MAX_CONTROL, Seat, role_name};
+use super::shared::Shared;
+use super::tickets::{Claim, random_ticket};
+use super::viewer::{self, Viewer};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::Event;
-use crate::viewer::Event as ViewerEvent;
-use crate::viewer::admission::{self, NoSeat, PendingId, Verdict};
-
-/// Control-stream messages from a viewer are at most this long (a hello is well under).
-pub const MAX_CONTROL: usize = 4096;
+use crate::viewer::admission::{NoSeat, PendingId, Verdict};
 
 /// A new connection: admitted (its handshake runs on a task of its own), asked to retry
 /// from a proven address, or refused, as [`crate::viewer::admission`] decides.
@@ -188,7 +188,7 @@ async fn handshake(
             tracing::debug!(%peer, via, role, reason = why, "refused");
         }
         shared.stats.add(&shared.stats.refused, 1);
-        super::viewer::last_word(send, &ServerMessage::Refused(reason)).await;
+        viewer::last_word(send, &ServerMessage::Refused(reason)).await;
         conn.close(close::REFUSED, why.as_bytes());
     };
     if hello.version != VERSION {
@@ -219,10 +219,7 @@ async fn handshake(
     let budget = shared.limits.budget(hello.budget);
     let seated = shared.gate().admission.seat(budget, replacing);
     let seat = match seated {
-        Ok(seat) => Seat {
-            shared: shared.clone(),
-            seat: Some(seat),
-        },
+        Ok(seat) => Seat::new(shared.clone(), seat),
         Err(NoSeat::Full(full)) => {
             let reason = Reason::Full {
                 viewers: full.max as u32,
@@ -253,8 +250,8 @@ async fn handshake(
         "joined"
     );
     shared.stats.add(&shared.stats.joins, 1);
-    super::viewer::serve(
-        super::viewer::Viewer {
+    viewer::serve(
+        Viewer {
             conn,
             send,
             recv,
@@ -344,74 +341,6 @@ async fn greet(conn: &Conn) -> Result<(SendStream, RecvStream, Hello), String> {
         Ok(_) => Err("expected a hello, got another message".into()),
         Err(e) => Err(format!("expected a hello: {e}")),
     }
-}
-
-/// A viewer being served: counted, and its state's bytes reserved, until dropped.
-pub(super) struct Seat {
-    shared: Arc<Shared>,
-    /// Taken only by the drop.
-    seat: Option<admission::Seat>,
-}
-
-impl Seat {
-    /// A control event as the viewer is served it: a larger budget only as far as its seat
-    /// can grow within the server's memory limit ([`admission::Admission::grow`]).
-    pub(super) fn granted(&mut self, event: ViewerEvent) -> ViewerEvent {
-        match (event, self.seat.as_mut()) {
-            (ViewerEvent::Budget(asked), Some(seat)) => {
-                let budget = self.shared.limits.budget(asked);
-                ViewerEvent::Budget(self.shared.gate().admission.grow(seat, budget))
-            }
-            (other, _) => other,
-        }
-    }
-}
-
-impl Drop for Seat {
-    fn drop(&mut self) {
-        if let Some(seat) = self.seat.take() {
-            self.shared.gate().admission.left(seat);
-        }
-    }
-}
-
-/// A viewer's place in the world.
-pub(super) struct Joined {
-    pub vehicle: VehicleId,
-    pub driver: bool,
-    /// A driver's claim on its vehicle, for a reconnection.
-    pub ticket: Option<Ticket>,
-    pub resumed: bool,
-    /// On an edge, the world's claim on a driver's vehicle for this connection (its leave
-    /// or hold names it); 0 elsewhere.
-    pub claim: u64,
-    /// A driver's connection is told here that a reconnection with its ticket replaces it
-    /// (the viewer came back before this server saw the old connection die): it ends,
-    /// has its vehicle held, then answers on the sender it was given.
-    pub replaced: Option<oneshot::Receiver<oneshot::Sender<()>>>,
-    /// Watching a recording, this viewer presented the control token (`serve --control`).
-    pub controller: bool,
-}
-
-impl Joined {
-    /// A spectator following `vehicle`.
-    fn spectator(vehicle: VehicleId) -> Joined {
-        Joined {
-            vehicle,
-            driver: false,
-            ticket: None,
-            resumed: false,
-            claim: 0,
-            replaced: None,
-            controller: false,
-        }
-    }
-}
-
-/// What a ticket names: the vehicle, and how to end the connection driving it now.
-pub(super) struct Claim {
-    pub(super) vehicle: VehicleId,
-    replace: Option<oneshot::Sender<oneshot::Sender<()>>>,
 }
 
 enum Refusal {
@@ -512,7 +441,7 @@ async fn from_here(
 /// world's claim for this connection.
 async fn from_world(
     shared: &Shared,
-    remote: &super::bus::edge::Remote,
+    remote: &Remote,
     hello: &Hello,
 ) -> Result<(VehicleId, Ticket, bool, u64), Refusal> {
     if let Some(ticket) = hello.resume {
@@ -556,23 +485,6 @@ async fn ask(shared: &Shared, event: Event) -> Result<VehicleId, ()> {
     rx.await.map_err(|_| ())
 }
 
-pub(super) fn random_ticket() -> Ticket {
-    use ring::rand::SecureRandom;
-    let mut t = [0u8; 16];
-    ring::rand::SystemRandom::new()
-        .fill(&mut t)
-        .expect("the system's random source works");
-    t
-}
-
 fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
     a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
-}
-
-/// The role as the logs name it.
-pub(super) fn role_name(role: &Role) -> &'static str {
-    match role {
-        Role::Driver => "driver",
-        Role::Spectator { .. } => "spectator",
-    }
 }

@@ -1,13 +1,17 @@
-//! One viewer's connection: the handshake, its key datagrams and control messages, and its
-//! frames, paced by the clock and made by the viewer's sans-IO core
-//! ([`crate::viewer::ViewerCore`]).
+//! One viewer's connection after its hello ([`super::handshake`] admits it and hands over
+//! its [`Seat`] and its place in the world, [`Joined`]): the welcome, its key datagrams
+//! (through its [`KeyGate`] into the world), its control messages, its frames (paced by the
+//! clock, made by its sans-IO core, [`crate::viewer::ViewerCore`]), and its end: a goodbye
+//! frees a driver's vehicle, a lost connection has it held ([`Event::Hold`]), and a
+//! reconnection with the driver's ticket replaces it.
 //!
 //! How a frame goes:
 //!
-//! - a **change frame** that fits in one datagram goes as one (almost every frame); a
-//!   larger one on a stream of its own, abandoned (reset) when the next frame is ready
-//!   unless the viewer has acknowledged it (latest frame wins): a lost or abandoned change
-//!   frame is never a base;
+//! - a **change frame** that fits in one datagram goes as one (on a lossy link,
+//!   [`LossMeter`], a small one goes twice, the copy [`REPEAT_AFTER`] later); a larger one
+//!   on a stream of its own, abandoned (reset) when the next frame is ready unless the
+//!   viewer has acknowledged it (latest frame wins): a lost or abandoned change frame is
+//!   never a base;
 //! - a **key frame** always goes on a stream of its own, reliably, at the highest
 //!   priority, and is not abandoned while it is pending
 //!   ([`crate::viewer::ViewerCore::pending_key`]): the frames after it are coded against
@@ -16,36 +20,36 @@
 //!   only once superseded by a newer key frame (or when the viewer asked for another),
 //!   unless acknowledged.
 //!
-//! The colour map streams on the control stream, at a priority below every frame's so
-//! that colour never delays a frame: the welcome, then the coarsest tile (before the
-//! first frame), then, once the first frame is made, a task ([`stream_color`], in [`super::control`]) sending what the viewer's
-//! [`ColorScheduler`] picks for the followed vehicle's position, paced by a token bucket
-//! whose rate is the viewer's share of the server-wide colour budget
-//! ([`super::color_budget`]: [`super::Options::color_total`] shared equally by the viewers
-//! still wanting tiles, each at most [`super::Options::color_rate`]; each tile's normals
-//! right after it, out of the same bytes, the coarsest tile's first thing after the first
-//! frame), cut to a trickle
-//! while any viewer's frame starts behind its tick (frames first); a burst of a quarter
-//! second, and at least the largest tile. A tile is written whole and awaited before the
-//! next, so the send buffer holds little more than a tile; the control stream's last word
-//! (a goodbye, a refusal) waits for the tile being written, so no message is ever cut.
+//! A frame is begun in line; the first one, and any heavier one (a rebuild, a key frame's
+//! coding, many changes), is finished on a blocking frame maker ([`super::makers`]), so it
+//! never holds up the other viewers' tasks.
+//!
+//! The colour map goes on the control stream, at a priority below every frame's, so that
+//! colour never delays a frame: the welcome, then the coarsest tile (before the first
+//! frame), then, once the first frame is made, what [`stream_color`] sends
+//! ([`super::control`]: the tiles the viewer's [`ColorScheduler`] picks for the followed
+//! vehicle's position, each with its normals, paced by the viewer's share of the
+//! server-wide colour budget, [`super::color_budget`]). A goodbye waits for the tile being
+//! written (at most [`GOODBYE_WITHIN`]), so no message is ever cut.
 //!
 //! The control stream is read into a [`Mailbox`] until a goodbye. A message that is not
 //! one (undecodable, longer than [`MAX_CONTROL`], or cut short by the stream's end) closes
 //! the connection with [`close::PROTOCOL`], the reason in the "left" log line with the
-//! peer's address, and frees a driver's vehicle; before, the reader parked forever and the
-//! viewer's acks, budget changes and goodbye were never read again. A control stream that
-//! merely ends (finished between messages, reset, or with the connection) still leaves the
-//! end to the connection, so one rule ([`Conn::hold_after`]) decides hold or leave.
+//! peer's address, and frees a driver's vehicle. A control stream that merely ends
+//! (finished between messages, reset, or with the connection) leaves the end to the
+//! connection, so one rule ([`Conn::hold_after`]) decides hold or leave.
 //!
-//! On an edge (`roam-server edge`), the news of the world ([`tell_news`], in
-//! [`super::control`]) goes on the
-//! control stream as it changes: the world's edges (where the viewer may go if this one
-//! fails), the world gone and back; a driver whose world restarted (its vehicle unknown
-//! there) is told so and let go.
+//! A spectator is told whom its frames follow when that changes; watching a recording, a
+//! viewer is told the replay's state ([`super::replay`]). On an edge (`roam-server edge`),
+//! the news of the world ([`tell_news`], in [`super::control`]) goes on the control stream
+//! as it changes: the world's edges (where the viewer may go if this one fails), the world
+//! gone and back; a driver whose world restarted (its vehicle unknown there) is told so
+//! and let go.
 //!
 //! A browser's WebTransport session is served by the same code, through [`super::conn`]'s
-//! [`Conn`]: only the logs' `via` tells them apart.
+//! [`Conn`]: the logs' `via` tells them apart, and at shutdown a browser is given
+//! [`WEB_CLOSE_WAIT`] to close its session on the goodbye (closed from here first, a busy
+//! page may see only a lost connection, and try to reconnect).
 
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -56,10 +60,10 @@ use roam_protocol::ColorLayout;
 use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
 use tokio::sync::oneshot;
 
-use super::Shared;
 use super::conn::{Conn, DatagramError, RecvStream, SendStream};
 use super::control::{WORLD_RESTARTED, stream_color, tell_news, write_color};
-use super::handshake::{Joined, MAX_CONTROL, Seat};
+use super::seat::{Joined, MAX_CONTROL, Seat, role_name};
+use super::shared::Shared;
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{Event, Snapshot};
 use crate::viewer::color::ColorScheduler;
@@ -74,6 +78,10 @@ const REPEAT_AFTER: Duration = Duration::from_millis(4);
 /// loaded 2-core machine (the page saw the connection lost, not the refusal, in one run
 /// of the whole test suite).
 const LAST_WORD_WAIT: Duration = Duration::from_secs(2);
+
+/// How long a shutdown waits for browsers to close their sessions after the goodbye (the
+/// endpoint waits a little longer, for the viewer tasks' own closes).
+pub(super) const WEB_CLOSE_WAIT: Duration = Duration::from_secs(1);
 
 /// Sends a last message (a refusal, a goodbye) and gives it up to [`LAST_WORD_WAIT`] to
 /// arrive before the connection closes (closing drops what is unsent).
@@ -259,7 +267,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
             if conn.via() == super::conn::Via::Web {
                 // A browser closes its session on the goodbye; closed from here first, a
                 // busy page may see only "connection lost" (and try to reconnect).
-                let _ = tokio::time::timeout(super::WEB_CLOSE_WAIT, conn.closed()).await;
+                let _ = tokio::time::timeout(WEB_CLOSE_WAIT, conn.closed()).await;
             }
             conn.close(close::SHUTDOWN, b"the server is shutting down");
             "the server is shutting down".into()
@@ -276,7 +284,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     tracing::info!(
         %peer,
         via = conn.via().name(),
-        role = super::handshake::role_name(&hello.role),
+        role = role_name(&hello.role),
         vehicle,
         reason = %why,
         held,

@@ -29,7 +29,8 @@ use rustls::pki_types::{CertificateDer, PrivateKeyDer};
 use tokio::task::JoinHandle;
 
 use super::conn::Via;
-use super::{ServeError, Shared};
+use super::serve_error::ServeError;
+use super::shared::Shared;
 use crate::web::cert::CertStore;
 use crate::web::{Page, Site};
 

@@ -594,5 +594,3 @@ impl Reader {
         Ok(())
     }
 }
-
-pub use crate::sim::recorder::{RecordError, RecordedWorld, Recorder, header_of};

@@ -71,6 +71,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use memmap2::Mmap;
 
 use crate::terrain::backing::Backing;
+use crate::terrain::data_error::DataError;
 use crate::terrain::heightfield::Heightfield;
 pub(crate) use crate::terrain::stamp::{Fields, FileStamp};
 use crate::terrain::variance::{self, VarianceTree};
@@ -167,7 +168,7 @@ pub type Progress<'a> = &'a mut dyn FnMut(Stage, u64, u64);
 
 /// The strict `hf.pgm` reader, given a `(done, total)` progress callback.
 pub(crate) type Convert<'a> =
-    &'a mut dyn FnMut(&mut dyn FnMut(u64, u64)) -> Result<Heightfield, crate::DataError>;
+    &'a mut dyn FnMut(&mut dyn FnMut(u64, u64)) -> Result<Heightfield, DataError>;
 
 /// The cache of one data set while it is opened.
 pub(crate) struct Cache {
@@ -402,9 +403,9 @@ impl Cache {
         side: u32,
         progress: Progress,
         convert: Convert,
-    ) -> Result<(Heightfield, Source, [u8; 32]), crate::DataError> {
+    ) -> Result<(Heightfield, Source, [u8; 32]), DataError> {
         let io_err = |action| {
-            move |error| crate::DataError::Io {
+            move |error| DataError::Io {
                 file: hf_path.to_path_buf(),
                 action,
                 error,
@@ -428,7 +429,7 @@ impl Cache {
         let hf = convert(&mut |d, t| progress(Stage::Converting, d, t))?;
         let after = FileStamp::of(&fs::metadata(hf_path).map_err(io_err("stat"))?);
         if after != before {
-            return Err(crate::DataError::Invalid {
+            return Err(DataError::Invalid {
                 file: hf_path.to_path_buf(),
                 line: None,
                 field: "data".into(),

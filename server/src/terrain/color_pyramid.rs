@@ -67,7 +67,7 @@ pub enum PyramidError {
     #[error("colour map tile: {0}")]
     Encode(#[from] colormap::SizeError),
     #[error("{0}")]
-    Source(#[from] crate::terrain::dataset::DataError),
+    Source(#[from] crate::terrain::data_error::DataError),
 }
 
 /// Every tile of a colour map's pyramid, coded.
@@ -133,7 +133,7 @@ impl ColorPyramid {
         cells: u32,
         tile: u32,
         threads: usize,
-        load: impl FnOnce() -> Result<Cow<'c, ColorMap>, crate::terrain::dataset::DataError>,
+        load: impl FnOnce() -> Result<Cow<'c, ColorMap>, crate::terrain::data_error::DataError>,
         progress: &mut dyn FnMut(u64, u64),
     ) -> Result<(ColorPyramid, CacheOutcome), PyramidError> {
         let key = source_stamp(&dir.join(COLOR_FILE))

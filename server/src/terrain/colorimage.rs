@@ -37,7 +37,7 @@ use png::{BitDepth, ColorType, Decoder, Limits, Transformations};
 use crate::terrain::dataset::ColorMap;
 use crate::terrain::pnm;
 use crate::terrain::raster::MAX_SIDE;
-use crate::terrain::source::SourceError;
+use crate::terrain::source_error::SourceError;
 
 /// A decoded colour image.
 #[derive(Clone, Debug, PartialEq, Eq)]

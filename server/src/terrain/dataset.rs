@@ -23,12 +23,13 @@
 
 use std::fs;
 use std::io;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use crate::terrain::cache::{self, Cache, CacheReport};
+use crate::terrain::data_error::DataError;
 use crate::terrain::heightfield::Heightfield;
 use crate::terrain::map::{MapError, MapParams};
-use crate::terrain::pnm::{self, PnmError};
+use crate::terrain::pnm;
 use crate::terrain::variance::VarianceTree;
 
 /// File name of the parameters inside a data-set directory.
@@ -184,68 +185,6 @@ impl Terrain {
             });
         }
         self.map.validate_for_side(self.heights.side())
-    }
-}
-
-/// Why a data set could not be loaded. The message always starts with the file's path.
-#[derive(Debug, thiserror::Error)]
-pub enum DataError {
-    /// The content of a file is wrong: `field` is a header field (`magic`, `width`, `height`,
-    /// `maxval`, `data`), a `map` key (`hScale`, `start.x`, …) or `syntax`.
-    #[error("{}{}: {field}: {message}", file.display(), line.map(|l| format!(":{l}")).unwrap_or_default())]
-    Invalid {
-        /// The file, as given (directory joined with the file name).
-        file: PathBuf,
-        /// 1-based line, for the `map` file.
-        line: Option<usize>,
-        /// The field or key.
-        field: String,
-        /// What was expected and what was found.
-        message: String,
-    },
-    /// A file could not be opened or read.
-    #[error("{}: cannot {action}: {error}", file.display())]
-    Io {
-        /// The file.
-        file: PathBuf,
-        /// `open`, `read`, `stat`.
-        action: &'static str,
-        /// The operating system's error.
-        error: io::Error,
-    },
-}
-
-impl DataError {
-    fn from_pnm(file: &Path, e: PnmError) -> DataError {
-        match e {
-            PnmError::Format { field, message } => DataError::Invalid {
-                file: file.to_path_buf(),
-                line: None,
-                field: field.into(),
-                message,
-            },
-            PnmError::Io { action, error } => DataError::Io {
-                file: file.to_path_buf(),
-                action,
-                error,
-            },
-        }
-    }
-
-    fn from_map(file: &Path, e: MapError) -> DataError {
-        DataError::Invalid {
-            file: file.to_path_buf(),
-            line: e.line,
-            field: e.field,
-            message: e.message,
-        }
-    }
-
-    /// The file the error is about.
-    pub fn file(&self) -> &Path {
-        match self {
-            DataError::Invalid { file, .. } | DataError::Io { file, .. } => file,
-        }
     }
 }
 

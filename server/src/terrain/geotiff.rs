@@ -38,7 +38,7 @@ use tiff::tags::Tag;
 
 use crate::terrain::hgt::METRES_PER_ARCSEC;
 use crate::terrain::raster::{MAX_SIDE, Raster};
-use crate::terrain::source::SourceError;
+use crate::terrain::source_error::SourceError;
 
 /// Most raw bytes one compressed byte is taken to decode to (LZW reaches about 2730 : 1,
 /// Deflate 1032 : 1, PackBits 64 : 1).

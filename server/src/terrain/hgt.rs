@@ -10,7 +10,7 @@ use std::io::Read;
 use std::path::Path;
 
 use crate::terrain::raster::Raster;
-use crate::terrain::source::SourceError;
+use crate::terrain::source_error::SourceError;
 
 /// Side of an SRTM3 (3″) tile.
 pub const SRTM3_SIDE: u32 = 1201;

@@ -17,7 +17,7 @@ use std::path::Path;
 use png::{BitDepth, ColorType, Decoder, Limits, Transformations};
 
 use crate::terrain::raster::{MAX_SIDE, Raster};
-use crate::terrain::source::SourceError;
+use crate::terrain::source_error::SourceError;
 
 /// Deflate's best compression ratio: no PNG can hold more raw bytes than this × its size.
 const MAX_INFLATE: u64 = 1032;

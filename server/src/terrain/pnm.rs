@@ -7,7 +7,7 @@
 //! 1 KB file is an error, not an allocation. Truncated data and trailing bytes are errors.
 //!
 //! Errors name the field (`magic`, `width`, `height`, `maxval`, `data`) and what was expected;
-//! the caller adds the file name (see [`crate::terrain::dataset::DataError`]).
+//! the caller adds the file name (see [`crate::terrain::data_error::DataError`]).
 
 use std::fs::File;
 use std::io::{self, BufRead, BufReader, BufWriter, Read, Write};

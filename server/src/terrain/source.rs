@@ -1,41 +1,17 @@
-//! Source files for `import`: which format a file holds (by content, never by its name),
-//! and the error every reader returns, naming the file and what is wrong with it.
+//! Source files for `import`: which format a file holds (by content, never by its name).
+//! This and the readers ([`crate::terrain::png16`], [`crate::terrain::hgt`],
+//! [`crate::terrain::geotiff`], [`crate::terrain::colorimage`]) return a
+//! [`SourceError`] naming the file and what is wrong with it.
 //!
 //! Detection reads the first bytes: `\x89PNG` is a PNG, `P5` a binary PGM, `II*\0` /
 //! `MM\0*` (or BigTIFF's `II+\0` / `MM\0+`) a (Geo)TIFF; otherwise a file of exactly
 //! 1201² × 2 or 3601² × 2 bytes is an SRTM `.hgt` tile (they carry no header).
 
-use std::fmt;
 use std::io::Read;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
+use crate::terrain::source_error::SourceError;
 use crate::terrain::{geotiff, hgt};
-
-/// Why a source file cannot be imported.
-#[derive(Debug)]
-pub struct SourceError {
-    /// The file.
-    pub path: PathBuf,
-    /// What is wrong, e.g. "truncated: expected 2884802 bytes, got 1000".
-    pub message: String,
-}
-
-impl SourceError {
-    pub fn new(path: &Path, message: impl Into<String>) -> Self {
-        SourceError {
-            path: path.to_path_buf(),
-            message: message.into(),
-        }
-    }
-}
-
-impl fmt::Display for SourceError {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}: {}", self.path.display(), self.message)
-    }
-}
-
-impl std::error::Error for SourceError {}
 
 /// The formats `import` reads.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

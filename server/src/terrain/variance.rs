@@ -25,7 +25,7 @@
 
 use crate::terrain::backing::Backing;
 use crate::terrain::heightfield::Heightfield;
-use crate::tessellate::diamond::{Diamond, Shape, Triangle, Vertex};
+use roam_protocol::bintree::{Diamond, Shape, Triangle, Vertex};
 
 /// Value of code 1: the smallest non-zero error the table can express, in sample units.
 const SMALLEST: f64 = 0.25;
@@ -284,10 +284,10 @@ impl Partial<'_> {
     /// The exact error of the diamond's triangles, raised to its children's bounds.
     fn diamond_value(&self, d: &Diamond) -> f64 {
         let mut e = 0f64;
-        for t in d.triangles(self.size) {
+        for t in d.triangles(self.size).into_iter().flatten() {
             e = e.max(triangle_error(self.hf, &t));
         }
-        for (cx, cz) in d.children(self.size) {
+        for (cx, cz) in d.children(self.size).into_iter().flatten() {
             let c = Diamond::at(cx, cz, self.size).expect("children are diamonds");
             let v = if c.m == 0 && c.shape != Shape::Square {
                 finest(self.hf, &c)
@@ -322,7 +322,7 @@ pub(crate) fn finest(hf: &Heightfield, d: &Diamond) -> f32 {
         Shape::Rotated { horizontal: true } => dev((x, z), (x - 1, z), (x + 1, z)),
         Shape::Rotated { horizontal: false } => dev((x, z), (x, z - 1), (x, z + 1)),
         Shape::Square => {
-            let [p, q] = d.hypotenuse(hf.size());
+            let [p, q] = d.hypotenuse();
             dev((x, z), p, q)
                 .max(dev((x - 1, z), (x - 1, z - 1), (x - 1, z + 1)))
                 .max(dev((x + 1, z), (x + 1, z - 1), (x + 1, z + 1)))

@@ -12,8 +12,8 @@
 
 use super::lanes::F4;
 use super::{Frame, MIN_DISTANCE, Tessellator, pack};
-use crate::tessellate::diamond::Shape;
 use crate::tessellate::queue::{TOP, bucket_of};
+use roam_protocol::bintree::Shape;
 
 /// Up to four diamonds of one shape and half-size, one per lane.
 pub(super) struct Batch {

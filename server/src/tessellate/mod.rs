@@ -2,7 +2,7 @@
 //! frame-coherent tessellator ([`Coherent`]) rebuilds from on a jump (a viewer's cut is
 //! otherwise carried from frame to frame by splits and merges).
 //!
-//! The mesh is the set of split ("active") diamonds; see [`diamond`]. From scratch:
+//! The mesh is the set of split ("active") diamonds; see [`roam_protocol::bintree`]. From scratch:
 //!
 //! 1. Queue the root diamond. Repeatedly pop the diamond of highest priority and split it.
 //!    Splitting first splits, recursively, any parent diamond not yet split (ROAM's forced
@@ -38,12 +38,11 @@
 use crate::terrain::heightfield::Heightfield;
 use crate::terrain::variance::{self, VarianceTree};
 use camera::Camera;
-use diamond::Shape;
 use queue::{BucketQueue, bucket_of};
+use roam_protocol::bintree::{self, Shape, shape_of};
 
 pub mod camera;
 mod coherent;
-pub mod diamond;
 mod emit;
 mod evaluate;
 mod frontier;
@@ -248,22 +247,6 @@ fn has_v3() -> bool {
     }
     #[cfg(not(target_arch = "x86_64"))]
     false
-}
-
-/// Shape and `m` of the diamond centred at `(x, z)` (not a corner).
-#[inline(always)]
-fn classify(x: u32, z: u32) -> (u32, Shape) {
-    let (tx, tz) = (x.trailing_zeros(), z.trailing_zeros());
-    if tx == tz {
-        (tx, Shape::Square)
-    } else {
-        (
-            tx.min(tz),
-            Shape::Rotated {
-                horizontal: tx < tz,
-            },
-        )
-    }
 }
 
 impl Tessellator {
@@ -479,34 +462,8 @@ impl Tessellator {
     /// Collects, parents first, the unsplit diamonds that splitting `(x, z)` needs, and the
     /// triangles their splits add. Recursion depth is bounded by the tree's depth.
     fn collect(&mut self, x: u32, z: u32, delta: &mut u32) {
-        let (m, shape) = classify(x, z);
-        let h = 1 << m;
-        let s = self.size;
-        let mut tris = 2;
-        let parents: [Option<(u32, u32)>; 2] = match shape {
-            Shape::Square if 2 * h == s => [None, None],
-            Shape::Square => {
-                if (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 1 {
-                    [Some((x + h, z + h)), Some((x - h, z - h))]
-                } else {
-                    [Some((x + h, z - h)), Some((x - h, z + h))]
-                }
-            }
-            Shape::Rotated { horizontal: true } => {
-                tris = u32::from(z >= h) + u32::from(z + h <= s);
-                [
-                    (z >= h).then(|| (x, z - h)),
-                    (z + h <= s).then(|| (x, z + h)),
-                ]
-            }
-            Shape::Rotated { horizontal: false } => {
-                tris = u32::from(x >= h) + u32::from(x + h <= s);
-                [
-                    (x >= h).then(|| (x - h, z)),
-                    (x + h <= s).then(|| (x + h, z)),
-                ]
-            }
-        };
+        let parents = bintree::parents(self.size, x, z);
+        let tris = bintree::added(self.size, x, z);
         for (px, pz) in parents.into_iter().flatten() {
             if !self.is_active(px, pz) && !self.chain.contains(&pack(px, pz)) {
                 self.collect(px, pz, delta);
@@ -566,7 +523,7 @@ impl Tessellator {
     fn commit(&mut self, f: &Frame, x: u32, z: u32) {
         self.set_active(x, z);
         self.active_list.push(pack(x, z));
-        let (m, shape) = classify(x, z);
+        let (m, shape) = shape_of(x, z);
         match shape {
             Shape::Square => self.commit_square(f, x, z, m),
             Shape::Rotated { .. } if m == 0 => {}

@@ -83,7 +83,8 @@ pub fn diverged_recording(
     bad_from: u64,
 ) -> Vec<u8> {
     use roam_server::sim::physics::Keys;
-    use roam_server::sim::recording::{Header, Recorder};
+    use roam_server::sim::recorder::Recorder;
+    use roam_server::sim::recording::Header;
     use roam_server::sim::world::{self, Inputs, World};
     let mut world = World::new(terrain.clone());
     world

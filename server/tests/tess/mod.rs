@@ -3,10 +3,10 @@
 //! both ways.
 #![allow(dead_code)] // each test file uses its own subset
 
+use roam_protocol::bintree::{Diamond, Shape};
 use roam_server::Heightfield;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
-use roam_server::tessellate::diamond::Diamond;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator, fogged_error_px, measured_error};
 
 /// A rough random heightfield: smoothed noise plus a few bumps and an optional flat floor.
@@ -125,7 +125,7 @@ pub fn check_frustum_guarded(
             continue;
         }
         let d = Diamond::at(x, z, size).expect("split diamonds exist");
-        let tris = d.triangles(size);
+        let tris: Vec<_> = d.triangles(size).into_iter().flatten().collect();
         let e = f64::from(vt.error(hf, x, z));
         let hts: Vec<f64> = tris
             .iter()
@@ -136,7 +136,7 @@ pub fn check_frustum_guarded(
         let hi = (hts.iter().copied().fold(f64::NEG_INFINITY, f64::max) + e) * s.v;
         let h = f64::from(d.h());
         let foot: Vec<(f64, f64)> = match d.shape {
-            roam_server::tessellate::diamond::Shape::Square => {
+            Shape::Square => {
                 vec![(-h, -h), (h, -h), (-h, h), (h, h)]
             }
             _ => vec![(-h, 0.0), (h, 0.0), (0.0, -h), (0.0, h)],
@@ -146,7 +146,7 @@ pub fn check_frustum_guarded(
             cam.eye[2] / s.h - f64::from(z),
         );
         let under = match d.shape {
-            roam_server::tessellate::diamond::Shape::Square => ex.abs() <= h && ez.abs() <= h,
+            Shape::Square => ex.abs() <= h && ez.abs() <= h,
             _ => ex.abs() + ez.abs() <= h,
         };
         if under {

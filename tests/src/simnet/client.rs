@@ -4,43 +4,17 @@
 //! frame taken (each decoded mesh checked against the server's cut for that frame), and its
 //! control messages, in order.
 
-use std::collections::{BTreeMap, VecDeque};
 use std::time::{Duration, Instant};
 
-use roam_client::core::{ClientCore, KeyCore, Taken};
+use roam_client::core::{ClientCore, Taken};
 use roam_protocol::keys::{KeyStep, Keys};
-use roam_protocol::messages::{self, ClientMessage, Hello, ServerMessage, Welcome};
+use roam_protocol::messages::{self, ClientMessage, ServerMessage};
 
-use super::path::{InOrder, Payload};
-use super::server::ServerState;
-use super::{EARLY_BYTES, IDLE_TIMEOUT, Sim, TICK, TakenFrame, Viewer, ViewerId, mesh_hash};
-
-/// A frame stream being received.
-pub(super) struct Assembly {
-    pub(super) parts: Vec<Option<Vec<u8>>>,
-    pub(super) have: usize,
-}
-
-pub(super) struct ClientSide {
-    pub(super) hello: Hello,
-    pub(super) core: Option<ClientCore>,
-    pub(super) welcome: Option<Welcome>,
-    /// The script's steps, for a driver.
-    pub(super) steps: Option<Vec<KeyStep>>,
-    pub(super) next_step: usize,
-    pub(super) next_key: Duration,
-    pub(super) control_in: InOrder,
-    pub(super) control_seq: u64,
-    /// Frame streams being read, each to its end (as `session.rs` reads each in a task of
-    /// its own): one completes whatever streams after it have completed.
-    pub(super) streams: BTreeMap<u64, Assembly>,
-    pub(super) early: VecDeque<Vec<u8>>,
-    /// The keys' half of the viewer's core (numbered states, history, latencies).
-    pub(super) keys: KeyCore,
-    pub(super) skip_decoding: u32,
-    pub(super) closed: Option<String>,
-    pub(super) last_heard: Duration,
-}
+use super::path::Payload;
+use super::state::{
+    Assembly, EARLY_BYTES, IDLE_TIMEOUT, ServerState, Sim, TICK, TakenFrame, Viewer, ViewerId,
+    encoded, mesh_hash,
+};
 
 impl Sim {
     /// Viewer `i`'s client side at `now`: arrivals, the idle timeout, keys, a take, and
@@ -140,7 +114,7 @@ impl Sim {
                 });
                 v.client.next_step += 1;
                 let datagram = v.client.keys.key_datagram(step, epoch + now);
-                v.up.send(now, Payload::Datagram(encoded!(&datagram)));
+                v.up.send(now, Payload::Datagram(encoded(&datagram)));
                 v.stats.key_datagrams += 1;
                 v.client.next_key += TICK;
             }
@@ -223,5 +197,5 @@ pub(super) fn client_flush(v: &mut Viewer, now: Duration) {
 }
 
 pub(super) fn client_control(v: &mut Viewer, now: Duration, msg: &ClientMessage) {
-    v.up.send_control(now, &mut v.client.control_seq, encoded!(msg));
+    v.up.send_control(now, &mut v.client.control_seq, encoded(msg));
 }

@@ -9,7 +9,8 @@ use std::time::Duration;
 
 pub use crate::fixtures::SplitMix64;
 
-use super::OVERHEAD;
+/// Header bytes per packet, counted against a direction's rate and queue.
+pub const OVERHEAD: usize = 40;
 
 /// One direction of a viewer's path.
 #[derive(Clone, Copy, Debug, PartialEq)]

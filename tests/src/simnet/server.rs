@@ -15,57 +15,11 @@ use roam_server::tessellate::Mesh;
 use roam_server::viewer::conversation::{Control, KeyGate, Mailbox, frame_message};
 use roam_server::viewer::{Scene, ViewerCore, ViewerLimits};
 
-use super::path::{InOrder, Payload};
-use super::{
-    IDLE_TIMEOUT, LAST_WORD, MADE_KEPT, MAX_DATAGRAM, Sim, TrackPoint, Viewer, ViewerId, mesh_hash,
+use super::path::Payload;
+use super::state::{
+    IDLE_TIMEOUT, LAST_WORD, MADE_KEPT, MAX_DATAGRAM, MadeFrame, ServerState, Serving, Sim,
+    TrackPoint, Viewer, ViewerId, encoded, mesh_hash,
 };
-
-/// What the server remembers of a frame it made, to check what the viewer decodes.
-#[derive(Clone, Copy, Debug)]
-pub(super) struct MadeFrame {
-    pub(super) frame: u64,
-    pub(super) key: bool,
-    pub(super) triangles: usize,
-    pub(super) mesh: u64,
-}
-
-/// A viewer's connection as the server's shell holds it.
-pub(super) struct Serving {
-    pub(super) core: ViewerCore,
-    pub(super) mailbox: Mailbox,
-    pub(super) gate: KeyGate,
-    pub(super) vehicle: VehicleId,
-    pub(super) driver: bool,
-    pub(super) seen: bool,
-    pub(super) period: Duration,
-    pub(super) next_frame: Duration,
-    /// The change frame's stream not yet known to be acknowledged: `(stream, frame)`.
-    pub(super) in_flight: Option<(u64, u64)>,
-    /// The newest key frame's stream, kept apart (never reset while the key frame is
-    /// pending): `(stream, frame)`.
-    pub(super) key_in_flight: Option<(u64, u64)>,
-    pub(super) next_stream: u64,
-    pub(super) made: VecDeque<MadeFrame>,
-}
-
-pub(super) enum ServerState {
-    /// Connected; no hello yet.
-    Waiting,
-    Serving(Box<Serving>),
-    /// Frames have stopped and a goodbye is on its way: the connection closes at this
-    /// time (the shell's `last_word` waits up to 250 ms).
-    Closing(Duration),
-    Closed,
-}
-
-pub(super) struct ServerSide {
-    pub(super) state: ServerState,
-    pub(super) control_in: InOrder,
-    pub(super) control_seq: u64,
-    pub(super) last_heard: Duration,
-    /// The driver's vehicle, while the world has been told of it.
-    pub(super) joined: Option<VehicleId>,
-}
 
 pub(super) fn welcome(terrain: &Terrain, vehicle: VehicleId, tick: u64) -> Welcome {
     let color = roam_protocol::ColorLayout::new(
@@ -363,5 +317,5 @@ impl Sim {
 
 pub(super) fn server_control_send(v: &mut Viewer, now: Duration, msg: &ServerMessage) {
     v.down
-        .send_control(now, &mut v.server.control_seq, encoded!(msg));
+        .send_control(now, &mut v.server.control_seq, encoded(msg));
 }

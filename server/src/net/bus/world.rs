@@ -319,7 +319,7 @@ async fn answer(state: &State, ask: Ask) -> Answer {
             let Some(vehicle) = ask_world(state, Event::Join).await else {
                 return refused("the world is full (--max-vehicles), none held to free");
             };
-            let ticket = crate::net::handshake::random_ticket();
+            let ticket = crate::net::tickets::random_ticket();
             let mut drivers = lock(&state.drivers);
             for freed in state.stats.take_evicted() {
                 drivers.forget(freed);

@@ -34,9 +34,9 @@
 
 use super::super::evaluate::{Batch, Shape4, priority};
 use super::super::lanes::F4;
-use super::super::{Frame, classify, unpack};
+use super::super::{Frame, unpack};
 use super::Coherent;
-use crate::tessellate::diamond::Shape;
+use roam_protocol::bintree::{Shape, shape_of};
 
 /// The camera-independent part of a frontier diamond's priority, kept beside it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -228,7 +228,7 @@ pub(super) fn by_prio(clear: F4, r: F4, rho: F4) -> F4 {
 pub(super) fn fixed(f: &Frame, pos: u32) -> Fixed {
     let (s, side) = (f.size, f.side);
     let (x, z) = unpack(pos);
-    let (m, shape) = classify(x, z);
+    let (m, shape) = shape_of(x, z);
     let h = 1u32 << m;
     let at = |x: u32, z: u32| f32::from(f.h(z * side + x));
     let corners: [f32; 4] = match shape {

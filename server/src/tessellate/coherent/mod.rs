@@ -635,7 +635,9 @@ fn motion(a: &Camera, b: &Camera) -> (f64, f64, f64) {
         .map(|i| (b.eye[i] - a.eye[i]).powi(2))
         .sum::<f64>()
         .sqrt();
-    let yaw = crate::sim::physics::wrap_degrees(b.yaw_deg - a.yaw_deg);
+    // The turn in `[0, 360]`: 360 itself (a tiny negative turn rounded) is the short way 0,
+    // as it is once wrapped to 0.
+    let yaw = (b.yaw_deg - a.yaw_deg).rem_euclid(360.0);
     (
         moved,
         yaw.min(360.0 - yaw),

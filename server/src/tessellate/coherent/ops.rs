@@ -4,9 +4,9 @@
 
 use super::eval::{Lanes, lane_flags};
 use super::{Coherent, pack, unpack};
-use crate::tessellate::diamond::Shape;
+use crate::tessellate::Frame;
 use crate::tessellate::queue::TOP;
-use crate::tessellate::{Frame, classify};
+use roam_protocol::bintree;
 
 impl Coherent {
     pub(super) fn root(&self) -> u32 {
@@ -16,62 +16,18 @@ impl Coherent {
 
     /// Children on the map (none for the finest rotated diamonds), packed.
     pub(super) fn children(&self, x: u32, z: u32) -> [Option<u32>; 4] {
-        let (m, shape) = classify(x, z);
-        let h = 1 << m;
-        let s = self.size;
-        match shape {
-            Shape::Square => [
-                Some(pack(x + h, z)),
-                Some(pack(x - h, z)),
-                Some(pack(x, z + h)),
-                Some(pack(x, z - h)),
-            ],
-            Shape::Rotated { .. } if m == 0 => [None; 4],
-            Shape::Rotated { .. } => {
-                let k = h / 2;
-                let ok = |dx: i64, dz: i64| {
-                    let (cx, cz) = (i64::from(x) + dx, i64::from(z) + dz);
-                    (cx >= 0 && cz >= 0 && cx <= i64::from(s) && cz <= i64::from(s))
-                        .then(|| pack(cx as u32, cz as u32))
-                };
-                let k = i64::from(k);
-                [ok(k, -k), ok(-k, -k), ok(-k, k), ok(k, k)]
-            }
-        }
+        bintree::children(self.size, x, z).map(|c| c.map(|(x, z)| pack(x, z)))
     }
 
     /// Parents on the map (none for the root, one for a rotated diamond on the edge).
     pub(super) fn parents(&self, x: u32, z: u32) -> [Option<u32>; 2] {
-        let (m, shape) = classify(x, z);
-        let h = 1 << m;
-        let s = self.size;
-        match shape {
-            Shape::Square if 2 * h == s => [None, None],
-            Shape::Square => {
-                if (((x + h) >> (m + 1)) + ((z + h) >> (m + 1))) & 1 == 1 {
-                    [Some(pack(x + h, z + h)), Some(pack(x - h, z - h))]
-                } else {
-                    [Some(pack(x + h, z - h)), Some(pack(x - h, z + h))]
-                }
-            }
-            Shape::Rotated { horizontal: true } => [
-                (z >= h).then(|| pack(x, z - h)),
-                (z + h <= s).then(|| pack(x, z + h)),
-            ],
-            Shape::Rotated { horizontal: false } => [
-                (x >= h).then(|| pack(x - h, z)),
-                (x + h <= s).then(|| pack(x + h, z)),
-            ],
-        }
+        bintree::parents(self.size, x, z).map(|p| p.map(|(x, z)| pack(x, z)))
     }
 
     /// Triangles a split of `(x, z)` adds: a square 2, a rotated diamond one per parent
     /// on the map (1 on the map's edge).
     pub(super) fn added(&self, x: u32, z: u32) -> u32 {
-        match classify(x, z).1 {
-            Shape::Square => 2,
-            Shape::Rotated { .. } => self.parents(x, z).iter().flatten().count() as u32,
-        }
+        bintree::added(self.size, x, z)
     }
 
     fn any_split(&self, list: &[Option<u32>]) -> bool {
