@@ -330,8 +330,8 @@ impl Workspace {
         }
     }
 
-    /// Every reference from one file to another, but a module's `pub use` of what its own
-    /// descendants define.
+    /// Every reference from one file to another, but those between a module and its own
+    /// descendants (either way: a module's file and its children are not a circle).
     pub fn edges(&self) -> BTreeSet<Edge> {
         let mut out = BTreeSet::new();
         for (m, u) in &self.pending {
@@ -347,7 +347,7 @@ impl Workspace {
             let (Res::Module(t) | Res::Item(t)) = res;
             let from = &self.modules[*m].file;
             let to = &self.modules[t].file;
-            if from == to || (u.public && self.descends(t, *m)) {
+            if from == to || self.descends(t, *m) || self.descends(*m, t) {
                 continue;
             }
             out.insert(Edge {
@@ -373,11 +373,29 @@ impl Workspace {
 
 /// The file `#[path = "p"]` names, from a file in `dir` with inline modules `scopes` open.
 fn cur_dir_of(dir: &Path, scopes: &[(ModId, usize, PathBuf)], p: &str) -> PathBuf {
-    if scopes.len() > 1 {
+    let joined = if scopes.len() > 1 {
         scopes.last().expect("an inline module").2.join(p)
     } else {
         dir.join(p)
+    };
+    lexical(&joined)
+}
+
+/// `p` with its `.` and `dir/..` steps taken (`protocol/benches/../tests/common/mod.rs` is
+/// `protocol/tests/common/mod.rs`), as the files are named when walked.
+fn lexical(p: &Path) -> PathBuf {
+    use std::path::Component;
+    let mut out = PathBuf::new();
+    for c in p.components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir if out.file_name().is_some() => {
+                out.pop();
+            }
+            c => out.push(c),
+        }
     }
+    out
 }
 
 /// Parses the use tree starting at token `i` (after `use`) under `prefix`, pushing its
