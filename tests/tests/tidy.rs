@@ -165,7 +165,7 @@ const CLOCK_WORDS: &[&str] = &[
 const CLOCK_READERS: &[(&str, &str)] = &[
     // The server's network shell.
     (
-        "server/src/net/mod.rs",
+        "server/src/net/server.rs",
         "the server's shell: the accept loop's pauses, shutdown's waits, the summaries' ticker",
     ),
     (
@@ -198,12 +198,16 @@ const CLOCK_READERS: &[(&str, &str)] = &[
     ),
     (
         "server/src/net/bus/edge.rs",
-        "an edge's link to the world: when it was last heard, reconnection deadlines",
+        "an edge's connection to the world: when it was last heard, reconnection deadlines",
     ),
     // The server's command line.
     (
         "server/src/cli/net.rs",
         "`serve`: times loading the data set",
+    ),
+    (
+        "server/src/cli/served.rs",
+        "opening what is served: times the data set's load, the tiles and the hash",
     ),
     (
         "server/src/cli/progress.rs",
@@ -292,7 +296,7 @@ const CLOCK_READERS: &[(&str, &str)] = &[
     ),
     ("tests/src/web.rs", "a WebTransport client's reads bounded"),
     (
-        "tests/src/simnet/mod.rs",
+        "tests/src/simnet/sim.rs",
         "virtual time counts from one real `Instant`, its epoch; nothing waits on it",
     ),
     ("tests/src/bin/roam-flood.rs", "the flood's pace and length"),
