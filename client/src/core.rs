@@ -2,7 +2,8 @@
 //! `quinn`): the newest frame waiting, the bases frames are coded against, decoding,
 //! acknowledgements and key-frame requests, the triangle budget, and the keys (the latch,
 //! the numbered states and the history each datagram repeats). Time comes in as a
-//! parameter. `session.rs` is the I/O around it (QUIC, tasks, the clock); the window, the
+//! parameter. `session.rs`, `connection.rs` and `quic.rs` are the I/O around it (QUIC,
+//! tasks, the clock); the window, the
 //! headless viewer and `--bench` all take frames through it, and the simulated network
 //! in the tests drives this core directly.
 //!

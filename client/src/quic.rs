@@ -12,8 +12,8 @@
 //! Grid limit: the viewer takes any grid the protocol has (`2^15 + 1`,
 //! `roam_protocol::Grid::new`); it was `2^13 + 1` while the colour map came whole. Grid
 //! coordinates are `u16` (32768 fits) and world positions `f32` (32768 cells at 100 m are
-//! 3,277 km: `f32` steps of 0.25 m at the far edge). What grows with the grid is the frame
-//! decoder's state (the heights and each base's split set, [`crate::core::ClientCore`]).
+//! 3,277 km: `f32` steps of 0.25 m at the far edge). The frame decoder's state is sized by
+//! the cut, not the grid ([`crate::core::ClientCore`]).
 
 use std::net::SocketAddr;
 

@@ -174,7 +174,7 @@ async fn the_page_says_why_when_the_server_goes_away() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_page_reconnects_after_its_link_drops_and_gets_its_vehicle_back() {
+async fn the_page_reconnects_after_its_path_drops_and_gets_its_vehicle_back() {
     use roam_tests::relay::{Relay, RelayConfig};
     let running = serve();
     let web = running.server.web_addr().expect("serving --web");

@@ -28,6 +28,9 @@
 //!   (`ViewerCore`) is a type, trait or enum variant defined in the workspace's sources,
 //!   or one [`ELSEWHERE`] names with where it comes from (else write it with its path:
 //!   `wgpu::TextureView`).
+//! - **Files outside** (every document): no Markdown link or word climbs out of the
+//!   repository, and every relative link, and every other word with `../`, names a file
+//!   that exists (read from the document's folder).
 //! - **Commands** (README.md, ARCHITECTURE.md, `docs/*.md`): every line of a ```` ```sh ````
 //!   block and every code span that is a command — a workspace binary (`roam-server`,
 //!   `roam-client`, …, or `target/PROFILE/roam-…`), `cargo …`, or a script under
@@ -81,6 +84,118 @@ fn check(rule: &str, offenders: Vec<String>) {
         "{rule} ({}):\n  {}",
         offenders.len(),
         offenders.join("\n  ")
+    );
+}
+
+/// What `target`, written in the document at `doc` (relative to the root), names: the
+/// path from the root with its `.` and `..` steps taken, or `None` when it climbs out of
+/// the repository.
+fn inside(doc: &str, target: &str) -> Option<std::path::PathBuf> {
+    use std::path::{Component, Path, PathBuf};
+    let dir = Path::new(doc).parent().unwrap_or(Path::new(""));
+    let mut out = PathBuf::new();
+    for c in dir.join(target).components() {
+        match c {
+            Component::CurDir => {}
+            Component::ParentDir => {
+                if !out.pop() {
+                    return None;
+                }
+            }
+            Component::Normal(n) => out.push(n),
+            Component::RootDir | Component::Prefix(_) => return None,
+        }
+    }
+    Some(out)
+}
+
+/// The relative targets of `text`'s Markdown links (`[words](target)`, an anchor cut
+/// off; web addresses and links within the page left out), with their lines.
+fn link_targets(text: &str) -> Vec<(usize, String)> {
+    let mut out = Vec::new();
+    for (n, line) in text.lines().enumerate() {
+        let mut rest = line;
+        while let Some(i) = rest.find("](") {
+            rest = &rest[i + 2..];
+            let end = rest.find(')').unwrap_or(rest.len());
+            let target = rest[..end].split('#').next().unwrap_or("").trim();
+            if !target.is_empty() && !target.contains("://") && !target.starts_with("mailto:") {
+                out.push((n + 1, target.to_owned()));
+            }
+            rest = &rest[end..];
+        }
+    }
+    out
+}
+
+#[test]
+fn every_document_names_only_files_in_the_repository() {
+    let root = root();
+    let mut bad = Vec::new();
+    let mut links = 0;
+    for (file, text) in documents() {
+        for (line, target) in link_targets(&text) {
+            links += 1;
+            match inside(&file, &target) {
+                None => bad.push(format!("{file}:{line}: {target}: outside the repository")),
+                Some(p) if !root.join(&p).exists() => bad.push(format!(
+                    "{file}:{line}: {target}: no such file ({})",
+                    p.display()
+                )),
+                Some(_) => {}
+            }
+        }
+        // A `..` path anywhere else (a code span, prose): it must name a file here.
+        for (n, l) in text.lines().enumerate() {
+            for word in l.split_whitespace().filter(|w| w.contains("../")) {
+                let word = word
+                    .trim_start_matches(|c: char| "`*_\"'(".contains(c))
+                    .trim_end_matches(|c: char| "`*_\"'),.;:".contains(c));
+                let target = word.rsplit("](").next().unwrap_or(word);
+                let target = target.trim_end_matches(')').split('#').next().unwrap_or("");
+                // Read from the document's folder, it must land on a file here.
+                if !inside(&file, target).is_some_and(|p| root.join(p).exists()) {
+                    bad.push(format!(
+                        "{file}:{}: {word}: outside the repository (or no such file)",
+                        n + 1
+                    ));
+                }
+            }
+        }
+    }
+    assert!(
+        links > 0,
+        "no link found in the documents: the reading is broken"
+    );
+    bad.sort();
+    bad.dedup();
+    check(
+        "documents naming files outside the repository or not in it",
+        bad,
+    );
+}
+
+#[test]
+fn the_link_reader_sees_targets_and_what_leaves_the_repository() {
+    let md = "See [the spec](docs/spec.md#keys), [web](https://x.org/a.md), [here](#top)\n\
+              and [up](../README.md) or [out](../../shared/SPEC.md).\n";
+    assert_eq!(
+        link_targets(md),
+        [
+            (1, "docs/spec.md".to_owned()),
+            (2, "../README.md".to_owned()),
+            (2, "../../shared/SPEC.md".to_owned()),
+        ]
+    );
+    assert_eq!(
+        inside("docs/cluster.md", "../README.md"),
+        Some("README.md".into())
+    );
+    assert_eq!(inside("docs/cluster.md", "../../shared/SPEC.md"), None);
+    assert_eq!(inside("README.md", "../shared/SPEC.md"), None);
+    assert_eq!(
+        inside("README.md", "docs/./spec.md"),
+        Some("docs/spec.md".into())
     );
 }
 

@@ -1,9 +1,9 @@
-//! A driver whose link drops, against a real server on loopback through the lossy relay
-//! ([`Relay::cut`] black-holes its datagrams both ways, as a dropped Wi-Fi link does): the
+//! A driver whose path to the server drops, against a real server on loopback through the lossy relay
+//! ([`Relay::cut`] black-holes its datagrams both ways, as a dropped Wi-Fi connection does): the
 //! viewer finds the server silent (a short silence here, 10 s by default), reconnects by
 //! itself presenting its ticket, and
 //!
-//! - back within the server's hold (5 s here, 30 s by default, counted from when the link
+//! - back within the server's hold (5 s here, 30 s by default, counted from when the path
 //!   fell silent), gets **its** vehicle back (`resumed`, the same id, where it had driven
 //!   to), and its frames go on;
 //! - back after the hold (the server has dropped the connection on its idle timeout, 10 s
@@ -34,7 +34,7 @@ use tokio::sync::watch;
 /// (a starved viewer would find its server silent).
 static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
-/// The server's hold on a dropped driver's vehicle, from the link's silence: longer than
+/// The server's hold on a dropped driver's vehicle, from the path's silence: longer than
 /// the viewer's 2 s of patience and its reconnection, shorter than the server's idle timeout.
 const HOLD: Duration = Duration::from_secs(5);
 /// The viewer's patience: silent for 2 s is lost; reconnect for a minute (longer than the
@@ -138,7 +138,7 @@ fn from(a: &VehicleView, b: &VehicleView) -> f64 {
     (a.x - b.x).hypot(a.z - b.z)
 }
 
-/// Drives away from the start, then cuts the link until the viewer finds the server
+/// Drives away from the start, then cuts the path until the viewer finds the server
 /// silent. The driver's vehicle, its start and where it had got to.
 async fn drive_then_cut(r: &Running, s: &Session) -> (u16, VehicleView, VehicleView) {
     let id = s.vehicle();

@@ -7,7 +7,7 @@
 //!
 //! How a frame goes:
 //!
-//! - a **change frame** that fits in one datagram goes as one (on a lossy link,
+//! - a **change frame** that fits in one datagram goes as one (on a lossy path,
 //!   [`LossMeter`], a small one goes twice, the copy [`REPEAT_AFTER`] later); a larger one
 //!   on a stream of its own, abandoned (reset) when the next frame is ready unless the
 //!   viewer has acknowledged it (latest frame wins): a lost or abandoned change frame is
@@ -15,7 +15,7 @@
 //! - a **key frame** always goes on a stream of its own, reliably, at the highest
 //!   priority, and is not abandoned while it is pending
 //!   ([`crate::viewer::ViewerCore::pending_key`]): the frames after it are coded against
-//!   it before the viewer has it, so on a link that cannot carry a key frame a frame
+//!   it before the viewer has it, so on a path that cannot carry a key frame a frame
 //!   interval it still arrives, and the viewer decodes it and the frames after. It is reset
 //!   only once superseded by a newer key frame (or when the viewer asked for another),
 //!   unless acknowledged.
@@ -70,7 +70,7 @@ use crate::viewer::color::ColorScheduler;
 use crate::viewer::conversation::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
 use crate::viewer::{KeyCause, ViewerCore};
 
-/// How long after a small frame its second copy goes, on a lossy link ([`LossMeter`]).
+/// How long after a small frame its second copy goes, on a lossy path ([`LossMeter`]).
 const REPEAT_AFTER: Duration = Duration::from_millis(4);
 
 /// How long a last message may take to be received before the connection closes anyway.
@@ -125,7 +125,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     };
     let started = std::time::Instant::now();
     // When a key datagram last came: a driver sends one every 10 ms, so the time since is
-    // how long its link has been silent when the connection is found dead.
+    // how long its path has been silent when the connection is found dead.
     let heard = Arc::new(Mutex::new(started));
     let silent = || heard.lock().unwrap_or_else(|e| e.into_inner()).elapsed();
     // Colour never delays a frame (frames' priorities are their numbers, from 0).
@@ -151,7 +151,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         return;
     }
     // Frames made: the colour task starts once the first is (what it sends is of no use
-    // before, and would only share the link with it).
+    // before, and would only share the path with it).
     let (sent, made) = tokio::sync::watch::channel(0u64);
     // The vehicle followed: a spectator may change it, and so may a replay (its vehicle
     // left); the colour task streams around it.
@@ -325,7 +325,7 @@ fn lost(conn: &Conn) -> String {
 
 /// Tells the world a driver left, however the connection ended: a goodbye frees its
 /// vehicle, a lost connection has it held ([`Event::Hold`]), the hold counted from when
-/// its link fell silent (`hold`: how long before the end that was). On an edge, told to the
+/// its path fell silent (`hold`: how long before the end that was). On an edge, told to the
 /// world over the bus with the connection's claim, in order with the resumes.
 struct Leave {
     world: std::sync::mpsc::Sender<super::world_loop::Inbound>,
@@ -638,7 +638,7 @@ async fn frames(
         }
         // Latest frame wins: the previous change frame's stream is reset unless the viewer
         // has acknowledged it, whether it is still being written or already handed to quinn
-        // (a finished stream still waits in the send buffer on a slow link). The key frame
+        // (a finished stream still waits in the send buffer on a slow path). The key frame
         // is the exception: it goes on until it is no longer pending (acknowledged,
         // superseded by a newer key frame, or another asked for).
         if let Some(k) = key_in_flight.take_if(|k| pending_key != Some(k.frame)) {
