@@ -11,8 +11,8 @@
 //! control messages written in order (each within [`CONTROL_TIMEOUT`]), the goodbye said
 //! when the viewer quits, and the silence watched
 //! ([`crate::supervisor::Patience::allowed_silence`]); one attempt to join ([`attempt`]:
-//! the handshake and then the welcome bounded); and the key sender, every 10 ms on the
-//! process's grid. This is a shell: it reads the clock (when the server was last heard,
+//! the handshake and then the welcome bounded); and the key sender, every 10 ms (on the
+//! process's 10 ms grid for a script given a phase). This is a shell: it reads the clock (when the server was last heard,
 //! when a frame arrived, the key clock, the timeouts) and hands the instants to the cores
 //! and the supervisor; the supervisor decides whether a connection's end ends the session.
 

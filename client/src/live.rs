@@ -1,5 +1,6 @@
-//! The window's network task: it keeps a [`Session`] going on the async runtime, sends the
-//! key latch every physics step, decodes the newest frame and builds its vertices, and
+//! The window's network task: it keeps a [`Session`] going on the async runtime (the
+//! session's key sender, in `connection.rs`, sends the latch every 10 ms), feeds the
+//! window's keys into the session's latch, decodes the newest frame and builds its vertices, and
 //! leaves the result for the render thread, which never waits on the network. The session
 //! reconnects by itself; the HUD reads its state ([`Shared::status`]).
 

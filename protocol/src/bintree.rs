@@ -1,6 +1,7 @@
-//! The triangle bintree of a `2^N + 1` grid, diamond by diamond, without allocating: the
-//! one place its geometry is written, for the codec, the variance tree and the
-//! tessellators alike.
+//! The triangle bintree of a `2^N + 1` grid, diamond by diamond, without allocating: where
+//! its geometry is defined, for the codec, the variance tree and the tessellators alike
+//! (a few hot paths, such as the tessellator's branchless parents and its output pass,
+//! work parts of it out inline).
 //!
 //! Grid coordinates run `0..=size` (`size = 2^N`); `x` is the column (east), `z` the row
 //! (south). Splitting a bintree triangle bisects its hypotenuse; the two triangles sharing

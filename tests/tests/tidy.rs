@@ -233,7 +233,7 @@ const CLOCK_READERS: &[(&str, &str)] = &[
     ),
     (
         "client/src/connection.rs",
-        "a connection's tasks and the reconnection supervisor: tokio timers bound the \
+        "a connection's tasks, carrying out the reconnection supervisor's timers: tokio timers bound the \
          handshake, the join and control writes, pace the key sender, watch the silence and \
          back off between attempts",
     ),

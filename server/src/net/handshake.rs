@@ -1,4 +1,5 @@
-//! A connection from its first packet to its welcome: admission (the pending cap, QUIC
+//! A connection from its first packet to its hello and join (the welcome is
+//! `viewer.rs`'s): admission (the pending cap, QUIC
 //! Retry, eviction of the oldest pending connection: [`crate::viewer::admission`]), one
 //! deadline for the TLS handshake and the hello together, the hello's checks (version,
 //! token, then a seat: the viewer limit and the memory limit), and the join: a new
