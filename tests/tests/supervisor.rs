@@ -9,32 +9,20 @@ use roam_client::conversation::TerrainId;
 use roam_client::supervisor::{
     Attempt, BACKOFF_FIRST, End, HANDSHAKE, HANDSHAKE_MANY, Patience, SILENCE, State, Supervisor,
 };
-use roam_protocol::messages::{VERSION, Welcome};
+use roam_protocol::messages::Welcome;
 use roam_protocol::tiles::ColorLayout;
+use roam_tests::fixtures::fake_welcome;
 
 fn welcome(h_scale: f64) -> Welcome {
+    let color = ColorLayout {
+        cells: 16,
+        tile: 16,
+        levels: 1,
+        window: 1,
+    };
     Welcome {
-        version: VERSION,
-        levels: 4,
         h_scale,
-        v_scale: 1.0,
-        sun_dir: [0.0, 1.0, 0.0],
-        sun_color: [255; 3],
-        fog_density: 0.0,
-        fog_color: [0; 3],
-        water_level: None,
-        vehicle: 1,
-        color: ColorLayout {
-            cells: 16,
-            tile: 16,
-            levels: 1,
-            window: 1,
-        },
-        tick: 0,
-        ticket: None,
-        resumed: false,
-        max_budget: 65_536,
-        max_fps: 60,
+        ..fake_welcome(color)
     }
 }
 

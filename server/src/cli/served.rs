@@ -106,14 +106,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
     )
     .with_context(|| dir.display().to_string())?;
     drop(p);
-    match outcome {
-        CacheOutcome::Mapped => {}
-        CacheOutcome::Built => tracing::info!("colour tiles cached"),
-        CacheOutcome::Rebuilt(why) => tracing::warn!("colour tile cache rebuilt: {why}"),
-        CacheOutcome::InMemory(why) => {
-            tracing::warn!("colour tiles kept in memory, not cached: {why}")
-        }
-    }
+    log_outcome("colour", outcome);
     tracing::info!(
         levels = pyramid.levels(),
         kbytes = pyramid.coded_bytes() / 1000,
@@ -132,14 +125,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
     )
     .with_context(|| dir.display().to_string())?;
     drop(p);
-    match outcome {
-        CacheOutcome::Mapped => {}
-        CacheOutcome::Built => tracing::info!("normal tiles cached"),
-        CacheOutcome::Rebuilt(why) => tracing::warn!("normal tile cache rebuilt: {why}"),
-        CacheOutcome::InMemory(why) => {
-            tracing::warn!("normal tiles kept in memory, not cached: {why}")
-        }
-    }
+    log_outcome("normal", outcome);
     tracing::info!(
         levels = normals.levels(),
         kbytes = normals.coded_bytes() / 1000,
@@ -179,4 +165,16 @@ pub fn open_replay(
         tracing::info!("following {name} as it grows");
     }
     Ok(replaying)
+}
+
+/// Logs what became of a tile pyramid's cache (`kind`: "colour" or "normal").
+fn log_outcome(kind: &str, outcome: CacheOutcome) {
+    match outcome {
+        CacheOutcome::Mapped => {}
+        CacheOutcome::Built => tracing::info!("{kind} tiles cached"),
+        CacheOutcome::Rebuilt(why) => tracing::warn!("{kind} tile cache rebuilt: {why}"),
+        CacheOutcome::InMemory(why) => {
+            tracing::warn!("{kind} tiles kept in memory, not cached: {why}")
+        }
+    }
 }

@@ -22,6 +22,19 @@ struct Use {
     line: usize,
 }
 
+impl Use {
+    /// A path written inline (`crate::a::f()`, `wire::read()`) at `line`: it binds nothing.
+    fn inline(segs: Vec<String>, line: usize) -> Use {
+        Use {
+            segs,
+            name: None,
+            inline: true,
+            public: false,
+            line,
+        }
+    }
+}
+
 #[derive(Debug, Default)]
 struct Module {
     file: PathBuf,
@@ -200,15 +213,7 @@ impl Workspace {
                         && idents
                         && matches!(segs[0].as_str(), "crate" | "super" | "self")
                     {
-                        let line = toks[i].line;
-                        let u = Use {
-                            segs,
-                            name: None,
-                            inline: true,
-                            public: false,
-                            line,
-                        };
-                        self.pending.push((cur, u));
+                        self.pending.push((cur, Use::inline(segs, toks[i].line)));
                     }
                 }
                 Tok::Ident(w) if w == "macro_rules" && top && punct(i + 1, '!') => {
@@ -241,15 +246,7 @@ impl Workspace {
                         k += 2;
                     }
                     if segs.len() > 1 {
-                        let line = toks[i].line;
-                        let u = Use {
-                            segs,
-                            name: None,
-                            inline: true,
-                            public: false,
-                            line,
-                        };
-                        self.pending.push((cur, u));
+                        self.pending.push((cur, Use::inline(segs, toks[i].line)));
                     }
                     i = k;
                     continue;
