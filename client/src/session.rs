@@ -15,7 +15,7 @@
 //! within [`HANDSHAKE_MANY`] when there are several); [`Session::addr`] is the one in use.
 //!
 //! **Reconnecting** follows the [`Supervisor`] (`supervisor.rs`, the page's too): a lost
-//! or silent connection ([`Patience::silence`], 10 s; [`SILENCE_MANY`] with other
+//! or silent connection ([`Patience::silence`], 10 s; [`SILENCE_MANY`](crate::supervisor::SILENCE_MANY) with other
 //! addresses) is made again at the next address in turn, from the same endpoint, with the
 //! same certificate pin and token, presenting the driver's ticket ([`Hello::resume`]; a
 //! spectator asks to follow the same vehicle), backing off from 100 ms to 2 s, for
@@ -56,10 +56,8 @@ pub use crate::edges::World;
 pub use crate::quic::connect;
 use crate::quic::{self, Joined};
 use crate::render::Scene;
-pub use crate::supervisor::{
-    HANDSHAKE_MANY, Patience, RECONNECT_FOR, SILENCE, SILENCE_MANY, State,
-};
-use crate::supervisor::{JOIN_TIMEOUT, Supervisor};
+use crate::supervisor::{HANDSHAKE_MANY, JOIN_TIMEOUT, Supervisor};
+pub use crate::supervisor::{Patience, State};
 
 /// Set once Ctrl-C is pressed in the terminal; a second Ctrl-C exits at once (130), not
 /// waiting for goodbyes. For the headless viewer and the window alike.

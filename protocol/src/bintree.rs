@@ -447,22 +447,8 @@ impl Diamond {
         Some(Diamond { x, z, m, shape })
     }
 
-    /// The root diamond of a `size × size` map.
-    pub fn root(size: u32) -> Diamond {
-        Diamond {
-            x: size / 2,
-            z: size / 2,
-            m: size.trailing_zeros() - 1,
-            shape: Shape::Square,
-        }
-    }
-
     pub fn h(&self) -> u32 {
         1 << self.m
-    }
-
-    pub fn centre(&self) -> Vertex {
-        (self.x, self.z)
     }
 
     /// Depth in the bintree of the diamond's triangles (the root diamond is 0, the finest

@@ -4,6 +4,7 @@
 //! lies inside another triangle's edge. Used by tests and by viewers checking what they
 //! decode.
 
+use crate::bintree::ccw;
 use std::collections::{HashMap, HashSet};
 
 /// What is wrong with a mesh.
@@ -40,15 +41,6 @@ pub enum MeshError {
     },
     #[error("{0} triangles, over the budget of {1}")]
     Budget(usize, u32),
-}
-
-/// Twice the signed area of `a b c`, positive when counter-clockwise seen from above
-/// (+X east, +Z south).
-fn ccw(a: (u32, u32), b: (u32, u32), c: (u32, u32)) -> i64 {
-    let (ax, az) = (i64::from(a.0), i64::from(a.1));
-    let (bx, bz) = (i64::from(b.0) - ax, i64::from(b.1) - az);
-    let (cx, cz) = (i64::from(c.0) - ax, i64::from(c.1) - az);
-    bz * cx - bx * cz
 }
 
 /// Checks the mesh structure described in the module docs.
