@@ -6,6 +6,7 @@
 #   scripts/cluster.sh latency            (what the bus adds between a key and its frame)
 #   scripts/cluster.sh fanout [N ...]     (snapshot fan-out; default 10 100 1000 vehicles)
 #   scripts/cluster.sh capacity [N ...]   (viewers per edge core: EDGE=1 scripts/capacity.sh)
+#   scripts/cluster.sh proofs [N]         (the world's CPU with the bus sealed against plain)
 #   PROFILE=measure scripts/cluster.sh fanout 10 100 1000
 #
 # Every line has `loadavg` (the 1-minute load average when it was printed: this is a
@@ -50,6 +51,14 @@
 #     load is no load); keys_to_snapshot_ms_median/_p99: a key state published to the
 #     first snapshot showing it applied (the bus both ways plus the world's key queue).
 #
+# proofs: what sealing every bus message (issue 39: `--bus-secret`) costs the world.
+# ROUNDS_SET rounds (default 3) of fanout's measure at N vehicles (default 1000) over EDGES
+# fake edges, each round once with the cluster's secret and once `--insecure-bus` (A/B,
+# alternating which goes first), nats-server and the world started afresh for each run.
+# One line per run (fanout's, with `proofs`: true or false), then a summary:
+# `sealed_us_per_tick` and `plain_us_per_tick` (the runs' medians of
+# world_cpu_us_per_tick), their `ratio` (issue 39 asks ≤ 1.2), and each run's figures.
+#
 # capacity: `EDGE=1 scripts/capacity.sh N ...` (default as capacity.sh's): capacity.sh's
 # measure of a `serve` core, the edge in `serve`'s place (pinned to CPU 0) and
 # nats-server and the world on CPU 1 with the load generator; `server_cpu_*` are the
@@ -89,9 +98,9 @@ cd "$(dirname "$0")/.."
 MODE=${1:-}
 (($#)) && shift
 case "$MODE" in
-latency | fanout | capacity) ;;
+latency | fanout | capacity | proofs) ;;
 *)
-    echo "usage: scripts/cluster.sh latency | fanout [N ...] | capacity [N ...]" >&2
+    echo "usage: scripts/cluster.sh latency | fanout [N ...] | capacity [N ...] | proofs [N]" >&2
     exit 2
     ;;
 esac
@@ -183,26 +192,23 @@ EOF
     exit 0
 fi
 
-# fanout
+# fanout (and proofs: fanout at one N, sealed and plain)
 state=$(mktemp -d)
-COUNTS=("$@")
-((${#COUNTS[@]})) || COUNTS=(10 100 1000)
-most=0
-for n in "${COUNTS[@]}"; do ((n > most)) && most=$n; done
 world_cpu=() nats_cpu=()
 if (($(nproc) >= 2)); then
     world_cpu=(taskset -c 0) nats_cpu=(taskset -c 1)
 fi
-start_nats "${nats_cpu[@]}"
-WORLD_ARGS="--max-vehicles $((most + 64)) ${WORLD_ARGS:-}" start_world "$DATA" "${world_cpu[@]}"
-for n in "${COUNTS[@]}"; do
-    report="$state/fanout-$n.json"
+# measure N [KEY=VALUE]: one bus-load run at N vehicles against the running world; one
+# JSON line (with KEY=VALUE added, a JSON value).
+measure() {
+    local n=$1 extra=${2:-} report="$state/fanout-$1.json"
+    # shellcheck disable=SC2046
     timeout $((${WINDOW_S%.*} + 120)) "${nats_cpu[@]}" "$BIN_DIR/roam-server" bus-load \
-        --nats "$nats_url" --world "$WORLD" --vehicles "$n" --edges "$EDGES" \
+        --nats "$nats_url" --world "$WORLD" $(bus_args) --vehicles "$n" --edges "$EDGES" \
         --seconds "$WINDOW_S" --cpu-pid "world=$world" --cpu-pid "nats=$nats" \
         >"$report" 2>"$state/fanout-$n.err" ||
         { echo "error: bus-load with $n vehicles failed:" >&2; cat "$state/fanout-$n.err" >&2; exit 1; }
-    python3 - "$report" "$(loadavg)" <<'EOF'
+    python3 - "$report" "$(loadavg)" "$extra" <<'EOF'
 import json, sys
 r = json.loads(open(sys.argv[1]).read().strip().splitlines()[-1])
 r["loadavg"] = float(sys.argv[2])
@@ -212,6 +218,52 @@ r["nats_cpu_us_per_tick"] = r["cpu_us_per_tick"]["nats"]
 r["nats_cpu_share"] = r["cpu_share"]["nats"]
 for k in ("cpu_s", "cpu_us_per_tick", "cpu_share"):
     del r[k]
+if sys.argv[3]:
+    key, value = sys.argv[3].split("=", 1)
+    r[key] = json.loads(value)
 print(json.dumps(r, sort_keys=True), flush=True)
 EOF
+}
+
+if [[ "$MODE" == proofs ]]; then
+    n=${1:-1000}
+    ROUNDS=${ROUNDS_SET:-3}
+    for r in $(seq 1 "$ROUNDS"); do
+        order=(1 0)
+        ((r % 2)) || order=(0 1)
+        for insecure in "${order[@]}"; do
+            export INSECURE_BUS=$insecure
+            start_nats "${nats_cpu[@]}"
+            WORLD_ARGS="--max-vehicles $((n + 64)) ${WORLD_ARGS:-}" start_world "$DATA" "${world_cpu[@]}"
+            proofs=true
+            ((insecure)) && proofs=false
+            measure "$n" "proofs=$proofs" | tee -a "$state/proofs.jsonl"
+            stop_pid "$world" "$nats"
+            world='' nats=''
+        done
+    done
+    python3 - "$state/proofs.jsonl" "$(loadavg)" "$n" <<'EOF'
+import json, statistics, sys
+runs = [json.loads(l) for l in open(sys.argv[1])]
+def figures(sealed):
+    return [r["world_cpu_us_per_tick"] for r in runs if r["proofs"] == sealed]
+out = {"summary": "proofs", "vehicles": int(sys.argv[3]), "loadavg": float(sys.argv[2]),
+       "sealed_runs": figures(True), "plain_runs": figures(False),
+       "sealed_us_per_tick": statistics.median(figures(True)),
+       "plain_us_per_tick": statistics.median(figures(False))}
+out["ratio"] = round(out["sealed_us_per_tick"] / out["plain_us_per_tick"], 3)
+out["vehicles_moved_min"] = min(r["vehicles_moved"] for r in runs)
+print(json.dumps(out, sort_keys=True), flush=True)
+EOF
+    exit 0
+fi
+
+COUNTS=("$@")
+((${#COUNTS[@]})) || COUNTS=(10 100 1000)
+most=0
+for n in "${COUNTS[@]}"; do ((n > most)) && most=$n; done
+start_nats "${nats_cpu[@]}"
+WORLD_ARGS="--max-vehicles $((most + 64)) ${WORLD_ARGS:-}" start_world "$DATA" "${world_cpu[@]}"
+for n in "${COUNTS[@]}"; do
+    measure "$n"
 done

@@ -68,12 +68,24 @@ start_nats() {
     [[ "$nats_url" == nats://?*:?* ]] || { echo "error: where nats-server listens?" >&2; cat "$log" >&2; exit 1; }
 }
 
+# bus_args: the flags that give the world, an edge or bus-load the cluster's secret
+#   ($state/bus.key, made once), or `--insecure-bus` when INSECURE_BUS=1.
+bus_args() {
+    if [[ "${INSECURE_BUS:-0}" == 1 ]]; then
+        echo --insecure-bus
+        return
+    fi
+    [[ -s "$state/bus.key" ]] || "${BIN_DIR:-target/release}/roam-server" bus-secret "$state/bus.key" >/dev/null
+    echo --bus-secret "$state/bus.key"
+}
+
 start_world() {
     local data=$1
     shift
     local log="$state/world.log"
+    # shellcheck disable=SC2046
     "$@" "${BIN_DIR:-target/release}/roam-server" world "$data" --nats "$nats_url" \
-        --world "${WORLD:-bench}" --state-dir "$state/world" ${WORLD_ARGS:-} >"$log" 2>&1 &
+        --world "${WORLD:-bench}" --state-dir "$state/world" $(bus_args) ${WORLD_ARGS:-} >"$log" 2>&1 &
     world=$!
     wait_line "$log" '^serve it with:' "$world" 120 "roam-server world"
 }
@@ -82,8 +94,9 @@ start_edge() {
     local data=$1
     shift
     local log="$state/edge.log"
+    # shellcheck disable=SC2046
     "$@" "${BIN_DIR:-target/release}/roam-server" edge "$data" --nats "$nats_url" \
-        --world "${WORLD:-bench}" --listen 127.0.0.1:0 --state-dir "$state/edge" \
+        --world "${WORLD:-bench}" --listen 127.0.0.1:0 --state-dir "$state/edge" $(bus_args) \
         ${SERVE_ARGS:-} >"$log" 2>&1 &
     edge=$!
     wait_line "$log" '^connect with:' "$edge" 120 "roam-server edge"

@@ -52,6 +52,8 @@ enum Command {
     /// Serve viewers as `serve` does, the world being the one on NATS (`world`); stop with
     /// Ctrl-C.
     Edge(cli::cluster::EdgeArgs),
+    /// Write a new random secret for a world and its edges (`--bus-secret FILE`).
+    BusSecret(cli::cluster::BusSecretArgs),
     /// Stand in for E edges of a world on NATS (joins, hellos, key states, snapshot
     /// subscribers) and measure the snapshot fan-out; one JSON line (`scripts/cluster.sh`).
     #[command(hide = true)]
@@ -77,6 +79,7 @@ fn main() -> ExitCode {
         Command::Serve(args) => cli::net::serve(args),
         Command::World(args) => cli::cluster::world(args),
         Command::Edge(args) => cli::cluster::edge(args),
+        Command::BusSecret(args) => cli::cluster::bus_secret(args),
         Command::BusLoad(args) => cli::bus_load::bus_load(args),
         Command::ColorBench(args) => cli::color_bench::color_bench(args),
         Command::Identity(args) => cli::identity::identity(args),

@@ -218,6 +218,53 @@ fn bad_cli_values() {
     assert!(!Path::new(obj).exists(), "a failed mesh wrote {obj}");
 }
 
+/// `world` and `edge` want the cluster's secret (or `--insecure-bus`, said so), before they
+/// reach for NATS; `bus-secret` writes a new one for its owner's eyes only, never over a
+/// file; a secret too short is refused naming the file.
+#[test]
+fn the_bus_secret_is_asked_for_made_and_checked() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = TempDir::new("bus-secret");
+    let key = dir.path("lake.key");
+    let key = key.to_str().expect("UTF-8 temp path");
+    let short = dir.path("short.key");
+    fs::write(&short, "s3cret\n").expect("written");
+    let short = short.to_str().expect("UTF-8 temp path");
+    // Nothing listens on port 1: a command that got past its secret would fail there.
+    let nats = ["--nats", "nats://127.0.0.1:1"];
+    for cmd in ["world", "edge"] {
+        let args = [&[cmd, "data/synth-65"][..], &nats[..]].concat();
+        check(
+            &args,
+            1,
+            &[
+                "--bus-secret FILE",
+                "roam-server bus-secret",
+                "--insecure-bus",
+            ],
+        );
+        let with = [&args[..], &["--bus-secret", short][..]].concat();
+        check(&with, 1, &[short, "expected at least 32 bytes", "got 6"]);
+        let both = [&args[..], &["--bus-secret", short, "--insecure-bus"][..]].concat();
+        check(&both, 2, &["--insecure-bus", "cannot be used with"]);
+    }
+    check(&["bus-secret", key], 0, &["wrote a new bus secret", key]);
+    let text = fs::read_to_string(key).expect("the secret was written");
+    assert_eq!(text.len(), 65, "{text:?}");
+    assert!(
+        text.trim_end().chars().all(|c| c.is_ascii_hexdigit()),
+        "{text:?}"
+    );
+    let mode = fs::metadata(key).expect("written").permissions().mode();
+    assert_eq!(mode & 0o777, 0o600, "readable by its owner only");
+    check(&["bus-secret", key], 1, &[key, "never replaced"]);
+    assert_eq!(
+        fs::read_to_string(key).expect("still there"),
+        text,
+        "not replaced"
+    );
+}
+
 /// A parsed Wavefront OBJ: vertices and 1-based faces.
 struct Obj {
     vertices: Vec<[f64; 3]>,

@@ -7,6 +7,15 @@ use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+/// The cluster secret of test world `world` (the same in every test process, so an edge in
+/// a process of its own, `roam-test-edge`, holds its world's).
+pub fn test_secret(world: &str) -> roam_server::net::bus::BusSecret {
+    roam_server::net::bus::BusSecret::from_bytes(
+        format!("the roam tests' bus secret for world {world}").as_bytes(),
+    )
+    .expect("longer than the shortest secret")
+}
+
 /// How long `nats-server` has to say it is ready.
 const READY_WAIT: Duration = Duration::from_secs(20);
 

@@ -68,6 +68,7 @@ fn bus(url: String, ca: Option<&Path>) -> BusOptions {
         creds: None,
         ca: ca.map(Path::to_owned),
         name: "roam-test".into(),
+        secret: Some(roam_tests::nats::test_secret("tls")),
     }
 }
 

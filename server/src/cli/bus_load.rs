@@ -65,9 +65,11 @@ use clap::Args;
 use futures_util::StreamExt;
 use roam_protocol::bus::{Answer, Ask, DriverKeys, Keys, MAX_BATCH, Snapshot, Subjects};
 use roam_protocol::keys::Keys as Held;
-use roam_protocol::messages::{KEY_HISTORY, KeyState, decode, encode};
+use roam_protocol::messages::{KEY_HISTORY, KeyState};
 use roam_protocol::stats::quantile;
-use roam_server::net::bus::BusOptions;
+use roam_server::net::bus::asker::Asker;
+use roam_server::net::bus::seal::{Kind, RefusedCounts};
+use roam_server::net::bus::voice::Ear;
 
 use super::cluster::BusArgs;
 
@@ -79,9 +81,6 @@ const BEAT: Duration = Duration::from_millis(500);
 
 /// How often a fake edge publishes its drivers' key states: one state a tick.
 const KEYS_EVERY: Duration = Duration::from_millis(10);
-
-/// How long one request waits for its answer.
-const ASK_TIMEOUT: Duration = Duration::from_secs(5);
 
 /// Tries per join or leave before giving up.
 const TRIES: u32 = 5;
@@ -145,6 +144,10 @@ fn name_pid(text: &str) -> Result<(String, u32), String> {
 struct FakeEdge {
     id: u64,
     client: async_nats::Client,
+    /// Its requests, sealed as a real edge's are (`--bus-secret`), or plain.
+    asker: Asker,
+    /// Its hearing of the snapshots.
+    key: Option<roam_server::net::bus::seal::BusKey>,
     /// Its vehicles, each with the claim the world gave it (named in hellos and leaves).
     vehicles: Mutex<Vec<(u16, u64)>>,
     /// Snapshots received: payload bytes, messages, malformed ones.
@@ -171,17 +174,8 @@ fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
 
 impl FakeEdge {
     /// One request and its answer.
-    async fn ask(&self, subjects: &Subjects, ask: &Ask) -> Result<Answer> {
-        let mut out = Vec::new();
-        encode(ask, &mut out).context("encoding a request")?;
-        let reply = tokio::time::timeout(
-            ASK_TIMEOUT,
-            self.client.request(subjects.ask.clone(), out.into()),
-        )
-        .await
-        .map_err(|_| anyhow::anyhow!("no answer in {ASK_TIMEOUT:?}"))?
-        .context("asking the world")?;
-        decode::<Answer>(&reply.payload).context("the world's answer")
+    async fn ask(&self, _subjects: &Subjects, ask: &Ask) -> Result<Answer> {
+        Ok(self.asker.ask(ask).await?)
     }
 
     fn hello(&self, data: [u8; 32]) -> Ask {
@@ -226,7 +220,6 @@ async fn drive(edge: Arc<FakeEdge>, subjects: Subjects, history: u8) {
     let mut tick = tokio::time::interval(KEYS_EVERY);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
     let mut seq = 0u32;
-    let mut out = Vec::new();
     loop {
         tick.tick().await;
         seq += 1;
@@ -241,15 +234,11 @@ async fn drive(edge: Arc<FakeEdge>, subjects: Subjects, history: u8) {
                     })
                     .collect(),
             };
-            out.clear();
-            if let Err(e) = encode(&batch, &mut out) {
-                tracing::warn!("encoding key states: {e}");
-                continue;
-            }
+            let voice = edge.asker.voice();
+            let (_, payload) = voice.say(Kind::Keys, edge.asker.world(), 0, &batch);
             edge.keys_bytes
-                .fetch_add(out.len() as u64, Ordering::Relaxed);
+                .fetch_add(payload.len() as u64, Ordering::Relaxed);
             edge.keys_messages.fetch_add(1, Ordering::Relaxed);
-            let payload = bytes::Bytes::copy_from_slice(&out);
             if let Err(e) = edge.client.publish(subjects.keys.clone(), payload).await {
                 tracing::warn!("publishing key states: {e}");
             }
@@ -286,17 +275,17 @@ async fn beat(edge: Arc<FakeEdge>, subjects: Subjects, data: [u8; 32]) {
 /// vehicle's newest key states show applied.
 async fn watch(mut sub: async_nats::Subscriber, edge: Arc<FakeEdge>, measuring: Arc<AtomicBool>) {
     let mut applied_before = 0u32;
+    let counts = Arc::new(RefusedCounts::default());
+    let mut ear = Ear::new(Kind::Snapshot, edge.key.as_ref(), counts, "snapshot");
     while let Some(msg) = sub.next().await {
         edge.bytes
             .fetch_add(msg.payload.len() as u64, Ordering::Relaxed);
         edge.messages.fetch_add(1, Ordering::Relaxed);
-        let snap = match decode::<Snapshot>(&msg.payload) {
-            Ok(s) => Arc::new(s),
-            Err(_) => {
-                edge.malformed.fetch_add(1, Ordering::Relaxed);
-                continue;
-            }
+        let Some((_, snap)) = ear.hear::<Snapshot>(&msg.payload) else {
+            edge.malformed.fetch_add(1, Ordering::Relaxed);
+            continue;
         };
+        let snap = Arc::new(snap);
         let probe = lock(&edge.vehicles).first().map(|v| v.0);
         let applied = probe.and_then(|p| snap.applied.iter().find(|(v, _)| *v == p));
         if let Some(&(_, seq)) = applied
@@ -410,17 +399,17 @@ async fn run(args: BusLoadArgs, subjects: Subjects, expected: Option<[u8; 32]>) 
     let mut tasks = Vec::new();
     let measuring = Arc::new(AtomicBool::new(false));
     for i in 0..args.edges {
-        let bus = BusOptions {
-            url: args.bus.nats.clone(),
-            world: args.bus.world.clone(),
-            creds: args.bus.nats_creds.clone(),
-            ca: args.bus.nats_ca.clone(),
-            name: format!("roam-server bus-load {i}"),
-        };
+        let bus = args.bus.options(&format!("roam-server bus-load {i}"))?;
         let client = bus.connect().await?;
+        let id = rand_id(i);
+        let key = bus.key();
+        let counts = Arc::new(RefusedCounts::default());
+        let asker = Asker::start(client.clone(), &subjects, key.as_ref(), id, counts).await?;
         let edge = Arc::new(FakeEdge {
-            id: rand_id(i),
+            id,
             client,
+            asker,
+            key,
             vehicles: Mutex::new(Vec::new()),
             bytes: AtomicU64::new(0),
             messages: AtomicU64::new(0),
@@ -442,7 +431,11 @@ async fn run(args: BusLoadArgs, subjects: Subjects, expected: Option<[u8; 32]>) 
         tasks.push(tokio::spawn(watch(sub, edge.clone(), measuring.clone())));
         edges.push(edge);
     }
-    let data = world_data(&edges[0], &subjects, expected).await?;
+    let (data, world) = world_data(&edges[0], &subjects, expected).await?;
+    // Their requests and key states are for this world process from now on.
+    for e in &edges {
+        e.asker.set_world(world);
+    }
     let beats: Vec<_> = edges
         .iter()
         .map(|e| tokio::spawn(beat(e.clone(), subjects.clone(), data)))
@@ -510,7 +503,7 @@ async fn world_data(
     edge: &FakeEdge,
     subjects: &Subjects,
     expected: Option<[u8; 32]>,
-) -> Result<[u8; 32]> {
+) -> Result<([u8; 32], u64)> {
     let deadline = Instant::now() + Duration::from_secs(30);
     let hello = Ask::Hello {
         data: expected.unwrap_or([0; 32]),
@@ -518,9 +511,9 @@ async fn world_data(
         addresses: Vec::new(),
         vehicles: Vec::new(),
     };
-    let data = loop {
+    let (data, world) = loop {
         match edge.ask(subjects, &hello).await {
-            Ok(Answer::Hello { data, .. }) => break data,
+            Ok(Answer::Hello { data, world, .. }) => break (data, world),
             Ok(other) => bail!("the world answered a hello with {other:?}"),
             Err(e) if Instant::now() >= deadline => {
                 return Err(e.context("no world answered on NATS in 30 s"));
@@ -537,7 +530,7 @@ async fn world_data(
             roam_link::tls::hex(&ours)
         );
     }
-    Ok(data)
+    Ok((data, world))
 }
 
 /// Joins `n` vehicles, vehicle `j` through fake edge `j % E`.

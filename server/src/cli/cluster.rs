@@ -8,8 +8,8 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use clap::Args;
-use roam_server::net::bus::BusOptions;
 use roam_server::net::bus::world::{WorldOptions, WorldServer};
+use roam_server::net::bus::{BusOptions, BusSecret};
 use roam_server::net::{self};
 use roam_server::sim::session::{self, RecordOptions};
 
@@ -33,19 +33,97 @@ pub struct BusArgs {
     /// used for NATS.
     #[arg(long, value_name = "FILE")]
     pub nats_ca: Option<PathBuf>,
+    /// The cluster's secret, shared by the world and its edges (make one with
+    /// `roam-server bus-secret FILE`): every bus message is sealed with it, so nobody else
+    /// on the NATS can steer, free, hold, kick or fill anything, or read a ticket.
+    #[arg(long, value_name = "FILE")]
+    pub bus_secret: Option<PathBuf>,
+    /// Run without the cluster's secret: plain bus messages, which anyone who can publish
+    /// on the NATS can forge (steer or free any vehicle) and anyone who can subscribe can
+    /// read (tickets). Only on a NATS nobody else can reach.
+    #[arg(long, conflicts_with = "bus_secret")]
+    pub insecure_bus: bool,
 }
 
 impl BusArgs {
-    fn options(&self, name: &str) -> Result<BusOptions> {
+    pub(crate) fn options(&self, name: &str) -> Result<BusOptions> {
         roam_protocol::bus::Subjects::of(&self.world).context("--world")?;
+        let secret = match &self.bus_secret {
+            Some(file) => {
+                warn_if_others_read(file);
+                Some(BusSecret::read(file)?)
+            }
+            None if self.insecure_bus => {
+                tracing::warn!(
+                    "--insecure-bus: bus messages are not sealed; anyone who can publish on \
+                     the NATS can steer or free any vehicle"
+                );
+                None
+            }
+            None => anyhow::bail!(
+                "the cluster's secret is needed: --bus-secret FILE (make one with \
+                 `roam-server bus-secret FILE` and copy it to the world and every edge), or \
+                 --insecure-bus to run without it"
+            ),
+        };
         Ok(BusOptions {
             url: self.nats.clone(),
             world: self.world.clone(),
             creds: self.nats_creds.clone(),
             ca: self.nats_ca.clone(),
             name: name.into(),
+            secret,
         })
     }
+}
+
+/// Says so when the secret's file can be read by others than its owner.
+fn warn_if_others_read(file: &std::path::Path) {
+    use std::os::unix::fs::PermissionsExt;
+    if let Ok(meta) = std::fs::metadata(file)
+        && meta.permissions().mode() & 0o077 != 0
+    {
+        tracing::warn!(
+            "the bus secret {} can be read by others than its owner (mode {:o}): chmod 600 it",
+            file.display(),
+            meta.permissions().mode() & 0o777
+        );
+    }
+}
+
+#[derive(Args)]
+pub struct BusSecretArgs {
+    /// Where to write it (refused if the file exists).
+    pub file: PathBuf,
+}
+
+/// `bus-secret FILE`: a new random cluster secret (64 hex digits), readable by its owner
+/// only, for `world`, `edge` and `bus-load`'s `--bus-secret`.
+pub fn bus_secret(args: BusSecretArgs) -> Result<()> {
+    use std::io::Write;
+    use std::os::unix::fs::OpenOptionsExt;
+    let secret = BusSecret::random();
+    let mut file = std::fs::OpenOptions::new()
+        .write(true)
+        .create_new(true)
+        .mode(0o600)
+        .open(&args.file)
+        .with_context(|| {
+            format!(
+                "creating {} (an existing file is never replaced)",
+                args.file.display()
+            )
+        })?;
+    file.write_all(secret.as_bytes())
+        .and_then(|()| file.write_all(b"\n"))
+        .and_then(|()| file.sync_all())
+        .with_context(|| format!("writing {}", args.file.display()))?;
+    say!(
+        "wrote a new bus secret to {}: copy it to the world's and every edge's machine and give it as --bus-secret {}",
+        args.file.display(),
+        args.file.display()
+    );
+    Ok(())
 }
 
 #[derive(Args)]
@@ -187,8 +265,12 @@ pub fn world(args: WorldArgs) -> Result<()> {
             }
             None => say!("serving a recording: its viewers watch it"),
         }
+        let secret = match &args.bus.bus_secret {
+            Some(file) => format!("--bus-secret {}", file.display()),
+            None => "--insecure-bus".into(),
+        };
         say!(
-            "serve it with: roam-server edge {} --nats {} --world {}",
+            "serve it with: roam-server edge {} --nats {} --world {} {secret}",
             args.dir.display(),
             bus.url,
             bus.world

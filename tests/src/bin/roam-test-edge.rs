@@ -37,6 +37,7 @@ fn main() -> Result<()> {
             creds: None,
             ca: None,
             name: "roam-test-edge".into(),
+            secret: Some(roam_tests::nats::test_secret(world)),
         };
         let remote = Remote::connect(
             &bus,

@@ -21,17 +21,17 @@ use std::time::Duration;
 
 use futures_util::StreamExt;
 use roam_protocol::bus::{self as wire, Answer, Ask, DriverKeys, Keys, MAX_BATCH, Subjects};
-use roam_protocol::messages::{Ticket, decode};
+use roam_protocol::messages::Ticket;
 use tokio::sync::{mpsc, oneshot, watch};
 
-use super::{BusError, BusOptions, Malformed, encode, from_wire};
+use super::asker::Asker;
+use super::seal::{BusKey, Kind, Refused, RefusedCounts};
+use super::voice::{Ear, count};
+use super::{BusError, BusOptions, from_wire, lock};
 use crate::Terrain;
 use crate::net::world_loop::Inbound;
 use crate::sim::world::{VehicleId, World};
 use crate::sim::world_core::{Event, Snapshot};
-
-/// How long one request waits for the world's answer.
-const ASK_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// How many times a leave or a hold is asked before it is given up (logged): a vehicle
 /// whose leave is lost stays driven while this edge names it, and is held once it does
@@ -42,6 +42,9 @@ const ASK_TRIES: u32 = 15;
 /// are dropped: each message carries a driver's last few states, and a driver's keys
 /// are sent again 100 times a second.
 const KEYS_QUEUED: usize = 4096;
+
+/// The least time between hellos asked early, to confirm a snapshot's world process.
+const CONFIRM_SPACING: Duration = Duration::from_millis(100);
 
 /// How often an edge says hello to its world.
 pub const BEAT: Duration = Duration::from_millis(500);
@@ -64,6 +67,14 @@ pub struct News {
 pub struct Remote {
     client: async_nats::Client,
     subjects: Subjects,
+    /// Its requests and their answers, sealed for the world process confirmed last.
+    asker: Arc<Asker>,
+    /// The world's key (`None`: a plain bus).
+    key: Option<BusKey>,
+    /// Messages refused, by why.
+    refused: Arc<RefusedCounts>,
+    /// Asks the beat to say hello now (a snapshot from a world process not confirmed).
+    confirm: tokio::sync::Notify,
     world: String,
     url: String,
     data: [u8; 32],
@@ -78,8 +89,6 @@ pub struct Remote {
     tells: mpsc::Sender<Tell>,
     /// Tells queued or being asked, and a wake-up for each one done.
     telling: Arc<(std::sync::atomic::AtomicUsize, tokio::sync::Notify)>,
-    /// The world process heard last (its hellos' answers and its snapshots name it).
-    world_id: std::sync::atomic::AtomicU64,
     /// When the world was last heard (an answer, a snapshot).
     heard: Mutex<tokio::time::Instant>,
     /// The world's last answer named another data set (a world restarted on other data):
@@ -118,18 +127,32 @@ impl Remote {
         let subjects = bus.subjects()?;
         let client = bus.connect().await?;
         let (tells, tells_rx) = mpsc::channel(TELLS_QUEUED);
-        let mut remote = Remote {
+        let key = bus.key();
+        let edge = super::random_id();
+        let refused = Arc::new(RefusedCounts::default());
+        let asker = Asker::start(
+            client.clone(),
+            &subjects,
+            key.as_ref(),
+            edge,
+            refused.clone(),
+        )
+        .await?;
+        let remote = Remote {
             client,
             subjects,
+            asker: Arc::new(asker),
+            key,
+            refused,
+            confirm: tokio::sync::Notify::new(),
             world: bus.world.clone(),
             url: bus.url.clone(),
             data,
-            edge: super::random_id(),
+            edge,
             addresses: Mutex::new(addresses),
             driven: Mutex::new(HashMap::new()),
             tells,
             telling: Arc::default(),
-            world_id: Default::default(),
             heard: Mutex::new(tokio::time::Instant::now()),
             mismatch: Default::default(),
             news: watch::Sender::new(News::default()),
@@ -138,7 +161,7 @@ impl Remote {
         let hello = remote.hello();
         let deadline = tokio::time::Instant::now() + wait;
         let answer = loop {
-            match ask(&remote.client, &remote.subjects, &hello).await {
+            match remote.asker.ask(&hello).await {
                 Ok(answer) => break answer,
                 Err(e) if tokio::time::Instant::now() >= deadline => {
                     tracing::warn!("no answer from the world: {e}");
@@ -166,14 +189,13 @@ impl Remote {
                         dir: dir.to_owned(),
                     });
                 }
-                *remote.world_id.get_mut() = world;
+                remote.asker.set_world(world);
                 remote.news.send_modify(|n| n.edges = edges);
             }
             other => return Err(BusError::Answer(format!("to hello: {other:?}"))),
         }
         tokio::spawn(tell_in_order(
-            remote.client.clone(),
-            remote.subjects.clone(),
+            remote.asker.clone(),
             tells_rx,
             remote.telling.clone(),
         ));
@@ -200,9 +222,13 @@ impl Remote {
         *lock(&self.addresses) = addresses;
     }
 
-    /// World process `world` answered: if it is not the one heard before, the world
-    /// restarted (said once, its drivers let go: their vehicles are not the new world's).
-    fn heard_world(&self, world: u64) {
+    /// The bus messages refused so far, by why.
+    pub fn refused(&self) -> Refused {
+        self.refused.get()
+    }
+
+    /// The world was heard (a snapshot of the world process confirmed last).
+    fn heard_now(&self) {
         *lock(&self.heard) = tokio::time::Instant::now();
         self.news.send_if_modified(|n| {
             let back = !self.mismatch.load(Ordering::Acquire) && n.gone.take().is_some();
@@ -211,7 +237,17 @@ impl Remote {
             }
             back
         });
-        if self.world_id.swap(world, Ordering::AcqRel) == world {
+    }
+
+    /// World process `world` answered a hello (an answer to this edge's own request,
+    /// which only the world can seal): if it is not the one heard before, the world
+    /// restarted (said once, its drivers let go: their vehicles are not the new world's).
+    /// Nothing else makes an edge believe the world restarted.
+    fn heard_world(&self, world: u64) {
+        self.heard_now();
+        let before = self.asker.world();
+        self.asker.set_world(world);
+        if before == world {
             return;
         }
         lock(&self.driven).clear();
@@ -251,7 +287,7 @@ impl Remote {
         &self,
         c: roam_protocol::messages::ReplayControl,
     ) -> Result<(), String> {
-        match ask(&self.client, &self.subjects, &Ask::Replay(c)).await {
+        match self.asker.ask(&Ask::Replay(c)).await {
             Ok(Answer::Done) => Ok(()),
             Ok(Answer::Refused { reason }) => Err(reason),
             Ok(other) => Err(format!(
@@ -263,7 +299,7 @@ impl Remote {
 
     /// A new vehicle for a driver, its ticket and its claim; `Err` says why not.
     pub async fn join(&self) -> Result<(VehicleId, Ticket, u64), String> {
-        match ask(&self.client, &self.subjects, &Ask::Join).await {
+        match self.asker.ask(&Ask::Join).await {
             Ok(Answer::Joined {
                 vehicle,
                 ticket,
@@ -343,49 +379,28 @@ impl Remote {
     }
 }
 
-/// One request, and the world's answer.
-async fn ask(
-    client: &async_nats::Client,
-    subjects: &Subjects,
-    ask: &Ask,
-) -> Result<Answer, BusError> {
-    let nats = |e: String| BusError::Nats {
-        what: "asking the world",
-        error: e,
-    };
-    let reply = tokio::time::timeout(
-        ASK_TIMEOUT,
-        client.request(subjects.ask.clone(), encode(ask)),
-    )
-    .await
-    .map_err(|_| nats("no answer in 2 s".into()))?
-    .map_err(|e| nats(e.to_string()))?;
-    decode::<Answer>(&reply.payload).map_err(|e| BusError::Answer(e.to_string()))
-}
-
 /// Asks what is told, one at a time, in order: a leave or a hold until answered (at most
 /// [`ASK_TRIES`] times), a resume once.
 async fn tell_in_order(
-    client: async_nats::Client,
-    subjects: Subjects,
+    asker: Arc<Asker>,
     mut tells: mpsc::Receiver<Tell>,
     telling: Arc<(std::sync::atomic::AtomicUsize, tokio::sync::Notify)>,
 ) {
     while let Some(tell) = tells.recv().await {
-        tell_one(&client, &subjects, tell).await;
+        tell_one(&asker, tell).await;
         telling.0.fetch_sub(1, Ordering::AcqRel);
         telling.1.notify_waiters();
     }
 }
 
-async fn tell_one(client: &async_nats::Client, subjects: &Subjects, tell: Tell) {
+async fn tell_one(asker: &Asker, tell: Tell) {
     match tell {
         Tell::Resume(ticket, reply) => {
-            let _ = reply.send(ask(client, subjects, &Ask::Resume { ticket }).await);
+            let _ = reply.send(asker.ask(&Ask::Resume { ticket }).await);
         }
         Tell::Ask(a) => {
             for tries in 1..=ASK_TRIES {
-                match ask(client, subjects, &a).await {
+                match asker.ask(&a).await {
                     Ok(_) => return,
                     Err(e) if tries < ASK_TRIES => tracing::debug!("{a:?}: {e}; asking again"),
                     Err(e) => tracing::warn!(
@@ -450,9 +465,11 @@ async fn publish_keys(remote: Arc<Remote>, mut keys: mpsc::Receiver<DriverKeys>)
                 Err(_) => break,
             }
         }
+        let world = remote.asker.world();
+        let (_, bytes) = remote.asker.voice().say(Kind::Keys, world, 0, &batch);
         if let Err(e) = remote
             .client
-            .publish(remote.subjects.keys.clone(), encode(&batch))
+            .publish(remote.subjects.keys.clone(), bytes)
             .await
         {
             tracing::warn!("publishing key states: {e}");
@@ -467,8 +484,14 @@ async fn beat(remote: Arc<Remote>) {
     let mut tick = tokio::time::interval(BEAT);
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     loop {
-        tick.tick().await;
-        let why = match ask(&remote.client, &remote.subjects, &remote.hello()).await {
+        tokio::select! {
+            _ = tick.tick() => {}
+            // A snapshot of another world process: asked now whether it is the world's.
+            _ = remote.confirm.notified() => {
+                tokio::time::sleep(CONFIRM_SPACING).await;
+            }
+        }
+        let why = match remote.asker.ask(&remote.hello()).await {
             Ok(Answer::Hello { data, world, edges }) if data == remote.data => {
                 remote.mismatch.store(false, Ordering::Release);
                 remote.heard_world(world);
@@ -522,12 +545,10 @@ async fn beat(remote: Arc<Remote>) {
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
-/// Each snapshot from the bus into the viewer tasks' `watch` (an older one than the
-/// latest, from a world restarted behind it, is taken too: the world is what it says).
+/// Each snapshot from the bus into the viewer tasks' `watch`: only the world process's
+/// this edge confirmed last by a hello (a snapshot of another, however well sealed, may
+/// be one recorded before a restart and played again: it asks the beat to confirm, and is
+/// dropped meanwhile). Replays of the world's own are refused by its counter.
 async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Snapshot>>>) {
     let mut sub = match remote
         .client
@@ -540,18 +561,36 @@ async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Sn
             return;
         }
     };
-    let mut malformed = Malformed::new("snapshot");
+    let mut ear = Ear::new(
+        Kind::Snapshot,
+        remote.key.as_ref(),
+        remote.refused.clone(),
+        "snapshot",
+    );
     while let Some(msg) = sub.next().await {
-        match decode::<wire::Snapshot>(&msg.payload) {
-            Ok(s) => {
-                // Before the snapshot: a viewer task missing its vehicle in it knows why.
-                remote.heard_world(s.world);
-                remote
-                    .replay
-                    .send_if_modified(|r| std::mem::replace(r, s.replay) != s.replay);
-                snapshots.send_replace(from_wire(s));
-            }
-            Err(e) => malformed.note(&e),
+        let Some((header, s)) = ear.hear::<wire::Snapshot>(&msg.payload) else {
+            continue;
+        };
+        if header.is_some_and(|h| h.sender != s.world) {
+            ear.refuse(super::seal::Refusal::Forged, header.map(|h| h.sender));
+            continue;
         }
+        if s.world != remote.asker.world() {
+            count(
+                &remote.refused.unconfirmed,
+                format_args!(
+                    "a snapshot of world process {:x}, not the one confirmed: asking the world",
+                    s.world
+                ),
+            );
+            remote.confirm.notify_one();
+            continue;
+        }
+        // Before the snapshot: a viewer task missing its vehicle in it knows why.
+        remote.heard_now();
+        remote
+            .replay
+            .send_if_modified(|r| std::mem::replace(r, s.replay) != s.replay);
+        snapshots.send_replace(from_wire(s));
     }
 }

@@ -14,8 +14,14 @@
 //! edge puts NATS between the two, and the drivers' tickets live with the world, so a
 //! driver may come back through any edge.
 
+pub mod asker;
+mod drivers;
 pub mod edge;
+pub mod seal;
+pub mod voice;
 pub mod world;
+
+pub use seal::{BusSecret, Refused};
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -42,6 +48,10 @@ pub struct BusOptions {
     pub ca: Option<PathBuf>,
     /// What this process calls itself to the NATS server (its connection name).
     pub name: String,
+    /// The cluster's secret (`--bus-secret FILE`): every message is sealed with it
+    /// ([`seal`]). `None` only when told `--insecure-bus`: plain messages, which anyone
+    /// on the NATS can forge, read and replay.
+    pub secret: Option<BusSecret>,
 }
 
 /// Why the bus could not be used.
@@ -124,6 +134,19 @@ impl Malformed {
         Malformed { what, count: 0 }
     }
 
+    /// A sealed message heard by a process without the secret (`--insecure-bus`).
+    pub(crate) fn note_sealed(&mut self) {
+        self.count += 1;
+        if self.count.is_power_of_two() {
+            tracing::warn!(
+                malformed = self.count,
+                "a sealed {} on the bus, but this process runs --insecure-bus: give it the \
+                 cluster's --bus-secret FILE",
+                self.what
+            );
+        }
+    }
+
     pub(crate) fn note(&mut self, error: &roam_protocol::messages::DecodeError) {
         self.count += 1;
         if self.count.is_power_of_two() {
@@ -139,6 +162,11 @@ impl Malformed {
 impl BusOptions {
     pub fn subjects(&self) -> Result<Subjects, BusError> {
         Ok(Subjects::of(&self.world)?)
+    }
+
+    /// The world's key (from the secret and the world's name), or `None` when insecure.
+    pub fn key(&self) -> Option<seal::BusKey> {
+        self.secret.as_ref().map(|s| s.key(&self.world))
     }
 
     /// Connects to NATS: TLS when the URL (or the server) asks for it, trusting
@@ -317,6 +345,10 @@ pub fn from_wire(s: wire::Snapshot) -> Arc<Snapshot> {
         applied: s.applied,
         held: s.held,
     })
+}
+
+pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Encodes a bus message (they are small and bounded: encoding cannot fail).

@@ -25,10 +25,12 @@ use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
 use roam_protocol::bus::{Answer, Ask, Keys, MAX_EDGES, Subjects};
-use roam_protocol::messages::{Ticket, decode};
 use tokio::sync::{oneshot, watch};
 
-use super::{BusError, BusOptions, Malformed, encode};
+use super::drivers::Drivers;
+use super::seal::{BusKey, Kind, Refused, RefusedCounts};
+use super::voice::{Ear, Voice, count};
+use super::{BusError, BusOptions, lock};
 use crate::Terrain;
 use crate::net::world_loop::{self, Inbound, WorldStats};
 use crate::sim::session::RecordOptions;
@@ -44,36 +46,6 @@ pub const EDGE_SILENCE: Duration = Duration::from_secs(3);
 /// The most edges the world keeps track of; a hello from one more is answered, but its
 /// vehicles are not watched.
 const MAX_WATCHED: usize = 4096;
-
-/// What names a driver's vehicle: its ticket (the driver's, to come back with through any
-/// edge) and its claim (the edge's, for one join or resume: a leave or hold with an older
-/// claim is stale). Each map holds at most one entry a vehicle id.
-#[derive(Default)]
-struct Drivers {
-    tickets: HashMap<Ticket, VehicleId>,
-    claims: HashMap<VehicleId, u64>,
-    next_claim: u64,
-}
-
-impl Drivers {
-    /// A new claim on `vehicle`: older ones are stale from now on.
-    fn claim(&mut self, vehicle: VehicleId) -> u64 {
-        self.next_claim += 1;
-        self.claims.insert(vehicle, self.next_claim);
-        self.next_claim
-    }
-
-    /// Whether `claim` is `vehicle`'s newest.
-    fn holds(&self, vehicle: VehicleId, claim: u64) -> bool {
-        self.claims.get(&vehicle) == Some(&claim)
-    }
-
-    /// `vehicle` is free: its ticket and claim name nothing.
-    fn forget(&mut self, vehicle: VehicleId) {
-        self.tickets.retain(|_, v| *v != vehicle);
-        self.claims.remove(&vehicle);
-    }
-}
 
 /// An edge, as its hellos tell it.
 struct Seen {
@@ -113,6 +85,12 @@ struct State {
     stats: Arc<WorldStats>,
     /// The recording served (`world --replay`).
     replay: Option<Arc<crate::net::replay::ReplayShared>>,
+    /// The world's key (`None`: a plain bus, `--insecure-bus`).
+    key: Option<BusKey>,
+    /// What the world says: its answers and snapshots, sealed as `id`.
+    voice: Voice,
+    /// Messages refused, by why.
+    refused: Arc<RefusedCounts>,
 }
 
 /// A running world.
@@ -123,6 +101,7 @@ pub struct WorldServer {
     snapshots: watch::Receiver<Arc<Snapshot>>,
     stats: Arc<WorldStats>,
     client: async_nats::Client,
+    refused: Arc<RefusedCounts>,
 }
 
 impl WorldServer {
@@ -173,25 +152,31 @@ impl WorldServer {
                 None,
             ),
         };
+        let key = bus.key();
+        let id = super::random_id();
+        let refused = Arc::new(RefusedCounts::default());
         let state = Arc::new(State {
             drivers: Mutex::new(Drivers::default()),
             edges: Mutex::new(HashMap::new()),
             silenced: Mutex::new(HashMap::new()),
             data,
-            id: super::random_id(),
+            id,
             inbox: inbox.clone(),
             snapshots: snapshots.clone(),
             stats: stats.clone(),
             replay: replay.clone(),
+            voice: Voice::new(key.as_ref(), id),
+            key,
+            refused: refused.clone(),
         });
         let tasks = vec![
             tokio::spawn(answer_asks(asks, client.clone(), state.clone())),
-            tokio::spawn(take_keys(keys, inbox.clone())),
+            tokio::spawn(take_keys(keys, state.clone())),
             tokio::spawn(publish(
                 client.clone(),
                 subjects,
                 snapshots.clone(),
-                (state.id, replay),
+                state.clone(),
             )),
             tokio::spawn(watch_edges(client.clone(), state.clone())),
         ];
@@ -206,7 +191,13 @@ impl WorldServer {
             snapshots,
             stats,
             client,
+            refused,
         })
+    }
+
+    /// The bus messages refused so far, by why.
+    pub fn refused(&self) -> Refused {
+        self.refused.get()
     }
 
     /// The world after its latest tick.
@@ -243,38 +234,75 @@ impl WorldServer {
     }
 }
 
-/// Answers each request in a task of its own (at most [`MAX_ASKING`] at once).
+/// Answers each request in a task of its own (at most [`MAX_ASKING`] at once). Sealed,
+/// a request is taken only if it opens, is new from its sender, and is for this world
+/// process (a hello for another is answered, to tell the edge which process this is, but
+/// changes nothing).
 async fn answer_asks(
     mut asks: async_nats::Subscriber,
     client: async_nats::Client,
     state: Arc<State>,
 ) {
     let permits = Arc::new(tokio::sync::Semaphore::new(MAX_ASKING));
-    let mut malformed = Malformed::new("request");
+    let mut ear = Ear::new(
+        Kind::Ask,
+        state.key.as_ref(),
+        state.refused.clone(),
+        "request",
+    );
     while let Some(msg) = asks.next().await {
         let Some(reply) = msg.reply else {
             continue; // a request nobody waits for the answer of: not one of ours
         };
-        let ask = match decode::<Ask>(&msg.payload) {
-            Ok(ask) => ask,
-            Err(e) => {
-                malformed.note(&e);
-                let answer = Answer::Refused {
-                    reason: format!("malformed request: {e}"),
-                };
-                let _ = client.publish(reply, encode(&answer)).await;
-                continue;
-            }
+        let Some((header, ask)) = ear.hear::<Ask>(&msg.payload) else {
+            continue;
         };
+        let from = Asker {
+            edge: header.map(|h| h.sender),
+            counter: header.map_or(0, |h| h.counter),
+            here: header.is_none_or(|h| h.to == state.id),
+        };
+        if !from.here && !matches!(ask, Ask::Hello { .. }) {
+            count(
+                &state.refused.other_world,
+                format_args!("a request for another world process (from before it restarted?)"),
+            );
+            let answer = Answer::Refused {
+                reason: "the request is for another world process: the world restarted".into(),
+            };
+            let (_, bytes) = state
+                .voice
+                .say(Kind::Answer, from.to(), from.counter, &answer);
+            let _ = client.publish(reply, bytes).await;
+            continue;
+        }
         let Ok(permit) = permits.clone().acquire_owned().await else {
             return;
         };
         let (client, state) = (client.clone(), state.clone());
         tokio::spawn(async move {
-            let answer = answer(&state, ask).await;
-            let _ = client.publish(reply, encode(&answer)).await;
+            let answer = answer(&state, &from, ask).await;
+            let (_, bytes) = state
+                .voice
+                .say(Kind::Answer, from.to(), from.counter, &answer);
+            let _ = client.publish(reply, bytes).await;
             drop(permit);
         });
+    }
+}
+
+/// Who asked: the edge that sealed the request (`None` on a plain bus), its request's
+/// counter, and whether the request is for this world process.
+struct Asker {
+    edge: Option<u64>,
+    counter: u64,
+    here: bool,
+}
+
+impl Asker {
+    /// Whom the answer is sealed for.
+    fn to(&self) -> u64 {
+        self.edge.unwrap_or(0)
     }
 }
 
@@ -285,7 +313,7 @@ async fn ask_world(state: &State, event: Event) -> Option<VehicleId> {
     rx.await.ok()
 }
 
-async fn answer(state: &State, ask: Ask) -> Answer {
+async fn answer(state: &State, from: &Asker, ask: Ask) -> Answer {
     let refused = |reason: &str| Answer::Refused {
         reason: reason.into(),
     };
@@ -296,8 +324,10 @@ async fn answer(state: &State, ask: Ask) -> Answer {
             addresses,
             vehicles,
         } => {
-            if data == state.data {
-                heard(state, edge, addresses, vehicles);
+            // Sealed, the edge is the one that sealed it.
+            let edge = from.edge.unwrap_or(edge);
+            if data == state.data && from.here {
+                heard(state, edge, from.edge, addresses, vehicles);
             }
             Answer::Hello {
                 data: state.data,
@@ -320,6 +350,7 @@ async fn answer(state: &State, ask: Ask) -> Answer {
                 return refused("the world is full (--max-vehicles), none held to free");
             };
             let ticket = crate::net::tickets::random_ticket();
+            let claim = super::random_id();
             let mut drivers = lock(&state.drivers);
             for freed in state.stats.take_evicted() {
                 drivers.forget(freed);
@@ -327,7 +358,7 @@ async fn answer(state: &State, ask: Ask) -> Answer {
             // A ticket names one vehicle, and a vehicle has one ticket (ids are reused).
             drivers.forget(vehicle);
             drivers.tickets.insert(ticket, vehicle);
-            let claim = drivers.claim(vehicle);
+            drivers.claim(vehicle, from.edge, claim, Instant::now());
             Answer::Joined {
                 vehicle,
                 ticket,
@@ -342,7 +373,9 @@ async fn answer(state: &State, ask: Ask) -> Answer {
                 let Some(vehicle) = drivers.tickets.get(&ticket).copied() else {
                     return refused("no vehicle has this ticket (its hold ran out)");
                 };
-                (vehicle, drivers.claim(vehicle))
+                let claim = super::random_id();
+                drivers.claim(vehicle, from.edge, claim, Instant::now());
+                (vehicle, claim)
             };
             lock(&state.silenced).remove(&vehicle);
             // Its old edge may not have seen the connection go (or be gone itself): the
@@ -358,9 +391,11 @@ async fn answer(state: &State, ask: Ask) -> Answer {
         }
         Ask::Leave { vehicle, claim } => {
             let mut drivers = lock(&state.drivers);
-            if drivers.holds(vehicle, claim) {
+            if drivers.holds(vehicle, from.edge, claim) {
                 drivers.forget(vehicle);
                 let _ = state.inbox.send((Event::Leave(vehicle), None));
+            } else {
+                not_holder(state, "a leave", vehicle, from.edge);
             }
             Answer::Done
         }
@@ -369,24 +404,43 @@ async fn answer(state: &State, ask: Ask) -> Answer {
             claim,
             silent,
         } => {
-            if lock(&state.drivers).holds(vehicle, claim) {
+            if lock(&state.drivers).holds(vehicle, from.edge, claim) {
                 let _ = state.inbox.send((Event::Hold { vehicle, silent }, None));
+            } else {
+                not_holder(state, "a hold", vehicle, from.edge);
             }
             Answer::Done
         }
     }
 }
 
+/// A leave or hold (`what`) for `vehicle` from an edge that does not hold it with that
+/// claim: counted. (A late one from an edge whose driver has since moved, or a retry whose
+/// answer was lost, counts here too; an edge without the secret cannot send one.)
+fn not_holder(state: &State, what: &str, vehicle: VehicleId, edge: Option<u64>) {
+    count(
+        &state.refused.not_holder,
+        format_args!("{what} for vehicle {vehicle} from edge {edge:?}, which does not hold it"),
+    );
+}
+
 /// An edge said hello: it lives, with these addresses and vehicles. Those of its
-/// vehicles held since it fell silent are given back to it.
-fn heard(state: &State, edge: u64, addresses: Vec<String>, vehicles: Vec<(VehicleId, u64)>) {
+/// vehicles held since it fell silent are given back to it. (`sealer`: the edge that
+/// sealed the hello, `None` on a plain bus.)
+fn heard(
+    state: &State,
+    edge: u64,
+    sealer: Option<u64>,
+    addresses: Vec<String>,
+    vehicles: Vec<(VehicleId, u64)>,
+) {
     {
         let drivers = lock(&state.drivers);
         let mut silenced = lock(&state.silenced);
         for &(v, claim) in &vehicles {
             if silenced.get(&v) == Some(&(edge, claim)) {
                 silenced.remove(&v);
-                if drivers.holds(v, claim) && state.snapshots.borrow().held.contains(&v) {
+                if drivers.holds(v, sealer, claim) && state.snapshots.borrow().held.contains(&v) {
                     tracing::info!(edge, vehicle = v, "an edge heard again: its vehicle back");
                     let _ = state.inbox.send((Event::Resume(v), None));
                 }
@@ -452,12 +506,14 @@ async fn watch_edges(client: async_nats::Client, state: Arc<State>) {
         let mut silenced = lock(&state.silenced);
         // Forgotten once not held any more (taken back, freed).
         silenced.retain(|v, _| snap.held.contains(v));
+        let sealed = state.key.is_some();
         for (edge, silent, vehicles) in dead {
             let mut held = 0;
             for (vehicle, claim) in vehicles {
                 // Not one its driver has since taken back through another edge.
                 let driven = snap.vehicles.iter().any(|v| v.id == vehicle);
-                if drivers.holds(vehicle, claim) && driven && !snap.held.contains(&vehicle) {
+                let holds = drivers.holds(vehicle, sealed.then_some(edge), claim);
+                if holds && driven && !snap.held.contains(&vehicle) {
                     let silent = world_loop::hold_ticks(silent);
                     let _ = state.inbox.send((Event::Hold { vehicle, silent }, None));
                     silenced.insert(vehicle, (edge, claim));
@@ -471,30 +527,102 @@ async fn watch_edges(client: async_nats::Client, state: Arc<State>) {
                 silent.as_secs_f64()
             );
         }
+        if state.replay.is_none() {
+            hold_unnamed(&state, &snap, &drivers, &mut silenced);
+        }
     }
 }
 
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
+/// Holds each driven vehicle that no live edge's latest hello names with its claim,
+/// [`EDGE_SILENCE`] after its join or resume: a join whose edge never took it up (its
+/// answer lost, the edge gone), or a vehicle its edge let go without a leave reaching the
+/// world. The hold runs from its claim, so it is freed when the hold runs out unless its
+/// driver comes back with its ticket, or (sealed) its edge names it after all (a hello
+/// late under load): then, as for an edge heard again, it is given back.
+fn hold_unnamed(
+    state: &State,
+    snap: &Snapshot,
+    drivers: &super::drivers::Drivers,
+    silenced: &mut HashMap<VehicleId, (u64, u64)>,
+) {
+    let edges = lock(&state.edges);
+    let named = |v: VehicleId, edge: Option<u64>, claim: u64| {
+        let names = |s: &Seen| s.vehicles.contains(&(v, claim));
+        match edge {
+            Some(e) => edges.get(&e).is_some_and(names),
+            None => edges.values().any(names),
+        }
+    };
+    let driven = snap
+        .vehicles
+        .iter()
+        .map(|v| v.id)
+        .filter(|v| !snap.held.contains(v) && !silenced.contains_key(v));
+    let unnamed = drivers.unnamed(driven, Instant::now(), EDGE_SILENCE, named);
+    drop(edges);
+    for (vehicle, age) in unnamed {
+        let silent = world_loop::hold_ticks(age);
+        let _ = state.inbox.send((Event::Hold { vehicle, silent }, None));
+        if let Some(h) = drivers.holder(vehicle)
+            && let Some(edge) = h.edge
+        {
+            silenced.insert(vehicle, (edge, h.claim));
+        }
+        count(
+            &state.refused.unnamed,
+            format_args!(
+                "vehicle {vehicle}: no edge names it {:.1} s after its join: held",
+                age.as_secs_f64()
+            ),
+        );
+    }
 }
 
-/// Hands the drivers' key states to the world thread.
-async fn take_keys(mut keys: async_nats::Subscriber, inbox: Sender<Inbound>) {
-    let mut malformed = Malformed::new("key states");
+/// Hands the drivers' key states to the world thread: sealed, only those of vehicles the
+/// sending edge holds, in messages for this world process.
+async fn take_keys(mut keys: async_nats::Subscriber, state: Arc<State>) {
+    let mut ear = Ear::new(
+        Kind::Keys,
+        state.key.as_ref(),
+        state.refused.clone(),
+        "key states",
+    );
     while let Some(msg) = keys.next().await {
-        match decode::<Keys>(&msg.payload) {
-            Ok(batch) => {
-                for k in batch.drivers {
-                    let event = Event::Keys {
+        let Some((header, batch)) = ear.hear::<Keys>(&msg.payload) else {
+            continue;
+        };
+        if header.is_some_and(|h| h.to != state.id) {
+            count(
+                &state.refused.other_world,
+                format_args!("key states for another world process"),
+            );
+            continue;
+        }
+        let edge = header.map(|h| h.sender);
+        let mut events = Vec::with_capacity(batch.drivers.len());
+        {
+            let drivers = lock(&state.drivers);
+            for k in batch.drivers {
+                if drivers.drives(k.vehicle, edge) {
+                    events.push(Event::Keys {
                         vehicle: k.vehicle,
                         states: k.states,
-                    };
-                    if inbox.send((event, None)).is_err() {
-                        return; // the world has stopped
-                    }
+                    });
+                } else {
+                    count(
+                        &state.refused.not_holder,
+                        format_args!(
+                            "key states for vehicle {} from edge {edge:?}, which does not hold it",
+                            k.vehicle
+                        ),
+                    );
                 }
             }
-            Err(e) => malformed.note(&e),
+        }
+        for event in events {
+            if state.inbox.send((event, None)).is_err() {
+                return; // the world has stopped
+            }
         }
     }
 }
@@ -504,18 +632,14 @@ async fn publish(
     client: async_nats::Client,
     subjects: Subjects,
     mut snapshots: watch::Receiver<Arc<Snapshot>>,
-    (world, replay): (u64, Option<Arc<crate::net::replay::ReplayShared>>),
+    state: Arc<State>,
 ) {
     while snapshots.changed().await.is_ok() {
         let snap = snapshots.borrow_and_update().clone();
-        let clock = replay.as_ref().map(|r| r.wire_status());
-        if let Err(e) = client
-            .publish(
-                subjects.snapshots.clone(),
-                encode(&super::to_wire_watched(&snap, world, clock)),
-            )
-            .await
-        {
+        let clock = state.replay.as_ref().map(|r| r.wire_status());
+        let wire = super::to_wire_watched(&snap, state.id, clock);
+        let (_, bytes) = state.voice.say(Kind::Snapshot, 0, 0, &wire);
+        if let Err(e) = client.publish(subjects.snapshots.clone(), bytes).await {
             tracing::warn!(tick = snap.tick, "publishing the snapshot: {e}");
         }
     }

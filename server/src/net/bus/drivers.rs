@@ -1,0 +1,153 @@
+//! The world's book of who drives what ([`Drivers`]): each driven vehicle's ticket (the
+//! driver's, to come back with through any edge), its claim (a random number for one join
+//! or resume: a leave or hold naming another is stale) and the edge holding it, the only
+//! one whose keys, leave and hold for it are taken. Pure: the time is a parameter.
+//!
+//! With a plain bus (`--insecure-bus`) requests name no edge (`None`): any edge's keys
+//! and claims are taken, as before the bus had proofs.
+
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+
+use roam_protocol::messages::Ticket;
+
+use crate::sim::world::VehicleId;
+
+/// Who holds a vehicle, by which claim, since when.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Holder {
+    /// The edge (its name on the bus); `None` on a plain bus.
+    pub edge: Option<u64>,
+    pub claim: u64,
+    /// When the claim was made (a vehicle no edge names by then is held, [`Drivers::unnamed`]).
+    pub since: Instant,
+}
+
+/// Each driven vehicle's ticket and holder (at most one entry a vehicle id in each).
+#[derive(Default)]
+pub(crate) struct Drivers {
+    pub tickets: HashMap<Ticket, VehicleId>,
+    holders: HashMap<VehicleId, Holder>,
+}
+
+impl Drivers {
+    /// `vehicle` is held by `edge` with `claim` (random, given) from `now`: older claims
+    /// are stale from now on.
+    pub fn claim(&mut self, vehicle: VehicleId, edge: Option<u64>, claim: u64, now: Instant) {
+        self.holders.insert(
+            vehicle,
+            Holder {
+                edge,
+                claim,
+                since: now,
+            },
+        );
+    }
+
+    /// Whether `edge` holds `vehicle` with `claim` (its newest).
+    pub fn holds(&self, vehicle: VehicleId, edge: Option<u64>, claim: u64) -> bool {
+        self.holders
+            .get(&vehicle)
+            .is_some_and(|h| h.claim == claim && same(h.edge, edge))
+    }
+
+    /// Whether `edge` holds `vehicle` (its keys are taken).
+    pub fn drives(&self, vehicle: VehicleId, edge: Option<u64>) -> bool {
+        self.holders
+            .get(&vehicle)
+            .is_some_and(|h| same(h.edge, edge))
+    }
+
+    pub fn holder(&self, vehicle: VehicleId) -> Option<Holder> {
+        self.holders.get(&vehicle).copied()
+    }
+
+    /// `vehicle` is free: its ticket and claim name nothing.
+    pub fn forget(&mut self, vehicle: VehicleId) {
+        self.tickets.retain(|_, v| *v != vehicle);
+        self.holders.remove(&vehicle);
+    }
+
+    /// Of `driven` (the vehicles driven now, not held), those whose claim is at least
+    /// `grace` old and that no edge's latest hello names with it (`named(vehicle, edge,
+    /// claim)`): a join whose edge never took it up, or a vehicle its edge dropped without a
+    /// leave reaching the world. Each with how long ago its claim was made.
+    pub fn unnamed(
+        &self,
+        driven: impl IntoIterator<Item = VehicleId>,
+        now: Instant,
+        grace: Duration,
+        named: impl Fn(VehicleId, Option<u64>, u64) -> bool,
+    ) -> Vec<(VehicleId, Duration)> {
+        driven
+            .into_iter()
+            .filter_map(|v| {
+                let h = self.holders.get(&v)?;
+                let age = now.saturating_duration_since(h.since);
+                (age >= grace && !named(v, h.edge, h.claim)).then_some((v, age))
+            })
+            .collect()
+    }
+}
+
+/// Whether a holder's edge and a sender are the same edge (either `None`: a plain bus).
+fn same(holder: Option<u64>, sender: Option<u64>) -> bool {
+    match (holder, sender) {
+        (Some(h), Some(s)) => h == s,
+        _ => true,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_the_holding_edge_with_the_newest_claim_is_taken() {
+        let now = Instant::now();
+        let mut d = Drivers::default();
+        d.claim(3, Some(10), 111, now);
+        let check = |d: &Drivers, vehicle, edge, claim, expected: (bool, bool)| {
+            assert_eq!(
+                (d.holds(vehicle, edge, claim), d.drives(vehicle, edge)),
+                expected,
+                "vehicle {vehicle} edge {edge:?} claim {claim}"
+            );
+        };
+        check(&d, 3, Some(10), 111, (true, true));
+        check(&d, 3, Some(10), 112, (false, true));
+        check(&d, 3, Some(11), 111, (false, false));
+        check(&d, 4, Some(10), 111, (false, false));
+        // A plain bus names no edge: the claim alone decides.
+        check(&d, 3, None, 111, (true, true));
+        // A resume through another edge moves the vehicle there.
+        d.claim(3, Some(11), 222, now);
+        check(&d, 3, Some(10), 111, (false, false));
+        check(&d, 3, Some(11), 222, (true, true));
+        d.forget(3);
+        check(&d, 3, Some(11), 222, (false, false));
+    }
+
+    #[test]
+    fn vehicles_no_edge_names_after_the_grace_are_found() {
+        let t0 = Instant::now();
+        let mut d = Drivers::default();
+        d.claim(1, Some(10), 5, t0);
+        d.claim(2, Some(10), 6, t0);
+        d.claim(3, Some(20), 7, t0 + Duration::from_secs(2));
+        let grace = Duration::from_secs(3);
+        let named =
+            |v: VehicleId, edge: Option<u64>, claim: u64| (v, edge, claim) == (1, Some(10), 5);
+        let at = |secs| t0 + Duration::from_secs(secs);
+        assert_eq!(d.unnamed([1, 2, 3], at(1), grace, named), vec![]);
+        assert_eq!(
+            d.unnamed([1, 2, 3], at(4), grace, named),
+            vec![(2, Duration::from_secs(4))]
+        );
+        assert_eq!(
+            d.unnamed([1, 2, 3, 9], at(6), grace, named),
+            vec![(2, Duration::from_secs(6)), (3, Duration::from_secs(4))],
+            "a vehicle with no holder (9) is not this book's"
+        );
+    }
+}

@@ -1,0 +1,717 @@
+//! The bus's proofs: every message between a world and its edges is sealed with a key only
+//! they hold, so whoever else can publish or subscribe on their NATS can neither forge,
+//! read nor replay one. Pure (no clock, no socket): the shells hand it bytes and counters.
+//!
+//! **Threat model.** The attacker can publish and subscribe anything on the world's NATS
+//! (it reads every subject, `_INBOX.*` included, and publishes on all of them), but holds
+//! neither the cluster's secret (`--bus-secret FILE`) nor a process's memory. The world
+//! and every edge hold the secret; an edge is trusted with the vehicles the world gave it
+//! and no others (a vehicle's keys, leave and hold are taken only from the edge that holds
+//! it, [`super::drivers`]). Out of scope: a process holding the secret (a compromised
+//! edge can do what an edge can), and a NATS that drops or delays messages (that is an
+//! outage, which the world and edges already ride out).
+//!
+//! **The envelope.** A sealed message is [`MAGIC`], a [`Header`] (what it is, who sent
+//! it, to whom, the sender's counter, and the request it answers), then the message
+//! encrypted and authenticated with AES-256-GCM, the header as associated data:
+//!
+//! ```text
+//! B5 01 | kind u8 | sender u64 | to u64 | counter u64 | re u64 | ciphertext | tag (16)
+//! ```
+//!
+//! - **Keys.** The secret (any file of at least [`MIN_SECRET`] bytes:
+//!   `roam-server bus-secret FILE` makes one) and the world's name make the world's key
+//!   (BLAKE3 `derive_key`), so worlds sharing a secret cannot replay into each other. Each
+//!   process seals with its own key, derived from the world's key and its random 64-bit
+//!   name (`sender`), and counts its messages from 1: the GCM nonce (counter and kind) is
+//!   never used twice under one key, however many processes seal at once.
+//! - **Replays.** Each receiver keeps a [`Window`] per sender: a counter seen, or more
+//!   than [`WINDOW`] behind the newest, is refused. Across a world's restart, requests
+//!   name the world process they are for (`to`): the world refuses one for another
+//!   process, so nothing captured before it started can be played to it. An answer names
+//!   the edge and the request (`to`, `re`): an edge takes it only for a request it is
+//!   waiting on. No clocks: the machines' clocks need not agree.
+//! - **Confidential too.** Answers carry tickets and claims; requests carry claims and
+//!   tickets. Everything is encrypted, snapshots and key states too (one code path; the
+//!   cost is measured below).
+//!
+//! Decisions:
+//!
+//! - AES-256-GCM from `ring` (already the server's TLS crypto; AES-NI and carry-less
+//!   multiply on any server CPU of the last decade) over ChaCha20-Poly1305: faster on the
+//!   machines that run worlds; both are in `ring`.
+//! - One shared secret rather than per-edge keys or NATS accounts: the world must accept
+//!   an edge it has never heard of (edges come and go), and an edge proves itself by the
+//!   secret; NATS accounts and permissions still help (docs/cluster.md) but need a NATS
+//!   set up for them, and the application's proofs do not.
+//! - Cost at 1,000 driving vehicles over 4 edges (`scripts/cluster.sh secure`, the world's
+//!   CPU per tick with the proofs against `--insecure-bus`): see docs/figures.md.
+
+use std::collections::{HashMap, HashSet};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use ring::aead::{AES_256_GCM, Aad, LessSafeKey, Nonce, UnboundKey};
+
+/// The first two bytes of every sealed message (a bincode bus message never starts so:
+/// its first byte is a small variant index, a count, or a varint prefix).
+pub const MAGIC: [u8; 2] = [0xB5, 0x01];
+
+/// The header's bytes after [`MAGIC`].
+const HEADER: usize = 1 + 8 * 4;
+
+/// Bytes a seal adds to a message: magic, header and tag.
+pub const OVERHEAD: usize = MAGIC.len() + HEADER + 16;
+
+/// The fewest bytes a secret file may hold (64 hex digits is 256 bits; 32 bytes of
+/// anything random is too).
+pub const MIN_SECRET: usize = 32;
+
+/// The most bytes read from a secret file.
+pub const MAX_SECRET: usize = 4096;
+
+/// How far behind the newest counter from a sender a message may come and still be taken
+/// (NATS keeps one publisher's order, but a process's tasks seal before they publish, so a
+/// few may swap).
+pub const WINDOW: u64 = 1024;
+
+/// Senders whose replay windows one receiver keeps (each is some 150 bytes): past it, the
+/// one heard from longest ago is retired, and every message from it refused from then on.
+pub const MAX_SENDERS: usize = 65_536;
+
+/// What a sealed message is.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+#[repr(u8)]
+pub enum Kind {
+    /// An edge's request to the world ([`roam_protocol::bus::Ask`]).
+    Ask = 1,
+    /// The world's answer to one request ([`roam_protocol::bus::Answer`]).
+    Answer = 2,
+    /// The world after a tick ([`roam_protocol::bus::Snapshot`]).
+    Snapshot = 3,
+    /// An edge's drivers' key states ([`roam_protocol::bus::Keys`]).
+    Keys = 4,
+}
+
+impl Kind {
+    fn from_byte(b: u8) -> Option<Kind> {
+        Some(match b {
+            1 => Kind::Ask,
+            2 => Kind::Answer,
+            3 => Kind::Snapshot,
+            4 => Kind::Keys,
+            _ => return None,
+        })
+    }
+}
+
+/// Who sent a sealed message, to whom, and which.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Header {
+    pub kind: Kind,
+    /// The sender's name for itself (an edge's or a world process's random id).
+    pub sender: u64,
+    /// The world process a request is for (0: whichever answers, for a first hello), the
+    /// edge an answer is for; 0 on snapshots.
+    pub to: u64,
+    /// The sender's count of its messages, from 1.
+    pub counter: u64,
+    /// The request an answer answers (its counter); 0 otherwise.
+    pub re: u64,
+}
+
+impl Header {
+    fn bytes(&self) -> [u8; MAGIC.len() + HEADER] {
+        let mut out = [0u8; MAGIC.len() + HEADER];
+        out[..2].copy_from_slice(&MAGIC);
+        out[2] = self.kind as u8;
+        for (i, v) in [self.sender, self.to, self.counter, self.re]
+            .into_iter()
+            .enumerate()
+        {
+            out[3 + 8 * i..11 + 8 * i].copy_from_slice(&v.to_le_bytes());
+        }
+        out
+    }
+
+    fn read(bytes: &[u8]) -> Option<Header> {
+        let word = |i: usize| {
+            let b = bytes.get(3 + 8 * i..11 + 8 * i)?;
+            Some(u64::from_le_bytes(b.try_into().ok()?))
+        };
+        if bytes.get(..2)? != MAGIC {
+            return None;
+        }
+        Some(Header {
+            kind: Kind::from_byte(*bytes.get(2)?)?,
+            sender: word(0)?,
+            to: word(1)?,
+            counter: word(2)?,
+            re: word(3)?,
+        })
+    }
+
+    /// The nonce: unique per sender key while the counter is (the kind keeps the four
+    /// kinds apart should a sender ever count them separately).
+    fn nonce(&self) -> Nonce {
+        let mut n = [0u8; 12];
+        n[..8].copy_from_slice(&self.counter.to_le_bytes());
+        n[8] = self.kind as u8;
+        Nonce::assume_unique_for_key(n)
+    }
+}
+
+/// Why a secret cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum SecretError {
+    #[error("the bus secret {file}: {error}")]
+    Read {
+        file: std::path::PathBuf,
+        error: std::io::Error,
+    },
+    #[error(
+        "the bus secret {file}: expected at least {MIN_SECRET} bytes (besides spaces and line \
+         ends), got {got}; make one with: roam-server bus-secret FILE"
+    )]
+    Short {
+        file: std::path::PathBuf,
+        got: usize,
+    },
+    #[error("the bus secret {file}: expected at most {MAX_SECRET} bytes, got {got}")]
+    Long {
+        file: std::path::PathBuf,
+        got: usize,
+    },
+}
+
+/// The cluster's secret, as read from its file (shared by the world and its edges).
+#[derive(Clone)]
+pub struct BusSecret(Vec<u8>);
+
+impl std::fmt::Debug for BusSecret {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "BusSecret({} bytes)", self.0.len())
+    }
+}
+
+impl BusSecret {
+    /// The secret in `file`: its bytes, less leading and trailing ASCII whitespace (so
+    /// `echo`, an editor's line end, or 64 hex digits all do), at least [`MIN_SECRET`].
+    pub fn read(file: &std::path::Path) -> Result<BusSecret, SecretError> {
+        let bytes = std::fs::read(file).map_err(|error| SecretError::Read {
+            file: file.to_owned(),
+            error,
+        })?;
+        BusSecret::from_bytes(&bytes).map_err(|got| {
+            if got > MAX_SECRET {
+                SecretError::Long {
+                    file: file.to_owned(),
+                    got,
+                }
+            } else {
+                SecretError::Short {
+                    file: file.to_owned(),
+                    got,
+                }
+            }
+        })
+    }
+
+    /// A secret from its bytes (trimmed as [`BusSecret::read`] trims); `Err` is their
+    /// length, trimmed, when it is not [`MIN_SECRET`] to [`MAX_SECRET`].
+    pub fn from_bytes(bytes: &[u8]) -> Result<BusSecret, usize> {
+        let trimmed = bytes.trim_ascii();
+        if (MIN_SECRET..=MAX_SECRET).contains(&trimmed.len()) {
+            Ok(BusSecret(trimmed.to_vec()))
+        } else {
+            Err(trimmed.len())
+        }
+    }
+
+    /// A new random secret, as 64 hex digits (the text `roam-server bus-secret` writes).
+    pub fn random() -> BusSecret {
+        let a = crate::net::tickets::random_ticket();
+        let b = crate::net::tickets::random_ticket();
+        let hex = roam_link::tls::hex(&[a, b].concat());
+        BusSecret(hex.into_bytes())
+    }
+
+    /// The text of the secret (for writing it to a file).
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.0
+    }
+
+    /// World `world`'s key: the secret and the world's name.
+    pub fn key(&self, world: &str) -> BusKey {
+        let mut material = Vec::with_capacity(self.0.len() + 8 + world.len());
+        material.extend_from_slice(&(self.0.len() as u64).to_le_bytes());
+        material.extend_from_slice(&self.0);
+        material.extend_from_slice(world.as_bytes());
+        BusKey(blake3::derive_key(
+            "roam bus 2026-12-07 world key",
+            &material,
+        ))
+    }
+}
+
+/// One world's key, from which each sender's is derived.
+#[derive(Clone)]
+pub struct BusKey([u8; 32]);
+
+impl BusKey {
+    fn sender(&self, sender: u64) -> LessSafeKey {
+        let mut material = [0u8; 40];
+        material[..32].copy_from_slice(&self.0);
+        material[32..].copy_from_slice(&sender.to_le_bytes());
+        let key = blake3::derive_key("roam bus 2026-12-07 sender key", &material);
+        LessSafeKey::new(
+            UnboundKey::new(&AES_256_GCM, &key).expect("32 bytes is AES-256's key length"),
+        )
+    }
+}
+
+/// One process's sealing: its name, its key, its counter.
+pub struct Sealer {
+    sender: u64,
+    key: LessSafeKey,
+    counter: AtomicU64,
+}
+
+impl Sealer {
+    /// Seals as `sender` (this process's random name) under world key `key`.
+    pub fn new(key: &BusKey, sender: u64) -> Sealer {
+        Sealer {
+            sender,
+            key: key.sender(sender),
+            counter: AtomicU64::new(0),
+        }
+    }
+
+    pub fn sender(&self) -> u64 {
+        self.sender
+    }
+
+    /// `message` sealed as `kind` for `to` (answering request `re`, or 0), and its counter.
+    pub fn seal(&self, kind: Kind, to: u64, re: u64, message: &[u8]) -> (u64, Vec<u8>) {
+        let counter = self.counter.fetch_add(1, Ordering::Relaxed) + 1;
+        let header = Header {
+            kind,
+            sender: self.sender,
+            to,
+            counter,
+            re,
+        };
+        let head = header.bytes();
+        let mut out = Vec::with_capacity(message.len() + OVERHEAD);
+        out.extend_from_slice(&head);
+        out.extend_from_slice(message);
+        let tag = self
+            .key
+            .seal_in_place_separate_tag(header.nonce(), Aad::from(&head), &mut out[head.len()..])
+            .expect("a bus message is far below GCM's length limit");
+        out.extend_from_slice(tag.as_ref());
+        (counter, out)
+    }
+}
+
+/// Why a message was not taken.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum Refusal {
+    #[error("not sealed (a sender without the bus secret, or one started with --insecure-bus)")]
+    Unsealed,
+    #[error("its seal does not hold (forged, damaged, or sealed with another secret)")]
+    Forged,
+    #[error("a {got:?} where a {want:?} was expected")]
+    Kind { got: Kind, want: Kind },
+    #[error("a replay (its counter was seen, or is too old)")]
+    Replayed,
+    #[error("longer than a {0:?} can be")]
+    Long(Kind),
+}
+
+/// Opens sealed messages: each sender's key, derived once it has sealed one message that
+/// opened (so a flood of made-up senders costs a derivation each, and no memory).
+pub struct Opener {
+    key: BusKey,
+    keys: HashMap<u64, LessSafeKey>,
+}
+
+impl Opener {
+    pub fn new(key: &BusKey) -> Opener {
+        Opener {
+            key: key.clone(),
+            keys: HashMap::new(),
+        }
+    }
+
+    /// The header and the message inside `bytes`, if it is a `want` sealed under this
+    /// world's key, at most `max` bytes inside. Replays are the caller's ([`Replays`]).
+    pub fn open(
+        &mut self,
+        want: Kind,
+        max: usize,
+        bytes: &[u8],
+    ) -> Result<(Header, Vec<u8>), Refusal> {
+        let header = Header::read(bytes).ok_or(Refusal::Unsealed)?;
+        if header.kind != want {
+            return Err(Refusal::Kind {
+                got: header.kind,
+                want,
+            });
+        }
+        if bytes.len() > max + OVERHEAD {
+            return Err(Refusal::Long(want));
+        }
+        let head = MAGIC.len() + HEADER;
+        if bytes.len() < head + 16 {
+            return Err(Refusal::Forged);
+        }
+        let mut inside = bytes[head..].to_vec();
+        let fresh =
+            (!self.keys.contains_key(&header.sender)).then(|| self.key.sender(header.sender));
+        let key = match &fresh {
+            Some(k) => k,
+            None => self
+                .keys
+                .get(&header.sender)
+                .expect("derived when not kept"),
+        };
+        let len = key
+            .open_in_place(header.nonce(), Aad::from(&bytes[..head]), &mut inside)
+            .map_err(|_| Refusal::Forged)?
+            .len();
+        inside.truncate(len);
+        if let Some(key) = fresh {
+            if self.keys.len() >= MAX_SENDERS {
+                self.keys.clear();
+            }
+            self.keys.insert(header.sender, key);
+        }
+        Ok((header, inside))
+    }
+}
+
+/// A sender's counters seen: the newest and, behind it, a bit for each of [`WINDOW`].
+#[derive(Clone, Debug, Default)]
+pub struct Window {
+    newest: u64,
+    seen: [u64; (WINDOW / 64) as usize],
+}
+
+impl Window {
+    /// Whether `counter` is new (never seen, not too old); it is seen from now on.
+    pub fn accept(&mut self, counter: u64) -> bool {
+        if counter == 0 {
+            return false;
+        }
+        if counter > self.newest {
+            let shift = counter - self.newest;
+            self.shift(shift);
+            self.newest = counter;
+            self.set(0);
+            return true;
+        }
+        let behind = self.newest - counter;
+        if behind >= WINDOW || self.get(behind) {
+            return false;
+        }
+        self.set(behind);
+        true
+    }
+
+    /// Moves every bit `by` places further behind.
+    fn shift(&mut self, by: u64) {
+        if by >= WINDOW {
+            self.seen = Default::default();
+            return;
+        }
+        let (words, bits) = ((by / 64) as usize, (by % 64) as u32);
+        let n = self.seen.len();
+        for i in (0..n).rev() {
+            let from = i.checked_sub(words);
+            let hi = from.map_or(0, |f| self.seen[f]);
+            let lo = from
+                .and_then(|f| f.checked_sub(1))
+                .map_or(0, |f| self.seen[f]);
+            self.seen[i] = if bits == 0 {
+                hi
+            } else {
+                (hi << bits) | (lo >> (64 - bits))
+            };
+        }
+    }
+
+    fn get(&self, behind: u64) -> bool {
+        self.seen[(behind / 64) as usize] & (1 << (behind % 64)) != 0
+    }
+
+    fn set(&mut self, behind: u64) {
+        self.seen[(behind / 64) as usize] |= 1 << (behind % 64);
+    }
+}
+
+/// Every sender's [`Window`], at most [`MAX_SENDERS`]: past it the one heard from longest
+/// ago is retired (its messages refused from then on: a sender silent that long is a
+/// process long gone, and only a replay would name it).
+#[derive(Default)]
+pub struct Replays {
+    windows: HashMap<u64, (u64, Window)>,
+    retired: HashSet<u64>,
+    /// Messages taken, for the windows' age.
+    taken: u64,
+}
+
+impl Replays {
+    /// Whether `header`'s counter is new from its sender.
+    pub fn accept(&mut self, header: &Header) -> bool {
+        self.accept_with_limit(header, MAX_SENDERS)
+    }
+
+    fn accept_with_limit(&mut self, header: &Header, limit: usize) -> bool {
+        if self.retired.contains(&header.sender) {
+            return false;
+        }
+        self.taken += 1;
+        if !self.windows.contains_key(&header.sender) && self.windows.len() >= limit {
+            let oldest = self
+                .windows
+                .iter()
+                .min_by_key(|(_, (at, _))| *at)
+                .map(|(s, _)| *s);
+            if let Some(s) = oldest {
+                self.windows.remove(&s);
+                self.retired.insert(s);
+            }
+        }
+        let taken = self.taken;
+        let (at, window) = self.windows.entry(header.sender).or_default();
+        *at = taken;
+        window.accept(header.counter)
+    }
+}
+
+/// Messages refused, by why (the world's and an edge's counts; `Copy` for a look).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Refused {
+    /// Not sealed.
+    pub unsealed: u64,
+    /// Sealed, but the seal does not hold (or the wrong kind, or too long).
+    pub forged: u64,
+    /// A counter seen before.
+    pub replayed: u64,
+    /// A request for another world process (one from before this one started).
+    pub other_world: u64,
+    /// Keys, a leave or a hold for a vehicle the sending edge does not hold.
+    pub not_holder: u64,
+    /// Vehicles held because no edge named them (a join nobody drives).
+    pub unnamed: u64,
+    /// Snapshots of a world process the edge has not confirmed by a hello.
+    pub unconfirmed: u64,
+}
+
+/// [`Refused`] as counters the tasks share.
+#[derive(Default, Debug)]
+pub struct RefusedCounts {
+    pub unsealed: AtomicU64,
+    pub forged: AtomicU64,
+    pub replayed: AtomicU64,
+    pub other_world: AtomicU64,
+    pub not_holder: AtomicU64,
+    pub unnamed: AtomicU64,
+    pub unconfirmed: AtomicU64,
+}
+
+impl RefusedCounts {
+    pub fn get(&self) -> Refused {
+        let l = |a: &AtomicU64| a.load(Ordering::Relaxed);
+        Refused {
+            unsealed: l(&self.unsealed),
+            forged: l(&self.forged),
+            replayed: l(&self.replayed),
+            other_world: l(&self.other_world),
+            not_holder: l(&self.not_holder),
+            unnamed: l(&self.unnamed),
+            unconfirmed: l(&self.unconfirmed),
+        }
+    }
+
+    /// Counts `refusal`; the new count of its kind.
+    pub fn note(&self, refusal: Refusal) -> u64 {
+        let counter = match refusal {
+            Refusal::Unsealed => &self.unsealed,
+            Refusal::Forged | Refusal::Kind { .. } | Refusal::Long(_) => &self.forged,
+            Refusal::Replayed => &self.replayed,
+        };
+        counter.fetch_add(1, Ordering::Relaxed) + 1
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn secret(s: &str) -> BusSecret {
+        BusSecret::from_bytes(s.as_bytes()).expect("long enough")
+    }
+
+    const S: &str = "0123456789abcdef0123456789abcdef";
+
+    #[test]
+    fn a_sealed_message_opens_once_and_only_with_its_world_key() {
+        let key = secret(S).key("lake");
+        let edge = Sealer::new(&key, 77);
+        let (counter, sealed) = edge.seal(Kind::Ask, 5, 0, b"join me");
+        assert_eq!(counter, 1);
+        assert!(!sealed.windows(7).any(|w| w == b"join me"), "encrypted");
+        let mut opener = Opener::new(&key);
+        let (header, inside) = opener.open(Kind::Ask, 100, &sealed).expect("opens");
+        assert_eq!(inside, b"join me");
+        assert_eq!(
+            header,
+            Header {
+                kind: Kind::Ask,
+                sender: 77,
+                to: 5,
+                counter: 1,
+                re: 0
+            }
+        );
+        let mut replays = Replays::default();
+        assert!(replays.accept(&header));
+        assert!(!replays.accept(&header), "a replay");
+        // Another world's key, or another secret: the seal does not hold.
+        let check = |key: &BusKey, bytes: &[u8], want: Result<(), Refusal>| {
+            let got = Opener::new(key).open(Kind::Ask, 100, bytes).map(|_| ());
+            assert_eq!(got, want);
+        };
+        check(&secret(S).key("sea"), &sealed, Err(Refusal::Forged));
+        check(
+            &secret("another secret, 32 bytes or more.").key("lake"),
+            &sealed,
+            Err(Refusal::Forged),
+        );
+        check(&key, b"\x01plain bincode", Err(Refusal::Unsealed));
+        check(&key, &sealed[..20], Err(Refusal::Unsealed));
+        check(&key, &sealed[..40], Err(Refusal::Forged));
+        // Every byte flipped: the header is authenticated with the message.
+        for i in 2..sealed.len() {
+            let mut bad = sealed.clone();
+            bad[i] ^= 0x10;
+            let got = Opener::new(&key).open(Kind::Ask, 100, &bad);
+            assert!(got.is_err(), "byte {i} flipped opened: {got:?}");
+        }
+        // Too long for its kind, or another kind.
+        check(&key, &sealed, Ok(()));
+        assert_eq!(
+            Opener::new(&key).open(Kind::Ask, 3, &sealed).map(|_| ()),
+            Err(Refusal::Long(Kind::Ask))
+        );
+        assert_eq!(
+            Opener::new(&key).open(Kind::Keys, 100, &sealed).map(|_| ()),
+            Err(Refusal::Kind {
+                got: Kind::Ask,
+                want: Kind::Keys
+            })
+        );
+    }
+
+    #[test]
+    fn counters_rise_and_senders_keys_differ() {
+        let key = secret(S).key("lake");
+        let a = Sealer::new(&key, 1);
+        let b = Sealer::new(&key, 2);
+        let (c1, m1) = a.seal(Kind::Keys, 0, 0, b"same");
+        let (c2, m2) = a.seal(Kind::Keys, 0, 0, b"same");
+        let (c3, m3) = b.seal(Kind::Keys, 0, 0, b"same");
+        assert_eq!((c1, c2, c3), (1, 2, 1));
+        let body = |m: &[u8]| m[MAGIC.len() + HEADER..].to_vec();
+        assert_ne!(body(&m1), body(&m2));
+        assert_ne!(body(&m1), body(&m3), "one counter, two senders: two keys");
+    }
+
+    #[test]
+    fn secrets_are_long_enough_and_trimmed() {
+        let check = |text: &str, expected: Result<usize, usize>| {
+            assert_eq!(
+                BusSecret::from_bytes(text.as_bytes()).map(|s| s.as_bytes().len()),
+                expected,
+                "{text:?}"
+            );
+        };
+        check(S, Ok(32));
+        check(&format!("  {S}\n"), Ok(32));
+        check("short\n", Err(5));
+        check(&"x".repeat(31), Err(31));
+        check("", Err(0));
+        check(&"x".repeat(MAX_SECRET + 1), Err(MAX_SECRET + 1));
+        assert_eq!(BusSecret::random().as_bytes().len(), 64);
+        assert_ne!(
+            BusSecret::random().as_bytes(),
+            BusSecret::random().as_bytes()
+        );
+    }
+
+    #[test]
+    fn a_window_takes_each_counter_once_and_none_too_old() {
+        let mut w = Window::default();
+        let mut check = |counter: u64, expected: bool| {
+            assert_eq!(w.accept(counter), expected, "counter {counter}");
+        };
+        check(0, false);
+        check(1, true);
+        check(1, false);
+        check(3, true);
+        check(2, true);
+        check(2, false);
+        check(3, false);
+        check(100, true);
+        check(50, true);
+        check(50, false);
+        check(99, true);
+        check(100 + WINDOW - 1, true);
+        check(100, false);
+        check(101, true);
+        check(100 + WINDOW, true);
+        check(100, false); // now WINDOW behind: too old
+        check(101, false);
+        check(5_000, true);
+        check(5_000 - WINDOW + 1, true);
+        check(5_000 - WINDOW, false);
+        check(u64::MAX, true);
+        check(u64::MAX, false);
+        // A model: every counter taken once, in any order within the window.
+        let mut w = Window::default();
+        let mut seen = HashSet::new();
+        let mut x = 7u64;
+        for _ in 0..20_000 {
+            x = x
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            let c = 1 + (x >> 33) % 3_000;
+            let newest = seen.iter().copied().max().unwrap_or(0);
+            let want = !seen.contains(&c) && c + WINDOW > newest;
+            assert_eq!(w.accept(c), want, "counter {c}, newest {newest}");
+            if want {
+                seen.insert(c);
+            }
+        }
+    }
+
+    #[test]
+    fn past_the_senders_limit_the_stalest_is_retired() {
+        let h = |sender, counter| Header {
+            kind: Kind::Ask,
+            sender,
+            to: 0,
+            counter,
+            re: 0,
+        };
+        let mut r = Replays::default();
+        assert!(r.accept_with_limit(&h(1, 1), 2));
+        assert!(r.accept_with_limit(&h(2, 1), 2));
+        assert!(r.accept_with_limit(&h(1, 2), 2));
+        // Sender 3 takes the place of 2, heard from longest ago: 2 is refused for good.
+        assert!(r.accept_with_limit(&h(3, 1), 2));
+        assert!(!r.accept_with_limit(&h(2, 2), 2));
+        assert!(r.accept_with_limit(&h(1, 3), 2));
+    }
+}

@@ -1,0 +1,155 @@
+//! How a world or an edge says and hears bus messages: sealed ([`super::seal`], with the
+//! cluster's secret) or, only when told `--insecure-bus`, plain bincode as before. A
+//! [`Voice`] encodes and seals; an [`Ear`] opens, refuses replays, decodes, and counts
+//! (and logs, at the first, second, fourth… of each kind) what it refuses.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use roam_protocol::messages::{Checked, decode};
+use serde::Serialize;
+use serde::de::DeserializeOwned;
+
+use super::Malformed;
+use super::seal::{BusKey, Header, Kind, MAGIC, Opener, Refusal, RefusedCounts, Replays, Sealer};
+
+/// This process's voice on the bus.
+pub struct Voice {
+    sealer: Option<Sealer>,
+    sender: u64,
+    /// Plain messages' count (a request's number, for its answer's inbox).
+    plain: AtomicU64,
+}
+
+impl Voice {
+    /// Sealing as `sender` under `key`, or plain (`None`: `--insecure-bus`).
+    pub fn new(key: Option<&BusKey>, sender: u64) -> Voice {
+        Voice {
+            sealer: key.map(|k| Sealer::new(k, sender)),
+            sender,
+            plain: AtomicU64::new(0),
+        }
+    }
+
+    /// This process's name on the bus.
+    pub fn sender(&self) -> u64 {
+        self.sender
+    }
+
+    pub fn sealed(&self) -> bool {
+        self.sealer.is_some()
+    }
+
+    /// `msg` as it goes on the bus (a `kind` for `to`, answering `re`), and its number.
+    pub fn say<T: Serialize>(&self, kind: Kind, to: u64, re: u64, msg: &T) -> (u64, bytes::Bytes) {
+        let plain = super::encode(msg);
+        match &self.sealer {
+            Some(s) => {
+                let (counter, sealed) = s.seal(kind, to, re, &plain);
+                (counter, sealed.into())
+            }
+            None => (self.plain.fetch_add(1, Ordering::Relaxed) + 1, plain),
+        }
+    }
+}
+
+/// One task's hearing of one kind of message.
+pub struct Ear {
+    kind: Kind,
+    opener: Option<Opener>,
+    replays: Replays,
+    counts: Arc<RefusedCounts>,
+    malformed: Malformed,
+}
+
+impl Ear {
+    /// Hearing `kind`s sealed under `key` (or plain, `None`), counting refusals in
+    /// `counts`; `what` names the message in the log.
+    pub fn new(
+        kind: Kind,
+        key: Option<&BusKey>,
+        counts: Arc<RefusedCounts>,
+        what: &'static str,
+    ) -> Ear {
+        Ear {
+            kind,
+            opener: key.map(Opener::new),
+            replays: Replays::default(),
+            counts,
+            malformed: Malformed::new(what),
+        }
+    }
+
+    /// The message in `bytes` and, sealed, its header; `None` (counted, logged) if it is
+    /// refused or does not decode.
+    pub fn hear<T: DeserializeOwned + Checked>(
+        &mut self,
+        bytes: &[u8],
+    ) -> Option<(Option<Header>, T)> {
+        let Some(opener) = &mut self.opener else {
+            return match decode::<T>(bytes) {
+                Ok(msg) => Some((None, msg)),
+                Err(e) => {
+                    if bytes.starts_with(&MAGIC) {
+                        self.malformed.note_sealed();
+                    } else {
+                        self.malformed.note(&e);
+                    }
+                    None
+                }
+            };
+        };
+        let (header, inside) = match opener.open(self.kind, T::MAX_BYTES, bytes) {
+            Ok(opened) => opened,
+            Err(refusal) => {
+                self.refuse(refusal, None);
+                return None;
+            }
+        };
+        if !self.replays.accept(&header) {
+            self.refuse(Refusal::Replayed, Some(header.sender));
+            return None;
+        }
+        match decode::<T>(&inside) {
+            Ok(msg) => Some((Some(header), msg)),
+            Err(e) => {
+                // Sealed by one holding the secret, yet not a message: a version mismatch.
+                self.malformed.note(&e);
+                None
+            }
+        }
+    }
+
+    /// Whether this ear takes only sealed messages.
+    pub fn sealed(&self) -> bool {
+        self.opener.is_some()
+    }
+
+    /// Counts (and logs) a message refused for `refusal`, from `sender` if known.
+    pub fn refuse(&self, refusal: Refusal, sender: Option<u64>) {
+        let n = self.counts.note(refusal);
+        if n.is_power_of_two() {
+            match sender {
+                Some(s) => tracing::warn!(
+                    refused = n,
+                    sender = s,
+                    "a {:?} on the bus refused: {refusal}",
+                    self.kind
+                ),
+                None => tracing::warn!(
+                    refused = n,
+                    "a {:?} on the bus refused: {refusal}",
+                    self.kind
+                ),
+            }
+        }
+    }
+}
+
+/// Counts one more of `counter`, logging `what` at the first, second, fourth….
+pub(crate) fn count(counter: &AtomicU64, what: std::fmt::Arguments<'_>) {
+    let n = counter.fetch_add(1, Ordering::Relaxed) + 1;
+    if n.is_power_of_two() {
+        tracing::warn!(refused = n, "{what}");
+    }
+}

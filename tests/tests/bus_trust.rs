@@ -1,0 +1,175 @@
+//! The bus's proofs as a world and its edges see them (a real `nats-server`): an edge with
+//! another secret is never answered (and counted); a vehicle that no edge names is held,
+//! then freed. (Attacks by a NATS client without the secret: `hostile_bus.rs`.)
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use roam_protocol::bus::{Answer, Ask};
+use roam_server::Terrain;
+use roam_server::net::bus::asker::Asker;
+use roam_server::net::bus::edge::Remote;
+use roam_server::net::bus::seal::RefusedCounts;
+use roam_server::net::bus::world::{WorldOptions, WorldServer};
+use roam_server::net::bus::{BusError, BusOptions, BusSecret};
+use roam_server::sim::world_core::Snapshot;
+use roam_tests::fixtures::flat;
+use roam_tests::nats::{Nats, test_secret};
+
+/// One test at a time: each runs a world's threads on a 2-core machine.
+static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+
+fn bus(nats: &Nats, world: &str) -> BusOptions {
+    BusOptions {
+        url: nats.url(),
+        world: world.into(),
+        creds: None,
+        ca: None,
+        name: "roam-test".into(),
+        secret: Some(test_secret(world)),
+    }
+}
+
+async fn start_world(terrain: &Arc<Terrain>, bus: &BusOptions, hold: Duration) -> WorldServer {
+    let options = WorldOptions {
+        record: None,
+        hold,
+        max_vehicles: 64,
+        replay: None,
+    };
+    WorldServer::start(terrain.clone(), terrain.content_hash(), options, bus)
+        .await
+        .expect("the world starts")
+}
+
+/// The world's snapshot once `f` holds of it, within `secs` seconds.
+async fn when(
+    snaps: &mut tokio::sync::watch::Receiver<Arc<Snapshot>>,
+    secs: u64,
+    what: &str,
+    f: impl FnMut(&Arc<Snapshot>) -> bool,
+) -> Arc<Snapshot> {
+    tokio::time::timeout(Duration::from_secs(secs), snaps.wait_for(f))
+        .await
+        .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
+        .expect("the world runs")
+        .clone()
+}
+
+/// An edge of the test's making, named `name`, sealing with `bus`'s secret, its requests
+/// for the world process that answered its first hello.
+async fn hand_made_edge(bus: &BusOptions, terrain: &Terrain, name: u64) -> Arc<Asker> {
+    let client = bus.connect().await.expect("reaches NATS");
+    let subjects = bus.subjects().expect("a valid name");
+    let asker = Asker::start(
+        client,
+        &subjects,
+        bus.key().as_ref(),
+        name,
+        Arc::new(RefusedCounts::default()),
+    )
+    .await
+    .expect("subscribes to its answers");
+    match asker.ask(&hello(terrain, name, vec![])).await {
+        Ok(Answer::Hello { world, .. }) => asker.set_world(world),
+        other => panic!("{other:?}"),
+    }
+    Arc::new(asker)
+}
+
+fn hello(terrain: &Terrain, edge: u64, vehicles: Vec<(u16, u64)>) -> Ask {
+    Ask::Hello {
+        data: terrain.content_hash(),
+        edge,
+        addresses: vec![],
+        vehicles,
+    }
+}
+
+async fn join(asker: &Asker) -> (u16, u64) {
+    match asker.ask(&Ask::Join).await {
+        Ok(Answer::Joined { vehicle, claim, .. }) => (vehicle, claim),
+        other => panic!("{other:?}"),
+    }
+}
+
+/// An edge holding another secret reaches NATS but never the world: its hellos do not
+/// open there (counted as forged), so it gives up saying no world answered.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_edge_with_another_secret_is_never_answered() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "other-secret");
+    let world = start_world(&terrain, &bus, Duration::from_secs(30)).await;
+    let other = BusOptions {
+        secret: Some(BusSecret::random()),
+        ..bus.clone()
+    };
+    let err = Remote::connect(
+        &other,
+        terrain.content_hash(),
+        "d",
+        vec![],
+        Duration::from_secs(3),
+    )
+    .await
+    .err()
+    .expect("not answered");
+    assert!(matches!(err, BusError::NoWorld { .. }), "{err}");
+    let refused = world.refused();
+    assert!(refused.forged >= 1, "{refused:?}");
+    // With the world's secret, the same edge is answered.
+    Remote::connect(
+        &bus,
+        terrain.content_hash(),
+        "d",
+        vec![],
+        Duration::from_secs(10),
+    )
+    .await
+    .expect("the world answers an edge with its secret");
+    world.shutdown().await.expect("the world stops");
+}
+
+/// A vehicle whose edge never names it in its hellos (its join's answer lost, say) is held
+/// once the grace has passed, counted, and freed when its hold runs out; its sibling, named
+/// in every hello, drives on untouched.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_vehicle_no_edge_names_is_held_then_freed() {
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "unnamed");
+    // Held from its claim, 3 s before it is found unnamed: 2 s more held, then freed.
+    let world = start_world(&terrain, &bus, Duration::from_secs(5)).await;
+    let edge = hand_made_edge(&bus, &terrain, 31).await;
+    let (named, claim) = join(&edge).await;
+    let (unnamed, _) = join(&edge).await;
+    // The edge's beat: every half second, naming only the first vehicle (at most 40).
+    let beat = {
+        let (edge, terrain) = (edge.clone(), terrain.clone());
+        tokio::spawn(async move {
+            let mut every = tokio::time::interval(Duration::from_millis(500));
+            for _ in 0..40 {
+                every.tick().await;
+                let _ = edge.ask(&hello(&terrain, 31, vec![(named, claim)])).await;
+            }
+        })
+    };
+    let mut snaps = world.watch();
+    let held = when(&mut snaps, 10, "the unnamed vehicle held", |s| {
+        s.held.contains(&unnamed)
+    })
+    .await;
+    assert!(!held.held.contains(&named), "the named one drives on");
+    assert!(world.refused().unnamed >= 1, "{:?}", world.refused());
+    let freed = when(&mut snaps, 10, "the unnamed vehicle freed", |s| {
+        s.vehicles.iter().all(|v| v.id != unnamed)
+    })
+    .await;
+    assert!(freed.vehicles.iter().any(|v| v.id == named));
+    assert!(!freed.held.contains(&named));
+    beat.abort();
+    world.shutdown().await.expect("the world stops");
+}
