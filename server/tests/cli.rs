@@ -96,7 +96,26 @@ fn check_rejects_broken_data_sets() {
         (
             "map",
             b"hScale = -1.0\nvScale = 0.5\n".to_vec(),
-            &["map:1: hScale: expected a number > 0"],
+            &["map:1: hScale: expected 1e-3 ..= 1e4", "got -1.0"],
+        ),
+        // Issue 39: absurd values once passed `check` (and `serve`).
+        (
+            "map",
+            b"vScale = 1e308\n".to_vec(),
+            &["map:1: vScale: expected 1e-6 ..= 1e3", "got 1e308"],
+        ),
+        (
+            "map",
+            b"fogDensity = 1e30\n".to_vec(),
+            &[
+                "map:1: fogDensity: expected 0 ..= 10 (10 / hScale",
+                "got 1e30",
+            ],
+        ),
+        (
+            "map",
+            b"waterLevel = 1e300\n".to_vec(),
+            &["map:1: waterLevel: expected 0 ..= ", "got 1e300"],
         ),
         (
             "map",

@@ -373,10 +373,13 @@ fn map_wrong_type() {
 
 #[test]
 fn map_scale_not_positive() {
-    check_map("hScale = 0\n", &["hScale", "expected a number > 0, got 0"]);
+    check_map(
+        "hScale = 0\n",
+        &["map:1: hScale", "expected 1e-3 ..= 1e4", "got 0.0"],
+    );
     check_map(
         "vScale = -0.5\n",
-        &["vScale", "expected a number > 0, got -0.5"],
+        &["map:1: vScale", "expected 1e-6 ..= 1e3", "got -0.5"],
     );
     check_map(
         "hScale = inf\n",
@@ -388,7 +391,11 @@ fn map_scale_not_positive() {
 fn map_fog_density_negative() {
     check_map(
         "fogDensity = -0.1\n",
-        &["map:1: fogDensity", "expected a number >= 0, got -0.1"],
+        &[
+            "map:1: fogDensity",
+            "expected 0 ..= 10 (10 / hScale",
+            "got -0.1",
+        ],
     );
 }
 

@@ -1,8 +1,8 @@
 //! A data set opened for serving, as `serve`, `world`, `edge`, `bus-load` and
 //! `color-bench` open it: heights and variance tree mapped from its cache, the colour and
-//! normal tiles from theirs (each built on first use, with progress bars); its content
-//! hash (cached); the recording directory; a recording opened to be served
-//! (`serve --replay`).
+//! normal tiles from theirs (each built on first use, with progress bars; a damaged tile
+//! cache is found at open and rebuilt: `terrain::tile_store`); its content hash (cached);
+//! the recording directory; a recording opened to be served (`serve --replay`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -92,6 +92,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
     net::check_servable(&terrain).with_context(|| dir.display().to_string())?;
     let mut p = super::progress::Progress::new("colour tiles");
     let cells = terrain.heights.size();
+    let started = std::time::Instant::now();
     let (pyramid, outcome) = ColorPyramid::open_or_load(
         dir,
         cells,
@@ -111,9 +112,11 @@ pub fn open_served(dir: &Path) -> Result<Served> {
         levels = pyramid.levels(),
         kbytes = pyramid.coded_bytes() / 1000,
         mapped = pyramid.is_mapped(),
+        ms = %format!("{:.2}", started.elapsed().as_secs_f64() * 1e3),
         "colour pyramid"
     );
     let mut p = super::progress::Progress::new("normal tiles");
+    let started = std::time::Instant::now();
     let (normals, outcome) = NormalPyramid::open_or_build(
         dir,
         &terrain.heights,
@@ -130,6 +133,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
         levels = normals.levels(),
         kbytes = normals.coded_bytes() / 1000,
         mapped = normals.is_mapped(),
+        ms = %format!("{:.2}", started.elapsed().as_secs_f64() * 1e3),
         "normal pyramid"
     );
     Ok(Served {
@@ -176,5 +180,85 @@ fn log_outcome(kind: &str, outcome: CacheOutcome) {
         CacheOutcome::InMemory(why) => {
             tracing::warn!("{kind} tiles kept in memory, not cached: {why}")
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::fs;
+    use std::path::{Path, PathBuf};
+
+    use roam_server::terrain::color_pyramid::{self, TileError};
+    use roam_server::terrain::normal_pyramid;
+
+    use super::{Served, open_served};
+
+    /// A copy of `data/kossou` (1024² cells: 21 colour and 21 normal tiles of 256) in a
+    /// temporary folder of its own.
+    fn kossou_copy(name: &str) -> PathBuf {
+        let from = Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/kossou");
+        let dir = std::env::temp_dir().join(format!("roam-served-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        fs::create_dir_all(&dir).expect("a temporary folder");
+        for file in ["hf.pgm", "color.ppm", "map"] {
+            fs::copy(from.join(file), dir.join(file)).expect("the bundled data set");
+        }
+        dir
+    }
+
+    /// Every tile of both pyramids as a viewer would be served it.
+    fn served_tiles(s: &Served) -> Vec<Result<Vec<u8>, TileError>> {
+        let layout = s.pyramid.layout(1).expect("the pyramid's layout");
+        let mut out = Vec::new();
+        for level in 0..layout.levels {
+            let n = layout.tiles(level);
+            for (x, z) in (0..n * n).map(|i| (i % n, i / n)) {
+                out.push(s.pyramid.served_tile(level, x, z).map(<[u8]>::to_vec));
+                out.push(s.normals.served_tile(level, x, z).map(<[u8]>::to_vec));
+            }
+        }
+        out
+    }
+
+    /// Flips `count` bytes spread over the middle half of the file at `path`: payloads of
+    /// finer tiles, the header, the index and the coarsest tile (the file's end) untouched.
+    fn flip(path: &Path, count: usize) {
+        let mut bytes = fs::read(path).expect("the cache was written");
+        let (from, span) = (bytes.len() / 4, bytes.len() / 2);
+        for k in 0..count {
+            bytes[from + k * span / count] ^= 0x5a;
+        }
+        fs::write(path, bytes).expect("the temporary cache");
+    }
+
+    /// Issue 39's defect 5: 150 bytes flipped in each tile cache once left a server that
+    /// withheld most tiles on every start. Opened as `serve` opens it, every tile is served,
+    /// the same as fresh.
+    #[test]
+    fn damaged_tile_caches_are_rebuilt_at_start() {
+        let dir = kossou_copy("damaged-tiles");
+        let fresh = served_tiles(&open_served(&dir).expect("kossou opens"));
+        assert_eq!(fresh.len(), 2 * 21);
+        assert!(fresh.iter().all(Result::is_ok));
+        for cache in [
+            color_pyramid::cache_path(&dir),
+            normal_pyramid::cache_path(&dir),
+        ] {
+            flip(&cache, 150);
+        }
+        let reopened = open_served(&dir).expect("kossou opens");
+        assert!(
+            served_tiles(&reopened) == fresh,
+            "a tile differs from a fresh build"
+        );
+        drop(reopened);
+        // And again: the rebuilt caches are mapped and whole.
+        let again = open_served(&dir).expect("kossou opens");
+        assert!(again.pyramid.is_mapped() && again.normals.is_mapped());
+        assert!(
+            served_tiles(&again) == fresh,
+            "a tile differs from a fresh build"
+        );
+        let _ = fs::remove_dir_all(&dir);
     }
 }

@@ -66,8 +66,11 @@ fn served<'p>(what: &str, tile: Result<&'p [u8], TileError>, m: ColorSend) -> Op
         Ok(data) => Some(data),
         Err(e) => {
             if e == (TileError::Damaged { first: true }) {
+                // True: the store removed the cache's stamp, so the next start checks the
+                // file whole and rebuilds it (`terrain::tile_store`).
                 tracing::error!(
-                    "{what} tile not served ({m:?}): {e}; restart the server to rebuild it"
+                    "{what} tile not served ({m:?}): {e}; restart the server: the next start \
+                     checks the cache file whole and rebuilds it"
                 );
             }
             None

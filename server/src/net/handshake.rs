@@ -37,7 +37,7 @@ use super::bus::edge::Remote;
 use super::conn::{Conn, RecvStream, SendStream, Via, Web};
 use super::seat::{Joined, MAX_CONTROL, Seat, role_name};
 use super::shared::Shared;
-use super::tickets::{Claim, random_ticket};
+use super::tickets::{Claim, random_ticket, secret_eq};
 use super::viewer::{self, Viewer};
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::Event;
@@ -203,9 +203,9 @@ async fn handshake(
         .replay
         .as_ref()
         .and_then(|r| r.control_token.as_deref());
-    let controller =
-        control_token.is_some_and(|t| constant_time_eq(hello.token.as_bytes(), t.as_bytes()));
-    if !controller && !constant_time_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
+    // Both compared in constant time whatever the lengths (`tickets::secret_eq`).
+    let controller = control_token.is_some_and(|t| secret_eq(hello.token.as_bytes(), t.as_bytes()));
+    if !controller && !secret_eq(hello.token.as_bytes(), shared.token.as_bytes()) {
         return refuse(&mut send, Reason::WrongToken, "wrong token").await;
     }
     // A driver coming back while its old connection still holds a seat (this server has
@@ -484,8 +484,4 @@ async fn ask(shared: &Shared, event: Event) -> Result<VehicleId, ()> {
     let (tx, rx) = oneshot::channel();
     shared.world.send((event, Some(tx))).map_err(|_| ())?;
     rx.await.map_err(|_| ())
-}
-
-fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
-    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
 }

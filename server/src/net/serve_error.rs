@@ -14,7 +14,7 @@ pub enum ServeError {
     },
     #[error(transparent)]
     Tls(#[from] tls::TlsError),
-    #[error("the world thread: {0}")]
+    #[error("starting the world: {0}")]
     World(std::io::Error),
     #[error("the world thread panicked")]
     WorldPanicked,

@@ -10,6 +10,11 @@
 //!   After a failure the session goes on unrecorded, and every join says so
 //!   ([`Notice::JoinedUnrecorded`]). A join is made in the world first and recorded after,
 //!   so a failing record never leaves a vehicle without its driver.
+//! - **At start it is the other way round.** A first file that cannot be created or
+//!   written (a read-only `--record-dir`) is [`SessionRecording::start`]'s error, and the
+//!   server does not start: a server that runs unrecorded from its first tick is more
+//!   likely a mistake than a choice, and the operator is there to see it. The error says
+//!   so and names the file (not the mid-session notice's "…goes on unrecorded").
 //! - **A size cap, with rotation.** Before each change (a step's records, a join, a leave)
 //!   the recording checks that the file stays within `max_bytes` with the change and an end
 //!   record; if not, the file is finished (its end record: the world's tick and digest) and
@@ -152,6 +157,22 @@ impl fmt::Display for Notice {
     }
 }
 
+/// The error of a recording that cannot start (its first file cannot be created, or its
+/// header written): the server does not start, so the message says so. The notice's own
+/// text ("…the session goes on unrecorded") is true only mid-session, and was once shown
+/// here, saying the opposite of what happened.
+fn start_error(notice: Notice) -> io::Error {
+    let why = match notice {
+        Notice::CreateFailed { error } => format!("cannot create its first file: {error}"),
+        Notice::Failed { file, error, .. } => format!("cannot write {file}: {error}"),
+        other => other.to_string(),
+    };
+    io::Error::other(format!(
+        "the recording cannot start ({why}), and the server does not run unrecorded: \
+         give a --record-dir it can create files in"
+    ))
+}
+
 /// The file being written.
 struct Live {
     name: String,
@@ -185,7 +206,7 @@ impl SessionRecording {
             live: None,
             notices: Vec::new(),
         };
-        let live = s.open(world).map_err(|n| io::Error::other(n.to_string()))?;
+        let live = s.open(world).map_err(start_error)?;
         s.notices.push(Notice::Started {
             file: live.name.clone(),
             tick: world.tick(),

@@ -147,8 +147,7 @@ impl ColorPyramid {
         let (store, outcome) = store::open_or_make(
             dir,
             &KIND,
-            cells,
-            tile,
+            (cells, tile, threads),
             key.as_deref().map_err(Clone::clone),
             || {
                 let color = load()?;

@@ -197,9 +197,10 @@ fn a_damaged_or_stale_cache_is_rebuilt() {
     let _ = fs::remove_dir_all(&dir);
 }
 
-/// A damaged tile payload (the header and index intact) is never served: found the first
-/// time the tile is asked for, reported once; a damaged coarsest tile (every viewer's
-/// first) is found at open and the cache rebuilt.
+/// A damaged tile payload (the header and index intact) is never served: found at open
+/// (every payload checked) and the cache rebuilt; damaged after open, found the first time
+/// the tile is asked for, reported once, and the cache's stamp removed so that the next
+/// open rebuilds it.
 #[test]
 fn a_damaged_tile_is_not_served() {
     let dir = dataset("damaged-tile");
@@ -208,12 +209,26 @@ fn a_damaged_tile_is_not_served() {
     let (built, _) = open(&dir, &color);
     let good = fs::read(&path).expect("the cache was written");
     // 64² in tiles of 16: 16 + 4 + 1 tiles; the payloads follow the index, finest first.
+    // A damaged finer tile (header and index intact): found at open, where every payload
+    // is checked against its check, and the cache rebuilt.
     let base = HEADER + HASH + 21 * ENTRY;
     let mut bytes = good.clone();
     bytes[base + 20] ^= 0x40;
     fs::write(&path, &bytes).expect("temp file");
+    let (_, outcome) = open(&dir, &color);
+    assert!(
+        matches!(&outcome, CacheOutcome::Rebuilt(why) if why.contains("tile (0, 0) of level 0")),
+        "{outcome:?}"
+    );
+    assert_eq!(fs::read(&path).expect("rewritten"), good);
+    // Checked whole, the cache is stamped. Damaged in place while mapped (the map sees
+    // it): found when the tile is first served, reported once, never sent, and the stamp
+    // removed, so the next open checks the file whole and rebuilds it.
     let (p, outcome) = open(&dir, &color);
-    assert_eq!(outcome, CacheOutcome::Mapped, "header and index are intact");
+    assert_eq!(outcome, CacheOutcome::Mapped);
+    let stamp = path.with_extension("bin.verified");
+    assert!(stamp.exists(), "{}", stamp.display());
+    damage_in_place(&path, base + 20);
     assert_eq!(
         p.served_tile(0, 0, 0),
         Err(TileError::Damaged { first: true })
@@ -227,6 +242,17 @@ fn a_damaged_tile_is_not_served() {
         Ok(built.tile(0, 1, 0).expect("a tile"))
     );
     assert_eq!(p.served_tile(0, 4, 0), Err(TileError::Outside));
+    assert!(
+        !stamp.exists(),
+        "the stamp is removed with the first damaged tile"
+    );
+    drop(p);
+    let (_, outcome) = open(&dir, &color);
+    assert!(
+        matches!(&outcome, CacheOutcome::Rebuilt(why) if why.contains("tile (0, 0) of level 0")),
+        "{outcome:?}"
+    );
+    assert_eq!(fs::read(&path).expect("rewritten"), good);
     // The coarsest tile's payload is the file's last bytes.
     let mut bytes = good.clone();
     let last = bytes.len() - 1;
@@ -239,6 +265,22 @@ fn a_damaged_tile_is_not_served() {
     );
     assert_eq!(fs::read(&path).expect("rewritten"), good);
     let _ = fs::remove_dir_all(&dir);
+}
+
+/// Flips the byte at `at` of the file at `path` in place (the same inode: a map of it sees
+/// the change).
+fn damage_in_place(path: &Path, at: usize) {
+    use std::io::{Read, Seek, SeekFrom, Write};
+    let mut f = fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .expect("the temporary cache");
+    let mut byte = [0u8];
+    f.seek(SeekFrom::Start(at as u64)).expect("seek");
+    f.read_exact(&mut byte).expect("a byte there");
+    f.seek(SeekFrom::Start(at as u64)).expect("seek");
+    f.write_all(&[byte[0] ^ 0x40]).expect("written in place");
 }
 
 #[test]

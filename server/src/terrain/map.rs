@@ -18,6 +18,26 @@
 //! Every key is optional; integers are accepted where numbers are expected. Unknown keys
 //! (also inside `start`), wrong types and out-of-range values are errors that name the key,
 //! the line and what was expected.
+//!
+//! **Ranges.** Every number is bounded where a value could make no sense, and a value
+//! outside is refused naming the key, the value and the range ([`MapParams::validate_for_side`];
+//! a map of absurd values once passed `check` and `serve`: `vScale = 1e308` made the
+//! heights infinite, and frames cost ten times as much). The ranges admit every real use:
+//!
+//! - `hScale` [`H_SCALE`] (1 mm to 10 km between samples: lidar to coarse global grids);
+//! - `vScale` [`V_SCALE`] (a sample step of 1 µm to 1 km: the highest height,
+//!   65535 · `vScale`, at most 6.6·10⁷, so every height is finite and exact enough in
+//!   `f32`; real DEMs, trench to Everest in metres, need about 0.3, and a hundredfold
+//!   vertical exaggeration 30);
+//! - `fogDensity` 0 ..= 10 / `hScale` (the fog lets at least e⁻¹⁰ of the next sample
+//!   through: a denser fog shows nothing but the ground under the vehicle; the bundled data
+//!   sets use at most 0.047 / `hScale`, the generator at most 3 / `hScale`, and the
+//!   default 0.0005 stays within for every `hScale`);
+//! - `waterLevel` within the heights' range, 0 ..= 65535 · `vScale` (heights are
+//!   `sample · vScale`, samples 0 ..= 65535: water below or above every height is none or
+//!   all);
+//! - `start.x`, `start.z` on the map; `start.heading` any finite number of degrees (wrapped
+//!   when a vehicle is placed).
 
 use std::fmt::Write as _;
 use std::ops::Range;
@@ -35,6 +55,15 @@ pub const KEYS: [&str; 8] = [
     "waterLevel",
     "start",
 ];
+/// `hScale`'s range: world units between neighbouring samples.
+pub const H_SCALE: (f64, f64) = (1e-3, 1e4);
+/// `vScale`'s range: world units per sample step.
+pub const V_SCALE: (f64, f64) = (1e-6, 1e3);
+/// The most `fogDensity · hScale`: at least e⁻¹⁰ of the next sample shows through the fog.
+pub const MAX_FOG_PER_SAMPLE: f64 = 10.0;
+/// The highest sample value (`hf.pgm` is 16-bit): heights are `sample · vScale`.
+const MAX_SAMPLE: f64 = 65535.0;
+
 /// Keys of the `start` table.
 pub const START_KEYS: [&str; 3] = ["x", "z", "heading"];
 
@@ -133,13 +162,16 @@ impl MapParams {
         p.reject_unknown(table, &KEYS, "")?;
         let mut m = MapParams::default_for_side(side);
         let mut start_given = [None, None, None];
+        // Each key's line, for the errors of `validate_for_side`.
+        let mut key_lines: Vec<(String, Option<usize>)> = Vec::new();
         for (key, value) in table.iter() {
             let key_name: &str = key.get_ref();
             let line = Some(line_of(text, value.span().start));
+            key_lines.push((key_name.to_owned(), line));
             let v = value.get_ref();
             match key_name {
-                "hScale" => m.h_scale = p.positive(key_name, line, v)?,
-                "vScale" => m.v_scale = p.positive(key_name, line, v)?,
+                "hScale" => m.h_scale = p.number(key_name, line, v)?,
+                "vScale" => m.v_scale = p.number(key_name, line, v)?,
                 "sunDir" => {
                     let d = p.floats3(key_name, line, v)?;
                     m.sun_dir = normalize(d).ok_or_else(|| MapError {
@@ -151,17 +183,7 @@ impl MapParams {
                     })?;
                 }
                 "sunColor" => m.sun_color = p.color(key_name, line, v)?,
-                "fogDensity" => {
-                    let d = p.number(key_name, line, v)?;
-                    if d < 0.0 {
-                        return Err(MapError {
-                            field: key_name.into(),
-                            line,
-                            message: format!("expected a number >= 0, got {d}"),
-                        });
-                    }
-                    m.fog_density = d;
-                }
+                "fogDensity" => m.fog_density = p.number(key_name, line, v)?,
                 "fogColor" => m.fog_color = p.color(key_name, line, v)?,
                 "waterLevel" => m.water_level = Some(p.number(key_name, line, v)?),
                 "start" => {
@@ -193,7 +215,16 @@ impl MapParams {
                 e.line = match e.field.as_str() {
                     "start.x" => lines[0],
                     "start.z" => lines[1],
-                    _ => None,
+                    "start.heading" => lines[2],
+                    field => key_lines
+                        .iter()
+                        .find(|(k, _)| {
+                            field == k
+                                || field
+                                    .strip_prefix(k.as_str())
+                                    .is_some_and(|r| r.starts_with('['))
+                        })
+                        .and_then(|(_, l)| *l),
                 };
             }
             e
@@ -211,11 +242,28 @@ impl MapParams {
             line: None,
             message,
         };
-        for (key, v) in [("hScale", self.h_scale), ("vScale", self.v_scale)] {
-            if !(v.is_finite() && v > 0.0) {
-                return Err(err(key, format!("expected a finite number > 0, got {v}")));
+        let within = |key: &str, v: f64, (lo, hi): (f64, f64), what: &str| {
+            if v.is_finite() && (lo..=hi).contains(&v) {
+                Ok(())
+            } else {
+                Err(err(
+                    key,
+                    format!("expected {lo:e} ..= {hi:e} ({what}), got {v:?}"),
+                ))
             }
-        }
+        };
+        within(
+            "hScale",
+            self.h_scale,
+            H_SCALE,
+            "world units between neighbouring samples",
+        )?;
+        within(
+            "vScale",
+            self.v_scale,
+            V_SCALE,
+            "world units per sample step; the highest height is 65535 × vScale",
+        )?;
         let len = self.sun_dir.iter().map(|c| c * c).sum::<f64>().sqrt();
         if !len.is_finite() || (len - 1.0).abs() > 1e-9 {
             return Err(err(
@@ -223,18 +271,28 @@ impl MapParams {
                 format!("expected a unit vector, got {:?}", self.sun_dir),
             ));
         }
-        if !(self.fog_density.is_finite() && self.fog_density >= 0.0) {
+        let fog_max = MAX_FOG_PER_SAMPLE / self.h_scale;
+        if !(self.fog_density.is_finite() && (0.0..=fog_max).contains(&self.fog_density)) {
             return Err(err(
                 "fogDensity",
-                format!("expected a finite number >= 0, got {}", self.fog_density),
+                format!(
+                    "expected 0 ..= {fog_max} ({MAX_FOG_PER_SAMPLE} / hScale: a fog through \
+                     which the next sample still shows), got {:?}",
+                    self.fog_density
+                ),
             ));
         }
+        let top = MAX_SAMPLE * self.v_scale;
         if let Some(w) = self.water_level
-            && !w.is_finite()
+            && !(w.is_finite() && (0.0..=top).contains(&w))
         {
             return Err(err(
                 "waterLevel",
-                format!("expected a finite number, got {w}"),
+                format!(
+                    "expected 0 ..= {top} (the heights' range: 65535 × vScale = 65535 × {}), \
+                     got {w:?}",
+                    self.v_scale
+                ),
             ));
         }
         let size = self.world_size(side);
@@ -244,7 +302,7 @@ impl MapParams {
                     key,
                     format!(
                         "expected 0 ..= {size} (on the map: hScale × (side − 1) = {} × {}), \
-                         got {v}",
+                         got {v:?}",
                         self.h_scale,
                         side.saturating_sub(1)
                     ),
@@ -367,15 +425,6 @@ impl Parser<'_> {
         }
     }
 
-    fn positive(&self, field: &str, line: Option<usize>, v: &DeValue<'_>) -> Result<f64, MapError> {
-        let x = self.number(field, line, v)?;
-        if x > 0.0 {
-            Ok(x)
-        } else {
-            Err(self.type_err(field, line, "a number > 0", v))
-        }
-    }
-
     fn array3<'a, 'i>(
         &self,
         field: &str,
@@ -481,5 +530,96 @@ mod tests {
         assert_eq!((e.field.as_str(), e.line), ("start.x", Some(3)));
         let e = MapParams::parse("fogDensity = nan\n", 65).unwrap_err();
         assert!(e.message.contains("finite"), "{e}");
+    }
+
+    /// Parses `text` for a 1025-sample map: `Ok(())` expected as `None`, else the error's
+    /// field, line and a part of its message (the range, or what was refused).
+    fn check(text: &str, expected: Option<(&str, usize, &str)>) {
+        let got = MapParams::parse(text, 1025);
+        match (expected, got) {
+            (None, Ok(m)) => {
+                // Every height of an accepted map is finite, and finite as an f32.
+                let top = MAX_SAMPLE * m.v_scale;
+                assert!((top as f32).is_finite() && top < 1e8, "{text}: top {top}");
+            }
+            (Some((field, line, part)), Err(e)) => {
+                assert_eq!(
+                    (e.field.as_str(), e.line),
+                    (field, Some(line)),
+                    "{text}: {e}"
+                );
+                assert!(e.message.contains(part), "{text}: {e:?} lacks {part:?}");
+            }
+            (want, got) => panic!("{text}: expected {want:?}, got {got:?}"),
+        }
+    }
+
+    #[test]
+    fn absurd_values_are_refused_naming_the_key_the_value_and_the_range() {
+        // The bundled data sets' maps, and the extremes of every range, pass.
+        check(include_str!("../../../data/kossou/map"), None);
+        check(include_str!("../../../data/synth-257/map"), None);
+        check(include_str!("../../../data/synth-65/map"), None);
+        check("hScale = 0.001\nvScale = 1e-6\n[start]\nx = 0\n", None);
+        check(
+            "hScale = 10000\nvScale = 1000\nwaterLevel = 65535000\n",
+            None,
+        );
+        check("hScale = 92\nfogDensity = 0.1086\nwaterLevel = 0\n", None);
+        check("fogDensity = 0\n[start]\nheading = -7200\n", None);
+        // Real DEMs: trench to Everest (19.8 km) in metres, and a hundredfold exaggeration.
+        check("hScale = 30\nvScale = 0.303\nwaterLevel = 10994\n", None);
+        check("hScale = 30\nvScale = 30.3\n", None);
+        // What the attack used, and each range's edges.
+        check(
+            "vScale = 1e308\n",
+            Some(("vScale", 1, "expected 1e-6 ..= 1e3")),
+        );
+        check("\nvScale = 1e308\n", Some(("vScale", 2, "got 1e308")));
+        check("vScale = 1001\n", Some(("vScale", 1, "got 1001")));
+        check("vScale = 0\n", Some(("vScale", 1, "expected 1e-6 ..= 1e3")));
+        check("vScale = -0.01\n", Some(("vScale", 1, "got -0.01")));
+        check("vScale = 1e-7\n", Some(("vScale", 1, "got 1e-7")));
+        check(
+            "hScale = 1e5\n",
+            Some(("hScale", 1, "expected 1e-3 ..= 1e4")),
+        );
+        check("hScale = 0.0001\n", Some(("hScale", 1, "got 0.0001")));
+        check(
+            "vScale = 1.0\n\nhScale = -1\n",
+            Some(("hScale", 3, "got -1")),
+        );
+        check(
+            "fogDensity = 1e30\n",
+            Some(("fogDensity", 1, "expected 0 ..= 10 (10 / hScale")),
+        );
+        check(
+            "hScale = 92\nfogDensity = 0.109\n",
+            Some(("fogDensity", 2, "got 0.109")),
+        );
+        check(
+            "fogDensity = -1e-9\n",
+            Some(("fogDensity", 1, "10 / hScale")),
+        );
+        check(
+            "waterLevel = 1e300\n",
+            Some(("waterLevel", 1, "expected 0 ..= 6553.5")),
+        );
+        check(
+            "vScale = 0.01\nwaterLevel = 655.36\n",
+            Some(("waterLevel", 2, "got 655.36")),
+        );
+        check(
+            "waterLevel = -1\n",
+            Some(("waterLevel", 1, "the heights' range")),
+        );
+        check(
+            "waterLevel = inf\n",
+            Some(("waterLevel", 1, "a finite number")),
+        );
+        check(
+            "[start]\nheading = 1e400\n",
+            Some(("start.heading", 2, "a finite number")),
+        );
     }
 }

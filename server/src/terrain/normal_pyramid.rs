@@ -178,9 +178,10 @@ impl NormalPyramid {
             &scales.1.to_bits().to_le_bytes(),
         ]
         .concat();
-        let (store, outcome) = store::open_or_make(dir, &KIND, hf.size(), tile, Ok(&key), || {
-            Self::build(hf, scales, tile, threads, progress).map(|p| p.store)
-        })?;
+        let (store, outcome) =
+            store::open_or_make(dir, &KIND, (hf.size(), tile, threads), Ok(&key), || {
+                Self::build(hf, scales, tile, threads, progress).map(|p| p.store)
+            })?;
         Ok((NormalPyramid { store }, outcome))
     }
 

@@ -208,14 +208,26 @@ fn a_damaged_cache_is_rebuilt_and_a_damaged_tile_never_served() {
         assert!(p.tile(0, 3, 3).is_some());
         assert_eq!(fs::read(&path).expect("rewritten"), good, "{want}");
     }
-    // A damaged finer tile (header and index intact): found when first served, reported
-    // once, never sent.
+    // A damaged finer tile (header and index intact): found at open, where every payload
+    // is checked against its check, and the cache rebuilt.
     let base = HEADER + HASH + 21 * ENTRY;
     let mut bytes = good.clone();
     bytes[base + 20] ^= 0x40;
     fs::write(&path, &bytes).expect("temp file");
+    let (_, outcome) = open(&dir, &hf, [7; 32]);
+    assert!(
+        matches!(&outcome, CacheOutcome::Rebuilt(why) if why.contains("tile (0, 0) of level 0")),
+        "{outcome:?}"
+    );
+    assert_eq!(fs::read(&path).expect("rewritten"), good);
+    // Checked whole, the cache is stamped. Damaged in place while mapped (the map sees
+    // it): found when the tile is first served, reported once, never sent, and the stamp
+    // removed, so the next open checks the file whole and rebuilds it.
     let (p, outcome) = open(&dir, &hf, [7; 32]);
-    assert_eq!(outcome, CacheOutcome::Mapped, "header and index are intact");
+    assert_eq!(outcome, CacheOutcome::Mapped);
+    let stamp = path.with_extension("bin.verified");
+    assert!(stamp.exists(), "{}", stamp.display());
+    damage_in_place(&path, base + 20);
     assert_eq!(
         p.served_tile(0, 0, 0),
         Err(TileError::Damaged { first: true })
@@ -229,7 +241,34 @@ fn a_damaged_cache_is_rebuilt_and_a_damaged_tile_never_served() {
         Ok(built.tile(0, 1, 0).expect("a tile"))
     );
     assert_eq!(p.served_tile(0, 4, 0), Err(TileError::Outside));
+    assert!(
+        !stamp.exists(),
+        "the stamp is removed with the first damaged tile"
+    );
+    drop(p);
+    let (_, outcome) = open(&dir, &hf, [7; 32]);
+    assert!(
+        matches!(&outcome, CacheOutcome::Rebuilt(why) if why.contains("tile (0, 0) of level 0")),
+        "{outcome:?}"
+    );
+    assert_eq!(fs::read(&path).expect("rewritten"), good);
     let _ = fs::remove_dir_all(&dir);
+}
+
+/// Flips the byte at `at` of the file at `path` in place (the same inode: a map of it sees
+/// the change).
+fn damage_in_place(path: &Path, at: usize) {
+    use std::io::{Read, Seek, SeekFrom, Write};
+    let mut f = fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(path)
+        .expect("the temporary cache");
+    let mut byte = [0u8];
+    f.seek(SeekFrom::Start(at as u64)).expect("seek");
+    f.read_exact(&mut byte).expect("a byte there");
+    f.seek(SeekFrom::Start(at as u64)).expect("seek");
+    f.write_all(&[byte[0] ^ 0x40]).expect("written in place");
 }
 
 #[test]

@@ -223,7 +223,11 @@ impl WorldServer {
         for t in self.tasks.drain(..) {
             let _ = t.await;
         }
-        let _ = self.client.flush().await;
+        // Bounded: with the NATS server gone, a flush waits for a reconnection that may
+        // never come, and SIGINT would never end the process (issue 39). What is not
+        // flushed by then is lost with the connection anyway.
+        const FLUSH_WAIT: Duration = Duration::from_millis(500);
+        let _ = tokio::time::timeout(FLUSH_WAIT, self.client.flush()).await;
         drop(self.inbox.take());
         let thread = self.thread;
         tokio::task::spawn_blocking(move || thread.join())
