@@ -77,9 +77,14 @@ fn world_exits_on_sigint_with_its_nats_gone() {
 
     let state = TempDir::new("world-stop");
     let url = format!("nats://127.0.0.1:{port}");
+    let key = state.path("bus.key");
+    std::fs::write(&key, "the world-stop test's bus secret, 32 bytes or more\n")
+        .expect("a secret written");
     let mut world = Command::new(env!("CARGO_BIN_EXE_roam-server"))
         .args(["world", "data/synth-65", "--nats", &url, "--world", "stop"])
         .args(["--state-dir", state.str()])
+        .arg("--bus-secret")
+        .arg(&key)
         .current_dir(root())
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
