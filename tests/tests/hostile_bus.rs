@@ -295,10 +295,10 @@ async fn a_second_on(
     world: &WorldServer,
     mut gone: impl FnMut(&Snapshot) -> bool,
 ) -> Arc<Snapshot> {
-    let mut snaps = world.watch();
-    let from = world.snapshot().tick;
+    let (mut snaps, stats) = (world.watch(), world.world_stats());
+    let from = stats.ticks();
     when(&mut snaps, 10, "100 more world ticks", |s| {
-        s.tick >= from + 100 || gone(s)
+        stats.ticks() >= from + 100 || gone(s)
     })
     .await
 }
