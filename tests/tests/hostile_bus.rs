@@ -9,7 +9,9 @@
 //! 100 ticks a second and the real driver's drive stays exact).
 //!
 //! The bus options of the world and the edge are made in one place ([`bus`]): the cluster's
-//! secret goes there.
+//! secret goes there. Each test ends with a commented `after the fix:` sketch of the
+//! refusals the world ([`WorldServer`]) and the edge ([`Remote`]) are to count, for when
+//! they count them.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -462,7 +464,9 @@ async fn forged_snapshots_of_a_new_world_kick_no_driver() {
             tick: tick + i,
             ..wire::Snapshot::default()
         };
-        c.attacker.publish(&c.attacker.subjects.snapshots, &forged).await;
+        c.attacker
+            .publish(&c.attacker.subjects.snapshots, &forged)
+            .await;
     }
     c.attacker.flush().await;
     // The driver's session, to its end, is the time the edge had to take the snapshots.
@@ -594,7 +598,9 @@ async fn a_snooper_learns_no_ticket_or_claim_and_a_fake_edge_is_not_listed() {
 /// world's snapshots (`.snap`) for the drive's first second, then publishes each again (100
 /// of each kind, the requests with its own inbox for the reply). Proves that no replayed
 /// join is answered `Joined`, that the world's vehicles stay the one driven, that the edge
-/// takes no restart, and that the driver's session goes on, its drive exact.
+/// takes no restart, and that the driver's session goes on, its drive exact. (Before the
+/// fix, the replayed joins are what succeed: the replayed key states carry sequence numbers
+/// already applied, and the replayed snapshots name the same world process.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replayed_messages_join_free_steer_and_kick_nothing() {
     let _turn = ONE_AT_A_TIME.lock().await;
@@ -612,7 +618,11 @@ async fn replayed_messages_join_free_steer_and_kick_nothing() {
     })
     .await;
     let (keys, asks, snaps) = (keys.take(), asks.take(), snaps.take());
-    for (what, got) in [("key states", &keys), ("requests", &asks), ("snapshots", &snaps)] {
+    for (what, got) in [
+        ("key states", &keys),
+        ("requests", &asks),
+        ("snapshots", &snaps),
+    ] {
         assert!(!got.is_empty(), "captured the edge's {what}");
     }
     let again = |captured: &[async_nats::Message]| -> Vec<bytes::Bytes> {
@@ -637,12 +647,16 @@ async fn replayed_messages_join_free_steer_and_kick_nothing() {
     let ids: Vec<u16> = after.vehicles.iter().map(|v| v.id).collect();
     assert_eq!(ids, vec![vehicle], "the world's vehicles: the one driven");
     let ended = fixtures::bounded("the driver's session", d).await;
-    assert_eq!(c.remote.restarts(), 0, "the edge took replays for a restart");
+    assert_eq!(
+        c.remote.restarts(),
+        0,
+        "the edge took replays for a restart"
+    );
     let stats = ended
         .expect("the driver's task runs")
         .expect("the driver's session goes on to its last frame");
     fixtures::assert_drive_exact(&c.terrain, stats.last, stats.last_tick);
-    // after the fix: every replay refused and counted as one.
+    // after the fix (e.g.): every replay refused and counted as one.
     // let (world, edge) = (c.world.refused(), c.remote.refused());
     // assert_eq!(world.replayed, 200, "{world:?}"); // 100 key states, 100 requests
     // assert_eq!(edge.replayed, 100, "{edge:?}"); // 100 snapshots
