@@ -53,9 +53,9 @@ fn bus(nats: &Nats, world: &str) -> BusOptions {
         creds: None,
         ca: None,
         name: "roam-test".into(),
-        // after the fix: the cluster's secret, shared by the world and its edge (the
-        // attacker never has it):
-        // secret: Some(roam_server::net::bus::BusSecret::random()),
+        // The cluster's secret, shared by the world and its edge (the attacker never has
+        // it).
+        secret: Some(roam_tests::nats::test_secret(world)),
     }
 }
 
@@ -381,10 +381,10 @@ async fn forged_keys_do_not_steer_another_drivers_vehicle() {
     c.attacker.flush().await;
     pace.check("under 3 s of forged keys");
     drove_exactly(&c.terrain, d).await;
-    // after the fix: every forged message refused and counted, none taken.
-    // let refused = c.world.refused();
-    // assert!(refused.unsealed + refused.forged >= 300, "{refused:?}");
-    // assert_eq!(refused.replayed, 0, "{refused:?}");
+    // Every forged message refused as unsealed, and counted.
+    let refused = c.world.refused();
+    assert_eq!(refused.unsealed, 300, "{refused:?}");
+    assert_eq!(refused.not_holder, 0, "{refused:?}");
     c.stop().await;
 }
 
@@ -409,9 +409,9 @@ async fn forged_leaves_do_not_free_another_drivers_vehicle() {
         after.vehicles.len()
     );
     drove_exactly(&c.terrain, d).await;
-    // after the fix: each leave refused and counted (unsealed: no edge's proof).
-    // let refused = c.world.refused();
-    // assert_eq!(refused.unsealed + refused.forged, 199, "{refused:?}");
+    // Each leave refused as unsealed (no edge's proof), and counted.
+    let refused = c.world.refused();
+    assert_eq!(refused.unsealed, 199, "{refused:?}");
     c.stop().await;
 }
 
@@ -441,9 +441,9 @@ async fn forged_holds_do_not_hold_another_drivers_vehicle() {
         after.held
     );
     drove_exactly(&c.terrain, d).await;
-    // after the fix: each hold refused and counted.
-    // let refused = c.world.refused();
-    // assert_eq!(refused.unsealed + refused.forged, 199, "{refused:?}");
+    // Each hold refused as unsealed, and counted.
+    let refused = c.world.refused();
+    assert_eq!(refused.unsealed, 199, "{refused:?}");
     c.stop().await;
 }
 
@@ -480,9 +480,9 @@ async fn forged_snapshots_of_a_new_world_kick_no_driver() {
         .expect("the driver's task runs")
         .expect("the driver's session goes on to its last frame");
     fixtures::assert_drive_exact(&c.terrain, stats.last, stats.last_tick);
-    // after the fix: the three refused and counted by the edge.
-    // let refused = c.remote.refused();
-    // assert_eq!(refused.unsealed + refused.forged, 3, "{refused:?}");
+    // The three refused by the edge as unsealed, and counted.
+    let refused = c.remote.refused();
+    assert_eq!(refused.unsealed, 3, "{refused:?}");
     c.stop().await;
 }
 
@@ -506,9 +506,9 @@ async fn forged_joins_do_not_fill_the_world() {
     let in_world = c.world.snapshot().vehicles.len();
     assert_eq!(in_world, 0, "vehicles nobody drives in the world");
     drove_exactly(&c.terrain, c.driver()).await;
-    // after the fix: each join refused and counted.
-    // let refused = c.world.refused();
-    // assert_eq!(refused.unsealed + refused.forged, 1100, "{refused:?}");
+    // Each join refused as unsealed, and counted.
+    let refused = c.world.refused();
+    assert_eq!(refused.unsealed, 1100, "{refused:?}");
     c.stop().await;
 }
 
@@ -587,9 +587,17 @@ async fn a_snooper_learns_no_ticket_or_claim_and_a_fake_edge_is_not_listed() {
         listed.contains(&c.edge.server.addr.to_string()),
         "the real edge is listed: {listed:?}"
     );
-    // after the fix: the fake hello refused and counted.
-    // let refused = c.world.refused();
-    // assert!(refused.unsealed + refused.forged >= 1, "{refused:?}");
+    // The fake hello refused as unsealed, and counted; the snooper's capture was all
+    // sealed, and none of it decodes as a bus message.
+    let refused = c.world.refused();
+    assert_eq!(refused.unsealed, 1, "{refused:?}");
+    assert!(answer.is_none(), "the fake hello was answered: {answer:?}");
+    let plain = replies
+        .iter()
+        .chain(&subjects)
+        .filter(|m| !m.payload.starts_with(&roam_server::net::bus::seal::MAGIC))
+        .count();
+    assert_eq!(plain, 0, "every message on the bus is sealed");
     c.stop().await;
 }
 
@@ -656,9 +664,11 @@ async fn replayed_messages_join_free_steer_and_kick_nothing() {
         .expect("the driver's task runs")
         .expect("the driver's session goes on to its last frame");
     fixtures::assert_drive_exact(&c.terrain, stats.last, stats.last_tick);
-    // after the fix (e.g.): every replay refused and counted as one.
-    // let (world, edge) = (c.world.refused(), c.remote.refused());
-    // assert_eq!(world.replayed, 200, "{world:?}"); // 100 key states, 100 requests
-    // assert_eq!(edge.replayed, 100, "{edge:?}"); // 100 snapshots
+    // Every replay refused as one, and counted: 100 key states and 100 requests by the
+    // world, 100 snapshots by the edge.
+    let (world, edge) = (c.world.refused(), c.remote.refused());
+    assert_eq!(world.replayed, 200, "{world:?}");
+    assert_eq!(edge.replayed, 100, "{edge:?}");
+    assert_eq!(world.unsealed + world.forged, 0, "{world:?}");
     c.stop().await;
 }
