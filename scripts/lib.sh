@@ -75,7 +75,10 @@ bus_args() {
         echo --insecure-bus
         return
     fi
-    [[ -s "$state/bus.key" ]] || "${BIN_DIR:-target/release}/roam-server" bus-secret "$state/bus.key" >/dev/null
+    # Two callers at once (a command started in the background) may both make it: the
+    # second is refused (never over a file) and uses the first's.
+    [[ -s "$state/bus.key" ]] || "${BIN_DIR:-target/release}/roam-server" bus-secret "$state/bus.key" >/dev/null 2>&1 ||
+        [[ -s "$state/bus.key" ]] || { echo "error: could not write $state/bus.key" >&2; exit 1; }
     echo --bus-secret "$state/bus.key"
 }
 

@@ -12,6 +12,9 @@
 //!
 //! Decisions:
 //!
+//! - These are the messages inside the seal: between a world and its edges each goes
+//!   encrypted and authenticated with the cluster's secret (the server's `net::bus::seal`),
+//!   so the names in them (an edge's, a world's) are checked against who sealed them.
 //! - Core NATS is at-most-once. A snapshot supersedes the one before, so a lost one costs
 //!   nothing but its tick; key states travel as the viewer's datagram brings them (the
 //!   newest few at once), so a lost message is covered by the next one, as on the viewer's
@@ -191,8 +194,8 @@ pub enum Answer {
         #[serde(deserialize_with = "crate::messages::edge_list")]
         edges: Vec<String>,
     },
-    /// A new vehicle, its driver's ticket, and the claim its edge names it by: a number
-    /// the world gives each join and resume, never twice.
+    /// A new vehicle, its driver's ticket, and the claim its edge names it by: a random
+    /// number the world gives each join and resume.
     Joined {
         vehicle: u16,
         ticket: Ticket,

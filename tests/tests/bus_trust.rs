@@ -173,3 +173,78 @@ async fn a_vehicle_no_edge_names_is_held_then_freed() {
     beat.abort();
     world.shutdown().await.expect("the world stops");
 }
+
+/// A world restart is believed from the world's own answer only: an edge's world goes and
+/// another process takes its place (the edge confirms it by a hello: one restart); the old
+/// process's snapshots, captured and played again, are genuine but make no second restart
+/// and are never taken (counted as replays or unconfirmed).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_old_worlds_snapshots_played_again_restart_nothing() {
+    use futures_util::StreamExt;
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "restart");
+    let old = start_world(&terrain, &bus, Duration::from_secs(30)).await;
+    let remote = Remote::connect(
+        &bus,
+        terrain.content_hash(),
+        "d",
+        vec![],
+        Duration::from_secs(10),
+    )
+    .await
+    .expect("the edge reaches the world");
+    // The old world's snapshots, captured (at most 50).
+    let snooper = async_nats::connect(nats.url()).await.expect("reaches NATS");
+    let subjects = bus.subjects().expect("a valid name");
+    let mut sub = snooper
+        .subscribe(subjects.snapshots.clone())
+        .await
+        .expect("subscribes");
+    let mut captured = Vec::new();
+    while captured.len() < 50 {
+        let msg = tokio::time::timeout(Duration::from_secs(5), sub.next())
+            .await
+            .expect("the world publishes a snapshot a tick")
+            .expect("subscribed");
+        captured.push(msg.payload);
+    }
+    drop(sub);
+    old.shutdown().await.expect("the old world stops");
+    let new = start_world(&terrain, &bus, Duration::from_secs(30)).await;
+    let mut news = remote.news();
+    tokio::time::timeout(Duration::from_secs(10), news.wait_for(|n| n.restarts == 1))
+        .await
+        .expect("the edge confirms the new world")
+        .expect("the edge runs");
+    let before = remote.refused();
+    for payload in &captured {
+        snooper
+            .publish(subjects.snapshots.clone(), payload.clone())
+            .await
+            .expect("NATS takes it");
+    }
+    snooper.flush().await.expect("flushed");
+    // Each played-again snapshot refused by the edge (looked at every 10 ms, 5 s at most).
+    let refused = |r: roam_server::net::bus::Refused| r.replayed + r.unconfirmed;
+    let mut look = tokio::time::interval(Duration::from_millis(10));
+    for _ in 0..500 {
+        look.tick().await;
+        if refused(remote.refused()) - refused(before) >= 50 {
+            break;
+        }
+    }
+    let after = remote.refused();
+    assert_eq!(
+        refused(after) - refused(before),
+        50,
+        "{before:?} → {after:?}"
+    );
+    assert_eq!(
+        remote.restarts(),
+        1,
+        "the old world's snapshots made no restart"
+    );
+    new.shutdown().await.expect("the world stops");
+}

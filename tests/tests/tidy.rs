@@ -200,6 +200,10 @@ const CLOCK_READERS: &[(&str, &str)] = &[
         "server/src/net/bus/edge.rs",
         "an edge's connection to the world: when it was last heard, reconnection deadlines",
     ),
+    (
+        "server/src/net/bus/asker.rs",
+        "an edge's requests to the world: each waits for its answer so long",
+    ),
     // The server's command line.
     (
         "server/src/cli/net.rs",

@@ -12,6 +12,14 @@
 //! [`super::super::viewer`]): the world's edges (where a viewer may go), the world gone
 //! (no answer for [`GONE_AFTER`]) and back, and a world restarted (another process, which
 //! knows none of the old vehicles: the drivers are told to join again).
+//!
+//! **Trust** ([`super::seal`]): requests go through an [`Asker`] (sealed for the world
+//! process this edge confirmed last, answered only by it), key states are sealed, and
+//! snapshots are taken only from the world process confirmed by a hello's answer. A
+//! snapshot of another process, however well sealed, makes the beat ask at once (at most
+//! every [`CONFIRM_SPACING`]); only that answer can tell the edge the world restarted, so
+//! an old world's snapshots played again kick nobody. What is refused is counted
+//! ([`Remote::refused`]).
 
 use std::collections::HashMap;
 use std::sync::atomic::Ordering;

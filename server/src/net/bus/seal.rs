@@ -23,8 +23,8 @@
 //!   `roam-server bus-secret FILE` makes one) and the world's name make the world's key
 //!   (BLAKE3 `derive_key`), so worlds sharing a secret cannot replay into each other. Each
 //!   process seals with its own key, derived from the world's key and its random 64-bit
-//!   name (`sender`), and counts its messages from 1: the GCM nonce (counter and kind) is
-//!   never used twice under one key, however many processes seal at once.
+//!   name (`sender`), and counts each kind of its messages from 1: the GCM nonce (counter
+//!   and kind) is never used twice under one key, however many processes seal at once.
 //! - **Replays.** Each receiver keeps a [`Window`] per sender: a counter seen, or more
 //!   than [`WINDOW`] behind the newest, is refused. Across a world's restart, requests
 //!   name the world process they are for (`to`): the world refuses one for another
@@ -44,8 +44,12 @@
 //!   an edge it has never heard of (edges come and go), and an edge proves itself by the
 //!   secret; NATS accounts and permissions still help (docs/cluster.md) but need a NATS
 //!   set up for them, and the application's proofs do not.
-//! - Cost at 1,000 driving vehicles over 4 edges (`scripts/cluster.sh secure`, the world's
-//!   CPU per tick with the proofs against `--insecure-bus`): see docs/figures.md.
+//! - Cost at 1,000 driving vehicles over 4 edges, measured 2026-12-07 (`measure` profile,
+//!   2 cores): the world's CPU per tick 555–560 µs sealed against 520–535 plain, 1.04× and
+//!   1.08× in two sessions of A/B rounds (`PROFILE=measure scripts/cluster.sh proofs 1000`;
+//!   single runs vary 500–580 either way). The seal alone, a 40 KB snapshot sealed and
+//!   four edges' key states opened a tick, adds 14.6 µs (`cargo bench -p roam-server
+//!   --bench bus_seal`: 89.1 → 103.7 µs).
 
 use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -150,8 +154,7 @@ impl Header {
         })
     }
 
-    /// The nonce: unique per sender key while the counter is (the kind keeps the four
-    /// kinds apart should a sender ever count them separately).
+    /// The nonce: unique per sender key, as each kind's counter is.
     fn nonce(&self) -> Nonce {
         let mut n = [0u8; 12];
         n[..8].copy_from_slice(&self.counter.to_le_bytes());
@@ -273,7 +276,9 @@ impl BusKey {
 pub struct Sealer {
     sender: u64,
     key: LessSafeKey,
-    counter: AtomicU64,
+    /// A count per kind (the nonce holds the kind): each receiver's window sees one
+    /// kind's counters only, so a burst of one kind cannot push another's out of it.
+    counters: [AtomicU64; 4],
 }
 
 impl Sealer {
@@ -282,7 +287,7 @@ impl Sealer {
         Sealer {
             sender,
             key: key.sender(sender),
-            counter: AtomicU64::new(0),
+            counters: Default::default(),
         }
     }
 
@@ -292,7 +297,7 @@ impl Sealer {
 
     /// `message` sealed as `kind` for `to` (answering request `re`, or 0), and its counter.
     pub fn seal(&self, kind: Kind, to: u64, re: u64, message: &[u8]) -> (u64, Vec<u8>) {
-        let counter = self.counter.fetch_add(1, Ordering::Relaxed) + 1;
+        let counter = self.counters[kind as usize - 1].fetch_add(1, Ordering::Relaxed) + 1;
         let header = Header {
             kind,
             sender: self.sender,
@@ -622,7 +627,13 @@ mod tests {
         let (c1, m1) = a.seal(Kind::Keys, 0, 0, b"same");
         let (c2, m2) = a.seal(Kind::Keys, 0, 0, b"same");
         let (c3, m3) = b.seal(Kind::Keys, 0, 0, b"same");
-        assert_eq!((c1, c2, c3), (1, 2, 1));
+        let (c4, m4) = a.seal(Kind::Ask, 0, 0, b"same");
+        assert_eq!(
+            (c1, c2, c3, c4),
+            (1, 2, 1, 1),
+            "a count per sender and kind"
+        );
+        assert_ne!(m1[MAGIC.len() + HEADER..], m4[MAGIC.len() + HEADER..]);
         let body = |m: &[u8]| m[MAGIC.len() + HEADER..].to_vec();
         assert_ne!(body(&m1), body(&m2));
         assert_ne!(body(&m1), body(&m3), "one counter, two senders: two keys");

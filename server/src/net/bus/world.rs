@@ -17,6 +17,15 @@
 //! again: those still held since its silence are given back to it. While the world's own
 //! NATS connection is down it judges no edge, and gives each a fresh [`EDGE_SILENCE`]
 //! once it is back (a NATS restart silences everyone at once).
+//!
+//! **Trust** ([`super::seal`]): with the cluster's secret, a request or key states are
+//! taken only if they open, are new from their sender, and are for this world process (a
+//! hello for another is answered, so the edge learns this one, but changes nothing). The
+//! edge that sealed a join or a resume holds the vehicle ([`super::drivers`]): only its key
+//! states, leave and hold for it are taken, claims are random, and a vehicle no live edge
+//! names [`EDGE_SILENCE`] after its claim is held, then freed with its hold (or given
+//! back, should its edge name it after all). Answers and snapshots are sealed by this
+//! process. What is refused is counted ([`WorldServer::refused`]) and logged.
 
 use std::collections::HashMap;
 use std::sync::mpsc::Sender;
@@ -261,7 +270,7 @@ async fn answer_asks(
         let Some((header, ask)) = ear.hear::<Ask>(&msg.payload) else {
             continue;
         };
-        let from = Asker {
+        let from = Requester {
             edge: header.map(|h| h.sender),
             counter: header.map_or(0, |h| h.counter),
             here: header.is_none_or(|h| h.to == state.id),
@@ -297,13 +306,13 @@ async fn answer_asks(
 
 /// Who asked: the edge that sealed the request (`None` on a plain bus), its request's
 /// counter, and whether the request is for this world process.
-struct Asker {
+struct Requester {
     edge: Option<u64>,
     counter: u64,
     here: bool,
 }
 
-impl Asker {
+impl Requester {
     /// Whom the answer is sealed for.
     fn to(&self) -> u64 {
         self.edge.unwrap_or(0)
@@ -317,7 +326,7 @@ async fn ask_world(state: &State, event: Event) -> Option<VehicleId> {
     rx.await.ok()
 }
 
-async fn answer(state: &State, from: &Asker, ask: Ask) -> Answer {
+async fn answer(state: &State, from: &Requester, ask: Ask) -> Answer {
     let refused = |reason: &str| Answer::Refused {
         reason: reason.into(),
     };
