@@ -418,3 +418,33 @@ fn two_servers_in_the_same_second_never_overwrite_each_other() {
     }
     assert_eq!(fs::read(&taken).expect("read"), b"someone else's");
 }
+
+/// A `--record-dir` where no file can be created stops the start, and the error says
+/// so: it names the file and what to give, never the mid-session notice's "…the
+/// session goes on unrecorded" (issue 39, defect 6: it once did, the opposite of what
+/// happened). The folder's parent is a regular file, so nobody can create anything in
+/// it, root included (the tests may run as root, whom permission bits do not stop).
+#[test]
+fn a_record_dir_that_takes_no_file_stops_the_start_saying_so() {
+    let parent = std::env::temp_dir().join(format!("roam-record-dir-{}", std::process::id()));
+    std::fs::write(&parent, b"a file, not a folder").expect("a temporary file");
+    let dir = parent.join("recordings");
+    let files = RecordDir::new(&dir, || 1_700_000_000);
+    let terrain = Arc::new(roam_server::terrain::generate::synthetic(17, 3));
+    // As `serve` and `world` start their world (`net::world_loop::start`).
+    let e = WorldCore::new(terrain, Some(RecordOptions::new(files, 1 << 20)))
+        .err()
+        .expect("no file can be created there");
+    let text = e.to_string();
+    let file = dir.join("session-20231114-221320-");
+    for part in [
+        "the recording cannot start",
+        &format!("creating {}", file.display()),
+        "the server does not run unrecorded",
+        "give a --record-dir it can create files in",
+    ] {
+        assert!(text.contains(part), "{text:?} lacks {part:?}");
+    }
+    assert!(!text.contains("goes on unrecorded"), "{text}");
+    let _ = std::fs::remove_file(&parent);
+}

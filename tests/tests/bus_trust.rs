@@ -195,6 +195,11 @@ async fn an_old_worlds_snapshots_played_again_restart_nothing() {
     )
     .await
     .expect("the edge reaches the world");
+    // Served (its beat and its snapshots' subscriber run while it serves).
+    let edge = roam_tests::fixtures::serve(terrain.clone(), |o| roam_server::net::Options {
+        remote: Some(remote.clone()),
+        ..o
+    });
     // The old world's snapshots, captured (at most 50).
     let snooper = async_nats::connect(nats.url()).await.expect("reaches NATS");
     let subjects = bus.subjects().expect("a valid name");
@@ -246,5 +251,6 @@ async fn an_old_worlds_snapshots_played_again_restart_nothing() {
         1,
         "the old world's snapshots made no restart"
     );
+    edge.server.shutdown().await.expect("the edge stops");
     new.shutdown().await.expect("the world stops");
 }
