@@ -254,3 +254,88 @@ async fn an_old_worlds_snapshots_played_again_restart_nothing() {
     edge.server.shutdown().await.expect("the edge stops");
     new.shutdown().await.expect("the world stops");
 }
+
+/// The world's snapshots from before an edge subscribed (genuine, and never seen by it),
+/// played again while its driver drives: each is older than the edge's newest, so none is
+/// taken (the driver's vehicle is not in them: taken, it would have ended the session and
+/// freed the vehicle); the drive goes on exactly.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn snapshots_an_edge_never_saw_played_again_take_nothing_back() {
+    use futures_util::StreamExt;
+    let _turn = ONE_AT_A_TIME.lock().await;
+    let nats = Nats::start();
+    let terrain = flat();
+    let bus = bus(&nats, "unseen");
+    let world = start_world(&terrain, &bus, Duration::from_secs(30)).await;
+    // Snapshots of the empty world, before the edge exists.
+    let snooper = async_nats::connect(nats.url()).await.expect("reaches NATS");
+    let subjects = bus.subjects().expect("a valid name");
+    let mut sub = snooper
+        .subscribe(subjects.snapshots.clone())
+        .await
+        .expect("subscribes");
+    let mut captured = Vec::new();
+    while captured.len() < 50 {
+        let msg = tokio::time::timeout(Duration::from_secs(5), sub.next())
+            .await
+            .expect("the world publishes a snapshot a tick")
+            .expect("subscribed");
+        captured.push(msg.payload);
+    }
+    drop(sub);
+    let remote = Remote::connect(
+        &bus,
+        terrain.content_hash(),
+        "d",
+        vec![],
+        Duration::from_secs(10),
+    )
+    .await
+    .expect("the edge reaches the world");
+    let edge = roam_tests::fixtures::serve(terrain.clone(), |o| roam_server::net::Options {
+        remote: Some(remote.clone()),
+        ..o
+    });
+    let options = roam_client::headless::ViewerOptions {
+        token: edge.token.clone(),
+        role: roam_protocol::messages::Role::Driver,
+        budget: 8_000,
+        frames: 480,
+        inputs: Some(
+            roam_protocol::script::parse(roam_tests::fixtures::DRIVE).expect("a valid script"),
+        ),
+        ..Default::default()
+    };
+    let d = tokio::spawn(roam_client::headless::run(
+        edge.server.addr,
+        edge.fingerprint,
+        options,
+    ));
+    let mut snaps = world.watch();
+    when(&mut snaps, 10, "the driver's vehicle", |s| {
+        !s.vehicles.is_empty()
+    })
+    .await;
+    let before = remote.refused();
+    for payload in &captured {
+        snooper
+            .publish(subjects.snapshots.clone(), payload.clone())
+            .await
+            .expect("NATS takes it");
+    }
+    snooper.flush().await.expect("flushed");
+    let stats = roam_tests::fixtures::bounded("the driver's session", d)
+        .await
+        .expect("the driver's task runs")
+        .expect("the driver's session goes on to its last frame");
+    assert_eq!(stats.frames, 480, "every frame taken");
+    roam_tests::fixtures::assert_drive_exact(&terrain, stats.last, stats.last_tick);
+    let after = remote.refused();
+    assert_eq!(
+        after.replayed - before.replayed,
+        50,
+        "{before:?} → {after:?}"
+    );
+    edge.server.shutdown().await.expect("the edge stops");
+    world.shutdown().await.expect("the world stops");
+}

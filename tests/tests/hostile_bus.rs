@@ -668,11 +668,13 @@ async fn replayed_messages_join_free_steer_and_kick_nothing() {
         .expect("the driver's task runs")
         .expect("the driver's session goes on to its last frame");
     fixtures::assert_drive_exact(&c.terrain, stats.last, stats.last_tick);
-    // Every replay refused as one, and counted: 100 key states and 100 requests by the
-    // world, 100 snapshots by the edge.
+    // Every replay refused, and counted: the 100 key states by the world as replays; the
+    // 100 requests as forged (each seal is bound to its reply subject, and the attacker
+    // gave its own); the 100 snapshots by the edge as replays (none newer than its last).
     let (world, edge) = (c.world.refused(), c.remote.refused());
-    assert_eq!(world.replayed, 200, "{world:?}");
+    assert_eq!(world.replayed, 100, "{world:?}");
+    assert_eq!(world.forged, 100, "{world:?}");
+    assert_eq!(world.unsealed, 0, "{world:?}");
     assert_eq!(edge.replayed, 100, "{edge:?}");
-    assert_eq!(world.unsealed + world.forged, 0, "{world:?}");
     c.stop().await;
 }

@@ -401,7 +401,7 @@ async fn run(args: BusLoadArgs, subjects: Subjects, expected: Option<[u8; 32]>) 
     for i in 0..args.edges {
         let bus = args.bus.options(&format!("roam-server bus-load {i}"))?;
         let client = bus.connect().await?;
-        let id = rand_id(i);
+        let id = roam_server::net::bus::random_id();
         let key = bus.key();
         let counts = Arc::new(RefusedCounts::default());
         let asker = Asker::start(client.clone(), &subjects, key.as_ref(), id, counts).await?;
@@ -488,14 +488,6 @@ async fn run(args: BusLoadArgs, subjects: Subjects, expected: Option<[u8; 32]>) 
 /// A fake edge's vehicle ids.
 fn ids(e: &FakeEdge) -> Vec<u16> {
     lock(&e.vehicles).iter().map(|v| v.0).collect()
-}
-
-/// A name for fake edge `i` (random, as a real edge's).
-fn rand_id(i: u16) -> u64 {
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64);
-    nanos ^ (u64::from(std::process::id()) << 32) ^ (u64::from(i) << 48)
 }
 
 /// The world's data hash, from its answer to a hello (checked against `expected`).

@@ -172,7 +172,7 @@ fn civil_from_days(days: u64) -> (u64, u64, u64) {
 
 #[cfg(test)]
 mod tests {
-    use super::{RecordDir, file_name};
+    use super::file_name;
 
     #[test]
     fn names_give_the_utc_date_and_time() {

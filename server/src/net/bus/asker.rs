@@ -18,7 +18,7 @@ use futures_util::StreamExt;
 use roam_protocol::bus::{Answer, Ask, Subjects};
 use tokio::sync::oneshot;
 
-use super::seal::{BusKey, Kind, Refusal, RefusedCounts};
+use super::seal::{BusKey, Header, Kind, Refusal, RefusedCounts};
 use super::voice::{Ear, Voice};
 use super::{BusError, lock};
 
@@ -105,7 +105,13 @@ impl Asker {
             what: "asking the world",
             error: e,
         };
-        let (counter, bytes) = self.voice.say(Kind::Ask, self.world(), 0, ask);
+        // The reply subject names the counter; it is known only once the counter is. The
+        // seal is bound to it: played again with another reply subject, it does not open.
+        let counter = self.voice.next(Kind::Ask);
+        let reply = format!("{}.{counter}", self.inbox);
+        let bytes =
+            self.voice
+                .say_numbered(Kind::Ask, counter, self.world(), reply.as_bytes(), ask);
         let (tx, rx) = oneshot::channel();
         {
             let mut pending = lock(&self.pending);
@@ -114,7 +120,6 @@ impl Asker {
             }
             pending.insert(counter, tx);
         }
-        let reply = format!("{}.{counter}", self.inbox);
         let sent = self
             .client
             .publish_with_reply(self.subject.clone(), reply, bytes)
@@ -149,6 +154,15 @@ async fn take_answers(
             continue;
         };
         let sealed = ear.sealed();
+        // Sealed, what is not for this edge and a request waiting is dropped before any
+        // cryptography (copies of other edges' answers, played into this inbox).
+        if sealed
+            && let Some(h) = Header::peek(&msg.payload)
+            && (h.to != me || h.re != counter || !lock(&pending).contains_key(&counter))
+        {
+            ear.refuse(Refusal::Replayed, Some(h.sender));
+            continue;
+        }
         if msg.status.is_some() {
             // "No responders" (or any status): said by NATS when plain; anyone can say it
             // when sealed, so then the request waits for its answer.
@@ -163,15 +177,12 @@ async fn take_answers(
             }
             continue;
         }
-        let Some((header, answer)) = ear.hear::<Answer>(&msg.payload) else {
+        // Bound to its request (`to`, `re`, checked when opened): an answer played again
+        // finds no request waiting, so no replay window is needed.
+        let Some((header, answer)) = ear.open::<Answer>(&msg.payload, b"") else {
             continue;
         };
         if let Some(h) = header {
-            // Sealed by the world, but for another edge or request: a replay.
-            if h.to != me || h.re != counter {
-                ear.refuse(Refusal::Replayed, Some(h.sender));
-                continue;
-            }
             // A hello's world is the process that sealed it.
             if matches!(&answer, Answer::Hello { world, .. } if *world != h.sender) {
                 ear.refuse(Refusal::Forged, Some(h.sender));

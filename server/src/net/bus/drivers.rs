@@ -28,13 +28,15 @@ pub(crate) struct Holder {
 pub(crate) struct Drivers {
     pub tickets: HashMap<Ticket, VehicleId>,
     holders: HashMap<VehicleId, Holder>,
+    /// Vehicles each edge holds (edges holding none are not here).
+    held_by: HashMap<u64, usize>,
 }
 
 impl Drivers {
     /// `vehicle` is held by `edge` with `claim` (random, given) from `now`: older claims
     /// are stale from now on.
     pub fn claim(&mut self, vehicle: VehicleId, edge: Option<u64>, claim: u64, now: Instant) {
-        self.holders.insert(
+        let before = self.holders.insert(
             vehicle,
             Holder {
                 edge,
@@ -42,6 +44,28 @@ impl Drivers {
                 since: now,
             },
         );
+        self.let_go(before);
+        if let Some(e) = edge {
+            *self.held_by.entry(e).or_default() += 1;
+        }
+    }
+
+    /// A holder's vehicle is not its edge's any more.
+    fn let_go(&mut self, holder: Option<Holder>) {
+        if let Some(e) = holder.and_then(|h| h.edge)
+            && let Some(n) = self.held_by.get_mut(&e)
+        {
+            *n -= 1;
+            if *n == 0 {
+                self.held_by.remove(&e);
+            }
+        }
+    }
+
+    /// Whether `edge` holds any vehicle (key states from an edge holding none are not
+    /// worth opening).
+    pub fn holds_any(&self, edge: u64) -> bool {
+        self.held_by.contains_key(&edge)
     }
 
     /// Whether `edge` holds `vehicle` with `claim` (its newest).
@@ -65,7 +89,8 @@ impl Drivers {
     /// `vehicle` is free: its ticket and claim name nothing.
     pub fn forget(&mut self, vehicle: VehicleId) {
         self.tickets.retain(|_, v| *v != vehicle);
-        self.holders.remove(&vehicle);
+        let holder = self.holders.remove(&vehicle);
+        self.let_go(holder);
     }
 
     /// Of `driven` (the vehicles driven now, not held), those whose claim is at least
@@ -120,12 +145,18 @@ mod tests {
         check(&d, 4, Some(10), 111, (false, false));
         // A plain bus names no edge: the claim alone decides.
         check(&d, 3, None, 111, (true, true));
+        assert!(d.holds_any(10) && !d.holds_any(11));
         // A resume through another edge moves the vehicle there.
         d.claim(3, Some(11), 222, now);
         check(&d, 3, Some(10), 111, (false, false));
         check(&d, 3, Some(11), 222, (true, true));
+        assert!(!d.holds_any(10) && d.holds_any(11));
+        d.claim(4, Some(11), 333, now);
         d.forget(3);
         check(&d, 3, Some(11), 222, (false, false));
+        assert!(d.holds_any(11), "vehicle 4 still");
+        d.forget(4);
+        assert!(!d.holds_any(11));
     }
 
     #[test]

@@ -33,7 +33,7 @@ use roam_protocol::messages::Ticket;
 use tokio::sync::{mpsc, oneshot, watch};
 
 use super::asker::Asker;
-use super::seal::{BusKey, Kind, Refused, RefusedCounts};
+use super::seal::{BusKey, Header, Kind, Refusal, Refused, RefusedCounts};
 use super::voice::{Ear, count};
 use super::{BusError, BusOptions, from_wire, lock};
 use crate::Terrain;
@@ -307,7 +307,14 @@ impl Remote {
 
     /// A new vehicle for a driver, its ticket and its claim; `Err` says why not.
     pub async fn join(&self) -> Result<(VehicleId, Ticket, u64), String> {
-        match self.asker.ask(&Ask::Join).await {
+        let mut asked = self.asker.ask(&Ask::Join).await;
+        // Asked of a world process gone (restarted, not yet confirmed by a hello): the
+        // world now is asked who it is, and the join asked of it once more.
+        if matches!(&asked, Ok(Answer::Refused { reason }) if reason == super::world::OTHER_WORLD) {
+            say_hello(self).await;
+            asked = self.asker.ask(&Ask::Join).await;
+        }
+        match asked {
             Ok(Answer::Joined {
                 vehicle,
                 ticket,
@@ -499,57 +506,63 @@ async fn beat(remote: Arc<Remote>) {
                 tokio::time::sleep(CONFIRM_SPACING).await;
             }
         }
-        let why = match remote.asker.ask(&remote.hello()).await {
-            Ok(Answer::Hello { data, world, edges }) if data == remote.data => {
-                remote.mismatch.store(false, Ordering::Release);
-                remote.heard_world(world);
-                remote.news.send_if_modified(|n| {
-                    let changed = n.edges != edges;
-                    n.edges = edges;
-                    changed
-                });
-                continue;
-            }
-            Ok(Answer::Hello { data, .. }) => {
-                remote.mismatch.store(true, Ordering::Release);
-                let why = format!(
-                    "the world {:?} now serves another data set ({}, this edge has {}): \
-                     serve the same data set on both",
-                    remote.world,
-                    roam_link::tls::hex(&data),
-                    roam_link::tls::hex(&remote.data)
-                );
-                remote.news.send_if_modified(|n| {
-                    let first = n.gone.as_ref() != Some(&why);
-                    if first {
-                        tracing::error!("{why}");
-                    }
-                    n.gone = Some(why);
-                    first
-                });
-                continue;
-            }
-            Ok(other) => format!("the world answered a hello with {other:?}"),
-            Err(e) => e.to_string(),
-        };
-        let silent = lock(&remote.heard).elapsed();
-        if silent >= GONE_AFTER {
+        say_hello(&remote).await;
+    }
+}
+
+/// One hello, and what its answer tells: the world's process (a restart), its edges, its
+/// data set, or that it is gone.
+async fn say_hello(remote: &Remote) {
+    let why = match remote.asker.ask(&remote.hello()).await {
+        Ok(Answer::Hello { data, world, edges }) if data == remote.data => {
+            remote.mismatch.store(false, Ordering::Release);
+            remote.heard_world(world);
+            remote.news.send_if_modified(|n| {
+                let changed = n.edges != edges;
+                n.edges = edges;
+                changed
+            });
+            return;
+        }
+        Ok(Answer::Hello { data, .. }) => {
+            remote.mismatch.store(true, Ordering::Release);
             let why = format!(
-                "the world {:?} has not answered for {:.0} s (NATS at {}): {why}; \
-                 still trying",
+                "the world {:?} now serves another data set ({}, this edge has {}): \
+                 serve the same data set on both",
                 remote.world,
-                silent.as_secs_f64(),
-                remote.url
+                roam_link::tls::hex(&data),
+                roam_link::tls::hex(&remote.data)
             );
             remote.news.send_if_modified(|n| {
-                let first = n.gone.is_none();
+                let first = n.gone.as_ref() != Some(&why);
                 if first {
-                    tracing::warn!("{why}");
+                    tracing::error!("{why}");
                 }
                 n.gone = Some(why);
                 first
             });
+            return;
         }
+        Ok(other) => format!("the world answered a hello with {other:?}"),
+        Err(e) => e.to_string(),
+    };
+    let silent = lock(&remote.heard).elapsed();
+    if silent >= GONE_AFTER {
+        let why = format!(
+            "the world {:?} has not answered for {:.0} s (NATS at {}): {why}; \
+             still trying",
+            remote.world,
+            silent.as_secs_f64(),
+            remote.url
+        );
+        remote.news.send_if_modified(|n| {
+            let first = n.gone.is_none();
+            if first {
+                tracing::warn!("{why}");
+            }
+            n.gone = Some(why);
+            first
+        });
     }
 }
 
@@ -575,23 +588,47 @@ async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Sn
         remote.refused.clone(),
         "snapshot",
     );
+    // The newest snapshot taken: its world process and counter.
+    let mut last: Option<(u64, u64)> = None;
+    let unconfirmed = |world: u64| {
+        count(
+            &remote.refused.unconfirmed,
+            format_args!(
+                "a snapshot of world process {world:x}, not the one confirmed: asking the world"
+            ),
+        );
+        remote.confirm.notify_one();
+    };
     while let Some(msg) = sub.next().await {
-        let Some((header, s)) = ear.hear::<wire::Snapshot>(&msg.payload) else {
-            continue;
-        };
-        if header.is_some_and(|h| h.sender != s.world) {
-            ear.refuse(super::seal::Refusal::Forged, header.map(|h| h.sender));
+        let confirmed = remote.asker.world();
+        // Sealed, a snapshot of another process is not even opened (a flood of made-up
+        // ones costs a look each); the beat asks the world who it is.
+        if remote.key.is_some()
+            && let Some(h) = Header::peek(&msg.payload)
+            && h.sender != confirmed
+        {
+            unconfirmed(h.sender);
             continue;
         }
-        if s.world != remote.asker.world() {
-            count(
-                &remote.refused.unconfirmed,
-                format_args!(
-                    "a snapshot of world process {:x}, not the one confirmed: asking the world",
-                    s.world
-                ),
-            );
-            remote.confirm.notify_one();
+        let Some((header, s)) = ear.open::<wire::Snapshot>(&msg.payload, b"") else {
+            continue;
+        };
+        if let Some(h) = header {
+            if h.sender != s.world {
+                ear.refuse(Refusal::Forged, Some(h.sender));
+                continue;
+            }
+            // Snapshots supersede each other: only one newer than the last taken is, so a
+            // genuine one played again (one this edge never saw, say) cannot take the
+            // world back in time, nor a vehicle away from its driver.
+            if last.is_some_and(|(w, c)| w == h.sender && h.counter <= c) {
+                ear.refuse(Refusal::Replayed, Some(h.sender));
+                continue;
+            }
+            last = Some((h.sender, h.counter));
+        }
+        if s.world != confirmed {
+            unconfirmed(s.world);
             continue;
         }
         // Before the snapshot: a viewer task missing its vehicle in it knows why.

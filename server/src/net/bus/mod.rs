@@ -116,8 +116,9 @@ fn tls_hint(ca: Option<&std::path::Path>) -> String {
     }
 }
 
-/// A random name for this process (an edge's, a world's), as the bus knows it.
-pub(crate) fn random_id() -> u64 {
+/// A random name for this process (an edge's, a world's), as the bus knows it (from the
+/// system's random source: it names the key the process seals with).
+pub fn random_id() -> u64 {
     let t = crate::net::tickets::random_ticket();
     u64::from_le_bytes([t[0], t[1], t[2], t[3], t[4], t[5], t[6], t[7]])
 }

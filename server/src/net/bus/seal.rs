@@ -137,6 +137,12 @@ impl Header {
         out
     }
 
+    /// The header of a sealed message, unchecked (anyone can write one): for a receiver
+    /// to drop, before any cryptography, what could not be for it.
+    pub fn peek(bytes: &[u8]) -> Option<Header> {
+        Header::read(bytes)
+    }
+
     fn read(bytes: &[u8]) -> Option<Header> {
         let word = |i: usize| {
             let b = bytes.get(3 + 8 * i..11 + 8 * i)?;
@@ -295,9 +301,40 @@ impl Sealer {
         self.sender
     }
 
-    /// `message` sealed as `kind` for `to` (answering request `re`, or 0), and its counter.
-    pub fn seal(&self, kind: Kind, to: u64, re: u64, message: &[u8]) -> (u64, Vec<u8>) {
-        let counter = self.counters[kind as usize - 1].fetch_add(1, Ordering::Relaxed) + 1;
+    /// `message` sealed as `kind` for `to` (answering request `re`, or 0), bound to `bind`
+    /// (not sent: the receiver must open it with the same, e.g. a request's reply
+    /// subject), and its counter.
+    pub fn seal(
+        &self,
+        kind: Kind,
+        to: u64,
+        re: u64,
+        bind: &[u8],
+        message: &[u8],
+    ) -> (u64, Vec<u8>) {
+        let counter = self.take(kind);
+        (
+            counter,
+            self.seal_numbered(kind, counter, to, re, bind, message),
+        )
+    }
+
+    /// The next counter of `kind`, taken (for [`Sealer::seal_numbered`]: a request's
+    /// reply subject names it, and the seal is bound to that subject).
+    pub fn take(&self, kind: Kind) -> u64 {
+        self.counters[kind as usize - 1].fetch_add(1, Ordering::Relaxed) + 1
+    }
+
+    /// [`Sealer::seal`] under `counter`, which [`Sealer::take`] gave (never twice).
+    pub fn seal_numbered(
+        &self,
+        kind: Kind,
+        counter: u64,
+        to: u64,
+        re: u64,
+        bind: &[u8],
+        message: &[u8],
+    ) -> Vec<u8> {
         let header = Header {
             kind,
             sender: self.sender,
@@ -311,11 +348,24 @@ impl Sealer {
         out.extend_from_slice(message);
         let tag = self
             .key
-            .seal_in_place_separate_tag(header.nonce(), Aad::from(&head), &mut out[head.len()..])
+            .seal_in_place_separate_tag(
+                header.nonce(),
+                Aad::from(aad(&head, bind)),
+                &mut out[head.len()..],
+            )
             .expect("a bus message is far below GCM's length limit");
         out.extend_from_slice(tag.as_ref());
-        (counter, out)
+        out
     }
+}
+
+/// The associated data: the header, and what the message is bound to (hashed: a fixed
+/// size, whatever it is).
+fn aad(head: &[u8], bind: &[u8]) -> [u8; MAGIC.len() + HEADER + 32] {
+    let mut out = [0u8; MAGIC.len() + HEADER + 32];
+    out[..head.len()].copy_from_slice(head);
+    out[MAGIC.len() + HEADER..].copy_from_slice(blake3::hash(bind).as_bytes());
+    out
 }
 
 /// Why a message was not taken.
@@ -349,12 +399,14 @@ impl Opener {
     }
 
     /// The header and the message inside `bytes`, if it is a `want` sealed under this
-    /// world's key, at most `max` bytes inside. Replays are the caller's ([`Replays`]).
+    /// world's key, bound to `bind` ([`Sealer::seal`]), at most `max` bytes inside.
+    /// Replays are the caller's ([`Replays`]).
     pub fn open(
         &mut self,
         want: Kind,
         max: usize,
         bytes: &[u8],
+        bind: &[u8],
     ) -> Result<(Header, Vec<u8>), Refusal> {
         let header = Header::read(bytes).ok_or(Refusal::Unsealed)?;
         if header.kind != want {
@@ -381,7 +433,11 @@ impl Opener {
                 .expect("derived when not kept"),
         };
         let len = key
-            .open_in_place(header.nonce(), Aad::from(&bytes[..head]), &mut inside)
+            .open_in_place(
+                header.nonce(),
+                Aad::from(aad(&bytes[..head], bind)),
+                &mut inside,
+            )
             .map_err(|_| Refusal::Forged)?
             .len();
         inside.truncate(len);
@@ -564,11 +620,11 @@ mod tests {
     fn a_sealed_message_opens_once_and_only_with_its_world_key() {
         let key = secret(S).key("lake");
         let edge = Sealer::new(&key, 77);
-        let (counter, sealed) = edge.seal(Kind::Ask, 5, 0, b"join me");
+        let (counter, sealed) = edge.seal(Kind::Ask, 5, 0, b"", b"join me");
         assert_eq!(counter, 1);
         assert!(!sealed.windows(7).any(|w| w == b"join me"), "encrypted");
         let mut opener = Opener::new(&key);
-        let (header, inside) = opener.open(Kind::Ask, 100, &sealed).expect("opens");
+        let (header, inside) = opener.open(Kind::Ask, 100, &sealed, b"").expect("opens");
         assert_eq!(inside, b"join me");
         assert_eq!(
             header,
@@ -585,7 +641,9 @@ mod tests {
         assert!(!replays.accept(&header), "a replay");
         // Another world's key, or another secret: the seal does not hold.
         let check = |key: &BusKey, bytes: &[u8], want: Result<(), Refusal>| {
-            let got = Opener::new(key).open(Kind::Ask, 100, bytes).map(|_| ());
+            let got = Opener::new(key)
+                .open(Kind::Ask, 100, bytes, b"")
+                .map(|_| ());
             assert_eq!(got, want);
         };
         check(&secret(S).key("sea"), &sealed, Err(Refusal::Forged));
@@ -601,17 +659,32 @@ mod tests {
         for i in 2..sealed.len() {
             let mut bad = sealed.clone();
             bad[i] ^= 0x10;
-            let got = Opener::new(&key).open(Kind::Ask, 100, &bad);
+            let got = Opener::new(&key).open(Kind::Ask, 100, &bad, b"");
             assert!(got.is_err(), "byte {i} flipped opened: {got:?}");
         }
+        // Bound to something else (a request played again with another reply subject).
+        let (_, bound) = edge.seal(Kind::Ask, 5, 0, b"_INBOX.edge.7", b"join me");
+        let open = |bind: &[u8]| {
+            Opener::new(&key)
+                .open(Kind::Ask, 100, &bound, bind)
+                .map(|_| ())
+        };
+        assert_eq!(open(b"_INBOX.edge.7"), Ok(()));
+        assert_eq!(open(b"_INBOX.thief.7"), Err(Refusal::Forged));
+        assert_eq!(open(b""), Err(Refusal::Forged));
+        assert_eq!(Header::peek(&bound).map(|h| h.counter), Some(2));
         // Too long for its kind, or another kind.
         check(&key, &sealed, Ok(()));
         assert_eq!(
-            Opener::new(&key).open(Kind::Ask, 3, &sealed).map(|_| ()),
+            Opener::new(&key)
+                .open(Kind::Ask, 3, &sealed, b"")
+                .map(|_| ()),
             Err(Refusal::Long(Kind::Ask))
         );
         assert_eq!(
-            Opener::new(&key).open(Kind::Keys, 100, &sealed).map(|_| ()),
+            Opener::new(&key)
+                .open(Kind::Keys, 100, &sealed, b"")
+                .map(|_| ()),
             Err(Refusal::Kind {
                 got: Kind::Ask,
                 want: Kind::Keys
@@ -624,10 +697,10 @@ mod tests {
         let key = secret(S).key("lake");
         let a = Sealer::new(&key, 1);
         let b = Sealer::new(&key, 2);
-        let (c1, m1) = a.seal(Kind::Keys, 0, 0, b"same");
-        let (c2, m2) = a.seal(Kind::Keys, 0, 0, b"same");
-        let (c3, m3) = b.seal(Kind::Keys, 0, 0, b"same");
-        let (c4, m4) = a.seal(Kind::Ask, 0, 0, b"same");
+        let (c1, m1) = a.seal(Kind::Keys, 0, 0, b"", b"same");
+        let (c2, m2) = a.seal(Kind::Keys, 0, 0, b"", b"same");
+        let (c3, m3) = b.seal(Kind::Keys, 0, 0, b"", b"same");
+        let (c4, m4) = a.seal(Kind::Ask, 0, 0, b"", b"same");
         assert_eq!(
             (c1, c2, c3, c4),
             (1, 2, 1, 1),

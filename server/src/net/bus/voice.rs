@@ -42,10 +42,48 @@ impl Voice {
 
     /// `msg` as it goes on the bus (a `kind` for `to`, answering `re`), and its number.
     pub fn say<T: Serialize>(&self, kind: Kind, to: u64, re: u64, msg: &T) -> (u64, bytes::Bytes) {
+        self.say_bound(kind, to, re, b"", msg)
+    }
+
+    /// The number the next `kind` this voice says will carry (taken: [`Voice::say_numbered`]
+    /// says it).
+    pub fn next(&self, kind: Kind) -> u64 {
+        match &self.sealer {
+            Some(s) => s.take(kind),
+            None => self.plain.fetch_add(1, Ordering::Relaxed) + 1,
+        }
+    }
+
+    /// `msg` as [`Voice::say_bound`] says it, under number `counter` from [`Voice::next`].
+    pub fn say_numbered<T: Serialize>(
+        &self,
+        kind: Kind,
+        counter: u64,
+        to: u64,
+        bind: &[u8],
+        msg: &T,
+    ) -> bytes::Bytes {
+        let plain = super::encode(msg);
+        match &self.sealer {
+            Some(s) => s.seal_numbered(kind, counter, to, 0, bind, &plain).into(),
+            None => plain,
+        }
+    }
+
+    /// [`Voice::say`], the seal bound to `bind` (a request's reply subject: played again
+    /// with another, it does not open).
+    pub fn say_bound<T: Serialize>(
+        &self,
+        kind: Kind,
+        to: u64,
+        re: u64,
+        bind: &[u8],
+        msg: &T,
+    ) -> (u64, bytes::Bytes) {
         let plain = super::encode(msg);
         match &self.sealer {
             Some(s) => {
-                let (counter, sealed) = s.seal(kind, to, re, &plain);
+                let (counter, sealed) = s.seal(kind, to, re, bind, &plain);
                 (counter, sealed.into())
             }
             None => (self.plain.fetch_add(1, Ordering::Relaxed) + 1, plain),
@@ -81,10 +119,34 @@ impl Ear {
     }
 
     /// The message in `bytes` and, sealed, its header; `None` (counted, logged) if it is
-    /// refused or does not decode.
+    /// refused (a replay too) or does not decode.
     pub fn hear<T: DeserializeOwned + Checked>(
         &mut self,
         bytes: &[u8],
+    ) -> Option<(Option<Header>, T)> {
+        let (header, msg) = self.open(bytes, b"")?;
+        match header {
+            Some(h) if !self.fresh(&h) => None,
+            _ => Some((header, msg)),
+        }
+    }
+
+    /// Whether `header`'s counter is new from its sender (counted, logged if not): for a
+    /// caller of [`Ear::open`] once it knows the message is for it.
+    pub fn fresh(&mut self, header: &Header) -> bool {
+        let fresh = self.replays.accept(header);
+        if !fresh {
+            self.refuse(Refusal::Replayed, Some(header.sender));
+        }
+        fresh
+    }
+
+    /// [`Ear::hear`] of a message sealed bound to `bind`, without the replay check (the
+    /// caller's, [`Ear::fresh`]: a message that changes nothing need not be remembered).
+    pub fn open<T: DeserializeOwned + Checked>(
+        &mut self,
+        bytes: &[u8],
+        bind: &[u8],
     ) -> Option<(Option<Header>, T)> {
         let Some(opener) = &mut self.opener else {
             return match decode::<T>(bytes) {
@@ -99,17 +161,13 @@ impl Ear {
                 }
             };
         };
-        let (header, inside) = match opener.open(self.kind, T::MAX_BYTES, bytes) {
+        let (header, inside) = match opener.open(self.kind, T::MAX_BYTES, bytes, bind) {
             Ok(opened) => opened,
             Err(refusal) => {
                 self.refuse(refusal, None);
                 return None;
             }
         };
-        if !self.replays.accept(&header) {
-            self.refuse(Refusal::Replayed, Some(header.sender));
-            return None;
-        }
         match decode::<T>(&inside) {
             Ok(msg) => Some((Some(header), msg)),
             Err(e) => {

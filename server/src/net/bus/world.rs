@@ -46,6 +46,10 @@ use crate::sim::session::RecordOptions;
 use crate::sim::world::{VehicleId, World};
 use crate::sim::world_core::{Event, Snapshot};
 
+/// The refusal of a request for another world process (the edge then asks who the world
+/// is now: [`super::edge::Remote::join`]).
+pub const OTHER_WORLD: &str = "the request is for another world process: the world restarted";
+
 /// Requests answered at once; past it, the next waits for one to finish.
 const MAX_ASKING: usize = 256;
 
@@ -59,6 +63,9 @@ const MAX_WATCHED: usize = 4096;
 /// An edge, as its hellos tell it.
 struct Seen {
     heard: Instant,
+    /// Its newest hello's counter (sealed; 0 on a plain bus): an older one, delivered late
+    /// or played again, changes nothing.
+    counter: u64,
     addresses: Vec<String>,
     /// Its drivers' vehicles and their claims.
     vehicles: Vec<(VehicleId, u64)>,
@@ -267,7 +274,8 @@ async fn answer_asks(
         let Some(reply) = msg.reply else {
             continue; // a request nobody waits for the answer of: not one of ours
         };
-        let Some((header, ask)) = ear.hear::<Ask>(&msg.payload) else {
+        // Bound to its reply subject: played again with another, it does not open.
+        let Some((header, ask)) = ear.open::<Ask>(&msg.payload, reply.as_bytes()) else {
             continue;
         };
         let from = Requester {
@@ -275,13 +283,21 @@ async fn answer_asks(
             counter: header.map_or(0, |h| h.counter),
             here: header.is_none_or(|h| h.to == state.id),
         };
+        // Only what is for this process is remembered against replays: a hello for another
+        // is answered and changes nothing, so the windows hold this world's edges only.
+        if from.here
+            && let Some(h) = &header
+            && !ear.fresh(h)
+        {
+            continue;
+        }
         if !from.here && !matches!(ask, Ask::Hello { .. }) {
             count(
                 &state.refused.other_world,
                 format_args!("a request for another world process (from before it restarted?)"),
             );
             let answer = Answer::Refused {
-                reason: "the request is for another world process: the world restarted".into(),
+                reason: OTHER_WORLD.into(),
             };
             let (_, bytes) = state
                 .voice
@@ -340,7 +356,7 @@ async fn answer(state: &State, from: &Requester, ask: Ask) -> Answer {
             // Sealed, the edge is the one that sealed it.
             let edge = from.edge.unwrap_or(edge);
             if data == state.data && from.here {
-                heard(state, edge, from.edge, addresses, vehicles);
+                heard(state, edge, (from.edge, from.counter), addresses, vehicles);
             }
             Answer::Hello {
                 data: state.data,
@@ -443,10 +459,36 @@ fn not_holder(state: &State, what: &str, vehicle: VehicleId, edge: Option<u64>) 
 fn heard(
     state: &State,
     edge: u64,
-    sealer: Option<u64>,
+    (sealer, counter): (Option<u64>, u64),
     addresses: Vec<String>,
     vehicles: Vec<(VehicleId, u64)>,
 ) {
+    // The edge's entry first: a vehicle given back below is named by it when the edges
+    // are next watched ([`hold_unnamed`]).
+    {
+        let mut edges = lock(&state.edges);
+        let full = edges.len() >= MAX_WATCHED;
+        match edges.get_mut(&edge) {
+            Some(seen) if sealer.is_some() && seen.counter > counter => return,
+            Some(seen) => {
+                seen.heard = Instant::now();
+                seen.counter = counter;
+                seen.addresses = addresses;
+                seen.vehicles = vehicles.clone();
+            }
+            None if full => return,
+            None => {
+                let seen = Seen {
+                    heard: Instant::now(),
+                    counter,
+                    addresses,
+                    vehicles: vehicles.clone(),
+                };
+                edges.insert(edge, seen);
+                tracing::info!(edge, edges = edges.len(), "an edge said hello");
+            }
+        }
+    }
     {
         let drivers = lock(&state.drivers);
         let mut silenced = lock(&state.silenced);
@@ -459,18 +501,6 @@ fn heard(
                 }
             }
         }
-    }
-    let mut edges = lock(&state.edges);
-    if edges.len() >= MAX_WATCHED && !edges.contains_key(&edge) {
-        return;
-    }
-    let seen = Seen {
-        heard: Instant::now(),
-        addresses,
-        vehicles,
-    };
-    if edges.insert(edge, seen).is_none() {
-        tracing::info!(edge, edges = edges.len(), "an edge said hello");
     }
 }
 
@@ -601,7 +631,19 @@ async fn take_keys(mut keys: async_nats::Subscriber, state: Arc<State>) {
         "key states",
     );
     while let Some(msg) = keys.next().await {
-        let Some((header, batch)) = ear.hear::<Keys>(&msg.payload) else {
+        // Sealed, key states from an edge that holds no vehicle are dropped before any
+        // cryptography (a flood of made-up senders costs a lookup each).
+        if state.key.is_some()
+            && let Some(h) = super::seal::Header::peek(&msg.payload)
+            && !lock(&state.drivers).holds_any(h.sender)
+        {
+            count(
+                &state.refused.not_holder,
+                format_args!("key states from {:x}, which holds no vehicle", h.sender),
+            );
+            continue;
+        }
+        let Some((header, batch)) = ear.open::<Keys>(&msg.payload, b"") else {
             continue;
         };
         if header.is_some_and(|h| h.to != state.id) {
@@ -609,6 +651,11 @@ async fn take_keys(mut keys: async_nats::Subscriber, state: Arc<State>) {
                 &state.refused.other_world,
                 format_args!("key states for another world process"),
             );
+            continue;
+        }
+        if let Some(h) = &header
+            && !ear.fresh(h)
+        {
             continue;
         }
         let edge = header.map(|h| h.sender);
