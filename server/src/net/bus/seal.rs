@@ -25,12 +25,19 @@
 //!   process seals with its own key, derived from the world's key and its random 64-bit
 //!   name (`sender`), and counts each kind of its messages from 1: the GCM nonce (counter
 //!   and kind) is never used twice under one key, however many processes seal at once.
-//! - **Replays.** Each receiver keeps a [`Window`] per sender: a counter seen, or more
-//!   than [`WINDOW`] behind the newest, is refused. Across a world's restart, requests
-//!   name the world process they are for (`to`): the world refuses one for another
-//!   process, so nothing captured before it started can be played to it. An answer names
-//!   the edge and the request (`to`, `re`): an edge takes it only for a request it is
-//!   waiting on. No clocks: the machines' clocks need not agree.
+//! - **Replays.** The world keeps a [`Window`] per edge: a counter seen, or more than
+//!   [`WINDOW`] behind the newest, is refused. Requests name the world process they are
+//!   for (`to`): the world takes none for another process (a hello is answered, changing
+//!   nothing), so nothing captured before it started can be played to it, and only this
+//!   world's edges get windows. A request's seal is bound to its reply subject (hashed
+//!   into the associated data, not sent): played again with the attacker's inbox, it does
+//!   not open. An answer names the edge and the request (`to`, `re`): an edge takes it only
+//!   for a request it is waiting on. Snapshots supersede each other: an edge takes one only
+//!   if it is newer than the last it took from the world process it confirmed. No clocks:
+//!   the machines' clocks need not agree.
+//! - **Cheap refusals first.** A header can be read before its seal is checked
+//!   ([`Header::peek`]): key states from an edge holding no vehicle, snapshots of another
+//!   process and answers for another edge or request are dropped before any cryptography.
 //! - **Confidential too.** Answers carry tickets and claims; requests carry claims and
 //!   tickets. Everything is encrypted, snapshots and key states too (one code path; the
 //!   cost is measured below).
