@@ -305,6 +305,7 @@ const CLOCK_READERS: &[(&str, &str)] = &[
     ),
     ("tests/src/bin/roam-flood.rs", "the flood's pace and length"),
     ("tests/benches/fuzz.rs", "a benchmark: times itself"),
+    ("server/benches/bus_seal.rs", "a benchmark: times itself"),
     (
         "protocol/benches/colormap.rs",
         "a benchmark: times the codec",

@@ -1,13 +1,14 @@
 //! The world's book of who drives what ([`Drivers`]): each driven vehicle's ticket (the
 //! driver's, to come back with through any edge), its claim (a random number for one join
 //! or resume: a leave or hold naming another is stale) and the edge holding it, the only
-//! one whose keys, leave and hold for it are taken. Pure: the time is a parameter.
+//! one whose keys, leave and hold for it are taken. Pure: the time is a parameter (the
+//! time since the world started).
 //!
 //! With a plain bus (`--insecure-bus`) requests name no edge (`None`): any edge's keys
 //! and claims are taken, as before the bus had proofs.
 
 use std::collections::HashMap;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use roam_protocol::messages::Ticket;
 
@@ -20,7 +21,7 @@ pub(crate) struct Holder {
     pub edge: Option<u64>,
     pub claim: u64,
     /// When the claim was made (a vehicle no edge names by then is held, [`Drivers::unnamed`]).
-    pub since: Instant,
+    pub since: Duration,
 }
 
 /// Each driven vehicle's ticket and holder (at most one entry a vehicle id in each).
@@ -35,7 +36,7 @@ pub(crate) struct Drivers {
 impl Drivers {
     /// `vehicle` is held by `edge` with `claim` (random, given) from `now`: older claims
     /// are stale from now on.
-    pub fn claim(&mut self, vehicle: VehicleId, edge: Option<u64>, claim: u64, now: Instant) {
+    pub fn claim(&mut self, vehicle: VehicleId, edge: Option<u64>, claim: u64, now: Duration) {
         let before = self.holders.insert(
             vehicle,
             Holder {
@@ -100,7 +101,7 @@ impl Drivers {
     pub fn unnamed(
         &self,
         driven: impl IntoIterator<Item = VehicleId>,
-        now: Instant,
+        now: Duration,
         grace: Duration,
         named: impl Fn(VehicleId, Option<u64>, u64) -> bool,
     ) -> Vec<(VehicleId, Duration)> {
@@ -108,7 +109,7 @@ impl Drivers {
             .into_iter()
             .filter_map(|v| {
                 let h = self.holders.get(&v)?;
-                let age = now.saturating_duration_since(h.since);
+                let age = now.saturating_sub(h.since);
                 (age >= grace && !named(v, h.edge, h.claim)).then_some((v, age))
             })
             .collect()
@@ -129,7 +130,7 @@ mod tests {
 
     #[test]
     fn only_the_holding_edge_with_the_newest_claim_is_taken() {
-        let now = Instant::now();
+        let now = Duration::from_secs(100);
         let mut d = Drivers::default();
         d.claim(3, Some(10), 111, now);
         let check = |d: &Drivers, vehicle, edge, claim, expected: (bool, bool)| {
@@ -161,7 +162,7 @@ mod tests {
 
     #[test]
     fn vehicles_no_edge_names_after_the_grace_are_found() {
-        let t0 = Instant::now();
+        let t0 = Duration::from_secs(100);
         let mut d = Drivers::default();
         d.claim(1, Some(10), 5, t0);
         d.claim(2, Some(10), 6, t0);

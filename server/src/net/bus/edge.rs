@@ -310,7 +310,7 @@ impl Remote {
         let mut asked = self.asker.ask(&Ask::Join).await;
         // Asked of a world process gone (restarted, not yet confirmed by a hello): the
         // world now is asked who it is, and the join asked of it once more.
-        if matches!(&asked, Ok(Answer::Refused { reason }) if reason == super::world::OTHER_WORLD) {
+        if matches!(&asked, Ok(Answer::Refused { reason }) if reason == super::OTHER_WORLD) {
             say_hello(self).await;
             asked = self.asker.ask(&Ask::Join).await;
         }

@@ -32,6 +32,10 @@ use crate::sim::physics::VehicleState;
 use crate::sim::world::Vehicle;
 use crate::sim::world_core::Snapshot;
 
+/// The refusal of a request for another world process (the edge then asks who the world
+/// is now: [`edge::Remote::join`]).
+pub const OTHER_WORLD: &str = "the request is for another world process: the world restarted";
+
 /// Where the world's NATS is, and which world.
 #[derive(Clone, Debug)]
 pub struct BusOptions {

@@ -46,10 +46,6 @@ use crate::sim::session::RecordOptions;
 use crate::sim::world::{VehicleId, World};
 use crate::sim::world_core::{Event, Snapshot};
 
-/// The refusal of a request for another world process (the edge then asks who the world
-/// is now: [`super::edge::Remote::join`]).
-pub const OTHER_WORLD: &str = "the request is for another world process: the world restarted";
-
 /// Requests answered at once; past it, the next waits for one to finish.
 const MAX_ASKING: usize = 256;
 
@@ -107,6 +103,8 @@ struct State {
     voice: Voice,
     /// Messages refused, by why.
     refused: Arc<RefusedCounts>,
+    /// When the world started (the drivers' book counts from it).
+    started: Instant,
 }
 
 /// A running world.
@@ -184,6 +182,7 @@ impl WorldServer {
             voice: Voice::new(key.as_ref(), id),
             key,
             refused: refused.clone(),
+            started: Instant::now(),
         });
         let tasks = vec![
             tokio::spawn(answer_asks(asks, client.clone(), state.clone())),
@@ -297,7 +296,7 @@ async fn answer_asks(
                 format_args!("a request for another world process (from before it restarted?)"),
             );
             let answer = Answer::Refused {
-                reason: OTHER_WORLD.into(),
+                reason: super::OTHER_WORLD.into(),
             };
             let (_, bytes) = state
                 .voice
@@ -387,7 +386,7 @@ async fn answer(state: &State, from: &Requester, ask: Ask) -> Answer {
             // A ticket names one vehicle, and a vehicle has one ticket (ids are reused).
             drivers.forget(vehicle);
             drivers.tickets.insert(ticket, vehicle);
-            drivers.claim(vehicle, from.edge, claim, Instant::now());
+            drivers.claim(vehicle, from.edge, claim, state.started.elapsed());
             Answer::Joined {
                 vehicle,
                 ticket,
@@ -403,7 +402,7 @@ async fn answer(state: &State, from: &Requester, ask: Ask) -> Answer {
                     return refused("no vehicle has this ticket (its hold ran out)");
                 };
                 let claim = super::random_id();
-                drivers.claim(vehicle, from.edge, claim, Instant::now());
+                drivers.claim(vehicle, from.edge, claim, state.started.elapsed());
                 (vehicle, claim)
             };
             lock(&state.silenced).remove(&vehicle);
@@ -601,7 +600,7 @@ fn hold_unnamed(
         .iter()
         .map(|v| v.id)
         .filter(|v| !snap.held.contains(v) && !silenced.contains_key(v));
-    let unnamed = drivers.unnamed(driven, Instant::now(), EDGE_SILENCE, named);
+    let unnamed = drivers.unnamed(driven, state.started.elapsed(), EDGE_SILENCE, named);
     drop(edges);
     for (vehicle, age) in unnamed {
         let silent = world_loop::hold_ticks(age);
