@@ -237,3 +237,147 @@ impl Drop for EdgeProcess {
         let _ = self.child.wait();
     }
 }
+
+/// The cluster tests' common ground: a world and its edges on one [`Nats`], sealing with
+/// [`test_secret`].
+pub mod cluster {
+    use std::sync::Arc;
+    use std::time::Duration;
+
+    use futures_util::StreamExt;
+    use roam_protocol::bus::{Answer, Ask};
+    use roam_server::Terrain;
+    use roam_server::net::Options;
+    use roam_server::net::bus::BusOptions;
+    use roam_server::net::bus::asker::Asker;
+    use roam_server::net::bus::edge::Remote;
+    use roam_server::net::bus::seal::RefusedCounts;
+    use roam_server::net::bus::world::{WorldOptions, WorldServer};
+    use roam_server::sim::session::RecordOptions;
+    use roam_server::sim::world_core::Snapshot;
+
+    use super::{Nats, test_secret};
+    use crate::fixtures::{self, Running};
+
+    /// World `world` on `nats`, sealed with its test secret.
+    pub fn bus(nats: &Nats, world: &str) -> BusOptions {
+        BusOptions {
+            url: nats.url(),
+            world: world.into(),
+            creds: None,
+            ca: None,
+            name: "roam-test".into(),
+            secret: Some(test_secret(world)),
+        }
+    }
+
+    /// A world of `terrain` on `bus`: `hold` for a dropped driver's vehicle, at most
+    /// `max_vehicles`, recording to `record` if given.
+    pub async fn start_world(
+        terrain: &Arc<Terrain>,
+        bus: &BusOptions,
+        (hold, max_vehicles): (Duration, usize),
+        record: Option<RecordOptions>,
+    ) -> WorldServer {
+        let options = WorldOptions {
+            record,
+            hold,
+            max_vehicles,
+            replay: None,
+        };
+        WorldServer::start(terrain.clone(), terrain.content_hash(), options, bus)
+            .await
+            .expect("the world starts")
+    }
+
+    /// An edge of `bus`'s world on loopback, serving viewers, and its way to the world.
+    pub async fn edge_and_remote(
+        terrain: Arc<Terrain>,
+        bus: &BusOptions,
+    ) -> (Running, Arc<Remote>) {
+        let remote = Remote::connect(
+            bus,
+            terrain.content_hash(),
+            "the test terrain",
+            vec![],
+            Duration::from_secs(10),
+        )
+        .await
+        .expect("the edge reaches the world");
+        let running = fixtures::serve(terrain, |o| Options {
+            remote: Some(remote.clone()),
+            ..o
+        });
+        remote.set_addresses(vec![running.server.addr.to_string()]);
+        (running, remote)
+    }
+
+    /// The world's snapshot once `f` holds of it, within `secs` seconds (else a panic
+    /// naming `what`).
+    pub async fn when(
+        snaps: &mut tokio::sync::watch::Receiver<Arc<Snapshot>>,
+        secs: u64,
+        what: &str,
+        f: impl FnMut(&Arc<Snapshot>) -> bool,
+    ) -> Arc<Snapshot> {
+        tokio::time::timeout(Duration::from_secs(secs), snaps.wait_for(f))
+            .await
+            .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
+            .expect("the world runs")
+            .clone()
+    }
+
+    /// The next `n` messages on `subject`, as a NATS client of no standing hears them
+    /// (each within 5 s), and that client.
+    pub async fn capture(
+        nats: &Nats,
+        subject: &str,
+        n: usize,
+    ) -> (async_nats::Client, Vec<bytes::Bytes>) {
+        let client = async_nats::connect(nats.url()).await.expect("reaches NATS");
+        let mut sub = client
+            .subscribe(subject.to_owned())
+            .await
+            .expect("subscribes");
+        let mut captured = Vec::with_capacity(n);
+        while captured.len() < n {
+            let msg = tokio::time::timeout(Duration::from_secs(5), sub.next())
+                .await
+                .unwrap_or_else(|_| panic!("a message on {subject} within 5 s"))
+                .expect("subscribed");
+            captured.push(msg.payload);
+        }
+        (client, captured)
+    }
+
+    /// An edge of the test's making, named `name`, sealing with `bus`'s secret, its
+    /// requests for the world process that answered its first hello.
+    pub async fn hand_made_edge(bus: &BusOptions, terrain: &Terrain, name: u64) -> Arc<Asker> {
+        let client = bus.connect().await.expect("reaches NATS");
+        let subjects = bus.subjects().expect("a valid name");
+        let asker = Asker::start(
+            client,
+            &subjects,
+            bus.key().as_ref(),
+            name,
+            Arc::new(RefusedCounts::default()),
+        )
+        .await
+        .expect("subscribes to its answers");
+        match asker.ask(&hello(terrain, name, vec![])).await {
+            Ok(Answer::Hello { world, .. }) => asker.set_world(world),
+            other => panic!("{other:?}"),
+        }
+        Arc::new(asker)
+    }
+
+    /// Edge `edge`'s hello naming `vehicles` (with their claims), with no address.
+    pub fn hello(terrain: &Terrain, edge: u64, vehicles: Vec<(u16, u64)>) -> Ask {
+        Ask::Hello {
+            data: terrain.content_hash(),
+            edge,
+            addresses: vec![],
+            vehicles,
+        }
+    }
+}

@@ -9,81 +9,17 @@ use roam_protocol::bus::{Answer, Ask};
 use roam_server::Terrain;
 use roam_server::net::bus::asker::Asker;
 use roam_server::net::bus::edge::Remote;
-use roam_server::net::bus::seal::RefusedCounts;
-use roam_server::net::bus::world::{WorldOptions, WorldServer};
+use roam_server::net::bus::world::WorldServer;
 use roam_server::net::bus::{BusError, BusOptions, BusSecret};
-use roam_server::sim::world_core::Snapshot;
 use roam_tests::fixtures::flat;
-use roam_tests::nats::{Nats, test_secret};
+use roam_tests::nats::Nats;
+use roam_tests::nats::cluster::{self, bus, capture, edge_and_remote, hand_made_edge, hello, when};
 
 /// One test at a time: each runs a world's threads on a 2-core machine.
 static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
 
-fn bus(nats: &Nats, world: &str) -> BusOptions {
-    BusOptions {
-        url: nats.url(),
-        world: world.into(),
-        creds: None,
-        ca: None,
-        name: "roam-test".into(),
-        secret: Some(test_secret(world)),
-    }
-}
-
 async fn start_world(terrain: &Arc<Terrain>, bus: &BusOptions, hold: Duration) -> WorldServer {
-    let options = WorldOptions {
-        record: None,
-        hold,
-        max_vehicles: 64,
-        replay: None,
-    };
-    WorldServer::start(terrain.clone(), terrain.content_hash(), options, bus)
-        .await
-        .expect("the world starts")
-}
-
-/// The world's snapshot once `f` holds of it, within `secs` seconds.
-async fn when(
-    snaps: &mut tokio::sync::watch::Receiver<Arc<Snapshot>>,
-    secs: u64,
-    what: &str,
-    f: impl FnMut(&Arc<Snapshot>) -> bool,
-) -> Arc<Snapshot> {
-    tokio::time::timeout(Duration::from_secs(secs), snaps.wait_for(f))
-        .await
-        .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
-        .expect("the world runs")
-        .clone()
-}
-
-/// An edge of the test's making, named `name`, sealing with `bus`'s secret, its requests
-/// for the world process that answered its first hello.
-async fn hand_made_edge(bus: &BusOptions, terrain: &Terrain, name: u64) -> Arc<Asker> {
-    let client = bus.connect().await.expect("reaches NATS");
-    let subjects = bus.subjects().expect("a valid name");
-    let asker = Asker::start(
-        client,
-        &subjects,
-        bus.key().as_ref(),
-        name,
-        Arc::new(RefusedCounts::default()),
-    )
-    .await
-    .expect("subscribes to its answers");
-    match asker.ask(&hello(terrain, name, vec![])).await {
-        Ok(Answer::Hello { world, .. }) => asker.set_world(world),
-        other => panic!("{other:?}"),
-    }
-    Arc::new(asker)
-}
-
-fn hello(terrain: &Terrain, edge: u64, vehicles: Vec<(u16, u64)>) -> Ask {
-    Ask::Hello {
-        data: terrain.content_hash(),
-        edge,
-        addresses: vec![],
-        vehicles,
-    }
+    cluster::start_world(terrain, bus, (hold, 64), None).await
 }
 
 async fn join(asker: &Asker) -> (u16, u64) {
@@ -180,42 +116,16 @@ async fn a_vehicle_no_edge_names_is_held_then_freed() {
 /// and are never taken (counted as replays or unconfirmed).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_old_worlds_snapshots_played_again_restart_nothing() {
-    use futures_util::StreamExt;
     let _turn = ONE_AT_A_TIME.lock().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "restart");
     let old = start_world(&terrain, &bus, Duration::from_secs(30)).await;
-    let remote = Remote::connect(
-        &bus,
-        terrain.content_hash(),
-        "d",
-        vec![],
-        Duration::from_secs(10),
-    )
-    .await
-    .expect("the edge reaches the world");
     // Served (its beat and its snapshots' subscriber run while it serves).
-    let edge = roam_tests::fixtures::serve(terrain.clone(), |o| roam_server::net::Options {
-        remote: Some(remote.clone()),
-        ..o
-    });
-    // The old world's snapshots, captured (at most 50).
-    let snooper = async_nats::connect(nats.url()).await.expect("reaches NATS");
+    let (edge, remote) = edge_and_remote(terrain.clone(), &bus).await;
+    // The old world's snapshots, captured.
     let subjects = bus.subjects().expect("a valid name");
-    let mut sub = snooper
-        .subscribe(subjects.snapshots.clone())
-        .await
-        .expect("subscribes");
-    let mut captured = Vec::new();
-    while captured.len() < 50 {
-        let msg = tokio::time::timeout(Duration::from_secs(5), sub.next())
-            .await
-            .expect("the world publishes a snapshot a tick")
-            .expect("subscribed");
-        captured.push(msg.payload);
-    }
-    drop(sub);
+    let (snooper, captured) = capture(&nats, &subjects.snapshots, 50).await;
     old.shutdown().await.expect("the old world stops");
     let new = start_world(&terrain, &bus, Duration::from_secs(30)).await;
     let mut news = remote.news();
@@ -261,41 +171,15 @@ async fn an_old_worlds_snapshots_played_again_restart_nothing() {
 /// freed the vehicle); the drive goes on exactly.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn snapshots_an_edge_never_saw_played_again_take_nothing_back() {
-    use futures_util::StreamExt;
     let _turn = ONE_AT_A_TIME.lock().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "unseen");
     let world = start_world(&terrain, &bus, Duration::from_secs(30)).await;
     // Snapshots of the empty world, before the edge exists.
-    let snooper = async_nats::connect(nats.url()).await.expect("reaches NATS");
     let subjects = bus.subjects().expect("a valid name");
-    let mut sub = snooper
-        .subscribe(subjects.snapshots.clone())
-        .await
-        .expect("subscribes");
-    let mut captured = Vec::new();
-    while captured.len() < 50 {
-        let msg = tokio::time::timeout(Duration::from_secs(5), sub.next())
-            .await
-            .expect("the world publishes a snapshot a tick")
-            .expect("subscribed");
-        captured.push(msg.payload);
-    }
-    drop(sub);
-    let remote = Remote::connect(
-        &bus,
-        terrain.content_hash(),
-        "d",
-        vec![],
-        Duration::from_secs(10),
-    )
-    .await
-    .expect("the edge reaches the world");
-    let edge = roam_tests::fixtures::serve(terrain.clone(), |o| roam_server::net::Options {
-        remote: Some(remote.clone()),
-        ..o
-    });
+    let (snooper, captured) = capture(&nats, &subjects.snapshots, 50).await;
+    let (edge, remote) = edge_and_remote(terrain.clone(), &bus).await;
     let options = roam_client::headless::ViewerOptions {
         token: edge.token.clone(),
         role: roam_protocol::messages::Role::Driver,

@@ -11,7 +11,6 @@ use roam_protocol::bus::{Answer, Ask};
 use roam_protocol::messages::Role;
 use roam_protocol::script;
 use roam_server::Terrain;
-use roam_server::net::Options;
 use roam_server::net::bus::asker::Asker;
 use roam_server::net::bus::edge::Remote;
 use roam_server::net::bus::world::{WorldOptions, WorldServer};
@@ -21,22 +20,12 @@ use roam_server::sim::session::{self, RecordOptions};
 use roam_server::sim::world_core::Snapshot;
 use roam_tests::browser::{self, Browser, GpuPath};
 use roam_tests::fixtures::{self, Running, flat};
+use roam_tests::nats::cluster::{self, bus, edge_and_remote, when};
 use roam_tests::nats::{EdgeProcess, Nats};
 
 /// Each test runs a world and edges with their threads: one at a time, so that on a
 /// 2-core machine none starves another of the CPU.
 static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
-
-fn bus(nats: &Nats, world: &str) -> BusOptions {
-    BusOptions {
-        url: nats.url(),
-        world: world.into(),
-        creds: None,
-        ca: None,
-        name: "roam-test".into(),
-        secret: Some(roam_tests::nats::test_secret(world)),
-    }
-}
 
 /// A world of `terrain` on `bus`, recording to `record` if given.
 async fn start_world(
@@ -44,53 +33,11 @@ async fn start_world(
     bus: &BusOptions,
     record: Option<RecordOptions>,
 ) -> WorldServer {
-    let options = WorldOptions {
-        record,
-        hold: Duration::from_secs(30),
-        max_vehicles: 64,
-        replay: None,
-    };
-    WorldServer::start(terrain.clone(), terrain.content_hash(), options, bus)
-        .await
-        .expect("the world starts")
+    cluster::start_world(terrain, bus, (Duration::from_secs(30), 64), record).await
 }
 
 async fn edge(terrain: Arc<Terrain>, bus: &BusOptions) -> Running {
     edge_and_remote(terrain, bus).await.0
-}
-
-/// An edge of `bus`'s world on loopback, and its way to the world.
-async fn edge_and_remote(terrain: Arc<Terrain>, bus: &BusOptions) -> (Running, Arc<Remote>) {
-    let remote = Remote::connect(
-        bus,
-        terrain.content_hash(),
-        "the test terrain",
-        vec![],
-        Duration::from_secs(10),
-    )
-    .await
-    .expect("the edge reaches the world");
-    let running = fixtures::serve(terrain, |o| Options {
-        remote: Some(remote.clone()),
-        ..o
-    });
-    remote.set_addresses(vec![running.server.addr.to_string()]);
-    (running, remote)
-}
-
-/// The world's snapshot once `f` holds of it, within `secs` seconds (else a panic naming
-/// `what`).
-async fn when(
-    snaps: &mut tokio::sync::watch::Receiver<Arc<Snapshot>>,
-    secs: u64,
-    what: &str,
-    f: impl FnMut(&Arc<Snapshot>) -> bool,
-) -> Arc<Snapshot> {
-    tokio::time::timeout(Duration::from_secs(secs), snaps.wait_for(f))
-        .await
-        .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
-        .expect("the world runs")
-        .clone()
 }
 
 /// Two edge processes (`roam-test-edge`, with the page if `web`) of world `name`, sharing

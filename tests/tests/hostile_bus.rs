@@ -8,10 +8,9 @@
 //! captured. Each test asserts that the attack does NOT succeed (and that the world keeps its
 //! 100 ticks a second and the real driver's drive stays exact).
 //!
-//! The bus options of the world and the edge are made in one place ([`bus`]): the cluster's
-//! secret goes there. Each test ends with a commented `after the fix:` sketch of the
-//! refusals the world ([`WorldServer`]) and the edge ([`Remote`]) are to count, for when
-//! they count them.
+//! The world and the edge hold the cluster's secret ([`cluster::bus`]); the attacker does
+//! not. Each test ends by asserting what the world ([`WorldServer::refused`]) and the edge
+//! ([`Remote::refused`]) counted: every attacking message refused, none taken.
 
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
@@ -22,13 +21,12 @@ use roam_protocol::bus::{self as wire, Answer, Ask, DriverKeys, Keys, Subjects};
 use roam_protocol::messages::{KeyState, Role, decode, encode};
 use roam_protocol::script;
 use roam_server::Terrain;
-use roam_server::net::Options;
-use roam_server::net::bus::BusOptions;
 use roam_server::net::bus::edge::Remote;
-use roam_server::net::bus::world::{WorldOptions, WorldServer};
+use roam_server::net::bus::world::WorldServer;
 use roam_server::sim::world_core::Snapshot;
 use roam_tests::fixtures::{self, Running, flat};
 use roam_tests::nats::Nats;
+use roam_tests::nats::cluster::{self, bus, edge_and_remote, when};
 
 /// Each test runs a world, an edge and an attacker with their threads: one at a time, so
 /// that on a 2-core machine none starves another of the CPU.
@@ -43,21 +41,6 @@ const IN_FLIGHT: usize = 128;
 /// The frames the real driver takes: [`fixtures::DRIVE`] (423 ticks) and its stop, at
 /// 60 frames a second, about 8 s, over which each attack is made.
 const FRAMES: u64 = 480;
-
-/// The bus options of the world and its edge, the same for both (one call per test, the
-/// result cloned to both): the one place the cluster's secret goes.
-fn bus(nats: &Nats, world: &str) -> BusOptions {
-    BusOptions {
-        url: nats.url(),
-        world: world.into(),
-        creds: None,
-        ca: None,
-        name: "roam-test".into(),
-        // The cluster's secret, shared by the world and its edge (the attacker never has
-        // it).
-        secret: Some(roam_tests::nats::test_secret(world)),
-    }
-}
 
 /// A world, an edge of it serving viewers on loopback, and an attacker on the same NATS.
 struct Cluster {
@@ -74,30 +57,12 @@ impl Cluster {
     async fn start(name: &str, max_vehicles: usize) -> Cluster {
         let nats = Nats::start();
         let terrain = flat();
+        // The cluster's secret, shared by the world and its edge (the attacker never has
+        // it): `cluster::bus`.
         let bus = bus(&nats, name);
-        let options = WorldOptions {
-            record: None,
-            hold: Duration::from_secs(30),
-            max_vehicles,
-            replay: None,
-        };
-        let world = WorldServer::start(terrain.clone(), terrain.content_hash(), options, &bus)
-            .await
-            .expect("the world starts");
-        let remote = Remote::connect(
-            &bus,
-            terrain.content_hash(),
-            "the test terrain",
-            vec![],
-            Duration::from_secs(10),
-        )
-        .await
-        .expect("the edge reaches the world");
-        let edge = fixtures::serve(terrain.clone(), |o| Options {
-            remote: Some(remote.clone()),
-            ..o
-        });
-        remote.set_addresses(vec![edge.server.addr.to_string()]);
+        let hold = Duration::from_secs(30);
+        let world = cluster::start_world(&terrain, &bus, (hold, max_vehicles), None).await;
+        let (edge, remote) = edge_and_remote(terrain.clone(), &bus).await;
         let attacker = Attacker::connect(&nats, name).await;
         Cluster {
             _nats: nats,
@@ -274,21 +239,6 @@ fn bytes<T: serde::Serialize>(msg: &T) -> bytes::Bytes {
     let mut out = Vec::new();
     encode(msg, &mut out).expect("a bus message encodes");
     out.into()
-}
-
-/// The world's snapshot once `f` holds of it, within `secs` seconds (else a panic naming
-/// `what`).
-async fn when(
-    snaps: &mut tokio::sync::watch::Receiver<Arc<Snapshot>>,
-    secs: u64,
-    what: &str,
-    f: impl FnMut(&Arc<Snapshot>) -> bool,
-) -> Arc<Snapshot> {
-    tokio::time::timeout(Duration::from_secs(secs), snaps.wait_for(f))
-        .await
-        .unwrap_or_else(|_| panic!("{what}: not within {secs} s"))
-        .expect("the world runs")
-        .clone()
 }
 
 /// The world once 100 more ticks (1 s) have passed, or as soon as `gone` holds of it: what
