@@ -52,9 +52,9 @@
 //!   secret; NATS accounts and permissions still help (docs/cluster.md) but need a NATS
 //!   set up for them, and the application's proofs do not.
 //! - Cost at 1,000 driving vehicles over 4 edges, measured 2026-12-07 (`measure` profile,
-//!   2 cores): the world's CPU per tick 555–560 µs sealed against 520–535 plain, 1.04× and
-//!   1.08× in two sessions of A/B rounds (`PROFILE=measure scripts/cluster.sh proofs 1000`;
-//!   single runs vary 500–580 either way). The seal alone, a 40 KB snapshot sealed and
+//!   2 cores): the world's CPU per tick sealed against plain 1.08×, 1.04× and 1.02× in three
+//!   sessions of A/B rounds (medians 560 / 520, 555 / 535, 610 / 600 µs;
+//!   `PROFILE=measure scripts/cluster.sh proofs 1000`; single runs vary 500–720 either way). The seal alone, a 40 KB snapshot sealed and
 //!   four edges' key states opened a tick, adds 14.6 µs (`cargo bench -p roam-server
 //!   --bench bus_seal`: 89.1 → 103.7 µs).
 
