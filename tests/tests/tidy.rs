@@ -292,7 +292,8 @@ const CLOCK_READERS: &[(&str, &str)] = &[
     ),
     (
         "tests/src/nats.rs",
-        "nats-server's log and an edge process's lines read within a bound",
+        "nats-server's log, an edge process's lines, a world's snapshots and captured \
+         messages awaited within a bound",
     ),
     (
         "tests/src/browser.rs",
