@@ -91,10 +91,6 @@ impl Asker {
         self.world.store(world, Ordering::Release);
     }
 
-    pub fn client(&self) -> &async_nats::Client {
-        &self.client
-    }
-
     pub fn voice(&self) -> &Voice {
         &self.voice
     }
@@ -111,7 +107,7 @@ impl Asker {
         let reply = format!("{}.{counter}", self.inbox);
         let bytes =
             self.voice
-                .say_numbered(Kind::Ask, counter, self.world(), reply.as_bytes(), ask);
+                .say_numbered(Kind::Ask, counter, (self.world(), 0), reply.as_bytes(), ask);
         let (tx, rx) = oneshot::channel();
         {
             let mut pending = lock(&self.pending);

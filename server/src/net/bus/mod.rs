@@ -19,6 +19,7 @@ mod drivers;
 pub mod edge;
 pub mod seal;
 pub mod voice;
+pub mod window;
 pub mod world;
 
 pub use seal::{BusSecret, Refused};

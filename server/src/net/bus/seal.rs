@@ -25,8 +25,8 @@
 //!   process seals with its own key, derived from the world's key and its random 64-bit
 //!   name (`sender`), and counts each kind of its messages from 1: the GCM nonce (counter
 //!   and kind) is never used twice under one key, however many processes seal at once.
-//! - **Replays.** The world keeps a [`Window`] per edge: a counter seen, or more than
-//!   [`WINDOW`] behind the newest, is refused. Requests name the world process they are
+//! - **Replays.** The world keeps a window per edge (`window.rs`): a counter seen,
+//!   or more than 1,024 behind the newest, is refused. Requests name the world process they are
 //!   for (`to`): the world takes none for another process (a hello is answered, changing
 //!   nothing), so nothing captured before it started can be played to it, and only this
 //!   world's edges get windows. A request's seal is bound to its reply subject (hashed
@@ -58,7 +58,7 @@
 //!   four edges' key states opened a tick, adds 14.6 µs (`cargo bench -p roam-server
 //!   --bench bus_seal`: 89.1 → 103.7 µs).
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 
 use ring::aead::{AES_256_GCM, Aad, LessSafeKey, Nonce, UnboundKey};
@@ -80,14 +80,8 @@ pub const MIN_SECRET: usize = 32;
 /// The most bytes read from a secret file.
 pub const MAX_SECRET: usize = 4096;
 
-/// How far behind the newest counter from a sender a message may come and still be taken
-/// (NATS keeps one publisher's order, but a process's tasks seal before they publish, so a
-/// few may swap).
-pub const WINDOW: u64 = 1024;
-
-/// Senders whose replay windows one receiver keeps (each is some 150 bytes): past it, the
-/// one heard from longest ago is retired, and every message from it refused from then on.
-pub const MAX_SENDERS: usize = 65_536;
+/// Senders' keys an [`Opener`] keeps (past it, it starts again: a key is derived anew).
+const MAX_KEYS: usize = 65_536;
 
 /// What a sealed message is.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -407,7 +401,7 @@ impl Opener {
 
     /// The header and the message inside `bytes`, if it is a `want` sealed under this
     /// world's key, bound to `bind` ([`Sealer::seal`]), at most `max` bytes inside.
-    /// Replays are the caller's ([`Replays`]).
+    /// Replays are the caller's (`window.rs`).
     pub fn open(
         &mut self,
         want: Kind,
@@ -449,111 +443,12 @@ impl Opener {
             .len();
         inside.truncate(len);
         if let Some(key) = fresh {
-            if self.keys.len() >= MAX_SENDERS {
+            if self.keys.len() >= MAX_KEYS {
                 self.keys.clear();
             }
             self.keys.insert(header.sender, key);
         }
         Ok((header, inside))
-    }
-}
-
-/// A sender's counters seen: the newest and, behind it, a bit for each of [`WINDOW`].
-#[derive(Clone, Debug, Default)]
-pub struct Window {
-    newest: u64,
-    seen: [u64; (WINDOW / 64) as usize],
-}
-
-impl Window {
-    /// Whether `counter` is new (never seen, not too old); it is seen from now on.
-    pub fn accept(&mut self, counter: u64) -> bool {
-        if counter == 0 {
-            return false;
-        }
-        if counter > self.newest {
-            let shift = counter - self.newest;
-            self.shift(shift);
-            self.newest = counter;
-            self.set(0);
-            return true;
-        }
-        let behind = self.newest - counter;
-        if behind >= WINDOW || self.get(behind) {
-            return false;
-        }
-        self.set(behind);
-        true
-    }
-
-    /// Moves every bit `by` places further behind.
-    fn shift(&mut self, by: u64) {
-        if by >= WINDOW {
-            self.seen = Default::default();
-            return;
-        }
-        let (words, bits) = ((by / 64) as usize, (by % 64) as u32);
-        let n = self.seen.len();
-        for i in (0..n).rev() {
-            let from = i.checked_sub(words);
-            let hi = from.map_or(0, |f| self.seen[f]);
-            let lo = from
-                .and_then(|f| f.checked_sub(1))
-                .map_or(0, |f| self.seen[f]);
-            self.seen[i] = if bits == 0 {
-                hi
-            } else {
-                (hi << bits) | (lo >> (64 - bits))
-            };
-        }
-    }
-
-    fn get(&self, behind: u64) -> bool {
-        self.seen[(behind / 64) as usize] & (1 << (behind % 64)) != 0
-    }
-
-    fn set(&mut self, behind: u64) {
-        self.seen[(behind / 64) as usize] |= 1 << (behind % 64);
-    }
-}
-
-/// Every sender's [`Window`], at most [`MAX_SENDERS`]: past it the one heard from longest
-/// ago is retired (its messages refused from then on: a sender silent that long is a
-/// process long gone, and only a replay would name it).
-#[derive(Default)]
-pub struct Replays {
-    windows: HashMap<u64, (u64, Window)>,
-    retired: HashSet<u64>,
-    /// Messages taken, for the windows' age.
-    taken: u64,
-}
-
-impl Replays {
-    /// Whether `header`'s counter is new from its sender.
-    pub fn accept(&mut self, header: &Header) -> bool {
-        self.accept_with_limit(header, MAX_SENDERS)
-    }
-
-    fn accept_with_limit(&mut self, header: &Header, limit: usize) -> bool {
-        if self.retired.contains(&header.sender) {
-            return false;
-        }
-        self.taken += 1;
-        if !self.windows.contains_key(&header.sender) && self.windows.len() >= limit {
-            let oldest = self
-                .windows
-                .iter()
-                .min_by_key(|(_, (at, _))| *at)
-                .map(|(s, _)| *s);
-            if let Some(s) = oldest {
-                self.windows.remove(&s);
-                self.retired.insert(s);
-            }
-        }
-        let taken = self.taken;
-        let (at, window) = self.windows.entry(header.sender).or_default();
-        *at = taken;
-        window.accept(header.counter)
     }
 }
 
@@ -602,14 +497,13 @@ impl RefusedCounts {
         }
     }
 
-    /// Counts `refusal`; the new count of its kind.
-    pub fn note(&self, refusal: Refusal) -> u64 {
-        let counter = match refusal {
+    /// The count `refusal` goes into.
+    pub fn of(&self, refusal: Refusal) -> &AtomicU64 {
+        match refusal {
             Refusal::Unsealed => &self.unsealed,
             Refusal::Forged | Refusal::Kind { .. } | Refusal::Long(_) => &self.forged,
             Refusal::Replayed => &self.replayed,
-        };
-        counter.fetch_add(1, Ordering::Relaxed) + 1
+        }
     }
 }
 
@@ -643,9 +537,6 @@ mod tests {
                 re: 0
             }
         );
-        let mut replays = Replays::default();
-        assert!(replays.accept(&header));
-        assert!(!replays.accept(&header), "a replay");
         // Another world's key, or another secret: the seal does not hold.
         let check = |key: &BusKey, bytes: &[u8], want: Result<(), Refusal>| {
             let got = Opener::new(key)
@@ -739,70 +630,5 @@ mod tests {
             BusSecret::random().as_bytes(),
             BusSecret::random().as_bytes()
         );
-    }
-
-    #[test]
-    fn a_window_takes_each_counter_once_and_none_too_old() {
-        let mut w = Window::default();
-        let mut check = |counter: u64, expected: bool| {
-            assert_eq!(w.accept(counter), expected, "counter {counter}");
-        };
-        check(0, false);
-        check(1, true);
-        check(1, false);
-        check(3, true);
-        check(2, true);
-        check(2, false);
-        check(3, false);
-        check(100, true);
-        check(50, true);
-        check(50, false);
-        check(99, true);
-        check(100 + WINDOW - 1, true);
-        check(100, false);
-        check(101, true);
-        check(100 + WINDOW, true);
-        check(100, false); // now WINDOW behind: too old
-        check(101, false);
-        check(5_000, true);
-        check(5_000 - WINDOW + 1, true);
-        check(5_000 - WINDOW, false);
-        check(u64::MAX, true);
-        check(u64::MAX, false);
-        // A model: every counter taken once, in any order within the window.
-        let mut w = Window::default();
-        let mut seen = HashSet::new();
-        let mut x = 7u64;
-        for _ in 0..20_000 {
-            x = x
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            let c = 1 + (x >> 33) % 3_000;
-            let newest = seen.iter().copied().max().unwrap_or(0);
-            let want = !seen.contains(&c) && c + WINDOW > newest;
-            assert_eq!(w.accept(c), want, "counter {c}, newest {newest}");
-            if want {
-                seen.insert(c);
-            }
-        }
-    }
-
-    #[test]
-    fn past_the_senders_limit_the_stalest_is_retired() {
-        let h = |sender, counter| Header {
-            kind: Kind::Ask,
-            sender,
-            to: 0,
-            counter,
-            re: 0,
-        };
-        let mut r = Replays::default();
-        assert!(r.accept_with_limit(&h(1, 1), 2));
-        assert!(r.accept_with_limit(&h(2, 1), 2));
-        assert!(r.accept_with_limit(&h(1, 2), 2));
-        // Sender 3 takes the place of 2, heard from longest ago: 2 is refused for good.
-        assert!(r.accept_with_limit(&h(3, 1), 2));
-        assert!(!r.accept_with_limit(&h(2, 2), 2));
-        assert!(r.accept_with_limit(&h(1, 3), 2));
     }
 }

@@ -11,12 +11,12 @@ use serde::Serialize;
 use serde::de::DeserializeOwned;
 
 use super::Malformed;
-use super::seal::{BusKey, Header, Kind, MAGIC, Opener, Refusal, RefusedCounts, Replays, Sealer};
+use super::seal::{BusKey, Header, Kind, MAGIC, Opener, Refusal, RefusedCounts, Sealer};
+use super::window::Replays;
 
 /// This process's voice on the bus.
 pub struct Voice {
     sealer: Option<Sealer>,
-    sender: u64,
     /// Plain messages' count (a request's number, for its answer's inbox).
     plain: AtomicU64,
 }
@@ -26,18 +26,8 @@ impl Voice {
     pub fn new(key: Option<&BusKey>, sender: u64) -> Voice {
         Voice {
             sealer: key.map(|k| Sealer::new(k, sender)),
-            sender,
             plain: AtomicU64::new(0),
         }
-    }
-
-    /// This process's name on the bus.
-    pub fn sender(&self) -> u64 {
-        self.sender
-    }
-
-    pub fn sealed(&self) -> bool {
-        self.sealer.is_some()
     }
 
     /// `msg` as it goes on the bus (a `kind` for `to`, answering `re`), and its number.
@@ -59,13 +49,13 @@ impl Voice {
         &self,
         kind: Kind,
         counter: u64,
-        to: u64,
+        (to, re): (u64, u64),
         bind: &[u8],
         msg: &T,
     ) -> bytes::Bytes {
         let plain = super::encode(msg);
         match &self.sealer {
-            Some(s) => s.seal_numbered(kind, counter, to, 0, bind, &plain).into(),
+            Some(s) => s.seal_numbered(kind, counter, to, re, bind, &plain).into(),
             None => plain,
         }
     }
@@ -80,14 +70,11 @@ impl Voice {
         bind: &[u8],
         msg: &T,
     ) -> (u64, bytes::Bytes) {
-        let plain = super::encode(msg);
-        match &self.sealer {
-            Some(s) => {
-                let (counter, sealed) = s.seal(kind, to, re, bind, &plain);
-                (counter, sealed.into())
-            }
-            None => (self.plain.fetch_add(1, Ordering::Relaxed) + 1, plain),
-        }
+        let counter = self.next(kind);
+        (
+            counter,
+            self.say_numbered(kind, counter, (to, re), bind, msg),
+        )
     }
 }
 
@@ -185,21 +172,25 @@ impl Ear {
 
     /// Counts (and logs) a message refused for `refusal`, from `sender` if known.
     pub fn refuse(&self, refusal: Refusal, sender: Option<u64>) {
-        let n = self.counts.note(refusal);
-        if n.is_power_of_two() {
-            match sender {
-                Some(s) => tracing::warn!(
-                    refused = n,
-                    sender = s,
-                    "a {:?} on the bus refused: {refusal}",
-                    self.kind
-                ),
-                None => tracing::warn!(
-                    refused = n,
-                    "a {:?} on the bus refused: {refusal}",
-                    self.kind
-                ),
-            }
+        count(
+            self.counts.of(refusal),
+            format_args!(
+                "a {:?} on the bus refused{}: {refusal}",
+                self.kind,
+                From(sender)
+            ),
+        );
+    }
+}
+
+/// " from SENDER", when the sender is known (written only when logged).
+struct From(Option<u64>);
+
+impl std::fmt::Display for From {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self.0 {
+            Some(s) => write!(f, " from {s:x}"),
+            None => Ok(()),
         }
     }
 }
