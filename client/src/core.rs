@@ -32,7 +32,7 @@
 //! lock them apart: a key state must leave every 10 ms even while a frame is being
 //! decoded. With one lock, a decode preempted on a loaded machine held the key sender past
 //! the server's one tick of slack, and the exact drive over the network diverged (seen in
-//! `tests/tests/e2e.rs` with the CPU saturated).
+//! `tests/tests/it/e2e.rs` with the CPU saturated).
 //!
 //! **Frame numbers are checked** ([`Broken`]): a server numbers the frames of a connection
 //! from 0, one more per frame sent, so a frame more than [`MAX_FRAME_JUMP`] past the newest

@@ -42,7 +42,7 @@ pub const SILENCE: Duration = Duration::from_secs(10);
 /// world does, so 48 frame intervals of silence at 60 Hz are an edge gone, not a quiet
 /// world. Instead of [`Patience::silence`] (10 s), unless that is shorter. 0.8 s, not 1:
 /// the move (silence, then a loopback handshake and a resume) took 1.01 s with 1 s
-/// (`tests/tests/cluster.rs`, an edge killed), the aim being 1 s at most.
+/// (`tests/tests/it/needs_nats/cluster.rs`, an edge killed), the aim being 1 s at most.
 pub const SILENCE_MANY: Duration = Duration::from_millis(800);
 
 /// [`Patience::reconnect_for`] unless told otherwise: the server's hold (30 s) and a margin.

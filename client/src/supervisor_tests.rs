@@ -1,7 +1,7 @@
 //! The reconnection supervisor's rules that need no instant: the ends worth connecting
 //! again, the silence allowed and its words, and the silence rule per address. Its
 //! decisions over time (the backoff, the deadline, refusals, another terrain, a server
-//! silent twice) are driven with made-up instants in `tests/tests/supervisor.rs` (a core
+//! silent twice) are driven with made-up instants in `tests/tests/it/supervisor.rs` (a core
 //! reads no clock, not even in its tests).
 
 use std::time::Duration;

@@ -4,7 +4,7 @@
 //! 2^12 + 1 grid and the bundled `data/kossou`. Prints one JSON object a line. Every frame
 //! it codes is also decoded and checked (the round trip of `tests/common`).
 
-#[path = "../tests/common/mod.rs"]
+#[path = "../tests/it/common/mod.rs"]
 mod common;
 
 use common::*;

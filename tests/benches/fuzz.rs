@@ -2,7 +2,7 @@
 //! bytes, and valid encodings with bytes flipped, cut or extended; see
 //! [`roam_tests::fuzz`]), which must each give a value or an error: no panic. A frame that
 //! decodes goes on through the mesh decoder and the viewer's vertex builder. Prints one
-//! JSON object. (`tests/tests/fuzz.rs` runs fewer under a counting allocator, to prove no
+//! JSON object. (`tests/tests/it/fuzz.rs` runs fewer under a counting allocator, to prove no
 //! decode allocates beyond its limits.)
 
 use std::time::Instant;

@@ -2,7 +2,7 @@
 //! finish the QUIC handshake and then send nothing, some open the control stream and stall
 //! inside their hello (a length that promises more bytes than ever come). Each waits for
 //! the server to close it and says how it ended. Shared by the admission test
-//! (`tests/tests/admission.rs`) and the `roam-flood` binary, which prints the figures as
+//! (`tests/tests/it/admission.rs`) and the `roam-flood` binary, which prints the figures as
 //! JSON against a server in another process.
 //!
 //! The connections come from one client endpoint (one UDP port, as one attacker's

@@ -1,7 +1,7 @@
 //! Fuzzing every decoder: the inputs, and the decoders with the state a viewer or a server
 //! holds when it decodes. Shared by the million-input bench (`cargo bench -p roam-tests
 //! --bench fuzz`) and the test that runs a smaller count under a counting allocator
-//! (`tests/tests/fuzz.rs`).
+//! (`tests/tests/it/fuzz.rs`).
 //!
 //! Inputs alternate ([`Fuzz::input`]): random bytes (under 300), and valid encodings
 //! ([`seeds`]: messages of every kind, frames carrying real key and change frames, bare

@@ -17,7 +17,7 @@
 //!   viewer says hello within a round trip of its handshake, and is never the one evicted
 //!   while a silent one is pending (and a handshake slowed by a flood that saturates the
 //!   CPU is not counted against it). Refusing instead would let a flood that holds the cap
-//!   lock everyone out for the deadline (`tests/tests/flood.rs` joins through one).
+//!   lock everyone out for the deadline (`tests/tests/it/flood.rs` joins through one).
 //!
 //! Every pending connection also has one deadline for handshake and hello together (the
 //! shell's timer): what the cap does not close, the deadline does.
@@ -101,7 +101,7 @@ fn mib(bytes: u64) -> String {
 /// --json`'s `serve_viewer_heap_bytes` and `_peak`): 38 to 42 bytes a triangle (221
 /// before its frontiers became small records). The records grow by chunks, the indexes
 /// and vectors by doubling: 64 leaves room for that at every budget.
-/// `server/tests/viewer_core.rs` checks that a driving viewer's cut stays within it, and
+/// `server/tests/it/viewer_core.rs` checks that a driving viewer's cut stays within it, and
 /// that it is not so loose as to reserve four times what a viewer holds.
 pub const CUT_BYTES_PER_TRIANGLE: u64 = 64;
 

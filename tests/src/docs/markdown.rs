@@ -1,7 +1,7 @@
 //! Reading the documents: the code spans of a Markdown text (with the headings above
 //! each), the lines of its shell blocks, and what a token in them is — a path, a Rust
 //! path, a type name, a command with its flags. Pure: text in, tokens out (the checks
-//! against the repository are `tests/tests/docs.rs`'s, the workspace's model [`super::code`]).
+//! against the repository are `tests/tests/it/docs.rs`'s, the workspace's model [`super::code`]).
 
 use std::collections::BTreeSet;
 

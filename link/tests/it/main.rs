@@ -1,0 +1,7 @@
+//! The link's integration tests: one test binary, each file a module (docs/testing.md).
+//!
+//! The modules named `needs_…` need something outside Rust (a GPU driver, a display, a NATS
+//! server, a browser); the fast tier, `scripts/test-fast`, leaves them out by those names.
+
+mod identity_files;
+mod state_dir;

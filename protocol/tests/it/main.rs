@@ -1,0 +1,12 @@
+//! The protocol's integration tests: one test binary, each file a module (docs/testing.md).
+//!
+//! The modules named `needs_…` need something outside Rust (a GPU driver, a display, a NATS
+//! server, a browser); the fast tier, `scripts/test-fast`, leaves them out by those names.
+
+mod common;
+
+mod changes;
+mod codec;
+mod colormap;
+mod follow;
+mod messages;
