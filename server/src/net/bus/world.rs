@@ -420,7 +420,7 @@ async fn answer(state: &State, from: &Requester, ask: Ask) -> Answer {
         Ask::Leave { vehicle, claim } => {
             let mut drivers = lock(&state.drivers);
             if drivers.holds(vehicle, from.edge, claim) {
-                drivers.forget(vehicle);
+                drivers.leave(vehicle, from.edge, state.started.elapsed());
                 let _ = state.inbox.send((Event::Leave(vehicle), None));
             } else {
                 not_holder(state, "a leave", vehicle, from.edge);
@@ -634,8 +634,12 @@ async fn take_keys(mut keys: async_nats::Subscriber, state: Arc<State>) {
         // cryptography (a flood of made-up senders costs a lookup each).
         if state.key.is_some()
             && let Some(h) = super::seal::Header::peek(&msg.payload)
-            && !lock(&state.drivers).holds_any(h.sender)
+            && let drivers = lock(&state.drivers)
+            && !drivers.holds_any(h.sender)
         {
+            if drivers.late(Some(h.sender), state.started.elapsed()) {
+                continue;
+            }
             count(
                 &state.refused.not_holder,
                 format_args!("key states from {:x}, which holds no vehicle", h.sender),
@@ -667,7 +671,7 @@ async fn take_keys(mut keys: async_nats::Subscriber, state: Arc<State>) {
                         vehicle: k.vehicle,
                         states: k.states,
                     });
-                } else {
+                } else if !drivers.late(edge, state.started.elapsed()) {
                     count(
                         &state.refused.not_holder,
                         format_args!(
