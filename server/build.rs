@@ -1,12 +1,18 @@
-//! Embeds the browser viewer's page: when `web/dist/index.html` exists (what
-//! `scripts/build-web` writes), every file under `web/dist/` goes into a table in
+//! Embeds the browser viewer's page in release builds: when `web/dist/index.html` exists
+//! (what `scripts/build-web` writes), every file under `web/dist/` goes into a table in
 //! `OUT_DIR/page.rs` (`FILES: &[(name, bytes)]`, names relative to `web/dist/` with `/`
 //! between folders, each file through `include_bytes!`); otherwise the table is empty and
 //! `serve --web` says how to build the page.
 //!
-//! What makes it run again: `web/dist/` and each of its files when it exists, else `web/`
-//! (where `web/dist/` will appear). A path that does not exist would make Cargo run this
-//! script at every build, and rebuild the crate each time, so none is named.
+//! Other builds (the tests', the edit-test loop's: Cargo's `PROFILE` is `debug`) embed
+//! nothing and name `web/dist/` instead (`DIST`), read when `serve --web` starts: the page
+//! can be built while the tests compile, or after, and the server is not rebuilt for it
+//! (it was, with the whole workspace above it: docs/testing.md#a-fresh-machine).
+//!
+//! What makes it run again: in release builds `web/dist/` and each of its files when it
+//! exists, else `web/` (where `web/dist/` will appear); in others only this file. A path
+//! that does not exist would make Cargo run this script at every build, and rebuild the
+//! crate each time, so none is named.
 
 use std::path::{Path, PathBuf};
 
@@ -19,7 +25,10 @@ fn main() {
     let web = root.join("web");
     let dist = web.join("dist");
     let mut files = Vec::new();
-    if dist.join("index.html").is_file() {
+    let release = std::env::var("PROFILE").as_deref() == Ok("release");
+    if !release {
+        // Read at run time (`Page::embedded`).
+    } else if dist.join("index.html").is_file() {
         println!("cargo:rerun-if-changed={}", dist.display());
         walk(&dist, &mut files);
         files.sort();
@@ -45,6 +54,15 @@ fn main() {
         out.push_str(&format!("    ({name:?}, include_bytes!({path:?})),\n"));
     }
     out.push_str("];\n");
+    let dist_path = dist.to_str().unwrap_or_else(|| {
+        panic!("{}: a path that is not UTF-8", dist.display());
+    });
+    let named = if release {
+        "None".to_owned()
+    } else {
+        format!("Some({dist_path:?})")
+    };
+    out.push_str(&format!("pub const DIST: Option<&str> = {named};\n"));
     let target = PathBuf::from(std::env::var_os("OUT_DIR").expect("set by Cargo")).join("page.rs");
     // Written only when it changes: an unchanged table leaves the file's time alone.
     if std::fs::read_to_string(&target).ok().as_deref() != Some(out.as_str()) {

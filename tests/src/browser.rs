@@ -10,7 +10,6 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
 
-use bytes::Bytes;
 use roam_server::web::Page;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
@@ -18,23 +17,15 @@ use tokio::sync::mpsc;
 /// The page's files as `scripts/build-web` left them in `web/dist`.
 pub fn built_page() -> Arc<Page> {
     let dist = Path::new(env!("CARGO_MANIFEST_DIR")).join("../web/dist");
-    let Ok(entries) = std::fs::read_dir(&dist) else {
+    let page = Page::read_dir(&dist).unwrap_or_else(|e| {
         panic!(
-            "{} is missing: build the browser viewer first with scripts/build-web",
+            "{}: {e}: build the browser viewer first with scripts/build-web --quick",
             dist.display()
-        );
-    };
-    let mut files = Vec::new();
-    for e in entries {
-        let e = e.expect("listing web/dist");
-        let name = e.file_name().to_string_lossy().into_owned();
-        let bytes = std::fs::read(e.path()).expect("reading web/dist");
-        files.push((name, Bytes::from(bytes)));
-    }
-    let page = Page::from_files(files);
+        )
+    });
     assert!(
         page.get("index.html").is_some() && page.get("roam_web_bg.wasm").is_some(),
-        "{} is incomplete: run scripts/build-web",
+        "{} is incomplete: run scripts/build-web --quick",
         dist.display()
     );
     Arc::new(page)

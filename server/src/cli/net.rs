@@ -256,6 +256,12 @@ impl ServeArgs {
 fn web_options(args: &ServeArgs, listen: SocketAddr) -> Result<(net::web::WebOptions, String)> {
     let page = Page::embedded();
     anyhow::ensure!(page.is_built(), "{}", roam_server::web::NOT_BUILT);
+    if page.is_quick() {
+        tracing::warn!(
+            "the page is the tests' quick build (scripts/build-web --quick): larger and slower \
+             to load; to publish it, run scripts/build-web, then build roam-server again"
+        );
+    }
     let lan = listen
         .ip()
         .is_unspecified()

@@ -4,16 +4,21 @@
 //!
 //! Decisions:
 //!
-//! - **The page is built into the binary.** `scripts/build-web` writes it to `web/dist/`;
-//!   `build.rs` embeds every file there (`include_bytes!`) when `web/dist/index.html`
-//!   exists, else none, and `serve --web` on a binary without it says to run
-//!   `scripts/build-web` ([`NOT_BUILT`]). Tests hand [`Page::from_files`] a page of their
-//!   own instead.
+//! - **The page is built into the release binary.** `scripts/build-web` writes it to
+//!   `web/dist/`; in release builds `build.rs` embeds every file there (`include_bytes!`)
+//!   when `web/dist/index.html` exists, else none, and `serve --web` on a binary without it
+//!   says to run `scripts/build-web` ([`NOT_BUILT`]). Other builds read `web/dist/` when
+//!   the page is asked for ([`Page::embedded`]), so that the tests' build need not wait
+//!   for the page, nor be redone after it. Tests hand [`Page::from_files`] or
+//!   [`Page::read_dir`] a page of their own.
 //! - **A closed set of answers.** `GET`/`HEAD` of `/` or `/index.html` gives the page,
 //!   `/NAME` an embedded file by its name (gzip-coded when the client accepts it and
 //!   `NAME.gz` is embedded), `/webtransport.json` where and how to open WebTransport
 //!   (its path, UDP port and the certificate hashes to pin); anything else is 404, another
 //!   method 405. No path ever reaches the file system.
+//! - **Which build.** `scripts/build-web --quick` (the page the tests open, built in half
+//!   the time) writes `quick` in the page's `BUILD` file; [`Page::is_quick`] tells, and
+//!   `serve --web` says so in its log, so that nobody publishes it by mistake.
 //! - **Caching**: the page's files are `no-cache` (revalidated: a new build is seen at
 //!   once), `/webtransport.json` `no-store` (the certificate changes every few days).
 
@@ -47,13 +52,32 @@ pub struct Page {
 }
 
 impl Page {
-    /// The page built into this binary (empty if it was built without one).
+    /// The page built into this binary (empty if it was built without one); in builds
+    /// other than release, the page in the source tree's `web/dist/` as it is now (empty
+    /// if it cannot be read).
     pub fn embedded() -> Page {
+        if let Some(dist) = embedded::DIST {
+            return Page::read_dir(std::path::Path::new(dist)).unwrap_or_default();
+        }
         Page::from_files(
             embedded::FILES
                 .iter()
                 .map(|&(name, bytes)| (name.to_owned(), Bytes::from_static(bytes))),
         )
+    }
+
+    /// The files in `dir` (not in its folders), by name, as `scripts/build-web` leaves
+    /// them in `web/dist/`.
+    pub fn read_dir(dir: &std::path::Path) -> std::io::Result<Page> {
+        let mut files = Vec::new();
+        for entry in std::fs::read_dir(dir)? {
+            let entry = entry?;
+            if entry.file_type()?.is_file() {
+                let name = entry.file_name().to_string_lossy().into_owned();
+                files.push((name, Bytes::from(std::fs::read(entry.path())?)));
+            }
+        }
+        Ok(Page::from_files(files))
     }
 
     /// A page of these files, by name (`/` separates folders).
@@ -66,6 +90,13 @@ impl Page {
     /// Whether there is a page to serve at all (an `index.html`).
     pub fn is_built(&self) -> bool {
         self.files.contains_key("index.html")
+    }
+
+    /// Whether this is the quick build of the page (`scripts/build-web --quick`: larger
+    /// and slower to load than the one to publish).
+    pub fn is_quick(&self) -> bool {
+        self.get("BUILD")
+            .is_some_and(|b| b.trim_ascii() == b"quick")
     }
 
     /// The file named `name`.
@@ -290,6 +321,24 @@ mod tests {
             map.insert(k.clone(), HeaderValue::from_static(v));
         }
         site.respond(&Method::GET, path, &map)
+    }
+
+    #[test]
+    fn the_quick_build_is_told_by_its_build_file() {
+        let page = |build: Option<&'static [u8]>| {
+            let mut files = vec![("index.html".to_owned(), Bytes::from_static(b"<p>"))];
+            files.extend(build.map(|b| ("BUILD".to_owned(), Bytes::from_static(b))));
+            Page::from_files(files).is_quick()
+        };
+        for (build, quick) in [
+            (Some(&b"quick\n"[..]), true),
+            (Some(&b"quick"[..]), true),
+            (Some(&b"publish\n"[..]), false),
+            (Some(&b""[..]), false),
+            (None, false),
+        ] {
+            assert_eq!(page(build), quick, "BUILD {build:?}");
+        }
     }
 
     fn header_of(r: &Response<Bytes>, name: header::HeaderName) -> Option<&str> {

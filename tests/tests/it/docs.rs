@@ -407,6 +407,15 @@ fn every_command_in_the_documents_parses() {
                             }
                             Ok(_) => {}
                         }
+                        // A script's flags are its own words: each written must be in it.
+                        let text = std::fs::read_to_string(code.root.join(s)).unwrap_or_default();
+                        w.extend(
+                            args.iter()
+                                .filter(|a| a.starts_with("--") && a.len() > 2)
+                                .map(|a| a.split('=').next().unwrap_or(a))
+                                .filter(|flag| !text.contains(flag))
+                                .map(|flag| format!("{flag}: the script has no such flag")),
+                        );
                         w
                     }
                 };
