@@ -18,7 +18,7 @@
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
@@ -28,6 +28,7 @@ use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, ReplayStatus, Role, ServerMessage, ViewChange, Welcome,
     WorldNews, close,
 };
+use roam_protocol::sync::lock;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 use tokio::task::JoinSet;
 
@@ -196,10 +197,6 @@ impl Shared {
             conn.close(code.into(), why);
         }
     }
-}
-
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// Returns once the viewer quits (answering that the server did not hear: there is no

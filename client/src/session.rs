@@ -43,11 +43,12 @@ use roam_protocol::messages::{
     self, ClientMessage, Hello, ReplayControl, ReplayStatus, ViewChange, Welcome, close,
 };
 use roam_protocol::script::Script;
+use roam_protocol::sync::lock;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 
 use crate::color_cache::{ColorCache, Keep};
 pub use crate::connection::Status;
-use crate::connection::{Connections, Outgoing, Shared, Steps, attempt, lock, send_keys};
+use crate::connection::{Connections, Outgoing, Shared, Steps, attempt, send_keys};
 pub use crate::conversation::describe;
 use crate::conversation::{TerrainId, next_hello};
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, MAX_FRAME, Received, Taken};

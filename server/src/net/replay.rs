@@ -22,6 +22,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
 
 use roam_protocol::messages::{ReplayControl, ReplayStatus, ServerMessage};
+use roam_protocol::sync::lock;
 use tokio::sync::watch;
 
 use super::conn::SendStream;
@@ -158,11 +159,7 @@ pub struct Seat {
 
 impl Drop for Seat {
     fn drop(&mut self) {
-        let mut v = self
-            .shared
-            .viewers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
+        let mut v = lock(&self.shared.viewers);
         v.retain(|(id, ..)| *id != self.id);
         self.shared.elect(&v);
     }
@@ -172,7 +169,7 @@ impl ReplayShared {
     /// A viewer (`peer`, and whether it presented the control token) starts watching.
     pub(super) fn enter(self: &Arc<Self>, peer: String, controller: bool) -> Seat {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
-        let mut v = self.viewers.lock().unwrap_or_else(|e| e.into_inner());
+        let mut v = lock(&self.viewers);
         v.push((id, peer, controller));
         self.elect(&v);
         Seat {
@@ -223,7 +220,7 @@ impl ReplayShared {
         let Controls::Here(tx) = &self.controls else {
             return false;
         };
-        let tx = tx.lock().unwrap_or_else(|e| e.into_inner());
+        let tx = lock(&tx);
         tx.send(c).is_ok()
     }
 
@@ -285,10 +282,7 @@ impl ReplayShared {
     pub(super) fn status_for(&self, id: u64) -> ReplayStatus {
         let s = *self.status.borrow();
         let holder = *self.holder.borrow();
-        let controller = self
-            .viewers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
+        let controller = lock(&self.viewers)
             .iter()
             .find(|v| v.0 == holder)
             .map_or_else(|| "nobody".to_string(), |v| v.1.clone());

@@ -30,12 +30,13 @@ use std::time::Duration;
 use futures_util::StreamExt;
 use roam_protocol::bus::{self as wire, Answer, Ask, DriverKeys, Keys, MAX_BATCH, Subjects};
 use roam_protocol::messages::Ticket;
+use roam_protocol::sync::lock;
 use tokio::sync::{mpsc, oneshot, watch};
 
 use super::asker::Asker;
 use super::seal::{BusKey, Header, Kind, Refusal, Refused, RefusedCounts};
 use super::voice::{Ear, count};
-use super::{BusError, BusOptions, from_wire, lock};
+use super::{BusError, BusOptions, from_wire};
 use crate::Terrain;
 use crate::net::world_loop::Inbound;
 use crate::sim::world::{VehicleId, World};
