@@ -240,14 +240,18 @@ pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
         .map_err(|e| format!("the server broke the protocol: {e}"))
 }
 
-/// A first hello: `role` with `token`, a `viewport` seen with a 60° field of view,
-/// `budget` triangles, 60 frames a second, and the colour window a device whose textures
-/// are at most `max_texture` texels a side can hold.
+/// A first hello, the one way every viewer (the window, the headless viewer, the
+/// benchmarks, the page, the tests' viewers) makes one: `role` with `token`, a `viewport`
+/// seen with a vertical field of view of `fov_y_deg` degrees, `budget` triangles,
+/// `frame_rate` frames a second, and the colour window a device whose textures are at most
+/// `max_texture` texels a side can hold ([`crate::render::native_max_texture`] natively).
 pub fn hello(
     role: Role,
     token: String,
     viewport: [u32; 2],
+    fov_y_deg: f32,
     budget: u32,
+    frame_rate: u16,
     max_texture: u32,
 ) -> Hello {
     Hello {
@@ -255,9 +259,9 @@ pub fn hello(
         role,
         token,
         viewport,
-        fov_y_deg: 60.0,
+        fov_y_deg,
         budget,
-        frame_rate: 60,
+        frame_rate,
         resume: None,
         color_window: crate::color_cache::window_for(max_texture),
     }

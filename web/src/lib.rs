@@ -78,7 +78,9 @@ async fn run(options: page::Options) -> Result<(), String> {
         },
         options.token.clone(),
         [size.0, size.1],
+        60.0,
         budget,
+        60,
         gfx.gpu.device.limits().max_texture_dimension_2d,
     );
     let edge = endpoint.edge()?;

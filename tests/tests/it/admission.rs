@@ -13,23 +13,13 @@ use std::time::Duration;
 
 use roam_client::session::{KeySource, Session};
 use roam_link::wire;
-use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION};
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage};
 use roam_tests::fixtures::{self, Running, flat};
 
 use crate::ONE_AT_A_TIME;
 
 fn hello(r: &Running, role: Role, budget: u32, frame_rate: u16) -> Hello {
-    Hello {
-        version: VERSION,
-        role,
-        token: r.token.clone(),
-        viewport: [640, 360],
-        fov_y_deg: 60.0,
-        budget,
-        frame_rate,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    fixtures::hello(role, &r.token, [640, 360], budget, frame_rate)
 }
 
 /// A raw connection that said hello, its control stream kept open (dropping it would say
