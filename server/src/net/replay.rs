@@ -69,6 +69,22 @@ impl Replaying {
 /// How often a followed file is read for more, in world ticks (250 ms).
 const FOLLOW_EVERY: u64 = 25;
 
+/// Why a followed recording is no longer followed (its valid part stays watched).
+#[derive(Debug, thiserror::Error)]
+pub enum FollowError {
+    #[error("reading {}: {error}", file.display())]
+    Read {
+        file: std::path::PathBuf,
+        error: std::io::Error,
+    },
+    #[error(
+        "{} grew past the {} bytes a recording may have",
+        file.display(),
+        crate::sim::recording::MAX_FILE_BYTES
+    )]
+    TooLarge { file: std::path::PathBuf },
+}
+
 /// A recording file followed as its server writes it: read for more every
 /// [`FOLLOW_EVERY`] ticks, its whole records handed to the [`Watch`].
 pub struct Follower {
@@ -80,23 +96,23 @@ pub struct Follower {
 impl Follower {
     /// Reads what the file has gained and hands its whole records to `watch`. An error
     /// reading it ends the following (logged): the valid part stays what it was.
-    fn poll(&mut self, watch: &mut Watch<Arc<Terrain>>) -> Result<(), String> {
+    fn poll(&mut self, watch: &mut Watch<Arc<Terrain>>) -> Result<(), FollowError> {
         use std::io::Read;
         let room = crate::sim::recording::MAX_FILE_BYTES.saturating_sub(self.reader.len());
         let mut more = Vec::new();
         (&mut self.file)
             .take(room + 1)
             .read_to_end(&mut more)
-            .map_err(|e| format!("reading {}: {e}", self.path.display()))?;
+            .map_err(|error| FollowError::Read {
+                file: self.path.clone(),
+                error,
+            })?;
         if more.is_empty() {
             return Ok(());
         }
         if more.len() as u64 > room {
-            return Err(format!(
-                "{} grew past the {} bytes a recording may have",
-                self.path.display(),
-                crate::sim::recording::MAX_FILE_BYTES
-            ));
+            let file = self.path.clone();
+            return Err(FollowError::TooLarge { file });
         }
         let mut events = Vec::new();
         let damaged = self.reader.feed(&more, &mut events).err();

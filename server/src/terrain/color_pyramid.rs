@@ -139,11 +139,8 @@ impl ColorPyramid {
     ) -> Result<(ColorPyramid, CacheOutcome), PyramidError> {
         let key = source_stamp(&dir.join(COLOR_FILE))
             .map(|(len, digest)| [len.to_le_bytes(), digest.to_le_bytes()].concat())
-            .ok_or_else(|| {
-                format!(
-                    "{}: cannot be read for its date",
-                    dir.join(COLOR_FILE).display()
-                )
+            .ok_or_else(|| store::Unkeyed {
+                file: dir.join(COLOR_FILE),
             });
         let (store, outcome) = store::open_or_make(
             dir,

@@ -11,7 +11,7 @@ use std::path::Path;
 use crate::common;
 
 use common::{TempDir, check, png_claiming, root};
-use roam_server::terrain::colorimage::{Footprint, RgbImage, resample};
+use roam_server::terrain::colorimage::{Footprint, ResampleError, RgbImage, resample};
 use roam_server::terrain::dataset::Terrain;
 
 /// A `w × h` image of single-channel values (shown as `[v, v, v]`).
@@ -116,6 +116,83 @@ fn resampling_rule() {
             0, 10, 10, 10, 40, 50, 50, 50, 40, 50, 50, 50, 40, 50, 50, 50,
         ],
     );
+}
+
+/// What cannot be resampled is refused, saying what was given and what was expected.
+#[test]
+fn an_empty_image_a_window_off_the_raster_or_no_step_is_refused() {
+    let ok = footprint((5, 5), (0, 0, 5, 5), 1.0, 4);
+    let image = || grey(4, 4, &[0; 16]);
+    let short = RgbImage {
+        rgb: vec![[0; 3]; 15],
+        ..image()
+    };
+    let window = |window, cells| footprint((5, 5), window, 1.0, cells);
+    let cases = [
+        (
+            grey(0, 0, &[]),
+            ok,
+            ResampleError::Image {
+                width: 0,
+                height: 0,
+                pixels: 0,
+            },
+            "a 0 × 0 image of 0 pixels: expected at least 1 × 1, every pixel",
+        ),
+        (
+            short,
+            ok,
+            ResampleError::Image {
+                width: 4,
+                height: 4,
+                pixels: 15,
+            },
+            "a 4 × 4 image of 15 pixels: expected at least 1 × 1, every pixel",
+        ),
+        (
+            image(),
+            window((1, 0, 5, 5), 4),
+            ResampleError::Window(window((1, 0, 5, 5), 4)),
+            "window 1,0 5 × 5 of a 5 × 5 raster, 4 cells: expected a window inside the raster \
+             and at least one cell",
+        ),
+        (
+            image(),
+            window((0, 0, 0, 5), 4),
+            ResampleError::Window(window((0, 0, 0, 5), 4)),
+            "window 0,0 0 × 5 of a 5 × 5 raster, 4 cells: expected a window inside the raster \
+             and at least one cell",
+        ),
+        (
+            image(),
+            window((0, 0, 5, 5), 0),
+            ResampleError::Window(window((0, 0, 5, 5), 0)),
+            "window 0,0 5 × 5 of a 5 × 5 raster, 0 cells: expected a window inside the raster \
+             and at least one cell",
+        ),
+        (
+            image(),
+            Footprint {
+                step: (1.0, 0.0),
+                ..ok
+            },
+            ResampleError::Step { x: 1.0, y: 0.0 },
+            "1 × 0 samples a cell: expected numbers > 0",
+        ),
+        (
+            image(),
+            Footprint {
+                step: (-1.0, 1.0),
+                ..ok
+            },
+            ResampleError::Step { x: -1.0, y: 1.0 },
+            "-1 × 1 samples a cell: expected numbers > 0",
+        ),
+    ];
+    for (image, footprint, want, message) in cases {
+        let got = resample(&image, &footprint, &mut |_, _| {}).expect_err(message);
+        assert_eq!((got.to_string().as_str(), &got), (message, &want));
+    }
 }
 
 /// A PNG of `width × height` pixels.
