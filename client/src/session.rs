@@ -162,8 +162,9 @@ impl Session {
         let addr = *addresses.current();
         let mut joined = joined;
         let welcome = joined.welcome.clone();
+        let levels = welcome.levels;
         let core = ClientCore::new(&welcome, hello.budget)
-            .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
+            .ok_or(crate::conversation::ConversationError::Levels { levels })?;
         let terrain = TerrainId::of(&welcome, joined.colors.coarsest());
         let empty = joined.colors.fresh();
         let colors = std::mem::replace(&mut joined.colors, empty);
@@ -438,7 +439,7 @@ impl Session {
         } else {
             false
         };
-        self.shared.end("quit".into());
+        self.shared.end(crate::supervisor::SessionEnd::Quit);
         self.shared.close(close::BYE, b"quit");
         heard
     }

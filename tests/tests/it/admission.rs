@@ -11,6 +11,7 @@
 
 use std::time::Duration;
 
+use roam_client::conversation::ConversationError;
 use roam_client::session::{KeySource, Session};
 use roam_link::wire;
 use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage};
@@ -142,7 +143,11 @@ async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
     assert!(why.contains("--max-memory"), "{why}");
     assert!(why.contains("65536 triangles"), "{why}");
     let shown = roam_client::conversation::welcome_of(third.answer.clone()).expect_err("refused");
-    assert!(shown.contains("--max-memory"), "{shown}");
+    assert!(
+        matches!(&shown, ConversationError::Refused(Reason::Unavailable(w)) if w == why),
+        "{shown:?}"
+    );
+    assert!(shown.to_string().contains("--max-memory"), "{shown}");
     assert_eq!(r.server.counts().refused, 1);
     assert_eq!(r.server.load().1, 2);
     // A viewer asking few triangles still fits in what is left ...
