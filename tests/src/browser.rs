@@ -370,29 +370,28 @@ mod tests {
         let long = format!("data:text/plain,{}", "x".repeat(100));
         let grey = data_url(1, 1, png::ColorType::Grayscale, &[9]);
         let not_png = "data:image/png;base64,aGVsbG8=";
-        let cases: [(&str, fn(&ImageError) -> bool, &str); 4] = [
+        let kind = |e: &ImageError| match e {
+            ImageError::NotDataUrl { .. } => "not a data URL",
+            ImageError::Base64(_) => "base64",
+            ImageError::Png(_) => "PNG",
+            ImageError::TooLarge => "too large",
+            ImageError::ColorType(_) => "colour type",
+        };
+        let cases = [
             (
-                &long,
-                |e| matches!(e, ImageError::NotDataUrl { .. }),
+                &*long,
+                "not a data URL",
                 "not a PNG data URL: data:text/plain,xxxxxxxxxxxxxxxxxxxxxxxx",
             ),
-            (
-                "data:image/png;base64,!!",
-                |e| matches!(e, ImageError::Base64(_)),
-                "the PNG's base64: ",
-            ),
-            (not_png, |e| matches!(e, ImageError::Png(_)), ""),
-            (
-                &grey,
-                |e| matches!(e, ImageError::ColorType(png::ColorType::GrayscaleAlpha)),
-                "a PNG of GrayscaleAlpha",
-            ),
+            ("data:image/png;base64,!!", "base64", "the PNG's base64: "),
+            (not_png, "PNG", ""),
+            (&*grey, "colour type", "a PNG of GrayscaleAlpha"),
         ];
-        for (url, kind, words) in cases {
+        for (url, want, words) in cases {
             let Err(e) = Image::from_data_url(url) else {
                 panic!("{url:.60}: an image")
             };
-            assert!(kind(&e), "{url:.60}: {e:?}");
+            assert_eq!(kind(&e), want, "{url:.60}: {e:?}");
             assert!(e.to_string().starts_with(words), "{url:.60}: {e}");
         }
     }

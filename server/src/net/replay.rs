@@ -236,7 +236,7 @@ impl ReplayShared {
         let Controls::Here(tx) = &self.controls else {
             return false;
         };
-        let tx = lock(&tx);
+        let tx = lock(tx);
         tx.send(c).is_ok()
     }
 

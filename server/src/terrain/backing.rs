@@ -195,9 +195,9 @@ mod tests {
                 "values at offset 1: TargetAlignmentGreaterAndInputNotAligned",
             ),
         ] {
-            let got = Backing::<u16>::mapped(map.clone(), offset, len)
-                .err()
-                .expect("past the end, past usize or misaligned");
+            let Err(got) = Backing::<u16>::mapped(map.clone(), offset, len) else {
+                panic!("{message}: values past the end, past usize or misaligned taken");
+            };
             assert_eq!((got, got.to_string().as_str()), (want, message));
         }
         let owned = Backing::Owned(vec![1u16, 2, 3]);

@@ -271,7 +271,7 @@ fn encode_level(
                         }
                         let mut coded = Vec::new();
                         match colormap::encode(t as u32, &rgb, &mut coded) {
-                            Ok(()) => **lock(&slot) = coded,
+                            Ok(()) => **lock(slot) = coded,
                             Err(e) => *lock(&failed) = Some(e.into()),
                         }
                     }

@@ -131,7 +131,7 @@ impl NormalPyramid {
                 let Some(slot) = roots.get(k) else { return };
                 let (x, z) = (k as u32 % n, k as u32 / n);
                 match b.node(root, x, z, None) {
-                    Ok(t) => *lock(&slot) = Some(t),
+                    Ok(t) => *lock(slot) = Some(t),
                     Err(e) => {
                         *lock(&failed) = Some(e);
                         return;

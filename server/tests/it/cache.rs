@@ -410,9 +410,9 @@ fn codes_of_another_size_or_count_are_no_tree() {
         ),
     ];
     for (size, count, want, words) in cases {
-        let got = VarianceTree::from_codes(size, Backing::Owned(vec![0; count]))
-            .err()
-            .expect("no tree");
+        let Err(got) = VarianceTree::from_codes(size, Backing::Owned(vec![0; count])) else {
+            panic!("{words}: a tree");
+        };
         assert_eq!((got, got.to_string().as_str()), (want, words));
     }
     assert!(VarianceTree::from_codes(8, Backing::Owned(vec![0; n])).is_ok());

@@ -127,8 +127,8 @@ fn an_empty_image_a_window_off_the_raster_or_no_step_is_refused() {
         rgb: vec![[0; 3]; 15],
         ..image()
     };
-    let window = |window, cells| footprint((5, 5), window, 1.0, cells);
-    let cases = [
+    let every_pixel = "expected at least 1 × 1, every pixel";
+    let mut cases = vec![
         (
             grey(0, 0, &[]),
             ok,
@@ -137,7 +137,7 @@ fn an_empty_image_a_window_off_the_raster_or_no_step_is_refused() {
                 height: 0,
                 pixels: 0,
             },
-            "a 0 × 0 image of 0 pixels: expected at least 1 × 1, every pixel",
+            format!("a 0 × 0 image of 0 pixels: {every_pixel}"),
         ),
         (
             short,
@@ -147,51 +147,40 @@ fn an_empty_image_a_window_off_the_raster_or_no_step_is_refused() {
                 height: 4,
                 pixels: 15,
             },
-            "a 4 × 4 image of 15 pixels: expected at least 1 × 1, every pixel",
-        ),
-        (
-            image(),
-            window((1, 0, 5, 5), 4),
-            ResampleError::Window(window((1, 0, 5, 5), 4)),
-            "window 1,0 5 × 5 of a 5 × 5 raster, 4 cells: expected a window inside the raster \
-             and at least one cell",
-        ),
-        (
-            image(),
-            window((0, 0, 0, 5), 4),
-            ResampleError::Window(window((0, 0, 0, 5), 4)),
-            "window 0,0 0 × 5 of a 5 × 5 raster, 4 cells: expected a window inside the raster \
-             and at least one cell",
-        ),
-        (
-            image(),
-            window((0, 0, 5, 5), 0),
-            ResampleError::Window(window((0, 0, 5, 5), 0)),
-            "window 0,0 5 × 5 of a 5 × 5 raster, 0 cells: expected a window inside the raster \
-             and at least one cell",
-        ),
-        (
-            image(),
-            Footprint {
-                step: (1.0, 0.0),
-                ..ok
-            },
-            ResampleError::Step { x: 1.0, y: 0.0 },
-            "1 × 0 samples a cell: expected numbers > 0",
-        ),
-        (
-            image(),
-            Footprint {
-                step: (-1.0, 1.0),
-                ..ok
-            },
-            ResampleError::Step { x: -1.0, y: 1.0 },
-            "-1 × 1 samples a cell: expected numbers > 0",
+            format!("a 4 × 4 image of 15 pixels: {every_pixel}"),
         ),
     ];
-    for (image, footprint, want, message) in cases {
-        let got = resample(&image, &footprint, &mut |_, _| {}).expect_err(message);
-        assert_eq!((got.to_string().as_str(), &got), (message, &want));
+    let inside = "expected a window inside the raster and at least one cell";
+    for (window, cells, given) in [
+        (
+            (1, 0, 5, 5),
+            4,
+            "window 1,0 5 × 5 of a 5 × 5 raster, 4 cells",
+        ),
+        (
+            (0, 0, 0, 5),
+            4,
+            "window 0,0 0 × 5 of a 5 × 5 raster, 4 cells",
+        ),
+        (
+            (0, 0, 5, 5),
+            0,
+            "window 0,0 5 × 5 of a 5 × 5 raster, 0 cells",
+        ),
+    ] {
+        let off = footprint((5, 5), window, 1.0, cells);
+        let want = ResampleError::Window(off);
+        cases.push((image(), off, want, format!("{given}: {inside}")));
+    }
+    for (x, y, given) in [(1.0, 0.0, "1 × 0"), (-1.0, 1.0, "-1 × 1")] {
+        let step = Footprint { step: (x, y), ..ok };
+        let want = ResampleError::Step { x, y };
+        let words = format!("{given} samples a cell: expected numbers > 0");
+        cases.push((image(), step, want, words));
+    }
+    for (image, footprint, want, words) in cases {
+        let got = resample(&image, &footprint, &mut |_, _| {}).expect_err(&words);
+        assert_eq!((got.to_string(), &got), (words, &want));
     }
 }
 
