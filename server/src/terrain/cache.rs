@@ -473,9 +473,7 @@ impl Cache {
             Ok(Some(h)) if h.samples_hash == samples_hash => {
                 Self::map_heights(&h.file, side).map_err(CacheError::Map)
             }
-            Ok(_) => Err(CacheError::Replaced {
-                by: "other heights",
-            }),
+            Ok(_) => Err(CacheError::Replaced("other heights")),
             Err(e) => Err(e),
         };
         match mapped {
@@ -521,8 +519,7 @@ impl Cache {
                 progress(Stage::Verifying, d, t)
             });
             if got != header.samples_hash {
-                let what = "the samples";
-                return Err((CacheError::Corrupt { what }, None));
+                return Err((CacheError::Corrupt("the samples"), None));
             }
             self.verified(0, &header.file, stamp);
         }
@@ -651,7 +648,7 @@ impl Cache {
             Ok(Some(h)) if h.codes_hash == codes_hash => {
                 Self::map_variance(&h.file, hf.size()).map_err(CacheError::Map)
             }
-            Ok(_) => Err(CacheError::Replaced { by: "another tree" }),
+            Ok(_) => Err(CacheError::Replaced("another tree")),
             Err(e) => Err(e),
         };
         match mapped {
@@ -681,8 +678,7 @@ impl Cache {
                 progress(Stage::Verifying, d, t)
             });
             if got != header.codes_hash {
-                let what = "the codes";
-                return Err(CacheError::Corrupt { what });
+                return Err(CacheError::Corrupt("the codes"));
             }
             self.verified(1, &header.file, stamp);
         }

@@ -70,17 +70,17 @@ pub enum CacheError {
     /// `variance.bin` was built from other heights than those mapped.
     #[error("stale: built from other heights (heights hash differs)")]
     OtherHeights,
-    /// The values re-hashed whole do not match the header's hash (`what`: `the samples`,
-    /// `the codes`).
-    #[error("corrupt: {what} do not match their hash")]
-    Corrupt { what: &'static str },
+    /// The values re-hashed whole (`the samples`, `the codes`) do not match the header's
+    /// hash.
+    #[error("corrupt: {0} do not match their hash")]
+    Corrupt(&'static str),
     /// A checked file could not be mapped.
     #[error("cannot map: {0}")]
     Map(#[source] MapError),
     /// Another process renamed its own file over the one just written, and it holds
-    /// other values (`by`: `other heights`, `another tree`).
-    #[error("replaced by {by} meanwhile")]
-    Replaced { by: &'static str },
+    /// other values (`other heights`, `another tree`).
+    #[error("replaced by {0} meanwhile")]
+    Replaced(&'static str),
 }
 
 /// Why a checked cache file cannot be mapped as the values it holds.
