@@ -52,7 +52,8 @@ pub fn packages() -> Vec<Package> {
             .filter_map(|e| {
                 let p = e.ok()?.path();
                 let stem = p.file_stem()?.to_str()?.to_owned();
-                (p.extension()? == "rs" || p.join("main.rs").exists()).then_some(stem)
+                (p.extension().is_some_and(|e| e == "rs") || p.join("main.rs").exists())
+                    .then_some(stem)
             })
             .collect();
         v.sort();

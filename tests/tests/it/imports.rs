@@ -139,7 +139,12 @@ fn workspace() -> (Workspace, BTreeMap<PathBuf, String>) {
             roots.extend(
                 files
                     .keys()
-                    .filter(|f| f.parent() == Some(dir.as_path()))
+                    .filter(|f| {
+                        // `dir/x.rs`, or a target of several files: `dir/x/main.rs`.
+                        f.parent() == Some(dir.as_path())
+                            || (f.file_name().is_some_and(|n| n == "main.rs")
+                                && f.parent().and_then(Path::parent) == Some(dir.as_path()))
+                    })
                     .cloned(),
             );
         }
