@@ -18,7 +18,7 @@
 
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
@@ -28,15 +28,16 @@ use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, ReplayStatus, Role, ServerMessage, ViewChange, Welcome,
     WorldNews, close,
 };
+use roam_protocol::sync::lock;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 use tokio::task::JoinSet;
 
 use crate::color_cache::{ColorCache, Keep};
-use crate::conversation::{TerrainId, Told, next_hello, take_control};
+use crate::conversation::{ConversationError, TerrainId, Told, next_hello, take_control};
 use crate::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
 use crate::edges::{Addresses, World, native_edges};
 use crate::quic::{self, JoinError, Joined};
-use crate::supervisor::{End, JOIN_TIMEOUT, State, Supervisor, secs};
+use crate::supervisor::{End, JOIN_TIMEOUT, SessionEnd, State, Supervisor, secs};
 
 /// How long a control message may take to leave (a server that stops reading does not
 /// hold the viewer).
@@ -107,12 +108,12 @@ pub(crate) struct Shared {
 
 impl Shared {
     /// The session ends with `why` (the first reason given stands).
-    pub(crate) fn end(&self, why: String) {
+    pub(crate) fn end(&self, why: impl std::fmt::Display) {
         self.status.send_if_modified(|s| {
             if matches!(s.state, State::Ended(_)) {
                 return false;
             }
-            s.state = State::Ended(why);
+            s.state = State::Ended(why.to_string());
             true
         });
         self.notify.notify_one();
@@ -198,10 +199,6 @@ impl Shared {
     }
 }
 
-pub(crate) fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 /// Returns once the viewer quits (answering that the server did not hear: there is no
 /// connection to say goodbye on) or the session is dropped; control messages meanwhile are
 /// dropped (the next hello asks for the budget, and the view is sent again).
@@ -266,8 +263,10 @@ pub async fn read_control(
             Ok(Some(Told::News(news))) => shared.news(news),
             Ok(Some(Told::Following(v))) => shared.following(v),
             Ok(Some(Told::Replay(s))) => shared.replay(s),
-            Err(why) if msg == ServerMessage::Bye(Reason::Shutdown) => break End::Shutdown(why),
-            Err(why) => break End::Final(why),
+            Err(why @ ConversationError::Goodbye(Reason::Shutdown)) => {
+                break End::Shutdown(why.to_string());
+            }
+            Err(why) => break End::Final(why.to_string()),
         }
     };
     let _ = ends.send(end).await;
@@ -459,7 +458,7 @@ impl Connections {
             }
             joined = match self.reconnect(Instant::now()).await {
                 Ok(Some(j)) => j,
-                Ok(None) => return self.shared.end("quit".into()),
+                Ok(None) => return self.shared.end(SessionEnd::Quit),
                 Err(why) => return self.shared.end(why),
             };
             if self.shared.ended().is_some() {
@@ -534,7 +533,7 @@ impl Connections {
     /// Connects again, each attempt to the next address in turn, as the supervisor says,
     /// until a connection joins, the session quits (`None`), or the supervisor gives up
     /// (an error, in words). `lost_at`: when the connection was lost.
-    async fn reconnect(&mut self, lost_at: Instant) -> Result<Option<Joined>, String> {
+    async fn reconnect(&mut self, lost_at: Instant) -> Result<Option<Joined>, SessionEnd> {
         let mut lost_at = Some(lost_at);
         loop {
             let (addr, many) = {
@@ -597,12 +596,13 @@ impl Connections {
 
     /// Makes `joined` the session's connection: a fresh core (with the budget and the view
     /// asked so far) and its colour cache, the keys sent on it, the reconnection counted.
-    fn adopt(&mut self, joined: &mut Joined) -> Result<(), String> {
+    fn adopt(&mut self, joined: &mut Joined) -> Result<(), ConversationError> {
         let welcome = joined.welcome.clone();
         {
             let mut core = lock(&self.shared.core);
+            let levels = welcome.levels;
             let mut fresh = ClientCore::new(&welcome, core.budget())
-                .ok_or_else(|| format!("a grid of 2^{} + 1", welcome.levels))?;
+                .ok_or(ConversationError::Levels { levels })?;
             if let Some(view) = *lock(&self.shared.view) {
                 fresh.set_view(view);
             }

@@ -12,7 +12,47 @@ use roam_protocol::messages::{
     Hello, Reason, ReplayStatus, Role, ServerMessage, Welcome, WorldNews,
 };
 
-use crate::color_cache::{ColorCache, Keep};
+use crate::color_cache::{ColorCache, ColorError, Keep};
+
+/// What a server said (or failed to say) that ends a join or a session, naming the
+/// message and what was expected; in the words the viewers show.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ConversationError {
+    /// The server refused the hello.
+    #[error("refused: {}", describe(.0))]
+    Refused(Reason),
+    /// The answer to the hello was another message (`got`: its name, as [`name`] says).
+    #[error("expected a welcome, got {got}")]
+    NotWelcome { got: String },
+    /// The welcome's grid is not one of the protocol's.
+    #[error(
+        "Welcome.levels: a grid of 2^{levels} + 1, expected 1 ..= {}",
+        roam_protocol::bintree::MAX_LEVELS
+    )]
+    Levels { levels: u8 },
+    /// The welcome's colour layout does not fit the window asked.
+    #[error("the server's welcome: {0}")]
+    Welcome(ColorError),
+    #[error("the server sent too much news before the coarsest tile")]
+    TooMuchNews,
+    #[error("the server sent too many colour messages before the coarsest tile")]
+    TooManyColours,
+    /// A message other than colour before the coarsest tile.
+    #[error("expected the coarsest colour tile, got {got}")]
+    NotCoarsest { got: String },
+    /// Colour the cache refuses before the coarsest tile.
+    #[error("the server's colour: {0}")]
+    Colour(ColorError),
+    /// The server's goodbye during the session.
+    #[error("the server said goodbye: {}", describe(.0))]
+    Goodbye(Reason),
+    /// A message no server sends during a session.
+    #[error("the server sent {got} during the session")]
+    Unexpected { got: String },
+    /// Colour the cache refuses during the session.
+    #[error("the server broke the protocol: {0}")]
+    Broke(ColorError),
+}
 
 /// Why a connection ended or was refused, in words.
 pub fn describe(reason: &Reason) -> String {
@@ -69,11 +109,11 @@ pub enum Told<'m> {
 }
 
 /// The answer to a hello: a welcome, or a refusal (or anything else) in words.
-pub fn welcome_of(msg: ServerMessage) -> Result<Welcome, String> {
+pub fn welcome_of(msg: ServerMessage) -> Result<Welcome, ConversationError> {
     match msg {
         ServerMessage::Welcome(w) => Ok(w),
-        ServerMessage::Refused(reason) => Err(format!("refused: {}", describe(&reason))),
-        other => Err(format!("expected a welcome, got {}", name(&other))),
+        ServerMessage::Refused(reason) => Err(ConversationError::Refused(reason)),
+        other => Err(ConversationError::NotWelcome { got: name(&other) }),
     }
 }
 
@@ -94,16 +134,13 @@ pub struct Joining {
 
 impl Joining {
     /// Checks the welcome's grid and colour layout against the window asked.
-    pub fn new(welcome: &Welcome, asked: u8, keep: Keep) -> Result<Joining, String> {
+    pub fn new(welcome: &Welcome, asked: u8, keep: Keep) -> Result<Joining, ConversationError> {
         if roam_protocol::Grid::new(u32::from(welcome.levels)).is_none() {
-            return Err(format!(
-                "Welcome.levels: a grid of 2^{} + 1, expected 1 ..= {}",
-                welcome.levels,
-                roam_protocol::bintree::MAX_LEVELS
-            ));
+            let levels = welcome.levels;
+            return Err(ConversationError::Levels { levels });
         }
         let cache = ColorCache::new(welcome.color, welcome.levels, asked, keep)
-            .map_err(|e| format!("the server's welcome: {e}"))?;
+            .map_err(ConversationError::Welcome)?;
         // Nothing the server may send before the coarsest tile can be more than a message
         // per slot and a window per level.
         let left = cache.capacity() + u32::from(welcome.color.levels) + 1;
@@ -120,16 +157,16 @@ impl Joining {
     }
 
     /// Takes the next message: the colour cache once the coarsest tile is in it.
-    pub fn apply(&mut self, msg: &ServerMessage) -> Result<Option<ColorCache>, String> {
+    pub fn apply(&mut self, msg: &ServerMessage) -> Result<Option<ColorCache>, ConversationError> {
         if let ServerMessage::World(news) = msg {
             if self.news.len() >= NEWS_BEFORE_TILE {
-                return Err("the server sent too much news before the coarsest tile".into());
+                return Err(ConversationError::TooMuchNews);
             }
             self.news.push(news.clone());
             return Ok(None);
         }
         if self.left == 0 {
-            return Err("the server sent too many colour messages before the coarsest tile".into());
+            return Err(ConversationError::TooManyColours);
         }
         self.left -= 1;
         match self.cache.apply(msg) {
@@ -138,11 +175,8 @@ impl Joining {
                 Ok(Some(std::mem::replace(&mut self.cache, fresh)))
             }
             Ok(true) => Ok(None),
-            Ok(false) => Err(format!(
-                "expected the coarsest colour tile, got {}",
-                name(msg)
-            )),
-            Err(e) => Err(format!("the server's colour: {e}")),
+            Ok(false) => Err(ConversationError::NotCoarsest { got: name(msg) }),
+            Err(e) => Err(ConversationError::Colour(e)),
         }
     }
 }
@@ -209,14 +243,12 @@ pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
     msg: &'m ServerMessage,
     rgb: &mut Vec<u8>,
     mut colors: impl FnMut() -> C,
-) -> Result<Option<Told<'m>>, String> {
+) -> Result<Option<Told<'m>>, ConversationError> {
     let taken = match msg {
         ServerMessage::World(news) => return Ok(Some(Told::News(news))),
         ServerMessage::Following(v) => return Ok(Some(Told::Following(*v))),
         ServerMessage::Replay(s) => return Ok(Some(Told::Replay(s))),
-        ServerMessage::Bye(reason) => {
-            return Err(format!("the server said goodbye: {}", describe(reason)));
-        }
+        ServerMessage::Bye(reason) => return Err(ConversationError::Goodbye(reason.clone())),
         ServerMessage::ColorTile { level, x, z, data } => {
             let layout = *colors().layout();
             crate::color_cache::decode_tile(&layout, *level, *x, *z, data, rgb)
@@ -228,26 +260,23 @@ pub fn take_control<'m, C: std::ops::DerefMut<Target = ColorCache>>(
                 .and_then(|()| colors().put_normals_decoded(*level, *x, *z, rgb, data.len()))
         }
         ServerMessage::ColorWindow { .. } => colors().apply(msg).map(|_| ()),
-        other => {
-            return Err(format!(
-                "the server sent {} during the session",
-                name(other)
-            ));
-        }
+        other => return Err(ConversationError::Unexpected { got: name(other) }),
     };
-    taken
-        .map(|()| None)
-        .map_err(|e| format!("the server broke the protocol: {e}"))
+    taken.map(|()| None).map_err(ConversationError::Broke)
 }
 
-/// A first hello: `role` with `token`, a `viewport` seen with a 60° field of view,
-/// `budget` triangles, 60 frames a second, and the colour window a device whose textures
-/// are at most `max_texture` texels a side can hold.
+/// A first hello, the one way every viewer (the window, the headless viewer, the
+/// benchmarks, the page, the tests' viewers) makes one: `role` with `token`, a `viewport`
+/// seen with a vertical field of view of `fov_y_deg` degrees, `budget` triangles,
+/// `frame_rate` frames a second, and the colour window a device whose textures are at most
+/// `max_texture` texels a side can hold ([`crate::render::native_max_texture`] natively).
 pub fn hello(
     role: Role,
     token: String,
     viewport: [u32; 2],
+    fov_y_deg: f32,
     budget: u32,
+    frame_rate: u16,
     max_texture: u32,
 ) -> Hello {
     Hello {
@@ -255,9 +284,9 @@ pub fn hello(
         role,
         token,
         viewport,
-        fov_y_deg: 60.0,
+        fov_y_deg,
         budget,
-        frame_rate: 60,
+        frame_rate,
         resume: None,
         color_window: crate::color_cache::window_for(max_texture),
     }
@@ -279,11 +308,11 @@ pub fn next_hello(mut hello: Hello, welcome: &Welcome) -> Hello {
 
 #[cfg(test)]
 mod tests {
-    use roam_protocol::messages::ServerMessage;
+    use roam_protocol::messages::{Reason, ServerMessage};
     use roam_protocol::normals;
     use roam_protocol::tiles::ColorLayout;
 
-    use super::take_control;
+    use super::{ConversationError, take_control, welcome_of};
     use crate::color_cache::{ColorCache, Keep};
 
     /// A normal tile of level `level` at `(x, z)` on the wire, its codes made from `seed`.
@@ -319,6 +348,56 @@ mod tests {
             z: 0,
             data: vec![1, 2, 3],
         };
-        assert!(take_control(&bad, &mut scratch, || c.borrow_mut()).is_err());
+        let e = take_control(&bad, &mut scratch, || c.borrow_mut()).expect_err("no level 9");
+        assert!(matches!(e, ConversationError::Broke(_)), "{e:?}");
+        assert!(
+            e.to_string().starts_with("the server broke the protocol: "),
+            "{e}"
+        );
+    }
+
+    /// What ends a join or a session, and how it reads: a refusal, a goodbye, a message
+    /// in the wrong place.
+    #[test]
+    fn what_the_server_said_amiss_is_named() {
+        let full = Reason::Full { viewers: 64 };
+        for (msg, want, words) in [
+            (
+                ServerMessage::Refused(full.clone()),
+                ConversationError::Refused(full),
+                "refused: the server is full (64 viewers)",
+            ),
+            (
+                ServerMessage::Following(3),
+                ConversationError::NotWelcome {
+                    got: "following vehicle 3".into(),
+                },
+                "expected a welcome, got following vehicle 3",
+            ),
+        ] {
+            let e = welcome_of(msg).expect_err(words);
+            assert_eq!((e.to_string().as_str(), e), (words, want));
+        }
+        let layout = ColorLayout::new(64, 8, 2).expect("a valid layout");
+        let cache = ColorCache::new(layout, 6, 8, Keep::Masks).expect("the layout fits");
+        let c = std::cell::RefCell::new(cache);
+        for (msg, want, words) in [
+            (
+                ServerMessage::Bye(Reason::Shutdown),
+                ConversationError::Goodbye(Reason::Shutdown),
+                "the server said goodbye: the server is shutting down",
+            ),
+            (
+                ServerMessage::Refused(Reason::WrongToken),
+                ConversationError::Unexpected {
+                    got: "Refused(WrongToken)".into(),
+                },
+                "the server sent Refused(WrongToken) during the session",
+            ),
+        ] {
+            let colors = || c.borrow_mut();
+            let e = take_control(&msg, &mut Vec::new(), colors).expect_err(words);
+            assert_eq!((e.to_string().as_str(), e), (words, want));
+        }
     }
 }

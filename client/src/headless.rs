@@ -14,7 +14,7 @@ use std::time::Instant;
 
 use anyhow::{Result, anyhow, bail};
 use roam_protocol::mesh;
-use roam_protocol::messages::{self, Hello, Role, VERSION};
+use roam_protocol::messages::{self, Role};
 use roam_protocol::script::Script;
 
 use crate::color_cache::{ColorCache, Keep};
@@ -167,17 +167,16 @@ pub async fn measure_any(
     fingerprint: [u8; 32],
     opts: ViewerOptions,
 ) -> Result<ViewerStats> {
-    let hello = Hello {
-        version: VERSION,
-        role: opts.role.clone(),
-        token: opts.token.clone(),
-        viewport: opts.viewport,
-        fov_y_deg: opts.fov_y_deg,
-        budget: opts.budget,
-        frame_rate: opts.frame_rate,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    };
+    // The window of a native viewer's device, as the window asks (the default one).
+    let hello = crate::conversation::hello(
+        opts.role.clone(),
+        opts.token.clone(),
+        opts.viewport,
+        opts.fov_y_deg,
+        opts.budget,
+        opts.frame_rate,
+        crate::render::native_max_texture(),
+    );
     let keys = match (&opts.role, &opts.inputs) {
         (Role::Driver, Some(script)) => match opts.key_phase {
             Some(phase) => KeySource::ScriptAt(script.clone(), phase),

@@ -11,6 +11,7 @@ use std::time::Instant;
 
 use roam_protocol::keys::Keys;
 use roam_protocol::messages::VehicleView;
+use roam_protocol::sync::lock;
 use tokio::sync::mpsc;
 
 use crate::camera::LocalGround;
@@ -75,10 +76,6 @@ pub struct Shared {
     pub latencies: Mutex<VecDeque<f64>>,
     /// Ctrl-C was pressed in the terminal.
     pub interrupted: std::sync::atomic::AtomicBool,
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl Shared {

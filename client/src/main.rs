@@ -10,7 +10,7 @@ use clap::Parser;
 use roam_client::headless::{self, ViewerOptions};
 use roam_client::session::{KeySource, Session};
 use roam_link::tls;
-use roam_protocol::messages::{Hello, Role, VERSION};
+use roam_protocol::messages::Role;
 use roam_server::net::{self, Options, Server};
 
 #[derive(Parser)]
@@ -545,20 +545,15 @@ fn window(
     fingerprint: [u8; 32],
 ) -> Result<()> {
     use roam_client::window;
-    let hello = Hello {
-        version: VERSION,
-        role: cli.role(),
-        token: token.to_string(),
-        viewport: [cli.size.0, cli.size.1],
-        fov_y_deg: cli.fov,
-        budget: cli.budget,
-        frame_rate: 60,
-        resume: None,
-        // Any device the window opens has wgpu's default limits (it asks for them).
-        color_window: roam_client::color_cache::window_for(
-            wgpu::Limits::default().max_texture_dimension_2d,
-        ),
-    };
+    let hello = roam_client::conversation::hello(
+        cli.role(),
+        token.to_string(),
+        [cli.size.0, cli.size.1],
+        cli.fov,
+        cli.budget,
+        60,
+        roam_client::render::native_max_texture(),
+    );
     let keys = if cli.spectate || cli.replay.is_some() {
         KeySource::None
     } else {

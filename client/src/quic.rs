@@ -166,7 +166,7 @@ pub async fn hello(conn: quinn::Connection, hello: Hello, keep: Keep) -> Result<
         .await
         .map_err(|e| JoinError::on(&conn, format!("sending the hello: {e}")))?;
     let welcome = match wire::read::<ServerMessage>(&mut recv, messages::MAX_MESSAGE).await {
-        Ok(msg) => welcome_of(msg).map_err(JoinError::fatal)?,
+        Ok(msg) => welcome_of(msg).map_err(|e| JoinError::fatal(e.to_string()))?,
         Err(e) => {
             return Err(match conn.close_reason() {
                 Some(why) => JoinError::on(
@@ -198,10 +198,10 @@ async fn coarsest(
     asked: u8,
     keep: Keep,
 ) -> Result<(ColorCache, Vec<WorldNews>)> {
-    let mut joining = Joining::new(welcome, asked, keep).map_err(anyhow::Error::msg)?;
+    let mut joining = Joining::new(welcome, asked, keep)?;
     loop {
         let msg = wire::read::<ServerMessage>(recv, messages::MAX_MESSAGE).await?;
-        if let Some(cache) = joining.apply(&msg).map_err(anyhow::Error::msg)? {
+        if let Some(cache) = joining.apply(&msg)? {
             return Ok((cache, joining.take_news()));
         }
     }

@@ -43,11 +43,12 @@ use roam_protocol::messages::{
     self, ClientMessage, Hello, ReplayControl, ReplayStatus, ViewChange, Welcome, close,
 };
 use roam_protocol::script::Script;
+use roam_protocol::sync::lock;
 use tokio::sync::{Notify, mpsc, oneshot, watch};
 
 use crate::color_cache::{ColorCache, Keep};
 pub use crate::connection::Status;
-use crate::connection::{Connections, Outgoing, Shared, Steps, attempt, lock, send_keys};
+use crate::connection::{Connections, Outgoing, Shared, Steps, attempt, send_keys};
 pub use crate::conversation::describe;
 use crate::conversation::{TerrainId, next_hello};
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, MAX_FRAME, Received, Taken};
@@ -161,8 +162,9 @@ impl Session {
         let addr = *addresses.current();
         let mut joined = joined;
         let welcome = joined.welcome.clone();
+        let levels = welcome.levels;
         let core = ClientCore::new(&welcome, hello.budget)
-            .ok_or_else(|| anyhow!("a grid of 2^{} + 1", welcome.levels))?;
+            .ok_or(crate::conversation::ConversationError::Levels { levels })?;
         let terrain = TerrainId::of(&welcome, joined.colors.coarsest());
         let empty = joined.colors.fresh();
         let colors = std::mem::replace(&mut joined.colors, empty);
@@ -437,7 +439,7 @@ impl Session {
         } else {
             false
         };
-        self.shared.end("quit".into());
+        self.shared.end(crate::supervisor::SessionEnd::Quit);
         self.shared.close(close::BYE, b"quit");
         heard
     }

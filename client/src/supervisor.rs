@@ -179,6 +179,70 @@ impl Silences {
     }
 }
 
+/// Why a session ends, as the supervisor decides it: in the words the viewers show (the
+/// window's last line, the page's message).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum SessionEnd {
+    /// The viewer quit.
+    #[error("quit")]
+    Quit,
+    /// A connection ended for good (or its server shut down, with nowhere else to go), in
+    /// the words of its [`End`].
+    #[error("{0}")]
+    Final(String),
+    /// The same address went silent twice with no frame between.
+    #[error(
+        "lost the server at {addr}: {why}, again right after reconnecting, with no frame \
+         between: the server welcomes but sends nothing"
+    )]
+    SilentAgain { addr: String, why: String },
+    /// An attempt failed before any connection was lost (the first join's).
+    #[error("connecting to {addr}: {message}")]
+    Connecting { addr: String, message: String },
+    /// A reconnection's attempt failed in a way another attempt cannot mend (a refusal).
+    #[error("{lost}; reconnecting to {addr}: {message}")]
+    Refused {
+        lost: Lost,
+        addr: String,
+        message: String,
+    },
+    /// The time to reconnect ran out (`secs`), after `attempts`, the last at `addr`.
+    #[error(
+        "{lost}; tried to reconnect for {secs} s ({attempts} attempts; the last: {addr}: \
+         {message})"
+    )]
+    TimeUp {
+        lost: Lost,
+        secs: u64,
+        attempts: u32,
+        addr: String,
+        message: String,
+    },
+    /// A server came back with another terrain (`differences`, as
+    /// [`TerrainId::differences`] says), after `lost` (none: no connection was lost).
+    #[error(
+        "{}the server changed its terrain: {differences}",
+        lost.as_ref().map(|l| format!("{l}; ")).unwrap_or_default()
+    )]
+    TerrainChanged {
+        lost: Option<Lost>,
+        differences: String,
+    },
+}
+
+/// The connection whose loss a reconnection is for: its address and why it was lost.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Lost {
+    pub from: String,
+    pub why: String,
+}
+
+impl Display for Lost {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "lost the server at {}: {}", self.from, self.why)
+    }
+}
+
 /// One attempt to connect again: its number (from 1) and how long its handshake may take.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Attempt {
@@ -189,10 +253,8 @@ pub struct Attempt {
 /// A reconnection under way.
 #[derive(Clone, Debug)]
 struct Round {
-    /// The address lost.
-    from: String,
-    /// Why it was lost.
-    why: String,
+    /// The connection lost.
+    lost: Lost,
     /// No attempt begins after this.
     deadline: Instant,
     attempts: u32,
@@ -238,23 +300,23 @@ impl Supervisor {
         many: bool,
         frames: u64,
         now: Instant,
-    ) -> Result<(), String> {
+    ) -> Result<(), SessionEnd> {
         let (why, silent) = match end {
-            End::Quit => return Err("quit".into()),
+            End::Quit => return Err(SessionEnd::Quit),
             // Another edge takes the viewer.
             End::Shutdown(why) if many => (why, false),
-            End::Final(why) | End::Shutdown(why) => return Err(why),
+            End::Final(why) | End::Shutdown(why) => return Err(SessionEnd::Final(why)),
             End::Lost { why, silent } => (why, silent),
         };
         if silent && self.silences.silent(here, frames) {
-            return Err(format!(
-                "lost the server at {addr}: {why}, again right after reconnecting, with no \
-                 frame between: the server welcomes but sends nothing"
-            ));
+            let addr = addr.to_string();
+            return Err(SessionEnd::SilentAgain { addr, why });
         }
         self.round = Some(Round {
-            from: addr.to_string(),
-            why,
+            lost: Lost {
+                from: addr.to_string(),
+                why,
+            },
             deadline: now + self.patience.reconnect_for,
             attempts: 0,
             backoff: BACKOFF_FIRST,
@@ -283,7 +345,7 @@ impl Supervisor {
     pub fn state(&self) -> State {
         match &self.round {
             Some(round) => State::Reconnecting {
-                why: round.why.clone(),
+                why: round.lost.why.clone(),
                 attempts: round.attempts,
             },
             None => State::Connected,
@@ -298,22 +360,29 @@ impl Supervisor {
         lost: bool,
         message: &str,
         now: Instant,
-    ) -> Result<Duration, String> {
+    ) -> Result<Duration, SessionEnd> {
         let reconnect_for = self.patience.reconnect_for;
+        let (addr, message) = (addr.to_string(), message.to_owned());
         let Some(round) = &mut self.round else {
-            return Err(format!("connecting to {addr}: {message}"));
+            return Err(SessionEnd::Connecting { addr, message });
         };
-        let gone = format!("lost the server at {}: {}", round.from, round.why);
         if !lost {
-            return Err(format!("{gone}; reconnecting to {addr}: {message}"));
+            let lost = round.lost.clone();
+            return Err(SessionEnd::Refused {
+                lost,
+                addr,
+                message,
+            });
         }
         let left = round.deadline.saturating_duration_since(now);
         if left.is_zero() {
-            return Err(format!(
-                "{gone}; tried to reconnect for {} s ({} attempts; the last: {addr}: {message})",
-                reconnect_for.as_secs(),
-                round.attempts
-            ));
+            return Err(SessionEnd::TimeUp {
+                lost: round.lost.clone(),
+                secs: reconnect_for.as_secs(),
+                attempts: round.attempts,
+                addr,
+                message,
+            });
         }
         let pause = round.backoff.min(left);
         round.backoff = (round.backoff * 2).min(BACKOFF_MOST);
@@ -322,16 +391,13 @@ impl Supervisor {
 
     /// An attempt joined, showing the terrain `found`: `Ok` when it is the session's (the
     /// reconnection is over), else why the session ends.
-    pub fn joined(&mut self, found: &TerrainId) -> Result<(), String> {
+    pub fn joined(&mut self, found: &TerrainId) -> Result<(), SessionEnd> {
         let round = self.round.take();
         match self.terrain.differences(found) {
             None => Ok(()),
-            Some(d) => Err(match round {
-                Some(r) => format!(
-                    "lost the server at {}: {}; the server changed its terrain: {d}",
-                    r.from, r.why
-                ),
-                None => format!("the server changed its terrain: {d}"),
+            Some(differences) => Err(SessionEnd::TerrainChanged {
+                lost: round.map(|r| r.lost),
+                differences,
             }),
         }
     }

@@ -22,6 +22,7 @@ mod range;
 mod rans;
 pub mod script;
 pub mod stats;
+pub mod sync;
 pub mod tiles;
 pub mod validate;
 

@@ -247,6 +247,23 @@ async fn read_post(tcp: &mut tokio::net::TcpStream) -> Option<String> {
     String::from_utf8(buf[head_end..head_end + len].to_vec()).ok()
 }
 
+/// Why a screenshot's data URL is no RGBA image.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageError {
+    /// Not `data:image/png;base64,…` (`start`: its first 40 characters).
+    #[error("not a PNG data URL: {start}")]
+    NotDataUrl { start: String },
+    #[error("the PNG's base64: {0}")]
+    Base64(base64::DecodeError),
+    #[error(transparent)]
+    Png(#[from] png::DecodingError),
+    #[error("an image too large")]
+    TooLarge,
+    /// Decoded as another colour type than RGBA.
+    #[error("a PNG of {0:?}")]
+    ColorType(png::ColorType),
+}
+
 /// An RGBA image.
 pub struct Image {
     pub width: usize,
@@ -256,21 +273,23 @@ pub struct Image {
 
 impl Image {
     /// A `data:image/png;base64,…` URL's picture.
-    pub fn from_data_url(url: &str) -> Result<Image, String> {
-        let b64 = url
-            .strip_prefix("data:image/png;base64,")
-            .ok_or_else(|| format!("not a PNG data URL: {:.40}", url))?;
+    pub fn from_data_url(url: &str) -> Result<Image, ImageError> {
+        let b64 =
+            url.strip_prefix("data:image/png;base64,")
+                .ok_or_else(|| ImageError::NotDataUrl {
+                    start: url.chars().take(40).collect(),
+                })?;
         use base64::Engine;
         let bytes = base64::engine::general_purpose::STANDARD
             .decode(b64)
-            .map_err(|e| format!("the PNG's base64: {e}"))?;
+            .map_err(ImageError::Base64)?;
         let mut decoder = png::Decoder::new(std::io::Cursor::new(bytes));
         decoder.set_transformations(png::Transformations::EXPAND | png::Transformations::ALPHA);
-        let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
-        let mut rgba = vec![0; reader.output_buffer_size().ok_or("an image too large")?];
-        let info = reader.next_frame(&mut rgba).map_err(|e| e.to_string())?;
+        let mut reader = decoder.read_info()?;
+        let mut rgba = vec![0; reader.output_buffer_size().ok_or(ImageError::TooLarge)?];
+        let info = reader.next_frame(&mut rgba)?;
         if info.color_type != png::ColorType::Rgba {
-            return Err(format!("a PNG of {:?}", info.color_type));
+            return Err(ImageError::ColorType(info.color_type));
         }
         rgba.truncate(info.buffer_size());
         Ok(Image {
@@ -311,5 +330,60 @@ impl Image {
         enc.set_depth(png::BitDepth::Eight);
         let mut w = enc.write_header().expect("a PNG header");
         w.write_image_data(&self.rgba).expect("the PNG's pixels");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use base64::Engine;
+
+    use super::{Image, ImageError};
+
+    /// A `width × height` PNG of `color` pixels, `data`, as a data URL.
+    fn data_url(width: u32, height: u32, color: png::ColorType, data: &[u8]) -> String {
+        let mut png = Vec::new();
+        let mut enc = png::Encoder::new(&mut png, width, height);
+        enc.set_color(color);
+        let mut w = enc.write_header().expect("a header in memory");
+        w.write_image_data(data).expect("the pixels in memory");
+        w.finish().expect("the end in memory");
+        let b64 = base64::engine::general_purpose::STANDARD.encode(png);
+        format!("data:image/png;base64,{b64}")
+    }
+
+    /// A screenshot's URL is read as RGBA, or refused naming what it is instead.
+    #[test]
+    fn a_data_url_is_an_rgba_image_or_says_what_it_is() {
+        let rgba = data_url(2, 1, png::ColorType::Rgba, &[1, 2, 3, 255, 4, 5, 6, 255]);
+        let image = Image::from_data_url(&rgba).expect("an RGBA PNG");
+        assert_eq!((image.width, image.height), (2, 1));
+        assert_eq!(image.rgba, [1, 2, 3, 255, 4, 5, 6, 255]);
+        let long = format!("data:text/plain,{}", "x".repeat(100));
+        let grey = data_url(1, 1, png::ColorType::Grayscale, &[9]);
+        let not_png = "data:image/png;base64,aGVsbG8=";
+        let kind = |e: &ImageError| match e {
+            ImageError::NotDataUrl { .. } => "not a data URL",
+            ImageError::Base64(_) => "base64",
+            ImageError::Png(_) => "PNG",
+            ImageError::TooLarge => "too large",
+            ImageError::ColorType(_) => "colour type",
+        };
+        let cases = [
+            (
+                &*long,
+                "not a data URL",
+                "not a PNG data URL: data:text/plain,xxxxxxxxxxxxxxxxxxxxxxxx",
+            ),
+            ("data:image/png;base64,!!", "base64", "the PNG's base64: "),
+            (not_png, "PNG", ""),
+            (&*grey, "colour type", "a PNG of GrayscaleAlpha"),
+        ];
+        for (url, want, words) in cases {
+            let Err(e) = Image::from_data_url(url) else {
+                panic!("{url:.60}: an image")
+            };
+            assert_eq!(kind(&e), want, "{url:.60}: {e:?}");
+            assert!(e.to_string().starts_with(words), "{url:.60}: {e}");
+        }
     }
 }

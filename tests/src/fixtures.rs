@@ -292,16 +292,31 @@ pub fn fake_welcome(color: roam_protocol::ColorLayout) -> roam_protocol::message
 
 /// A driver's hello with `token`: 640×480, 4,000 triangles, 60 frames a second.
 pub fn driver_hello(token: &str) -> roam_protocol::messages::Hello {
-    use roam_protocol::messages::{Hello, Role, VERSION};
-    Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: token.to_owned(),
-        viewport: [640, 480],
-        fov_y_deg: 60.0,
-        budget: 4_000,
-        frame_rate: 60,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    hello(
+        roam_protocol::messages::Role::Driver,
+        token,
+        [640, 480],
+        4_000,
+        60,
+    )
+}
+
+/// A first hello as a native viewer makes it ([`roam_client::conversation::hello`]): a 60°
+/// field of view, the colour window of a native viewer's device.
+pub fn hello(
+    role: roam_protocol::messages::Role,
+    token: &str,
+    viewport: [u32; 2],
+    budget: u32,
+    frame_rate: u16,
+) -> roam_protocol::messages::Hello {
+    roam_client::conversation::hello(
+        role,
+        token.to_owned(),
+        viewport,
+        60.0,
+        budget,
+        frame_rate,
+        roam_client::render::native_max_texture(),
+    )
 }

@@ -155,16 +155,10 @@ fn frame(base: Option<u64>, mesh: Vec<u8>) -> Frame {
 /// change frame and bytes that are no mesh, bare meshes (key frames and change frames)
 /// and colour maps.
 pub fn seeds(grid: Grid) -> Vec<Vec<u8>> {
+    // Every field set: a ticket presented too.
     let hello = ClientMessage::Hello(Hello {
-        version: messages::VERSION,
-        role: Role::Driver,
-        token: "token".into(),
-        viewport: [1280, 720],
-        fov_y_deg: 60.0,
-        budget: 65_536,
-        frame_rate: 60,
         resume: Some([7; 16]),
-        color_window: 8,
+        ..crate::fixtures::hello(Role::Driver, "token", [1280, 720], 65_536, 60)
     });
     let mut out = vec![
         encoded(&hello),

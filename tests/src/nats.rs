@@ -7,6 +7,8 @@ use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
+use roam_protocol::sync::lock;
+
 /// The cluster secret of test world `world` (the same in every test process, so an edge in
 /// a process of its own, `roam-test-edge`, holds its world's).
 pub fn test_secret(world: &str) -> roam_server::net::bus::BusSecret {
@@ -118,7 +120,7 @@ impl Nats {
 
     /// The first line of its log from now on that holds `needle`, within `within`.
     pub fn logged(&self, needle: &str, within: Duration) -> Option<String> {
-        let log = self.log.lock().unwrap_or_else(|e| e.into_inner());
+        let log = lock(&self.log);
         let mut left = within;
         loop {
             let started = std::time::Instant::now();

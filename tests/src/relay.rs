@@ -25,6 +25,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
 use anyhow::{Context, Result};
+use roam_protocol::sync::lock;
 use tokio::net::UdpSocket;
 use tokio::sync::mpsc;
 use tokio::task::{JoinHandle, JoinSet};
@@ -238,11 +239,7 @@ impl Line {
             return;
         }
         let now = Instant::now();
-        let due = self
-            .shaper
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .schedule(now, bytes.len());
+        let due = lock(&self.shaper).schedule(now, bytes.len());
         let Some(due) = due else {
             self.counters.lost.fetch_add(1, Ordering::Relaxed);
             return;
@@ -454,7 +451,7 @@ async fn accept(listen: Arc<UdpSocket>, upstream: SocketAddr, up: Line, down: Li
             _ = sweep.tick() => {
                 let now = Instant::now();
                 flows.retain(|_, f| {
-                    let idle = now - *f.last.lock().unwrap_or_else(|e| e.into_inner()) > FLOW_IDLE;
+                    let idle = now - *lock(&f.last) > FLOW_IDLE;
                     if idle {
                         f.task.abort();
                     }
@@ -493,7 +490,7 @@ async fn accept(listen: Arc<UdpSocket>, upstream: SocketAddr, up: Line, down: Li
         let Some(flow) = flows.get(&from) else {
             continue;
         };
-        *flow.last.lock().unwrap_or_else(|e| e.into_inner()) = Instant::now();
+        *lock(&flow.last) = Instant::now();
         up.offer(&buf[..len], &flow.socket, upstream);
     }
 }
@@ -518,7 +515,7 @@ async fn back(
         if from != upstream {
             continue;
         }
-        *last.lock().unwrap_or_else(|e| e.into_inner()) = Instant::now();
+        *lock(&last) = Instant::now();
         down.offer(&buf[..len], &listen, client);
     }
 }

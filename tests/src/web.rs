@@ -11,7 +11,7 @@ use std::time::Duration;
 
 use bytes::Bytes;
 use roam_link::{tls, wire};
-use roam_protocol::messages::{self, ClientMessage, Hello, MAX_MESSAGE, Role, ServerMessage};
+use roam_protocol::messages::{ClientMessage, Hello, MAX_MESSAGE, Role, ServerMessage};
 use roam_server::net::Options;
 use roam_server::net::conn::{RecvStream, SendStream};
 use roam_server::net::web::{WebCert, WebOptions};
@@ -200,17 +200,7 @@ pub async fn connect(
 
 /// A driver's (or spectator's) hello with `token`.
 pub fn hello(token: &str, role: Role) -> Hello {
-    Hello {
-        version: messages::VERSION,
-        role,
-        token: token.to_owned(),
-        viewport: [640, 360],
-        fov_y_deg: 60.0,
-        budget: 2_000,
-        frame_rate: 30,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    fixtures::hello(role, token, [640, 360], 2_000, 30)
 }
 
 /// Opens the control stream as the page does, says `hello` and reads the answer (a

@@ -34,6 +34,24 @@ pub const NO_GPU: &str = "This browser offers neither WebGPU nor WebGL2, which t
     draws with. Use a current Chrome, Edge or Firefox, and check that hardware acceleration \
     is on (chrome://gpu).";
 
+/// Why the display cannot start: no GPU, or the browser refused a timer or a listener;
+/// in the words the page shows.
+#[derive(Debug, thiserror::Error)]
+pub enum GfxError {
+    /// Neither WebGPU nor WebGL2 on the canvas (`why`: the browser's or wgpu's words).
+    #[error("{NO_GPU} ({why})")]
+    NoGpu { why: String },
+    /// The adapter gave no device.
+    #[error("opening the GPU: {why}")]
+    Device { why: String },
+    /// The canvas cannot be drawn through on this device.
+    #[error("{why}")]
+    Surface { why: String },
+    /// The browser refused to `what` (start the key timer, listen to the keys).
+    #[error("{what}: {why}")]
+    Browser { what: &'static str, why: String },
+}
+
 /// The canvas and what draws into it.
 pub struct Gfx {
     canvas: HtmlCanvasElement,
@@ -45,7 +63,8 @@ pub struct Gfx {
 
 impl Gfx {
     /// Opens the GPU on the canvas: `gpu` is `webgpu`, `webgl` or empty (either).
-    pub async fn open(canvas: HtmlCanvasElement, gpu: &str) -> Result<Gfx, String> {
+    pub async fn open(canvas: HtmlCanvasElement, gpu: &str) -> Result<Gfx, GfxError> {
+        let no_gpu = |e: &dyn std::fmt::Display| GfxError::NoGpu { why: e.to_string() };
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = match gpu {
             "webgpu" => wgpu::Backends::BROWSER_WEBGPU,
@@ -55,7 +74,7 @@ impl Gfx {
         let instance = wgpu::util::new_instance_with_webgpu_detection(desc).await;
         let surface = instance
             .create_surface(wgpu::SurfaceTarget::Canvas(canvas.clone()))
-            .map_err(|e| format!("{NO_GPU} ({e})"))?;
+            .map_err(|e| no_gpu(&e))?;
         let adapter = instance
             .request_adapter(&wgpu::RequestAdapterOptions {
                 power_preference: wgpu::PowerPreference::HighPerformance,
@@ -64,14 +83,19 @@ impl Gfx {
                 ..Default::default()
             })
             .await
-            .map_err(|e| format!("{NO_GPU} ({e})"))?;
+            .map_err(|e| no_gpu(&e))?;
         let gpu = Gpu::open_async(&adapter)
             .await
-            .map_err(|e| format!("opening the GPU: {e:#}"))?;
+            .map_err(|e| GfxError::Device {
+                why: format!("{e:#}"),
+            })?;
         let size = pixel_size(&canvas);
         let (config, view_format) =
-            roam_client::render::configure_surface(&surface, &adapter, &gpu.device, size)
-                .map_err(|e| format!("{e:#}"))?;
+            roam_client::render::configure_surface(&surface, &adapter, &gpu.device, size).map_err(
+                |e| GfxError::Surface {
+                    why: format!("{e:#}"),
+                },
+            )?;
         Ok(Gfx {
             canvas,
             surface,
@@ -135,7 +159,7 @@ struct App {
 }
 
 /// Starts the display, the keys and the key sender; they run as long as the page.
-pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(), String> {
+pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(), GfxError> {
     let budget = live.borrow().core.budget();
     let renderer = Renderer::new(&gfx.gpu, gfx.view_format, scene);
     let app = Rc::new(RefCell::new(App {
@@ -171,7 +195,10 @@ pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(
                 tick.as_ref().unchecked_ref(),
                 10,
             )
-            .map_err(|e| format!("starting the key timer: {e:?}"))?;
+            .map_err(|e| GfxError::Browser {
+                what: "starting the key timer",
+                why: format!("{e:?}"),
+            })?;
         tick.forget(); // it runs as long as the page
     }
     animate(app);
@@ -179,7 +206,7 @@ pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(
 }
 
 /// Key presses and releases on the page, by the window's names.
-fn keys(app: &Rc<RefCell<App>>) -> Result<(), String> {
+fn keys(app: &Rc<RefCell<App>>) -> Result<(), GfxError> {
     let window = page::window();
     let down = {
         let app = app.clone();
@@ -259,7 +286,10 @@ fn keys(app: &Rc<RefCell<App>>) -> Result<(), String> {
             app.borrow().live.borrow_mut().leave();
         })
     };
-    let fail = |e: JsValue| format!("listening to the keys: {e:?}");
+    let fail = |e: JsValue| GfxError::Browser {
+        what: "listening to the keys",
+        why: format!("{e:?}"),
+    };
     window
         .add_event_listener_with_callback("pagehide", hide.as_ref().unchecked_ref())
         .map_err(fail)?;

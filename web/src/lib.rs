@@ -40,6 +40,7 @@ pub fn main() {
     wasm_bindgen_futures::spawn_local(async {
         let options = page::Options::parse(&page::window().location().hash().unwrap_or_default());
         if let Err(why) = run(options.clone()).await {
+            let why = why.to_string();
             page::say(&why, true);
             if let Some(url) = options.report {
                 let body = serde_json::json!({ "error": why }).to_string();
@@ -49,16 +50,40 @@ pub fn main() {
     });
 }
 
-async fn run(options: page::Options) -> Result<(), String> {
+/// Why the viewer did not start, in the words the page shows (and reports to a test).
+#[derive(Debug, thiserror::Error)]
+enum StartError {
+    #[error("{NO_WEBTRANSPORT}")]
+    NoWebTransport,
+    #[error(
+        "No token in this page's address: open the URL roam-server printed (it ends in \
+         #token=…)."
+    )]
+    NoToken,
+    #[error(transparent)]
+    Page(#[from] page::PageError),
+    #[error(transparent)]
+    Gfx(#[from] app::GfxError),
+    /// The server refused the token (`why`: the join's words).
+    #[error(
+        "The server refused this viewer: wrong token. Open the URL roam-server printed, with \
+         its #token=…, again ({why})"
+    )]
+    WrongToken { why: String },
+    #[error("Could not join the server: {why}")]
+    Join { why: String },
+    #[error("script: {0}")]
+    Script(roam_protocol::script::ScriptError),
+    #[error(transparent)]
+    Welcome(#[from] roam_client::conversation::ConversationError),
+}
+
+async fn run(options: page::Options) -> Result<(), StartError> {
     if !net::has_webtransport() {
-        return Err(NO_WEBTRANSPORT.into());
+        return Err(StartError::NoWebTransport);
     }
     if options.token.is_empty() {
-        return Err(
-            "No token in this page's address: open the URL roam-server printed \
-                    (it ends in #token=…)."
-                .into(),
-        );
+        return Err(StartError::NoToken);
     }
     page::say("opening the GPU…", false);
     let canvas = page::canvas()?;
@@ -78,26 +103,25 @@ async fn run(options: page::Options) -> Result<(), String> {
         },
         options.token.clone(),
         [size.0, size.1],
+        60.0,
         budget,
+        60,
         gfx.gpu.device.limits().max_texture_dimension_2d,
     );
     let edge = endpoint.edge()?;
     let mut joined = net::join(&edge, hello.clone(), supervisor::HANDSHAKE)
         .await
         .map_err(|e| {
-            if e.message.contains("wrong token") {
-                format!(
-                    "The server refused this viewer: wrong token. Open the URL roam-server \
-                 printed, with its #token=…, again ({})",
-                    e.message
-                )
+            let why = e.message;
+            if why.contains("wrong token") {
+                StartError::WrongToken { why }
             } else {
-                format!("Could not join the server: {}", e.message)
+                StartError::Join { why }
             }
         })?;
     let script = match &options.script {
         Some(text) => {
-            let script = roam_protocol::script::parse(text).map_err(|e| format!("script: {e}"))?;
+            let script = roam_protocol::script::parse(text).map_err(StartError::Script)?;
             let mut steps: Vec<_> = script.steps().collect();
             steps.reverse();
             Some(steps)
@@ -110,5 +134,7 @@ async fn run(options: page::Options) -> Result<(), String> {
     let live = net::live(&mut joined, edge, budget, script, silence)?;
     let scene = roam_client::render::Scene::of(&joined.welcome);
     wasm_bindgen_futures::spawn_local(net::supervise(live.clone(), hello, joined));
-    app::start(gfx, scene, live.clone(), options).inspect_err(|e| live.borrow_mut().end(e.clone()))
+    app::start(gfx, scene, live.clone(), options)
+        .inspect_err(|e| live.borrow_mut().end(e))
+        .map_err(StartError::Gfx)
 }

@@ -30,10 +30,10 @@ use bytes::Bytes;
 use futures_channel::mpsc::{self, UnboundedReceiver, UnboundedSender};
 use futures_util::StreamExt;
 use roam_client::color_cache::ColorCache;
-use roam_client::conversation::{self, TerrainId};
+use roam_client::conversation::{self, ConversationError, TerrainId};
 use roam_client::core::{ClientCore, Gaps, KeyCore, MAX_FRAME};
 use roam_client::edges::{Addresses, WebEdge, World, web_edges};
-use roam_client::supervisor::{End, Patience, State, Supervisor};
+use roam_client::supervisor::{End, Patience, SessionEnd, State, Supervisor};
 use roam_protocol::keys::{KeyStep, Keys};
 use roam_protocol::messages::{
     self, ClientMessage, Hello, Reason, ServerMessage, ViewChange, Welcome, WorldNews, close,
@@ -43,7 +43,7 @@ use web_time::{Duration, Instant};
 use web_transport_wasm::{RecvStream, SendStream, Session};
 
 use crate::page;
-use crate::wire::{Reader, write};
+use crate::wire::{Reader, WireError, write};
 
 mod join;
 use join::end_of;
@@ -113,9 +113,9 @@ impl Live {
     }
 
     /// The session ends with `why` (the first reason stands).
-    pub fn end(&mut self, why: String) {
+    pub fn end(&mut self, why: impl std::fmt::Display) {
         if !matches!(self.state, State::Ended(_)) {
-            self.state = State::Ended(why);
+            self.state = State::Ended(why.to_string());
         }
         if let Some(s) = self.session.take() {
             s.close(close::BYE, "bye");
@@ -194,7 +194,7 @@ impl Live {
         if let Some(s) = self.session.take() {
             s.close(close::BYE, "the page was closed");
         }
-        self.state = State::Ended("quit".into());
+        self.state = State::Ended(SessionEnd::Quit.to_string());
         self.control = None;
     }
 
@@ -216,9 +216,10 @@ pub fn live(
     budget: u32,
     script: Option<Vec<KeyStep>>,
     silence: Duration,
-) -> Result<Shared, String> {
-    let mut core = ClientCore::new(&joined.welcome, budget)
-        .ok_or_else(|| format!("a grid of 2^{} + 1", joined.welcome.levels))?;
+) -> Result<Shared, ConversationError> {
+    let levels = joined.welcome.levels;
+    let mut core =
+        ClientCore::new(&joined.welcome, budget).ok_or(ConversationError::Levels { levels })?;
     // The page draws with geomorphs, as the window does.
     core.set_morph(roam_client::render::MORPH_TICKS);
     let fresh = joined.colors.fresh();
@@ -245,7 +246,7 @@ pub fn live(
         view: None,
         streams: 0,
         world: World::default(),
-        edges: Addresses::new([edge]).ok_or("no edge to connect to")?,
+        edges: Addresses::new([edge]).expect("one edge is an edge to connect to"),
         replay: None,
     })))
 }
@@ -305,13 +306,13 @@ async fn reconnect(
     live: &Shared,
     supervisor: &mut Supervisor,
     hello: &Hello,
-) -> Result<Joined, String> {
+) -> Result<Joined, SessionEnd> {
     let mut lost_at = Some(Instant::now());
     loop {
         let (edge, attempt) = {
             let mut l = live.borrow_mut();
             if l.ended() {
-                return Err("quit".into());
+                return Err(SessionEnd::Quit);
             }
             let edge = l.edges.after_loss().clone();
             let attempt = supervisor.attempt(l.edges.many());
@@ -327,7 +328,7 @@ async fn reconnect(
             if let Ok(j) = joined {
                 j.session.close(close::BYE, "quit");
             }
-            return Err("quit".into());
+            return Err(SessionEnd::Quit);
         }
         let e = match joined {
             Ok(j) => {
@@ -516,7 +517,7 @@ async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: Unbounde
             Ok(Some(m)) => m,
             // The stream or the session ended: the session tells why.
             Ok(None) => return,
-            Err(e) if e.starts_with("reading") => return,
+            Err(WireError::Read(_)) => return,
             Err(e) => break End::Final(format!("the server's control stream: {e}")),
         };
         {
@@ -536,8 +537,10 @@ async fn read_control(mut recv: Reader, live: Shared, epoch: u64, ends: Unbounde
                 l.core.set_replay();
                 l.replay = Some(s.clone());
             }
-            Err(why) if msg == ServerMessage::Bye(Reason::Shutdown) => break End::Shutdown(why),
-            Err(why) => break End::Final(why),
+            Err(why @ ConversationError::Goodbye(Reason::Shutdown)) => {
+                break End::Shutdown(why.to_string());
+            }
+            Err(why) => break End::Final(why.to_string()),
         }
     };
     let _ = ends.unbounded_send(end);

@@ -69,16 +69,40 @@ fn document() -> web_sys::Document {
     window().document().expect("a window has a document")
 }
 
-/// The page's element `id`, of type `T`.
-pub fn element<T: JsCast>(id: &str) -> Result<T, String> {
-    document()
-        .get_element_by_id(id)
-        .ok_or_else(|| format!("the page has no #{id}"))?
-        .dyn_into::<T>()
-        .map_err(|_| format!("#{id} is not the element expected"))
+/// What the page lacks that the viewer needs: an element, its own address, the server's
+/// WebTransport endpoint; in the words the page shows.
+#[derive(Debug, thiserror::Error)]
+pub enum PageError {
+    #[error("the page has no #{id}")]
+    NoElement { id: String },
+    #[error("#{id} is not the element expected")]
+    WrongElement { id: String },
+    #[error("the page's address has no host")]
+    NoHost,
+    /// A certificate hash in `/webtransport.json` or an edge's news.
+    #[error("certificate hash {hash:?} is not a SHA-256 in hex")]
+    Hash { hash: String },
+    /// The browser could not fetch `/webtransport.json` (its error, as the browser gives
+    /// it).
+    #[error("fetching /webtransport.json: {error}")]
+    Fetch { error: String },
+    #[error("fetching /webtransport.json: HTTP {status}")]
+    Http { status: u16 },
+    #[error("/webtransport.json: {0}")]
+    Json(serde_json::Error),
 }
 
-pub fn canvas() -> Result<HtmlCanvasElement, String> {
+/// The page's element `id`, of type `T`.
+pub fn element<T: JsCast>(id: &str) -> Result<T, PageError> {
+    let id = id.to_owned();
+    document()
+        .get_element_by_id(&id)
+        .ok_or_else(|| PageError::NoElement { id: id.clone() })?
+        .dyn_into::<T>()
+        .map_err(|_| PageError::WrongElement { id })
+}
+
+pub fn canvas() -> Result<HtmlCanvasElement, PageError> {
     element("view")
 }
 
@@ -135,11 +159,11 @@ pub struct Endpoint {
 
 impl Endpoint {
     /// The session's URL on the page's own host.
-    pub fn url(&self) -> Result<String, String> {
+    pub fn url(&self) -> Result<String, PageError> {
         let host = window()
             .location()
             .hostname()
-            .map_err(|_| "the page's address has no host".to_owned())?;
+            .map_err(|_| PageError::NoHost)?;
         let host = if host.contains(':') && !host.starts_with('[') {
             format!("[{host}]")
         } else {
@@ -150,7 +174,7 @@ impl Endpoint {
 
     /// The session's URL and the certificate hashes, as an edge names a place to
     /// connect to.
-    pub fn edge(&self) -> Result<WebEdge, String> {
+    pub fn edge(&self) -> Result<WebEdge, PageError> {
         Ok(WebEdge {
             url: self.url()?,
             hashes: self
@@ -163,7 +187,7 @@ impl Endpoint {
 }
 
 /// Certificate hashes in hex as bytes (each a SHA-256).
-pub fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, String> {
+pub fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, PageError> {
     hashes
         .iter()
         .map(|h| {
@@ -173,31 +197,31 @@ pub fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, String> {
                 .collect();
             bytes
                 .filter(|b| b.len() == 32)
-                .ok_or_else(|| format!("certificate hash {h:?} is not a SHA-256 in hex"))
+                .ok_or_else(|| PageError::Hash { hash: h.clone() })
         })
         .collect()
 }
 
 /// Fetches `/webtransport.json` from the page's origin.
-pub async fn endpoint() -> Result<Endpoint, String> {
-    let fail = |e: JsValue| format!("fetching /webtransport.json: {e:?}");
+pub async fn endpoint() -> Result<Endpoint, PageError> {
+    let fail = |e: JsValue| PageError::Fetch {
+        error: format!("{e:?}"),
+    };
     let response: web_sys::Response = JsFuture::from(window().fetch_with_str("/webtransport.json"))
         .await
         .map_err(fail)?
         .dyn_into()
         .map_err(fail)?;
     if !response.ok() {
-        return Err(format!(
-            "fetching /webtransport.json: HTTP {}",
-            response.status()
-        ));
+        let status = response.status();
+        return Err(PageError::Http { status });
     }
     let text = JsFuture::from(response.text().map_err(fail)?)
         .await
         .map_err(fail)?
         .as_string()
         .unwrap_or_default();
-    serde_json::from_str(&text).map_err(|e| format!("/webtransport.json: {e}"))
+    serde_json::from_str(&text).map_err(PageError::Json)
 }
 
 /// Posts `body` (JSON) to `url`, for a test (as text/plain: no CORS preflight).

@@ -27,7 +27,7 @@ use std::net::SocketAddr;
 use std::time::Instant;
 
 use anyhow::Result;
-use roam_protocol::messages::{DEFAULT_PITCH_DEG, Hello, Role, VERSION, VehicleView};
+use roam_protocol::messages::{DEFAULT_PITCH_DEG, Role, VehicleView};
 use roam_protocol::script::Script;
 use roam_protocol::stats::quantile;
 
@@ -74,20 +74,16 @@ pub async fn run(
     fingerprint: [u8; 32],
     opts: Options,
 ) -> Result<serde_json::Value> {
-    let hello = Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: opts.token.clone(),
-        viewport: [opts.size.0, opts.size.1],
-        fov_y_deg: opts.fov_y_deg,
-        budget: opts.budget,
-        frame_rate: 60,
-        resume: None,
-        // The device opened below has wgpu's default limits (it asks for them).
-        color_window: crate::color_cache::window_for(
-            wgpu::Limits::default().max_texture_dimension_2d,
-        ),
-    };
+    // The device opened below has wgpu's default limits (it asks for them).
+    let hello = crate::conversation::hello(
+        Role::Driver,
+        opts.token.clone(),
+        [opts.size.0, opts.size.1],
+        opts.fov_y_deg,
+        opts.budget,
+        60,
+        crate::render::native_max_texture(),
+    );
     let mut fogged = opts
         .truth
         .clone()

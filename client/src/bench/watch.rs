@@ -51,8 +51,10 @@ pub async fn run(
         Role::Spectator { follow: None },
         token,
         [size.0, size.1],
+        60.0,
         budget,
-        wgpu::Limits::default().max_texture_dimension_2d,
+        60,
+        crate::render::native_max_texture(),
     );
     let s = Session::join(addr, fingerprint, hello, KeySource::None).await?;
     frame(&s).await?;

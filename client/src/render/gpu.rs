@@ -5,6 +5,13 @@
 
 use anyhow::{Context, Result};
 
+/// The longest texture side of every device the native viewer opens ([`Gpu::open`] asks
+/// for wgpu's default limits, whatever the adapter has): what a native hello's colour
+/// window is sized for ([`crate::conversation::hello`]).
+pub fn native_max_texture() -> u32 {
+    wgpu::Limits::default().max_texture_dimension_2d
+}
+
 /// A device to draw with.
 pub struct Gpu {
     pub device: wgpu::Device,

@@ -37,7 +37,7 @@ use wgpu::util::DeviceExt;
 use crate::color_cache::{ColorUpdate, LevelState, MASK_WORDS, layer_side};
 
 use buffer::Buffer;
-pub use gpu::{Gpu, NO_ADAPTER, configure_surface};
+pub use gpu::{Gpu, NO_ADAPTER, configure_surface, native_max_texture};
 pub use morph::{MORPH_MIN_TICKS, MORPH_PX_PER_TICK, MORPH_TICKS, Morph, MorphView};
 pub use normals::{FADE_S, fade_byte};
 pub use vertices::{TerrainUpdate, TerrainVertices};

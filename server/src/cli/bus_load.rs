@@ -67,6 +67,7 @@ use roam_protocol::bus::{Answer, Ask, DriverKeys, Keys, MAX_BATCH, Snapshot, Sub
 use roam_protocol::keys::Keys as Held;
 use roam_protocol::messages::{KEY_HISTORY, KeyState};
 use roam_protocol::stats::quantile;
+use roam_protocol::sync::lock;
 use roam_server::net::bus::asker::Asker;
 use roam_server::net::bus::seal::{Kind, RefusedCounts};
 use roam_server::net::bus::voice::Ear;
@@ -166,10 +167,6 @@ struct FakeEdge {
     hello_failures: AtomicU64,
     /// The slowest hello's answer, µs.
     hello_us_max: AtomicU64,
-}
-
-fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 impl FakeEdge {

@@ -46,6 +46,8 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
+use roam_protocol::sync::lock;
+
 /// A frame starting later than this after its tick was due counts as behind.
 pub const LATE: Duration = Duration::from_millis(8);
 /// Colour trickles for this long after the last frame that was behind.
@@ -105,7 +107,7 @@ impl ColorBudget {
         pick: impl FnOnce(u64) -> u64,
     ) -> u64 {
         let behind = self.frames_first(now);
-        let mut b = self.bucket.lock().unwrap_or_else(|e| e.into_inner());
+        let mut b = lock(&self.bucket);
         let rate = self.total as f64 * if behind { TRICKLE } else { 1.0 };
         let burst = (self.total as f64 * BURST.as_secs_f64()).max(largest as f64);
         let since =

@@ -45,6 +45,15 @@ impl Via {
     }
 }
 
+/// Why a connection gave no stream (it ended), in quinn's or WebTransport's words.
+#[derive(Debug, thiserror::Error)]
+pub enum AcceptError {
+    #[error(transparent)]
+    Quic(#[from] quinn::ConnectionError),
+    #[error(transparent)]
+    Web(#[from] wt::SessionError),
+}
+
 /// A viewer's connection.
 #[derive(Clone)]
 pub enum Conn {
@@ -95,20 +104,18 @@ impl Conn {
     }
 
     /// The viewer's control stream.
-    pub async fn accept_bi(&self) -> Result<(SendStream, RecvStream), String> {
-        match self {
+    pub async fn accept_bi(&self) -> Result<(SendStream, RecvStream), AcceptError> {
+        Ok(match self {
             Conn::Quic(c) => c
                 .accept_bi()
                 .await
-                .map(|(s, r)| (SendStream::Quic(s), RecvStream::Quic(r)))
-                .map_err(|e| e.to_string()),
+                .map(|(s, r)| (SendStream::Quic(s), RecvStream::Quic(r)))?,
             Conn::Web(w) => w
                 .session
                 .accept_bi()
                 .await
-                .map(|(s, r)| (SendStream::Web(s), RecvStream::Web(r)))
-                .map_err(|e| e.to_string()),
-        }
+                .map(|(s, r)| (SendStream::Web(s), RecvStream::Web(r)))?,
+        })
     }
 
     /// A new stream for a frame; `None` when the connection can take no more.

@@ -34,7 +34,7 @@ use tokio::time::Instant;
 use web_transport_quinn as wt;
 
 use super::bus::edge::Remote;
-use super::conn::{Conn, RecvStream, SendStream, Via, Web};
+use super::conn::{AcceptError, Conn, RecvStream, SendStream, Via, Web};
 use super::seat::{Joined, MAX_CONTROL, Seat, role_name};
 use super::shared::Shared;
 use super::tickets::{Claim, random_ticket, secret_eq};
@@ -109,7 +109,32 @@ enum Early {
     /// A newer connection took its place.
     Evicted,
     /// The handshake failed, or the peer closed, or sent something else.
-    Failed(String),
+    Failed(HelloError),
+}
+
+/// Why a connection failed before its hello: the words its close gives the peer.
+#[derive(Debug, thiserror::Error)]
+enum HelloError {
+    /// The QUIC handshake failed, or the connection ended.
+    #[error(transparent)]
+    Connection(#[from] quinn::ConnectionError),
+    #[error("no WebTransport request: {0}")]
+    NoRequest(wt::ServerError),
+    /// A WebTransport request for another path than [`crate::web::SESSION_PATH`] (the
+    /// path's first 64 characters), answered 404.
+    #[error(
+        "a WebTransport session for {path:?}, not {:?}",
+        crate::web::SESSION_PATH
+    )]
+    WrongPath { path: String },
+    #[error("answering the WebTransport request: {0}")]
+    Answering(wt::ServerError),
+    #[error("no control stream: {0}")]
+    NoControlStream(AcceptError),
+    #[error("expected a hello, got another message")]
+    NotHello,
+    #[error("expected a hello: {0}")]
+    BadHello(wire::WireError),
 }
 
 async fn handshake(
@@ -123,7 +148,7 @@ async fn handshake(
     let deadline = Instant::now() + shared.hello_timeout;
     let mut connecting = match incoming.accept() {
         Ok(c) => c,
-        Err(e) => return early(&shared, peer, via, None, Early::Failed(e.to_string())),
+        Err(e) => return early(&shared, peer, via, None, Early::Failed(e.into())),
     };
     let quic = tokio::select! {
         r = tokio::time::timeout_at(deadline, &mut connecting) => match r {
@@ -131,7 +156,7 @@ async fn handshake(
                 shared.gate().admission.handshaken(pending.id);
                 conn
             }
-            Ok(Err(why)) => return early(&shared, peer, via, None, Early::Failed(why.to_string())),
+            Ok(Err(why)) => return early(&shared, peer, via, None, Early::Failed(why.into())),
             Err(_) => return early(&shared, peer, via, None, Early::Deadline),
         },
         _ = &mut evicted => {
@@ -277,7 +302,7 @@ fn early(shared: &Shared, peer: SocketAddr, via: Via, conn: Option<&Conn>, why: 
             &shared.stats.evicted_closed,
             "evicted: too many connections without a hello".to_owned(),
         ),
-        Early::Failed(e) => (&shared.stats.failed, e.clone()),
+        Early::Failed(e) => (&shared.stats.failed, e.to_string()),
     };
     shared.stats.add(counter, 1);
     tracing::debug!(%peer, via = via.name(), reason = %text, "closed before its hello");
@@ -311,36 +336,30 @@ const REJECT_GRACE: std::time::Duration = std::time::Duration::from_millis(250);
 
 /// HTTP/3's settings and the WebTransport `CONNECT` on a new web connection: a session
 /// on [`crate::web::SESSION_PATH`], or why not (another path is answered 404).
-async fn web_session(conn: quinn::Connection) -> Result<wt::Session, String> {
+async fn web_session(conn: quinn::Connection) -> Result<wt::Session, HelloError> {
     let request = wt::Request::accept(conn.clone())
         .await
-        .map_err(|e| format!("no WebTransport request: {e}"))?;
+        .map_err(HelloError::NoRequest)?;
     let path = request.url.path().to_owned();
     if path != crate::web::SESSION_PATH {
         let _ = request.reject(http::StatusCode::NOT_FOUND).await;
         let _ = tokio::time::timeout(REJECT_GRACE, conn.closed()).await;
-        let shown: String = path.chars().take(64).collect();
-        return Err(format!(
-            "a WebTransport session for {shown:?}, not {:?}",
-            crate::web::SESSION_PATH
-        ));
+        let path = path.chars().take(64).collect();
+        return Err(HelloError::WrongPath { path });
     }
-    request
-        .ok()
-        .await
-        .map_err(|e| format!("answering the WebTransport request: {e}"))
+    request.ok().await.map_err(HelloError::Answering)
 }
 
 /// The viewer's control stream and its hello.
-async fn greet(conn: &Conn) -> Result<(SendStream, RecvStream, Hello), String> {
+async fn greet(conn: &Conn) -> Result<(SendStream, RecvStream, Hello), HelloError> {
     let (send, mut recv) = conn
         .accept_bi()
         .await
-        .map_err(|e| format!("no control stream: {e}"))?;
+        .map_err(HelloError::NoControlStream)?;
     match wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
         Ok(ClientMessage::Hello(h)) => Ok((send, recv, h)),
-        Ok(_) => Err("expected a hello, got another message".into()),
-        Err(e) => Err(format!("expected a hello: {e}")),
+        Ok(_) => Err(HelloError::NotHello),
+        Err(e) => Err(HelloError::BadHello(e)),
     }
 }
 
@@ -453,7 +472,10 @@ async fn from_world(
             Err(why) => tracing::info!("a resume refused by the world ({why}): a new vehicle"),
         }
     }
-    let (vehicle, ticket, claim) = remote.join().await.map_err(|why| refused(shared, why))?;
+    let (vehicle, ticket, claim) = remote
+        .join()
+        .await
+        .map_err(|why| refused(shared, why.to_string()))?;
     Ok((vehicle, ticket, false, claim))
 }
 

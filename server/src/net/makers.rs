@@ -27,8 +27,9 @@
 //! first; key frames in what is left.
 
 use std::collections::VecDeque;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Mutex};
 
+use roam_protocol::sync::lock;
 use tokio::sync::oneshot;
 
 /// The nice value of a blocking frame maker thread (the async workers run at 0): about a
@@ -101,15 +102,11 @@ impl Makers {
         }
     }
 
-    fn lock(&self) -> MutexGuard<'_, State> {
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
     /// A permit: at once if one is free, else when one is released, a viewer already
     /// streaming before any `first` frame.
     pub async fn acquire(self: &Arc<Self>, first: bool) -> Result<Permit, Closed> {
         let rx = {
-            let mut s = self.lock();
+            let mut s = lock(&self.state);
             if s.free > 0 {
                 s.free -= 1;
                 return Ok(Permit {
@@ -145,7 +142,7 @@ impl Makers {
 
     /// A permit comes back: to the first live waiter (streaming ones first), else free.
     fn release(&self) {
-        let mut s = self.lock();
+        let mut s = lock(&self.state);
         loop {
             let next = match s.streaming.pop_front() {
                 Some(tx) => tx,
@@ -166,7 +163,7 @@ impl Makers {
 
     /// Permits free now.
     pub fn free(&self) -> usize {
-        self.lock().free
+        lock(&self.state).free
     }
 }
 
@@ -206,7 +203,7 @@ mod tests {
                 let fut = m.acquire(first);
                 let _ = asked.send(());
                 let p = fut.await.expect("open");
-                order.lock().expect("not poisoned").push(name);
+                lock(&order).push(name);
                 drop(p);
             }));
             // Each is queued before the next asks (they run on this runtime's thread).
@@ -222,10 +219,7 @@ mod tests {
         for t in tasks {
             t.await.expect("a waiter");
         }
-        assert_eq!(
-            *order.lock().expect("not poisoned"),
-            ["stream", "join a", "join b"]
-        );
+        assert_eq!(*lock(&order), ["stream", "join a", "join b"]);
         assert_eq!(
             m.free(),
             1,

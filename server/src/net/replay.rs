@@ -22,6 +22,7 @@ use std::sync::mpsc::{Receiver, Sender, TryRecvError};
 use std::sync::{Arc, Mutex};
 
 use roam_protocol::messages::{ReplayControl, ReplayStatus, ServerMessage};
+use roam_protocol::sync::lock;
 use tokio::sync::watch;
 
 use super::conn::SendStream;
@@ -68,6 +69,22 @@ impl Replaying {
 /// How often a followed file is read for more, in world ticks (250 ms).
 const FOLLOW_EVERY: u64 = 25;
 
+/// Why a followed recording is no longer followed (its valid part stays watched).
+#[derive(Debug, thiserror::Error)]
+pub enum FollowError {
+    #[error("reading {}: {error}", file.display())]
+    Read {
+        file: std::path::PathBuf,
+        error: std::io::Error,
+    },
+    #[error(
+        "{} grew past the {} bytes a recording may have",
+        file.display(),
+        crate::sim::recording::MAX_FILE_BYTES
+    )]
+    TooLarge { file: std::path::PathBuf },
+}
+
 /// A recording file followed as its server writes it: read for more every
 /// [`FOLLOW_EVERY`] ticks, its whole records handed to the [`Watch`].
 pub struct Follower {
@@ -79,23 +96,23 @@ pub struct Follower {
 impl Follower {
     /// Reads what the file has gained and hands its whole records to `watch`. An error
     /// reading it ends the following (logged): the valid part stays what it was.
-    fn poll(&mut self, watch: &mut Watch<Arc<Terrain>>) -> Result<(), String> {
+    fn poll(&mut self, watch: &mut Watch<Arc<Terrain>>) -> Result<(), FollowError> {
         use std::io::Read;
         let room = crate::sim::recording::MAX_FILE_BYTES.saturating_sub(self.reader.len());
         let mut more = Vec::new();
         (&mut self.file)
             .take(room + 1)
             .read_to_end(&mut more)
-            .map_err(|e| format!("reading {}: {e}", self.path.display()))?;
+            .map_err(|error| FollowError::Read {
+                file: self.path.clone(),
+                error,
+            })?;
         if more.is_empty() {
             return Ok(());
         }
         if more.len() as u64 > room {
-            return Err(format!(
-                "{} grew past the {} bytes a recording may have",
-                self.path.display(),
-                crate::sim::recording::MAX_FILE_BYTES
-            ));
+            let file = self.path.clone();
+            return Err(FollowError::TooLarge { file });
         }
         let mut events = Vec::new();
         let damaged = self.reader.feed(&more, &mut events).err();
@@ -158,11 +175,7 @@ pub struct Seat {
 
 impl Drop for Seat {
     fn drop(&mut self) {
-        let mut v = self
-            .shared
-            .viewers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner());
+        let mut v = lock(&self.shared.viewers);
         v.retain(|(id, ..)| *id != self.id);
         self.shared.elect(&v);
     }
@@ -172,7 +185,7 @@ impl ReplayShared {
     /// A viewer (`peer`, and whether it presented the control token) starts watching.
     pub(super) fn enter(self: &Arc<Self>, peer: String, controller: bool) -> Seat {
         let id = self.next_id.fetch_add(1, Ordering::Relaxed) + 1;
-        let mut v = self.viewers.lock().unwrap_or_else(|e| e.into_inner());
+        let mut v = lock(&self.viewers);
         v.push((id, peer, controller));
         self.elect(&v);
         Seat {
@@ -223,7 +236,7 @@ impl ReplayShared {
         let Controls::Here(tx) = &self.controls else {
             return false;
         };
-        let tx = tx.lock().unwrap_or_else(|e| e.into_inner());
+        let tx = lock(tx);
         tx.send(c).is_ok()
     }
 
@@ -285,10 +298,7 @@ impl ReplayShared {
     pub(super) fn status_for(&self, id: u64) -> ReplayStatus {
         let s = *self.status.borrow();
         let holder = *self.holder.borrow();
-        let controller = self
-            .viewers
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
+        let controller = lock(&self.viewers)
             .iter()
             .find(|v| v.0 == holder)
             .map_or_else(|| "nobody".to_string(), |v| v.1.clone());

@@ -6,6 +6,7 @@ use std::collections::HashMap;
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use roam_protocol::messages::Ticket;
+use roam_protocol::sync::lock;
 use tokio::sync::watch;
 
 use super::stats::ServeStats;
@@ -73,7 +74,7 @@ pub(super) struct Gate {
 
 impl Shared {
     pub(super) fn gate(&self) -> MutexGuard<'_, Gate> {
-        self.gate.lock().unwrap_or_else(|e| e.into_inner())
+        lock(&self.gate)
     }
 
     /// The recording served now, if viewers watch one (`serve --replay`; on an edge,
@@ -83,7 +84,7 @@ impl Shared {
     }
 
     pub(super) fn tickets(&self) -> MutexGuard<'_, HashMap<Ticket, Claim>> {
-        self.tickets.lock().unwrap_or_else(|e| e.into_inner())
+        lock(&self.tickets)
     }
 
     /// What a viewer's frames are made from: the terrain, its variance tree, and the

@@ -58,6 +58,7 @@ use std::time::Duration;
 use roam_link::wire;
 use roam_protocol::ColorLayout;
 use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welcome, close};
+use roam_protocol::sync::lock;
 use tokio::sync::oneshot;
 
 use super::conn::{Conn, DatagramError, RecvStream, SendStream};
@@ -127,7 +128,7 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     // When a key datagram last came: a driver sends one every 10 ms, so the time since is
     // how long its path has been silent when the connection is found dead.
     let heard = Arc::new(Mutex::new(started));
-    let silent = || heard.lock().unwrap_or_else(|e| e.into_inner()).elapsed();
+    let silent = || lock(&heard).elapsed();
     // Colour never delays a frame (frames' priorities are their numbers, from 0).
     send.set_priority(-1);
     let layout = shared
@@ -420,7 +421,7 @@ async fn read_keys(
     let mut gate = KeyGate::new(vehicle);
     while let Some(bytes) = conn.read_datagram().await {
         let now = std::time::Instant::now();
-        *heard.lock().unwrap_or_else(|e| e.into_inner()) = now;
+        *lock(&heard) = now;
         if let Some(event) = gate.admit(&bytes, now)
             && driver
             && shared.world.send((event, None)).is_err()
@@ -447,7 +448,7 @@ async fn read_control(mut recv: RecvStream, control: Arc<Mutex<Mailbox>>) -> Con
     loop {
         match wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
             Ok(msg) => {
-                let mut c = control.lock().unwrap_or_else(|e| e.into_inner());
+                let mut c = lock(&control);
                 if c.push(msg) == Control::End {
                     return ControlEnd::Goodbye;
                 }
@@ -523,7 +524,7 @@ async fn frames(
         shared.stats.frame_late(now.saturating_duration_since(due));
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let (asked, controls) = {
-            let mut m = control.lock().unwrap_or_else(|e| e.into_inner());
+            let mut m = lock(&control);
             (m.take_follow(), m.take_replay())
         };
         if let (Some(r), Some(id)) = (&shared.replay, replay) {
@@ -555,7 +556,7 @@ async fn frames(
         parked = state;
         seen = true;
         let mut c = core.take().expect("put back below");
-        for event in control.lock().unwrap_or_else(|e| e.into_inner()).drain() {
+        for event in lock(&control).drain() {
             c.handle(seat.granted(event));
         }
         let scene = shared.scene();

@@ -15,6 +15,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, TryRecvError};
 use std::time::{Duration, Instant};
 
+use roam_protocol::sync::lock;
 use tokio::sync::{oneshot, watch};
 
 use crate::sim::physics::STEPS_PER_SECOND;
@@ -62,7 +63,7 @@ impl WorldStats {
 
     /// The held vehicles joins freed since the last call.
     pub fn take_evicted(&self) -> Vec<VehicleId> {
-        std::mem::take(&mut *self.evicted.lock().unwrap_or_else(|e| e.into_inner()))
+        std::mem::take(&mut *lock(&self.evicted))
     }
 }
 
@@ -135,7 +136,7 @@ pub fn run(
         let answer = core.handle(event);
         let evicted = core.take_evicted();
         if !evicted.is_empty() {
-            let mut list = stats.evicted.lock().unwrap_or_else(|e| e.into_inner());
+            let mut list = lock(&stats.evicted);
             list.extend(evicted);
         }
         if let (Some(id), Some(reply)) = (answer, reply)

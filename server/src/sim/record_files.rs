@@ -17,6 +17,8 @@ use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
+use roam_protocol::sync::lock;
+
 /// One recording file: written at record boundaries, and cut back to its last whole record
 /// when a write fails.
 pub trait RecordFile: Write + Send {
@@ -65,18 +67,16 @@ pub struct MadeFiles(Arc<Mutex<Vec<PathBuf>>>);
 
 impl MadeFiles {
     pub fn list(&self) -> Vec<PathBuf> {
-        self.0.lock().map(|l| l.clone()).unwrap_or_default()
+        lock(&self.0).clone()
     }
 
     fn push(&self, path: PathBuf) {
-        if let Ok(mut l) = self.0.lock() {
-            l.push(path);
-        }
+        lock(&self.0).push(path);
     }
 
     /// Takes the file named `name` off the list, and returns its path.
     fn forget(&self, name: &str) -> Option<PathBuf> {
-        let mut l = self.0.lock().ok()?;
+        let mut l = lock(&self.0);
         let at = l.iter().rposition(|p| p.display().to_string() == name)?;
         Some(l.remove(at))
     }

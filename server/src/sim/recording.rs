@@ -227,18 +227,32 @@ impl Fields<'_> {
 /// A framed record: its kind, its payload, and where the next record starts.
 type Framed<'a> = (u8, &'a [u8], usize);
 
+/// Why a record's kind and length cannot be a record's ([`length_ok`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+enum LengthError {
+    /// A header's payload is `head` bytes plus 34 per vehicle, at most [`MAX_RECORD`].
+    #[error("a header of {len} bytes (expected {head} plus 34 per vehicle, at most {MAX_RECORD})")]
+    Header { len: usize, head: usize },
+    #[error("unknown record kind {0}")]
+    Kind(u8),
+    #[error("a record of kind {kind} with {len} bytes, expected {expected}")]
+    Record {
+        kind: u8,
+        len: usize,
+        expected: usize,
+    },
+}
+
 /// The payload length a record of `kind` must have in a file of `version` (a header:
 /// 44 or 52 bytes plus 34 per vehicle), or why it cannot.
-fn length_ok(kind: u8, len: usize, version: u32) -> Result<(), String> {
-    let fixed = match kind {
+fn length_ok(kind: u8, len: usize, version: u32) -> Result<(), LengthError> {
+    let expected = match kind {
         HEADER => {
             let head = header_fixed(version);
             return if len >= head && (len - head).is_multiple_of(2 + STATE) && len <= MAX_RECORD {
                 Ok(())
             } else {
-                Err(format!(
-                    "a header of {len} bytes (expected {head} plus 34 per vehicle, at most {MAX_RECORD})"
-                ))
+                Err(LengthError::Header { len, head })
             };
         }
         INPUT => 11,
@@ -246,14 +260,16 @@ fn length_ok(kind: u8, len: usize, version: u32) -> Result<(), String> {
         LEAVE | WAIT => 10,
         TWICE => 12,
         CHECKPOINT | END => 40,
-        other => return Err(format!("unknown record kind {other}")),
+        other => return Err(LengthError::Kind(other)),
     };
-    if len == fixed {
+    if len == expected {
         Ok(())
     } else {
-        Err(format!(
-            "a record of kind {kind} with {len} bytes, expected {fixed}"
-        ))
+        Err(LengthError::Record {
+            kind,
+            len,
+            expected,
+        })
     }
 }
 
@@ -263,19 +279,15 @@ fn next_record(bytes: &[u8], at: usize, version: u32) -> Result<Option<Framed<'_
     let Some(head) = bytes.get(at..at + 5) else {
         if let Some(&kind) = bytes.get(at) {
             // At least the kind is there: it must be one we know.
-            length_ok(kind, 0, version).or_else(|e| {
-                if e.starts_with("unknown") {
-                    Err(corrupt(at, e))
-                } else {
-                    Ok(())
-                }
-            })?;
+            if let Err(e @ LengthError::Kind(_)) = length_ok(kind, 0, version) {
+                return Err(corrupt(at, e.to_string()));
+            }
         }
         return Ok(None);
     };
     let kind = head[0];
     let len = u32::from_le_bytes([head[1], head[2], head[3], head[4]]) as usize;
-    length_ok(kind, len, version).map_err(|e| corrupt(at, e))?;
+    length_ok(kind, len, version).map_err(|e| corrupt(at, e.to_string()))?;
     let end = at + 5 + len + CHECK;
     let Some(whole) = bytes.get(at..end) else {
         return Ok(None);
@@ -592,5 +604,69 @@ impl Reader {
             self.at = end;
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{HEADER, INPUT, JOIN, LengthError, MAX_RECORD, TWICE, length_ok};
+
+    /// Each kind's length, a header's by its version and vehicles, and what is wrong
+    /// otherwise, in words a corrupt record's error carries.
+    #[test]
+    fn a_record_s_length_is_its_kind_s() {
+        for (kind, len, version, want, words) in [
+            (INPUT, 11, 3, Ok(()), ""),
+            (JOIN, 42, 3, Ok(()), ""),
+            (TWICE, 12, 1, Ok(()), ""),
+            (HEADER, 52 + 2 * 34, 3, Ok(()), ""),
+            (HEADER, 44, 2, Ok(()), ""),
+            (
+                INPUT,
+                12,
+                3,
+                Err(LengthError::Record {
+                    kind: INPUT,
+                    len: 12,
+                    expected: 11,
+                }),
+                "a record of kind 2 with 12 bytes, expected 11",
+            ),
+            (
+                HEADER,
+                53,
+                3,
+                Err(LengthError::Header { len: 53, head: 52 }),
+                "a header of 53 bytes (expected 52 plus 34 per vehicle, at most 1048576)",
+            ),
+            (
+                HEADER,
+                52,
+                2,
+                Err(LengthError::Header { len: 52, head: 44 }),
+                "a header of 52 bytes (expected 44 plus 34 per vehicle, at most 1048576)",
+            ),
+            (
+                HEADER,
+                MAX_RECORD + 2,
+                3,
+                Err(LengthError::Header {
+                    len: MAX_RECORD + 2,
+                    head: 52,
+                }),
+                "a header of 1048578 bytes (expected 52 plus 34 per vehicle, at most 1048576)",
+            ),
+            (
+                0x7e,
+                0,
+                3,
+                Err(LengthError::Kind(0x7e)),
+                "unknown record kind 126",
+            ),
+        ] {
+            let got = length_ok(kind, len, version);
+            assert_eq!(got, want, "kind {kind}, {len} bytes");
+            assert_eq!(got.err().map(|e| e.to_string()).unwrap_or_default(), words);
+        }
     }
 }

@@ -35,22 +35,43 @@ pub enum Backing<T> {
     },
 }
 
+/// Why a map's bytes cannot be viewed as the values asked for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum BackingError {
+    /// The values reach past the map's end (or past `usize`).
+    #[error(
+        "expected {len} values of {size} bytes at offset {offset}, the file has {file_len} bytes"
+    )]
+    Range {
+        len: usize,
+        /// Bytes a value.
+        size: usize,
+        offset: usize,
+        file_len: usize,
+    },
+    /// The bytes cannot be viewed as values: misaligned.
+    #[error("values at offset {offset}: {error}")]
+    Cast {
+        offset: usize,
+        error: bytemuck::PodCastError,
+    },
+}
+
 impl<T: bytemuck::Pod> Backing<T> {
     /// `len` values of `T` at byte `offset` of `map`, or why not (out of range, misaligned).
-    pub fn mapped(map: Arc<Mmap>, offset: usize, len: usize) -> Result<Backing<T>, String> {
+    pub fn mapped(map: Arc<Mmap>, offset: usize, len: usize) -> Result<Backing<T>, BackingError> {
         let bytes = len
             .checked_mul(size_of::<T>())
             .and_then(|n| n.checked_add(offset))
             .filter(|&end| end <= map.len())
-            .ok_or_else(|| {
-                format!(
-                    "expected {len} values of {} bytes at offset {offset}, the file has {} bytes",
-                    size_of::<T>(),
-                    map.len()
-                )
+            .ok_or(BackingError::Range {
+                len,
+                size: size_of::<T>(),
+                offset,
+                file_len: map.len(),
             })?;
         bytemuck::try_cast_slice::<u8, T>(&map[offset..bytes])
-            .map_err(|e| format!("values at offset {offset}: {e}"))?;
+            .map_err(|error| BackingError::Cast { offset, error })?;
         Ok(Backing::Mapped { map, offset, len })
     }
 
@@ -145,18 +166,40 @@ mod tests {
         assert_eq!(&*b, &[1, 2, 3]);
         assert!(b.is_mapped());
         assert_eq!((b.bytes(), b.heap_bytes()), (6, 0));
-        assert!(
-            Backing::<u16>::mapped(map.clone(), 2, 4).is_err(),
-            "past the end"
-        );
-        assert!(
-            Backing::<u16>::mapped(map.clone(), 1, 2).is_err(),
-            "misaligned"
-        );
-        assert!(
-            Backing::<u16>::mapped(map, usize::MAX, 2).is_err(),
-            "overflow"
-        );
+        let range = |offset, len| BackingError::Range {
+            len,
+            size: 2,
+            offset,
+            file_len: 8,
+        };
+        for (offset, len, want, message) in [
+            (
+                2,
+                4,
+                range(2, 4),
+                "expected 4 values of 2 bytes at offset 2, the file has 8 bytes",
+            ),
+            (
+                usize::MAX,
+                2,
+                range(usize::MAX, 2),
+                "expected 2 values of 2 bytes at offset 18446744073709551615, the file has 8 bytes",
+            ),
+            (
+                1,
+                2,
+                BackingError::Cast {
+                    offset: 1,
+                    error: bytemuck::PodCastError::TargetAlignmentGreaterAndInputNotAligned,
+                },
+                "values at offset 1: TargetAlignmentGreaterAndInputNotAligned",
+            ),
+        ] {
+            let Err(got) = Backing::<u16>::mapped(map.clone(), offset, len) else {
+                panic!("{message}: values past the end, past usize or misaligned taken");
+            };
+            assert_eq!((got, got.to_string().as_str()), (want, message));
+        }
         let owned = Backing::Owned(vec![1u16, 2, 3]);
         assert_eq!(&*owned, &*b);
         assert!(!owned.is_mapped());

@@ -71,6 +71,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use memmap2::Mmap;
 
 use crate::terrain::backing::Backing;
+use crate::terrain::cache_error::{CacheError, MapError};
 use crate::terrain::data_error::DataError;
 use crate::terrain::heightfield::Heightfield;
 pub(crate) use crate::terrain::stamp::{Fields, FileStamp};
@@ -279,7 +280,8 @@ fn hash_file(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> io::Result<[u8;
 pub(crate) fn read_header(
     path: &Path,
     magic: &[u8; 8],
-) -> Result<Option<(File, u64, Vec<u8>)>, String> {
+) -> Result<Option<(File, u64, Vec<u8>)>, CacheError> {
+    let io = |action| move |error| CacheError::Io { action, error };
     let mut file = match File::open(path) {
         Ok(f) => f,
         // No file, or no `.cache` directory (missing, or something else by that name: the
@@ -292,32 +294,32 @@ pub(crate) fn read_header(
         {
             return Ok(None);
         }
-        Err(e) => return Err(format!("cannot open: {e}")),
+        Err(error) => return Err(io("open")(error)),
     };
-    let len = file
-        .metadata()
-        .map_err(|e| format!("cannot stat: {e}"))?
-        .len();
+    let len = file.metadata().map_err(io("stat"))?.len();
     if len < HEADER as u64 {
-        return Err(format!(
-            "truncated: expected at least a {HEADER}-byte header, got {len} bytes"
-        ));
+        return Err(CacheError::ShortHeader {
+            expected: HEADER,
+            got: len,
+        });
     }
     let mut header = vec![0u8; HEADER];
     file.read_exact(&mut header)
-        .map_err(|e| format!("cannot read the header: {e}"))?;
+        .map_err(io("read the header"))?;
     let mut f = Fields(&header);
     let got: [u8; 8] = f.bytes();
     if &got != magic {
-        return Err(format!(
-            "magic: expected {:?}, got {:?}: not this cache's file",
-            String::from_utf8_lossy(magic),
-            String::from_utf8_lossy(&got)
-        ));
+        return Err(CacheError::Magic {
+            expected: *magic,
+            got,
+        });
     }
     let version = f.u32();
     if version != VERSION {
-        return Err(format!("format version: expected {VERSION}, got {version}"));
+        return Err(CacheError::Version {
+            expected: VERSION,
+            got: version,
+        });
     }
     let rest = f.0.to_vec();
     Ok(Some((file, len, rest)))
@@ -374,6 +376,19 @@ impl Cache {
     fn note(&mut self, name: &str, reason: impl std::fmt::Display) {
         let line = format!("{}: {reason}; rebuilding it", self.path(name).display());
         self.notes.push(line);
+    }
+
+    /// Notes that the file `name`, just written, cannot be mapped (`why`): it is served
+    /// from memory.
+    fn unmapped(&mut self, name: &str, why: &CacheError) {
+        let why: &dyn std::fmt::Display = match why {
+            CacheError::Map(e) => e,
+            other => other,
+        };
+        self.notes.push(format!(
+            "{}: cannot map the file just written: {why}; serving from memory",
+            self.path(name).display()
+        ));
     }
 
     /// Writes a cache file, or notes once that the cache cannot be written.
@@ -455,17 +470,16 @@ impl Cache {
         // process may have renamed its own file over ours since: the same content has the
         // same hash.
         let mapped = match self.heights_header(side) {
-            Ok(Some(h)) if h.samples_hash == samples_hash => Self::map_heights(&h.file, side),
-            Ok(_) => Err("replaced by other heights meanwhile".into()),
+            Ok(Some(h)) if h.samples_hash == samples_hash => {
+                Self::map_heights(&h.file, side).map_err(CacheError::Map)
+            }
+            Ok(_) => Err(CacheError::Replaced("other heights")),
             Err(e) => Err(e),
         };
         match mapped {
             Ok(mapped) => Ok((mapped, Source::Built, samples_hash)),
             Err(e) => {
-                self.notes.push(format!(
-                    "{}: cannot map the file just written: {e}; serving from memory",
-                    self.path(HEIGHTS_FILE).display()
-                ));
+                self.unmapped(HEIGHTS_FILE, &e);
                 Ok((hf, Source::Memory, samples_hash))
             }
         }
@@ -480,34 +494,32 @@ impl Cache {
         side: u32,
         now: FileStamp,
         progress: Progress,
-    ) -> Result<Option<(Heightfield, [u8; 32])>, (String, Option<[u8; 32]>)> {
+    ) -> Result<Option<(Heightfield, [u8; 32])>, (CacheError, Option<[u8; 32]>)> {
         let Some(header) = self.heights_header(side).map_err(|e| (e, None))? else {
             return Ok(None);
         };
         if !self.stamp_vouches(&header.source_hash, now) {
-            let hash = hash_file(hf_path, &mut |d, t| progress(Stage::Hashing, d, t))
-                .map_err(|e| (format!("cannot hash {}: {e}", hf_path.display()), None))?;
+            let hash = hash_file(hf_path, &mut |d, t| progress(Stage::Hashing, d, t)).map_err(
+                |error| {
+                    let file = hf_path.to_path_buf();
+                    (CacheError::Hash { file, error }, None)
+                },
+            )?;
             if hash != header.source_hash {
-                return Err((
-                    format!(
-                        "stale: {} changed since the cache was built (content hash differs)",
-                        hf_path.display()
-                    ),
-                    Some(hash),
-                ));
+                let file = hf_path.to_path_buf();
+                return Err((CacheError::SourceChanged { file }, Some(hash)));
             }
             // Same content (copied or touched): only the stamp is renewed.
             self.write_stamp(&hash, now);
         }
-        let hf = Self::map_heights(&header.file, side)
-            .map_err(|e| (format!("cannot map: {e}"), None))?;
+        let hf = Self::map_heights(&header.file, side).map_err(|e| (CacheError::Map(e), None))?;
         let stamp = self.trusted(0, &header.file);
         if let Err(stamp) = stamp {
             let got = hash_values(&le_bytes(hf.samples()), self.threads, &mut |d, t| {
                 progress(Stage::Verifying, d, t)
             });
             if got != header.samples_hash {
-                return Err(("corrupt: the samples do not match their hash".into(), None));
+                return Err((CacheError::Corrupt("the samples"), None));
             }
             self.verified(0, &header.file, stamp);
         }
@@ -515,7 +527,7 @@ impl Cache {
     }
 
     /// The header of `heights.bin`, checked against `side` and the file's length.
-    fn heights_header(&self, side: u32) -> Result<Option<HeightsHeader>, String> {
+    fn heights_header(&self, side: u32) -> Result<Option<HeightsHeader>, CacheError> {
         let Some((file, len, rest)) = read_header(&self.path(HEIGHTS_FILE), HEIGHTS_MAGIC)? else {
             return Ok(None);
         };
@@ -526,16 +538,19 @@ impl Cache {
         let count = f.u64();
         let want_count = u64::from(side) * u64::from(side);
         if got_side != side || count != want_count {
-            return Err(format!(
-                "side: expected {side} (hf.pgm's), got {got_side} ({count} samples)"
-            ));
+            return Err(CacheError::HeightsSide {
+                expected: side,
+                got: got_side,
+                samples: count,
+            });
         }
         let want_len = HEADER as u64 + 2 * want_count;
         if len != want_len {
-            return Err(format!(
-                "length: expected {want_len} bytes, got {len}{}",
-                if len < want_len { " (truncated)" } else { "" }
-            ));
+            return Err(CacheError::Length {
+                expected: want_len,
+                codes: None,
+                got: len,
+            });
         }
         Ok(Some(HeightsHeader {
             file,
@@ -545,13 +560,15 @@ impl Cache {
     }
 
     /// Maps an opened `heights.bin` (whose header was checked) as a heightfield.
-    fn map_heights(file: &File, side: u32) -> Result<Heightfield, String> {
-        let map = map(file).map_err(|e| e.to_string())?;
+    fn map_heights(file: &File, side: u32) -> Result<Heightfield, MapError> {
+        let map = map(file).map_err(MapError::Mmap)?;
         let count = side as usize * side as usize;
         let samples = if cfg!(target_endian = "little") {
             Backing::mapped(map, HEADER, count)?
         } else {
-            let bytes = map.get(HEADER..HEADER + 2 * count).ok_or("truncated")?;
+            let bytes = map
+                .get(HEADER..HEADER + 2 * count)
+                .ok_or(MapError::Truncated)?;
             Backing::Owned(
                 bytes
                     .chunks_exact(2)
@@ -559,7 +576,7 @@ impl Cache {
                     .collect(),
             )
         };
-        Heightfield::with_backing(side, samples).map_err(|e| e.to_string())
+        Ok(Heightfield::with_backing(side, samples)?)
     }
 
     /// Whether `heights.stamp` says `hf.pgm`, as it is now, has the content hashed
@@ -628,17 +645,16 @@ impl Cache {
             return (vt, Source::Memory);
         }
         let mapped = match self.variance_header(hf.size()) {
-            Ok(Some(h)) if h.codes_hash == codes_hash => Self::map_variance(&h.file, hf.size()),
-            Ok(_) => Err("replaced by another tree meanwhile".into()),
+            Ok(Some(h)) if h.codes_hash == codes_hash => {
+                Self::map_variance(&h.file, hf.size()).map_err(CacheError::Map)
+            }
+            Ok(_) => Err(CacheError::Replaced("another tree")),
             Err(e) => Err(e),
         };
         match mapped {
             Ok(mapped) => (mapped, Source::Built),
             Err(e) => {
-                self.notes.push(format!(
-                    "{}: cannot map the file just written: {e}; serving from memory",
-                    self.path(VARIANCE_FILE).display()
-                ));
+                self.unmapped(VARIANCE_FILE, &e);
                 (vt, Source::Memory)
             }
         }
@@ -649,20 +665,20 @@ impl Cache {
         size: u32,
         heights_hash: &[u8; 32],
         progress: Progress,
-    ) -> Result<Option<VarianceTree>, String> {
+    ) -> Result<Option<VarianceTree>, CacheError> {
         let Some(header) = self.variance_header(size)? else {
             return Ok(None);
         };
         if &header.heights_hash != heights_hash {
-            return Err("stale: built from other heights (heights hash differs)".into());
+            return Err(CacheError::OtherHeights);
         }
-        let vt = Self::map_variance(&header.file, size)?;
+        let vt = Self::map_variance(&header.file, size).map_err(CacheError::Map)?;
         if let Err(stamp) = self.trusted(1, &header.file) {
             let got = hash_values(vt.codes(), self.threads, &mut |d, t| {
                 progress(Stage::Verifying, d, t)
             });
             if got != header.codes_hash {
-                return Err("corrupt: the codes do not match their hash".into());
+                return Err(CacheError::Corrupt("the codes"));
             }
             self.verified(1, &header.file, stamp);
         }
@@ -671,7 +687,7 @@ impl Cache {
 
     /// The header of `variance.bin`, checked against `size`, the code table and the
     /// file's length.
-    fn variance_header(&self, size: u32) -> Result<Option<VarianceHeader>, String> {
+    fn variance_header(&self, size: u32) -> Result<Option<VarianceHeader>, CacheError> {
         let Some((file, len, rest)) = read_header(&self.path(VARIANCE_FILE), VARIANCE_MAGIC)?
         else {
             return Ok(None);
@@ -683,26 +699,21 @@ impl Cache {
         let codes_hash: [u8; 32] = f.bytes();
         let count = f.u64();
         if got_size != size {
-            return Err(format!(
-                "side: expected {} (the heights'), got {}",
-                u64::from(size) + 1,
-                u64::from(got_size) + 1
-            ));
+            return Err(CacheError::VarianceSide {
+                expected: u64::from(size) + 1,
+                got: u64::from(got_size) + 1,
+            });
         }
         if table != table_hash() {
-            return Err("code table: built with another table".into());
+            return Err(CacheError::CodeTable);
         }
         let want = VarianceTree::codes_len(size) as u64;
         if count != want || len != HEADER as u64 + want {
-            return Err(format!(
-                "length: expected {} bytes ({want} codes), got {len}{}",
-                HEADER as u64 + want,
-                if len < HEADER as u64 + want {
-                    " (truncated)"
-                } else {
-                    ""
-                }
-            ));
+            return Err(CacheError::Length {
+                expected: HEADER as u64 + want,
+                codes: Some(want),
+                got: len,
+            });
         }
         Ok(Some(VarianceHeader {
             file,
@@ -778,9 +789,9 @@ impl Cache {
         self.write(VERIFIED_FILE, &[&b]);
     }
 
-    fn map_variance(file: &File, size: u32) -> Result<VarianceTree, String> {
-        let map = map(file).map_err(|e| e.to_string())?;
+    fn map_variance(file: &File, size: u32) -> Result<VarianceTree, MapError> {
+        let map = map(file).map_err(MapError::Mmap)?;
         let codes = Backing::mapped(map, HEADER, VarianceTree::codes_len(size))?;
-        VarianceTree::from_codes(size, codes)
+        Ok(VarianceTree::from_codes(size, codes)?)
     }
 }

@@ -32,6 +32,7 @@ use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 use roam_protocol::colormap;
+use roam_protocol::sync::lock;
 use roam_protocol::tiles::{self, ColorLayout};
 
 use crate::terrain::cache::FileStamp;
@@ -138,11 +139,8 @@ impl ColorPyramid {
     ) -> Result<(ColorPyramid, CacheOutcome), PyramidError> {
         let key = source_stamp(&dir.join(COLOR_FILE))
             .map(|(len, digest)| [len.to_le_bytes(), digest.to_le_bytes()].concat())
-            .ok_or_else(|| {
-                format!(
-                    "{}: cannot be read for its date",
-                    dir.join(COLOR_FILE).display()
-                )
+            .ok_or_else(|| store::Unkeyed {
+                file: dir.join(COLOR_FILE),
             });
         let (store, outcome) = store::open_or_make(
             dir,
@@ -273,16 +271,14 @@ fn encode_level(
                         }
                         let mut coded = Vec::new();
                         match colormap::encode(t as u32, &rgb, &mut coded) {
-                            Ok(()) => **slot.lock().unwrap_or_else(|e| e.into_inner()) = coded,
-                            Err(e) => {
-                                *failed.lock().unwrap_or_else(|e| e.into_inner()) = Some(e.into())
-                            }
+                            Ok(()) => **lock(slot) = coded,
+                            Err(e) => *lock(&failed) = Some(e.into()),
                         }
                     }
                 });
             }
         });
-        if let Some(e) = failed.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        if let Some(e) = lock(&failed).take() {
             return Err(e);
         }
         start += out.len();

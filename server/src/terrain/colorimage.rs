@@ -124,7 +124,8 @@ fn read_png(
         ColorType::Rgba => 4,
     };
     let raw = u64::from(height) * (1 + (u64::from(width) * channels * depth as u64).div_ceil(8));
-    crate::terrain::png16::raw_fits(width, height, raw, file_len).map_err(err)?;
+    crate::terrain::png16::raw_fits(width, height, raw, file_len)
+        .map_err(|e| err(e.to_string()))?;
     let mut reader = decoder
         .read_info()
         .map_err(|e| err(format!("PNG header: {e}")))?;
@@ -197,6 +198,31 @@ impl Footprint {
     }
 }
 
+/// Why an image cannot be resampled onto a footprint.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum ResampleError {
+    /// An empty image, or one whose pixels are not its width times its height.
+    #[error("a {width} × {height} image of {pixels} pixels: expected at least 1 × 1, every pixel")]
+    Image {
+        width: u32,
+        height: u32,
+        pixels: usize,
+    },
+    /// The footprint's window is not inside its raster, or it has no cell.
+    #[error(
+        "window {},{} {} × {} of a {} × {} raster, {} cells: expected a window inside the \
+         raster and at least one cell",
+        .0.window.0, .0.window.1, .0.window.2, .0.window.3, .0.raster.0, .0.raster.1, .0.cells
+    )]
+    Window(Footprint),
+    /// The footprint's samples a cell are not positive numbers.
+    #[error("{x} × {y} samples a cell: expected numbers > 0")]
+    Step { x: f64, y: f64 },
+    /// The colour map's memory could not be had.
+    #[error("cannot allocate {cells} colour cells")]
+    Alloc { cells: usize },
+}
+
 /// One output pixel's taps along an axis: `(pixel, weight)`.
 type Taps = Vec<(usize, f32)>;
 
@@ -251,7 +277,7 @@ pub fn resample(
     image: &RgbImage,
     footprint: &Footprint,
     progress: &mut dyn FnMut(u64, u64),
-) -> Result<ColorMap, String> {
+) -> Result<ColorMap, ResampleError> {
     let Footprint {
         raster: (rw, rh),
         window: (wx, wy, ww, wh),
@@ -260,22 +286,20 @@ pub fn resample(
     } = *footprint;
     let (iw, ih) = (image.width, image.height);
     if iw == 0 || ih == 0 || image.rgb.len() as u64 != u64::from(iw) * u64::from(ih) {
-        return Err(format!(
-            "a {iw} × {ih} image of {} pixels: expected at least 1 × 1, every pixel",
-            image.rgb.len()
-        ));
+        return Err(ResampleError::Image {
+            width: iw,
+            height: ih,
+            pixels: image.rgb.len(),
+        });
     }
     let fits = |start: u32, len: u32, n: u32| {
         len >= 1 && u64::from(start) + u64::from(len) <= u64::from(n)
     };
     if !fits(wx, ww, rw) || !fits(wy, wh, rh) || cells == 0 {
-        return Err(format!(
-            "window {wx},{wy} {ww} × {wh} of a {rw} × {rh} raster, {cells} cells: expected a \
-             window inside the raster and at least one cell"
-        ));
+        return Err(ResampleError::Window(*footprint));
     }
     if !(sx.is_finite() && sx > 0.0 && sy.is_finite() && sy > 0.0) {
-        return Err(format!("{sx} × {sy} samples a cell: expected numbers > 0"));
+        return Err(ResampleError::Step { x: sx, y: sy });
     }
     let xs = axis_taps(iw, rw, wx, ww, sx, cells);
     let ys = axis_taps(ih, rh, wy, wh, sy, cells);
@@ -287,7 +311,7 @@ pub fn resample(
     let count = cells as usize * cells as usize;
     let mut out: Vec<[u8; 3]> = Vec::new();
     out.try_reserve_exact(count)
-        .map_err(|_| format!("cannot allocate {count} colour cells"))?;
+        .map_err(|_| ResampleError::Alloc { cells: count })?;
     let mut row = vec![[0f32; 3]; c1 - c0];
     let width = iw as usize;
     for (z, taps_y) in ys.iter().enumerate() {
@@ -314,7 +338,7 @@ pub fn resample(
             progress(z as u64 + 1, ys.len() as u64);
         }
     }
-    ColorMap::new(cells, out).ok_or_else(|| format!("expected {count} colour cells"))
+    Ok(ColorMap::new(cells, out).expect("`cells²` cells, one an output pixel"))
 }
 
 #[cfg(test)]

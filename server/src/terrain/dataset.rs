@@ -23,7 +23,7 @@
 
 use std::fs;
 use std::io;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::terrain::cache::{self, Cache, CacheReport};
 use crate::terrain::data_error::DataError;
@@ -402,7 +402,7 @@ pub fn content_hash_cached(
     let path = cache_dir.join(CONTENT_HASH_FILE);
     let why = match read_content_hash(&path, &report.heights_hash, &map_hash, before) {
         Ok(hash) => return Ok((hash, HashSource::Cached)),
-        Err(why) => why,
+        Err(why) => why.to_string(),
     };
     let hash = terrain.content_hash_in(dir, progress)?;
     if stat()? == before {
@@ -422,40 +422,85 @@ pub fn content_hash_cached(
     Ok((hash, HashSource::Computed(why)))
 }
 
+/// Why `.cache/content.hash` does not vouch for the data set's hash (it is computed
+/// again, and the reason reported in [`HashSource::Computed`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ContentHashError {
+    #[error("not cached yet")]
+    NotCached,
+    /// The file could not be stat'd or read (`action`).
+    #[error("{}: cannot {action}: {error}", file.display())]
+    Io {
+        file: PathBuf,
+        action: &'static str,
+        error: io::Error,
+    },
+    #[error("{}: length: expected {expected} bytes, got {got}", file.display())]
+    Length {
+        file: PathBuf,
+        expected: usize,
+        got: u64,
+    },
+    /// Shorter when read than when stat'd.
+    #[error("{}: changed while read", file.display())]
+    ChangedWhileRead { file: PathBuf },
+    /// Its magic or format version is not this cache's.
+    #[error("{}: magic or version: not this cache's", file.display())]
+    Foreign { file: PathBuf },
+    /// Its bytes do not match their check.
+    #[error("{}: corrupt: its check does not match", file.display())]
+    Corrupt { file: PathBuf },
+    /// It names other heights than the data set's.
+    #[error("the heights changed")]
+    Heights,
+    /// It names other `map` parameters.
+    #[error("the map parameters changed")]
+    Map,
+    /// It names another `color.ppm` stamp.
+    #[error("{COLOR_FILE} changed (length, times, inode or device)")]
+    Color,
+    /// It was written within `secs` of `color.ppm`'s change: a write in the same clock tick
+    /// would not show.
+    #[error("stamped within {secs} s of {COLOR_FILE}'s change")]
+    Racy { secs: i64 },
+}
+
 /// The hash `.cache/content.hash` vouches for, or why it does not.
 fn read_content_hash(
     path: &Path,
     heights_hash: &[u8; 32],
     map_hash: &[u8; 32],
     color: cache::FileStamp,
-) -> Result<[u8; 32], String> {
+) -> Result<[u8; 32], ContentHashError> {
+    let file = || path.to_path_buf();
+    let io = |action| {
+        move |error| ContentHashError::Io {
+            file: file(),
+            action,
+            error,
+        }
+    };
     let meta = match fs::metadata(path) {
         Ok(m) => m,
-        Err(e) if e.kind() == io::ErrorKind::NotFound => return Err("not cached yet".into()),
-        Err(e) => return Err(format!("{}: cannot stat: {e}", path.display())),
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Err(ContentHashError::NotCached),
+        Err(e) => return Err(io("stat")(e)),
     };
     if meta.len() != CONTENT_LEN as u64 {
-        return Err(format!(
-            "{}: length: expected {CONTENT_LEN} bytes, got {}",
-            path.display(),
-            meta.len()
-        ));
+        return Err(ContentHashError::Length {
+            file: file(),
+            expected: CONTENT_LEN,
+            got: meta.len(),
+        });
     }
-    let b = fs::read(path).map_err(|e| format!("{}: cannot read: {e}", path.display()))?;
+    let b = fs::read(path).map_err(io("read"))?;
     let (Some(body), Some(check)) = (b.get(..CONTENT_CHECKED), b.get(CONTENT_CHECKED..)) else {
-        return Err(format!("{}: changed while read", path.display()));
+        return Err(ContentHashError::ChangedWhileRead { file: file() });
     };
     if body[..8] != CONTENT_MAGIC[..] || body[8..12] != cache::VERSION.to_le_bytes() {
-        return Err(format!(
-            "{}: magic or version: not this cache's",
-            path.display()
-        ));
+        return Err(ContentHashError::Foreign { file: file() });
     }
     if blake3::hash(body).as_bytes()[..] != check[..] {
-        return Err(format!(
-            "{}: corrupt: its check does not match",
-            path.display()
-        ));
+        return Err(ContentHashError::Corrupt { file: file() });
     }
     let field = |at: usize| -> [u8; 32] {
         body[at..at + 32]
@@ -474,18 +519,15 @@ fn read_content_hash(
         .and_then(|t| t.duration_since(std::time::UNIX_EPOCH).ok())
         .map_or(0, |d| d.as_secs() as i64);
     if &field(48) != heights_hash {
-        Err("the heights changed".into())
+        Err(ContentHashError::Heights)
     } else if &field(80) != map_hash {
-        Err("the map parameters changed".into())
+        Err(ContentHashError::Map)
     } else if stamp != color {
-        Err(format!(
-            "{COLOR_FILE} changed (length, times, inode or device)"
-        ))
+        Err(ContentHashError::Color)
     } else if written < color.ctime_secs() + cache::RACY_SECONDS {
-        Err(format!(
-            "stamped within {} s of {COLOR_FILE}'s change",
-            cache::RACY_SECONDS
-        ))
+        Err(ContentHashError::Racy {
+            secs: cache::RACY_SECONDS,
+        })
     } else {
         Ok(field(16))
     }

@@ -410,6 +410,40 @@ pub fn read(path: &Path, progress: &mut dyn FnMut(u64, u64)) -> Result<GeoTiff, 
     })
 }
 
+/// Why a GeoTIFF's samples cannot be read (after "TIFF data: ").
+#[derive(Debug, thiserror::Error)]
+enum ChunkError {
+    #[error("chunks of {width} × {height} pixels: expected at least 1 × 1")]
+    Empty { width: u32, height: u32 },
+    /// The decoder's own error: counting the chunks, or decoding one.
+    #[error(transparent)]
+    Tiff(#[from] tiff::TiffError),
+    /// The file lists fewer chunks (`what`: `tiles`, `strips`) than the image needs.
+    #[error("expected {needed} {what} for {width} × {height} pixels, the file lists {listed}")]
+    Listed {
+        needed: u64,
+        what: &'static str,
+        width: u32,
+        height: u32,
+        listed: u32,
+    },
+    #[error("{needed} chunks: too many")]
+    TooMany { needed: u64 },
+    #[error("cannot allocate {samples} samples")]
+    Alloc { samples: usize },
+    /// A chunk decoded as another sample type than the tags say (`tags`).
+    #[error("decoded as another sample type than the tags' {tags}")]
+    SampleType { tags: &'static str },
+    /// Chunk `chunk` holds fewer samples than its `width × height`.
+    #[error("chunk {chunk}: expected {width} × {height} samples, got {got}")]
+    Short {
+        chunk: u32,
+        width: usize,
+        height: usize,
+        got: usize,
+    },
+}
+
 /// Decode the image strip by strip (or tile by tile) into metres, voids as `NaN`, placing
 /// each chunk's rows; `progress` gets `(chunks done, chunks)`.
 fn read_chunks<R: std::io::Read + std::io::Seek>(
@@ -420,13 +454,14 @@ fn read_chunks<R: std::io::Read + std::io::Seek>(
     nodata: Option<f64>,
     z_factor: f64,
     progress: &mut dyn FnMut(u64, u64),
-) -> Result<Vec<f32>, String> {
+) -> Result<Vec<f32>, ChunkError> {
     let tiled = matches!(decoder.get_chunk_type(), ChunkType::Tile);
     let (cw, ch) = decoder.chunk_dimensions();
     if cw == 0 || ch == 0 {
-        return Err(format!(
-            "chunks of {cw} × {ch} pixels: expected at least 1 × 1"
-        ));
+        return Err(ChunkError::Empty {
+            width: cw,
+            height: ch,
+        });
     }
     let across = if tiled { width.div_ceil(cw) } else { 1 };
     let needed = u64::from(across) * u64::from(height.div_ceil(ch));
@@ -434,18 +469,20 @@ fn read_chunks<R: std::io::Read + std::io::Seek>(
         decoder.tile_count()
     } else {
         decoder.strip_count()
-    }
-    .map_err(|e| e.to_string())?;
+    }?;
     if u64::from(listed) < needed {
-        return Err(format!(
-            "expected {needed} {} for {width} × {height} pixels, the file lists {listed}",
-            if tiled { "tiles" } else { "strips" }
-        ));
+        return Err(ChunkError::Listed {
+            needed,
+            what: if tiled { "tiles" } else { "strips" },
+            width,
+            height,
+            listed,
+        });
     }
     let count = width as usize * height as usize;
     let mut out: Vec<f32> = Vec::new();
     out.try_reserve_exact(count)
-        .map_err(|_| format!("cannot allocate {count} samples"))?;
+        .map_err(|_| ChunkError::Alloc { samples: count })?;
     out.resize(count, f32::NAN);
     let void = |h: f64| !h.is_finite() || nodata == Some(h);
     let metres = |h: f64| {
@@ -457,11 +494,11 @@ fn read_chunks<R: std::io::Read + std::io::Seek>(
     };
     // GDAL writes a float32 raster's nodata in full f64 precision.
     let nodata32 = nodata.map(|n| n as f32);
-    let needed = u32::try_from(needed).map_err(|_| format!("{needed} chunks: too many"))?;
+    let needed = u32::try_from(needed).map_err(|_| ChunkError::TooMany { needed })?;
     for i in 0..needed {
         let (dw, dh) = decoder.chunk_data_dimensions(i);
         let (x0, y0) = ((i % across) * cw, (i / across) * ch);
-        let chunk = decoder.read_chunk(i).map_err(|e| e.to_string())?;
+        let chunk = decoder.read_chunk(i)?;
         let values: Vec<f32> = match chunk {
             DecodingResult::U16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
             DecodingResult::I16(v) => v.into_iter().map(|s| metres(f64::from(s))).collect(),
@@ -479,10 +516,8 @@ fn read_chunks<R: std::io::Read + std::io::Seek>(
                 .collect(),
             DecodingResult::F64(v) => v.into_iter().map(metres).collect(),
             _ => {
-                return Err(format!(
-                    "decoded as another sample type than the tags' {}",
-                    sample.name()
-                ));
+                let tags = sample.name();
+                return Err(ChunkError::SampleType { tags });
             }
         };
         let (dw, dh) = (dw as usize, dh as usize);
@@ -490,10 +525,12 @@ fn read_chunks<R: std::io::Read + std::io::Seek>(
             continue;
         }
         if values.len() < dw * dh {
-            return Err(format!(
-                "chunk {i}: expected {dw} × {dh} samples, got {}",
-                values.len()
-            ));
+            return Err(ChunkError::Short {
+                chunk: i,
+                width: dw,
+                height: dh,
+                got: values.len(),
+            });
         }
         // Clip to the image: a chunk never reaches past it, but the tags are outside data.
         let (x0, y0) = (x0 as usize, y0 as usize);

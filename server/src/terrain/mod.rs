@@ -6,6 +6,7 @@
 
 pub mod backing;
 pub mod cache;
+pub mod cache_error;
 pub mod color_pyramid;
 pub mod colorimage;
 pub mod data_error;

@@ -47,6 +47,7 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 
 use roam_protocol::colormap;
 use roam_protocol::normals;
+use roam_protocol::sync::lock;
 use roam_protocol::tiles::{self, ColorLayout};
 
 use crate::terrain::heightfield::Heightfield;
@@ -130,9 +131,9 @@ impl NormalPyramid {
                 let Some(slot) = roots.get(k) else { return };
                 let (x, z) = (k as u32 % n, k as u32 / n);
                 match b.node(root, x, z, None) {
-                    Ok(t) => *slot.lock().unwrap_or_else(|e| e.into_inner()) = Some(t),
+                    Ok(t) => *lock(slot) = Some(t),
                     Err(e) => {
-                        *failed.lock().unwrap_or_else(|e| e.into_inner()) = Some(e);
+                        *lock(&failed) = Some(e);
                         return;
                     }
                 }
@@ -145,7 +146,7 @@ impl NormalPyramid {
             }
             work(&mut |done| progress(done as u64, total as u64));
         });
-        if let Some(e) = failed.into_inner().unwrap_or_else(|e| e.into_inner()) {
+        if let Some(e) = lock(&failed).take() {
             return Err(e);
         }
         b.node(layout.levels - 1, 0, 0, Some((root, &roots)))?;
@@ -153,7 +154,7 @@ impl NormalPyramid {
         let coded = b
             .coded
             .into_iter()
-            .map(|c| c.into_inner().unwrap_or_else(|e| e.into_inner()))
+            .map(|c| std::mem::take(&mut *lock(&c)))
             .collect();
         Ok(NormalPyramid {
             store: TileStore::from_coded(layout, coded),
@@ -239,7 +240,7 @@ impl Build<'_> {
             && at == level
         {
             let k = (z * l.tiles(level) + x) as usize;
-            let taken = built[k].lock().unwrap_or_else(|e| e.into_inner()).take();
+            let taken = lock(&built[k]).take();
             return Ok(taken.expect("every root is built before the levels above"));
         }
         let t = l.tile_side(level) as usize;
@@ -266,7 +267,7 @@ impl Build<'_> {
         let mut coded = Vec::new();
         normals::encode_tile(t as u32, &codes, &mut coded)?;
         let k = self.first[usize::from(level)] + (z * l.tiles(level) + x) as usize;
-        *self.coded[k].lock().unwrap_or_else(|e| e.into_inner()) = coded;
+        *lock(&self.coded[k]) = coded;
         self.done.fetch_add(1, Ordering::Relaxed);
         Ok(normals)
     }

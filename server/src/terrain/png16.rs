@@ -145,7 +145,7 @@ pub fn read(
         Pixels::Rgb(_, c) => c as u64,
     };
     let raw = u64::from(height) * (1 + u64::from(width) * bytes_per_pixel);
-    raw_fits(width, height, raw, file_len).map_err(err)?;
+    raw_fits(width, height, raw, file_len).map_err(|e| err(e.to_string()))?;
     let mut reader = decoder
         .read_info()
         .map_err(|e| err(format!("PNG header: {e}")))?;
@@ -186,14 +186,31 @@ pub fn read(
     Ok(Png { raster, kind })
 }
 
+/// A PNG whose decoded rows cannot come out of its file: more than [`MAX_INFLATE`] times
+/// its length.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "PNG of {width} × {height} pixels ({raw} bytes raw) cannot fit in {file_len} bytes: the \
+     file is truncated or corrupt"
+)]
+pub(crate) struct TooRaw {
+    width: u32,
+    height: u32,
+    /// Bytes of its decoded rows, filter bytes included.
+    raw: u64,
+    file_len: u64,
+}
+
 /// Whether `raw` bytes of decoded rows (filter bytes included) of a `width × height`
 /// PNG can come out of a file of `file_len` bytes, checked before allocating for them.
-pub(crate) fn raw_fits(width: u32, height: u32, raw: u64, file_len: u64) -> Result<(), String> {
+pub(crate) fn raw_fits(width: u32, height: u32, raw: u64, file_len: u64) -> Result<(), TooRaw> {
     if raw > file_len.saturating_mul(MAX_INFLATE) {
-        return Err(format!(
-            "PNG of {width} × {height} pixels ({raw} bytes raw) cannot fit in {file_len} bytes: \
-             the file is truncated or corrupt"
-        ));
+        return Err(TooRaw {
+            width,
+            height,
+            raw,
+            file_len,
+        });
     }
     Ok(())
 }

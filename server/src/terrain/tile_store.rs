@@ -90,6 +90,60 @@ pub enum TileError {
     Damaged { first: bool },
 }
 
+/// Why a tile cache file is not used (it is rebuilt, with this reason after its path).
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// The map and its tiles cannot be laid out.
+    #[error(transparent)]
+    Layout(#[from] tiles::LayoutError),
+    #[error("mapping: {0}")]
+    Map(io::Error),
+    #[error("shorter than its header")]
+    ShortHeader,
+    /// Its magic is not the kind's (`what`: the kind, as [`Kind::what`]).
+    #[error("not a {what}")]
+    Foreign { what: &'static str },
+    #[error("format {got}, expected {expected}")]
+    Version { got: u32, expected: u32 },
+    /// Built for another map: `got` its cells, tile side and levels.
+    #[error(
+        "for {} cells in tiles of {} ({} levels), expected {cells} in tiles of {tile}",
+        got.0, got.1, got.2
+    )]
+    Shape {
+        got: (u32, u32, u32),
+        cells: u32,
+        tile: u32,
+    },
+    /// Its key is not the source's now (`from`: what it was built from, [`Kind::source`]).
+    #[error("stale: {from} changed since it was built")]
+    Stale { from: &'static str },
+    #[error("{got} tiles, expected {expected}")]
+    Count { got: u64, expected: usize },
+    #[error("index cut short")]
+    ShortIndex,
+    #[error("header or index damaged (hash mismatch)")]
+    Hash,
+    /// Index entry `at` does not follow the one before it, or its length is not a tile's.
+    #[error("index entry {at} out of order or size")]
+    Entry { at: usize },
+    #[error("{got} payload bytes, the index says {indexed}")]
+    Payloads { got: u64, indexed: u64 },
+    /// The coarsest tile, checked at open, is not served.
+    #[error("the coarsest tile: {0}")]
+    Coarsest(TileError),
+    /// A payload does not match its check: the first such tile.
+    #[error("tile ({x}, {z}) of level {level}: {}", TileError::Damaged { first: true })]
+    Damaged { x: u32, z: u32, level: u8 },
+}
+
+/// A cache's source whose date cannot be read: it cannot be keyed, so nothing is cached.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{}: cannot be read for its date", file.display())]
+pub struct Unkeyed {
+    pub file: PathBuf,
+}
+
 /// What opening a pyramid did with its cache.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum CacheOutcome {
@@ -154,47 +208,50 @@ impl TileStore {
         (cells, tile): (u32, u32),
         key: &[u8],
         threads: usize,
-    ) -> Result<TileStore, String> {
-        let layout = ColorLayout::new(cells, tile, 1).map_err(|e| e.to_string())?;
+    ) -> Result<TileStore, StoreError> {
+        let layout = ColorLayout::new(cells, tile, 1)?;
         let header = kind.header();
         // SAFETY: the map is read only, and the file is ours: written once by `write` and
         // replaced by renaming, never changed in place. Another process truncating it
         // under us is outside what this server guards against.
-        let map = unsafe { memmap2::Mmap::map(file) }.map_err(|e| format!("mapping: {e}"))?;
-        let head = map.get(..header).ok_or("shorter than its header")?;
+        let map = unsafe { memmap2::Mmap::map(file) }.map_err(StoreError::Map)?;
+        let head = map.get(..header).ok_or(StoreError::ShortHeader)?;
         if &head[..8] != kind.magic {
-            return Err(format!("not a {}", kind.what));
+            return Err(StoreError::Foreign { what: kind.what });
         }
         let u32_at = |at: usize| u32::from_le_bytes(head[at..at + 4].try_into().expect("4"));
         let version = u32_at(8);
         if version != kind.version {
-            return Err(format!("format {version}, expected {}", kind.version));
+            let expected = kind.version;
+            return Err(StoreError::Version {
+                got: version,
+                expected,
+            });
         }
         let got = (u32_at(12), u32_at(16), u32_at(20));
-        let want = (cells, tile, u32::from(layout.levels));
-        if got != want {
-            return Err(format!(
-                "for {} cells in tiles of {} ({} levels), expected {} in tiles of {}",
-                got.0, got.1, got.2, cells, tile
-            ));
+        if got != (cells, tile, u32::from(layout.levels)) {
+            return Err(StoreError::Shape { got, cells, tile });
         }
         if &head[HEAD..HEAD + kind.key_len] != key {
-            return Err(format!("stale: {} changed since it was built", kind.source));
+            return Err(StoreError::Stale { from: kind.source });
         }
         let first = firsts(&layout);
         let total = *first.last().expect("one entry past the last level");
         let count_at = HEAD + kind.key_len;
         let count = u64::from_le_bytes(head[count_at..count_at + 8].try_into().expect("8"));
         if count != total as u64 {
-            return Err(format!("{count} tiles, expected {total}"));
+            return Err(StoreError::Count {
+                got: count,
+                expected: total,
+            });
         }
         let base = header + HASH + total * ENTRY;
-        let index_bytes = map.get(header + HASH..base).ok_or("index cut short")?;
+        let index_bytes = map.get(header + HASH..base).ok_or(StoreError::ShortIndex)?;
         let mut hasher = blake3::Hasher::new();
         hasher.update(head);
         hasher.update(index_bytes);
         if hasher.finalize().as_bytes() != &map[header..header + HASH] {
-            return Err("header or index damaged (hash mismatch)".into());
+            return Err(StoreError::Hash);
         }
         let payload_len = (map.len() - base) as u64;
         let mut index = Vec::with_capacity(total);
@@ -210,14 +267,17 @@ impl TileStore {
                 let len = u32::from_le_bytes(e[8..12].try_into().expect("4"));
                 let check = u64::from_le_bytes(e[12..].try_into().expect("8"));
                 if offset != end || len as usize > limit || len < 16 {
-                    return Err(format!("index entry {} out of order or size", index.len()));
+                    return Err(StoreError::Entry { at: index.len() });
                 }
                 end += u64::from(len);
                 index.push((offset, len, check));
             }
         }
         if end != payload_len {
-            return Err(format!("{payload_len} payload bytes, the index says {end}"));
+            return Err(StoreError::Payloads {
+                got: payload_len,
+                indexed: end,
+            });
         }
         let store = TileStore {
             layout,
@@ -232,7 +292,7 @@ impl TileStore {
         // rebuilt rather than served.
         let coarsest = layout.levels - 1;
         if let Err(e) = store.served_tile(coarsest, 0, 0) {
-            return Err(format!("the coarsest tile: {e}"));
+            return Err(StoreError::Coarsest(e));
         }
         let now = file.metadata().ok().map(|m| FileStamp::of(&m));
         if now.is_none_or(|now| !vouched(&stamp_path(path), now)) {
@@ -251,7 +311,7 @@ impl TileStore {
     /// Every payload against its check, on `threads` threads: why not, naming the first
     /// damaged tile. The tiles stay unverified for [`Self::served_tile`], which checks each
     /// again when first served (damage while the server runs).
-    fn check_whole(&self, threads: usize) -> Result<(), String> {
+    fn check_whole(&self, threads: usize) -> Result<(), StoreError> {
         let n = self.index.len();
         let per = n.div_ceil(threads.clamp(1, n.max(1))).max(1);
         let bad = std::thread::scope(|s| {
@@ -282,10 +342,7 @@ impl TileStore {
                     .expect("level 0 starts at 0");
                 let (at, side) = (i - self.first[usize::from(level)], self.layout.tiles(level));
                 let (x, z) = (at as u32 % side, at as u32 / side);
-                Err(format!(
-                    "tile ({x}, {z}) of level {level}: {}",
-                    TileError::Damaged { first: true }
-                ))
+                Err(StoreError::Damaged { x, z, level })
             }
         }
     }
@@ -391,13 +448,13 @@ impl TileStore {
 }
 
 /// Opens the `kind` cache in `dir`'s cache folder for a `cells` map in `tile` tiles
-/// built from the source keyed `key` (`Err(why)`: the source cannot be keyed, so nothing
-/// is cached), or makes the store with `make` (only then) and caches it.
+/// built from the source keyed `key` (`Err`: the source cannot be keyed, so nothing is
+/// cached), or makes the store with `make` (only then) and caches it.
 pub(crate) fn open_or_make<E>(
     dir: &Path,
     kind: &Kind,
     (cells, tile, threads): (u32, u32, usize),
-    key: Result<&[u8], String>,
+    key: Result<&[u8], Unkeyed>,
     make: impl FnOnce() -> Result<TileStore, E>,
 ) -> Result<(TileStore, CacheOutcome), E> {
     let path = cache_path(dir, kind);
@@ -415,7 +472,7 @@ pub(crate) fn open_or_make<E>(
     let store = make()?;
     let key = match key {
         Ok(key) => key,
-        Err(why) => return Ok((store, CacheOutcome::InMemory(why))),
+        Err(why) => return Ok((store, CacheOutcome::InMemory(why.to_string()))),
     };
     let outcome = match store.write(&path, kind, key) {
         Ok(()) => match stale {

@@ -27,6 +27,21 @@ use crate::terrain::backing::Backing;
 use crate::terrain::heightfield::Heightfield;
 use roam_protocol::bintree::{Diamond, Shape, Triangle, Vertex};
 
+/// Why codes kept in a cache file cannot be a tree ([`VarianceTree::from_codes`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum CodesError {
+    /// The grid's size (side − 1) is no power of two ≥ 2.
+    #[error("size: expected a power of two ≥ 2, got {0}")]
+    Size(u32),
+    /// Not [`VarianceTree::codes_len`] codes for the side.
+    #[error("expected {expected} codes for a side of {side}, got {got}")]
+    Count {
+        expected: usize,
+        side: u64,
+        got: usize,
+    },
+}
+
 /// Value of code 1: the smallest non-zero error the table can express, in sample units.
 const SMALLEST: f64 = 0.25;
 
@@ -130,17 +145,17 @@ impl VarianceTree {
     /// A tree over codes built earlier for a heightfield of `size + 1` samples a side (kept
     /// in a cache file), or why they cannot be: `size` not a power of two, or a count of
     /// codes that is not [`Self::codes_len`].
-    pub fn from_codes(size: u32, codes: Backing<u8>) -> Result<VarianceTree, String> {
+    pub fn from_codes(size: u32, codes: Backing<u8>) -> Result<VarianceTree, CodesError> {
         if size < 2 || !size.is_power_of_two() {
-            return Err(format!("size: expected a power of two ≥ 2, got {size}"));
+            return Err(CodesError::Size(size));
         }
         let (square_offset, rotated_offset, total) = layout(size);
         if codes.len() != total {
-            return Err(format!(
-                "expected {total} codes for a side of {}, got {}",
-                u64::from(size) + 1,
-                codes.len()
-            ));
+            return Err(CodesError::Count {
+                expected: total,
+                side: u64::from(size) + 1,
+                got: codes.len(),
+            });
         }
         Ok(VarianceTree {
             size,

@@ -50,7 +50,9 @@ mod lanes;
 pub mod queue;
 mod scratch;
 
-pub use coherent::{Coherent, CoherentStats, Mode, Step, fogged_error_px, measured_error};
+pub use coherent::{
+    AuditError, Coherent, CoherentStats, ListError, Mode, Step, fogged_error_px, measured_error,
+};
 pub use scratch::Scratch;
 
 use lanes::F4;

@@ -14,6 +14,8 @@
 
 use std::sync::Mutex;
 
+use roam_protocol::sync::lock;
+
 use super::{Tessellator, unpack};
 
 /// A pool of from-scratch tessellators for one map size.
@@ -35,10 +37,10 @@ impl Scratch {
     /// Runs `f` with a tessellator of the pool (a new one when all are lent), and puts it
     /// back.
     pub(crate) fn with<R>(&self, f: impl FnOnce(&mut Tessellator) -> R) -> R {
-        let taken = self.pool.lock().unwrap_or_else(|e| e.into_inner()).pop();
+        let taken = lock(&self.pool).pop();
         let mut t = taken.unwrap_or_else(|| Tessellator::new(self.side));
         let r = f(&mut t);
-        self.pool.lock().unwrap_or_else(|e| e.into_inner()).push(t);
+        lock(&self.pool).push(t);
         r
     }
 }

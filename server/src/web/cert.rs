@@ -22,8 +22,9 @@
 //!   says. The key is the one random thing: a fresh key pair from the system's source.
 
 use std::net::IpAddr;
-use std::sync::{Arc, RwLock};
+use std::sync::{Arc, Mutex};
 
+use roam_protocol::sync::lock;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, PrivatePkcs8KeyDer};
 use rustls::sign::CertifiedKey;
 
@@ -175,7 +176,9 @@ pub struct Renewed {
 #[derive(Debug)]
 pub struct CertStore {
     source: Source,
-    current: RwLock<Current>,
+    /// A mutex, not a read-write lock: it is held only to clone or replace a `Current`
+    /// (an `Arc` and a few bytes), once per TLS handshake.
+    current: Mutex<Current>,
 }
 
 impl CertStore {
@@ -184,7 +187,7 @@ impl CertStore {
         let current = Self::make(&names, now)?;
         Ok(CertStore {
             source: Source::Made(names),
-            current: RwLock::new(current),
+            current: Mutex::new(current),
         })
     }
 
@@ -201,7 +204,7 @@ impl CertStore {
         })?;
         Ok(CertStore {
             source: Source::Given,
-            current: RwLock::new(Current {
+            current: Mutex::new(Current {
                 key: Arc::new(certified),
                 sha256,
                 valid: None,
@@ -223,10 +226,7 @@ impl CertStore {
 
     /// The certificate presented now.
     pub fn current(&self) -> Current {
-        self.current
-            .read()
-            .unwrap_or_else(|e| e.into_inner())
-            .clone()
+        lock(&self.current).clone()
     }
 
     /// What a page passes as `serverCertificateHashes`: the made certificate's SHA-256, or
@@ -254,7 +254,7 @@ impl CertStore {
             old: old.sha256,
             new: new.sha256,
         };
-        *self.current.write().unwrap_or_else(|e| e.into_inner()) = new;
+        *lock(&self.current) = new;
         Ok(Some(renewed))
     }
 

@@ -361,3 +361,59 @@ fn files_re_hashed_since_they_last_changed_are_trusted_by_their_stamps() {
         got.notes
     );
 }
+
+/// Codes kept for a tree (`variance.bin`'s) that cannot be one are refused, naming the
+/// size or the count expected: a note, and the file rebuilt.
+#[test]
+fn codes_of_another_size_or_count_are_no_tree() {
+    use roam_server::terrain::backing::Backing;
+    use roam_server::terrain::variance::CodesError;
+    let n = VarianceTree::codes_len(8);
+    let cases = [
+        (
+            0,
+            1,
+            CodesError::Size(0),
+            "size: expected a power of two ≥ 2, got 0",
+        ),
+        (
+            1,
+            1,
+            CodesError::Size(1),
+            "size: expected a power of two ≥ 2, got 1",
+        ),
+        (
+            6,
+            1,
+            CodesError::Size(6),
+            "size: expected a power of two ≥ 2, got 6",
+        ),
+        (
+            8,
+            n - 1,
+            CodesError::Count {
+                expected: n,
+                side: 9,
+                got: n - 1,
+            },
+            &*format!("expected {n} codes for a side of 9, got {}", n - 1),
+        ),
+        (
+            8,
+            n + 1,
+            CodesError::Count {
+                expected: n,
+                side: 9,
+                got: n + 1,
+            },
+            &*format!("expected {n} codes for a side of 9, got {}", n + 1),
+        ),
+    ];
+    for (size, count, want, words) in cases {
+        let Err(got) = VarianceTree::from_codes(size, Backing::Owned(vec![0; count])) else {
+            panic!("{words}: a tree");
+        };
+        assert_eq!((got, got.to_string().as_str()), (want, words));
+    }
+    assert!(VarianceTree::from_codes(8, Backing::Owned(vec![0; n])).is_ok());
+}

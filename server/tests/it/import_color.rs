@@ -11,7 +11,7 @@ use std::path::Path;
 use crate::common;
 
 use common::{TempDir, check, png_claiming, root};
-use roam_server::terrain::colorimage::{Footprint, RgbImage, resample};
+use roam_server::terrain::colorimage::{Footprint, ResampleError, RgbImage, resample};
 use roam_server::terrain::dataset::Terrain;
 
 /// A `w × h` image of single-channel values (shown as `[v, v, v]`).
@@ -116,6 +116,72 @@ fn resampling_rule() {
             0, 10, 10, 10, 40, 50, 50, 50, 40, 50, 50, 50, 40, 50, 50, 50,
         ],
     );
+}
+
+/// What cannot be resampled is refused, saying what was given and what was expected.
+#[test]
+fn an_empty_image_a_window_off_the_raster_or_no_step_is_refused() {
+    let ok = footprint((5, 5), (0, 0, 5, 5), 1.0, 4);
+    let image = || grey(4, 4, &[0; 16]);
+    let short = RgbImage {
+        rgb: vec![[0; 3]; 15],
+        ..image()
+    };
+    let every_pixel = "expected at least 1 × 1, every pixel";
+    let mut cases = vec![
+        (
+            grey(0, 0, &[]),
+            ok,
+            ResampleError::Image {
+                width: 0,
+                height: 0,
+                pixels: 0,
+            },
+            format!("a 0 × 0 image of 0 pixels: {every_pixel}"),
+        ),
+        (
+            short,
+            ok,
+            ResampleError::Image {
+                width: 4,
+                height: 4,
+                pixels: 15,
+            },
+            format!("a 4 × 4 image of 15 pixels: {every_pixel}"),
+        ),
+    ];
+    let inside = "expected a window inside the raster and at least one cell";
+    for (window, cells, given) in [
+        (
+            (1, 0, 5, 5),
+            4,
+            "window 1,0 5 × 5 of a 5 × 5 raster, 4 cells",
+        ),
+        (
+            (0, 0, 0, 5),
+            4,
+            "window 0,0 0 × 5 of a 5 × 5 raster, 4 cells",
+        ),
+        (
+            (0, 0, 5, 5),
+            0,
+            "window 0,0 5 × 5 of a 5 × 5 raster, 0 cells",
+        ),
+    ] {
+        let off = footprint((5, 5), window, 1.0, cells);
+        let want = ResampleError::Window(off);
+        cases.push((image(), off, want, format!("{given}: {inside}")));
+    }
+    for (x, y, given) in [(1.0, 0.0, "1 × 0"), (-1.0, 1.0, "-1 × 1")] {
+        let step = Footprint { step: (x, y), ..ok };
+        let want = ResampleError::Step { x, y };
+        let words = format!("{given} samples a cell: expected numbers > 0");
+        cases.push((image(), step, want, words));
+    }
+    for (image, footprint, want, words) in cases {
+        let got = resample(&image, &footprint, &mut |_, _| {}).expect_err(&words);
+        assert_eq!((got.to_string(), &got), (words, &want));
+    }
 }
 
 /// A PNG of `width × height` pixels.

@@ -132,7 +132,8 @@ fn walk(case: &PathCase, margin: u16) -> Result<Vec<f32>, String> {
         {
             return Err(fail("the change logs do not add up to the cut".into()));
         }
-        a.audit(&hf, &vt, scales(), &cam, limits).map_err(&fail)?;
+        a.audit(&hf, &vt, scales(), &cam, limits)
+            .map_err(|e| fail(e.to_string()))?;
         a.mesh(&pool, &mut mesh);
         check_mesh(&mesh.vertices, &mesh.indices, hf.size()).map_err(|e| fail(e.to_string()))?;
         if mesh.triangle_count() != a.triangles() as usize || a.triangles() > budget.max(2) {

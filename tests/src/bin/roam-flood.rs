@@ -21,6 +21,7 @@ use clap::Parser;
 use roam_client::headless::{self, ViewerOptions};
 use roam_protocol::messages::Role;
 use roam_protocol::stats::quantile;
+use roam_protocol::sync::lock;
 use roam_tests::flood::{self, Flood};
 
 #[derive(Parser)]
@@ -75,7 +76,7 @@ async fn main() -> Result<()> {
             loop {
                 every.tick().await;
                 if let Some(now) = rss(&pid) {
-                    let mut p = peak.lock().unwrap_or_else(|e| e.into_inner());
+                    let mut p = lock(&peak);
                     *p = p.max(now);
                 }
             }
@@ -108,7 +109,7 @@ async fn main() -> Result<()> {
     let out = junk.await.context("the flood")??;
     let seconds = started.elapsed().as_secs_f64();
     sampler.abort();
-    let peak = *peak.lock().unwrap_or_else(|e| e.into_inner());
+    let peak = *lock(&peak);
     let mut close_ms: Vec<f64> = out.closed_after_ms.iter().map(|&(_, m)| m as f64).collect();
     close_ms.sort_by(f64::total_cmp);
     // The slowest close by how it ended: a late one that ended by a timeout is a close

@@ -6,6 +6,7 @@
 use std::collections::{BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 use std::process::Command;
+use std::sync::Arc;
 
 use super::code::{Code, rust_files};
 use super::markdown::{flags, help_flags};
@@ -32,12 +33,37 @@ impl Help {
     }
 }
 
+/// Why a binary could not be asked for its `--help`. `Clone` (an error is kept as each
+/// answer is, and given again): the operating system's errors are shared.
+#[derive(Clone, Debug, thiserror::Error)]
+pub enum BinaryError {
+    #[error("no package has a binary `{name}`")]
+    NoPackage { name: String },
+    /// The running test is not in `target/PROFILE/deps`.
+    #[error("no target directory")]
+    NoTarget,
+    #[error("running cargo: {0}")]
+    Cargo(Arc<std::io::Error>),
+    /// `cargo build` failed (`stderr`: what it said).
+    #[error("cargo build -p {package} --bin {name} failed: {stderr}")]
+    Build {
+        package: String,
+        name: String,
+        stderr: String,
+    },
+    #[error("running {}: {error}", bin.display())]
+    Run {
+        bin: PathBuf,
+        error: Arc<std::io::Error>,
+    },
+}
+
 /// The workspace's binaries, run for their `--help`.
 pub struct Binaries<'a> {
     code: &'a Code,
     /// `target/PROFILE`, where the running test and the binaries are.
     dir: PathBuf,
-    helps: HashMap<(String, String), Result<Help, String>>,
+    helps: HashMap<(String, String), Result<Help, BinaryError>>,
 }
 
 fn modified(p: &Path) -> Option<std::time::SystemTime> {
@@ -62,10 +88,12 @@ impl Binaries<'_> {
 
     /// The path of binary `name`, built first when missing or older than its package's
     /// sources or manifest.
-    fn path(&self, name: &str) -> Result<PathBuf, String> {
+    fn path(&self, name: &str) -> Result<PathBuf, BinaryError> {
         let pkg = (self.code.packages.iter())
             .find(|p| p.bins.iter().any(|b| b == name))
-            .ok_or_else(|| format!("no package has a binary `{name}`"))?;
+            .ok_or_else(|| BinaryError::NoPackage {
+                name: name.to_owned(),
+            })?;
         let bin = self.dir.join(name);
         let mut sources = Vec::new();
         rust_files(&pkg.dir.join("src"), &mut sources);
@@ -75,7 +103,7 @@ impl Binaries<'_> {
             return Ok(bin);
         }
         let cargo = std::env::var_os("CARGO").unwrap_or_else(|| env!("CARGO").into());
-        let target = self.dir.parent().ok_or("no target directory")?;
+        let target = self.dir.parent().ok_or(BinaryError::NoTarget)?;
         let mut cmd = Command::new(cargo);
         cmd.current_dir(&self.code.root)
             .args(["build", "--quiet", "-p", &pkg.name, "--bin", name])
@@ -90,19 +118,19 @@ impl Binaries<'_> {
                 cmd.args(["--profile", other]);
             }
         }
-        let out = cmd.output().map_err(|e| format!("running cargo: {e}"))?;
+        let out = cmd.output().map_err(|e| BinaryError::Cargo(Arc::new(e)))?;
         if !out.status.success() {
-            return Err(format!(
-                "cargo build -p {} --bin {name} failed: {}",
-                pkg.name,
-                String::from_utf8_lossy(&out.stderr)
-            ));
+            return Err(BinaryError::Build {
+                package: pkg.name.clone(),
+                name: name.to_owned(),
+                stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+            });
         }
         Ok(bin)
     }
 
     /// What `name [sub] --help` says, or why it could not be run.
-    pub fn help(&mut self, name: &str, sub: &str) -> Result<Help, String> {
+    pub fn help(&mut self, name: &str, sub: &str) -> Result<Help, BinaryError> {
         let key = (name.to_owned(), sub.to_owned());
         if let Some(h) = self.helps.get(&key) {
             return h.clone();
@@ -112,7 +140,10 @@ impl Binaries<'_> {
                 .args(sub.split_whitespace())
                 .arg("--help")
                 .output()
-                .map_err(|e| format!("running {}: {e}", bin.display()))?;
+                .map_err(|error| BinaryError::Run {
+                    bin: bin.clone(),
+                    error: Arc::new(error),
+                })?;
             let mut text = String::from_utf8_lossy(&out.stdout).into_owned();
             text.push_str(&String::from_utf8_lossy(&out.stderr));
             Ok(Help {
@@ -130,7 +161,7 @@ impl Binaries<'_> {
     pub fn check(&mut self, name: &str, args: &[String]) -> Vec<String> {
         let top = match self.help(name, "") {
             Ok(h) => h,
-            Err(e) => return vec![e],
+            Err(e) => return vec![e.to_string()],
         };
         let words: Vec<String> = args.iter().take_while(|w| *w != "--").cloned().collect();
         let at = (top.ok && top.text.contains("\nCommands:"))
@@ -150,7 +181,7 @@ impl Binaries<'_> {
             s => match self.help(name, s) {
                 Ok(h) if h.ok => h,
                 Ok(_) => return vec![format!("`{name} {s}`: no such subcommand")],
-                Err(e) => return vec![e],
+                Err(e) => return vec![e.to_string()],
             },
         };
         let mut bad = Vec::new();

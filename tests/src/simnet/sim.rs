@@ -9,9 +9,7 @@ use std::time::{Duration, Instant};
 
 use roam_client::core::{ClientCore, KeyCore, Received};
 use roam_protocol::keys::KeyStep;
-use roam_protocol::messages::{
-    self, ClientMessage, Hello, Reason, Role, VERSION, ViewChange, Welcome,
-};
+use roam_protocol::messages::{self, ClientMessage, Reason, Role, ViewChange, Welcome};
 use roam_protocol::script::Script;
 use roam_server::Terrain;
 use roam_server::sim::world::{VehicleId, World};
@@ -82,17 +80,15 @@ impl Sim {
             SplitMix64::new(self.seed ^ ((id as u64) << 32) ^ k.wrapping_mul(0x5851_f42d_4c95_7f2d))
                 .next_u64()
         };
-        let hello = Hello {
-            version: VERSION,
+        let hello = roam_client::conversation::hello(
             role,
-            token: "simnet".into(),
-            viewport: VIEWPORT,
-            fov_y_deg: FOV_Y_DEG,
-            budget: messages::clamp_budget(budget),
-            frame_rate: FRAME_RATE,
-            resume: None,
-            color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-        };
+            "simnet".into(),
+            VIEWPORT,
+            FOV_Y_DEG,
+            messages::clamp_budget(budget),
+            FRAME_RATE,
+            roam_client::render::native_max_texture(),
+        );
         let mut v = Viewer {
             up: Wire::new(path.up, seed(1)),
             down: Wire::new(path.down, seed(2)),

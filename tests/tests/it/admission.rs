@@ -11,25 +11,16 @@
 
 use std::time::Duration;
 
+use roam_client::conversation::ConversationError;
 use roam_client::session::{KeySource, Session};
 use roam_link::wire;
-use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION};
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage};
 use roam_tests::fixtures::{self, Running, flat};
 
 use crate::ONE_AT_A_TIME;
 
 fn hello(r: &Running, role: Role, budget: u32, frame_rate: u16) -> Hello {
-    Hello {
-        version: VERSION,
-        role,
-        token: r.token.clone(),
-        viewport: [640, 360],
-        fov_y_deg: 60.0,
-        budget,
-        frame_rate,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    fixtures::hello(role, &r.token, [640, 360], budget, frame_rate)
 }
 
 /// A raw connection that said hello, its control stream kept open (dropping it would say
@@ -152,7 +143,11 @@ async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
     assert!(why.contains("--max-memory"), "{why}");
     assert!(why.contains("65536 triangles"), "{why}");
     let shown = roam_client::conversation::welcome_of(third.answer.clone()).expect_err("refused");
-    assert!(shown.contains("--max-memory"), "{shown}");
+    assert!(
+        matches!(&shown, ConversationError::Refused(Reason::Unavailable(w)) if w == why),
+        "{shown:?}"
+    );
+    assert!(shown.to_string().contains("--max-memory"), "{shown}");
     assert_eq!(r.server.counts().refused, 1);
     assert_eq!(r.server.load().1, 2);
     // A viewer asking few triangles still fits in what is left ...

@@ -13,7 +13,7 @@ use std::time::Duration;
 
 use roam_client::headless;
 use roam_link::wire;
-use roam_protocol::messages::{ClientMessage, Hello, MAX_MESSAGE, Role, ServerMessage, VERSION};
+use roam_protocol::messages::{ClientMessage, MAX_MESSAGE, Role, ServerMessage};
 use roam_protocol::{colormap, normals};
 use roam_server::net::Options;
 use roam_tests::fixtures;
@@ -46,18 +46,18 @@ async fn the_coarsest_tile_comes_before_the_first_frame_then_the_windows_fill() 
         .await
         .expect("connects");
     let (mut send, mut recv) = conn.open_bi().await.expect("a stream");
-    let hello = Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: r.token.clone(),
-        viewport: [1280, 720],
-        fov_y_deg: 60.0,
-        budget: 4_000,
-        frame_rate: 30,
-        resume: None,
-        // Less than the server's 6: the server uses the viewer's.
-        color_window: 4,
-    };
+    // A window of 4, less than the server's 6 (the server uses the viewer's): the window
+    // of a device whose textures are 4 tiles a side at most.
+    let hello = roam_client::conversation::hello(
+        Role::Driver,
+        r.token.clone(),
+        [1280, 720],
+        60.0,
+        4_000,
+        30,
+        4 * roam_protocol::tiles::DEFAULT_TILE,
+    );
+    assert_eq!(hello.color_window, 4);
     wire::write(&mut send, &ClientMessage::Hello(hello))
         .await
         .expect("sends");

@@ -7,7 +7,7 @@ use std::time::Duration;
 use roam_client::headless::{self, ViewerOptions, ViewerStats};
 use roam_client::session::{KeySource, Session, Taken};
 use roam_link::wire;
-use roam_protocol::messages::{ClientMessage, Hello, Role, VERSION, ViewChange, close};
+use roam_protocol::messages::{ClientMessage, Hello, Role, ViewChange, close};
 use roam_protocol::script;
 use roam_server::Terrain;
 use roam_server::net::Options;
@@ -110,17 +110,7 @@ async fn a_wrong_token_or_fingerprint_is_refused() {
 
 /// A driver's hello with `budget`.
 fn driver_hello(r: &Running, budget: u32) -> Hello {
-    Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: r.token.clone(),
-        viewport: [1280, 720],
-        fov_y_deg: 60.0,
-        budget,
-        frame_rate: 60,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    fixtures::hello(Role::Driver, &r.token, [1280, 720], budget, 60)
 }
 
 /// A connection that says hello as a driver and then never reads a frame.

@@ -12,9 +12,7 @@ use std::time::Duration;
 use roam_client::session::{KeySource, Patience, Session, State, Taken};
 use roam_link::{tls, wire};
 use roam_protocol::ColorLayout;
-use roam_protocol::messages::{
-    self, ClientMessage, Hello, Reason, Role, ServerMessage, VERSION, Welcome,
-};
+use roam_protocol::messages::{self, ClientMessage, Hello, Reason, ServerMessage, Welcome};
 use roam_tests::fixtures::key_frame;
 
 /// What the fake server sends after reading the hello.
@@ -158,17 +156,7 @@ async fn bounded<T>(f: impl std::future::Future<Output = T>) -> T {
 }
 
 fn hello() -> Hello {
-    Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: "t".into(),
-        viewport: [640, 480],
-        fov_y_deg: 60.0,
-        budget: 4_000,
-        frame_rate: 60,
-        resume: None,
-        color_window: 8,
-    }
+    roam_tests::fixtures::driver_hello("t")
 }
 
 /// Joining a server that says `script` fails with an error containing `want`.

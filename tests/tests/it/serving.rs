@@ -11,26 +11,14 @@
 use std::time::Duration;
 
 use roam_link::wire;
-use roam_protocol::messages::{
-    self, ClientMessage, Hello, Role, ServerMessage, VERSION, Welcome, close,
-};
+use roam_protocol::messages::{self, ClientMessage, Hello, Role, ServerMessage, Welcome, close};
 use roam_tests::fixtures::{self, Running, flat};
 
 /// A hang guard only: every wait below ends on a count long before it.
 const HANG: Duration = Duration::from_secs(60);
 
 fn driver(r: &Running) -> Hello {
-    Hello {
-        version: VERSION,
-        role: Role::Driver,
-        token: r.token.clone(),
-        viewport: [640, 360],
-        fov_y_deg: 60.0,
-        budget: messages::MIN_BUDGET,
-        frame_rate: 60,
-        resume: None,
-        color_window: roam_protocol::tiles::DEFAULT_WINDOW,
-    }
+    fixtures::hello(Role::Driver, &r.token, [640, 360], messages::MIN_BUDGET, 60)
 }
 
 /// A raw viewer past its welcome, its control stream kept.

@@ -7,7 +7,8 @@ use std::time::{Duration, Instant};
 
 use roam_client::conversation::TerrainId;
 use roam_client::supervisor::{
-    Attempt, BACKOFF_FIRST, End, HANDSHAKE, HANDSHAKE_MANY, Patience, SILENCE, State, Supervisor,
+    Attempt, BACKOFF_FIRST, End, HANDSHAKE, HANDSHAKE_MANY, Lost, Patience, SILENCE, SessionEnd,
+    State, Supervisor,
 };
 use roam_protocol::messages::Welcome;
 use roam_protocol::tiles::ColorLayout;
@@ -37,6 +38,14 @@ fn lost(why: &str) -> End {
     }
 }
 
+/// The loss of `a:1`, for `why`.
+fn lost_at_a(why: &str) -> Lost {
+    Lost {
+        from: "a:1".into(),
+        why: why.into(),
+    }
+}
+
 fn ms(n: u64) -> Duration {
     Duration::from_millis(n)
 }
@@ -48,16 +57,16 @@ fn a_quit_a_final_end_or_a_lone_shutdown_ends_the_session() {
     let mut s = Supervisor::new(Patience::default(), terrain(1.0));
     assert_eq!(
         s.ended(End::Quit, &"a", 0, false, 0, t0),
-        Err("quit".into())
+        Err(SessionEnd::Quit)
     );
     let why = "the server is shutting down: bye".to_owned();
     assert_eq!(
         s.ended(End::Shutdown(why.clone()), &"a", 0, false, 0, t0),
-        Err(why.clone())
+        Err(SessionEnd::Final(why.clone()))
     );
     assert_eq!(
         s.ended(End::Final("refused".into()), &"a", 0, true, 0, t0),
-        Err("refused".into())
+        Err(SessionEnd::Final("refused".into()))
     );
     assert_eq!(s.state(), State::Connected);
     // With another address a shutdown is a loss: another edge takes the viewer.
@@ -116,6 +125,16 @@ fn attempts_back_off_from_100_ms_to_2_s_until_the_time_is_up() {
     assert_eq!(pauses, [100, 200, 400, 800, 1600, 2000, 2000, 2000].map(ms));
     assert_eq!(
         why,
+        SessionEnd::TimeUp {
+            lost: lost_at_a("reset"),
+            secs: 10,
+            attempts,
+            addr: "a:1".into(),
+            message: "timed out".into(),
+        }
+    );
+    assert_eq!(
+        why.to_string(),
         format!(
             "lost the server at a:1: reset; tried to reconnect for 10 s ({attempts} attempts; \
              the last: a:1: timed out)"
@@ -147,9 +166,20 @@ fn a_refusal_or_another_terrain_ends_the_reconnection_and_the_same_terrain_ends_
     s.ended(lost("reset"), &"a:1", 0, false, 0, t0)
         .expect("a loss");
     s.attempt(false);
+    let refused = s
+        .failed(&"a:1", false, "refused: wrong token", t0)
+        .expect_err("a refusal");
     assert_eq!(
-        s.failed(&"a:1", false, "refused: wrong token", t0),
-        Err("lost the server at a:1: reset; reconnecting to a:1: refused: wrong token".into())
+        refused,
+        SessionEnd::Refused {
+            lost: lost_at_a("reset"),
+            addr: "a:1".into(),
+            message: "refused: wrong token".into(),
+        }
+    );
+    assert_eq!(
+        refused.to_string(),
+        "lost the server at a:1: reset; reconnecting to a:1: refused: wrong token"
     );
     let mut s = Supervisor::new(Patience::default(), terrain(1.0));
     s.ended(lost("reset"), &"a:1", 0, false, 0, t0)
@@ -157,7 +187,12 @@ fn a_refusal_or_another_terrain_ends_the_reconnection_and_the_same_terrain_ends_
     s.attempt(false);
     let err = s.joined(&terrain(2.0)).expect_err("another terrain");
     assert!(
-        err.starts_with("lost the server at a:1: reset; the server changed its terrain: scales 2"),
+        matches!(&err, SessionEnd::TerrainChanged { lost: Some(l), .. } if *l == lost_at_a("reset")),
+        "{err:?}"
+    );
+    assert!(
+        err.to_string()
+            .starts_with("lost the server at a:1: reset; the server changed its terrain: scales 2"),
         "{err}"
     );
     let mut s = Supervisor::new(Patience::default(), terrain(1.0));
@@ -184,8 +219,9 @@ fn a_server_silent_twice_with_no_frame_between_ends_the_session() {
     let err = s
         .ended(silence(), &"a:1", 0, false, 5, t0)
         .expect_err("twice");
+    assert!(matches!(&err, SessionEnd::SilentAgain { addr, .. } if addr == "a:1"));
     assert_eq!(
-        err,
+        err.to_string(),
         "lost the server at a:1: silent: no frame or message from the server for 1.0 s, again \
          right after reconnecting, with no frame between: the server welcomes but sends nothing"
     );
@@ -197,4 +233,49 @@ fn a_server_silent_twice_with_no_frame_between_ends_the_session() {
     // A loss that is not a silence is not counted.
     s.ended(lost("reset"), &"a:1", 0, false, 6, t0)
         .expect("not a silence");
+}
+
+/// How each end of a session reads: the words the window and the page show.
+#[test]
+fn every_end_of_a_session_names_the_server_and_why() {
+    let cases = [
+        (SessionEnd::Quit, "quit"),
+        (
+            SessionEnd::Final("refused: wrong token".into()),
+            "refused: wrong token",
+        ),
+        (
+            SessionEnd::Connecting {
+                addr: "a:1".into(),
+                message: "timed out".into(),
+            },
+            "connecting to a:1: timed out",
+        ),
+        (
+            SessionEnd::TerrainChanged {
+                lost: None,
+                differences: "another colour map".into(),
+            },
+            "the server changed its terrain: another colour map",
+        ),
+        (
+            SessionEnd::TerrainChanged {
+                lost: Some(lost_at_a("reset")),
+                differences: "another colour map".into(),
+            },
+            "lost the server at a:1: reset; the server changed its terrain: another colour map",
+        ),
+    ];
+    for (end, words) in cases {
+        assert_eq!(end.to_string(), words);
+    }
+    // The first join's failure, before any loss, names the address tried.
+    let mut s = Supervisor::new(Patience::default(), terrain(1.0));
+    assert_eq!(
+        s.failed(&"a:1", true, "timed out", Instant::now()),
+        Err(SessionEnd::Connecting {
+            addr: "a:1".into(),
+            message: "timed out".into(),
+        })
+    );
 }

@@ -4,7 +4,7 @@
 //! ([`ending`], [`end_of`]: worth connecting again, the server shutting down, or final).
 
 use roam_client::color_cache::{ColorCache, Keep};
-use roam_client::conversation::{self, Joining};
+use roam_client::conversation::{self, ConversationError, Joining};
 use roam_client::edges::WebEdge;
 use roam_client::supervisor::{End, JOIN_TIMEOUT, secs};
 use roam_protocol::messages::{ClientMessage, Hello, ServerMessage, Welcome, WorldNews, close};
@@ -88,7 +88,7 @@ pub async fn join(edge: &WebEdge, hello: Hello, handshake: Duration) -> Result<J
     };
     let url =
         url::Url::parse(&edge.url).map_err(|e| fatal(format!("the address {}: {e}", edge.url)))?;
-    let hashes = page::hash_bytes(&edge.hashes).map_err(fatal)?;
+    let hashes = page::hash_bytes(&edge.hashes).map_err(|e| fatal(e.to_string()))?;
     let builder = ClientBuilder::new().with_unreliable(true);
     let client = if hashes.is_empty() {
         builder.with_system_roots()
@@ -140,9 +140,9 @@ type Greeted = (SendStream, Reader, Welcome, ColorCache, Vec<WorldNews>);
 
 /// The hello on a new session, the welcome and the colour messages up to the coarsest tile.
 async fn greet(session: &Session, hello: Hello) -> Result<Greeted, JoinError> {
-    let fatal = |message: String| JoinError {
+    let fatal = |e: ConversationError| JoinError {
         lost: false,
-        message,
+        message: e.to_string(),
     };
     let asked = hello.color_window;
     let (mut send, recv) = match session.open_bi().await {
@@ -166,7 +166,7 @@ async fn greet(session: &Session, hello: Hello) -> Result<Greeted, JoinError> {
         let msg = match recv.message::<ServerMessage>().await {
             Ok(Some(m)) => m,
             Ok(None) => return Err(failed_on(session, "the control stream ended".into()).await),
-            Err(e) => return Err(failed_on(session, e).await),
+            Err(e) => return Err(failed_on(session, e.to_string()).await),
         };
         if let Some(cache) = joining.apply(&msg).map_err(fatal)? {
             return Ok((send, recv, welcome, cache, joining.take_news()));

@@ -16,11 +16,12 @@ use std::time::Duration;
 
 use futures_util::StreamExt;
 use roam_protocol::bus::{Answer, Ask, Subjects};
+use roam_protocol::sync::lock;
 use tokio::sync::oneshot;
 
+use super::BusError;
 use super::seal::{BusKey, Header, Kind, Refusal, RefusedCounts};
 use super::voice::{Ear, Voice};
-use super::{BusError, lock};
 
 /// How long one request waits for the world's answer.
 pub const ASK_TIMEOUT: Duration = Duration::from_secs(2);

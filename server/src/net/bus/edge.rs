@@ -30,12 +30,13 @@ use std::time::Duration;
 use futures_util::StreamExt;
 use roam_protocol::bus::{self as wire, Answer, Ask, DriverKeys, Keys, MAX_BATCH, Subjects};
 use roam_protocol::messages::Ticket;
+use roam_protocol::sync::lock;
 use tokio::sync::{mpsc, oneshot, watch};
 
 use super::asker::Asker;
 use super::seal::{BusKey, Header, Kind, Refusal, Refused, RefusedCounts};
 use super::voice::{Ear, count};
-use super::{BusError, BusOptions, from_wire, lock};
+use super::{BusError, BusOptions, from_wire};
 use crate::Terrain;
 use crate::net::world_loop::Inbound;
 use crate::sim::world::{VehicleId, World};
@@ -69,6 +70,45 @@ pub struct News {
     pub edges: Vec<String>,
     /// Times the world was found restarted (another process answering).
     pub restarts: u32,
+}
+
+/// Why the world did not do what an edge asked of it (a join, a resume, a replay control).
+#[derive(Debug, thiserror::Error)]
+pub enum AskError {
+    /// The world refused, in its own words.
+    #[error("{0}")]
+    Refused(String),
+    /// The world answered with another answer than the request's (`asked`: `join`,
+    /// `resume`, `replay control`).
+    #[error("the world answered a {asked} with {answer:?}")]
+    Unexpected {
+        asked: &'static str,
+        answer: Box<Answer>,
+    },
+    /// The bus failed before an answer came.
+    #[error(transparent)]
+    Bus(#[from] BusError),
+    /// The queue of requests to the world is full.
+    #[error("the world has stopped answering (too many requests queued)")]
+    Busy,
+    #[error("the edge is stopping")]
+    Stopping,
+}
+
+/// What the world answered a request (`asked`, as [`AskError::Unexpected`] names it) with:
+/// what `take` finds in the answer the request expects, or why there is none.
+fn answer_of<T>(
+    asked: &'static str,
+    answer: Result<Answer, BusError>,
+    take: impl FnOnce(&Answer) -> Option<T>,
+) -> Result<T, AskError> {
+    match answer? {
+        Answer::Refused { reason } => Err(AskError::Refused(reason)),
+        other => take(&other).ok_or_else(|| AskError::Unexpected {
+            asked,
+            answer: Box::new(other),
+        }),
+    }
 }
 
 /// The world as an edge reaches it.
@@ -294,19 +334,15 @@ impl Remote {
     pub async fn replay_control(
         &self,
         c: roam_protocol::messages::ReplayControl,
-    ) -> Result<(), String> {
-        match self.asker.ask(&Ask::Replay(c)).await {
-            Ok(Answer::Done) => Ok(()),
-            Ok(Answer::Refused { reason }) => Err(reason),
-            Ok(other) => Err(format!(
-                "the world answered a replay control with {other:?}"
-            )),
-            Err(e) => Err(e.to_string()),
-        }
+    ) -> Result<(), AskError> {
+        let answer = self.asker.ask(&Ask::Replay(c)).await;
+        answer_of("replay control", answer, |a| {
+            (*a == Answer::Done).then_some(())
+        })
     }
 
     /// A new vehicle for a driver, its ticket and its claim; `Err` says why not.
-    pub async fn join(&self) -> Result<(VehicleId, Ticket, u64), String> {
+    pub async fn join(&self) -> Result<(VehicleId, Ticket, u64), AskError> {
         let mut asked = self.asker.ask(&Ask::Join).await;
         // Asked of a world process gone (restarted, not yet confirmed by a hello): the
         // world now is asked who it is, and the join asked of it once more.
@@ -314,38 +350,32 @@ impl Remote {
             say_hello(self).await;
             asked = self.asker.ask(&Ask::Join).await;
         }
-        match asked {
-            Ok(Answer::Joined {
+        let (vehicle, ticket, claim) = answer_of("join", asked, |a| match *a {
+            Answer::Joined {
                 vehicle,
                 ticket,
                 claim,
-            }) => {
-                lock(&self.driven).insert(vehicle, claim);
-                Ok((vehicle, ticket, claim))
-            }
-            Ok(Answer::Refused { reason }) => Err(reason),
-            Ok(other) => Err(format!("the world answered a join with {other:?}")),
-            Err(e) => Err(e.to_string()),
-        }
+            } => Some((vehicle, ticket, claim)),
+            _ => None,
+        })?;
+        lock(&self.driven).insert(vehicle, claim);
+        Ok((vehicle, ticket, claim))
     }
 
     /// The held vehicle `ticket` names, given back, and its new claim; `Err` says why
     /// not. Asked after every leave and hold told before it.
-    pub async fn resume(&self, ticket: Ticket) -> Result<(VehicleId, u64), String> {
+    pub async fn resume(&self, ticket: Ticket) -> Result<(VehicleId, u64), AskError> {
         let (tx, rx) = oneshot::channel();
-        self.tells.try_send(Tell::Resume(ticket, tx)).map_err(|_| {
-            "the world has stopped answering (too many requests queued)".to_string()
+        self.tells
+            .try_send(Tell::Resume(ticket, tx))
+            .map_err(|_| AskError::Busy)?;
+        let answer = rx.await.map_err(|_| AskError::Stopping)?;
+        let (vehicle, claim) = answer_of("resume", answer, |a| match *a {
+            Answer::Resumed { vehicle, claim } => Some((vehicle, claim)),
+            _ => None,
         })?;
-        match rx.await {
-            Ok(Ok(Answer::Resumed { vehicle, claim })) => {
-                lock(&self.driven).insert(vehicle, claim);
-                Ok((vehicle, claim))
-            }
-            Ok(Ok(Answer::Refused { reason })) => Err(reason),
-            Ok(Ok(other)) => Err(format!("the world answered a resume with {other:?}")),
-            Ok(Err(e)) => Err(e.to_string()),
-            Err(_) => Err("the edge is stopping".into()),
-        }
+        lock(&self.driven).insert(vehicle, claim);
+        Ok((vehicle, claim))
     }
 
     /// A driver here is gone from `vehicle` (its claim `claim`): held, counted from
@@ -637,5 +667,57 @@ async fn take_snapshots(remote: Arc<Remote>, snapshots: Arc<watch::Sender<Arc<Sn
             .replay
             .send_if_modified(|r| std::mem::replace(r, s.replay) != s.replay);
         snapshots.send_replace(from_wire(s));
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use roam_protocol::bus::Answer;
+
+    use super::{AskError, BusError, answer_of};
+
+    /// An error's kind, by name.
+    fn kind(e: &AskError) -> &'static str {
+        match e {
+            AskError::Refused(_) => "refused",
+            AskError::Unexpected { .. } => "unexpected",
+            AskError::Bus(_) => "bus",
+            AskError::Busy => "busy",
+            AskError::Stopping => "stopping",
+        }
+    }
+
+    /// A join's answer: the vehicle the world gave, or why not, in the words a refused
+    /// viewer reads.
+    #[test]
+    fn an_answer_is_taken_or_says_why_not() {
+        let joined = |a: &Answer| match *a {
+            Answer::Joined { vehicle, .. } => Some(vehicle),
+            _ => None,
+        };
+        let refused = Answer::Refused {
+            reason: "no vehicle free".into(),
+        };
+        let lost = BusError::Nats {
+            what: "a request",
+            error: "no responders".into(),
+        };
+        let joined_7 = Answer::Joined {
+            vehicle: 7,
+            ticket: [1; 16],
+            claim: 9,
+        };
+        for (answer, want) in [
+            (Ok(joined_7), Ok(7)),
+            (Ok(refused), Err(("no vehicle free", "refused"))),
+            (
+                Ok(Answer::Done),
+                Err(("the world answered a join with Done", "unexpected")),
+            ),
+            (Err(lost), Err(("NATS (a request): no responders", "bus"))),
+        ] {
+            let got = answer_of("join", answer, joined).map_err(|e| (e.to_string(), kind(&e)));
+            assert_eq!(got, want.map_err(|(words, kind)| (words.to_owned(), kind)));
+        }
     }
 }

@@ -353,10 +353,6 @@ pub fn from_wire(s: wire::Snapshot) -> Arc<Snapshot> {
     })
 }
 
-pub(crate) fn lock<T>(m: &std::sync::Mutex<T>) -> std::sync::MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 /// Encodes a bus message (they are small and bounded: encoding cannot fail).
 pub(crate) fn encode<T: serde::Serialize>(msg: &T) -> bytes::Bytes {
     let mut out = Vec::new();

@@ -34,12 +34,13 @@ use std::time::{Duration, Instant};
 
 use futures_util::StreamExt;
 use roam_protocol::bus::{Answer, Ask, Keys, MAX_EDGES, Subjects};
+use roam_protocol::sync::lock;
 use tokio::sync::{oneshot, watch};
 
 use super::drivers::Drivers;
 use super::seal::{BusKey, Kind, Refused, RefusedCounts};
 use super::voice::{Ear, Voice, count};
-use super::{BusError, BusOptions, lock};
+use super::{BusError, BusOptions};
 use crate::Terrain;
 use crate::net::world_loop::{self, Inbound, WorldStats};
 use crate::sim::session::RecordOptions;

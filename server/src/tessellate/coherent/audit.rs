@@ -3,6 +3,7 @@
 //! same way for any cut ([`measured_error`]; [`fogged_error_px`] through the viewer's fog,
 //! whichever priority chose the cut): for tests and benchmarks.
 
+use super::audit_error::AuditError;
 use super::eval::fixed;
 use super::frontier::Frontier;
 use super::frontier::{Member, UNDER, WANTED};
@@ -30,7 +31,7 @@ impl Coherent {
         scales: Scales,
         camera: &Camera,
         limits: Limits,
-    ) -> Result<(), String> {
+    ) -> Result<(), AuditError> {
         let split: Vec<u32> = self.split_diamonds().map(|(x, z)| pack(x, z)).collect();
         let is_split = |p: u32| self.split.contains(p);
         let mut triangles = 2;
@@ -43,11 +44,10 @@ impl Coherent {
                 .flatten()
                 .find(|&q| !is_split(q))
             {
-                return Err(format!(
-                    "split {:?} has the unsplit parent {:?}",
-                    unpack(p),
-                    unpack(q)
-                ));
+                return Err(AuditError::UnsplitParent {
+                    split: unpack(p),
+                    parent: unpack(q),
+                });
             }
             triangles += self.added(x, z);
             let children: Vec<u32> = self.children(x, z).into_iter().flatten().collect();
@@ -60,12 +60,12 @@ impl Coherent {
             splits.push(self.root());
         }
         if (triangles, split.len() as u32) != (self.triangles, self.split_count) {
-            return Err(format!(
-                "{} triangles and {} splits counted, {triangles} and {} in the cut",
-                self.triangles,
-                self.split_count,
-                split.len()
-            ));
+            return Err(AuditError::Counts {
+                triangles: self.triangles,
+                splits: self.split_count,
+                cut_triangles: triangles,
+                cut_splits: split.len(),
+            });
         }
         let sorted = |v: &[u32]| {
             let mut v = v.to_vec();
@@ -73,13 +73,13 @@ impl Coherent {
             v.dedup();
             v
         };
-        for (name, fr, want) in [
+        for (frontier, fr, want) in [
             ("split", &self.splits, &splits),
             ("merge", &self.merges, &merges),
         ] {
             let kept: Vec<u32> = fr.members().map(|m| m.pos).collect();
             if sorted(&kept).len() != kept.len() {
-                return Err(format!("{name} candidates listed twice"));
+                return Err(AuditError::ListedTwice { frontier });
             }
             let (kept, want) = (sorted(&kept), sorted(want));
             if kept != want {
@@ -91,9 +91,11 @@ impl Coherent {
                     .iter()
                     .filter(|p| want.binary_search(p).is_err())
                     .count();
-                return Err(format!(
-                    "{name} candidates: {missing} missing, {extra} that should not be there"
-                ));
+                return Err(AuditError::Candidates {
+                    frontier,
+                    missing,
+                    extra,
+                });
             }
         }
         let f = Frame::new(hf, variance, scales, camera, limits);
@@ -120,12 +122,10 @@ impl Coherent {
             let lanes = self.evaluate_at(&f, chunk);
             for (i, &p) in chunk.iter().enumerate() {
                 if lanes.wanted >> i & 1 == 0 {
-                    return Err(format!(
-                        "{:?} is split, forced by nothing, but not worth splitting here \
-                         (priority {} px)",
-                        unpack(p),
-                        lanes.prio[i]
-                    ));
+                    return Err(AuditError::Unforced {
+                        at: unpack(p),
+                        prio: lanes.prio[i],
+                    });
                 }
             }
         }
@@ -141,49 +141,52 @@ impl Coherent {
 /// member's previous names the one before it, each bucket marked as it is, each schedule
 /// key in its bucket).
 fn queued(
-    name: &str,
+    frontier: &'static str,
     fr: &Frontier,
     f: &Frame,
     now: [u32; 2],
     bucket: impl Fn(&Member) -> Option<usize>,
-) -> Result<(), String> {
+) -> Result<(), AuditError> {
     // By place, free places' records included (neither queued nor scheduled).
     let members: Vec<Member> = fr.records().copied().collect();
     if !fr.free_listed() {
-        return Err(format!("{name} candidates: free places listed wrong"));
+        return Err(AuditError::FreeListedWrong { frontier });
     }
-    let (queue, schedules) = fr.lists().map_err(|e| format!("{name} candidates: {e}"))?;
+    let (queue, schedules) = fr
+        .lists()
+        .map_err(|error| AuditError::Lists { frontier, error })?;
     let mut count = vec![0usize; members.len()];
     for &(b, i) in &queue {
         let m = &members[i as usize];
         if bucket(m) != Some(b) {
-            return Err(format!(
-                "{name} candidate {:?} queued in bucket {b}, {:?} by its evaluation",
-                unpack(m.pos),
-                bucket(m)
-            ));
+            return Err(AuditError::Bucket {
+                frontier,
+                at: unpack(m.pos),
+                bucket: b,
+                by_evaluation: bucket(m),
+            });
         }
         count[i as usize] += 1;
     }
     for (i, m) in members.iter().enumerate() {
         if m.is_free() {
             if count[i] != 0 || m.queued() || m.due(0).is_some() || m.due(1).is_some() {
-                return Err(format!(
-                    "{name} candidates: free place {i} queued or scheduled"
-                ));
+                return Err(AuditError::FreeQueued { frontier, place: i });
             }
             continue;
         }
         if !fr.indexed(i) {
-            return Err(format!("{name} candidate {:?} not indexed", unpack(m.pos)));
+            let at = unpack(m.pos);
+            return Err(AuditError::NotIndexed { frontier, at });
         }
         let want = usize::from(bucket(m).is_some());
         if count[i] != want || bucket(m) != fr.queue_bucket(m) || m.queued() != (want == 1) {
-            return Err(format!(
-                "{name} candidate {:?} queued {} times, {want} by its evaluation",
-                unpack(m.pos),
-                count[i]
-            ));
+            return Err(AuditError::Queued {
+                frontier,
+                at: unpack(m.pos),
+                times: count[i],
+                want,
+            });
         }
     }
     for (k, (odometer, list)) in ["travel", "turn"].iter().zip(schedules).enumerate() {
@@ -194,28 +197,31 @@ fn queued(
         for (i, m) in members.iter().enumerate() {
             if m.is_free() {
                 if count[i] != 0 {
-                    return Err(format!("{name} candidates: free place {i} scheduled"));
+                    return Err(AuditError::FreeScheduled { frontier, place: i });
                 }
                 continue;
             }
             let exact = fixed(f, m.pos).exact();
             let want = usize::from(!exact);
             if count[i] != want || m.due(k).is_some() == exact {
-                return Err(format!(
-                    "{name} candidate {:?} scheduled {} times by its {odometer}, {want} \
-                     by its error",
-                    unpack(m.pos),
-                    count[i]
-                ));
+                return Err(AuditError::Scheduled {
+                    frontier,
+                    at: unpack(m.pos),
+                    times: count[i],
+                    odometer,
+                    want,
+                });
             }
             if let Some(key) = m.due(k)
                 && key < now[k]
             {
-                return Err(format!(
-                    "{name} candidate {:?} was due by its {odometer} at {key}, {} now",
-                    unpack(m.pos),
-                    now[k]
-                ));
+                return Err(AuditError::Overdue {
+                    frontier,
+                    at: unpack(m.pos),
+                    odometer,
+                    key,
+                    now: now[k],
+                });
             }
         }
     }

@@ -44,6 +44,7 @@
 //! changes) from 708–1,972 µs to 871–4,576 µs (medians of the six: 870 and 990).
 
 /// Number of buckets, and the one above every priority ([`crate::tessellate::queue`]).
+use super::audit_error::ListError;
 use crate::tessellate::queue::BUCKETS;
 
 /// No member: an empty bucket's head, and an unlinked member's previous.
@@ -156,7 +157,7 @@ fn relocate(nodes: &mut impl Nodes, w: usize, head: &mut u32, from: u32, to: u32
 
 /// The members of the circular list at `head` (list `w`), first to last, checked: each
 /// one's previous names the one before it. For the audit.
-pub(super) fn walk(nodes: &impl Nodes, w: usize, head: u32) -> Result<Vec<u32>, String> {
+pub(super) fn walk(nodes: &impl Nodes, w: usize, head: u32) -> Result<Vec<u32>, ListError> {
     let mut out = Vec::new();
     if head == NIL {
         return Ok(out);
@@ -164,19 +165,21 @@ pub(super) fn walk(nodes: &impl Nodes, w: usize, head: u32) -> Result<Vec<u32>, 
     let mut i = head;
     loop {
         if i as usize >= nodes.len() {
-            return Err(format!("list {w} names member {i}, past the members"));
+            return Err(ListError::PastMembers { list: w, member: i });
         }
         let l = nodes.link(i, w);
         let prev = out.last().copied().unwrap_or(nodes.link(head, w).prev);
         if l.prev != prev {
-            return Err(format!(
-                "list {w}: member {i}'s previous is {}, not {prev}",
-                l.prev
-            ));
+            return Err(ListError::Previous {
+                list: w,
+                member: i,
+                prev: l.prev,
+                want: prev,
+            });
         }
         out.push(i);
         if out.len() > nodes.len() {
-            return Err(format!("list {w} does not come back to its head"));
+            return Err(ListError::Endless { list: w });
         }
         i = l.next;
         if i == head {
@@ -378,16 +381,17 @@ impl Queue {
     }
 
     /// The members of each non-empty bucket, checked (for the audit).
-    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<(usize, Vec<u32>)>, String> {
+    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<(usize, Vec<u32>)>, ListError> {
         let mut out = Vec::new();
         for b in 0..BUCKETS {
             let list = walk(nodes, 0, self.heads[b])?;
             let marked = self.nonempty[b >> 6] >> (b & 63) & 1 != 0;
             if marked == list.is_empty() {
-                return Err(format!(
-                    "queue bucket {b} marked {marked}, {} long",
-                    list.len()
-                ));
+                return Err(ListError::QueueMarked {
+                    bucket: b,
+                    marked,
+                    len: list.len(),
+                });
             }
             let most = list.iter().map(|&i| nodes.prio(i)).fold(0f32, f32::max);
             if let Some(&known) = self.most.get(b)
@@ -395,9 +399,11 @@ impl Queue {
                 && !known.is_nan()
                 && known != most
             {
-                return Err(format!(
-                    "queue bucket {b}'s highest is {most}, kept as {known}"
-                ));
+                return Err(ListError::Highest {
+                    bucket: b,
+                    most,
+                    known,
+                });
             }
             if !list.is_empty() {
                 out.push((b, list));
@@ -681,38 +687,48 @@ impl Schedule {
 
     /// Every member scheduled, checked: each in the bucket its key says, at or above the
     /// bucket's bound, its link naming its index (for the audit).
-    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<u32>, String> {
+    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<u32>, ListError> {
         let mut out = Vec::new();
         for (b, list) in self.buckets.iter().enumerate() {
             if (self.nonempty >> b & 1 != 0) == list.is_empty() {
-                return Err(format!("schedule bucket {b} marked wrong"));
+                return Err(ListError::ScheduleMarked { bucket: b });
             }
             for (at, &i) in list.iter().enumerate() {
                 if i as usize >= nodes.len() {
-                    return Err(format!(
-                        "schedule bucket {b} names member {i}, past the members"
-                    ));
+                    return Err(ListError::SchedulePast {
+                        bucket: b,
+                        member: i,
+                    });
                 }
                 let l = nodes.link(i, 1 + self.k);
                 if l.prev != at as u32 || l.next != 0 || nodes.entry_bucket(i, self.k) != b {
-                    return Err(format!(
-                        "member {i} at {at} of schedule bucket {b} has link {l:?}, bucket {}",
-                        nodes.entry_bucket(i, self.k)
-                    ));
+                    return Err(ListError::ScheduleLink {
+                        member: i,
+                        at,
+                        bucket: b,
+                        prev: l.prev,
+                        next: l.next,
+                        entry: nodes.entry_bucket(i, self.k),
+                    });
                 }
                 // A key may have grown since its entry was put: at or above the bucket.
                 let key = nodes.key(i, self.k);
                 if self.bucket(key) < b || key < self.least[b] {
-                    return Err(format!(
-                        "key {key} in schedule bucket {b} (bound {}, last {})",
-                        self.least[b], self.last
-                    ));
+                    return Err(ListError::ScheduleKey {
+                        key,
+                        bucket: b,
+                        bound: self.least[b],
+                        last: self.last,
+                    });
                 }
             }
             out.extend_from_slice(list);
         }
         if out.len() != self.len {
-            return Err(format!("{} scheduled, {} counted", out.len(), self.len));
+            return Err(ListError::ScheduleCount {
+                listed: out.len(),
+                counted: self.len,
+            });
         }
         Ok(out)
     }

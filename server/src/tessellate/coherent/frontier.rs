@@ -18,6 +18,7 @@
 //!   [`crate::tessellate::frontier::MAX_INDEXED`]): as `u32`s the record was 44 bytes
 //!   (1.72 MB for the split frontier's records at the drive's end, now 1.14 MB).
 
+use super::audit_error::ListError;
 use super::buckets::{Link, NIL, Nodes, Queue, Schedule};
 use crate::tessellate::frontier::{Chunks, PosIndex};
 use crate::tessellate::queue::{TOP, bucket_of};
@@ -507,7 +508,7 @@ impl Frontier {
     /// The queue's buckets and the schedules, each member where its evaluation puts it,
     /// checked (for the audit): `(bucket, member)` queued, and each odometer's members.
     #[allow(clippy::type_complexity)]
-    pub fn lists(&self) -> Result<(Vec<(usize, u32)>, [Vec<u32>; 2]), String> {
+    pub fn lists(&self) -> Result<(Vec<(usize, u32)>, [Vec<u32>; 2]), ListError> {
         let queued = self
             .queue
             .lists(&self.members)?

@@ -8,6 +8,7 @@
 use std::io::{self, Write};
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use roam_protocol::sync::lock;
 use roam_server::sim::record_files::{RecordFile, RecordFiles};
 
 #[derive(Default)]
@@ -43,7 +44,7 @@ impl Disk {
     }
 
     fn state(&self) -> MutexGuard<'_, State> {
-        self.0.lock().expect("no test panicked holding the disk")
+        lock(&self.0)
     }
 
     /// The files (name and bytes), in the order they were created.

@@ -20,6 +20,7 @@ use roam_client::headless::{self, ViewerOptions, ViewerStats};
 use roam_protocol::bus::{self as wire, Answer, Ask, DriverKeys, Keys, Subjects};
 use roam_protocol::messages::{KeyState, Role, decode, encode};
 use roam_protocol::script;
+use roam_protocol::sync::lock;
 use roam_server::Terrain;
 use roam_server::net::bus::edge::Remote;
 use roam_server::net::bus::world::WorldServer;
@@ -208,7 +209,7 @@ impl Attacker {
         let into = kept.clone();
         let task = tokio::spawn(async move {
             while let Some(msg) = sub.next().await {
-                let mut kept = into.lock().expect("the capture's lock");
+                let mut kept = lock(&into);
                 if kept.len() < cap {
                     kept.push(msg);
                 }
@@ -228,7 +229,7 @@ impl Capture {
     /// Stops capturing: what was captured, in order.
     fn take(self) -> Vec<async_nats::Message> {
         self.task.abort();
-        std::mem::take(&mut *self.kept.lock().expect("the capture's lock"))
+        std::mem::take(&mut *lock(&self.kept))
     }
 }
 
