@@ -549,7 +549,7 @@ fn serve_bench(
         limits.budget,
     )
     .with_caps(caps);
-    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side());
+    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side(), 1);
     let scene = Scene {
         terrain,
         variance: vt,
@@ -689,7 +689,7 @@ fn serve_many_bench(
     let cameras = flyover::drive(terrain, script, 60);
     let levels = terrain.heights.levels();
     let step = roam_protocol::height_step(terrain.heights.samples());
-    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side());
+    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side(), 1);
     let scene = Scene {
         terrain,
         variance: vt,

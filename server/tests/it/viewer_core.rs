@@ -28,7 +28,7 @@ impl Fixture {
     fn new(side: u32, seed: u64) -> Fixture {
         let terrain = Arc::new(generate::synthetic(side, seed));
         let variance = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
-        let scratch = Scratch::new(terrain.heights.side());
+        let scratch = Scratch::new(terrain.heights.side(), 1);
         Fixture {
             terrain,
             variance,
