@@ -487,7 +487,7 @@ fn serve_bench(
     caps: ViewerLimits,
     script: &roam_protocol::script::Script,
 ) -> Result<ServeFigures> {
-    use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
+    use roam_protocol::{BitSet, Follower, Grid, mesh};
     use roam_server::tessellate::{Mode, fogged_error_px, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
     let cameras = flyover::drive(terrain, script, 60);
@@ -514,8 +514,9 @@ fn serve_bench(
         scratch: &pool,
     };
     let grid = Grid::new(levels).expect("data sets have 1 ..= 15 levels");
-    let mut decoder = MeshDecoder::new(grid);
-    let (mut base, mut cut) = (Cut::default(), Cut::default());
+    // The viewer's decoder, and its cut mirrored over the grid for `mesh::emit`.
+    let mut decoder = Follower::new(grid, 2);
+    let (mut split, mut heights) = (BitSet::new(grid.vertices()), vec![0; grid.vertices()]);
     let mut scratch = Tessellator::new(terrain.heights.side());
     let (mut served, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let (mut us, mut changes, mut err, mut scratch_err) = (vec![], vec![], vec![], vec![]);
@@ -536,9 +537,9 @@ fn serve_bench(
             popped.push(f64::from(core.cut().stats().popped));
             rebuilds += usize::from(made.mode == Mode::Rebuild);
         }
-        let b = made.base.map(|_| &base);
-        decoder.decode_cut(&made.payload, b, u32::MAX, &mut cut)?;
-        mesh::emit(&grid, &cut.split, decoder.heights(), &mut viewer);
+        decoder.decode(made.frame, &made.payload, made.base, u32::MAX)?;
+        decoder.mirror(&mut split, &mut heights);
+        mesh::emit(&grid, &split, &heights, &mut viewer);
         core.mesh(&pool, &mut served);
         if viewer.indices != served.indices {
             bail!(
@@ -550,7 +551,6 @@ fn serve_bench(
                 made.mode,
             );
         }
-        std::mem::swap(&mut base, &mut cut);
         core.handle(Event::Acked(made.frame));
         peak = peak.max(core.heap_bytes());
         if made.triangles > limits.budget.max(2) {
