@@ -289,6 +289,18 @@ pub struct ChangeBody<'p> {
     count: u32,
 }
 
+impl ChangeBody<'_> {
+    /// After the last residual: refused when the bits ended early or are not ours.
+    pub fn finish(&self) -> Result<(), DecodeError> {
+        if self.rc.failed() {
+            return Err(DecodeError::Corrupt(
+                "the coded bits end early or are not ours",
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// Reads change frames of one grid, bit by bit: the header, the changes' positions, then
 /// the new vertices' height residuals. What each change means (a split or a merge) and
 /// the heights it predicts from are the caller's, who holds the base: the viewer's
@@ -311,7 +323,8 @@ impl ChangeReader {
     /// refuses a payload too short, of another format or grid, with unknown flags, a step
     /// of 0, more than `max_triangles`, more splits than its triangles allow, or more
     /// changes than the base and the frame have splits (checked before anything is sized
-    /// by the count). Then the body, to read with [`Self::changes`] and [`Self::residual`].
+    /// by the count). Then the body, to read with [`Self::changes`] and [`Self::residual`]
+    /// and end with [`ChangeBody::finish`].
     pub fn read<'p>(
         &mut self,
         payload: &'p [u8],
@@ -399,15 +412,5 @@ impl ChangeReader {
     pub fn residual(&mut self, body: &mut ChangeBody, depth: usize) -> Result<i32, DecodeError> {
         codec::decode_residual(&mut body.rc, &mut self.models.residuals, depth)
             .ok_or(DecodeError::Corrupt("a residual out of range"))
-    }
-
-    /// After the last residual: refused when the bits ended early or are not ours.
-    pub fn finish(body: &ChangeBody) -> Result<(), DecodeError> {
-        if body.rc.failed() {
-            return Err(DecodeError::Corrupt(
-                "the coded bits end early or are not ours",
-            ));
-        }
-        Ok(())
     }
 }

@@ -477,7 +477,7 @@ impl Follower {
             self.fresh.insert(i, h);
             hash.add(i, h);
         }
-        ChangeReader::finish(&body)?;
+        body.finish()?;
         // Closed under parent, given a closed base: every split's parents are split, and
         // no merged diamond keeps a split child.
         for &i in &self.changes {

@@ -154,7 +154,7 @@ impl Reference {
             self.saved.push((i, heights[i as usize]));
             heights[i as usize] = h;
         }
-        ChangeReader::finish(body)?;
+        body.finish()?;
         let closed = out.split.iter().all(|i| {
             let (x, z) = grid.coords(i);
             grid.parents(x, z)
