@@ -93,22 +93,6 @@ struct Cli {
     /// draw with them; other headless viewers draw nothing.
     #[arg(long, default_value_t = roam_client::render::MORPH_TICKS)]
     morph_ticks: u16,
-    /// Whether the in-process server weighs each diamond's error by the fog's transmission
-    /// (`serve --fog-priority`): `off` tessellates as before issue 24, for comparisons.
-    #[arg(long, default_value = "on", value_parser = ["on", "off"])]
-    fog_priority: String,
-    /// The in-process server's guard band (`serve --guard-deg`): each cut refined this many
-    /// degrees beyond either side of the view, so what the driver turns towards is detailed
-    /// before it comes into view; 0 culls at the view's edges (as before issue 24).
-    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
-          value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
-    guard_deg: u8,
-    /// The in-process server's swap margin (`serve --swap-margin`), percent: once the cut is
-    /// at its budget, a merge makes room for a split only when the split's priority beats
-    /// the merge's by more than this; 0 trades at any gain (as before issue 24).
-    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_SWAP_MARGIN_PCT,
-          value_parser = clap::value_parser!(u16).range(0..=i64::from(roam_server::viewer::MAX_SWAP_MARGIN_PCT)))]
-    swap_margin: u16,
     /// Acknowledge frames without decoding them: a load generator that measures the
     /// server, not its own decoding (the wire and decode figures are then empty).
     #[arg(long)]
@@ -160,6 +144,13 @@ struct Cli {
     /// Vertical field of view, degrees.
     #[arg(long, default_value_t = 60.0)]
     fov: f32,
+    /// The in-process server's cuts (`--local`, `--replay` or no `--connect`), as
+    /// `roam-server serve` makes them; last, as its heading holds for what follows.
+    #[command(
+        flatten,
+        next_help_heading = "In-process server (as `roam-server serve`)"
+    )]
+    cut: roam_server::viewer::CutArgs,
 }
 
 impl Cli {
@@ -489,15 +480,13 @@ async fn serve(
             let truth = roam_client::bench::Truth {
                 terrain: Arc::new(terrain),
                 variance: Arc::new(vt),
-                guard_deg: f32::from(cli.guard_deg),
+                guard_deg: f32::from(cli.cut.guard_deg),
             };
             let mut options = Options::new(
                 "127.0.0.1:0".parse().expect("a valid address"),
                 token.clone(),
             );
-            options.limits.fog_priority = cli.fog_priority == "on";
-            options.limits.guard_deg = cli.guard_deg;
-            options.limits.swap_margin_pct = cli.swap_margin;
+            options.limits = cli.cut.limits(options.limits);
             options.normals = Some(Arc::new(normals));
             if let (Some(file), Some(hash)) = (&cli.replay, hash) {
                 let replaying = net::replay::Replaying::open(

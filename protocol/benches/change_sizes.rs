@@ -2,13 +2,14 @@
 //! bytes (no time is measured): bytes a change on clustered toggles, and change frames
 //! against format 1's delta for viewpoint-dependent cuts as the eye moves, on a synthetic
 //! 2^12 + 1 grid and the bundled `data/kossou`. Prints one JSON object a line. Every frame
-//! it codes is also decoded and checked (the round trip of `tests/common`).
+//! it codes is also decoded and checked (the round trip of `tests/it/common`, through its
+//! reference decoder).
 
 #[path = "../tests/it/common/mod.rs"]
 mod common;
 
 use common::*;
-use roam_protocol::{BitSet, ChangeEncoder, Grid, MeshDecoder, MeshEncoder};
+use roam_protocol::{BitSet, ChangeEncoder, Grid, MeshEncoder};
 
 /// A viewpoint-dependent cut, roughly as a tessellator makes one: a diamond of half-size
 /// `h` at distance `d` from the eye is split when `(k·h + roughness) / d` exceeds 1 (its
@@ -79,7 +80,7 @@ fn main() {
     let grid = Grid::new(12).expect("valid");
     let h = heights(&grid, 8, 1);
     let mut rng = Rng(8);
-    let mut dec = MeshDecoder::new(grid);
+    let mut dec = Reference::new(grid);
     let a = lod(&grid, &h, (1500.0, 2200.0), 24.0);
     let base = key_frame(&grid, &h, 1, &a, &mut dec);
     let (mut bytes, mut positions, mut changed, mut splits) = (0, 0, 0, 0);
@@ -129,7 +130,7 @@ fn main() {
                     lod(grid, h, (s * 0.4 + t, s * 0.5 + 0.6 * t), k)
                 })
                 .collect();
-            let mut dec = MeshDecoder::new(*grid);
+            let mut dec = Reference::new(*grid);
             let mut cuts = vec![key_frame(grid, h, *step, &sets[0], &mut dec)];
             for s in &sets[1..4] {
                 let last = cuts.last().expect("a cut").clone();

@@ -23,16 +23,22 @@
 //! from the base, from earlier in this frame (hence the order), or the corners from the key
 //! frame.
 //!
-//! **Checks.** The frame declares the cut's triangles, splits and [`CutHash`], a hash of
-//! the split set with heights that both ends keep up to date change by change; the viewer
-//! checks all three, and that the result is closed under parent (every split's parents
+//! **Checks.** The frame declares the cut's triangles, splits and
+//! [`CutHash`](crate::CutHash), a hash of the split set with heights that both ends keep
+//! up to date change by change; the viewer checks all three, and that the result is closed under parent (every split's parents
 //! split, no merged diamond's child split), so a frame decoded against the wrong base is
-//! refused ([`DecodeError::Check`]) rather than shown. Heights written by a frame that
-//! fails are put back, so a bad frame spoils no other base.
+//! refused ([`DecodeError::Check`]) rather than shown. A frame that fails changes nothing
+//! the viewer holds, so a bad frame spoils no base.
+//!
+//! **One reading.** [`ChangeReader`] reads the bits (the header and its checks, the
+//! positions, the residuals) for the one decoder of change frames, the viewer's
+//! ([`crate::Follower`]), which knows the base and so what each change means; the tests'
+//! reference decoder (a bitset over the grid and a copy per base, their oracle) reads
+//! through it too.
 //!
 //! **Cost.** The encoder sorts and codes the changes: O(n log n) for n changes, nothing
-//! proportional to the cut or the grid, no allocation once warm. The decoder copies the
-//! base's split set and counts it (O(grid / 64) words), then O(n log n).
+//! proportional to the cut or the grid, no allocation once warm. The viewer's decoder is
+//! O(changes since the base + n log n) ([`crate::follow`]).
 //!
 //! # Payload
 //!
@@ -65,14 +71,13 @@
 
 use crate::bintree::Grid;
 use crate::codec::u32_le;
-use crate::codec::{self, ChangeModels, Decoded, EncodeError, MeshDecoder, Scratch};
-pub use crate::cut::{Cut, CutHash};
+use crate::codec::{self, ChangeModels, EncodeError};
 use crate::format::{self, DecodeError};
 use crate::range;
 
 /// The payload format of a change frame.
 pub const CHANGES_FORMAT: u8 = format::CHANGES;
-pub(crate) const HEADER: usize = 26;
+const HEADER: usize = 26;
 
 /// Spreads the low 16 bits of `v` to the even bits.
 #[inline]
@@ -101,7 +106,7 @@ fn morton(x: u32, z: u32) -> u32 {
 }
 
 #[inline]
-pub(crate) fn unmorton(key: u32) -> (u32, u32) {
+fn unmorton(key: u32) -> (u32, u32) {
     (compact(key), compact(key >> 1))
 }
 
@@ -117,7 +122,7 @@ fn encode_gap(rc: &mut range::Encoder, m: &mut ChangeModels, gap: u32) {
     }
 }
 
-pub(crate) fn decode_gap(rc: &mut range::Decoder, m: &mut ChangeModels) -> u32 {
+fn decode_gap(rc: &mut range::Decoder, m: &mut ChangeModels) -> u32 {
     let class = rc.tree(&mut m.class, 5);
     let mut gap = 1u32 << class;
     if class >= 1 {
@@ -158,7 +163,7 @@ impl ChangeEncoder {
     /// base the viewer holds and the cut now (any order, no duplicates). `now_split(i)`
     /// says whether `i` (one of `changes`) is split now (true = a split relative to the
     /// base, false = a merge). `heights`: the full row-major heightfield. `triangles`,
-    /// `splits`, `hash`: of the cut now (`hash` is its [`CutHash`] value). Costs
+    /// `splits`, `hash`: of the cut now (`hash` is its [`CutHash`](crate::CutHash) value). Costs
     /// O(changes · log changes): nothing here looks at the cut or the grid as a whole, so
     /// nothing checks that the result is closed under parent (the viewer does).
     #[allow(clippy::too_many_arguments)]
@@ -252,48 +257,87 @@ impl ChangeEncoder {
     }
 }
 
-impl MeshDecoder {
-    /// Decodes either format (by `payload[0]`): a format-1 key frame (`base` must be
-    /// `None`) or delta (`base` given), or a format-2 change frame (`base` given). Fills
-    /// `out` with the cut (for format 1 its hash is computed over the decoded set) and
-    /// keeps the new vertices' heights ([`MeshDecoder::heights`]). Refuses meshes of more
-    /// than `max_triangles`. On error `out` holds nothing usable and the frame is to be
-    /// dropped.
-    pub fn decode_cut(
-        &mut self,
-        payload: &[u8],
-        base: Option<&Cut>,
-        max_triangles: u32,
-        out: &mut Cut,
-    ) -> Result<Decoded, DecodeError> {
-        if payload.first() == Some(&CHANGES_FORMAT) {
-            return self.decode_changes(payload, base, max_triangles, out);
+/// A change frame's figures, read from its header and checked alone
+/// ([`ChangeReader::read`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ChangeHead {
+    /// The cut's triangles.
+    pub triangles: u32,
+    /// The cut's split diamonds.
+    pub splits: u32,
+    /// The cut's [`CutHash`](crate::CutHash) value.
+    pub check: u64,
+    /// Every height is a multiple of it (not 0).
+    pub step: u16,
+    /// Diamonds changed since the base.
+    pub count: u32,
+}
+
+impl ChangeHead {
+    /// A new vertex's height: `predicted` (the mean of its hypotenuse ends, rounded to the
+    /// step, as the encoder predicts it) plus `residual` steps; refused outside `u16`.
+    pub fn height(&self, predicted: i32, residual: i32) -> Result<u16, DecodeError> {
+        // In i64: a hostile step times a large residual overflows i32.
+        let h = i64::from(predicted) + i64::from(residual) * i64::from(self.step);
+        u16::try_from(h).map_err(|_| DecodeError::Corrupt("a height out of range"))
+    }
+}
+
+/// Where a change frame's reading is: the range decoder over its body.
+pub struct ChangeBody<'p> {
+    rc: range::Decoder<'p>,
+    count: u32,
+}
+
+impl ChangeBody<'_> {
+    /// After the last residual: refused when the bits ended early or are not ours.
+    pub fn finish(&self) -> Result<(), DecodeError> {
+        if self.rc.failed() {
+            return Err(DecodeError::Corrupt(
+                "the coded bits end early or are not ours",
+            ));
         }
-        let mut hash = CutHash::new();
-        let info = self.decode_tree(
-            payload,
-            base.map(|b| &b.split),
-            max_triangles,
-            &mut out.split,
-            &mut hash,
-        )?;
-        out.triangles = info.triangles;
-        out.hash = hash.value();
-        Ok(info)
+        Ok(())
+    }
+}
+
+/// Reads change frames of one grid, bit by bit: the header, the changes' positions, then
+/// the new vertices' height residuals. What each change means (a split or a merge) and
+/// the heights it predicts from are the caller's, who holds the base: the viewer's
+/// decoder ([`crate::Follower`]), and the tests' reference decoder. Its models are reused:
+/// reading allocates nothing.
+pub struct ChangeReader {
+    grid: Grid,
+    models: Box<ChangeModels>,
+}
+
+impl ChangeReader {
+    pub fn new(grid: Grid) -> ChangeReader {
+        ChangeReader {
+            grid,
+            models: Box::new(ChangeModels::fresh()),
+        }
     }
 
-    fn decode_changes(
+    /// Reads a change frame's header, against a base of `base_splits` split diamonds:
+    /// refuses a payload too short, of another format or grid, with unknown flags, a step
+    /// of 0, more than `max_triangles`, more splits than its triangles allow, or more
+    /// changes than the base and the frame have splits (checked before anything is sized
+    /// by the count). Then the body, to read with [`Self::changes`] and [`Self::residual`]
+    /// and end with [`ChangeBody::finish`].
+    pub fn read<'p>(
         &mut self,
-        payload: &[u8],
-        base: Option<&Cut>,
+        payload: &'p [u8],
+        base_splits: u32,
         max_triangles: u32,
-        out: &mut Cut,
-    ) -> Result<Decoded, DecodeError> {
+    ) -> Result<(ChangeHead, ChangeBody<'p>), DecodeError> {
         let grid = self.grid;
         if payload.len() < HEADER {
             return Err(DecodeError::Short(payload.len()));
         }
-        let u32_at = |at: usize| u32_le(payload, at);
+        if payload[0] != CHANGES_FORMAT {
+            return Err(DecodeError::Format(payload[0]));
+        }
         if u32::from(payload[1]) != grid.levels() {
             return Err(DecodeError::Grid {
                 got: payload[1],
@@ -303,181 +347,70 @@ impl MeshDecoder {
         if payload[2] != 0 || payload[3] != 0 {
             return Err(DecodeError::Corrupt("unknown flags"));
         }
-        let base = base.ok_or(DecodeError::Base)?;
-        let head = Head {
-            triangles: u32_at(4),
-            splits: u32_at(8),
-            check: u64::from_le_bytes(payload[12..20].try_into().expect("8 bytes")),
-            step: u16::from_le_bytes([payload[20], payload[21]]),
-            count: u32_at(22),
+        let figures = codec::head(payload, max_triangles)?;
+        let head = ChangeHead {
+            triangles: figures.triangles,
+            splits: figures.splits,
+            check: figures.check,
+            step: figures.step as u16, // read from a u16
+            count: u32_le(payload, 22),
         };
-        if head.step == 0 {
-            return Err(DecodeError::Corrupt("a height step of 0"));
-        }
-        if head.triangles > max_triangles {
-            return Err(DecodeError::TooBig {
-                declared: head.triangles,
-                limit: max_triangles,
-            });
-        }
         // Each split adds at least one triangle to the two of the empty cut.
         if head.splits > head.triangles.saturating_sub(2) {
             return Err(DecodeError::Corrupt("more splits than triangles"));
         }
-        if base.split.words().len() != grid.vertices().div_ceil(64) {
-            return Err(DecodeError::Base);
-        }
-        let base_splits = base.split.len() as u64;
-        // Every change is a split of the base or of the cut now; checked before anything
-        // is sized by the count.
-        if u64::from(head.count) > base_splits + u64::from(head.splits) {
+        // Every change is a split of the base or of the cut now.
+        if u64::from(head.count) > u64::from(base_splits) + u64::from(head.splits) {
             return Err(DecodeError::Corrupt(
                 "more changes than the base and the frame have splits",
             ));
         }
-        let scratch = &mut self.changes;
-        scratch.saved.clear();
-        let result = apply(
-            &grid,
-            &mut self.heights,
-            scratch,
-            &payload[HEADER..],
-            &head,
-            base,
-            base_splits,
-            out,
-        );
-        if result.is_err() {
-            for &(i, h) in scratch.saved.iter().rev() {
-                self.heights[i as usize] = h;
+        self.models.reset();
+        let body = ChangeBody {
+            rc: range::Decoder::new(&payload[HEADER..]),
+            count: head.count,
+        };
+        Ok((head, body))
+    }
+
+    /// The changes' row-major grid indices, in the coded (Morton) order, into `out`
+    /// (cleared first); refused when the bits end early or a change is off the grid or at
+    /// a map corner.
+    pub fn changes(
+        &mut self,
+        body: &mut ChangeBody,
+        out: &mut Vec<u32>,
+    ) -> Result<(), DecodeError> {
+        let grid = self.grid;
+        let size = grid.size();
+        out.clear();
+        let mut next = 0u64;
+        for _ in 0..body.count {
+            let gap = decode_gap(&mut body.rc, &mut self.models);
+            if body.rc.failed() {
+                return Err(DecodeError::Corrupt(
+                    "the coded bits end early or are not ours",
+                ));
             }
+            // ≤ 2^32 + 2^32: no overflow in u64.
+            let key = next + u64::from(gap) - 1;
+            next = key + 1;
+            let Ok(key) = u32::try_from(key) else {
+                return Err(DecodeError::Corrupt("a change off the grid"));
+            };
+            let (x, z) = unmorton(key);
+            if x > size || z > size || (x.is_multiple_of(size) && z.is_multiple_of(size)) {
+                return Err(DecodeError::Corrupt("a change off the grid or at a corner"));
+            }
+            out.push(grid.index(x, z));
         }
-        result.map(|()| Decoded {
-            triangles: head.triangles,
-            splits: head.splits,
-            key: false,
-        })
+        Ok(())
     }
-}
 
-/// A change frame's header fields.
-struct Head {
-    triangles: u32,
-    splits: u32,
-    check: u64,
-    step: u16,
-    count: u32,
-}
-
-/// Decodes the body of a change frame against `base` into `out`, writing the new
-/// vertices' heights (the overwritten ones listed in `scratch.saved`).
-#[allow(clippy::too_many_arguments)]
-fn apply(
-    grid: &Grid,
-    heights: &mut [u16],
-    scratch: &mut Scratch,
-    body: &[u8],
-    head: &Head,
-    base: &Cut,
-    base_splits: u64,
-    out: &mut Cut,
-) -> Result<(), DecodeError> {
-    let m = &mut *scratch.models;
-    m.reset();
-    scratch.changes.clear();
-    scratch.order.clear();
-    let mut rc = range::Decoder::new(body);
-    let size = grid.size();
-    let mut next = 0u64;
-    for _ in 0..head.count {
-        let gap = decode_gap(&mut rc, m);
-        if rc.failed() {
-            return Err(DecodeError::Corrupt(
-                "the coded bits end early or are not ours",
-            ));
-        }
-        // ≤ 2^32 + 2^32: no overflow in u64.
-        let key = next + u64::from(gap) - 1;
-        next = key + 1;
-        let Ok(key) = u32::try_from(key) else {
-            return Err(DecodeError::Corrupt("a change off the grid"));
-        };
-        let (x, z) = unmorton(key);
-        if x > size || z > size || (x.is_multiple_of(size) && z.is_multiple_of(size)) {
-            return Err(DecodeError::Corrupt("a change off the grid or at a corner"));
-        }
-        scratch.changes.push(grid.index(x, z));
+    /// The next new vertex's height residual, in steps: the new vertices come in (depth,
+    /// index) order ([`Grid::depth`]), each read with its depth.
+    pub fn residual(&mut self, body: &mut ChangeBody, depth: usize) -> Result<i32, DecodeError> {
+        codec::decode_residual(&mut body.rc, &mut self.models.residuals, depth)
+            .ok_or(DecodeError::Corrupt("a residual out of range"))
     }
-    // Toggle each change in a copy of the base.
-    out.split.clone_from(&base.split);
-    let mut triangles = i64::from(base.triangles);
-    let mut splits = base_splits as i64;
-    let mut hash = CutHash(base.hash);
-    for &i in &scratch.changes {
-        let (x, z) = grid.coords(i);
-        let added = i64::from(grid.added(x, z));
-        if base.split.contains(i) {
-            out.split.remove(i);
-            triangles -= added;
-            splits -= 1;
-            hash.remove(i, heights[i as usize]);
-        } else {
-            out.split.insert(i);
-            triangles += added;
-            splits += 1;
-            scratch
-                .order
-                .push(u64::from(grid.depth(x, z)) << 32 | u64::from(i));
-        }
-    }
-    if triangles != i64::from(head.triangles) || splits != i64::from(head.splits) {
-        return Err(DecodeError::Check);
-    }
-    // New vertices, coarser first: a split's hypotenuse ends are known before it.
-    scratch.order.sort_unstable();
-    let step = i32::from(head.step);
-    for &o in &scratch.order {
-        let (i, depth) = (o as u32, (o >> 32) as usize);
-        let (x, z) = grid.coords(i);
-        let r = codec::decode_residual(&mut rc, &mut m.residuals, depth)
-            .ok_or(DecodeError::Corrupt("a residual out of range"))?;
-        // In i64: a hostile step times a large residual overflows i32.
-        let h =
-            i64::from(codec::predict(grid, heights, x, z, step)) + i64::from(r) * i64::from(step);
-        let h = u16::try_from(h).map_err(|_| DecodeError::Corrupt("a height out of range"))?;
-        scratch.saved.push((i, heights[i as usize]));
-        heights[i as usize] = h;
-        hash.add(i, h);
-    }
-    if rc.failed() {
-        return Err(DecodeError::Corrupt(
-            "the coded bits end early or are not ours",
-        ));
-    }
-    // Closed under parent, given a closed base: every split's parents are split, and no
-    // merged diamond keeps a split child.
-    for &i in &scratch.changes {
-        let (x, z) = grid.coords(i);
-        let closed = if out.split.contains(i) {
-            grid.parents(x, z)
-                .into_iter()
-                .flatten()
-                .all(|(px, pz)| out.split.contains(grid.index(px, pz)))
-        } else {
-            !grid
-                .children(x, z)
-                .into_iter()
-                .flatten()
-                .any(|(cx, cz)| out.split.contains(grid.index(cx, cz)))
-        };
-        if !closed {
-            return Err(DecodeError::Check);
-        }
-    }
-    if hash.value() != head.check {
-        return Err(DecodeError::Check);
-    }
-    out.triangles = head.triangles;
-    out.hash = hash.value();
-    Ok(())
 }

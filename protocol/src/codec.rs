@@ -23,7 +23,9 @@
 //! A delta can also come as a **change frame** (format 2, [`crate::changes`]): coded from
 //! the list of diamonds that changed since the base, in O(changes) on the server, rather
 //! than by walking the cut. Key frames are always format 1.
-//! [`MeshDecoder::decode_cut`] reads both formats; [`MeshDecoder::decode`] reads format 1.
+//! The viewer's decoder, [`crate::Follower`], reads both formats; [`MeshDecoder::decode`]
+//! reads format 1 into a bitset over the grid (the tools', the benchmarks' and the tests'
+//! reference).
 //!
 //! # Payload
 //!
@@ -42,7 +44,6 @@
 //! ```
 
 use crate::bintree::{BitSet, Grid};
-use crate::cut::CutHash;
 use crate::format::{self, DecodeError};
 use crate::range::{self, Prob};
 
@@ -99,6 +100,42 @@ impl Models {
     pub(crate) fn reset(&mut self) {
         *self = Models::fresh();
     }
+}
+
+/// A frame's figures, read from bytes 4 .. 22 of either format's header, before its checks
+/// against what it decodes to.
+pub(crate) struct Head {
+    pub(crate) triangles: u32,
+    pub(crate) splits: u32,
+    pub(crate) check: u64,
+    /// Every height is a multiple of it (not 0).
+    pub(crate) step: i32,
+}
+
+/// The figures both formats' headers carry after their first four bytes (`payload` holds
+/// at least [`HEADER`] bytes: the caller has checked), checked alone: a step of 0 and more
+/// triangles than `max_triangles` are refused.
+pub(crate) fn head(payload: &[u8], max_triangles: u32) -> Result<Head, DecodeError> {
+    let head = Head {
+        triangles: u32_le(payload, 4),
+        splits: u32_le(payload, 8),
+        check: u64::from_le_bytes(
+            payload[12..20]
+                .try_into()
+                .expect("8 bytes: the caller checked the header's length"),
+        ),
+        step: i32::from(u16::from_le_bytes([payload[20], payload[21]])),
+    };
+    if head.step == 0 {
+        return Err(DecodeError::Corrupt("a height step of 0"));
+    }
+    if head.triangles > max_triangles {
+        return Err(DecodeError::TooBig {
+            declared: head.triangles,
+            limit: max_triangles,
+        });
+    }
+    Ok(head)
 }
 
 /// The little-endian `u32` at `at` (the caller has checked the length).
@@ -411,38 +448,15 @@ impl ChangeModels {
     }
 }
 
-/// The change frame decoder's models and buffers, kept in [`MeshDecoder`]
-/// (defined here, beside the decoder, so that this module needs nothing of `changes`).
-pub(crate) struct Scratch {
-    pub(crate) models: Box<ChangeModels>,
-    /// The changes, row-major indices, in the coded order.
-    pub(crate) changes: Vec<u32>,
-    /// The splits, `depth << 32 | index`.
-    pub(crate) order: Vec<u64>,
-    /// Heights overwritten by this frame, put back if it fails.
-    pub(crate) saved: Vec<(u32, u16)>,
-}
-
-impl Scratch {
-    pub(crate) fn new() -> Scratch {
-        Scratch {
-            models: Box::new(ChangeModels::fresh()),
-            changes: Vec::new(),
-            order: Vec::new(),
-            saved: Vec::new(),
-        }
-    }
-}
-
-/// Decodes meshes of one grid, keeping every height it has decoded.
+/// Decodes format-1 meshes of one grid into a bitset over it, keeping every height it has
+/// decoded in an array over the grid (O(grid) memory: the viewer's decoder is
+/// [`crate::Follower`]).
 pub struct MeshDecoder {
-    pub(crate) grid: Grid,
+    grid: Grid,
     models: Box<Models>,
     list: Vec<u32>,
     next: Vec<u32>,
-    pub(crate) heights: Vec<u16>,
-    /// The change frame decoder's models and buffers ([`crate::changes`]).
-    pub(crate) changes: Scratch,
+    heights: Vec<u16>,
 }
 
 impl MeshDecoder {
@@ -453,7 +467,6 @@ impl MeshDecoder {
             list: Vec::new(),
             next: Vec::new(),
             heights: vec![0; grid.vertices()],
-            changes: Scratch::new(),
         }
     }
 
@@ -466,10 +479,15 @@ impl MeshDecoder {
         &self.heights
     }
 
+    /// The heights the decoder predicts from, for a caller that decodes other frames of
+    /// the same terrain (change frames) and must leave their new vertices' heights here.
+    pub fn heights_mut(&mut self) -> &mut [u16] {
+        &mut self.heights
+    }
+
     /// Decodes a format-1 `payload` into `split` (a key frame, or a delta against `base`).
     /// Refuses meshes of more than `max_triangles`. On error, `split` holds nothing usable
-    /// and the frame is to be dropped. Change frames (format 2) need a base with its
-    /// triangle count and hash: see [`MeshDecoder::decode_cut`], which reads both formats.
+    /// and the frame is to be dropped. Change frames (format 2) are [`crate::Follower`]'s.
     pub fn decode(
         &mut self,
         payload: &[u8],
@@ -477,23 +495,10 @@ impl MeshDecoder {
         max_triangles: u32,
         split: &mut BitSet,
     ) -> Result<Decoded, DecodeError> {
-        self.decode_tree(payload, base, max_triangles, split, &mut CutHash::new())
-    }
-
-    /// [`MeshDecoder::decode`], also adding every split diamond to `hash`.
-    pub(crate) fn decode_tree(
-        &mut self,
-        payload: &[u8],
-        base: Option<&BitSet>,
-        max_triangles: u32,
-        split: &mut BitSet,
-        hash: &mut CutHash,
-    ) -> Result<Decoded, DecodeError> {
         let grid = self.grid;
         if payload.len() < HEADER {
             return Err(DecodeError::Short(payload.len()));
         }
-        let u32_at = |at: usize| u32_le(payload, at);
         if payload[0] != FORMAT {
             return Err(DecodeError::Format(payload[0]));
         }
@@ -510,18 +515,12 @@ impl MeshDecoder {
         if delta != base.is_some() {
             return Err(DecodeError::Base);
         }
-        let (declared_triangles, declared_splits) = (u32_at(4), u32_at(8));
-        let declared_check = u64::from_le_bytes(payload[12..20].try_into().expect("8 bytes"));
-        let step = i32::from(u16::from_le_bytes([payload[20], payload[21]]));
-        if step == 0 {
-            return Err(DecodeError::Corrupt("a height step of 0"));
-        }
-        if declared_triangles > max_triangles {
-            return Err(DecodeError::TooBig {
-                declared: declared_triangles,
-                limit: max_triangles,
-            });
-        }
+        let Head {
+            triangles: declared_triangles,
+            splits: declared_splits,
+            check: declared_check,
+            step,
+        } = head(payload, max_triangles)?;
         let mut body = &payload[HEADER..];
         if !delta {
             let Some((corners, rest)) = body.split_at_checked(8) else {
@@ -563,7 +562,6 @@ impl MeshDecoder {
                         .map_err(|_| DecodeError::Corrupt("a height out of range"))?;
                 }
                 check.add(u64::from(i) << 16 | u64::from(self.heights[i as usize]));
-                hash.add(i, self.heights[i as usize]);
             }
             if rc.failed() {
                 return Err(DecodeError::Corrupt(

@@ -1,6 +1,5 @@
-//! A decoded cut and its hash, shared by both mesh formats' decoders and the server's
-//! per-viewer core: [`Cut`] (a split set, its triangles and its hash) and [`CutHash`] (an
-//! order-independent hash kept change by change at both ends).
+//! A cut's hash, [`CutHash`]: order-independent, kept change by change at both ends (the
+//! server's per-viewer core and the viewer's decoder), and carried by every change frame.
 
 use crate::bintree::{BitSet, Grid};
 
@@ -52,48 +51,5 @@ impl CutHash {
             }
         }
         hash
-    }
-}
-
-/// A decoded cut, as a viewer keeps it per frame (a base later frames may be coded
-/// against): its split diamonds, its triangle count and its [`CutHash`] value.
-#[derive(Debug, Default, PartialEq, Eq)]
-pub struct Cut {
-    pub split: BitSet,
-    pub triangles: u32,
-    pub hash: u64,
-}
-
-impl Clone for Cut {
-    fn clone(&self) -> Cut {
-        Cut {
-            split: self.split.clone(),
-            triangles: self.triangles,
-            hash: self.hash,
-        }
-    }
-
-    /// Copies into this cut's memory.
-    fn clone_from(&mut self, source: &Cut) {
-        self.split.clone_from(&source.split);
-        self.triangles = source.triangles;
-        self.hash = source.hash;
-    }
-}
-
-impl Cut {
-    /// The cut of `split` (closed under parent) with the row-major `heights`, computed over
-    /// the whole set (O(grid)).
-    pub fn of(grid: &Grid, split: BitSet, heights: &[u16]) -> Cut {
-        let triangles = split.iter().fold(2u32, |t, i| {
-            let (x, z) = grid.coords(i);
-            t.wrapping_add(grid.added(x, z))
-        });
-        let hash = CutHash::of(grid, &split, heights).value();
-        Cut {
-            split,
-            triangles,
-            hash,
-        }
     }
 }

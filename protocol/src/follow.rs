@@ -14,10 +14,12 @@
 //! a merged diamond's in the log entry that merged it, so nothing is sized by the grid.
 //!
 //! A frame that fails changes nothing (it is decoded into the scratch maps, and applied to
-//! the current cut only once every check passed), so a bad frame spoils no base. The
-//! result is the reference decoder's ([`crate::MeshDecoder::decode_cut`], which keeps a
-//! bitset over the grid and a copy per base): the tests compare the two on random cuts and
-//! on every frame of the fuzzing inputs.
+//! the current cut only once every check passed), so a bad frame spoils no base. It is
+//! the library's one decoder of change frames (their bits read by
+//! [`crate::changes::ChangeReader`]). Its result is the reference decoder's, a test
+//! oracle that keeps a bitset over the grid and a copy per base (format 1 through
+//! [`crate::MeshDecoder`]; `protocol/tests/it/common/reference.rs`): the tests compare the
+//! two on random cuts and damaged payloads, and the fuzzing on every frame of its inputs.
 //!
 //! **Measured** (issue 22, one headless viewer driving at 65,536 triangles, 60 frames/s
 //! sent): the reference decoder took 8.6 frames/s at 32769² and 52 at 16385² on an idle
@@ -33,9 +35,9 @@
 
 use std::collections::VecDeque;
 
-use crate::bintree::Grid;
-use crate::changes::{self, CHANGES_FORMAT};
-use crate::codec::{self, ChangeModels, Check, Decoded, Models};
+use crate::bintree::{BitSet, Grid};
+use crate::changes::{CHANGES_FORMAT, ChangeReader};
+use crate::codec::{self, Check, Decoded, Models};
 use crate::cut::CutHash;
 use crate::diamonds::DiamondMap;
 use crate::format::DecodeError;
@@ -77,17 +79,9 @@ pub struct Follower {
     list: Vec<u32>,
     next: Vec<u32>,
     models: Box<Models>,
-    change_models: Box<ChangeModels>,
+    reader: ChangeReader,
     /// Toggle lists of logs let go, reused.
     spare: Vec<Vec<(u32, u16)>>,
-}
-
-/// A frame's figures before its checks.
-struct Head {
-    triangles: u32,
-    splits: u32,
-    check: u64,
-    step: i32,
 }
 
 impl Follower {
@@ -108,7 +102,7 @@ impl Follower {
             list: Vec::new(),
             next: Vec::new(),
             models: Box::new(Models::fresh()),
-            change_models: Box::new(ChangeModels::fresh()),
+            reader: ChangeReader::new(grid),
             spare: Vec::new(),
         }
     }
@@ -179,6 +173,25 @@ impl Follower {
             .map_or(&[][..], |l| &l.toggles[..])
             .iter()
             .map(|t| t.0)
+    }
+
+    /// Applies the newest frame's toggles to `split` (a bitset over the grid) and
+    /// `heights` (row-major, over the grid), and writes the corners' heights: kept so frame
+    /// after frame, they are the current cut as [`crate::mesh::emit`] takes it, at
+    /// O(changes) a frame. For checks and benchmarks that hold the grid-sized arrays the
+    /// decoder does without.
+    pub fn mirror(&self, split: &mut BitSet, heights: &mut [u16]) {
+        for &(i, h) in self.toggled_heights() {
+            if split.contains(i) {
+                split.remove(i);
+            } else {
+                split.insert(i);
+                heights[i as usize] = h;
+            }
+        }
+        for (k, &i) in self.corner_index.iter().enumerate() {
+            heights[i as usize] = self.corners[k];
+        }
     }
 
     /// Bytes held: the cut, the logs and the scratch (the measure of "proportional to the
@@ -280,30 +293,6 @@ impl Follower {
         }
     }
 
-    /// The frame's figures and checks, common to both formats; `None` is a refusal.
-    fn head(payload: &[u8], at: usize, max_triangles: u32) -> Result<Head, DecodeError> {
-        let head = Head {
-            triangles: codec::u32_le(payload, at),
-            splits: codec::u32_le(payload, at + 4),
-            check: u64::from_le_bytes(
-                payload[at + 8..at + 16]
-                    .try_into()
-                    .expect("8 bytes: the caller checked the header's length"),
-            ),
-            step: i32::from(u16::from_le_bytes([payload[at + 16], payload[at + 17]])),
-        };
-        if head.step == 0 {
-            return Err(DecodeError::Corrupt("a height step of 0"));
-        }
-        if head.triangles > max_triangles {
-            return Err(DecodeError::TooBig {
-                declared: head.triangles,
-                limit: max_triangles,
-            });
-        }
-        Ok(head)
-    }
-
     fn check_grid(&self, payload: &[u8]) -> Result<(), DecodeError> {
         if u32::from(payload[1]) != self.grid.levels() {
             return Err(DecodeError::Grid {
@@ -337,7 +326,7 @@ impl Follower {
         if delta != self.against {
             return Err(DecodeError::Base);
         }
-        let head = Follower::head(payload, 4, max_triangles)?;
+        let head = codec::head(payload, max_triangles)?;
         let mut body = &payload[codec::HEADER..];
         let corners = if delta {
             self.corners
@@ -442,55 +431,13 @@ impl Follower {
         toggles: &mut Vec<(u32, u16)>,
     ) -> Result<(Decoded, u64, Option<[u16; 4]>), DecodeError> {
         let grid = self.grid;
-        if payload.len() < changes::HEADER {
-            return Err(DecodeError::Short(payload.len()));
-        }
-        self.check_grid(payload)?;
-        if payload[2] != 0 || payload[3] != 0 {
-            return Err(DecodeError::Corrupt("unknown flags"));
-        }
+        let (head, mut body) = self.reader.read(payload, base.1, max_triangles)?;
         if !self.against {
             return Err(DecodeError::Base);
         }
-        let head = Follower::head(payload, 4, max_triangles)?;
-        let count = codec::u32_le(payload, 22);
-        // Each split adds at least one triangle to the two of the empty cut.
-        if head.splits > head.triangles.saturating_sub(2) {
-            return Err(DecodeError::Corrupt("more splits than triangles"));
-        }
-        // Every change is a split of the base or of the cut now; checked before anything
-        // is sized by the count.
-        if u64::from(count) > u64::from(base.1) + u64::from(head.splits) {
-            return Err(DecodeError::Corrupt(
-                "more changes than the base and the frame have splits",
-            ));
-        }
-        self.change_models.reset();
-        self.changes.clear();
         self.order.clear();
         self.fresh.clear();
-        let mut rc = range::Decoder::new(&payload[changes::HEADER..]);
-        let size = grid.size();
-        let mut next = 0u64;
-        for _ in 0..count {
-            let gap = changes::decode_gap(&mut rc, &mut self.change_models);
-            if rc.failed() {
-                return Err(DecodeError::Corrupt(
-                    "the coded bits end early or are not ours",
-                ));
-            }
-            // ≤ 2^32 + 2^32: no overflow in u64.
-            let key = next + u64::from(gap) - 1;
-            next = key + 1;
-            let Ok(key) = u32::try_from(key) else {
-                return Err(DecodeError::Corrupt("a change off the grid"));
-            };
-            let (x, z) = changes::unmorton(key);
-            if x > size || z > size || (x.is_multiple_of(size) && z.is_multiple_of(size)) {
-                return Err(DecodeError::Corrupt("a change off the grid or at a corner"));
-            }
-            self.changes.push(grid.index(x, z));
-        }
+        self.reader.changes(&mut body, &mut self.changes)?;
         let (mut triangles, mut splits) = (i64::from(base.0), i64::from(base.1));
         let mut hash = CutHash(base.2);
         for &i in &self.changes {
@@ -521,22 +468,16 @@ impl Follower {
             let o = self.order[k];
             let (i, depth) = (o as u32, (o >> 32) as usize);
             let (x, z) = grid.coords(i);
-            let r = codec::decode_residual(&mut rc, &mut self.change_models.residuals, depth)
-                .ok_or(DecodeError::Corrupt("a residual out of range"))?;
+            let r = self.reader.residual(&mut body, depth)?;
             // An end not in the frame's cut: the cut is not closed.
-            let p = codec::predict_by(&grid, x, z, head.step, |j| self.frame_height(j))
+            let step = i32::from(head.step);
+            let p = codec::predict_by(&grid, x, z, step, |j| self.frame_height(j))
                 .ok_or(DecodeError::Check)?;
-            // In i64: a hostile step times a large residual overflows i32.
-            let h = i64::from(p) + i64::from(r) * i64::from(head.step);
-            let h = u16::try_from(h).map_err(|_| DecodeError::Corrupt("a height out of range"))?;
+            let h = head.height(p, r)?;
             self.fresh.insert(i, h);
             hash.add(i, h);
         }
-        if rc.failed() {
-            return Err(DecodeError::Corrupt(
-                "the coded bits end early or are not ours",
-            ));
-        }
+        body.finish()?;
         // Closed under parent, given a closed base: every split's parents are split, and
         // no merged diamond keeps a split child.
         for &i in &self.changes {

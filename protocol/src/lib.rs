@@ -29,7 +29,7 @@ pub mod validate;
 pub use bintree::{BitSet, Grid};
 pub use changes::{CHANGES_FORMAT, ChangeEncoder};
 pub use codec::{Decoded, EncodeError, MeshDecoder, MeshEncoder, height_step};
-pub use cut::{Cut, CutHash};
+pub use cut::CutHash;
 pub use diamonds::DiamondMap;
 pub use follow::Follower;
 pub use format::DecodeError;

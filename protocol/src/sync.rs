@@ -1,5 +1,5 @@
 //! [`lock`]: a `std::sync::Mutex` locked whether or not a thread panicked holding it, the
-//! one way roam's code locks one.
+//! one way roam's code locks one; [`wait`], a `Condvar` waited on the same way.
 //!
 //! **Why poison is ignored.** Every mutex in roam guards state that is whole between
 //! statements (a queue, a pool, counters, a cache, the newest of something): no invariant
@@ -13,11 +13,17 @@
 //! `roam-protocol` is the one crate all of them depend on. It is `std` only: no thread,
 //! clock or I/O, so the protocol crate stays pure.
 
-use std::sync::{Mutex, MutexGuard, PoisonError};
+use std::sync::{Condvar, Mutex, MutexGuard, PoisonError};
 
 /// Locks `m`, taking the guard of a poisoned mutex as it is (see the module's header).
 pub fn lock<T: ?Sized>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Waits on `c` with `guard`, taking the guard back from a poisoned mutex as it is (as
+/// [`lock`]).
+pub fn wait<'a, T>(c: &Condvar, guard: MutexGuard<'a, T>) -> MutexGuard<'a, T> {
+    c.wait(guard).unwrap_or_else(PoisonError::into_inner)
 }
 
 #[cfg(test)]

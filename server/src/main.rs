@@ -38,6 +38,11 @@ enum Command {
     /// Tessellate once for a camera and write the mesh as a Wavefront OBJ.
     Mesh(cli::tess::MeshArgs),
     /// Time the tessellator along a fly-over path (or one fixed camera), and the physics.
+    ///
+    /// The serving figures are made as `serve` makes a viewer's cut (--fog-priority,
+    /// --guard-deg, --swap-margin); the guard band also widens the from-scratch cut they
+    /// are compared with, not the from-scratch timing figures' (which have none), and
+    /// `serve_fogged_error_px_p99` measures either fog priority alike.
     Bench(cli::tess::BenchArgs),
     /// Drive one vehicle from the map's start by an input script, without a network; print
     /// its state at every tick as CSV.

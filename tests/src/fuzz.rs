@@ -8,9 +8,13 @@
 //! meshes, colour maps) with one to four bytes flipped, cut or appended. Each input goes
 //! through every [`Stage`] ([`Fuzz::feed`]): the four message decoders, the control
 //! stream's framing (the input behind a length prefix that is true, random, or claims up
-//! to 32 MiB), the mesh decoder (key, delta and change frames) and the colour-map decoder;
-//! a frame that decodes goes on through the mesh decoder and the viewer's vertex builder.
-//! The caller runs each stage (to count outcomes, catch panics, measure allocations).
+//! to 32 MiB), the mesh decoders (format 1's for key and delta frames, the viewer's for
+//! change frames and every frame's mesh) and the colour-map decoder; a frame that decodes
+//! goes on through the mesh decoders and the viewer's vertex builder. The viewer's decoder
+//! ([`Follower`]) must agree with the protocol tests' reference decoder (their oracle,
+//! `protocol/tests/it/common/reference.rs`, included here by path) on every mesh it is
+//! given. The caller runs each stage (to count outcomes, catch panics, measure
+//! allocations).
 
 use std::future::Future;
 use std::pin::pin;
@@ -22,11 +26,17 @@ use roam_protocol::messages::{
     self, ClientMessage, Frame, Hello, KeyDatagram, KeyState, Role, ServerMessage, VehicleView,
 };
 use roam_protocol::{
-    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Follower, Grid, LiveMesh, Mesh, MeshDecoder,
+    BitSet, CHANGES_FORMAT, ChangeEncoder, Follower, Grid, LiveMesh, Mesh, MeshDecoder,
     MeshEncoder, colormap, mesh,
 };
 
 use crate::fixtures::SplitMix64;
+
+/// The protocol tests' reference decoder: the oracle the viewer's decoder is held to.
+#[path = "../../protocol/tests/it/common/reference.rs"]
+mod reference;
+
+use reference::{Cut, Reference};
 
 /// The side of the fuzzed colour maps: small, so that the many inputs that get past the
 /// header (and decode every texel) stay quick.
@@ -54,7 +64,7 @@ pub enum Stage {
     WireClient,
     /// `wire::read::<ServerMessage>` with the viewer's limit (`MAX_MESSAGE`).
     WireServer,
-    /// A decoded frame's mesh through `MeshDecoder::decode_cut`: against the base a viewer
+    /// A decoded frame's mesh through the reference decoder: against the base a viewer
     /// holds when the frame names one.
     FrameMesh,
     /// A mesh that decoded (a frame's, a key frame's or a change frame's) emitted
@@ -68,7 +78,8 @@ pub enum Stage {
     KeyMesh,
     /// `MeshDecoder::decode` as a delta on an empty base.
     DeltaMesh,
-    /// `MeshDecoder::decode_cut` against the change frames' base; random inputs go behind a
+    /// The viewer's decoder (`Follower::decode`, as [`Stage::FollowMesh`]) against the
+    /// change frames' base, which must agree with the reference; random inputs go behind a
     /// change frame's header.
     ChangeMesh,
     /// `colormap::decode` of a [`COLOR_CELLS`]² map.
@@ -269,14 +280,16 @@ pub struct Fuzz {
     dec: MeshDecoder,
     empty: BitSet,
     got: BitSet,
-    /// Decodes change frames against `cut_base`, whose heights it holds.
-    change_dec: MeshDecoder,
-    /// A frame's mesh, as a viewer holding `cut_base` decodes it.
-    frame_dec: MeshDecoder,
+    /// The reference decoding change frames against `cut_base`, whose heights it holds.
+    change_ref: Reference,
+    /// The reference decoding a frame's mesh, as a viewer holding `cut_base` does.
+    frame_ref: Reference,
     cut_base: Cut,
     cut: Cut,
-    /// The viewer's decoder holding `cut_base` as frame 0.
+    /// The viewer's decoder holding `cut_base` as frame 0, for frames' meshes.
     following: Following,
+    /// Another, for change frames.
+    changing: Following,
     view: View,
     texels: Vec<u8>,
     /// Scratch: a change frame's header on random bytes, a framed input.
@@ -297,14 +310,13 @@ impl Fuzz {
         let (cut_base, _) = change_base(grid, &heights);
         let key = key_frame(grid, &cut_base.split, &heights);
         let holding_base = || {
-            let mut dec = MeshDecoder::new(grid);
+            let mut dec = Reference::new(grid);
             let mut cut = Cut::default();
             dec.decode_cut(&key, None, u32::MAX, &mut cut)
                 .expect("the key frame just encoded decodes");
             assert_eq!(cut, cut_base, "the key frame decodes to its cut");
             dec
         };
-        let (follower, live) = following(grid, &key);
         let scene = Scene {
             levels: LEVELS,
             h_scale: 30.0,
@@ -324,17 +336,12 @@ impl Fuzz {
             dec: MeshDecoder::new(grid),
             empty: BitSet::new(grid.vertices()),
             got: BitSet::default(),
-            change_dec: holding_base(),
-            frame_dec: holding_base(),
+            change_ref: holding_base(),
+            frame_ref: holding_base(),
             cut_base,
             cut: Cut::default(),
-            following: Following {
-                follower,
-                live,
-                vertices: TerrainVertices::default(),
-                base_key: key.clone(),
-                followed: 0,
-            },
+            following: Following::new(grid, &key),
+            changing: Following::new(grid, &key),
             view: View {
                 mesh: Mesh::default(),
                 scene,
@@ -426,15 +433,25 @@ impl Fuzz {
         } else {
             input
         };
-        let (change_dec, base, cut) = (&mut self.change_dec, &self.cut_base, &mut self.cut);
-        if run(Stage::ChangeMesh, change_input, &mut || {
-            change_dec
-                .decode_cut(change_input, Some(base), MAX_TRIANGLES, cut)
-                .is_ok()
-        }) {
-            let heights = change_dec.heights();
+        let (change_ref, base, cut) = (&mut self.change_ref, &self.cut_base, &mut self.cut);
+        let want = change_ref
+            .decode_cut(change_input, Some(base), MAX_TRIANGLES, cut)
+            .ok()
+            .map(|_| (cut.triangles, cut.hash));
+        let scene = &self.view.scene;
+        let decoded = self.changing.feed(
+            Stage::ChangeMesh,
+            &self.grid,
+            scene,
+            change_input,
+            true,
+            want,
+            run,
+        );
+        if decoded {
+            let heights = self.change_ref.heights();
             self.view
-                .build(&self.grid, &cut.split, heights, change_input, run);
+                .build(&self.grid, &self.cut.split, heights, change_input, run);
         }
         let texels = &mut self.texels;
         run(Stage::ColorMap, input, &mut || {
@@ -462,13 +479,20 @@ impl Fuzz {
             None => (input, n.is_multiple_of(4)),
         };
         let base = against_base.then_some(&self.cut_base);
-        let (dec, cut) = (&mut self.frame_dec, &mut self.cut);
+        let (dec, cut) = (&mut self.frame_ref, &mut self.cut);
         let decoded = run(Stage::FrameMesh, mesh, &mut || {
             dec.decode_cut(mesh, base, MAX_TRIANGLES, cut).is_ok()
         });
         let want = decoded.then_some((cut.triangles, cut.hash));
-        self.following
-            .feed(&self.grid, &self.view.scene, mesh, against_base, want, run);
+        self.following.feed(
+            Stage::FollowMesh,
+            &self.grid,
+            &self.view.scene,
+            mesh,
+            against_base,
+            want,
+            run,
+        );
         if !decoded {
             return;
         }
@@ -502,25 +526,39 @@ struct Following {
 }
 
 impl Following {
+    /// A viewer's decoder that has decoded `key` as frame 0.
+    fn new(grid: Grid, key: &[u8]) -> Following {
+        let (follower, live) = following(grid, key);
+        Following {
+            follower,
+            live,
+            vertices: TerrainVertices::default(),
+            base_key: key.to_vec(),
+            followed: 0,
+        }
+    }
+
     /// `mesh` through the viewer's decoder against frame 0 (or as a key frame), as
-    /// [`Stage::FollowMesh`]: it must decode where the reference did (`want`: its
-    /// triangles and hash), and fail where it failed.
+    /// `stage`: it must decode where the reference did (`want`: its triangles and hash),
+    /// and fail where it failed. Whether it decoded.
+    #[allow(clippy::too_many_arguments)]
     fn feed(
         &mut self,
+        stage: Stage,
         grid: &Grid,
         scene: &Scene,
         mesh: &[u8],
         against_base: bool,
         want: Option<(u32, u64)>,
         run: &mut Runner,
-    ) {
+    ) -> bool {
         if !self.follower.has_base(0) {
             (self.follower, self.live) = following(*grid, &self.base_key);
         }
         self.followed += 1;
         let frame = self.followed;
         let (f, live, vertices) = (&mut self.follower, &mut self.live, &mut self.vertices);
-        let got = run(Stage::FollowMesh, mesh, &mut || {
+        let got = run(stage, mesh, &mut || {
             let got = f
                 .decode(frame, mesh, against_base.then_some(0), MAX_TRIANGLES)
                 .is_ok();
@@ -540,6 +578,7 @@ impl Following {
             _ => want,
         };
         assert_eq!(got, want, "the viewer's decoder and the reference disagree");
+        got.is_some()
     }
 }
 
@@ -557,7 +596,7 @@ fn following(grid: Grid, key: &[u8]) -> (Follower, LiveMesh) {
 /// `mesh` decoded by a fresh reference decoder holding the cut of `key` (against it, or
 /// as a key frame): its triangles and hash, if it decodes.
 fn reference(grid: Grid, key: &[u8], mesh: &[u8], against_base: bool) -> Option<(u32, u64)> {
-    let mut dec = MeshDecoder::new(grid);
+    let mut dec = Reference::new(grid);
     let (mut base, mut cut) = (Cut::default(), Cut::default());
     dec.decode_cut(key, None, u32::MAX, &mut base)
         .expect("the key frame just encoded decodes");

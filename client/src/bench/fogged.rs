@@ -41,7 +41,7 @@ impl FoggedError {
     /// For a viewer that said `hello` (its camera's shape), from the empty cut.
     pub fn new(truth: Truth, hello: &Hello) -> FoggedError {
         let core = ViewerCore::for_hello(&truth.terrain, 1, hello, ViewerLimits::default());
-        let scratch = Scratch::new(truth.terrain.heights.side());
+        let scratch = Scratch::new(truth.terrain.heights.side(), 1);
         FoggedError {
             truth,
             core,

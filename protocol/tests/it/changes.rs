@@ -1,6 +1,9 @@
 //! Change frames (format 2) on random conforming cuts: exact round trips of random closed
 //! split sets and toggle sequences, chains of frames each coded against a random earlier
-//! one, wrong bases, damage, truncation, hostile headers, no allocation once warm.
+//! one, wrong bases, damage and truncation, through the reference decoder (the tests'
+//! oracle, `common/reference.rs`); hostile headers, random bytes and no allocation once
+//! warm through the viewer's decoder ([`Follower`], the library's one decoder of change
+//! frames; `follow.rs` holds it to the reference frame by frame).
 //! What a change costs is measured by `benches/change_sizes.rs`.
 
 use std::alloc::{GlobalAlloc, Layout, System};
@@ -13,8 +16,7 @@ use common::*;
 use proptest::prelude::*;
 use roam_protocol::mesh::{self, Mesh};
 use roam_protocol::{
-    BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, CutHash, DecodeError, EncodeError, Grid,
-    MeshDecoder,
+    BitSet, CHANGES_FORMAT, ChangeEncoder, CutHash, DecodeError, EncodeError, Follower, Grid,
 };
 
 /// Counts this thread's allocations (tests run on several threads).
@@ -124,7 +126,7 @@ fn round_trips() {
         let h = heights(&grid, seed as u32, step);
         let mut rng = Rng(seed);
         let set = closed_set(&grid, &mut rng, picks);
-        let mut dec = MeshDecoder::new(grid);
+        let mut dec = Reference::new(grid);
         let base = key_frame(&grid, &h, step, &set, &mut dec);
         let mut now = set.clone();
         let w = window.min(grid.side());
@@ -152,7 +154,7 @@ fn chains_of_frames_against_random_earlier_bases() {
         let h = heights(&grid, seed, 1);
         let mut rng = Rng(u64::from(seed));
         let first = closed_set(&grid, &mut rng, 20);
-        let mut dec = MeshDecoder::new(grid);
+        let mut dec = Reference::new(grid);
         let mut decoded = vec![(first.clone(), key_frame(&grid, &h, 1, &first, &mut dec))];
         let mut now = first;
         for _ in 0..frames {
@@ -180,7 +182,7 @@ fn a_frame_against_the_wrong_base_is_refused_and_changes_nothing() {
     let h = heights(&grid, 3, 1);
     let mut rng = Rng(3);
     let a = closed_set(&grid, &mut rng, 40);
-    let mut dec = MeshDecoder::new(grid);
+    let mut dec = Reference::new(grid);
     let base = key_frame(&grid, &h, 1, &a, &mut dec);
     let mut others = Vec::new();
     for toggles in [1, 2, 5, 30] {
@@ -225,7 +227,7 @@ fn every_truncation_and_byte_flip_is_an_error_or_the_right_cut() {
     let h = heights(&grid, 4, 1);
     let mut rng = Rng(4);
     let a = closed_set(&grid, &mut rng, 15);
-    let mut dec = MeshDecoder::new(grid);
+    let mut dec = Reference::new(grid);
     let base = key_frame(&grid, &h, 1, &a, &mut dec);
     let mut values = 0;
     for toggles in [1, 6, 25] {
@@ -237,7 +239,7 @@ fn every_truncation_and_byte_flip_is_an_error_or_the_right_cut() {
         let bytes = encode(&grid, &h, 1, &a, &now, 2);
         let mut got = Cut::default();
         let mut before = Vec::new();
-        let mut try_one = |input: &[u8], dec: &mut MeshDecoder| {
+        let mut try_one = |input: &[u8], dec: &mut Reference| {
             before.clear();
             before.extend_from_slice(dec.heights());
             match dec.decode_cut(input, Some(&base), u32::MAX, &mut got) {
@@ -267,30 +269,31 @@ fn every_truncation_and_byte_flip_is_an_error_or_the_right_cut() {
     println!("{values} damaged payloads decoded to the right cut (flips in the slack bytes)");
 }
 
-/// A header that claims too much is refused before anything is allocated.
+/// A header that claims too much is refused by the viewer's decoder before anything is
+/// allocated.
 #[test]
 fn hostile_headers_are_refused_before_allocating() {
     let grid = Grid::new(8).expect("valid");
     let h = heights(&grid, 5, 1);
     let mut rng = Rng(5);
     let a = closed_set(&grid, &mut rng, 50);
-    let mut dec = MeshDecoder::new(grid);
-    let base = key_frame(&grid, &h, 1, &a, &mut dec);
     let mut now = a.clone();
     for _ in 0..8 {
         toggle(&grid, &mut now, &mut rng, (0, 0, grid.side()));
     }
     let bytes = encode(&grid, &h, 1, &a, &now, 3);
-    let mut got = Cut::default();
-    check(&grid, &h, 1, &base, &now, &mut dec); // warm: `got` and the decoder sized
-    dec.decode_cut(&bytes, Some(&base), u32::MAX, &mut got)
-        .expect("decodes");
+    let mut f = Follower::new(grid, 4);
+    f.decode(0, &key_bytes(&grid, &h, 1, &a), None, u32::MAX)
+        .expect("the key frame");
+    // Warm: the maps sized by a frame against frame 0, and a refusal.
+    f.decode(1, &bytes, Some(0), u32::MAX).expect("decodes");
     let patch = |at: usize, v: &[u8]| {
         let mut b = bytes.clone();
         b[at..at + v.len()].copy_from_slice(v);
         b
     };
     let huge_count = patch(22, &u32::MAX.to_le_bytes());
+    assert!(f.decode(2, &huge_count, Some(0), u32::MAX).is_err());
     let huge_triangles = patch(4, &u32::MAX.to_le_bytes());
     let huge_splits = patch(8, &(u32::MAX - 10).to_le_bytes());
     let zero_step = patch(20, &[0, 0]);
@@ -332,54 +335,60 @@ fn hostile_headers_are_refused_before_allocating() {
         (&bytes[..25], u32::MAX, DecodeError::Short(25)),
     ];
     for (input, limit, want) in cases {
-        let (n, result) = allocations(|| dec.decode_cut(input, Some(&base), limit, &mut got));
+        let (n, result) = allocations(|| f.decode(2, input, Some(0), limit));
         assert_eq!(result, Err(want));
         assert_eq!(n, 0, "allocations");
     }
     // A count within the bound but no bits for it: an error soon, allocating little.
     let mut starved = bytes[..26].to_vec();
     starved[22..26].copy_from_slice(&(a.len() as u32).to_le_bytes());
-    let (n, result) = allocations(|| dec.decode_cut(&starved, Some(&base), u32::MAX, &mut got));
+    let (n, result) = allocations(|| f.decode(2, &starved, Some(0), u32::MAX));
     assert!(result.is_err());
     assert!(n <= 2, "{n} allocations");
+    assert_eq!(f.frame(), Some(1), "nothing refused was taken");
 }
 
+/// The encoder and the viewer's decoder, frame after frame between two cuts (each frame
+/// against the one before): once warm, neither allocates.
 #[test]
 fn nothing_is_allocated_once_warm() {
     let grid = Grid::new(10).expect("valid");
     let h = heights(&grid, 6, 1);
     let mut rng = Rng(6);
     let a = closed_set(&grid, &mut rng, 300);
-    let mut dec = MeshDecoder::new(grid);
-    let base = key_frame(&grid, &h, 1, &a, &mut dec);
+    let mut b = a.clone();
+    for _ in 0..100 {
+        toggle(&grid, &mut b, &mut rng, (100, 200, 300));
+    }
+    let sets = [a, b];
+    let mut f = Follower::new(grid, 2);
+    f.decode(0, &key_bytes(&grid, &h, 1, &sets[0]), None, u32::MAX)
+        .expect("the key frame");
     let mut enc = ChangeEncoder::new(grid, 1);
-    let (mut out, mut got) = (Vec::with_capacity(4096), Cut::default());
-    for round in 0..3 {
-        let mut now = a.clone();
-        for _ in 0..100 {
-            toggle(&grid, &mut now, &mut rng, (100, 200, 300));
-        }
-        let list = changes(&a, &now, &mut rng);
-        let want = Cut::of(&grid, now.clone(), &h);
+    let mut out = Vec::with_capacity(4096);
+    for frame in 1..8u64 {
+        let (from, to) = (&sets[(frame as usize - 1) % 2], &sets[frame as usize % 2]);
+        let list = changes(from, to, &mut rng);
+        let want = Cut::of(&grid, to.clone(), &h);
         let (n, ()) = allocations(|| {
             out.clear();
             enc.encode(
                 &list,
-                |i| now.contains(i),
+                |i| to.contains(i),
                 &h,
                 want.triangles,
-                now.len() as u32,
+                to.len() as u32,
                 want.hash,
                 &mut out,
             )
             .expect("encodes");
-            dec.decode_cut(&out, Some(&base), u32::MAX, &mut got)
+            f.decode(frame, &out, Some(frame - 1), u32::MAX)
                 .expect("decodes");
         });
-        assert_eq!(got, want);
-        if round > 0 {
-            assert!(list.len() < 400);
-            assert_eq!(n, 0, "allocations in round {round}");
+        assert_eq!((f.triangles(), f.hash()), (want.triangles, want.hash));
+        assert!(list.len() < 400);
+        if frame > 3 {
+            assert_eq!(n, 0, "allocations in frame {frame}");
         }
     }
 }
@@ -436,7 +445,7 @@ proptest! {
         let h = heights(&grid, seed as u32, 1);
         let mut rng = Rng(seed);
         let a = closed_set(&grid, &mut rng, picks);
-        let mut dec = MeshDecoder::new(grid);
+        let mut dec = Reference::new(grid);
         let base = key_frame(&grid, &h, 1, &a, &mut dec);
         let w = window.min(grid.side());
         let at = (rng.below(grid.side() - w + 1), rng.below(grid.side() - w + 1), w);
@@ -451,7 +460,8 @@ proptest! {
         check(&grid, &h, 1, &cut, &b, &mut dec);
     }
 
-    /// Any bytes at all, behind a change frame's first byte or not: a value or an error.
+    /// Any bytes at all, behind a change frame's first byte or not: a value or an error,
+    /// the same from both decoders.
     #[test]
     fn random_bytes_never_panic(
         mut bytes in prop::collection::vec(any::<u8>(), 0..200),
@@ -463,10 +473,20 @@ proptest! {
             bytes[..4].copy_from_slice(&[CHANGES_FORMAT, 6, 0, 0]);
         }
         let h = heights(&grid, 1, 1);
-        let mut dec = MeshDecoder::new(grid);
-        let base = key_frame(&grid, &h, 1, &closed_set(&grid, &mut Rng(seed), 20), &mut dec);
+        let set = closed_set(&grid, &mut Rng(seed), 20);
+        let mut dec = Reference::new(grid);
+        let base = key_frame(&grid, &h, 1, &set, &mut dec);
         let mut got = Cut::default();
-        let _ = dec.decode_cut(&bytes, Some(&base), 10_000, &mut got);
+        let want = dec.decode_cut(&bytes, Some(&base), 10_000, &mut got);
         let _ = dec.decode_cut(&bytes, None, 10_000, &mut got);
+        // The viewer's decoder, as the reference.
+        let mut f = Follower::new(grid, 2);
+        f.decode(0, &key_bytes(&grid, &h, 1, &set), None, u32::MAX).expect("the key frame");
+        let decoded = f.decode(1, &bytes, Some(0), 10_000);
+        prop_assert_eq!(decoded.is_ok(), want.is_ok());
+        if decoded.is_ok() {
+            prop_assert_eq!((f.triangles(), f.hash()), (got.triangles, got.hash));
+        }
+        let _ = f.decode(2, &bytes, None, 10_000);
     }
 }

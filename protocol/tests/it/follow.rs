@@ -1,5 +1,6 @@
 //! The viewer's decoder ([`Follower`]) and its mesh ([`LiveMesh`]) against the reference
-//! decoder ([`MeshDecoder::decode_cut`], a bitset and a copy per base) and [`mesh::emit`]:
+//! decoder ([`Reference`], the tests' oracle: a bitset and a copy per base) and
+//! [`mesh::emit`]:
 //! random drives of change frames, format-1 deltas and key frames against random recent
 //! bases, damaged payloads, and the memory held.
 
@@ -7,9 +8,9 @@ use crate::common;
 
 use std::collections::{BTreeSet, VecDeque};
 
-use common::{Rng, closed_set, encode, heights, toggle};
+use common::{Cut, Reference, Rng, closed_set, encode, heights, toggle};
 use roam_protocol::mesh::{self, LiveMesh, Mesh};
-use roam_protocol::{BitSet, Cut, DecodeError, Follower, Grid, MeshDecoder, MeshEncoder};
+use roam_protocol::{BitSet, DecodeError, Follower, Grid, MeshEncoder};
 
 /// A mesh's triangles as sets of grid indices, each rotated to start at its least index
 /// (orientation kept).
@@ -49,7 +50,7 @@ fn follower_cut(grid: &Grid, f: &Follower, h: &[u16]) -> BitSet {
 /// A viewer decoding with both decoders: the reference keeps a [`Cut`] per base.
 struct Both {
     grid: Grid,
-    reference: MeshDecoder,
+    reference: Reference,
     bases: VecDeque<(u64, Cut)>,
     follower: Follower,
     live: LiveMesh,
@@ -60,7 +61,7 @@ impl Both {
     fn new(grid: Grid, kept: usize) -> Both {
         Both {
             grid,
-            reference: MeshDecoder::new(grid),
+            reference: Reference::new(grid),
             bases: VecDeque::new(),
             follower: Follower::new(grid, kept),
             live: LiveMesh::new(&grid),

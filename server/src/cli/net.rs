@@ -81,23 +81,9 @@ pub struct ServeArgs {
     /// Most frames a second a viewer is served, whatever it asks.
     #[arg(long, default_value_t = roam_server::viewer::MAX_FPS)]
     pub max_fps: u16,
-    /// Weigh each diamond's error by what the map's fog lets through of it, for viewers
-    /// drawing their fog (`on`), or not (`off`: the fog-unaware priority, for comparisons).
-    #[arg(long, value_enum, default_value_t = super::tess::FogPriority::On)]
-    pub fog_priority: super::tess::FogPriority,
-    /// A guard band: each viewer's cut is refined this many degrees beyond either side of
-    /// its view, so that what it turns towards is detailed before it is seen (0: cull at
-    /// the view's edges, the spec's split-only ROAM).
-    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
-          value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
-    pub guard_deg: u8,
-    /// Once a viewer's cut is at its budget, a merge makes room for a split only when the
-    /// split's priority beats the merge's by more than this many percent, so diamonds of
-    /// nearly equal priority are not traded back and forth as the eye moves (0: ROAM's
-    /// rule, any gain, as before issue 24).
-    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_SWAP_MARGIN_PCT,
-          value_parser = clap::value_parser!(u16).range(0..=i64::from(roam_server::viewer::MAX_SWAP_MARGIN_PCT)))]
-    pub swap_margin: u16,
+    /// How the served cuts are made: --fog-priority, --guard-deg, --swap-margin.
+    #[command(flatten)]
+    pub cut: roam_server::viewer::CutArgs,
     /// Seconds a driver's vehicle is held after its connection drops, for it to come back.
     #[arg(long, default_value_t = net::HOLD.as_secs_f64(), value_parser = seconds)]
     pub hold: f64,
@@ -216,13 +202,11 @@ fn max_memory(text: &str) -> Result<u64, String> {
 impl ServeArgs {
     /// The serving options these flags give, or why they are wrong.
     fn options(&self, token: String, record: Option<RecordOptions>) -> Result<Options> {
-        let limits = ViewerLimits {
+        let limits = self.cut.limits(ViewerLimits {
             max_budget: self.max_budget,
             max_fps: self.max_fps,
-            fog_priority: self.fog_priority.on(),
-            guard_deg: self.guard_deg,
-            swap_margin_pct: self.swap_margin,
-        };
+            ..ViewerLimits::default()
+        });
         anyhow::ensure!(
             limits.clamped() == limits,
             "--max-budget {} / --max-fps {}: expected {} ..= {} triangles and 1 ..= {} frames a second",

@@ -41,34 +41,10 @@ use roam_server::terrain::dataset;
 use roam_server::terrain::variance::VarianceTree;
 use roam_server::tessellate::camera::Camera;
 use roam_server::tessellate::{Limits, Mesh, Scales, Tessellator};
-use roam_server::viewer::ViewerLimits;
+use roam_server::viewer::{CutArgs, FogPriority, ViewerLimits};
 
 use super::progress::Staged;
 use roam_server::terrain::cache::CacheReport;
-
-/// Whether the priority weighs each diamond's error by what the map's fog lets through of
-/// it (`--fog-priority`, for `mesh`, `bench` and `serve`): `off` gives the fog-unaware
-/// priority, for before/after comparisons.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
-pub enum FogPriority {
-    On,
-    Off,
-}
-
-impl FogPriority {
-    pub fn on(self) -> bool {
-        self == FogPriority::On
-    }
-
-    /// The fog density the tessellator weighs errors by on `terrain`'s map.
-    pub fn density(self, terrain: &Terrain) -> f32 {
-        if self.on() {
-            terrain.map.fog_density as f32
-        } else {
-            0.0
-        }
-    }
-}
 
 /// Camera options shared by `mesh` and `bench`.
 #[derive(Args, Clone)]
@@ -129,23 +105,10 @@ pub struct BenchArgs {
     /// Stop splitting below this screen-space error, pixels.
     #[arg(long, default_value_t = 0.0)]
     pub threshold: f32,
-    /// Weigh each error by the map's fog (`on`), or not (`off`: the fog-unaware priority,
-    /// for before/after comparisons); `serve_fogged_error_px_p99` measures both alike.
-    #[arg(long, value_enum, default_value_t = FogPriority::On)]
-    pub fog_priority: FogPriority,
-    /// A guard band for the serving figures: the frustum widened by this many degrees
-    /// either side, as `serve --guard-deg` (0: none), and of the from-scratch cut they are
-    /// compared with; the from-scratch timing figures have none.
-    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_GUARD_DEG,
-          value_parser = clap::value_parser!(u8).range(0..=i64::from(roam_server::viewer::MAX_GUARD_DEG)))]
-    pub guard_deg: u8,
-    /// For the serving figures, as `serve --swap-margin`: once a viewer's cut is at its budget, a merge makes room for a split only when the
-    /// split's priority beats the merge's by more than this many percent, so diamonds of
-    /// nearly equal priority are not traded back and forth as the eye moves (0: ROAM's
-    /// rule, any gain, as before issue 24).
-    #[arg(long, default_value_t = roam_server::viewer::DEFAULT_SWAP_MARGIN_PCT,
-          value_parser = clap::value_parser!(u16).range(0..=i64::from(roam_server::viewer::MAX_SWAP_MARGIN_PCT)))]
-    pub swap_margin: u16,
+    /// How the served cuts are made, as `serve`'s: --fog-priority, --guard-deg,
+    /// --swap-margin.
+    #[command(flatten)]
+    pub cut: CutArgs,
     /// One fixed camera instead of the fly-over path (needs `--eye`).
     #[command(flatten)]
     pub camera: CameraArgs,
@@ -293,7 +256,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
     let limits = Limits {
         budget: args.budget,
         threshold_px: args.threshold,
-        fog_density: args.fog_priority.density(&terrain),
+        fog_density: args.cut.fog_priority.density(&terrain),
         guard_deg: 0.0,
     };
     let mut tess = Tessellator::new(terrain.heights.side());
@@ -327,12 +290,7 @@ pub fn bench(args: BenchArgs) -> Result<()> {
         None => roam_protocol::script::parse(roam_protocol::script::DRIVE_SCRIPT)
             .expect("the built-in drive is a valid script"),
     };
-    let caps = ViewerLimits {
-        fog_priority: args.fog_priority.on(),
-        guard_deg: args.guard_deg,
-        swap_margin_pct: args.swap_margin,
-        ..ViewerLimits::default()
-    };
+    let caps = args.cut.limits(ViewerLimits::default());
     let serve = serve_bench(&terrain, &vt, limits, caps, &script)?;
     let many = serve_many_bench(&terrain, &vt, limits, caps, &script);
     let samples = f64::from(terrain.heights.side()).powi(2);
@@ -529,7 +487,7 @@ fn serve_bench(
     caps: ViewerLimits,
     script: &roam_protocol::script::Script,
 ) -> Result<ServeFigures> {
-    use roam_protocol::{Cut, Grid, MeshDecoder, mesh};
+    use roam_protocol::{BitSet, Follower, Grid, mesh};
     use roam_server::tessellate::{Mode, fogged_error_px, measured_error};
     use roam_server::viewer::{Event, Scene, ViewerCore};
     let cameras = flyover::drive(terrain, script, 60);
@@ -549,15 +507,16 @@ fn serve_bench(
         limits.budget,
     )
     .with_caps(caps);
-    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side());
+    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side(), 1);
     let scene = Scene {
         terrain,
         variance: vt,
         scratch: &pool,
     };
     let grid = Grid::new(levels).expect("data sets have 1 ..= 15 levels");
-    let mut decoder = MeshDecoder::new(grid);
-    let (mut base, mut cut) = (Cut::default(), Cut::default());
+    // The viewer's decoder, and its cut mirrored over the grid for `mesh::emit`.
+    let mut decoder = Follower::new(grid, 2);
+    let (mut split, mut heights) = (BitSet::new(grid.vertices()), vec![0; grid.vertices()]);
     let mut scratch = Tessellator::new(terrain.heights.side());
     let (mut served, mut viewer) = (Mesh::default(), mesh::Mesh::default());
     let (mut us, mut changes, mut err, mut scratch_err) = (vec![], vec![], vec![], vec![]);
@@ -578,9 +537,9 @@ fn serve_bench(
             popped.push(f64::from(core.cut().stats().popped));
             rebuilds += usize::from(made.mode == Mode::Rebuild);
         }
-        let b = made.base.map(|_| &base);
-        decoder.decode_cut(&made.payload, b, u32::MAX, &mut cut)?;
-        mesh::emit(&grid, &cut.split, decoder.heights(), &mut viewer);
+        decoder.decode(made.frame, &made.payload, made.base, u32::MAX)?;
+        decoder.mirror(&mut split, &mut heights);
+        mesh::emit(&grid, &split, &heights, &mut viewer);
         core.mesh(&pool, &mut served);
         if viewer.indices != served.indices {
             bail!(
@@ -592,7 +551,6 @@ fn serve_bench(
                 made.mode,
             );
         }
-        std::mem::swap(&mut base, &mut cut);
         core.handle(Event::Acked(made.frame));
         peak = peak.max(core.heap_bytes());
         if made.triangles > limits.budget.max(2) {
@@ -689,7 +647,7 @@ fn serve_many_bench(
     let cameras = flyover::drive(terrain, script, 60);
     let levels = terrain.heights.levels();
     let step = roam_protocol::height_step(terrain.heights.samples());
-    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side());
+    let pool = roam_server::tessellate::Scratch::new(terrain.heights.side(), 1);
     let scene = Scene {
         terrain,
         variance: vt,

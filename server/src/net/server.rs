@@ -263,8 +263,10 @@ impl Server {
             }
         };
         let (stop, shutdown) = watch::channel(false);
+        // One from-scratch tessellator per frame maker at most: only the makers borrow them.
+        let makers = makers();
         let shared = Arc::new(Shared {
-            scratch: crate::tessellate::Scratch::new(terrain.heights.side()),
+            scratch: crate::tessellate::Scratch::new(terrain.heights.side(), makers),
             height_step: roam_protocol::height_step(terrain.heights.samples()),
             pyramid,
             normals,
@@ -291,7 +293,7 @@ impl Server {
             tickets: Mutex::new(HashMap::new()),
             remote: options.remote,
             replay: replaying,
-            makers: Arc::new(makers::Makers::new(makers())),
+            makers: Arc::new(makers::Makers::new(makers)),
             unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),
         });

@@ -11,12 +11,13 @@
 //!   Levels are averaged on the same threads, a band of rows each.
 //! - The coded tiles of a data set are cached in `DIR/.cache/color-tiles.bin` and
 //!   memory-mapped (memmap2) through [`super::tile_store`] (shared with the normal
-//!   pyramid, which documents the file): a restart serves without coding anything, and the
+//!   pyramid, which documents the file; both pyramids dereference to their
+//!   [`TileStore`] for serving): a restart serves without coding anything, and the
 //!   payloads stay in the page cache, not the heap. Its key is `color.ppm`'s length and a
 //!   digest of its length, mtime, ctime, inode and device (`cache::FileStamp`). A stale
 //!   (another `color.ppm`, another tile size) or damaged cache is rebuilt with a warning;
 //!   a directory that cannot be written keeps the pyramid in memory. Each tile's payload
-//!   is checked the first time it is served ([`ColorPyramid::served_tile`]); a damaged
+//!   is checked the first time it is served ([`TileStore::served_tile`]); a damaged
 //!   tile is never sent (the viewer keeps drawing a coarser level there) and is reported
 //!   once. The coarsest tile, which every viewer gets before its first frame, is verified
 //!   at open.
@@ -154,41 +155,14 @@ impl ColorPyramid {
         )?;
         Ok((ColorPyramid { store }, outcome))
     }
+}
 
-    #[cfg(test)]
-    fn payload_bytes(&self) -> &[u8] {
-        self.store.payload_bytes()
-    }
+/// Served as its [`TileStore`]: layout, levels, tiles, checks and bytes.
+impl std::ops::Deref for ColorPyramid {
+    type Target = TileStore;
 
-    /// The layout viewers are told, with windows of `window` tiles.
-    pub fn layout(&self, window: u8) -> Result<ColorLayout, tiles::LayoutError> {
-        self.store.layout(window)
-    }
-
-    /// Levels in the pyramid.
-    pub fn levels(&self) -> u8 {
-        self.store.layout.levels
-    }
-
-    /// Tile `(x, z)` of `level`, coded; `None` outside the pyramid.
-    pub fn tile(&self, level: u8, x: u32, z: u32) -> Option<&[u8]> {
-        self.store.tile(level, x, z)
-    }
-
-    /// [`Self::tile`] for a viewer: its payload checked against the index the first time
-    /// (hundreds of megabytes at 16385² are not hashed at open; a tile is 20–40 µs).
-    pub fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
-        self.store.served_tile(level, x, z)
-    }
-
-    /// Coded bytes of all tiles.
-    pub fn coded_bytes(&self) -> u64 {
-        self.store.coded_bytes()
-    }
-
-    /// Whether the payloads are memory-mapped from the cache.
-    pub fn is_mapped(&self) -> bool {
-        self.store.is_mapped()
+    fn deref(&self) -> &TileStore {
+        &self.store
     }
 }
 

@@ -23,7 +23,7 @@ pub mod raster;
 pub mod source;
 pub mod source_error;
 pub(crate) mod stamp;
-pub(crate) mod tile_store;
+pub mod tile_store;
 pub mod variance;
 
 pub use cache::{CacheReport, Source};

@@ -20,6 +20,9 @@
 //!   thread) are built on `threads` threads from one counter, each result in its tile's
 //!   slot; the levels above them on the calling thread. The bytes do not depend on the
 //!   thread count (a test checks).
+//! - **Served as its store**: a [`NormalPyramid`] dereferences to its
+//!   [`super::tile_store::TileStore`], as the colour pyramid does, so the two share one
+//!   copy of what serving asks (layout, tiles, checks, bytes) and keep only their builds.
 //! - **Coded by the colour map codec** ([`roam_protocol::normals::encode_tile`]):
 //!   lossless, already on both ends, decoded within the same limits. Measured with
 //!   `roam-server color-bench` (T = 256, 2 shared cores, the dev profile, which is
@@ -185,35 +188,14 @@ impl NormalPyramid {
             })?;
         Ok((NormalPyramid { store }, outcome))
     }
+}
 
-    /// The layout viewers are told (the colour's), with windows of `window` tiles.
-    pub fn layout(&self, window: u8) -> Result<ColorLayout, tiles::LayoutError> {
-        self.store.layout(window)
-    }
+/// Served as its [`TileStore`]: layout, levels, tiles, checks and bytes.
+impl std::ops::Deref for NormalPyramid {
+    type Target = TileStore;
 
-    /// Levels in the pyramid.
-    pub fn levels(&self) -> u8 {
-        self.store.layout.levels
-    }
-
-    /// Tile `(x, z)` of `level`, coded; `None` outside the pyramid.
-    pub fn tile(&self, level: u8, x: u32, z: u32) -> Option<&[u8]> {
-        self.store.tile(level, x, z)
-    }
-
-    /// [`Self::tile`] for a viewer: its payload checked against the index the first time.
-    pub fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
-        self.store.served_tile(level, x, z)
-    }
-
-    /// Coded bytes of all tiles.
-    pub fn coded_bytes(&self) -> u64 {
-        self.store.coded_bytes()
-    }
-
-    /// Whether the payloads are memory-mapped from the cache.
-    pub fn is_mapped(&self) -> bool {
-        self.store.is_mapped()
+    fn deref(&self) -> &TileStore {
+        &self.store
     }
 }
 

@@ -16,6 +16,10 @@
 //! ([`CacheOutcome`]). The colour cache's bytes are those of its format 3 before this
 //! module existed: its key is the 16 bytes it always held.
 //!
+//! Both pyramids dereference to their [`TileStore`] (`Deref`), so what serving asks of a
+//! pyramid (its layout, levels, tiles, checks and bytes) is written once, here; each
+//! pyramid keeps only how it is built and keyed.
+//!
 //! **Checked whole at open, trusted by a stamp after** (as the heights are: `cache.rs`'s
 //! **Trust**). Damaged payloads (bytes flipped in the file) were once found only when their
 //! tile was first served: the tile was withheld and the log said to restart, but a restart
@@ -163,8 +167,9 @@ enum Payloads {
     Mapped(memmap2::Mmap),
 }
 
-/// Every tile of a pyramid, coded.
-pub(crate) struct TileStore {
+/// Every tile of a pyramid, coded. The colour and normal pyramids are this store, each
+/// with its own way of building it (they dereference to it for serving).
+pub struct TileStore {
     pub(crate) layout: ColorLayout,
     /// Per tile: offset and length in `payloads`, and the payload's check ([`check_of`]).
     pub(crate) index: Vec<(u64, u32, u64)>,
@@ -396,7 +401,7 @@ impl TileStore {
     }
 
     /// The layout viewers are told, with windows of `window` tiles.
-    pub(crate) fn layout(&self, window: u8) -> Result<ColorLayout, tiles::LayoutError> {
+    pub fn layout(&self, window: u8) -> Result<ColorLayout, tiles::LayoutError> {
         ColorLayout::new(self.layout.cells, self.layout.tile, window)
     }
 
@@ -407,15 +412,21 @@ impl TileStore {
             .then(|| self.first[usize::from(level)] + (z * n + x) as usize)
     }
 
+    /// Levels in the pyramid.
+    pub fn levels(&self) -> u8 {
+        self.layout.levels
+    }
+
     /// Tile `(x, z)` of `level`, coded; `None` outside the pyramid.
-    pub(crate) fn tile(&self, level: u8, x: u32, z: u32) -> Option<&[u8]> {
+    pub fn tile(&self, level: u8, x: u32, z: u32) -> Option<&[u8]> {
         let (offset, len, _) = self.index[self.slot(level, x, z)?];
         let start = offset as usize;
         self.payload_bytes().get(start..start + len as usize)
     }
 
-    /// [`Self::tile`] for a viewer: its payload checked against the index the first time.
-    pub(crate) fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
+    /// [`Self::tile`] for a viewer: its payload checked against the index the first time
+    /// (hundreds of megabytes at 16385² are not hashed at open; a tile is 20–40 µs).
+    pub fn served_tile(&self, level: u8, x: u32, z: u32) -> Result<&[u8], TileError> {
         let data = self.tile(level, x, z).ok_or(TileError::Outside)?;
         let i = self.slot(level, x, z).ok_or(TileError::Outside)?;
         match self.verified[i].load(Ordering::Relaxed) {
@@ -437,12 +448,12 @@ impl TileStore {
     }
 
     /// Coded bytes of all tiles.
-    pub(crate) fn coded_bytes(&self) -> u64 {
+    pub fn coded_bytes(&self) -> u64 {
         self.payload_bytes().len() as u64
     }
 
     /// Whether the payloads are memory-mapped from the cache.
-    pub(crate) fn is_mapped(&self) -> bool {
+    pub fn is_mapped(&self) -> bool {
         matches!(self.payloads, Payloads::Mapped(_))
     }
 }

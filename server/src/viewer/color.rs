@@ -5,7 +5,11 @@
 //!
 //! State: per level, the window origin the viewer was last told, and which tiles of the
 //! window were sent. Messages are ordered and reliable, so that is exactly what the viewer
-//! holds (a test replays the messages as a viewer would and compares).
+//! holds (a test replays the messages as a viewer would and compares). Which were sent is
+//! a bitmap of the window, not of the level: `W²` flags a level, shifted when the window
+//! moves, so a viewer's state is sized by its windows whatever the map (a bitmap of the
+//! level was 4 MB a viewer at 32769² in tiles of 16; [`ColorScheduler::bytes`], a test
+//! compares two map sizes).
 //!
 //! Decisions:
 //!
@@ -61,7 +65,8 @@ pub struct ColorScheduler {
     layout: ColorLayout,
     /// Per level: the window origin, in tiles.
     origins: Vec<(u32, u32)>,
-    /// Per level: which tiles were sent (row-major over the level) and are still held.
+    /// Per level: which tiles of the window were sent (row-major over the window, from
+    /// its origin), so held.
     sent: Vec<Vec<bool>>,
     /// Whether each tile's normals follow it.
     normals: bool,
@@ -77,7 +82,7 @@ impl ColorScheduler {
             layout,
             origins: vec![(0, 0); levels],
             sent: (0..layout.levels)
-                .map(|l| vec![false; (layout.tiles(l) as usize).pow(2)])
+                .map(|l| vec![false; (layout.window_tiles(l) as usize).pow(2)])
                 .collect(),
             normals: false,
             owed: None,
@@ -142,8 +147,8 @@ impl ColorScheduler {
                 return (out, spent);
             }
             spent += c;
-            let n = self.layout.tiles(level);
-            self.sent[usize::from(level)][(z * n + x) as usize] = true;
+            let at = self.slot(level, x, z);
+            self.sent[usize::from(level)][at] = true;
             out.push(tile);
             out.extend(normals);
         }
@@ -168,17 +173,33 @@ impl ColorScheduler {
         self.origins[usize::from(level)]
     }
 
+    /// Bytes this state holds (capacities): a few per level and a flag per window tile,
+    /// nothing by the size of the map.
+    pub fn bytes(&self) -> usize {
+        size_of::<ColorScheduler>()
+            + self.origins.capacity() * size_of::<(u32, u32)>()
+            + self.sent.capacity() * size_of::<Vec<bool>>()
+            + self.sent.iter().map(Vec::capacity).sum::<usize>()
+    }
+
+    /// Where tile `(x, z)` of `level`, inside its window, is in `sent`.
+    fn slot(&self, level: u8, x: u32, z: u32) -> usize {
+        let (x0, z0) = self.origins[usize::from(level)];
+        ((z - z0) * self.layout.window_tiles(level) + (x - x0)) as usize
+    }
+
     fn window_count(&self, level: u8) -> usize {
         (self.layout.window_tiles(level) as usize).pow(2)
     }
 
     fn held_in(&self, level: u8) -> impl Iterator<Item = (u32, u32)> + '_ {
-        let n = self.layout.tiles(level);
+        let w = self.layout.window_tiles(level);
+        let (x0, z0) = self.origins[usize::from(level)];
         self.sent[usize::from(level)]
             .iter()
             .enumerate()
             .filter(|(_, s)| **s)
-            .map(move |(i, _)| (i as u32 % n, i as u32 / n))
+            .map(move |(i, _)| (x0 + i as u32 % w, z0 + i as u32 / w))
     }
 
     /// The camera's position in tiles of `level`.
@@ -212,13 +233,14 @@ impl ColorScheduler {
         if origin == (x0, z0) {
             return None;
         }
+        // The tiles held in both windows keep their flags, shifted; the rest are forgotten.
+        let held: Vec<(u32, u32)> = self.held_in(level).collect();
         self.origins[usize::from(level)] = origin;
-        let n = self.layout.tiles(level);
-        let layout = self.layout;
-        for (i, s) in self.sent[usize::from(level)].iter_mut().enumerate() {
-            let (x, z) = (i as u32 % n, i as u32 / n);
-            if *s && !layout.in_window(level, origin, x, z) {
-                *s = false;
+        self.sent[usize::from(level)].fill(false);
+        for (x, z) in held {
+            if self.layout.in_window(level, origin, x, z) {
+                let at = self.slot(level, x, z);
+                self.sent[usize::from(level)][at] = true;
             }
         }
         Some(origin)
@@ -229,12 +251,12 @@ impl ColorScheduler {
         let mut tiles: Vec<(f64, u8, u32, u32)> = Vec::new();
         for level in 0..self.layout.levels {
             let (x0, z0) = self.origins[usize::from(level)];
-            let (w, n) = (self.layout.window_tiles(level), self.layout.tiles(level));
+            let w = self.layout.window_tiles(level);
             let (tx, tz) = self.camera_tiles(level, cam);
             let sent = &self.sent[usize::from(level)];
             for z in z0..z0 + w {
                 for x in x0..x0 + w {
-                    if !sent[(z * n + x) as usize] {
+                    if !sent[self.slot(level, x, z)] {
                         tiles.push((tile_distance((tx, tz), x, z), level, x, z));
                     }
                 }

@@ -298,3 +298,34 @@ fn without_normals_none_are_sent() {
     assert!(!msgs.iter().any(|m| matches!(m, ColorSend::Normals { .. })));
     assert!(s.complete());
 }
+
+/// A viewer's state is sized by its windows, not the map: over a map of 256² texels and
+/// one of 32768² (2048 tiles a side at level 0, where a flag per tile of the level was
+/// 4 MB), in tiles of 16 and windows of 4, the states differ by the large map's extra
+/// levels only, each one window of flags and an origin; and a drive across the large map
+/// grows nothing.
+#[test]
+fn the_state_is_sized_by_the_windows_not_the_map() {
+    let small = ColorLayout::new(256, 16, 4).expect("a valid layout");
+    let large = ColorLayout::new(32768, 16, 4).expect("a valid layout");
+    assert_eq!((small.levels, large.levels), (5, 12));
+    let (mut s, mut l) = (ColorScheduler::new(small), ColorScheduler::new(large));
+    // Both end in levels of 2 and 1 tiles; the rest fill a 4×4 window.
+    let level = 16 + size_of::<(u32, u32)>() + size_of::<Vec<bool>>();
+    assert_eq!(
+        l.bytes() - s.bytes(),
+        usize::from(large.levels - small.levels) * level
+    );
+    let before = (s.bytes(), l.bytes());
+    s.first();
+    l.first();
+    for t in 0..=200 {
+        let f = f64::from(t) / 200.0;
+        s.step((256.0 * f, 128.0 * f), u64::MAX, &cost);
+        l.step((32768.0 * f, 16384.0 * f), u64::MAX, &cost);
+        assert!(s.complete() && l.complete());
+    }
+    assert_ne!(l.origin(0), (0, 0), "the windows moved");
+    assert_eq!((s.bytes(), l.bytes()), before, "a drive grows nothing");
+    assert!(l.bytes() < 1024, "{} bytes", l.bytes());
+}

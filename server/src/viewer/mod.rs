@@ -59,8 +59,10 @@ pub mod admission;
 mod camera;
 pub mod color;
 pub mod conversation;
+mod cut_args;
 
 pub use camera::apply_view;
+pub use cut_args::{CutArgs, FogPriority};
 
 /// The most changes (splits and merges, forced ones included) [`ViewerCore::begin_frame`]
 /// makes before it leaves the rest to [`ViewerCore::finish_frame`]: a driving frame makes

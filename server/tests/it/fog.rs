@@ -77,7 +77,7 @@ fn coherent_digest() -> u64 {
     let mut d = Digest::new();
     let hf = terrain(7, 5, 0.8);
     let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
-    let pool = Scratch::new(hf.side());
+    let pool = Scratch::new(hf.side(), 1);
     for threshold in [0.0, 0.5] {
         let mut c = Coherent::new(hf.side());
         for k in 0..80 {
@@ -143,7 +143,7 @@ fn check(levels: u32, seed: u64, rough: f64, at: At, budget: u32, density: f32) 
     let measured = measured_both(&hf, &vt, &cam, l, &split, &name);
     // From scratch reports what its queue reached, which the measure includes.
     assert!(mesh.error_bound_px <= measured, "{name}");
-    let pool = Scratch::new(hf.side());
+    let pool = Scratch::new(hf.side(), 1);
     let mut c = Coherent::new(hf.side());
     let mut served = Mesh::default();
     for k in 0..24 {
@@ -246,7 +246,7 @@ fn with_fog_the_far_ground_is_refined_less() {
         let hf = terrain(levels, seed, 0.7);
         let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
         let (gx, gz, above, yaw, pitch, fov) = at;
-        let pool = Scratch::new(hf.side());
+        let pool = Scratch::new(hf.side(), 1);
         let (mut plain_cut, mut fog_cut) = (Coherent::new(hf.side()), Coherent::new(hf.side()));
         let (plain, fog) = (limits(budget, 0.0, 0.0), limits(budget, 0.0, density));
         for k in 0..=8 {

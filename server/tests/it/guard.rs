@@ -27,7 +27,7 @@ fn drive(levels: u32, seed: u64, start: (f64, f64), above: f64, budget: u32, den
     let name = format!("levels {levels} seed {seed} from {start:?} budget {budget}");
     let hf = terrain(levels, seed, 1.0);
     let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
-    let pool = Scratch::new(hf.side());
+    let pool = Scratch::new(hf.side(), 1);
     let guarded = Limits {
         budget,
         threshold_px: 0.0,

@@ -88,7 +88,7 @@ fn walk(case: &PathCase, margin: u16) -> Result<Vec<f32>, String> {
     let (mut a, mut b) = (Coherent::new(hf.side()), Coherent::new(hf.side()));
     a.set_swap_margin(margin);
     b.set_swap_margin(margin);
-    let pool = Scratch::new(hf.side());
+    let pool = Scratch::new(hf.side(), 1);
     let (mut mesh, mut scratch) = (Mesh::default(), Mesh::default());
     let mut t = Tessellator::new(hf.side());
     let mut ratios = Vec::new();

@@ -9,7 +9,7 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use roam_protocol::{Cut, DecodeError, Grid, MeshDecoder, mesh};
+use roam_protocol::{BitSet, DecodeError, Follower, Grid, mesh};
 use roam_server::Terrain;
 use roam_server::sim::physics::{Keys, VehicleState};
 use roam_server::sim::world::{self, Inputs, World};
@@ -28,7 +28,7 @@ impl Fixture {
     fn new(side: u32, seed: u64) -> Fixture {
         let terrain = Arc::new(generate::synthetic(side, seed));
         let variance = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
-        let scratch = Scratch::new(terrain.heights.side());
+        let scratch = Scratch::new(terrain.heights.side(), 1);
         Fixture {
             terrain,
             variance,
@@ -84,12 +84,14 @@ impl Fixture {
     }
 }
 
-/// A viewer as the client keeps one: a decoder and its decoded frames (possible bases),
-/// newest last (like the client, it decodes only frames newer than the newest decoded).
+/// A viewer as the client keeps one: the viewer's decoder, which keeps 32 decoded frames
+/// as bases (like the client, it decodes only frames newer than the newest decoded), and
+/// its cut mirrored over the grid for `mesh::emit`.
 struct Viewer {
     grid: Grid,
-    decoder: MeshDecoder,
-    bases: VecDeque<(u64, Cut)>,
+    decoder: Follower,
+    split: BitSet,
+    heights: Vec<u16>,
 }
 
 /// What the viewer did with a frame.
@@ -105,41 +107,27 @@ impl Viewer {
     fn new(grid: Grid) -> Viewer {
         Viewer {
             grid,
-            decoder: MeshDecoder::new(grid),
-            bases: VecDeque::new(),
+            decoder: Follower::new(grid, 32),
+            split: BitSet::new(grid.vertices()),
+            heights: vec![0; grid.vertices()],
         }
     }
 
     /// Decodes a frame newer than the newest decoded against the base it names; keeps it
     /// as a base.
     fn receive(&mut self, made: &Made) -> Result<Received, DecodeError> {
-        let newest = self.bases.back().map(|(f, _)| *f);
+        let newest = self.decoder.frame();
         if newest.is_some_and(|n| made.frame <= n) {
             return Ok(Received::Stale);
         }
         if made.base.is_some_and(|b| newest.is_none_or(|n| b > n)) {
             return Ok(Received::Awaiting);
         }
-        let base = match made.base {
-            Some(b) => Some(
-                &self
-                    .bases
-                    .iter()
-                    .find(|(f, _)| *f == b)
-                    .ok_or(DecodeError::Base)?
-                    .1,
-            ),
-            None => None,
-        };
-        let mut cut = Cut::default();
         self.decoder
-            .decode_cut(&made.payload, base, u32::MAX, &mut cut)?;
+            .decode(made.frame, &made.payload, made.base, u32::MAX)?;
+        self.decoder.mirror(&mut self.split, &mut self.heights);
         let mut out = mesh::Mesh::default();
-        mesh::emit(&self.grid, &cut.split, self.decoder.heights(), &mut out);
-        self.bases.push_back((made.frame, cut));
-        if self.bases.len() > 32 {
-            self.bases.pop_front();
-        }
+        mesh::emit(&self.grid, &self.split, &self.heights, &mut out);
         Ok(Received::Decoded(out))
     }
 
@@ -267,19 +255,24 @@ fn a_delta_against_a_base_the_viewer_lacks_is_refused_and_a_key_frame_follows() 
         last = core.make_frame(&scene, state);
     }
     assert_eq!(last.base, Some(first.frame));
-    // Decoded against another cut than its base, the frame is refused, never shown.
-    let mut wrong = viewer.bases[0].1.clone();
-    let grid = fx.grid();
-    let (x, z) = grid.root();
-    wrong.split.insert(grid.index(x, z) + 1);
-    let mut out = Cut::default();
-    let err = viewer
+    // Decoded against another cut than its base, the frame is refused, never shown: a
+    // viewer holding as that frame another core's key frame (a smaller budget's cut).
+    let mut misled = Viewer::new(fx.grid());
+    misled.decode(&fx.core(1000).make_frame(&scene, &drive[0]));
+    let before = (misled.decoder.frame(), misled.decoder.hash());
+    assert_eq!(before.0, Some(first.frame));
+    let err = misled
         .decoder
-        .decode_cut(&last.payload, Some(&wrong), u32::MAX, &mut out)
+        .decode(last.frame, &last.payload, last.base, u32::MAX)
         .expect_err("a frame against the wrong base");
     assert!(
         matches!(err, DecodeError::Check | DecodeError::Corrupt(_)),
         "{err}"
+    );
+    assert_eq!(
+        (misled.decoder.frame(), misled.decoder.hash()),
+        before,
+        "nothing taken"
     );
     core.handle(Event::KeyFrame);
     let key = core.make_frame(&scene, &drive[30]);

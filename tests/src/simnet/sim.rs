@@ -33,7 +33,7 @@ impl Sim {
             epoch: Instant::now(),
             now: Duration::ZERO,
             seed,
-            scratch: roam_server::tessellate::Scratch::new(terrain.heights.side()),
+            scratch: roam_server::tessellate::Scratch::new(terrain.heights.side(), 1),
             terrain,
             variance,
             height_step,

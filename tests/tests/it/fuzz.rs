@@ -122,12 +122,10 @@ fn bound(stage: Stage, bytes: &[u8], vertices: usize) -> usize {
         Stage::WireClient => HELLO_LIMIT + MAX_REASON + ERROR,
         // The message's bytes: at most READ_CHUNK before they arrive.
         Stage::WireServer => READ_CHUNK + 3 * len + server,
-        Stage::FrameMesh | Stage::KeyMesh | Stage::DeltaMesh | Stage::ChangeMesh => {
-            PER_VERTEX * vertices
-        }
-        // The decoder's maps and lists (as the others'), its log of the frame, the live
-        // mesh's slots (64 bytes a diamond) and their vertices (240 bytes a slot).
-        Stage::FollowMesh => (PER_VERTEX + 2 * 64 + 2 * 240) * vertices,
+        Stage::FrameMesh | Stage::KeyMesh | Stage::DeltaMesh => PER_VERTEX * vertices,
+        // The viewer's decoder's maps and lists (as the others'), its log of the frame, the
+        // live mesh's slots (64 bytes a diamond) and their vertices (240 bytes a slot).
+        Stage::FollowMesh | Stage::ChangeMesh => (PER_VERTEX + 2 * 64 + 2 * 240) * vertices,
         // The mesh (4 + 2 bytes a vertex, 12 a triangle) and its vertices (12 + 12 + 20 a
         // vertex, 60 a triangle), each at most doubled; the triangles at most the limit
         // the decoder was given, and at most two per grid vertex.

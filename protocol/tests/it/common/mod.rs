@@ -1,9 +1,14 @@
 //! Helpers shared by the change-frame tests: a seeded generator, terrain, random closed
-//! split sets and the toggles that keep them closed, and the round trip every test checks.
+//! split sets and the toggles that keep them closed, the round trip every test checks,
+//! and the reference decoder they are checked with ([`reference`]).
 #![allow(dead_code)] // each test file uses its own subset
 
+pub mod reference;
+
 use roam_protocol::mesh::{self, Mesh};
-use roam_protocol::{BitSet, CHANGES_FORMAT, ChangeEncoder, Cut, Grid, MeshDecoder, MeshEncoder};
+use roam_protocol::{BitSet, CHANGES_FORMAT, ChangeEncoder, Grid, MeshEncoder};
+
+pub use reference::{Cut, Reference};
 
 /// SplitMix64: a seeded, portable generator.
 pub struct Rng(pub u64);
@@ -122,12 +127,18 @@ pub fn changes(a: &BitSet, b: &BitSet, rng: &mut Rng) -> Vec<u32> {
     out
 }
 
-/// A key frame of `set`, decoded: the viewer's first base.
-pub fn key_frame(grid: &Grid, h: &[u16], step: u16, set: &BitSet, dec: &mut MeshDecoder) -> Cut {
+/// A key frame of `set`, coded.
+pub fn key_bytes(grid: &Grid, h: &[u16], step: u16, set: &BitSet) -> Vec<u8> {
     let mut bytes = Vec::new();
     MeshEncoder::with_step(*grid, step)
         .encode(set, h, None, &mut bytes)
         .expect("a conforming set");
+    bytes
+}
+
+/// A key frame of `set`, decoded: the viewer's first base.
+pub fn key_frame(grid: &Grid, h: &[u16], step: u16, set: &BitSet, dec: &mut Reference) -> Cut {
+    let bytes = key_bytes(grid, h, step, set);
     let mut cut = Cut::default();
     let info = dec
         .decode_cut(&bytes, None, u32::MAX, &mut cut)
@@ -164,7 +175,8 @@ pub fn encode(
     bytes.split_off(3)
 }
 
-/// Codes `now` against `base` (a cut `dec` decoded), decodes it, and checks the split set,
+/// Codes `now` against `base` (a cut `dec`, the reference decoder, decoded), decodes it,
+/// and checks the split set,
 /// the triangle count, the hash, every vertex's height and the emitted mesh. Returns the
 /// payload and the decoded cut.
 pub fn check(
@@ -173,7 +185,7 @@ pub fn check(
     step: u16,
     base: &Cut,
     now: &BitSet,
-    dec: &mut MeshDecoder,
+    dec: &mut Reference,
 ) -> (Vec<u8>, Cut) {
     assert!(closed(grid, now));
     let bytes = encode(grid, h, step, &base.split, now, u64::from(base.triangles));

@@ -280,7 +280,7 @@ pub fn measured_error(
 /// fog-unaware one it is not.
 ///
 /// The cut is `is_split`: whether the diamond centred at row-major grid index `i` (`z ·
-/// side + x`, as `roam_protocol::Grid::index` numbers it and a decoded `Cut`'s split set
+/// side + x`, as `roam_protocol::Grid::index` numbers it and a decoded cut's split set
 /// holds it) is split; it must be closed under parent, as every cut the tessellators make
 /// and the codec decodes is (a split diamond below an unsplit one is not reached).
 /// `camera` is the one the server tessellated that frame for (its eye, yaw, pitch, field

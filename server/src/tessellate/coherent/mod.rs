@@ -692,7 +692,7 @@ mod tests {
             fog_density: 0.0,
             guard_deg: 0.0,
         };
-        let scratch = Scratch::new(side);
+        let scratch = Scratch::new(side, 1);
         let mut c = Coherent::new(side);
         let mut evaluated = 0;
         let camera_at = |k: u32| {
