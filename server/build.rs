@@ -39,7 +39,7 @@ fn main() {
         println!("cargo:rerun-if-changed={}", web.display());
     }
     println!("cargo:rerun-if-changed=build.rs");
-    let mut out = String::from("pub static FILES: &[(&str, &[u8])] = &[\n");
+    let mut out = String::from("pub(super) static FILES: &[(&str, &[u8])] = &[\n");
     for f in &files {
         let name = f
             .strip_prefix(&dist)
@@ -62,7 +62,7 @@ fn main() {
     } else {
         format!("Some({dist_path:?})")
     };
-    out.push_str(&format!("pub const DIST: Option<&str> = {named};\n"));
+    out.push_str(&format!("pub(super) const DIST: Option<&str> = {named};\n"));
     let target = PathBuf::from(std::env::var_os("OUT_DIR").expect("set by Cargo")).join("page.rs");
     // Written only when it changes: an unchanged table leaves the file's time alone.
     if std::fs::read_to_string(&target).ok().as_deref() != Some(out.as_str()) {

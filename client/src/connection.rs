@@ -44,7 +44,7 @@ use crate::supervisor::{End, JOIN_TIMEOUT, SessionEnd, State, Supervisor, secs};
 pub(crate) const CONTROL_TIMEOUT: Duration = Duration::from_secs(2);
 
 /// What the control writer is asked to do.
-pub enum Outgoing {
+pub(crate) enum Outgoing {
     Message(ClientMessage),
     /// Say goodbye, finish the stream, and tell whether the server heard.
     Quit(oneshot::Sender<bool>),
@@ -202,7 +202,7 @@ impl Shared {
 /// Returns once the viewer quits (answering that the server did not hear: there is no
 /// connection to say goodbye on) or the session is dropped; control messages meanwhile are
 /// dropped (the next hello asks for the budget, and the view is sent again).
-pub async fn quit_asked(outgoing: &mut mpsc::UnboundedReceiver<Outgoing>) {
+pub(crate) async fn quit_asked(outgoing: &mut mpsc::UnboundedReceiver<Outgoing>) {
     loop {
         match outgoing.recv().await {
             Some(Outgoing::Message(_)) => {}
@@ -217,7 +217,7 @@ pub async fn quit_asked(outgoing: &mut mpsc::UnboundedReceiver<Outgoing>) {
 
 /// How a connection whose control message could not be written ends: as the connection
 /// did, if it did; else for good (the server stopped reading).
-pub fn failed_write(conn: &quinn::Connection, e: anyhow::Error) -> End {
+pub(crate) fn failed_write(conn: &quinn::Connection, e: anyhow::Error) -> End {
     match conn.close_reason() {
         Some(e) => quic::end_of(&e),
         None => End::Final(format!("{e:#}")),
@@ -225,7 +225,7 @@ pub fn failed_write(conn: &quinn::Connection, e: anyhow::Error) -> End {
 }
 
 /// Says goodbye, finishes the stream, and tells whether the server heard.
-pub async fn goodbye(send: &mut quinn::SendStream) -> bool {
+pub(crate) async fn goodbye(send: &mut quinn::SendStream) -> bool {
     let said = async {
         wire::write(send, &ClientMessage::Bye(Reason::Quit)).await?;
         send.finish()?;
@@ -244,7 +244,7 @@ pub async fn goodbye(send: &mut quinn::SendStream) -> bool {
 /// windows and tiles go to the colour cache, an edge's news of its world to the session
 /// ([`Shared::news`]); a goodbye ends the session, and so does anything else (not the
 /// protocol). Ends with the stream.
-pub async fn read_control(
+pub(crate) async fn read_control(
     mut recv: quinn::RecvStream,
     shared: Arc<Shared>,
     ends: mpsc::Sender<End>,
@@ -275,7 +275,7 @@ pub async fn read_control(
 /// Reads frames into the core as they arrive: datagrams (small frames), and streams, each
 /// read to its end in a task of its own (a stream the server abandons is skipped). Every
 /// chunk counts as news of the server (a large frame on a slow path is not silence).
-pub async fn read_frames(conn: quinn::Connection, shared: Arc<Shared>, epoch: u64) {
+pub(crate) async fn read_frames(conn: quinn::Connection, shared: Arc<Shared>, epoch: u64) {
     let datagrams = async {
         while let Ok(bytes) = conn.read_datagram().await {
             shared.offer(epoch, &bytes);
@@ -316,7 +316,7 @@ async fn read_stream(mut stream: quinn::RecvStream, shared: Arc<Shared>, epoch: 
 
 /// One attempt to join: the handshake within `handshake`, the welcome and the coarsest
 /// colour tile within [`JOIN_TIMEOUT`].
-pub async fn attempt(
+pub(crate) async fn attempt(
     endpoint: &quinn::Endpoint,
     addr: SocketAddr,
     handshake: Duration,
@@ -352,7 +352,7 @@ pub async fn attempt(
 }
 
 /// Writes a control message, within [`CONTROL_TIMEOUT`].
-pub async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
+pub(crate) async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) -> Result<()> {
     tokio::time::timeout(CONTROL_TIMEOUT, wire::write(send, msg))
         .await
         .map_err(|_| anyhow!("the server stopped reading the control stream"))??;
@@ -364,7 +364,7 @@ pub async fn write_control(send: &mut quinn::SendStream, msg: &ClientMessage) ->
 /// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
 /// are numbered) unsent. Ends with the session. With a `phase`, the clock ticks at that
 /// offset on the process's 10 ms grid (`KeySource::ScriptAt`); without, from now.
-pub async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Duration>) {
+pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Duration>) {
     const STEP: Duration = Duration::from_millis(10);
     let start = match phase {
         Some(phase) => on_grid(tokio::time::Instant::now(), STEP, phase),

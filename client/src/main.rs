@@ -1,5 +1,7 @@
 //! `roam-client`: the viewer's command line. With no arguments it opens a window on the
 //! bundled data set, served in-process; `--headless` measures, and renders offscreen.
+// The binary: its reports go to stdout.
+#![allow(clippy::print_stdout)]
 
 use std::net::SocketAddr;
 use std::path::PathBuf;

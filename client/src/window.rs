@@ -50,6 +50,10 @@ pub fn has_display() -> bool {
 }
 
 /// Opens the window on `session` and runs until the person quits or the window closes.
+#[allow(
+    clippy::print_stdout,
+    reason = "how the session ended is the window's last line for its user and for scripts"
+)]
 pub fn run(runtime: &tokio::runtime::Runtime, session: Session, opts: Options) -> Result<()> {
     if !has_display() {
         bail!("{NO_DISPLAY}");
@@ -247,6 +251,10 @@ impl App {
     }
 
     /// Takes the newest frame, if any, and draws one display frame.
+    #[allow(
+        clippy::print_stdout,
+        reason = "a line for scripts and tests: the window is up and shows the terrain"
+    )]
     fn redraw(&mut self) -> Result<()> {
         let now = self.clock.elapsed().as_secs_f64();
         let Some(gfx) = self.gfx.as_mut() else {

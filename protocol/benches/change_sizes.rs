@@ -4,6 +4,8 @@
 //! 2^12 + 1 grid and the bundled `data/kossou`. Prints one JSON object a line. Every frame
 //! it codes is also decoded and checked (the round trip of `tests/it/common`, through its
 //! reference decoder).
+// A benchmark prints its figures (JSON), and shares helpers with the tests by path.
+#![allow(unreachable_pub, clippy::print_stdout)]
 
 #[path = "../tests/it/common/mod.rs"]
 mod common;

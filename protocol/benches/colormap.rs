@@ -1,6 +1,8 @@
 //! `cargo bench -p roam-protocol --bench colormap [-- PATH.ppm]`: the colour map codec on a
 //! binary P6 PPM (by default the bundled `data/kossou/color.ppm`): sizes (raw, coded) and
 //! the best of a few encode and decode times. Prints one JSON object.
+// A benchmark prints its figures (JSON), and shares helpers with the tests by path.
+#![allow(unreachable_pub, clippy::print_stdout)]
 
 use std::time::Instant;
 

@@ -87,7 +87,7 @@ impl<'de, T: Deserialize<'de>> Visitor<'de> for List<T> {
 }
 
 /// Reads a list of at most `limit` items (`what` names them in an error).
-pub fn list<'de, D, T>(d: D, what: &'static str, limit: usize) -> Result<Vec<T>, D::Error>
+pub(crate) fn list<'de, D, T>(d: D, what: &'static str, limit: usize) -> Result<Vec<T>, D::Error>
 where
     D: Deserializer<'de>,
     T: Deserialize<'de>,
@@ -135,7 +135,7 @@ impl<'de> Visitor<'de> for Text {
 }
 
 /// Reads a string of at most `limit` bytes (`what` names them in an error).
-pub fn string<'de, D>(d: D, what: &'static str, limit: usize) -> Result<String, D::Error>
+pub(crate) fn string<'de, D>(d: D, what: &'static str, limit: usize) -> Result<String, D::Error>
 where
     D: Deserializer<'de>,
 {
@@ -179,6 +179,6 @@ impl<'de> Visitor<'de> for Bytes {
 
 /// Reads a byte string borrowed from the input and copies it: what it allocates is what
 /// the input holds (a length past the input's end is bincode's error, before any copy).
-pub fn bytes<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
+pub(crate) fn bytes<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<u8>, D::Error> {
     d.deserialize_bytes(Bytes)
 }

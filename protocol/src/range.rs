@@ -13,7 +13,7 @@ const TOP: u32 = 1 << 24;
 
 /// An adaptive probability that the next bit is 0.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Prob(u16);
+pub(crate) struct Prob(u16);
 
 impl Default for Prob {
     fn default() -> Self {
@@ -21,7 +21,7 @@ impl Default for Prob {
     }
 }
 
-pub struct Encoder {
+pub(crate) struct Encoder {
     low: u64,
     range: u32,
     cache: u8,
@@ -31,7 +31,7 @@ pub struct Encoder {
 
 impl Encoder {
     /// An encoder appending to `out`.
-    pub fn new(out: Vec<u8>) -> Encoder {
+    pub(crate) fn new(out: Vec<u8>) -> Encoder {
         Encoder {
             low: 0,
             range: u32::MAX,
@@ -60,7 +60,7 @@ impl Encoder {
     }
 
     #[inline]
-    pub fn bit(&mut self, p: &mut Prob, bit: bool) {
+    pub(crate) fn bit(&mut self, p: &mut Prob, bit: bool) {
         let bound = (self.range >> PROB_BITS) * u32::from(p.0);
         if bit {
             self.low += u64::from(bound);
@@ -77,7 +77,7 @@ impl Encoder {
     }
 
     /// `n` (≤ 32) low bits of `v`, most significant first, each with probability ½.
-    pub fn direct(&mut self, v: u32, n: u32) {
+    pub(crate) fn direct(&mut self, v: u32, n: u32) {
         for i in (0..n).rev() {
             self.range >>= 1;
             if v >> i & 1 != 0 {
@@ -91,7 +91,7 @@ impl Encoder {
     }
 
     /// `n` (≤ 8) low bits of `v` through a bit tree of `2^n` probabilities.
-    pub fn tree(&mut self, probs: &mut [Prob], v: u32, n: u32) {
+    pub(crate) fn tree(&mut self, probs: &mut [Prob], v: u32, n: u32) {
         let mut node = 1usize;
         for i in (0..n).rev() {
             let bit = v >> i & 1 != 0;
@@ -101,7 +101,7 @@ impl Encoder {
     }
 
     /// Flushes and returns the output.
-    pub fn finish(mut self) -> Vec<u8> {
+    pub(crate) fn finish(mut self) -> Vec<u8> {
         for _ in 0..5 {
             self.shift_low();
         }
@@ -109,7 +109,7 @@ impl Encoder {
     }
 }
 
-pub struct Decoder<'a> {
+pub(crate) struct Decoder<'a> {
     input: &'a [u8],
     pos: usize,
     range: u32,
@@ -121,7 +121,7 @@ pub struct Decoder<'a> {
 }
 
 impl<'a> Decoder<'a> {
-    pub fn new(input: &'a [u8]) -> Decoder<'a> {
+    pub(crate) fn new(input: &'a [u8]) -> Decoder<'a> {
         let mut d = Decoder {
             input,
             pos: 0,
@@ -160,7 +160,7 @@ impl<'a> Decoder<'a> {
     }
 
     #[inline]
-    pub fn bit(&mut self, p: &mut Prob) -> bool {
+    pub(crate) fn bit(&mut self, p: &mut Prob) -> bool {
         let bound = (self.range >> PROB_BITS) * u32::from(p.0);
         let bit = if self.code < bound {
             self.range = bound;
@@ -179,7 +179,7 @@ impl<'a> Decoder<'a> {
         bit
     }
 
-    pub fn direct(&mut self, n: u32) -> u32 {
+    pub(crate) fn direct(&mut self, n: u32) -> u32 {
         let mut v = 0;
         for _ in 0..n {
             self.range >>= 1;
@@ -193,7 +193,7 @@ impl<'a> Decoder<'a> {
         v
     }
 
-    pub fn tree(&mut self, probs: &mut [Prob], n: u32) -> u32 {
+    pub(crate) fn tree(&mut self, probs: &mut [Prob], n: u32) -> u32 {
         let mut node = 1usize;
         for _ in 0..n {
             let bit = self.bit(&mut probs[node]);
@@ -204,7 +204,7 @@ impl<'a> Decoder<'a> {
 
     /// Whether the stream was not a valid encoding or ended early (the encoder's flush
     /// leaves 4 bytes of slack that a decoder may read).
-    pub fn failed(&self) -> bool {
+    pub(crate) fn failed(&self) -> bool {
         self.bad || self.past_end > 4
     }
 }

@@ -15,17 +15,17 @@
 //! read), and the decoder counts words read past the end rather than reading them.
 
 /// Frequencies of a table sum to `1 << PREC`.
-pub const PREC: u32 = 11;
+pub(crate) const PREC: u32 = 11;
 const TOTAL: u32 = 1 << PREC;
 const SLOT_MASK: u32 = TOTAL - 1;
 /// The low bound of the state.
 const LOW: u32 = 1 << 16;
 
 /// Symbols per table at most.
-pub const ALPHABET: usize = 32;
+pub(crate) const ALPHABET: usize = 32;
 
 /// Encoder-side tables: for each context, each symbol's frequency and cumulative start.
-pub struct EncTables {
+pub(crate) struct EncTables {
     freq: Vec<[u16; ALPHABET]>,
     start: Vec<[u16; ALPHABET]>,
 }
@@ -69,7 +69,7 @@ impl EncTables {
     /// Tables from each context's symbol counts, appended to `out` as, per context: the
     /// number of symbols `n` (a byte; 0 for a context never used), then `n` frequencies
     /// as LEB128 varints.
-    pub fn new(counts: &[[u32; ALPHABET]], out: &mut Vec<u8>) -> EncTables {
+    pub(crate) fn new(counts: &[[u32; ALPHABET]], out: &mut Vec<u8>) -> EncTables {
         let mut t = EncTables {
             freq: Vec::with_capacity(counts.len()),
             start: Vec::with_capacity(counts.len()),
@@ -100,12 +100,12 @@ impl EncTables {
 }
 
 /// Buffers `(context, symbol)` pairs, then codes them last to first.
-pub struct Encoder {
+pub(crate) struct Encoder {
     syms: Vec<u16>,
 }
 
 impl Encoder {
-    pub fn with_capacity(n: usize) -> Encoder {
+    pub(crate) fn with_capacity(n: usize) -> Encoder {
         Encoder {
             syms: Vec::with_capacity(n),
         }
@@ -114,19 +114,19 @@ impl Encoder {
     /// Queues `sym` (< [`ALPHABET`]) in context `ctx` (< 2048: the pair is packed in 16
     /// bits, as the encoder holds one per sample).
     #[inline]
-    pub fn put(&mut self, ctx: usize, sym: u32) {
+    pub(crate) fn put(&mut self, ctx: usize, sym: u32) {
         self.syms.push((ctx as u16) << 5 | sym as u16);
     }
 
     /// Adds each context's symbol counts to `counts`, for [`EncTables::new`].
-    pub fn count(&self, counts: &mut [[u32; ALPHABET]]) {
+    pub(crate) fn count(&self, counts: &mut [[u32; ALPHABET]]) {
         for &s in &self.syms {
             counts[usize::from(s >> 5)][usize::from(s & 31)] += 1;
         }
     }
 
     /// Appends the coded symbols to `out`: a u32 byte count, then 16-bit words.
-    pub fn finish(self, t: &EncTables, out: &mut Vec<u8>) {
+    pub(crate) fn finish(self, t: &EncTables, out: &mut Vec<u8>) {
         let mut words: Vec<u16> = Vec::with_capacity(self.syms.len() / 2 + 2);
         let mut x = LOW;
         for &s in self.syms.iter().rev() {
@@ -151,7 +151,7 @@ impl Encoder {
 /// Slot tables (`TOTAL` bytes) are kept only for the contexts in use, after a shared one
 /// of zeros for the rest, so a small image's tables stay small and no input makes them
 /// larger than `TOTAL · (contexts + 1)` bytes.
-pub struct DecTables {
+pub(crate) struct DecTables {
     /// `TOTAL` symbols per table.
     slots: Vec<u8>,
     /// Where each context's slot table starts in `slots`.
@@ -164,7 +164,7 @@ pub struct DecTables {
 impl DecTables {
     /// Reads `contexts` tables written by [`EncTables::new`] from the front of `bytes`;
     /// returns them and the rest of `bytes`, or `None` if they are not valid tables.
-    pub fn read(contexts: usize, mut bytes: &[u8]) -> Option<(DecTables, &[u8])> {
+    pub(crate) fn read(contexts: usize, mut bytes: &[u8]) -> Option<(DecTables, &[u8])> {
         let mut t = DecTables {
             slots: vec![0; TOTAL as usize],
             offset: vec![0; contexts],
@@ -216,7 +216,7 @@ impl DecTables {
     }
 }
 
-pub struct Decoder<'a> {
+pub(crate) struct Decoder<'a> {
     words: &'a [[u8; 2]],
     pos: usize,
     x: u32,
@@ -229,7 +229,7 @@ pub struct Decoder<'a> {
 impl<'a> Decoder<'a> {
     /// A decoder of the stream [`Encoder::finish`] wrote at the front of `bytes`; returns it
     /// and the rest of `bytes`.
-    pub fn new(bytes: &'a [u8]) -> Option<(Decoder<'a>, &'a [u8])> {
+    pub(crate) fn new(bytes: &'a [u8]) -> Option<(Decoder<'a>, &'a [u8])> {
         let (len, rest) = bytes.split_first_chunk::<4>()?;
         let len = u32::from_le_bytes(*len) as usize;
         if !len.is_multiple_of(2) || len < 4 {
@@ -263,7 +263,7 @@ impl<'a> Decoder<'a> {
 
     /// The next symbol, coded in context `ctx` (< the tables' context count).
     #[inline(always)]
-    pub fn get(&mut self, t: &DecTables, ctx: usize) -> u32 {
+    pub(crate) fn get(&mut self, t: &DecTables, ctx: usize) -> u32 {
         let slot = self.x & SLOT_MASK;
         let sym = usize::from(t.slots[t.offset[ctx] + slot as usize]);
         let [f, c] = t.sym[ctx][sym].map(u32::from);
@@ -287,14 +287,14 @@ impl<'a> Decoder<'a> {
 
     /// Whether the stream was not an encoding with these tables: cut short, with words
     /// left over, or not ending in the encoder's initial state.
-    pub fn failed(&self) -> bool {
+    pub(crate) fn failed(&self) -> bool {
         self.bad || self.past_end > 0 || self.pos != self.words.len() || self.x != LOW
     }
 }
 
 /// Raw bits, least significant first, in bytes.
 #[derive(Default)]
-pub struct BitWriter {
+pub(crate) struct BitWriter {
     out: Vec<u8>,
     acc: u64,
     n: u32,
@@ -303,7 +303,7 @@ pub struct BitWriter {
 impl BitWriter {
     /// The low `n` (≤ 32) bits of `v`.
     #[inline]
-    pub fn put(&mut self, v: u32, n: u32) {
+    pub(crate) fn put(&mut self, v: u32, n: u32) {
         self.acc |= u64::from(v & ((1u64 << n) - 1) as u32) << self.n;
         self.n += n;
         while self.n >= 8 {
@@ -313,7 +313,7 @@ impl BitWriter {
         }
     }
 
-    pub fn finish(mut self) -> Vec<u8> {
+    pub(crate) fn finish(mut self) -> Vec<u8> {
         if self.n > 0 {
             self.out.push(self.acc as u8);
         }
@@ -321,7 +321,7 @@ impl BitWriter {
     }
 }
 
-pub struct BitReader<'a> {
+pub(crate) struct BitReader<'a> {
     bytes: &'a [u8],
     pos: usize,
     acc: u64,
@@ -331,7 +331,7 @@ pub struct BitReader<'a> {
 }
 
 impl<'a> BitReader<'a> {
-    pub fn new(bytes: &'a [u8]) -> BitReader<'a> {
+    pub(crate) fn new(bytes: &'a [u8]) -> BitReader<'a> {
         BitReader {
             bytes,
             pos: 0,
@@ -343,7 +343,7 @@ impl<'a> BitReader<'a> {
 
     /// The next `n` (≤ 24) bits.
     #[inline(always)]
-    pub fn get(&mut self, n: u32) -> u32 {
+    pub(crate) fn get(&mut self, n: u32) -> u32 {
         if self.n < n {
             self.refill();
         }
@@ -375,7 +375,7 @@ impl<'a> BitReader<'a> {
     /// more left unread, or padding that is not zeros (the writer pads the last byte with
     /// under 8 zero bits; what is still buffered is that padding, then zeros from past
     /// the end).
-    pub fn failed(&self) -> bool {
+    pub(crate) fn failed(&self) -> bool {
         let consumed = 8 * (self.pos + self.past_end) - self.n as usize;
         let len = 8 * self.bytes.len();
         consumed > len || len - consumed >= 8 || self.acc != 0

@@ -4,6 +4,8 @@
 //! replay, and decoded), plain (`--insecure-bus`) against sealed. The best of several
 //! rounds of 1,000 ticks each; one JSON object. The whole world's CPU a tick, sealed and
 //! plain, is `scripts/cluster.sh proofs`.
+// A benchmark prints its figures (JSON), and shares helpers with the tests by path.
+#![allow(unreachable_pub, clippy::print_stdout)]
 
 use std::sync::Arc;
 use std::time::Instant;

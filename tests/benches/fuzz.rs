@@ -4,6 +4,8 @@
 //! decodes goes on through the mesh decoder and the viewer's vertex builder. Prints one
 //! JSON object. (`tests/tests/it/fuzz.rs` runs fewer under a counting allocator, to prove no
 //! decode allocates beyond its limits.)
+// A benchmark prints its figures (JSON), and shares helpers with the tests by path.
+#![allow(unreachable_pub, clippy::print_stdout)]
 
 use std::time::Instant;
 

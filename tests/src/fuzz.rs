@@ -34,6 +34,7 @@ use crate::fixtures::SplitMix64;
 
 /// The protocol tests' reference decoder: the oracle the viewer's decoder is held to.
 #[path = "../../protocol/tests/it/common/reference.rs"]
+#[allow(unreachable_pub)] // `pub` for the protocol tests' modules, which share the file
 mod reference;
 
 use reference::{Cut, Reference};

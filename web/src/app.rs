@@ -30,14 +30,14 @@ const MAX_UPLOADS: usize = 8;
 const GROUND_RADIUS: f32 = 600.0;
 
 /// What the browser says when it has neither GPU API.
-pub const NO_GPU: &str = "This browser offers neither WebGPU nor WebGL2, which the viewer \
+pub(crate) const NO_GPU: &str = "This browser offers neither WebGPU nor WebGL2, which the viewer \
     draws with. Use a current Chrome, Edge or Firefox, and check that hardware acceleration \
     is on (chrome://gpu).";
 
 /// Why the display cannot start: no GPU, or the browser refused a timer or a listener;
 /// in the words the page shows.
 #[derive(Debug, thiserror::Error)]
-pub enum GfxError {
+pub(crate) enum GfxError {
     /// Neither WebGPU nor WebGL2 on the canvas (`why`: the browser's or wgpu's words).
     #[error("{NO_GPU} ({why})")]
     NoGpu { why: String },
@@ -53,7 +53,7 @@ pub enum GfxError {
 }
 
 /// The canvas and what draws into it.
-pub struct Gfx {
+pub(crate) struct Gfx {
     canvas: HtmlCanvasElement,
     surface: wgpu::Surface<'static>,
     config: wgpu::SurfaceConfiguration,
@@ -63,7 +63,7 @@ pub struct Gfx {
 
 impl Gfx {
     /// Opens the GPU on the canvas: `gpu` is `webgpu`, `webgl` or empty (either).
-    pub async fn open(canvas: HtmlCanvasElement, gpu: &str) -> Result<Gfx, GfxError> {
+    pub(crate) async fn open(canvas: HtmlCanvasElement, gpu: &str) -> Result<Gfx, GfxError> {
         let no_gpu = |e: &dyn std::fmt::Display| GfxError::NoGpu { why: e.to_string() };
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle();
         desc.backends = match gpu {
@@ -106,7 +106,7 @@ impl Gfx {
     }
 
     /// The adapter as the HUD and the test report name it.
-    pub fn adapter(&self) -> String {
+    pub(crate) fn adapter(&self) -> String {
         format!("{} ({:?})", self.gpu.adapter.name, self.gpu.adapter.backend)
     }
 
@@ -124,7 +124,7 @@ impl Gfx {
 }
 
 /// The canvas' size on the page in device pixels.
-pub fn pixel_size(canvas: &HtmlCanvasElement) -> (u32, u32) {
+pub(crate) fn pixel_size(canvas: &HtmlCanvasElement) -> (u32, u32) {
     let ratio = page::window().device_pixel_ratio().max(1.0);
     let w = (f64::from(canvas.client_width()) * ratio).round() as u32;
     let h = (f64::from(canvas.client_height()) * ratio).round() as u32;
@@ -159,7 +159,12 @@ struct App {
 }
 
 /// Starts the display, the keys and the key sender; they run as long as the page.
-pub fn start(gfx: Gfx, scene: Scene, live: Shared, options: Options) -> Result<(), GfxError> {
+pub(crate) fn start(
+    gfx: Gfx,
+    scene: Scene,
+    live: Shared,
+    options: Options,
+) -> Result<(), GfxError> {
     let budget = live.borrow().core.budget();
     let renderer = Renderer::new(&gfx.gpu, gfx.view_format, scene);
     let app = Rc::new(RefCell::new(App {
@@ -310,9 +315,12 @@ fn keys(app: &Rc<RefCell<App>>) -> Result<(), GfxError> {
     Ok(())
 }
 
+/// The animation frame's callback, shared with itself to ask for the next frame.
+type FrameCallback = Rc<RefCell<Option<Closure<dyn FnMut()>>>>;
+
 /// One display frame per animation frame, as long as the page.
 fn animate(app: Rc<RefCell<App>>) {
-    let next: Rc<RefCell<Option<Closure<dyn FnMut()>>>> = Rc::new(RefCell::new(None));
+    let next: FrameCallback = Rc::new(RefCell::new(None));
     let again = next.clone();
     *next.borrow_mut() = Some(Closure::new(move || {
         app.borrow_mut().frame();

@@ -47,7 +47,7 @@ use crate::wire::{Reader, WireError, write};
 
 mod join;
 use join::end_of;
-pub use join::{Joined, has_webtransport, join};
+pub(crate) use join::{Joined, has_webtransport, join};
 
 /// Frame streams read at once, at most: each may hold [`MAX_FRAME`] bytes.
 const MAX_STREAMS: usize = 16;
@@ -55,7 +55,7 @@ const MAX_STREAMS: usize = 16;
 const GOODBYE_GRACE: Duration = Duration::from_millis(300);
 
 /// What the tasks and the display share.
-pub struct Live {
+pub(crate) struct Live {
     pub core: ClientCore,
     pub keys: KeyCore,
     pub colors: ColorCache,
@@ -90,13 +90,13 @@ pub struct Live {
     pub replay: Option<roam_protocol::messages::ReplayStatus>,
 }
 
-pub type Shared = Rc<RefCell<Live>>;
+pub(crate) type Shared = Rc<RefCell<Live>>;
 
 impl Live {
     /// Sends the core's control messages, in order.
     /// (While reconnecting they wait in the core; the newest view and the budget go to
     /// the next connection anyway.)
-    pub fn flush(&mut self) {
+    pub(crate) fn flush(&mut self) {
         let Some(tx) = &self.control else {
             return;
         };
@@ -106,14 +106,14 @@ impl Live {
     }
 
     /// Tells the server the camera (this connection and the next).
-    pub fn set_view(&mut self, view: ViewChange) {
+    pub(crate) fn set_view(&mut self, view: ViewChange) {
         self.view = Some(view);
         self.core.set_view(view);
         self.flush();
     }
 
     /// The session ends with `why` (the first reason stands).
-    pub fn end(&mut self, why: impl std::fmt::Display) {
+    pub(crate) fn end(&mut self, why: impl std::fmt::Display) {
         if !matches!(self.state, State::Ended(_)) {
             self.state = State::Ended(why.to_string());
         }
@@ -123,7 +123,7 @@ impl Live {
         self.control = None;
     }
 
-    pub fn ended(&self) -> bool {
+    pub(crate) fn ended(&self) -> bool {
         matches!(self.state, State::Ended(_))
     }
 
@@ -147,17 +147,17 @@ impl Live {
     }
 
     /// Sends a control message on the connection that is up (dropped while reconnecting).
-    pub fn send(&mut self, msg: ClientMessage) {
+    pub(crate) fn send(&mut self, msg: ClientMessage) {
         if let Some(tx) = &self.control {
             let _ = tx.unbounded_send(msg);
         }
     }
 
-    pub fn bytes_in(&self) -> u64 {
+    pub(crate) fn bytes_in(&self) -> u64 {
         self.bytes_before + self.core.bytes_in()
     }
 
-    pub fn color_bytes(&self) -> u64 {
+    pub(crate) fn color_bytes(&self) -> u64 {
         self.color_bytes_before + self.colors.bytes()
     }
 
@@ -171,7 +171,7 @@ impl Live {
 
     /// One physics step's key datagram, sent on the connection that is up (numbered and
     /// repeated by the core, so a lost one costs nothing).
-    pub fn send_keys(&mut self) {
+    pub(crate) fn send_keys(&mut self) {
         let step = match &mut self.script {
             Some(steps) => steps.pop().unwrap_or(KeyStep {
                 held: Keys::NONE,
@@ -190,7 +190,7 @@ impl Live {
 
     /// The page is going away: the session closes at once with the goodbye's code (no
     /// time to write a message).
-    pub fn leave(&mut self) {
+    pub(crate) fn leave(&mut self) {
         if let Some(s) = self.session.take() {
             s.close(close::BYE, "the page was closed");
         }
@@ -199,7 +199,7 @@ impl Live {
     }
 
     /// Says goodbye (the server frees the vehicle at once) and closes.
-    pub fn quit(&mut self) {
+    pub(crate) fn quit(&mut self) {
         if let Some(tx) = &self.control {
             let _ = tx.unbounded_send(ClientMessage::Bye(Reason::Quit));
         }
@@ -210,7 +210,7 @@ impl Live {
 
 /// The first connection's state: joined at `edge`, the page's own; the server may be
 /// silent for `silence` ([`Patience::silence`]).
-pub fn live(
+pub(crate) fn live(
     joined: &mut Joined,
     edge: WebEdge,
     budget: u32,
@@ -253,7 +253,7 @@ pub fn live(
 
 /// Runs the session: the connection `joined`, then each reconnection the supervisor asks
 /// for, until it ends.
-pub async fn supervise(live: Shared, hello: Hello, mut joined: Joined) {
+pub(crate) async fn supervise(live: Shared, hello: Hello, mut joined: Joined) {
     // The first connection's terrain, which every later one must show (its colour cache
     // went to `live`).
     let first = TerrainId::of(&joined.welcome, live.borrow().colors.coarsest());

@@ -19,7 +19,7 @@ use web_sys::{HtmlCanvasElement, HtmlElement};
 /// `frames=N` (after how many decoded frames) and `silence=S` (seconds without a word from
 /// the server before the connection counts as lost; 10 unless told).
 #[derive(Clone, Debug, Default)]
-pub struct Options {
+pub(crate) struct Options {
     pub token: String,
     pub spectator: bool,
     /// `webgpu`, `webgl` or empty (WebGPU where the browser has it, else WebGL2).
@@ -34,7 +34,7 @@ pub struct Options {
 
 impl Options {
     /// The options in a URL fragment (with or without its `#`).
-    pub fn parse(fragment: &str) -> Options {
+    pub(crate) fn parse(fragment: &str) -> Options {
         let fields: HashMap<String, String> = fragment
             .trim_start_matches('#')
             .split('&')
@@ -61,7 +61,7 @@ impl Options {
     }
 }
 
-pub fn window() -> web_sys::Window {
+pub(crate) fn window() -> web_sys::Window {
     web_sys::window().expect("a page runs in a window")
 }
 
@@ -72,7 +72,7 @@ fn document() -> web_sys::Document {
 /// What the page lacks that the viewer needs: an element, its own address, the server's
 /// WebTransport endpoint; in the words the page shows.
 #[derive(Debug, thiserror::Error)]
-pub enum PageError {
+pub(crate) enum PageError {
     #[error("the page has no #{id}")]
     NoElement { id: String },
     #[error("#{id} is not the element expected")]
@@ -93,7 +93,7 @@ pub enum PageError {
 }
 
 /// The page's element `id`, of type `T`.
-pub fn element<T: JsCast>(id: &str) -> Result<T, PageError> {
+pub(crate) fn element<T: JsCast>(id: &str) -> Result<T, PageError> {
     let id = id.to_owned();
     document()
         .get_element_by_id(&id)
@@ -102,12 +102,12 @@ pub fn element<T: JsCast>(id: &str) -> Result<T, PageError> {
         .map_err(|_| PageError::WrongElement { id })
 }
 
-pub fn canvas() -> Result<HtmlCanvasElement, PageError> {
+pub(crate) fn canvas() -> Result<HtmlCanvasElement, PageError> {
     element("view")
 }
 
 /// Shows `text` on the message line (`error` in red), or hides the line when empty.
-pub fn say(text: &str, error: bool) {
+pub(crate) fn say(text: &str, error: bool) {
     // The console keeps each line said (the browser's log shows how a session went).
     if !text.is_empty() {
         web_sys::console::log_1(&text.into());
@@ -116,12 +116,12 @@ pub fn say(text: &str, error: bool) {
         m.set_text_content(Some(text));
         let style = m.style();
         let _ = style.set_property("display", if text.is_empty() { "none" } else { "block" });
-        let _ = m.set_class_name(if error { "error" } else { "" });
+        m.set_class_name(if error { "error" } else { "" });
     }
 }
 
 /// Writes the HUD's lines (or hides it).
-pub fn hud(lines: Option<&[String]>) {
+pub(crate) fn hud(lines: Option<&[String]>) {
     if let Ok(h) = element::<HtmlElement>("hud") {
         match lines {
             Some(l) => {
@@ -136,12 +136,12 @@ pub fn hud(lines: Option<&[String]>) {
 }
 
 /// Milliseconds since the page began to load.
-pub fn since_load_ms() -> f64 {
+pub(crate) fn since_load_ms() -> f64 {
     window().performance().map_or(0.0, |p| p.now())
 }
 
 /// Resolves after `ms` milliseconds.
-pub async fn sleep(ms: i32) {
+pub(crate) async fn sleep(ms: i32) {
     let promise = js_sys::Promise::new(&mut |resolve, _| {
         let _ = window().set_timeout_with_callback_and_timeout_and_arguments_0(&resolve, ms);
     });
@@ -150,7 +150,7 @@ pub async fn sleep(ms: i32) {
 
 /// Where the server takes WebTransport sessions, and the certificate hashes to accept.
 #[derive(Clone, Debug, serde::Deserialize)]
-pub struct Endpoint {
+pub(crate) struct Endpoint {
     pub path: String,
     pub port: u16,
     /// SHA-256 of each certificate, lowercase hex (empty: a certificate the browser trusts).
@@ -159,7 +159,7 @@ pub struct Endpoint {
 
 impl Endpoint {
     /// The session's URL on the page's own host.
-    pub fn url(&self) -> Result<String, PageError> {
+    pub(crate) fn url(&self) -> Result<String, PageError> {
         let host = window()
             .location()
             .hostname()
@@ -174,7 +174,7 @@ impl Endpoint {
 
     /// The session's URL and the certificate hashes, as an edge names a place to
     /// connect to.
-    pub fn edge(&self) -> Result<WebEdge, PageError> {
+    pub(crate) fn edge(&self) -> Result<WebEdge, PageError> {
         Ok(WebEdge {
             url: self.url()?,
             hashes: self
@@ -187,7 +187,7 @@ impl Endpoint {
 }
 
 /// Certificate hashes in hex as bytes (each a SHA-256).
-pub fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, PageError> {
+pub(crate) fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, PageError> {
     hashes
         .iter()
         .map(|h| {
@@ -203,7 +203,7 @@ pub fn hash_bytes(hashes: &[String]) -> Result<Vec<Vec<u8>>, PageError> {
 }
 
 /// Fetches `/webtransport.json` from the page's origin.
-pub async fn endpoint() -> Result<Endpoint, PageError> {
+pub(crate) async fn endpoint() -> Result<Endpoint, PageError> {
     let fail = |e: JsValue| PageError::Fetch {
         error: format!("{e:?}"),
     };
@@ -225,7 +225,7 @@ pub async fn endpoint() -> Result<Endpoint, PageError> {
 }
 
 /// Posts `body` (JSON) to `url`, for a test (as text/plain: no CORS preflight).
-pub async fn post(url: &str, body: &str) {
+pub(crate) async fn post(url: &str, body: &str) {
     let init = web_sys::RequestInit::new();
     init.set_method("POST");
     init.set_body(&JsValue::from_str(body));

@@ -8,7 +8,7 @@ use web_transport_wasm::{RecvStream, SendStream};
 
 /// Why the control stream gave no message, or took none.
 #[derive(Debug, thiserror::Error)]
-pub enum WireError {
+pub(crate) enum WireError {
     /// The stream failed (the session's end says why).
     #[error("reading the control stream: {0}")]
     Read(web_transport_wasm::Error),
@@ -32,7 +32,7 @@ pub enum WireError {
 
 /// Length-prefixed messages (a `u32` length, little-endian, then the message) read from a
 /// stream: a length past the limit is refused before anything is kept.
-pub struct Reader {
+pub(crate) struct Reader {
     pub stream: RecvStream,
     pub buf: Vec<u8>,
 }
@@ -51,7 +51,9 @@ impl Reader {
     }
 
     /// The next message; `None` when the stream ends between messages.
-    pub async fn message<T: DeserializeOwned + Checked>(&mut self) -> Result<Option<T>, WireError> {
+    pub(crate) async fn message<T: DeserializeOwned + Checked>(
+        &mut self,
+    ) -> Result<Option<T>, WireError> {
         if !self.fill(4).await? {
             return if self.buf.is_empty() {
                 Ok(None)
@@ -72,7 +74,7 @@ impl Reader {
     }
 }
 
-pub async fn write(send: &mut SendStream, msg: &ClientMessage) -> Result<(), WireError> {
+pub(crate) async fn write(send: &mut SendStream, msg: &ClientMessage) -> Result<(), WireError> {
     let buf = messages::frame(msg).map_err(WireError::Frame)?;
     send.write(&buf).await.map_err(WireError::Write)
 }

@@ -30,7 +30,7 @@ impl std::fmt::Debug for Truth {
 }
 
 /// Follows the decoded cut frame by frame and measures each frame's fogged error.
-pub struct FoggedError {
+pub(super) struct FoggedError {
     truth: Truth,
     core: ViewerCore,
     scratch: Scratch,
@@ -39,7 +39,7 @@ pub struct FoggedError {
 
 impl FoggedError {
     /// For a viewer that said `hello` (its camera's shape), from the empty cut.
-    pub fn new(truth: Truth, hello: &Hello) -> FoggedError {
+    pub(super) fn new(truth: Truth, hello: &Hello) -> FoggedError {
         let core = ViewerCore::for_hello(&truth.terrain, 1, hello, ViewerLimits::default());
         let scratch = Scratch::new(truth.terrain.heights.side(), 1);
         FoggedError {
@@ -52,7 +52,7 @@ impl FoggedError {
 
     /// The next frame: the diamonds it toggled (with their heights) and the viewer's
     /// vehicle in it; its fogged error in pixels.
-    pub fn frame(&mut self, toggled: &[(u32, u16)], vehicle: &VehicleView) -> f32 {
+    pub(super) fn frame(&mut self, toggled: &[(u32, u16)], vehicle: &VehicleView) -> f32 {
         for &(d, h) in toggled {
             self.split.toggle(d, h);
         }

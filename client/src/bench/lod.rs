@@ -18,7 +18,7 @@ use std::collections::HashMap;
 use roam_protocol::Grid;
 
 use crate::render::math::Mat;
-pub use crate::render::math::view_proj;
+pub(super) use crate::render::math::view_proj;
 use crate::render::{Morph, NEAR, Scene};
 
 /// A drawn cut's surface height at grid vertex `i`, samples: its drawn height if it is a
@@ -67,7 +67,7 @@ fn project(vp: &Mat, p: [f32; 3], size: (u32, u32)) -> Option<(f32, f32)> {
 /// The largest screen-space displacement (pixels) of the drawn surface from cut `before`
 /// to cut `after`, both seen with `vp` on a `size` target; a map corner's height from
 /// `corner`. Vertices projecting outside the target in both are not counted.
-pub fn pop_px(
+pub(super) fn pop_px(
     scene: &Scene,
     before: &Morph,
     after: &Morph,
@@ -116,7 +116,7 @@ fn luma(p: &[u8]) -> f32 {
 /// The mean absolute luminance difference (0–255) between RGBA images `a` and `b` over
 /// the pixels where either differs from `sky` (the same view with no terrain); 0 when
 /// there are none.
-pub fn luma_diff(a: &[u8], b: &[u8], sky: &[u8]) -> f64 {
+pub(super) fn luma_diff(a: &[u8], b: &[u8], sky: &[u8]) -> f64 {
     let (mut sum, mut n) = (0.0f64, 0u64);
     for ((pa, pb), ps) in a
         .chunks_exact(4)

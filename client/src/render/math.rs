@@ -3,17 +3,17 @@
 //! depth precise across a 100 km map: the water surface half a metre above the lake bed
 //! does not fight with it 20 km away.
 
-pub type Mat = [[f32; 4]; 4];
+pub(crate) type Mat = [[f32; 4]; 4];
 
-pub fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+pub(crate) fn sub(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
 
-pub fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
+pub(crate) fn dot(a: [f32; 3], b: [f32; 3]) -> f32 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
 
-pub fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
+pub(crate) fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
     [
         a[1] * b[2] - a[2] * b[1],
         a[2] * b[0] - a[0] * b[2],
@@ -22,7 +22,7 @@ pub fn cross(a: [f32; 3], b: [f32; 3]) -> [f32; 3] {
 }
 
 /// `v` scaled to unit length; straight up for a zero vector.
-pub fn normalize(v: [f32; 3]) -> [f32; 3] {
+pub(crate) fn normalize(v: [f32; 3]) -> [f32; 3] {
     let l = dot(v, v).sqrt();
     if l > 0.0 {
         [v[0] / l, v[1] / l, v[2] / l]
@@ -32,7 +32,7 @@ pub fn normalize(v: [f32; 3]) -> [f32; 3] {
 }
 
 /// The product `a · b`.
-pub fn mul(a: Mat, b: Mat) -> Mat {
+pub(crate) fn mul(a: Mat, b: Mat) -> Mat {
     let mut m = [[0.0; 4]; 4];
     for c in 0..4 {
         for r in 0..4 {
@@ -44,7 +44,7 @@ pub fn mul(a: Mat, b: Mat) -> Mat {
 
 /// Reversed infinite perspective: clip z is `near`, w is the distance in front, so depth is
 /// `near / distance`.
-pub fn perspective(fov_y: f32, aspect: f32, near: f32) -> Mat {
+pub(crate) fn perspective(fov_y: f32, aspect: f32, near: f32) -> Mat {
     let f = 1.0 / (fov_y / 2.0).tan();
     [
         [f / aspect, 0.0, 0.0, 0.0],
@@ -55,7 +55,7 @@ pub fn perspective(fov_y: f32, aspect: f32, near: f32) -> Mat {
 }
 
 /// The inverse of [`perspective`].
-pub fn perspective_inverse(fov_y: f32, aspect: f32, near: f32) -> Mat {
+pub(crate) fn perspective_inverse(fov_y: f32, aspect: f32, near: f32) -> Mat {
     let f = 1.0 / (fov_y / 2.0).tan();
     [
         [aspect / f, 0.0, 0.0, 0.0],
@@ -67,7 +67,7 @@ pub fn perspective_inverse(fov_y: f32, aspect: f32, near: f32) -> Mat {
 
 /// The view-projection matrix `view` has on a `size` target, as the renderer draws it
 /// (the pop measure projects with the same).
-pub fn view_proj(view: &super::View, size: (u32, u32)) -> Mat {
+pub(crate) fn view_proj(view: &super::View, size: (u32, u32)) -> Mat {
     let aspect = size.0 as f32 / size.1.max(1) as f32;
     let fov = view.fov_y_deg.clamp(1.0, 179.0).to_radians();
     mul(
@@ -77,7 +77,7 @@ pub fn view_proj(view: &super::View, size: (u32, u32)) -> Mat {
 }
 
 /// The unit direction of a heading (0 faces south, +Z; 90 east, +X) and pitch (up positive).
-pub fn forward(yaw_deg: f32, pitch_deg: f32) -> [f32; 3] {
+pub(crate) fn forward(yaw_deg: f32, pitch_deg: f32) -> [f32; 3] {
     let (yaw, pitch) = (yaw_deg.to_radians(), pitch_deg.to_radians());
     [
         yaw.sin() * pitch.cos(),
@@ -87,7 +87,7 @@ pub fn forward(yaw_deg: f32, pitch_deg: f32) -> [f32; 3] {
 }
 
 /// The view matrix of a camera at `eye` looking along `yaw_deg` and `pitch_deg`.
-pub fn look(eye: [f32; 3], yaw_deg: f32, pitch_deg: f32) -> Mat {
+pub(crate) fn look(eye: [f32; 3], yaw_deg: f32, pitch_deg: f32) -> Mat {
     let f = forward(yaw_deg, pitch_deg);
     let s = normalize(cross(f, [0.0, 1.0, 0.0]));
     let u = cross(s, f);
@@ -101,7 +101,7 @@ pub fn look(eye: [f32; 3], yaw_deg: f32, pitch_deg: f32) -> Mat {
 
 /// The inverse of [`look`]: a rotation R (rows s, u, −f) then a translation, undone by Rᵀ
 /// and the eye.
-pub fn look_inverse(eye: [f32; 3], yaw_deg: f32, pitch_deg: f32) -> Mat {
+pub(crate) fn look_inverse(eye: [f32; 3], yaw_deg: f32, pitch_deg: f32) -> Mat {
     let l = look(eye, yaw_deg, pitch_deg);
     [
         [l[0][0], l[1][0], l[2][0], 0.0],

@@ -5,7 +5,7 @@
 use super::DEPTH;
 use super::vertices::Vertex;
 
-pub struct Pipelines {
+pub(super) struct Pipelines {
     pub sky: wgpu::RenderPipeline,
     pub terrain: wgpu::RenderPipeline,
     pub markers: wgpu::RenderPipeline,
@@ -21,7 +21,7 @@ struct Depth {
 }
 
 impl Pipelines {
-    pub fn new(
+    pub(super) fn new(
         device: &wgpu::Device,
         format: wgpu::TextureFormat,
         uniforms: &wgpu::Buffer,

@@ -2,6 +2,9 @@
 //!
 //! The modules named `needs_…` need something outside Rust (a GPU driver, a display, a NATS
 //! server, a browser); the fast tier, `scripts/test-fast`, leaves them out by those names.
+// A test binary has no users: its helpers' `pub` reach no one else (the lint is for
+// libraries' interfaces), and tests print their figures for `--nocapture`.
+#![allow(unreachable_pub, clippy::print_stdout)]
 
 mod identity_files;
 mod state_dir;

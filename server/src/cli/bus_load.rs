@@ -93,7 +93,7 @@ const SEEN_WAIT: Duration = Duration::from_secs(20);
 const SENT_KEPT: usize = 512;
 
 #[derive(Args)]
-pub struct BusLoadArgs {
+pub(crate) struct BusLoadArgs {
     #[command(flatten)]
     pub bus: BusArgs,
     /// Vehicles to join and drive, spread over the fake edges (at most the world's
@@ -374,7 +374,7 @@ fn mark(edges: &[Arc<FakeEdge>], pids: &[(String, u32)]) -> Result<Mark> {
     })
 }
 
-pub fn bus_load(args: BusLoadArgs) -> Result<()> {
+pub(crate) fn bus_load(args: BusLoadArgs) -> Result<()> {
     let subjects = Subjects::of(&args.bus.world).context("--world")?;
     let expected = match &args.data {
         Some(dir) => {

@@ -17,7 +17,7 @@ use super::net::{Edge, ServeArgs};
 
 /// Which world, on which NATS.
 #[derive(Args, Clone)]
-pub struct BusArgs {
+pub(crate) struct BusArgs {
     /// The NATS server: `nats://HOST:PORT`, or `tls://HOST:PORT` to require TLS; several
     /// comma-separated.
     #[arg(long, value_name = "URL")]
@@ -92,14 +92,14 @@ fn warn_if_others_read(file: &std::path::Path) {
 }
 
 #[derive(Args)]
-pub struct BusSecretArgs {
+pub(crate) struct BusSecretArgs {
     /// Where to write it (refused if the file exists).
     pub file: PathBuf,
 }
 
 /// `bus-secret FILE`: a new random cluster secret (64 hex digits), readable by its owner
 /// only, for `world`, `edge` and `bus-load`'s `--bus-secret`.
-pub fn bus_secret(args: BusSecretArgs) -> Result<()> {
+pub(crate) fn bus_secret(args: BusSecretArgs) -> Result<()> {
     use std::io::Write;
     use std::os::unix::fs::OpenOptionsExt;
     let secret = BusSecret::random();
@@ -127,7 +127,7 @@ pub fn bus_secret(args: BusSecretArgs) -> Result<()> {
 }
 
 #[derive(Args)]
-pub struct WorldArgs {
+pub(crate) struct WorldArgs {
     /// Data set directory (each edge serves the same data set).
     pub dir: PathBuf,
     #[command(flatten)]
@@ -162,7 +162,7 @@ pub struct WorldArgs {
 }
 
 #[derive(Args)]
-pub struct EdgeArgs {
+pub(crate) struct EdgeArgs {
     #[command(flatten)]
     pub serve: ServeArgs,
     #[command(flatten)]
@@ -177,7 +177,7 @@ pub struct EdgeArgs {
     pub advertise: Option<String>,
 }
 
-pub fn edge(args: EdgeArgs) -> Result<()> {
+pub(crate) fn edge(args: EdgeArgs) -> Result<()> {
     anyhow::ensure!(
         args.serve.record_dir.is_none(),
         "--record-dir: an edge records nothing (the world does: give it to `roam-server world`)"
@@ -203,7 +203,7 @@ pub fn edge(args: EdgeArgs) -> Result<()> {
     super::net::serve_on(args.serve, Some(edge))
 }
 
-pub fn world(args: WorldArgs) -> Result<()> {
+pub(crate) fn world(args: WorldArgs) -> Result<()> {
     let bus = args.bus.options("roam-server world")?;
     anyhow::ensure!(
         args.hold.is_finite() && (0.0..=86_400.0).contains(&args.hold),

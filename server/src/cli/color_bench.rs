@@ -40,7 +40,7 @@ use roam_protocol::messages::{
 use roam_server::net::{self, Options, Server};
 
 #[derive(Args)]
-pub struct ColorBenchArgs {
+pub(crate) struct ColorBenchArgs {
     /// Data set directory.
     pub dir: PathBuf,
     /// Seconds to drive after the first frame.
@@ -54,7 +54,7 @@ pub struct ColorBenchArgs {
     pub color_window: u8,
 }
 
-pub fn color_bench(args: ColorBenchArgs) -> Result<()> {
+pub(crate) fn color_bench(args: ColorBenchArgs) -> Result<()> {
     // Opened as `serve` opens it: the cached heights, variance tree and colour tiles.
     let started = Instant::now();
     let cached = super::served::open_served(&args.dir)?;

@@ -12,13 +12,13 @@ use roam_server::terrain::heightfield::levels_of_side;
 use crate::cli::progress::Progress;
 
 #[derive(Args)]
-pub struct CheckArgs {
+pub(crate) struct CheckArgs {
     /// Data-set directory (holding `map`, `hf.pgm`, `color.ppm`).
     pub dir: PathBuf,
 }
 
 #[derive(Args)]
-pub struct GenerateArgs {
+pub(crate) struct GenerateArgs {
     /// Output directory (created if missing).
     pub out: PathBuf,
     /// Samples per side: 2^N + 1.
@@ -31,7 +31,7 @@ pub struct GenerateArgs {
 
 /// `check DIR`: validate a data set as `serve` opens it (through its cache, built on first
 /// use; the colour map's header checked, its pixels not read), then describe it.
-pub fn check(args: CheckArgs) -> Result<()> {
+pub(crate) fn check(args: CheckArgs) -> Result<()> {
     let opened = super::tess::open(&args.dir)?;
     let (terrain, vt, report) = (&opened.terrain, &opened.variance, &opened.report);
     for line in describe(terrain) {
@@ -104,7 +104,7 @@ fn thousands(n: u64) -> String {
 }
 
 /// Human-readable summary lines of a loaded data set.
-pub fn describe(t: &Terrain) -> Vec<String> {
+pub(crate) fn describe(t: &Terrain) -> Vec<String> {
     let m = &t.map;
     let side = t.heights.side();
     let (lo, hi) = t.heights.range();
@@ -187,7 +187,7 @@ pub fn describe(t: &Terrain) -> Vec<String> {
 }
 
 /// `generate OUT --side --seed`: write a synthetic data set.
-pub fn generate(args: GenerateArgs) -> Result<()> {
+pub(crate) fn generate(args: GenerateArgs) -> Result<()> {
     if levels_of_side(u64::from(args.side)).is_none() {
         bail!(
             "--side: expected 2^N + 1 (3, 5, 9, …, 32769), got {}",

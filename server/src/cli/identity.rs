@@ -10,7 +10,7 @@ use clap::Args;
 use roam_link::tls;
 
 #[derive(Args)]
-pub struct IdentityArgs {
+pub(crate) struct IdentityArgs {
     /// Where the certificate is kept (made here if there is none).
     #[arg(long, default_value = "roam-state")]
     pub state_dir: PathBuf,
@@ -22,7 +22,7 @@ pub struct IdentityArgs {
 
 /// Prints `fingerprint HEX` (the line `serve` prints too); with `--rotate`, first
 /// `old fingerprint HEX` (or `no identity before`).
-pub fn identity(args: IdentityArgs) -> Result<()> {
+pub(crate) fn identity(args: IdentityArgs) -> Result<()> {
     let dir = &args.state_dir;
     let context = || format!("the identity in {}", dir.display());
     let id = if args.rotate {

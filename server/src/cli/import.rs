@@ -29,7 +29,7 @@ use super::data::describe;
 use super::progress::Progress;
 
 #[derive(Args)]
-pub struct ImportArgs {
+pub(crate) struct ImportArgs {
     /// Source heightfield, recognised by content: binary PGM (side 2^N + 1), PNG (16-bit
     /// greyscale, or 8-bit RGB with --rgb-encoding), GeoTIFF (one 16/32-bit integer or
     /// 32/64-bit float sample a pixel) or SRTM .hgt (1201² or 3601²).
@@ -111,7 +111,7 @@ struct Imported {
 
 /// `import FILE OUT`: read any supported heightfield, derive a colour map and write a data
 /// set with a `map` file.
-pub fn import(args: ImportArgs) -> Result<()> {
+pub(crate) fn import(args: ImportArgs) -> Result<()> {
     let path = &args.file;
     let format = source::detect(path)?;
     if format != Format::Png

@@ -2,15 +2,15 @@
 //! serving), the terminal progress bar they share, and the data set opened for serving
 //! that `serve`, `world`, `edge`, `bus-load` and `color-bench` share (`served`).
 
-pub mod bus_load;
-pub mod cluster;
-pub mod color_bench;
-pub mod data;
-pub mod identity;
-pub mod import;
-pub mod net;
-pub mod progress;
-pub mod served;
-pub mod sim;
-pub mod tess;
-pub mod token;
+pub(crate) mod bus_load;
+pub(crate) mod cluster;
+pub(crate) mod color_bench;
+pub(crate) mod data;
+pub(crate) mod identity;
+pub(crate) mod import;
+pub(crate) mod net;
+pub(crate) mod progress;
+pub(crate) mod served;
+pub(crate) mod sim;
+pub(crate) mod tess;
+pub(crate) mod token;

@@ -33,7 +33,7 @@ use roam_server::web::{Page, cert};
 use std::time::Duration;
 
 #[derive(Args)]
-pub struct ServeArgs {
+pub(crate) struct ServeArgs {
     /// Data set directory.
     pub dir: PathBuf,
     /// Address to listen on (UDP).
@@ -154,7 +154,7 @@ fn seconds(text: &str) -> Result<f64, String> {
 /// A number of bytes: digits (a decimal point allowed with a suffix), then optionally K,
 /// M, G or T (times 1024 each), then optionally `B` or `iB`; case and a space before the
 /// suffix do not matter.
-pub fn byte_size(text: &str) -> Result<u64, String> {
+pub(crate) fn byte_size(text: &str) -> Result<u64, String> {
     let expected =
         || format!("{text:?}: expected a number of bytes, such as 536870912, 512M, 4G or 1.5GiB");
     let t = text.trim();
@@ -388,12 +388,12 @@ fn keep_large_blocks_mapped() {
 #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
 fn keep_large_blocks_mapped() {}
 
-pub fn serve(args: ServeArgs) -> Result<()> {
+pub(crate) fn serve(args: ServeArgs) -> Result<()> {
     serve_on(args, None)
 }
 
 /// An edge's way to its world (`roam-server edge`, [`super::cluster`]), for [`serve_on`].
-pub struct Edge {
+pub(crate) struct Edge {
     pub(super) bus: BusOptions,
     pub(super) wait: Duration,
     /// The host its viewers reach it at, if given.
@@ -402,7 +402,7 @@ pub struct Edge {
 
 impl Edge {
     /// Reaches the world and checks it serves this data set (`hash`).
-    pub async fn reach(&self, args: &ServeArgs, hash: [u8; 32]) -> Result<Arc<Remote>> {
+    pub(crate) async fn reach(&self, args: &ServeArgs, hash: [u8; 32]) -> Result<Arc<Remote>> {
         let dir = args.dir.display().to_string();
         // The addresses follow once the edge listens (its ports may be chosen then).
         let remote = Remote::connect(&self.bus, hash, &dir, Vec::new(), self.wait).await?;
@@ -416,7 +416,7 @@ impl Edge {
 
 /// `serve`, or with `bus` an edge of that world (`roam-server edge`): the world's
 /// snapshots served, its tickets handed out, nothing recorded here (the world records).
-pub fn serve_on(args: ServeArgs, bus: Option<Edge>) -> Result<()> {
+pub(crate) fn serve_on(args: ServeArgs, bus: Option<Edge>) -> Result<()> {
     keep_large_blocks_mapped();
     // The page and the certificate files (the browser's, and the server's identity when
     // given) first, then the token: each fails before anything is loaded.

@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use roam_server::terrain::cache::Stage;
 
-pub struct Progress {
+pub(crate) struct Progress {
     bar: ProgressBar,
     started: Instant,
     shown: bool,
@@ -16,7 +16,7 @@ pub struct Progress {
 }
 
 impl Progress {
-    pub fn new(what: &str) -> Self {
+    pub(crate) fn new(what: &str) -> Self {
         let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
         let style = ProgressStyle::with_template("{msg:>12} [{bar:40}] {percent:>3}% {eta}")
             .expect("the template is a constant and valid")
@@ -32,7 +32,7 @@ impl Progress {
     }
 
     /// Report `done` of `total` units.
-    pub fn update(&mut self, done: u64, total: u64) {
+    pub(crate) fn update(&mut self, done: u64, total: u64) {
         if !self.enabled {
             return;
         }
@@ -45,7 +45,7 @@ impl Progress {
     }
 
     /// A callback for library code.
-    pub fn callback(&mut self) -> impl FnMut(u64, u64) + '_ {
+    pub(crate) fn callback(&mut self) -> impl FnMut(u64, u64) + '_ {
         move |done, total| self.update(done, total)
     }
 }
@@ -59,13 +59,13 @@ impl Drop for Progress {
 /// One bar per step of a library call that reports its stage (opening a data set's cache:
 /// hashing, converting, verifying, building the variance tree), each labelled by its stage.
 #[derive(Default)]
-pub struct Staged {
+pub(crate) struct Staged {
     current: Option<(Stage, Progress)>,
 }
 
 impl Staged {
     /// Report `done` of `total` units of `stage`; a new stage replaces the previous bar.
-    pub fn update(&mut self, stage: Stage, done: u64, total: u64) {
+    pub(crate) fn update(&mut self, stage: Stage, done: u64, total: u64) {
         if self.current.as_ref().map(|(s, _)| *s) != Some(stage) {
             self.current = Some((stage, Progress::new(stage.label())));
         }
@@ -75,7 +75,7 @@ impl Staged {
     }
 
     /// A callback for library code.
-    pub fn callback(&mut self) -> impl FnMut(Stage, u64, u64) + '_ {
+    pub(crate) fn callback(&mut self) -> impl FnMut(Stage, u64, u64) + '_ {
         move |stage, done, total| self.update(stage, done, total)
     }
 }

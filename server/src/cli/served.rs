@@ -17,7 +17,10 @@ use roam_server::terrain::variance::VarianceTree;
 
 /// The recording directory (`record_dir`, else `recordings` in `state_dir`), made if
 /// absent, and its files.
-pub fn record_files(state_dir: &Path, record_dir: Option<&Path>) -> Result<(PathBuf, RecordDir)> {
+pub(crate) fn record_files(
+    state_dir: &Path,
+    record_dir: Option<&Path>,
+) -> Result<(PathBuf, RecordDir)> {
     let dir = record_dir.map_or_else(|| state_dir.join("recordings"), Path::to_owned);
     std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let files = RecordDir::new(&dir, net::world_loop::unix_seconds);
@@ -28,7 +31,7 @@ pub fn record_files(state_dir: &Path, record_dir: Option<&Path>) -> Result<(Path
 /// as `replay`, which loads it whole, computes it), and a world and its edges check they
 /// serve the same one. Cached in `.cache/content.hash`, so a warm start reads neither
 /// `hf.pgm` nor `color.ppm`.
-pub fn data_hash(
+pub(crate) fn data_hash(
     dir: &Path,
     terrain: &Terrain,
     report: &roam_server::terrain::cache::CacheReport,
@@ -54,7 +57,7 @@ pub fn data_hash(
 /// A data set opened for serving: heights and variance tree mapped from its cache, the
 /// colour and normal tiles mapped from theirs (each built on first use, with progress
 /// bars).
-pub struct Served {
+pub(crate) struct Served {
     pub terrain: Terrain,
     pub variance: VarianceTree,
     pub pyramid: ColorPyramid,
@@ -65,7 +68,7 @@ pub struct Served {
 
 /// Opens `dir` as `serve` does: refused if it is too large to serve before anything but
 /// its headers is read; `color.ppm`'s pixels are read only to build the tile cache.
-pub fn open_served(dir: &Path) -> Result<Served> {
+pub(crate) fn open_served(dir: &Path) -> Result<Served> {
     // The cache files re-hashed whole since they last changed are trusted (`check`
     // re-hashes everything).
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -146,7 +149,7 @@ pub fn open_served(dir: &Path) -> Result<Served> {
 }
 
 /// Opens `file` to serve it (`serve --replay`), logging how far it is valid.
-pub fn open_replay(
+pub(crate) fn open_replay(
     file: &Path,
     (control, follow): (&Option<String>, bool),
     terrain: &Arc<roam_server::Terrain>,

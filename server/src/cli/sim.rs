@@ -20,7 +20,7 @@ use roam_server::terrain::dataset;
 use super::progress::Progress;
 
 #[derive(Args)]
-pub struct SimulateArgs {
+pub(crate) struct SimulateArgs {
     /// Data set directory.
     pub dir: PathBuf,
     /// Input script: one `<ticks> <keys>` segment per line, keys from U D L R or `-`.
@@ -86,7 +86,7 @@ impl<'a> Looped<'a> {
 }
 
 #[derive(Args)]
-pub struct ReplayArgs {
+pub(crate) struct ReplayArgs {
     /// A recording, from `simulate --record` or the server.
     pub file: PathBuf,
     /// The data set it was recorded on.
@@ -147,7 +147,7 @@ impl Csv {
     }
 }
 
-pub fn simulate(args: SimulateArgs) -> Result<()> {
+pub(crate) fn simulate(args: SimulateArgs) -> Result<()> {
     let text = std::fs::read(&args.inputs)
         .with_context(|| format!("reading {}", args.inputs.display()))?;
     let script =
@@ -277,7 +277,7 @@ impl Driver {
     }
 }
 
-pub fn replay(args: ReplayArgs) -> Result<()> {
+pub(crate) fn replay(args: ReplayArgs) -> Result<()> {
     let name = args.file.display();
     let len = std::fs::metadata(&args.file)
         .with_context(|| format!("reading {name}"))?
@@ -329,7 +329,7 @@ pub fn replay(args: ReplayArgs) -> Result<()> {
 }
 
 /// Vehicle steps per second on one core: 64 vehicles driving varied key patterns.
-pub fn bench_physics(terrain: &Arc<Terrain>) -> f64 {
+pub(crate) fn bench_physics(terrain: &Arc<Terrain>) -> f64 {
     const VEHICLES: u16 = 64;
     const TICKS: u32 = 20_000;
     let mut world = World::new(terrain.clone());

@@ -48,7 +48,7 @@ use roam_server::terrain::cache::CacheReport;
 
 /// Camera options shared by `mesh` and `bench`.
 #[derive(Args, Clone)]
-pub struct CameraArgs {
+pub(crate) struct CameraArgs {
     /// Eye position in world coordinates, `X,Y,Z`.
     #[arg(long, value_parser = parse_vec3, allow_hyphen_values = true)]
     pub eye: Option<[f64; 3]>,
@@ -61,7 +61,7 @@ pub struct CameraArgs {
 }
 
 #[derive(Args)]
-pub struct MeshArgs {
+pub(crate) struct MeshArgs {
     /// Data-set directory.
     pub dir: PathBuf,
     #[command(flatten)]
@@ -93,7 +93,7 @@ pub struct MeshArgs {
 }
 
 #[derive(Args)]
-pub struct BenchArgs {
+pub(crate) struct BenchArgs {
     /// Data-set directory.
     pub dir: PathBuf,
     /// Triangle budget per frame.
@@ -138,7 +138,7 @@ fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
 
 /// What [`open`] gives: the terrain (without its colour map), the variance tree, what was
 /// done with the cache and how long the opening took.
-pub struct Opened {
+pub(crate) struct Opened {
     pub terrain: Terrain,
     pub variance: VarianceTree,
     pub report: CacheReport,
@@ -148,7 +148,7 @@ pub struct Opened {
 /// Opens a data set for serving from its cache (`dataset::open_cached`; built on first
 /// use), with progress bars on a terminal; why a cache file was rebuilt or not written is
 /// logged as a warning.
-pub fn open(dir: &Path) -> Result<Opened> {
+pub(crate) fn open(dir: &Path) -> Result<Opened> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let started = Instant::now();
     let (terrain, variance, report) = {
@@ -174,7 +174,7 @@ fn scales(t: &Terrain) -> Scales {
     }
 }
 
-pub fn mesh(args: MeshArgs) -> Result<()> {
+pub(crate) fn mesh(args: MeshArgs) -> Result<()> {
     let Opened {
         terrain,
         variance: vt,
@@ -234,7 +234,7 @@ fn write_obj(path: &Path, terrain: &Terrain, mesh: &Mesh) -> std::io::Result<()>
     w.flush()
 }
 
-pub fn bench(args: BenchArgs) -> Result<()> {
+pub(crate) fn bench(args: BenchArgs) -> Result<()> {
     let Opened {
         terrain,
         variance: vt,

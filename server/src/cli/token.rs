@@ -24,9 +24,9 @@ use clap::Args;
 use roam_protocol::messages::MAX_TOKEN;
 
 /// The environment variable a token may come from.
-pub const TOKEN_ENV: &str = "ROAM_TOKEN";
+pub(crate) const TOKEN_ENV: &str = "ROAM_TOKEN";
 /// The fewest characters a token may have.
-pub const MIN_TOKEN: usize = 16;
+pub(crate) const MIN_TOKEN: usize = 16;
 /// What a token file may weigh: a token and some trailing white space.
 const MAX_TOKEN_FILE: u64 = 1024;
 /// How to make a good token, for the refusals.
@@ -35,7 +35,7 @@ const HOW: &str = "leave out --token, --token-file and ROAM_TOKEN for a random o
 
 /// Where the join token comes from (flattened into `serve`'s arguments).
 #[derive(Args, Clone, Default)]
-pub struct TokenArgs {
+pub(crate) struct TokenArgs {
     /// The join token viewers must present. Other users of this machine can read it (`ps`):
     /// prefer --token-file or ROAM_TOKEN. With none of the three, a random one.
     #[arg(long, value_name = "TOKEN")]
@@ -48,7 +48,7 @@ pub struct TokenArgs {
 
 /// Where a [`Token`] came from.
 #[derive(Clone, Debug, PartialEq, Eq)]
-pub enum Source {
+pub(crate) enum Source {
     Flag,
     File(PathBuf),
     Env,
@@ -68,14 +68,14 @@ impl fmt::Display for Source {
 
 /// A join token that passed the checks. Its `Debug` hides it, so logging one by mistake
 /// does not leak it.
-pub struct Token {
+pub(crate) struct Token {
     secret: String,
     pub source: Source,
 }
 
 impl Token {
     /// The token itself: for the server's options and the connect line people copy.
-    pub fn as_str(&self) -> &str {
+    pub(crate) fn as_str(&self) -> &str {
         &self.secret
     }
 }
@@ -89,12 +89,12 @@ impl fmt::Debug for Token {
 impl TokenArgs {
     /// The token, from the first of `--token`, `--token-file`, `ROAM_TOKEN`, or a random
     /// one; an error says why a given one is refused.
-    pub fn resolve(&self) -> Result<Token> {
+    pub(crate) fn resolve(&self) -> Result<Token> {
         self.resolve_with(std::env::var_os(TOKEN_ENV))
     }
 
     /// [`TokenArgs::resolve`] with `env` as the value of `ROAM_TOKEN`.
-    pub fn resolve_with(&self, env: Option<OsString>) -> Result<Token> {
+    pub(crate) fn resolve_with(&self, env: Option<OsString>) -> Result<Token> {
         let (secret, source) = if let Some(token) = &self.token {
             tracing::warn!(
                 "--token is visible to other users of this machine (`ps`): --token-file or \
@@ -120,7 +120,7 @@ impl TokenArgs {
 }
 
 /// Why `token` is refused, if it is (the reason completes "the join token from X …").
-pub fn check(token: &str) -> Result<(), String> {
+pub(crate) fn check(token: &str) -> Result<(), String> {
     if token.is_empty() {
         return Err("is empty, which would let anyone join".to_owned());
     }
@@ -190,7 +190,7 @@ fn read_token_file(path: &Path) -> Result<String> {
 }
 
 /// A fresh random join token: 128 bits as 32 hex digits.
-pub fn random_token() -> Result<String> {
+pub(crate) fn random_token() -> Result<String> {
     use ring::rand::SecureRandom;
     let mut bytes = [0u8; 16];
     ring::rand::SystemRandom::new()

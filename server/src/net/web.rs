@@ -83,7 +83,7 @@ pub(super) struct Running {
 impl Running {
     /// Stops taking HTTPS connections and renewing (open HTTPS connections are dropped);
     /// the endpoint is closed with the native one.
-    pub fn stop(&mut self) {
+    pub(super) fn stop(&mut self) {
         for t in self.tasks.drain(..) {
             t.abort();
         }

@@ -66,7 +66,7 @@ const CHUNK: usize = 1024;
 /// A dense list in chunks of [`CHUNK`] records: what it reserves follows its length
 /// within a chunk and a half, and growing never copies it (a `Vec` doubles, so it reserves
 /// a third more than it holds on average and up to twice, and keeps its peak).
-pub struct Chunks<T> {
+pub(super) struct Chunks<T> {
     chunks: Vec<Vec<T>>,
     len: usize,
 }
@@ -81,17 +81,17 @@ impl<T> Default for Chunks<T> {
 }
 
 impl<T: Copy> Chunks<T> {
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.len
     }
 
     /// Empties it (its chunks given back).
-    pub fn clear(&mut self) {
+    pub(super) fn clear(&mut self) {
         self.chunks = Vec::new();
         self.len = 0;
     }
 
-    pub fn heap_bytes(&self) -> usize {
+    pub(super) fn heap_bytes(&self) -> usize {
         self.chunks.capacity() * std::mem::size_of::<Vec<T>>()
             + self
                 .chunks
@@ -101,7 +101,7 @@ impl<T: Copy> Chunks<T> {
     }
 
     /// Appends `v`.
-    pub fn push(&mut self, v: T) {
+    pub(super) fn push(&mut self, v: T) {
         if self.len / CHUNK == self.chunks.len() {
             self.chunks.push(Vec::with_capacity(CHUNK));
         }
@@ -110,7 +110,7 @@ impl<T: Copy> Chunks<T> {
     }
 
     /// Removes the record at `i`, the last one taking its place.
-    pub fn swap_remove(&mut self, i: usize) -> T {
+    pub(super) fn swap_remove(&mut self, i: usize) -> T {
         let last = self.chunks[(self.len - 1) / CHUNK]
             .pop()
             .expect("the last chunk holds the last record");
@@ -135,7 +135,7 @@ impl<T: Copy> Chunks<T> {
         removed
     }
 
-    pub fn iter(&self) -> impl Iterator<Item = &T> + '_ {
+    pub(super) fn iter(&self) -> impl Iterator<Item = &T> + '_ {
         self.chunks.iter().flatten()
     }
 
@@ -143,7 +143,7 @@ impl<T: Copy> Chunks<T> {
     /// for loops over scattered records whose places are known ahead, so that their cache
     /// misses overlap rather than wait one for the other.
     #[inline(always)]
-    pub fn prefetch(&self, i: usize) {
+    pub(super) fn prefetch(&self, i: usize) {
         #[cfg(target_arch = "x86_64")]
         if let Some(r) = self.chunks.get(i / CHUNK).and_then(|c| c.get(i % CHUNK)) {
             use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
@@ -185,23 +185,23 @@ fn stays(i: usize, j: usize, home: usize) -> bool {
 
 /// A set of diamonds by packed position (not 0).
 #[derive(Default)]
-pub struct PosSet {
+pub(super) struct PosSet {
     /// Positions; 0 is an empty slot.
     table: Vec<u32>,
     len: usize,
 }
 
 impl PosSet {
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.len
     }
 
     /// The members, in table order (not sorted).
-    pub fn iter(&self) -> impl Iterator<Item = u32> + '_ {
+    pub(super) fn iter(&self) -> impl Iterator<Item = u32> + '_ {
         self.table.iter().copied().filter(|&p| p != 0)
     }
 
-    pub fn heap_bytes(&self) -> usize {
+    pub(super) fn heap_bytes(&self) -> usize {
         self.table.capacity() * 4
     }
 
@@ -223,12 +223,12 @@ impl PosSet {
     }
 
     #[inline]
-    pub fn contains(&self, pos: u32) -> bool {
+    pub(super) fn contains(&self, pos: u32) -> bool {
         !self.table.is_empty() && self.table[self.find(pos)] == pos
     }
 
     /// Adds `pos` (not 0); false when it was there already.
-    pub fn insert(&mut self, pos: u32) -> bool {
+    pub(super) fn insert(&mut self, pos: u32) -> bool {
         debug_assert_ne!(pos, 0, "position 0 is a corner, not a diamond");
         if out_of_bounds(self.len + 1, self.table.len()) {
             self.resize(slots_for(self.len + 1));
@@ -243,7 +243,7 @@ impl PosSet {
     }
 
     /// Removes `pos`; false when it was not there.
-    pub fn remove(&mut self, pos: u32) -> bool {
+    pub(super) fn remove(&mut self, pos: u32) -> bool {
         if !self.contains(pos) {
             return false;
         }
@@ -292,7 +292,7 @@ const TAG_SHIFT: u32 = INDEX_BITS + 4;
 
 /// The most members a [`PosIndex`] indexes (a frontier holds at most 4 diamonds per
 /// split one, and a cut splits fewer diamonds than its budget, at most 2^20 triangles).
-pub const MAX_INDEXED: usize = INDEX_MASK as usize;
+pub(super) const MAX_INDEXED: usize = INDEX_MASK as usize;
 
 /// The hash bits a slot keeps beside its index (the low ones: its home comes from the
 /// high ones).
@@ -326,23 +326,23 @@ fn cyclic_sub(a: usize, b: usize, n: usize) -> usize {
 /// frontier removal's time with 50 driving viewers' cuts (a removal was 8 % of the
 /// server's time).
 #[derive(Default)]
-pub struct PosIndex {
+pub(super) struct PosIndex {
     /// `tag | distance | index`; [`EMPTY`] is an empty slot.
     table: Vec<u32>,
     len: usize,
 }
 
 impl PosIndex {
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.len
     }
 
-    pub fn clear(&mut self) {
+    pub(super) fn clear(&mut self) {
         self.table.iter_mut().for_each(|e| *e = EMPTY);
         self.len = 0;
     }
 
-    pub fn heap_bytes(&self) -> usize {
+    pub(super) fn heap_bytes(&self) -> usize {
         self.table.capacity() * 4
     }
 
@@ -373,7 +373,7 @@ impl PosIndex {
 
     /// The place of `pos` in the caller's list.
     #[inline]
-    pub fn get(&self, pos: u32, at: impl Fn(u32) -> u32) -> Option<u32> {
+    pub(super) fn get(&self, pos: u32, at: impl Fn(u32) -> u32) -> Option<u32> {
         if self.table.is_empty() {
             return None;
         }
@@ -381,7 +381,7 @@ impl PosIndex {
     }
 
     /// Records that `pos` (not a member) is at `index` of the caller's list.
-    pub fn insert(&mut self, pos: u32, index: u32, at: impl Fn(u32) -> u32) {
+    pub(super) fn insert(&mut self, pos: u32, index: u32, at: impl Fn(u32) -> u32) {
         assert!(
             (index as usize) < MAX_INDEXED,
             "a frontier is bounded by the largest budget"
@@ -398,7 +398,7 @@ impl PosIndex {
     }
 
     /// Records that member `pos` moved to `index`.
-    pub fn moved(&mut self, pos: u32, index: u32, at: impl Fn(u32) -> u32) {
+    pub(super) fn moved(&mut self, pos: u32, index: u32, at: impl Fn(u32) -> u32) {
         let i = self
             .find(pos, at)
             .expect("a member that moved is indexed under its position");
@@ -408,7 +408,7 @@ impl PosIndex {
     /// Forgets member `pos` (while `at` still finds it at its place). The slots after it
     /// in its run move back where their homes allow; each one's home comes from its
     /// distance (the caller's list is read only for one [`FAR`] from home).
-    pub fn remove(&mut self, pos: u32, at: impl Fn(u32) -> u32) {
+    pub(super) fn remove(&mut self, pos: u32, at: impl Fn(u32) -> u32) {
         let n = self.table.len();
         let mut i = self
             .find(pos, &at)

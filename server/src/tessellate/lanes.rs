@@ -11,22 +11,22 @@ mod imp {
     use std::arch::x86_64::*;
 
     #[derive(Clone, Copy)]
-    pub struct F4(__m128);
+    pub(crate) struct F4(__m128);
 
     impl F4 {
         #[inline(always)]
-        pub fn new(v: [f32; 4]) -> F4 {
+        pub(crate) fn new(v: [f32; 4]) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_setr_ps(v[0], v[1], v[2], v[3])) }
         }
         #[inline(always)]
-        pub fn splat(v: f32) -> F4 {
+        pub(crate) fn splat(v: f32) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_set1_ps(v)) }
         }
         /// Lanes from integers below 2^24 (exact).
         #[inline(always)]
-        pub fn from_u32(v: [u32; 4]) -> F4 {
+        pub(crate) fn from_u32(v: [u32; 4]) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe {
                 F4(_mm_cvtepi32_ps(_mm_setr_epi32(
@@ -38,76 +38,76 @@ mod imp {
             }
         }
         #[inline(always)]
-        pub fn to_array(self) -> [f32; 4] {
+        pub(crate) fn to_array(self) -> [f32; 4] {
             let mut out = [0f32; 4];
             // SAFETY: `out` has room for four unaligned floats.
             unsafe { _mm_storeu_ps(out.as_mut_ptr(), self.0) };
             out
         }
         #[inline(always)]
-        pub fn add(self, o: F4) -> F4 {
+        pub(crate) fn add(self, o: F4) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_add_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn sub(self, o: F4) -> F4 {
+        pub(crate) fn sub(self, o: F4) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_sub_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn mul(self, o: F4) -> F4 {
+        pub(crate) fn mul(self, o: F4) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_mul_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn div(self, o: F4) -> F4 {
+        pub(crate) fn div(self, o: F4) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_div_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn sqrt(self) -> F4 {
+        pub(crate) fn sqrt(self) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_sqrt_ps(self.0)) }
         }
         /// Lane-wise minimum (operands are never NaN).
         #[inline(always)]
-        pub fn min(self, o: F4) -> F4 {
+        pub(crate) fn min(self, o: F4) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_min_ps(self.0, o.0)) }
         }
         /// Lane-wise maximum; a NaN in `self` gives `o`, as `f32::max` does.
         #[inline(always)]
-        pub fn max(self, o: F4) -> F4 {
+        pub(crate) fn max(self, o: F4) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_max_ps(self.0, o.0)) }
         }
         #[inline(always)]
-        pub fn abs(self) -> F4 {
+        pub(crate) fn abs(self) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_andnot_ps(_mm_set1_ps(-0.0), self.0)) }
         }
         /// Bit `i` set where lane `i` of `self < o`.
         #[inline(always)]
-        pub fn lt(self, o: F4) -> u32 {
+        pub(crate) fn lt(self, o: F4) -> u32 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { _mm_movemask_ps(_mm_cmplt_ps(self.0, o.0)) as u32 }
         }
         /// Bit `i` set where lane `i` of `self <= o`.
         #[inline(always)]
-        pub fn le(self, o: F4) -> u32 {
+        pub(crate) fn le(self, o: F4) -> u32 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { _mm_movemask_ps(_mm_cmple_ps(self.0, o.0)) as u32 }
         }
         /// Each lane rounded towards zero (lanes within ±2^31).
         #[inline(always)]
-        pub fn trunc(self) -> F4 {
+        pub(crate) fn trunc(self) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { F4(_mm_cvtepi32_ps(_mm_cvttps_epi32(self.0))) }
         }
         /// `2^−n` of each lane `n`, a whole number in 0 ..= 126 (a normal float built from
         /// its exponent bits).
         #[inline(always)]
-        pub fn exp2_neg_whole(self) -> F4 {
+        pub(crate) fn exp2_neg_whole(self) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe {
                 let n = _mm_cvttps_epi32(self.0);
@@ -117,7 +117,7 @@ mod imp {
         }
         /// `self` where bit `i` of `mask` is set, else 0.
         #[inline(always)]
-        pub fn keep(self, mask: u32) -> F4 {
+        pub(crate) fn keep(self, mask: u32) -> F4 {
             let m = |b: u32| if mask >> b & 1 != 0 { -1 } else { 0 };
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe {
@@ -219,7 +219,7 @@ pub(super) use imp::F4;
 
 impl F4 {
     /// The largest lane.
-    pub fn max_lane(self) -> f32 {
+    pub(super) fn max_lane(self) -> f32 {
         self.to_array().into_iter().fold(0f32, f32::max)
     }
 
@@ -230,7 +230,7 @@ impl F4 {
     /// once. Relative error below 1e-5 (the rounding of `x · log2 e`; the polynomial's
     /// own is 2e-7); exactly 1 at 0.
     #[inline(always)]
-    pub fn exp_neg(self) -> F4 {
+    pub(super) fn exp_neg(self) -> F4 {
         let c = F4::splat;
         // exp(−x) = 2^−t = 2^−n · 2^−f, with t = x · log2 e, n = round(t), |f| <= 1/2.
         let t = self.mul(c(std::f32::consts::LOG2_E));

@@ -8,7 +8,7 @@ use crate::tessellate::camera::Camera;
 /// The camera a viewer's hello asks for, before it is placed at a vehicle: its field of
 /// view (a value that is not a number is taken as the usual 60°) and viewport, clamped,
 /// looking slightly down.
-pub fn default_camera(fov_y_deg: f32, viewport: [u32; 2]) -> Camera {
+pub(super) fn default_camera(fov_y_deg: f32, viewport: [u32; 2]) -> Camera {
     let fov = f64::from(fov_y_deg);
     Camera {
         eye: [0.0; 3],

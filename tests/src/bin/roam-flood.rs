@@ -12,6 +12,8 @@
 //! roam-server serve data/kossou --listen 127.0.0.1:4433 --token-file T &
 //! roam-flood --connect 127.0.0.1:4433 --fingerprint HEX --token "$(cat T)" --pid $!
 //! ```
+// A tool whose output is its figures or its addresses, on stdout.
+#![allow(clippy::print_stdout)]
 
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};

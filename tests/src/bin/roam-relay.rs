@@ -9,6 +9,8 @@
 //! roam-relay --to 127.0.0.1:4433 --delay-ms 40 --loss 0.05 --seed 1
 //! kill -USR1 $(pidof roam-relay)   # cut; again to restore
 //! ```
+// A tool whose output is its figures or its addresses, on stdout.
+#![allow(clippy::print_stdout)]
 
 use std::io::Write;
 use std::net::SocketAddr;

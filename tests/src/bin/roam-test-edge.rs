@@ -10,6 +10,8 @@
 //!
 //! Prints `listening on ADDR`, `fingerprint HEX` and with `--web` `web on ADDR` once it
 //! serves, then serves until killed.
+// A tool whose output is its figures or its addresses, on stdout.
+#![allow(clippy::print_stdout)]
 
 use std::path::Path;
 use std::time::Duration;

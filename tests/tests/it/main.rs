@@ -3,6 +3,9 @@
 //!
 //! The modules named `needs_…` need something outside Rust (a GPU driver, a display, a NATS
 //! server, a browser); the fast tier, `scripts/test-fast`, leaves them out by those names.
+// A test binary has no users: its helpers' `pub` reach no one else (the lint is for
+// libraries' interfaces), and tests print their figures for `--nocapture`.
+#![allow(unreachable_pub, clippy::print_stdout)]
 
 /// The tests that run a server with its 100 Hz world and viewers, a cluster, or a browser
 /// take this lock: one at a time, so that on a 2-core machine none starves another of the

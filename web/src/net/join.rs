@@ -17,13 +17,13 @@ use crate::wire::{Reader, write};
 
 /// Why a join failed, and whether another attempt may succeed.
 #[derive(Debug)]
-pub struct JoinError {
+pub(crate) struct JoinError {
     pub lost: bool,
     pub message: String,
 }
 
 /// A connection that has joined, and the news of the world that came with it.
-pub struct Joined {
+pub(crate) struct Joined {
     pub(super) session: Session,
     pub(super) send: SendStream,
     pub(super) recv: Reader,
@@ -33,7 +33,7 @@ pub struct Joined {
 }
 
 /// Whether the browser has WebTransport at all.
-pub fn has_webtransport() -> bool {
+pub(crate) fn has_webtransport() -> bool {
     js_sys::Reflect::has(&page::window(), &"WebTransport".into()).unwrap_or(false)
 }
 
@@ -81,7 +81,11 @@ pub(super) fn end_of(e: &web_transport_wasm::Error) -> End {
 /// with other edges to go to), the rest within [`JOIN_TIMEOUT`]. A session that does not
 /// join is closed (the goodbye's code when it was refused or broke the protocol; else 0,
 /// so that a vehicle it took back stays held for the next attempt).
-pub async fn join(edge: &WebEdge, hello: Hello, handshake: Duration) -> Result<Joined, JoinError> {
+pub(crate) async fn join(
+    edge: &WebEdge,
+    hello: Hello,
+    handshake: Duration,
+) -> Result<Joined, JoinError> {
     let fatal = |message: String| JoinError {
         lost: false,
         message,

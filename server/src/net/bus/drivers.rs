@@ -51,7 +51,13 @@ pub(crate) struct Drivers {
 impl Drivers {
     /// `vehicle` is held by `edge` with `claim` (random, given) from `now`: older claims
     /// are stale from now on.
-    pub fn claim(&mut self, vehicle: VehicleId, edge: Option<u64>, claim: u64, now: Duration) {
+    pub(super) fn claim(
+        &mut self,
+        vehicle: VehicleId,
+        edge: Option<u64>,
+        claim: u64,
+        now: Duration,
+    ) {
         let before = self.holders.insert(
             vehicle,
             Holder {
@@ -80,19 +86,19 @@ impl Drivers {
 
     /// Whether `edge` holds any vehicle (key states from an edge holding none are not
     /// worth opening).
-    pub fn holds_any(&self, edge: u64) -> bool {
+    pub(super) fn holds_any(&self, edge: u64) -> bool {
         self.held_by.contains_key(&edge)
     }
 
     /// Whether `edge` holds `vehicle` with `claim` (its newest).
-    pub fn holds(&self, vehicle: VehicleId, edge: Option<u64>, claim: u64) -> bool {
+    pub(super) fn holds(&self, vehicle: VehicleId, edge: Option<u64>, claim: u64) -> bool {
         self.holders
             .get(&vehicle)
             .is_some_and(|h| h.claim == claim && same(h.edge, edge))
     }
 
     /// Whether `edge` holds `vehicle` (its keys are taken).
-    pub fn drives(&self, vehicle: VehicleId, edge: Option<u64>) -> bool {
+    pub(super) fn drives(&self, vehicle: VehicleId, edge: Option<u64>) -> bool {
         self.holders
             .get(&vehicle)
             .is_some_and(|h| same(h.edge, edge))
@@ -100,7 +106,7 @@ impl Drivers {
 
     /// `edge` left `vehicle` at `now`: the vehicle is free ([`Drivers::forget`]), and the
     /// edge's key states sent before the leave are late for a while ([`Drivers::late`]).
-    pub fn leave(&mut self, vehicle: VehicleId, edge: Option<u64>, now: Duration) {
+    pub(super) fn leave(&mut self, vehicle: VehicleId, edge: Option<u64>, now: Duration) {
         self.forget(vehicle);
         self.left
             .retain(|_, at| now.saturating_sub(*at) < LATE_KEYS);
@@ -109,18 +115,18 @@ impl Drivers {
 
     /// Whether key states from `edge` for a vehicle it does not hold are late (it left a
     /// vehicle less than [`LATE_KEYS`] before `now`), not refused.
-    pub fn late(&self, edge: Option<u64>, now: Duration) -> bool {
+    pub(super) fn late(&self, edge: Option<u64>, now: Duration) -> bool {
         self.left
             .get(&edge)
             .is_some_and(|at| now.saturating_sub(*at) < LATE_KEYS)
     }
 
-    pub fn holder(&self, vehicle: VehicleId) -> Option<Holder> {
+    pub(super) fn holder(&self, vehicle: VehicleId) -> Option<Holder> {
         self.holders.get(&vehicle).copied()
     }
 
     /// `vehicle` is free: its ticket and claim name nothing.
-    pub fn forget(&mut self, vehicle: VehicleId) {
+    pub(super) fn forget(&mut self, vehicle: VehicleId) {
         self.tickets.retain(|_, v| *v != vehicle);
         let holder = self.holders.remove(&vehicle);
         self.let_go(holder);
@@ -130,7 +136,7 @@ impl Drivers {
     /// `grace` old and that no edge's latest hello names with it (`named(vehicle, edge,
     /// claim)`): a join whose edge never took it up, or a vehicle its edge dropped without a
     /// leave reaching the world. Each with how long ago its claim was made.
-    pub fn unnamed(
+    pub(super) fn unnamed(
         &self,
         driven: impl IntoIterator<Item = VehicleId>,
         now: Duration,

@@ -59,12 +59,12 @@ pub(super) struct Link {
 
 impl Link {
     /// In no list.
-    pub const OUT: Link = Link {
+    pub(super) const OUT: Link = Link {
         prev: NIL,
         next: NIL,
     };
 
-    pub fn linked(self) -> bool {
+    pub(super) fn linked(self) -> bool {
         self.prev != NIL
     }
 }
@@ -207,7 +207,7 @@ pub(super) struct Queue {
 
 impl Queue {
     /// An empty queue, keeping each bucket's highest priority or not.
-    pub fn new(keep_most: bool) -> Queue {
+    pub(super) fn new(keep_most: bool) -> Queue {
         Queue {
             heads: vec![NIL; BUCKETS],
             most: if keep_most {
@@ -222,12 +222,12 @@ impl Queue {
     }
 
     /// Members queued.
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.len
     }
 
     /// Empties the queue (the members' links are the caller's to forget).
-    pub fn clear(&mut self) {
+    pub(super) fn clear(&mut self) {
         while let Some(b) = self.top_bucket() {
             self.heads[b] = NIL;
             self.clear_bit(b);
@@ -237,7 +237,7 @@ impl Queue {
 
     /// Queues member `i` (not queued) last in `bucket`.
     #[inline]
-    pub fn push(&mut self, nodes: &mut impl Nodes, bucket: usize, i: u32) {
+    pub(super) fn push(&mut self, nodes: &mut impl Nodes, bucket: usize, i: u32) {
         let empty = self.heads[bucket] == NIL;
         if empty {
             self.nonempty[bucket >> 6] |= 1 << (bucket & 63);
@@ -260,7 +260,7 @@ impl Queue {
 
     /// Takes member `i` out of `bucket`, where it is queued.
     #[inline]
-    pub fn remove(&mut self, nodes: &mut impl Nodes, bucket: usize, i: u32) {
+    pub(super) fn remove(&mut self, nodes: &mut impl Nodes, bucket: usize, i: u32) {
         if unlink(nodes, 0, &mut self.heads[bucket], i) {
             self.clear_bit(bucket);
         }
@@ -276,7 +276,7 @@ impl Queue {
     /// A member queued in `bucket` and staying there had priority `old` and has `new`: the
     /// bucket's highest follows.
     #[inline]
-    pub fn repriced(&mut self, bucket: usize, old: f32, new: f32) {
+    pub(super) fn repriced(&mut self, bucket: usize, old: f32, new: f32) {
         if let Some(most) = self.most.get_mut(bucket)
             && !most.is_nan()
         {
@@ -290,13 +290,13 @@ impl Queue {
     }
 
     /// Member `from`, queued in `bucket`, now lives at `to`.
-    pub fn relocate(&mut self, nodes: &mut impl Nodes, bucket: usize, from: u32, to: u32) {
+    pub(super) fn relocate(&mut self, nodes: &mut impl Nodes, bucket: usize, from: u32, to: u32) {
         relocate(nodes, 0, &mut self.heads[bucket], from, to);
     }
 
     /// The highest non-empty bucket.
     #[inline]
-    pub fn top_bucket(&self) -> Option<usize> {
+    pub(super) fn top_bucket(&self) -> Option<usize> {
         if self.summary == 0 {
             return None;
         }
@@ -306,14 +306,14 @@ impl Queue {
 
     /// The member the next pop returns, with its bucket.
     #[inline]
-    pub fn peek(&self) -> Option<(usize, u32)> {
+    pub(super) fn peek(&self) -> Option<(usize, u32)> {
         let b = self.top_bucket()?;
         Some((b, self.heads[b]))
     }
 
     /// Removes and returns the first member of the highest non-empty bucket.
     #[inline]
-    pub fn pop(&mut self, nodes: &mut impl Nodes) -> Option<(usize, u32)> {
+    pub(super) fn pop(&mut self, nodes: &mut impl Nodes) -> Option<(usize, u32)> {
         let (b, i) = self.peek()?;
         self.remove(nodes, b, i);
         Some((b, i))
@@ -328,7 +328,7 @@ impl Queue {
     }
 
     /// The highest non-empty bucket below `bucket`.
-    pub fn below(&self, bucket: usize) -> Option<usize> {
+    pub(super) fn below(&self, bucket: usize) -> Option<usize> {
         let mut w = bucket >> 6;
         // Bits below `bucket` in its word, then whole words below.
         let mut bits = self.nonempty[w] & ((1u64 << (bucket & 63)) - 1);
@@ -346,7 +346,7 @@ impl Queue {
 
     /// The highest priority in `bucket` (non-empty), walking it when not known; needs a
     /// queue that keeps it.
-    pub fn most(&mut self, nodes: &impl Nodes, bucket: usize) -> f32 {
+    pub(super) fn most(&mut self, nodes: &impl Nodes, bucket: usize) -> f32 {
         let known = self.most[bucket];
         if !known.is_nan() {
             return known;
@@ -360,7 +360,7 @@ impl Queue {
     }
 
     /// The members of `bucket`, first to last.
-    pub fn members<'a>(
+    pub(super) fn members<'a>(
         &self,
         nodes: &'a impl Nodes,
         bucket: usize,
@@ -381,7 +381,7 @@ impl Queue {
     }
 
     /// The members of each non-empty bucket, checked (for the audit).
-    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<(usize, Vec<u32>)>, ListError> {
+    pub(super) fn lists(&self, nodes: &impl Nodes) -> Result<Vec<(usize, Vec<u32>)>, ListError> {
         let mut out = Vec::new();
         for b in 0..BUCKETS {
             let list = walk(nodes, 0, self.heads[b])?;
@@ -412,7 +412,7 @@ impl Queue {
         Ok(out)
     }
 
-    pub fn heap_bytes(&self) -> usize {
+    pub(super) fn heap_bytes(&self) -> usize {
         (self.heads.capacity() + self.most.capacity()) * 4
     }
 }
@@ -486,7 +486,7 @@ const PREFETCH: usize = 8;
 const KEEP_CAPACITY: usize = 64;
 
 impl Schedule {
-    pub fn new(k: usize) -> Schedule {
+    pub(super) fn new(k: usize) -> Schedule {
         Schedule {
             k,
             buckets: vec![Vec::new(); SLOTS],
@@ -498,12 +498,12 @@ impl Schedule {
         }
     }
 
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.len
     }
 
     /// Empties the schedule (and forgets the keys taken: any may be pushed next).
-    pub fn clear(&mut self) {
+    pub(super) fn clear(&mut self) {
         for b in &mut self.buckets {
             b.clear();
             if b.capacity() > KEEP_CAPACITY {
@@ -516,7 +516,7 @@ impl Schedule {
         self.len = 0;
     }
 
-    pub fn heap_bytes(&self) -> usize {
+    pub(super) fn heap_bytes(&self) -> usize {
         self.buckets.capacity() * std::mem::size_of::<Vec<u32>>()
             + self.buckets.iter().map(|b| b.capacity() * 4).sum::<usize>()
             + self.taken.capacity() * 4
@@ -560,7 +560,7 @@ impl Schedule {
     /// Schedules member `i` (not scheduled) at `key` (one below a key already taken counts
     /// as that one).
     #[inline]
-    pub fn push(&mut self, nodes: &mut impl Nodes, i: u32, key: u32) {
+    pub(super) fn push(&mut self, nodes: &mut impl Nodes, i: u32, key: u32) {
         let key = key.max(self.last);
         nodes.set_key(i, self.k, key);
         self.put(nodes, i, key);
@@ -573,7 +573,7 @@ impl Schedule {
     /// key falls in its entry's bucket (taking it out touched the member that filled its
     /// place: 3 % of a server's time with 50 driving viewers).
     #[inline]
-    pub fn reschedule(&mut self, nodes: &mut impl Nodes, i: u32, key: Option<u32>) {
+    pub(super) fn reschedule(&mut self, nodes: &mut impl Nodes, i: u32, key: Option<u32>) {
         let scheduled = nodes.link(i, 1 + self.k).linked();
         match key {
             Some(key) if scheduled && key >= nodes.key(i, self.k) => {
@@ -601,7 +601,7 @@ impl Schedule {
 
     /// Takes member `i`, scheduled, out.
     #[inline]
-    pub fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
+    pub(super) fn remove(&mut self, nodes: &mut impl Nodes, i: u32) {
         let b = nodes.entry_bucket(i, self.k);
         let at = nodes.link(i, 1 + self.k).prev;
         debug_assert!(at != NIL, "only a scheduled member is taken out");
@@ -625,7 +625,7 @@ impl Schedule {
     }
 
     /// Member `from`, scheduled, now lives at `to` (its link and key moved with it).
-    pub fn relocate(&mut self, nodes: &mut impl Nodes, from: u32, to: u32) {
+    pub(super) fn relocate(&mut self, nodes: &mut impl Nodes, from: u32, to: u32) {
         let b = nodes.entry_bucket(to, self.k);
         let at = nodes.link(to, 1 + self.k).prev as usize;
         debug_assert_eq!(self.buckets[b][at], from, "the moved member's place");
@@ -643,7 +643,7 @@ impl Schedule {
     /// due this frame was moved down digit by digit before it was taken: along the
     /// capacity drive the turn schedule moved a member 2.6 times per push, each move a
     /// cache miss on its record.
-    pub fn take_due(&mut self, nodes: &mut impl Nodes, now: u32, out: &mut Vec<u32>) {
+    pub(super) fn take_due(&mut self, nodes: &mut impl Nodes, now: u32, out: &mut Vec<u32>) {
         if now < self.last {
             return; // every key is at least `last`
         }
@@ -687,7 +687,7 @@ impl Schedule {
 
     /// Every member scheduled, checked: each in the bucket its key says, at or above the
     /// bucket's bound, its link naming its index (for the audit).
-    pub fn lists(&self, nodes: &impl Nodes) -> Result<Vec<u32>, ListError> {
+    pub(super) fn lists(&self, nodes: &impl Nodes) -> Result<Vec<u32>, ListError> {
         let mut out = Vec::new();
         for (b, list) in self.buckets.iter().enumerate() {
             if (self.nonempty >> b & 1 != 0) == list.is_empty() {

@@ -58,7 +58,7 @@ pub(super) struct Fixed {
 
 impl Fixed {
     /// Without error: its priority is 0 wherever the eye is, never due again.
-    pub fn exact(&self) -> bool {
+    pub(super) fn exact(&self) -> bool {
         self.e <= 0.0 || self.e.is_nan()
     }
 }

@@ -93,17 +93,17 @@ impl Member {
         }
     }
 
-    pub fn queued(&self) -> bool {
+    pub(super) fn queued(&self) -> bool {
         self.link(0).linked()
     }
 
     /// Whether it is scheduled on odometer `k`, and at which key.
-    pub fn due(&self, k: usize) -> Option<u32> {
+    pub(super) fn due(&self, k: usize) -> Option<u32> {
         self.link(1 + k).linked().then_some(self.keys[k])
     }
 
     /// A free place's record ([`Frontier::remove`]).
-    pub fn is_free(&self) -> bool {
+    pub(super) fn is_free(&self) -> bool {
         self.pos == FREE
     }
 
@@ -187,7 +187,7 @@ pub(super) struct Frontier {
 }
 
 impl Frontier {
-    pub fn new(merges: bool) -> Frontier {
+    pub(super) fn new(merges: bool) -> Frontier {
         Frontier {
             merges,
             members: Chunks::default(),
@@ -200,25 +200,25 @@ impl Frontier {
     }
 
     /// Members.
-    pub fn len(&self) -> usize {
+    pub(super) fn len(&self) -> usize {
         self.members.len() - self.free.len()
     }
 
-    pub fn members(&self) -> impl Iterator<Item = &Member> + '_ {
+    pub(super) fn members(&self) -> impl Iterator<Item = &Member> + '_ {
         self.members.iter().filter(|m| !m.is_free())
     }
 
     /// Every place's record, free ones included ([`Member::is_free`]), by place.
-    pub fn records(&self) -> impl Iterator<Item = &Member> + '_ {
+    pub(super) fn records(&self) -> impl Iterator<Item = &Member> + '_ {
         self.members.iter()
     }
 
     /// The members' places.
-    pub fn places(&self) -> impl Iterator<Item = u32> + '_ {
+    pub(super) fn places(&self) -> impl Iterator<Item = u32> + '_ {
         (0..self.members.len() as u32).filter(|&i| !self.members[i as usize].is_free())
     }
 
-    pub fn clear(&mut self) {
+    pub(super) fn clear(&mut self) {
         self.members.clear();
         self.free = Vec::new();
         self.index.clear();
@@ -226,25 +226,25 @@ impl Frontier {
         self.due.iter_mut().for_each(Schedule::clear);
     }
 
-    pub fn members_bytes(&self) -> usize {
+    pub(super) fn members_bytes(&self) -> usize {
         self.members.heap_bytes() + self.free.capacity() * 4
     }
 
-    pub fn index_bytes(&self) -> usize {
+    pub(super) fn index_bytes(&self) -> usize {
         self.index.heap_bytes()
     }
 
-    pub fn queue_bytes(&self) -> usize {
+    pub(super) fn queue_bytes(&self) -> usize {
         self.queue.heap_bytes()
     }
 
     /// The schedule of odometer `k`'s bucket vectors.
-    pub fn schedule_bytes(&self, k: usize) -> usize {
+    pub(super) fn schedule_bytes(&self, k: usize) -> usize {
         self.due[k].heap_bytes()
     }
 
     /// Members queued, and scheduled on each odometer.
-    pub fn counts(&self) -> (usize, usize, usize) {
+    pub(super) fn counts(&self) -> (usize, usize, usize) {
         (self.queue.len(), self.due[0].len(), self.due[1].len())
     }
 
@@ -255,7 +255,7 @@ impl Frontier {
     }
 
     #[inline]
-    pub fn contains(&self, pos: u32) -> bool {
+    pub(super) fn contains(&self, pos: u32) -> bool {
         self.find(pos).is_some()
     }
 
@@ -278,25 +278,25 @@ impl Frontier {
     }
 
     /// The bucket `m` is queued in by its evaluation (for the audit).
-    pub fn queue_bucket(&self, m: &Member) -> Option<usize> {
+    pub(super) fn queue_bucket(&self, m: &Member) -> Option<usize> {
         self.bucket(m)
     }
 
     /// Member `i`'s position.
     #[inline]
-    pub fn pos(&self, i: u32) -> u32 {
+    pub(super) fn pos(&self, i: u32) -> u32 {
         self.members[i as usize].pos
     }
 
     /// The place of member `pos`, if it is one (valid until a member is removed).
     #[inline]
-    pub fn place(&self, pos: u32) -> Option<u32> {
+    pub(super) fn place(&self, pos: u32) -> Option<u32> {
         self.find(pos)
     }
 
     /// Adds `pos` as a member not yet evaluated (neither queued nor scheduled): its place,
     /// or `None` when it was one already.
-    pub fn insert(&mut self, pos: u32) -> Option<u32> {
+    pub(super) fn insert(&mut self, pos: u32) -> Option<u32> {
         if self.contains(pos) {
             return None;
         }
@@ -335,7 +335,7 @@ impl Frontier {
     /// or five cache misses a removal (two or three removals a split or merge) when a
     /// server serves many viewers in turn. Free places are compacted away only once they
     /// are many ([`FREE_MIN`], [`FREE_SHARE`]).
-    pub fn remove(&mut self, pos: u32) -> bool {
+    pub(super) fn remove(&mut self, pos: u32) -> bool {
         let Some(i) = self.find(pos) else {
             return false;
         };
@@ -396,7 +396,7 @@ impl Frontier {
     /// position: the callers know it (a due member's, a member just inserted), and looking
     /// it up again in the index was 12 % of a loaded server's time (cache misses, with
     /// 50 viewers' cuts).
-    pub fn keep(&mut self, i: u32, prio: f32, flags: u8, keys: [Option<u32>; 2]) {
+    pub(super) fn keep(&mut self, i: u32, prio: f32, flags: u8, keys: [Option<u32>; 2]) {
         let old = self.members[i as usize];
         let new = Member { prio, flags, ..old };
         let was = if old.queued() {
@@ -430,21 +430,21 @@ impl Frontier {
 
     /// The first member of the highest bucket, taken out of the queue (it stays a
     /// member): its bucket, position and priority.
-    pub fn pop(&mut self) -> Option<(usize, u32, f32)> {
+    pub(super) fn pop(&mut self) -> Option<(usize, u32, f32)> {
         let (b, i) = self.queue.pop(&mut self.members)?;
         let m = &self.members[i as usize];
         Some((b, m.pos, m.prio))
     }
 
     /// The bucket and member the next pop returns.
-    pub fn peek(&self) -> Option<(usize, &Member)> {
+    pub(super) fn peek(&self) -> Option<(usize, &Member)> {
         let (b, i) = self.queue.peek()?;
         Some((b, &self.members[i as usize]))
     }
 
     /// Queues member `pos` again by its kept evaluation, after a pop (nothing if it left
     /// the frontier since, or is queued).
-    pub fn requeue(&mut self, pos: u32) {
+    pub(super) fn requeue(&mut self, pos: u32) {
         if let Some(i) = self.find(pos)
             && !self.members[i as usize].queued()
         {
@@ -460,7 +460,7 @@ impl Frontier {
     /// kept for [`Self::keep`] (taking it out touched the member that filled its place: a
     /// cache miss, in a server serving many viewers, for most evaluations of a turning
     /// frame).
-    pub fn take_due(&mut self, k: usize, now: [u32; 2], out: &mut Vec<u32>) {
+    pub(super) fn take_due(&mut self, k: usize, now: [u32; 2], out: &mut Vec<u32>) {
         let from = out.len();
         self.due[k].take_due(&mut self.members, now[k], out);
         for &i in &out[from..] {
@@ -475,7 +475,7 @@ impl Frontier {
 
     /// Shifts odometer `k`'s keys down by `shift` (those below it to 0), the schedule
     /// made again in member order.
-    pub fn rebase(&mut self, k: usize, shift: u32) {
+    pub(super) fn rebase(&mut self, k: usize, shift: u32) {
         let keys: Vec<Option<u32>> = self
             .members
             .iter()
@@ -492,7 +492,7 @@ impl Frontier {
 
     /// The highest priority queued: the top bucket (ranked by position, not priority) is
     /// read whole, and the search goes on to the next bucket below it.
-    pub fn max_queued(&mut self) -> f32 {
+    pub(super) fn max_queued(&mut self) -> f32 {
         let mut best = 0f32;
         let mut bucket = self.queue.top_bucket();
         while let Some(b) = bucket {
@@ -508,7 +508,7 @@ impl Frontier {
     /// The queue's buckets and the schedules, each member where its evaluation puts it,
     /// checked (for the audit): `(bucket, member)` queued, and each odometer's members.
     #[allow(clippy::type_complexity)]
-    pub fn lists(&self) -> Result<(Vec<(usize, u32)>, [Vec<u32>; 2]), ListError> {
+    pub(super) fn lists(&self) -> Result<(Vec<(usize, u32)>, [Vec<u32>; 2]), ListError> {
         let queued = self
             .queue
             .lists(&self.members)?
@@ -525,12 +525,12 @@ impl Frontier {
     }
 
     /// Whether `i` is the place the index gives member `i`'s position (for the audit).
-    pub fn indexed(&self, i: usize) -> bool {
+    pub(super) fn indexed(&self, i: usize) -> bool {
         self.find(self.members[i].pos) == Some(i as u32) && self.index.len() == self.len()
     }
 
     /// Whether the free places are the free records, each once (for the audit).
-    pub fn free_listed(&self) -> bool {
+    pub(super) fn free_listed(&self) -> bool {
         let mut free = self.free.clone();
         free.sort_unstable();
         free.dedup();
