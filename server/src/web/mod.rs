@@ -66,17 +66,35 @@ impl Page {
         )
     }
 
-    /// The files in `dir` (not in its folders), by name, as `scripts/build-web` leaves
+    /// The files under `dir`, named as `build.rs` names the ones it embeds (relative to
+    /// `dir`, `/` between folders, hidden ones left out), as `scripts/build-web` leaves
     /// them in `web/dist/`.
     pub fn read_dir(dir: &std::path::Path) -> std::io::Result<Page> {
-        let mut files = Vec::new();
-        for entry in std::fs::read_dir(dir)? {
-            let entry = entry?;
-            if entry.file_type()?.is_file() {
+        fn walk(
+            dir: &std::path::Path,
+            prefix: &str,
+            out: &mut Vec<(String, Bytes)>,
+        ) -> std::io::Result<()> {
+            for entry in std::fs::read_dir(dir)? {
+                let entry = entry?;
                 let name = entry.file_name().to_string_lossy().into_owned();
-                files.push((name, Bytes::from(std::fs::read(entry.path())?)));
+                if name.starts_with('.') {
+                    continue;
+                }
+                let kind = entry.file_type()?;
+                if kind.is_dir() {
+                    walk(&entry.path(), &format!("{prefix}{name}/"), out)?;
+                } else if kind.is_file() {
+                    out.push((
+                        format!("{prefix}{name}"),
+                        Bytes::from(std::fs::read(entry.path())?),
+                    ));
+                }
             }
+            Ok(())
         }
+        let mut files = Vec::new();
+        walk(dir, "", &mut files)?;
         Ok(Page::from_files(files))
     }
 
@@ -321,6 +339,31 @@ mod tests {
             map.insert(k.clone(), HeaderValue::from_static(v));
         }
         site.respond(&Method::GET, path, &map)
+    }
+
+    #[test]
+    fn a_page_read_from_a_folder_names_its_files_as_the_embedded_one() {
+        let dir = std::env::temp_dir().join(format!("roam-page-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(dir.join("assets")).expect("a temporary folder");
+        for (name, bytes) in [
+            ("index.html", "<p>"),
+            ("assets/a.js", "x"),
+            (".hidden", "h"),
+        ] {
+            std::fs::write(dir.join(name), bytes).expect("a temporary file");
+        }
+        let page = Page::read_dir(&dir).expect("the folder reads");
+        let _ = std::fs::remove_dir_all(&dir);
+        assert_eq!(
+            page.names().collect::<Vec<_>>(),
+            ["assets/a.js", "index.html"]
+        );
+        assert_eq!(page.get("assets/a.js").map(|b| &b[..]), Some(&b"x"[..]));
+        assert!(
+            Page::read_dir(&dir).is_err(),
+            "a folder that is gone is an error"
+        );
     }
 
     #[test]
