@@ -194,8 +194,10 @@ async fn snapshots_an_edge_never_saw_played_again_take_nothing_back() {
         edge.fingerprint,
         options,
     ));
-    let mut snaps = world.watch();
-    when(&mut snaps, 10, "the driver's vehicle", |s| {
+    // The vehicle in a snapshot the edge took (not only in the world's): the edge has a
+    // newest, so each played-again one is older than it.
+    let mut snaps = edge.server.watch();
+    when(&mut snaps, 10, "the driver's vehicle at the edge", |s| {
         !s.vehicles.is_empty()
     })
     .await;
