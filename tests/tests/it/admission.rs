@@ -17,7 +17,7 @@ use roam_link::wire;
 use roam_protocol::messages::{self, ClientMessage, Hello, Reason, Role, ServerMessage};
 use roam_tests::fixtures::{self, Running, flat};
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 fn hello(r: &Running, role: Role, budget: u32, frame_rate: u16) -> Hello {
     fixtures::hello(role, &r.token, [640, 360], budget, frame_rate)
@@ -53,7 +53,7 @@ async fn say_hello(r: &Running, hello: &Hello) -> Raw {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_65th_viewer_is_refused_as_full_and_a_leave_makes_room() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = fixtures::serve(flat(), |o| o);
     // Drivers at the least budget and one frame a second: the server's limit is on
     // viewers, whatever each costs.
@@ -115,7 +115,7 @@ async fn until(r: &Running, what: &str, done: impl Fn(&roam_server::net::Server)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
     use roam_server::viewer::admission::viewer_bytes;
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     const BUDGET: u32 = 65_536;
     // Room for two viewers at 65,536 triangles, and half of one more.
     let limit = viewer_bytes(BUDGET) * 5 / 2;
@@ -193,7 +193,7 @@ async fn a_viewer_past_the_memory_limit_is_refused_naming_it() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn greedy_viewers_do_not_slow_the_world() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     // Eight seats of 67 MiB each (admission's estimate at the most triangles): no memory
     // limit, whatever the machine's default; the world's ticks are what this tests.
     let r = fixtures::serve(fixtures::kossou(), |o| roam_server::net::Options {
@@ -262,7 +262,7 @@ async fn greedy_viewers_do_not_slow_the_world() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_viewer_asking_more_than_the_caps_is_served_the_caps() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     const MAX_BUDGET: u32 = 4_096;
     const MAX_FPS: u16 = 20;
     let r = fixtures::serve(fixtures::kossou(), |o| roam_server::net::Options {

@@ -30,7 +30,7 @@ use roam_tests::fixtures::{TOKEN, flat, pyramid};
 use roam_tests::fixtures::{bounded, frame, key_frame, status_when};
 use roam_tests::relay::{Relay, RelayConfig};
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 /// Two servers of one world's terrain with one identity (one fingerprint), as two edges
 /// sharing a state directory are.
@@ -92,7 +92,7 @@ async fn join(addrs: &[SocketAddr], fingerprint: [u8; 32]) -> Session {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_dead_first_address_is_passed_for_the_live_one() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let p = pair();
     let (_socket, nobody) = dead();
     let live = p.b.addr;
@@ -159,7 +159,7 @@ async fn no_address_answering_is_an_error_naming_each() {
 /// it silent within a second (not 10 s: there is another address) and goes on at B.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_silent_server_is_left_for_the_next_address_after_a_second() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let p = pair();
     let relay = Relay::start(p.a.addr, RelayConfig::default())
         .await
@@ -205,7 +205,7 @@ async fn a_silent_server_is_left_for_the_next_address_after_a_second() {
 /// session would end: the server closed it on purpose).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_server_shutting_down_sends_the_session_to_the_next_address() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let p = pair();
     let (a, b) = (p.a.addr, p.b.addr);
     let s = join(&[a, b], p.fingerprint).await;

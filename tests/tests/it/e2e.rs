@@ -14,7 +14,7 @@ use roam_server::net::Options;
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 /// A server on `terrain`, recording into the directory `record` if given.
 fn start(terrain: Arc<Terrain>, record: Option<std::path::PathBuf>) -> Running {
@@ -39,7 +39,7 @@ fn opts(r: &Running, role: Role, frames: u64) -> ViewerOptions {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn two_viewers_one_driving_and_the_session_replays() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let dir = std::env::temp_dir().join(format!("roam-e2e-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).expect("temp dir");
@@ -85,7 +85,7 @@ async fn two_viewers_one_driving_and_the_session_replays() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_wrong_token_or_fingerprint_is_refused() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = start(flat(), None);
     let bad = ViewerOptions {
         token: "nope".into(),
@@ -134,7 +134,7 @@ async fn stalled_driver(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stalled_viewer_and_garbage_do_not_disturb_the_others() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = start(flat(), None);
     let (_e1, stalled, _control) = stalled_driver(&r).await;
     // Someone sending garbage: datagrams, and streams of junk.
@@ -235,7 +235,7 @@ async fn until(s: &Session, what: &str, ok: impl Fn(usize) -> bool) -> usize {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_viewer_steers_the_servers_budget_and_camera() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     // Real terrain (the test terrain's 300 m of noise every 4 m leaves nothing to cull).
     let r = start(fixtures::kossou(), None);
     let hello = driver_hello(&r, 4_000);

@@ -7,11 +7,26 @@
 // libraries' interfaces), and tests print their figures for `--nocapture`.
 #![allow(unreachable_pub, clippy::print_stdout)]
 
-/// The tests that run a server with its 100 Hz world and viewers, a cluster, or a browser
-/// take this lock: one at a time, so that on a 2-core machine none starves another of the
-/// CPU. (When each file was a binary of its own, each had its own lock, and the binaries
-/// ran one after another.)
-static ONE_AT_A_TIME: tokio::sync::Mutex<()> = tokio::sync::Mutex::const_new(());
+/// The tests that run a server with its 100 Hz world and viewers, or a cluster, take a
+/// [`turn`]: two at a time. They mostly wait (on the world's ticks, frames at 60 Hz, a
+/// hold running out), using about a quarter of a core each, so two at once keep a 2-core
+/// machine busier without starving either (docs/testing.md#times). A browser rendering on
+/// the CPU takes every turn: it runs [`alone`].
+static TURNS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(AT_ONCE as usize);
+const AT_ONCE: u32 = 2;
+
+/// One of the [`TURNS`].
+async fn turn() -> tokio::sync::SemaphorePermit<'static> {
+    TURNS.acquire().await.expect("TURNS is never closed")
+}
+
+/// Every one of the [`TURNS`]: no other such test runs meanwhile.
+async fn alone() -> tokio::sync::SemaphorePermit<'static> {
+    TURNS
+        .acquire_many(AT_ONCE)
+        .await
+        .expect("TURNS is never closed")
+}
 
 mod admission;
 mod client_core;

@@ -30,7 +30,7 @@ use roam_tests::fixtures::{bounded, frame, status_when};
 use roam_tests::relay::{Relay, RelayConfig};
 use tokio::sync::watch;
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 /// The server's hold on a dropped driver's vehicle, from the path's silence: longer than
 /// the viewer's 2 s of patience and its reconnection, shorter than the server's idle timeout.
@@ -160,7 +160,7 @@ async fn drive_then_cut(r: &Running, s: &Session) -> (u16, VehicleView, VehicleV
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_driver_back_within_the_hold_gets_its_vehicle_back() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = start().await;
     let s = driver(&r).await;
     let welcome = s.welcome();
@@ -199,7 +199,7 @@ async fn a_driver_back_within_the_hold_gets_its_vehicle_back() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_driver_back_after_the_hold_gets_a_new_vehicle() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = start().await;
     let s = driver(&r).await;
     let mut snaps = r.server.watch();

@@ -17,7 +17,7 @@ use roam_tests::web::{self, BOUND, PAGE};
 use tokio::io::AsyncReadExt;
 use web_transport_quinn as wt;
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 fn page_file(name: &str) -> &'static [u8] {
     PAGE.iter()
@@ -49,7 +49,7 @@ async fn vehicles(r: &Running, n: usize) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_and_its_transport_come_over_https_and_a_web_viewer_decodes_frames() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = web::serve_web(flat(), |o| o);
     let (addr, pin) = web::web_of(&r);
     // The page, by `/` and by name, with its types.
@@ -128,7 +128,7 @@ async fn the_page_and_its_transport_come_over_https_and_a_web_viewer_decodes_fra
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_wrong_token_and_a_wrong_path_are_refused() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = web::serve_web(flat(), |o| o);
     let session = session(&r).await;
     let (_send, _recv, answer) =
@@ -189,7 +189,7 @@ async fn native_frame(conn: &quinn::Connection) -> Frame {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_native_and_a_web_viewer_drive_in_the_same_world() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = web::serve_web(flat(), |o| o);
     let (_endpoint, conn) = roam_client::quic::connect(r.server.addr, r.fingerprint)
         .await
@@ -234,7 +234,7 @@ async fn a_native_and_a_web_viewer_drive_in_the_same_world() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn hostile_http_gets_clear_answers_within_bounds() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = web::serve_web(flat(), |o| o);
     let (addr, pin) = web::web_of(&r);
     let get = |path: &'static str| web::get(addr, pin, path, &[]);
@@ -307,7 +307,7 @@ async fn hostile_http_gets_clear_answers_within_bounds() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_web_driver_closing_without_a_goodbye_is_held_and_with_one_freed() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let r = web::serve_web(flat(), |o| o);
     let mut watch = r.server.watch();
     for (code, held) in [(0, true), (close::BYE, false)] {

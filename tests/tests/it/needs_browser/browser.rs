@@ -12,7 +12,7 @@ use roam_tests::browser::{Browser, GpuPath, Image, REPORTS, built_page, next, nu
 use roam_tests::fixtures::{self, Running};
 use serde_json::Value;
 
-use crate::ONE_AT_A_TIME;
+use crate::alone;
 
 /// Frames the page decodes before it reports.
 const FRAMES: u64 = 90;
@@ -115,7 +115,7 @@ fn check_drive(running: &Running, r: &Value, gpu: GpuPath, backend: &str) {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_drives_over_webgpu() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = alone().await;
     let running = serve();
     let (r, _browser) = open(&running, &running.token.clone(), GpuPath::WebGpu).await;
     check_drive(&running, &r, GpuPath::WebGpu, "BrowserWebGpu");
@@ -123,7 +123,7 @@ async fn the_page_drives_over_webgpu() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_drives_over_webgl2() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = alone().await;
     let running = serve();
     let (r, _browser) = open(&running, &running.token.clone(), GpuPath::WebGl2).await;
     check_drive(&running, &r, GpuPath::WebGl2, "Gl");
@@ -224,7 +224,7 @@ async fn the_page_reconnects_after_its_path_drops_and_gets_its_vehicle_back() {
 /// frames show the recording's vehicles.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_page_watches_a_recording() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = alone().await;
     use roam_server::sim::physics::Keys;
     use roam_server::sim::recorder::RecordedWorld;
     use roam_server::sim::world::{self, Inputs, World};

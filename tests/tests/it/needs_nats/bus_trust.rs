@@ -15,7 +15,7 @@ use roam_tests::fixtures::flat;
 use roam_tests::nats::Nats;
 use roam_tests::nats::cluster::{self, bus, capture, edge_and_remote, hand_made_edge, hello, when};
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 async fn start_world(terrain: &Arc<Terrain>, bus: &BusOptions, hold: Duration) -> WorldServer {
     cluster::start_world(terrain, bus, (hold, 64), None).await
@@ -32,7 +32,7 @@ async fn join(asker: &Asker) -> (u16, u64) {
 /// open there (counted as forged), so it gives up saying no world answered.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edge_with_another_secret_is_never_answered() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "other-secret");
@@ -72,7 +72,7 @@ async fn an_edge_with_another_secret_is_never_answered() {
 /// in every hello, drives on untouched.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_vehicle_no_edge_names_is_held_then_freed() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "unnamed");
@@ -115,7 +115,7 @@ async fn a_vehicle_no_edge_names_is_held_then_freed() {
 /// and are never taken (counted as replays or unconfirmed).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_old_worlds_snapshots_played_again_restart_nothing() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "restart");
@@ -170,7 +170,7 @@ async fn an_old_worlds_snapshots_played_again_restart_nothing() {
 /// freed the vehicle); the drive goes on exactly.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn snapshots_an_edge_never_saw_played_again_take_nothing_back() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "unseen");

@@ -18,12 +18,11 @@ use roam_server::net::bus::{BusError, BusOptions};
 use roam_server::sim::record_files::RecordDir;
 use roam_server::sim::session::{self, RecordOptions};
 use roam_server::sim::world_core::Snapshot;
-use roam_tests::browser::{self, Browser, GpuPath};
 use roam_tests::fixtures::{self, Running, flat};
 use roam_tests::nats::cluster::{self, bus, edge_and_remote, when};
 use roam_tests::nats::{EdgeProcess, Nats};
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 /// A world of `terrain` on `bus`, recording to `record` if given.
 async fn start_world(
@@ -88,7 +87,7 @@ fn driver(r: &Running, frames: u64, drive: Option<&str>) -> ViewerOptions {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn drivers_on_two_edges_share_one_world_and_it_replays() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let dir = std::env::temp_dir().join(format!("roam-cluster-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -149,7 +148,7 @@ async fn drivers_on_two_edges_share_one_world_and_it_replays() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edge_with_another_data_set_is_refused_naming_both() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "data-check");
@@ -187,7 +186,7 @@ async fn an_edge_with_another_data_set_is_refused_naming_both() {
 /// world reconnect and resubscribe, and the driver's frames pause, then go on.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let (terrain, _, world, a, d) = driving(&nats, "restart").await;
     // Mid-drive (by the world's own ticks), the NATS server goes and comes back.
@@ -223,7 +222,7 @@ async fn a_nats_restart_mid_drive_loses_no_tick_and_the_drive_goes_on() {
 /// the other one after a second's silence and gets its vehicle back with its ticket.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn an_edge_killed_mid_drive_its_driver_resumes_on_the_other() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let name = "edge-killed";
@@ -279,71 +278,6 @@ async fn an_edge_killed_mid_drive_its_driver_resumes_on_the_other() {
     let _ = std::fs::remove_dir_all(&state);
 }
 
-/// The page one edge served learns the world's other edges from it; when that edge is
-/// killed (`kill -9`), the page moves to the other edge, trusting that edge's own
-/// certificate (its hashes came with its address), and gets its vehicle back.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn the_page_moves_to_another_edge_when_its_edge_is_killed() {
-    let _turn = ONE_AT_A_TIME.lock().await;
-    let nats = Nats::start();
-    let terrain = flat();
-    let name = "page-moves";
-    let world = start_world(&terrain, &bus(&nats, name), None).await;
-    let (a, b, state) = edge_processes(&nats, name, true);
-    let (a_web, b_web) = (a.web.expect("serves the page"), b.web.expect("the page"));
-    let (report, mut reports) = browser::reports().await;
-    let url = format!(
-        "https://127.0.0.1:{}/#token={}&gpu=webgl&frames=10&report=http://{report}/report&script={}",
-        a_web.port(),
-        fixtures::TOKEN,
-        "150%20U%0A3000%20UL%0A",
-    );
-    let _browser = Browser::open(&url, GpuPath::WebGl2);
-    let on = |r: &serde_json::Value, port: u16| {
-        r["edge"]
-            .as_str()
-            .is_some_and(|e| e.starts_with(&format!("https://127.0.0.1:{port}/")))
-    };
-    let first = browser::numbers(&mut reports).await;
-    assert!(on(&first, a_web.port()), "on A first: {first}");
-    let vehicle = first["vehicle"].clone();
-    // A names B as soon as the world has heard of both: in the numbers, or a report after.
-    let mut known = first;
-    for _ in 0..8 {
-        if known["edges"].as_u64() >= Some(2) {
-            break;
-        }
-        known = browser::next(&mut reports).await;
-        assert_eq!(known["state"], "connected", "{known}");
-    }
-    assert!(known["edges"].as_u64() >= Some(2), "B learned: {known}");
-    a.kill();
-    let mut r = browser::next(&mut reports).await;
-    for _ in 0..16 {
-        if r["state"] != "reconnecting" {
-            break;
-        }
-        r = browser::next(&mut reports).await;
-    }
-    assert_eq!(r["state"], "connected", "{r}");
-    assert!(on(&r, b_web.port()), "on B now: {r}");
-    assert_eq!(
-        (&r["reconnects"], &r["resumed"]),
-        (&1.into(), &1.into()),
-        "{r}"
-    );
-    assert_eq!(r["vehicle"], vehicle, "its vehicle back: {r}");
-    let mut snaps = world.watch();
-    let s = when(&mut snaps, 10, "the vehicle driven again", |s| {
-        s.held.is_empty()
-    })
-    .await;
-    assert_eq!(s.vehicles.len(), 1, "no second vehicle");
-    drop(b);
-    world.shutdown().await.expect("the world stops");
-    let _ = std::fs::remove_dir_all(&state);
-}
-
 /// A stuck edge (a subscriber that stopped reading: its TCP window full) slows neither the
 /// world nor the other edges: nats-server buffers for it, then cuts it off as a slow
 /// consumer, while the world ticks on (none dropped) and a driver on another edge drives
@@ -351,7 +285,7 @@ async fn the_page_moves_to_another_edge_when_its_edge_is_killed() {
 /// drive.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stuck_edge_slows_neither_the_world_nor_the_other_edges() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::with_config("max_pending: 1048576\nwrite_deadline: \"1s\"\n");
     // The driver first (the first start slot, where the offline drive starts).
     let (terrain, bus, world, a, d) = driving(&nats, "stuck").await;
@@ -423,7 +357,7 @@ async fn a_stuck_edge_slows_neither_the_world_nor_the_other_edges() {
 /// changes nothing.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_world_holds_a_silent_edges_vehicles_and_ignores_stale_claims() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "silent-edge");
@@ -502,7 +436,7 @@ async fn the_world_holds_a_silent_edges_vehicles_and_ignores_stale_claims() {
 /// edge connect; a wrong one is refused at once, naming the URL, not retried for ever.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn nats_credentials_from_a_file_are_used_and_a_wrong_one_is_said() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::with_token("s3cret-token");
     let dir = std::env::temp_dir().join(format!("roam-creds-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("temp dir");
@@ -534,7 +468,7 @@ async fn nats_credentials_from_a_file_are_used_and_a_wrong_one_is_said() {
 /// never knew, is told and let go.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_world_gone_is_told_and_a_restarted_world_lets_drivers_go() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     let bus = bus(&nats, "world-gone");
@@ -589,7 +523,7 @@ async fn a_world_serving_a_recording_is_watched_through_its_edge() {
     use roam_server::sim::physics::Keys;
     use roam_server::sim::recorder::RecordedWorld;
     use roam_server::sim::world::{self, Inputs, Vehicle, World};
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let nats = Nats::start();
     let terrain = flat();
     // Two drivers for 2,000 ticks, recorded, and the world at every tick.
@@ -685,4 +619,79 @@ async fn a_world_serving_a_recording_is_watched_through_its_edge() {
     s.quit().await;
     a.server.shutdown().await.expect("the edge stops");
     world.shutdown().await.expect("the world stops");
+}
+
+/// The tests that also open the page in Chromium (`needs_browser`, as the modules of the
+/// tests that need one are named: the fast tier and `scripts/test`'s first pass leave them
+/// out by that name).
+mod needs_browser {
+    use roam_tests::browser::{self, Browser, GpuPath};
+
+    use super::*;
+    use crate::alone;
+
+    /// The page one edge served learns the world's other edges from it; when that edge is
+    /// killed (`kill -9`), the page moves to the other edge, trusting that edge's own
+    /// certificate (its hashes came with its address), and gets its vehicle back.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn the_page_moves_to_another_edge_when_its_edge_is_killed() {
+        let _turn = alone().await;
+        let nats = Nats::start();
+        let terrain = flat();
+        let name = "page-moves";
+        let world = start_world(&terrain, &bus(&nats, name), None).await;
+        let (a, b, state) = edge_processes(&nats, name, true);
+        let (a_web, b_web) = (a.web.expect("serves the page"), b.web.expect("the page"));
+        let (report, mut reports) = browser::reports().await;
+        let url = format!(
+            "https://127.0.0.1:{}/#token={}&gpu=webgl&frames=10&report=http://{report}/report&script={}",
+            a_web.port(),
+            fixtures::TOKEN,
+            "150%20U%0A3000%20UL%0A",
+        );
+        let _browser = Browser::open(&url, GpuPath::WebGl2);
+        let on = |r: &serde_json::Value, port: u16| {
+            r["edge"]
+                .as_str()
+                .is_some_and(|e| e.starts_with(&format!("https://127.0.0.1:{port}/")))
+        };
+        let first = browser::numbers(&mut reports).await;
+        assert!(on(&first, a_web.port()), "on A first: {first}");
+        let vehicle = first["vehicle"].clone();
+        // A names B as soon as the world has heard of both: in the numbers, or a report after.
+        let mut known = first;
+        for _ in 0..8 {
+            if known["edges"].as_u64() >= Some(2) {
+                break;
+            }
+            known = browser::next(&mut reports).await;
+            assert_eq!(known["state"], "connected", "{known}");
+        }
+        assert!(known["edges"].as_u64() >= Some(2), "B learned: {known}");
+        a.kill();
+        let mut r = browser::next(&mut reports).await;
+        for _ in 0..16 {
+            if r["state"] != "reconnecting" {
+                break;
+            }
+            r = browser::next(&mut reports).await;
+        }
+        assert_eq!(r["state"], "connected", "{r}");
+        assert!(on(&r, b_web.port()), "on B now: {r}");
+        assert_eq!(
+            (&r["reconnects"], &r["resumed"]),
+            (&1.into(), &1.into()),
+            "{r}"
+        );
+        assert_eq!(r["vehicle"], vehicle, "its vehicle back: {r}");
+        let mut snaps = world.watch();
+        let s = when(&mut snaps, 10, "the vehicle driven again", |s| {
+            s.held.is_empty()
+        })
+        .await;
+        assert_eq!(s.vehicles.len(), 1, "no second vehicle");
+        drop(b);
+        world.shutdown().await.expect("the world stops");
+        let _ = std::fs::remove_dir_all(&state);
+    }
 }

@@ -29,7 +29,7 @@ use roam_tests::fixtures::{self, Running, flat};
 use roam_tests::nats::Nats;
 use roam_tests::nats::cluster::{self, bus, edge_and_remote, when};
 
-use crate::ONE_AT_A_TIME;
+use crate::turn;
 
 /// How long the attacker waits for the world's answer to one request.
 const ANSWER_WAIT: Duration = Duration::from_secs(1);
@@ -307,7 +307,7 @@ async fn drove_exactly(
 /// and that the world keeps its 100 ticks a second under them.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_keys_do_not_steer_another_drivers_vehicle() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("steer", 64).await;
     let d = c.driver();
     let vehicle = c.driven().await;
@@ -342,7 +342,7 @@ async fn forged_keys_do_not_steer_another_drivers_vehicle() {
 /// session goes on to its last frame, its drive exact.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_leaves_do_not_free_another_drivers_vehicle() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("leave", 64).await;
     let d = c.driver();
     let vehicle = c.driven().await;
@@ -368,7 +368,7 @@ async fn forged_leaves_do_not_free_another_drivers_vehicle() {
 /// that the vehicle is never held, and its driver's session goes on, its drive exact.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_holds_do_not_hold_another_drivers_vehicle() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("hold", 64).await;
     let d = c.driver();
     let vehicle = c.driven().await;
@@ -402,7 +402,7 @@ async fn forged_holds_do_not_hold_another_drivers_vehicle() {
 /// driver's session goes on to its last frame, its drive exact.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_snapshots_of_a_new_world_kick_no_driver() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("kick", 64).await;
     let d = c.driver();
     c.driven().await;
@@ -441,7 +441,7 @@ async fn forged_snapshots_of_a_new_world_kick_no_driver() {
 /// drives exactly.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn forged_joins_do_not_fill_the_world() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("fill", 1024).await;
     let pace = Pace::start(&c.world);
     let joins = (0..1100).map(|_| bytes(&Ask::Join)).collect();
@@ -469,7 +469,7 @@ async fn forged_joins_do_not_fill_the_world() {
 /// real edge in the world's list of edges (which its viewers are told).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_snooper_learns_no_ticket_or_claim_and_a_fake_edge_is_not_listed() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("snoop", 64).await;
     let replies = c.attacker.capture("_INBOX.>", 100_000).await;
     let subjects = c.attacker.capture("roam.>", 100_000).await;
@@ -564,7 +564,7 @@ async fn a_snooper_learns_no_ticket_or_claim_and_a_fake_edge_is_not_listed() {
 /// already applied, and the replayed snapshots name the same world process.)
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn replayed_messages_join_free_steer_and_kick_nothing() {
-    let _turn = ONE_AT_A_TIME.lock().await;
+    let _turn = turn().await;
     let c = Cluster::start("replay", 64).await;
     let s = &c.attacker.subjects;
     let keys = c.attacker.capture(&s.keys, 1000).await;
