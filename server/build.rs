@@ -7,7 +7,7 @@
 //! Other builds (the tests', the edit-test loop's: Cargo's `PROFILE` is `debug`) embed
 //! nothing and name `web/dist/` instead (`DIST`), read when `serve --web` starts: the page
 //! can be built while the tests compile, or after, and the server is not rebuilt for it
-//! (it was, with the whole workspace above it: docs/testing.md#a-fresh-machine).
+//! (it was, with the whole workspace above it: docs/testing.md#times).
 //!
 //! What makes it run again: in release builds `web/dist/` and each of its files when it
 //! exists, else `web/` (where `web/dist/` will appear); in others only this file. A path
