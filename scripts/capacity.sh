@@ -19,6 +19,9 @@
 #     saturated generator (near 1.0) is seen rather than mistaken for the server.
 #
 #   scripts/capacity.sh [N ...]          (default: 5 10 15 20 25 30 35 40)
+#   scripts/capacity.sh --in-step [N ...] (every viewer drives the script from its first
+#                                          line, each step at the same instant: a group
+#                                          turning together; each line adds "in_step": true)
 #   scripts/capacity.sh --join-storm     (the join storm: see below)
 #   PROFILE=measure BUDGET=32768 FRAMES=1800 DATA=data/kossou scripts/capacity.sh 20 30
 #
@@ -50,6 +53,11 @@ FRAMES=${FRAMES:-1800}
 DATA=${DATA:-data/kossou}
 DRIVE=${DRIVE:-scripts/capacity-drive.txt}
 STORM=0
+IN_STEP=()
+if [[ "${1:-}" == "--in-step" ]]; then
+    IN_STEP=(--in-step)
+    shift
+fi
 if [[ "${1:-}" == "--join-storm" ]]; then
     STORM=1
     shift
@@ -88,7 +96,7 @@ generate() {
     /usr/bin/time -f '%U %S' -o "$state/$1.time" taskset -c 1 "$BIN_DIR/roam-client" \
         --connect "$addr" --token "$token" --fingerprint "$fingerprint" --headless \
         --viewers "$2" --budget "$BUDGET" --frames "$FRAMES" --skip-decode \
-        --inputs "$DRIVE" --loop-inputs --stats "$state/$1.json" 2>"$state/$1.err" ||
+        --inputs "$DRIVE" --loop-inputs "${IN_STEP[@]}" --stats "$state/$1.json" 2>"$state/$1.err" ||
         { echo "error: generator $1 failed:" >&2; cat "$state/$1.err" >&2; }
 }
 
@@ -98,7 +106,7 @@ summary() {
     local start=$1 end=$2 before=$3
     shift 3
     python3 - "$state" "$start" "$end" "$before" "$(cpu "$server")" "$@" <<'EOF'
-import json, sys
+import json, os, sys
 state, start, end, before, after, *groups = sys.argv[1:]
 wall = float(end) - float(start)
 out, frames, gen_cpu = {}, 0, 0.0
@@ -142,7 +150,8 @@ out["server_cpu_share"] = round(server_cpu / wall, 3)
 out["generator_cpu_share"] = round(gen_cpu / wall, 3)
 out["server_cpu_us_per_frame"] = round(server_cpu / max(frames, 1) * 1e6, 1)
 out["wall_s"] = round(wall, 2)
-import os
+if os.environ.get("IN_STEP"):
+    out["in_step"] = True
 cluster = os.environ.get("CLUSTER_CPU", "").split()
 if len(cluster) == 4:  # EDGE=1: world and nats-server before, then after
     out["mode"] = "edge"
@@ -160,7 +169,7 @@ at_once() {
     start=$(now)
     generate "n$n" "$n"
     end=$(now)
-    CLUSTER_CPU="$cluster $(cluster_cpu)" summary "$start" "$end" "$before" "all=n$n"
+    IN_STEP="${IN_STEP[*]}" CLUSTER_CPU="$cluster $(cluster_cpu)" summary "$start" "$end" "$before" "all=n$n"
 }
 
 if ((STORM)); then

@@ -363,11 +363,23 @@ pub(crate) async fn write_control(send: &mut quinn::SendStream, msg: &ClientMess
 /// `steps`, on whichever connection is up: the core numbers the state and repeats the
 /// last eight, so a lost datagram costs nothing. While reconnecting the steps go on (and
 /// are numbered) unsent. Ends with the session. With a `phase`, the clock ticks at that
-/// offset on the process's 10 ms grid (`KeySource::ScriptAt`); without, from now.
-pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Duration>) {
+/// offset on the process's 10 ms grid (`KeySource::ScriptAt`); in step, on the grid with
+/// the steps since the grid began skipped (`KeySource::InStep`); without, from now.
+pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Phase>) {
     const STEP: Duration = Duration::from_millis(10);
     let start = match phase {
-        Some(phase) => on_grid(tokio::time::Instant::now(), STEP, phase),
+        Some(Phase::At(phase)) => on_grid(tokio::time::Instant::now(), STEP, phase),
+        Some(Phase::InStep) => {
+            // Step k of the script is played at the grid's start + k steps, by every viewer.
+            let now = tokio::time::Instant::now();
+            let start = on_grid(now, STEP, Duration::ZERO);
+            let since = start.saturating_duration_since(grid_epoch(now));
+            let mut keys = lock(&shared.keys);
+            for _ in 0..since.as_nanos() / STEP.as_nanos() {
+                steps(&mut keys);
+            }
+            start
+        }
         None => tokio::time::Instant::now(),
     };
     let mut tick = tokio::time::interval_at(start, STEP);
@@ -395,14 +407,28 @@ pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Opti
 /// The first instant at or after `now` that is `phase` past a multiple of `step` counted
 /// from the process's first call (one grid for every clock in the process).
 fn on_grid(now: tokio::time::Instant, step: Duration, phase: Duration) -> tokio::time::Instant {
-    static EPOCH: std::sync::OnceLock<tokio::time::Instant> = std::sync::OnceLock::new();
-    let epoch = *EPOCH.get_or_init(|| now);
+    let epoch = grid_epoch(now);
     let at = grid_after(
         now.duration_since(epoch).as_nanos(),
         step.as_nanos(),
         phase.as_nanos(),
     );
     epoch + Duration::from_nanos(u64::try_from(at).unwrap_or(u64::MAX))
+}
+
+/// Where the process's grid begins: the first call's `now`.
+fn grid_epoch(now: tokio::time::Instant) -> tokio::time::Instant {
+    static EPOCH: std::sync::OnceLock<tokio::time::Instant> = std::sync::OnceLock::new();
+    *EPOCH.get_or_init(|| now)
+}
+
+/// Where a script's key clock ticks.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Phase {
+    /// At this offset on the process's 10 ms grid.
+    At(Duration),
+    /// On the grid, at the step every viewer in step is at.
+    InStep,
 }
 
 /// The first `k × step + phase mod step` at or after `since` (nanoseconds).

@@ -35,6 +35,9 @@ pub struct ViewerOptions {
     /// Where on the process's 10 ms grid the key clock ticks ([`KeySource::ScriptAt`]);
     /// `None`: from the join.
     pub key_phase: Option<std::time::Duration>,
+    /// Play the script in step with the process's other viewers ([`KeySource::InStep`]),
+    /// whatever `key_phase` says.
+    pub in_step: bool,
     pub viewport: [u32; 2],
     pub fov_y_deg: f32,
     pub frame_rate: u16,
@@ -58,6 +61,7 @@ impl Default for ViewerOptions {
             frames: 300,
             inputs: None,
             key_phase: None,
+            in_step: false,
             viewport: [1280, 720],
             fov_y_deg: 60.0,
             frame_rate: 60,
@@ -178,6 +182,7 @@ pub async fn measure_any(
         crate::render::native_max_texture(),
     );
     let keys = match (&opts.role, &opts.inputs) {
+        (Role::Driver, Some(script)) if opts.in_step => KeySource::InStep(script.clone()),
         (Role::Driver, Some(script)) => match opts.key_phase {
             Some(phase) => KeySource::ScriptAt(script.clone(), phase),
             None => KeySource::Script(script.clone()),

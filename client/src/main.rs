@@ -68,6 +68,11 @@ struct Cli {
     /// --frame-rate: a load generator keeps driving the whole run.
     #[arg(long, requires = "inputs")]
     loop_inputs: bool,
+    /// Every viewer of --viewers plays --inputs in step: from its first line, each step at
+    /// the same instant for all (on the process's 10 ms grid), so a viewer that joins later
+    /// starts where the others are: a group turning together.
+    #[arg(long, requires = "inputs")]
+    in_step: bool,
     /// Frames to receive per viewer.
     #[arg(long, default_value_t = 300)]
     frames: u64,
@@ -232,6 +237,7 @@ fn run(cli: Cli) -> Result<()> {
             ("--stats", cli.stats.is_some()),
             ("--inputs", cli.inputs.is_some()),
             ("--loop-inputs", cli.loop_inputs),
+            ("--in-step", cli.in_step),
             ("--skip-decode", cli.skip_decode),
             ("--viewers", cli.viewers != 1),
             ("--bench", cli.bench),
@@ -314,7 +320,10 @@ fn run(cli: Cli) -> Result<()> {
         let drive_ticks = cli.frames.saturating_mul(100 * 20) / u64::from(cli.frame_rate);
         for i in 0..cli.viewers.max(1) {
             let inputs = match &script {
-                Some(s) if cli.loop_inputs => Some(looped(s, i as usize, drive_ticks)),
+                Some(s) if cli.loop_inputs => {
+                    let start = if cli.in_step { 0 } else { i as usize };
+                    Some(looped(s, start, drive_ticks))
+                }
                 other => other.clone(),
             };
             let opts = ViewerOptions {
@@ -326,6 +335,7 @@ fn run(cli: Cli) -> Result<()> {
                 key_phase: (cli.viewers > 1).then(|| {
                     std::time::Duration::from_micros(10_000 * u64::from(i) / u64::from(cli.viewers))
                 }),
+                in_step: cli.in_step,
                 skip_decode: cli.skip_decode,
                 frame_rate: cli.frame_rate,
                 patience: roam_client::session::Patience {

@@ -48,7 +48,7 @@ use tokio::sync::{Notify, mpsc, oneshot, watch};
 
 use crate::color_cache::{ColorCache, Keep};
 pub use crate::connection::Status;
-use crate::connection::{Connections, Outgoing, Shared, Steps, attempt, send_keys};
+use crate::connection::{Connections, Outgoing, Phase, Shared, Steps, attempt, send_keys};
 pub use crate::conversation::describe;
 use crate::conversation::{TerrainId, next_hello};
 pub use crate::core::{Broken, ClientCore, Gaps, KeyCore, MAX_FRAME, Received, Taken};
@@ -88,6 +88,11 @@ pub enum KeySource {
     /// grid (`--viewers N` spreads its drivers' clocks over the step, so their latencies
     /// sample every phase of the server's tick rather than the one the joins fell on).
     ScriptAt(Script, std::time::Duration),
+    /// A script played in step with every other viewer of the process that plays one so:
+    /// on the process's 10 ms grid, each step at the same instant for all, so a viewer
+    /// that joins later starts where the others are (`--in-step`: a group driving one
+    /// script from the same moment).
+    InStep(Script),
 }
 
 /// A joined viewer.
@@ -208,13 +213,16 @@ impl Session {
         };
         let mut tasks = vec![tokio::spawn(connections.run(joined))];
         let phase = match &keys {
-            KeySource::ScriptAt(_, phase) => Some(*phase),
+            KeySource::ScriptAt(_, phase) => Some(Phase::At(*phase)),
+            KeySource::InStep(_) => Some(Phase::InStep),
             _ => None,
         };
         let steps: Option<Steps> = match keys {
             KeySource::None => None,
             KeySource::Latch => Some(Box::new(KeyCore::take_keys)),
-            KeySource::Script(script) | KeySource::ScriptAt(script, _) => {
+            KeySource::Script(script)
+            | KeySource::ScriptAt(script, _)
+            | KeySource::InStep(script) => {
                 let mut steps: Vec<KeyStep> = script.steps().collect();
                 steps.reverse();
                 Some(Box::new(move |_: &mut KeyCore| {

@@ -7,8 +7,9 @@
 //! of the world into frames for each viewer.
 //!
 //! ```text
-//! viewer ──hello/acks/budget (control stream)──► viewer task ──frames──► viewer
-//!        ──key datagrams──► viewer task ──► world thread (100 Hz) ──snapshot (latest)──┘
+//! viewer ──hello/acks/budget (control stream)──► viewer task ──► its Conversation
+//!        ──key datagrams──► viewer task ──► world thread (100 Hz) ──snapshot (latest)──┐
+//! viewer ◄──frames── frame clock: every due Conversation's frame, one pass ◄───────────┘
 //! ```
 //!
 //! A change frame goes as one datagram when it fits (almost every frame), a larger one and
@@ -22,15 +23,18 @@
 //! The files, each referring only to those before it: `conn`, `stats`, `color_budget`,
 //! `makers`, `world_loop` (the world thread), `tickets` and `serve_error`; `bus/mod.rs` and
 //! `bus/edge.rs` (NATS, and an edge's way to its world); `replay`; `bus/world.rs` (the
-//! world served over NATS) and `shared` ([`Shared`], what every connection task shares);
-//! `seat` and `control`; `viewer` (a viewer after its hello); `handshake` (a connection up
+//! world served over NATS), `clock` (the frame clock's viewers) and `shared` ([`Shared`],
+//! what every connection task shares); `seat` and `control`; `frames` (the frame clock's
+//! passes); `viewer` (a viewer after its hello); `handshake` (a connection up
 //! to its hello); `web` (the browser viewer's endpoints); `server` ([`Server`] and its
 //! [`Options`]). This file only declares them and re-exports.
 
 pub mod bus;
+mod clock;
 pub mod color_budget;
 pub mod conn;
 mod control;
+mod frames;
 mod handshake;
 pub mod makers;
 pub mod replay;

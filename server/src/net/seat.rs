@@ -10,7 +10,6 @@ use tokio::sync::oneshot;
 
 use super::shared::Shared;
 use crate::sim::world::VehicleId;
-use crate::viewer::Event as ViewerEvent;
 use crate::viewer::admission;
 
 /// Control-stream messages from a viewer are at most this long (a hello is well under).
@@ -32,15 +31,13 @@ impl Seat {
         }
     }
 
-    /// A control event as the viewer is served it: a larger budget only as far as its seat
-    /// can grow within the server's memory limit ([`admission::Admission::grow`]).
-    pub(super) fn granted(&mut self, event: ViewerEvent) -> ViewerEvent {
-        match (event, self.seat.as_mut()) {
-            (ViewerEvent::Budget(asked), Some(seat)) => {
-                let budget = self.shared.limits.budget(asked);
-                ViewerEvent::Budget(self.shared.gate().admission.grow(seat, budget))
-            }
-            (other, _) => other,
+    /// The budget a viewer is served for `budget` (within the server's limits already): as
+    /// far as its seat can grow within the server's memory limit
+    /// ([`admission::Admission::grow`]).
+    pub(super) fn grow(&mut self, budget: u32) -> u32 {
+        match self.seat.as_mut() {
+            Some(seat) => self.shared.gate().admission.grow(seat, budget),
+            None => budget,
         }
     }
 }

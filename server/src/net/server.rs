@@ -14,7 +14,7 @@ use super::serve_error::ServeError;
 use super::shared::{Gate, Shared};
 use super::stats::{self, ServeStats};
 use super::world_loop::{self, Inbound};
-use super::{bus, color_budget, conn, handshake, makers, replay, viewer, web};
+use super::{bus, clock, color_budget, conn, frames, handshake, makers, replay, viewer, web};
 use crate::Terrain;
 use crate::sim::world_core::Snapshot;
 use crate::terrain::color_pyramid::ColorPyramid;
@@ -296,7 +296,10 @@ impl Server {
             makers: Arc::new(makers::Makers::new(makers)),
             unfinished: Arc::new(tokio::sync::Semaphore::new(options.max_pending)),
             stats: Arc::new(ServeStats::default()),
+            clock: clock::FrameClock::default(),
         });
+        // Every viewer's frames, until the shutdown.
+        tokio::spawn(frames::run(shared.clone()));
         let web = web.map(|w| w.start(shared.clone()));
         let accept = tokio::spawn(accept_loop(endpoint.clone(), shared.clone()));
         let summary = tokio::spawn(summary_loop(

@@ -64,6 +64,8 @@ pub struct Shared {
     /// bounds the handshakes in flight at twice itself, whatever the rate of arrivals.
     pub(super) unfinished: Arc<tokio::sync::Semaphore>,
     pub(super) stats: Arc<ServeStats>,
+    /// Every viewer's frames, made on one clock ([`super::frames`]).
+    pub(super) clock: super::clock::FrameClock,
 }
 
 /// Admission's state and each pending connection's eviction notice.

@@ -1,28 +1,11 @@
 //! One viewer's connection after its hello ([`super::handshake`] admits it and hands over
-//! its [`Seat`] and its place in the world, [`Joined`]): the welcome, its key datagrams
-//! (through its [`KeyGate`] into the world), its control messages, its frames (paced by the
-//! clock, made by its sans-IO core, [`crate::viewer::ViewerCore`]), and its end: a goodbye
-//! frees a driver's vehicle, a lost connection has it held ([`Event::Hold`]), and a
-//! reconnection with the driver's ticket replaces it.
-//!
-//! How a frame goes:
-//!
-//! - a **change frame** that fits in one datagram goes as one (on a lossy path,
-//!   [`LossMeter`], a small one goes twice, the copy [`REPEAT_AFTER`] later); a larger one
-//!   on a stream of its own, abandoned (reset) when the next frame is ready unless the
-//!   viewer has acknowledged it (latest frame wins): a lost or abandoned change frame is
-//!   never a base;
-//! - a **key frame** always goes on a stream of its own, reliably, at the highest
-//!   priority, and is not abandoned while it is pending
-//!   ([`crate::viewer::ViewerCore::pending_key`]): the frames after it are coded against
-//!   it before the viewer has it, so on a path that cannot carry a key frame a frame
-//!   interval it still arrives, and the viewer decodes it and the frames after. It is reset
-//!   only once superseded by a newer key frame (or when the viewer asked for another),
-//!   unless acknowledged.
-//!
-//! A frame is begun in line; the first one, and any heavier one (a rebuild, a key frame's
-//! coding, many changes), is finished on a blocking frame maker ([`super::makers`]), so it
-//! never holds up the other viewers' tasks.
+//! its [`Seat`] and its place in the world, [`Joined`]): the welcome, its datagrams and
+//! control messages handed to its [`Conversation`] (the sans-IO core that decides
+//! everything about the connection: a driver's key events for the world, the frames and
+//! how each goes), the frames put on the frame clock ([`super::frames`], which makes and
+//! sends them), and its end: a goodbye frees a driver's vehicle, a lost connection has it
+//! held ([`Event::Hold`], counted from the last datagram, [`Conversation::silent`]), and
+//! a reconnection with the driver's ticket replaces it.
 //!
 //! The colour map goes on the control stream, at a priority below every frame's, so that
 //! colour never delays a frame: the welcome, then the coarsest tile (before the first
@@ -32,7 +15,7 @@
 //! server-wide colour budget, [`super::color_budget`]). A goodbye waits for the tile being
 //! written (at most [`GOODBYE_WITHIN`]), so no message is ever cut.
 //!
-//! The control stream is read into a [`Mailbox`] until a goodbye. A message that is not
+//! The control stream is read into the conversation until a goodbye. A message that is not
 //! one (undecodable, longer than [`MAX_CONTROL`], or cut short by the stream's end) closes
 //! the connection with [`close::PROTOCOL`], the reason in the "left" log line with the
 //! peer's address, and frees a driver's vehicle. A control stream that merely ends
@@ -52,7 +35,7 @@
 //! page may see only a lost connection, and try to reconnect).
 
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 
 use roam_link::wire;
@@ -61,18 +44,15 @@ use roam_protocol::messages::{ClientMessage, Hello, Reason, ServerMessage, Welco
 use roam_protocol::sync::lock;
 use tokio::sync::oneshot;
 
-use super::conn::{Conn, DatagramError, RecvStream, SendStream};
+use super::clock::{FramesEnd, Served};
+use super::conn::{Conn, RecvStream, SendStream};
 use super::control::{WORLD_RESTARTED, stream_color, tell_news, write_color};
 use super::seat::{Joined, MAX_CONTROL, Seat, role_name};
 use super::shared::Shared;
 use crate::sim::world::VehicleId;
-use crate::sim::world_core::{Event, Snapshot};
+use crate::sim::world_core::Event;
 use crate::viewer::color::ColorScheduler;
-use crate::viewer::conversation::{self, Control, KeyGate, LossMeter, Mailbox, frame_message};
-use crate::viewer::{KeyCause, ViewerCore};
-
-/// How long after a small frame its second copy goes, on a lossy path ([`LossMeter`]).
-const REPEAT_AFTER: Duration = Duration::from_millis(4);
+use crate::viewer::conversation::{self, Conversation, Handled, Role};
 
 /// How long a last message may take to be received before the connection closes anyway.
 /// The wait ends as soon as the peer has it; 250 ms was too short for a browser on a
@@ -104,7 +84,7 @@ pub(super) struct Viewer {
 
 /// Serves a welcomed viewer to its end. A driver whose connection is lost (not a
 /// goodbye) has its vehicle held for a while, to take back with its ticket.
-pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
+pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
     let Viewer {
         conn,
         send,
@@ -125,10 +105,6 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         hold: None,
     };
     let started = std::time::Instant::now();
-    // When a key datagram last came: a driver sends one every 10 ms, so the time since is
-    // how long its path has been silent when the connection is found dead.
-    let heard = Arc::new(Mutex::new(started));
-    let silent = || lock(&heard).elapsed();
     // Colour never delays a frame (frames' priorities are their numbers, from 0).
     send.set_priority(-1);
     let layout = shared
@@ -147,26 +123,45 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
     .await;
     if welcomed.is_err() {
         // Lost on the way (held), or the viewer stopped its control stream (a leave).
-        leave.hold = conn.hold_after().then(silent);
+        leave.hold = conn.hold_after().then(|| started.elapsed());
         conn.close(close::PROTOCOL, b"the welcome could not be sent");
         return;
     }
-    // Frames made: the colour task starts once the first is (what it sends is of no use
-    // before, and would only share the path with it).
-    let (sent, made) = tokio::sync::watch::channel(0u64);
-    // The vehicle followed: a spectator may change it, and so may a replay (its vehicle
-    // left); the colour task streams around it.
-    let (follow, followed) = tokio::sync::watch::channel(vehicle);
     // Watching a recording: this viewer's place among those sharing its clock, and the
     // task telling it the replay's state.
     let replay_seat = shared
         .watching()
         .map(|r| r.enter(peer.to_string(), joined.controller));
+    let role = Role {
+        vehicle,
+        driver,
+        replay: replay_seat.is_some(),
+    };
+    let conv = Conversation::new(
+        &shared.terrain,
+        shared.height_step,
+        &hello,
+        shared.limits,
+        role,
+        (started, shared.clock.origin(&hello, shared.limits)),
+    );
+    let (end_tx, mut frames_end) = oneshot::channel();
+    let mut seat = seat;
+    let served = Arc::new(Served::new(
+        conv,
+        conn.clone(),
+        Box::new(move |budget| seat.grow(budget)),
+        replay_seat.as_ref().map(|s| s.id),
+        end_tx,
+    ));
+    // Off the clock when this task ends by any path.
+    let _on_clock = OnClock(shared.clone(), served.clone());
+    let silent = || lock(&served.conv).silent(std::time::Instant::now(), started);
     // A spectator is told whom its frames follow when that changes (the newest, in order).
     let _following = (!driver).then(|| {
         AbortOnDrop(tokio::spawn(tell_following(
             send.clone(),
-            follow.subscribe(),
+            served.follow.subscribe(),
         )))
     });
     let _tell = match (&shared.replay, &replay_seat) {
@@ -178,35 +173,22 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         _ => None,
     };
     // Aborted when this task ends by any path, unwinding included: the colour task holds
-    // the shared state (the world's inbox) and never ends on its own.
+    // the shared state (the world's inbox) and never ends on its own. It starts once the
+    // first frame is made (what it sends is of no use before, and would only share the
+    // path with it), and streams around the vehicle followed.
     let color = AbortOnDrop(tokio::spawn(stream_color(
         send.clone(),
         shared.clone(),
         colors,
-        (followed, made),
+        (served.follow.subscribe(), served.sent.subscribe()),
     )));
-    let control = Arc::new(Mutex::new(Mailbox::default()));
-    let keys = tokio::spawn(read_keys(
-        conn.clone(),
-        shared.clone(),
-        (vehicle, driver),
-        heard.clone(),
-    ));
-    let mut ctl = tokio::spawn(read_control(recv, control.clone()));
-    let core = ViewerCore::for_hello(&shared.terrain, shared.height_step, &hello, shared.limits);
-    let rate = ViewerCore::frame_rate(&hello, shared.limits);
+    let keys = tokio::spawn(read_keys(served.clone(), shared.clone()));
+    let mut ctl = tokio::spawn(read_control(recv, served.clone()));
+    shared.clock.add(served.clone());
     // A driver whose vehicle vanishes on an edge after a world restart is told why.
     let restarts = shared.remote.as_ref().map(|r| r.restarts());
     let why: String = tokio::select! {
-        end = frames(
-            &conn,
-            &shared,
-            (control, &mut seat),
-            core,
-            rate,
-            (&follow, driver, replay_seat.as_ref().map(|s| s.id)),
-            &sent,
-        ) => {
+        Ok(end) = &mut frames_end => {
             match end {
                 FramesEnd::ConnectionLost => {
                     leave.hold = conn.hold_after().then(silent);
@@ -289,12 +271,11 @@ pub(super) async fn serve(viewer: Viewer, mut seat: Seat, shared: Arc<Shared>) {
         vehicle,
         reason = %why,
         held,
-        frames = *sent.borrow(),
+        frames = *served.sent.borrow(),
         seconds = started.elapsed().as_secs(),
         "left"
     );
     drop(leave);
-    drop(seat);
     drop(replaced);
     if let Some(done) = answer {
         let _ = done.send(()); // the vehicle's hold is on its way to the world
@@ -410,24 +391,26 @@ async fn welcome(
     write_color(send, shared, first).await
 }
 
-/// Key datagrams to the world, through the driver's [`KeyGate`] (rate-limited; anything
-/// that is not a key datagram is ignored). A spectator's are read and dropped.
-async fn read_keys(
-    conn: Conn,
-    shared: Arc<Shared>,
-    (vehicle, driver): (VehicleId, bool),
-    heard: Arc<Mutex<std::time::Instant>>,
-) {
-    let mut gate = KeyGate::new(vehicle);
-    while let Some(bytes) = conn.read_datagram().await {
+/// Key datagrams into the conversation, and what it takes of them to the world (a
+/// driver's, rate-limited; anything that is not a key datagram is ignored).
+async fn read_keys(served: Arc<Served>, shared: Arc<Shared>) {
+    while let Some(bytes) = served.conn.read_datagram().await {
         let now = std::time::Instant::now();
-        *lock(&heard) = now;
-        if let Some(event) = gate.admit(&bytes, now)
-            && driver
+        let handled = lock(&served.conv).handle(now, conversation::Event::Datagram(&bytes));
+        if let Some(Handled::World(event)) = handled
             && shared.world.send((event, None)).is_err()
         {
             return; // the world has stopped
         }
+    }
+}
+
+/// Takes a viewer off the frame clock when dropped.
+struct OnClock(Arc<Shared>, Arc<Served>);
+
+impl Drop for OnClock {
+    fn drop(&mut self) {
+        self.0.clock.remove(&self.1);
     }
 }
 
@@ -444,12 +427,13 @@ enum ControlEnd {
 /// and only then: a control stream that ends otherwise (finished between two messages,
 /// reset, or ended with the connection) leaves the end to the connection, so that one rule
 /// ([`Conn::hold_after`]) decides hold or leave.
-async fn read_control(mut recv: RecvStream, control: Arc<Mutex<Mailbox>>) -> ControlEnd {
+async fn read_control(mut recv: RecvStream, served: Arc<Served>) -> ControlEnd {
     loop {
         match wire::read::<ClientMessage>(&mut recv, MAX_CONTROL).await {
             Ok(msg) => {
-                let mut c = lock(&control);
-                if c.push(msg) == Control::End {
+                let now = std::time::Instant::now();
+                let handled = lock(&served.conv).handle(now, conversation::Event::Control(msg));
+                if handled == Some(Handled::Goodbye) {
                     return ControlEnd::Goodbye;
                 }
             }
@@ -477,257 +461,5 @@ fn broken(e: &wire::WireError) -> Option<String> {
         | wire::WireError::Read(ReadExactError::ReadError(_))
         | wire::WireError::Write(_)
         | wire::WireError::Encode(_) => None,
-    }
-}
-
-/// Why a viewer's frames stopped.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum FramesEnd {
-    /// The vehicle it followed (or drove) is gone.
-    VehicleLeft,
-    /// The connection can take no more streams.
-    ConnectionLost,
-    /// The server could not make a frame: said to the viewer, never a panic.
-    Failed(&'static str),
-}
-
-/// `seat`: the viewer's budget changes are served as far as its seat can grow
-/// ([`Seat::granted`]).
-async fn frames(
-    conn: &Conn,
-    shared: &Arc<Shared>,
-    (control, seat): (Arc<Mutex<Mailbox>>, &mut Seat),
-    core: ViewerCore,
-    rate: u16,
-    (follow, driver, replay): (&tokio::sync::watch::Sender<VehicleId>, bool, Option<u64>),
-    sent: &tokio::sync::watch::Sender<u64>,
-) -> FramesEnd {
-    let mut vehicle = *follow.borrow();
-    // Where the followed vehicle was last: a replay's camera stays there while it has none
-    // to follow (sought to before any joined).
-    let mut parked = crate::sim::world::start_state(&shared.terrain, 0);
-    let mut core = Some(core);
-    let mut bytes_out = conn.quic().stats().udp_tx.bytes;
-    let mut interval = tokio::time::interval(Duration::from_secs_f64(1.0 / f64::from(rate)));
-    interval.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Skip);
-    // The newest change frame sent on a stream, and the newest key frame (kept apart: it
-    // is never abandoned while it is pending).
-    let mut in_flight: Option<Sending> = None;
-    let mut key_in_flight: Option<Sending> = None;
-    let mut seen = false;
-    let mut loss = LossMeter::default();
-    loop {
-        let due = interval.tick().await.into_std();
-        // Frames first: one that starts behind holds every viewer's colour back.
-        let now = std::time::Instant::now();
-        shared.color.frame_started(due, now);
-        shared.stats.frame_late(now.saturating_duration_since(due));
-        let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
-        let (asked, controls) = {
-            let mut m = lock(&control);
-            (m.take_follow(), m.take_replay())
-        };
-        if let (Some(r), Some(id)) = (&shared.replay, replay) {
-            for c in controls {
-                r.control(id, c);
-            }
-        }
-        let there = |id: VehicleId| snap.vehicles.iter().any(|v| v.id == id);
-        // A spectator follows the vehicle it asks for, if there; a replay's spectator whose
-        // vehicle left follows the first there.
-        let switch = match asked {
-            Some(a) if !driver && a != vehicle && there(a) => Some(a),
-            _ if replay.is_some() && !there(vehicle) => snap.vehicles.first().map(|v| v.id),
-            _ => None,
-        };
-        if let Some(to) = switch {
-            // The viewer is told by `tell_following`, the newest switch once.
-            vehicle = to;
-            follow.send_replace(to);
-        }
-        let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
-            Some(v) => v.state,
-            None if replay.is_some() => parked,
-            // A new driver's vehicle appears with the next tick; a spectator's was there
-            // when it joined.
-            None if seen || !driver => return FramesEnd::VehicleLeft,
-            None => continue,
-        };
-        parked = state;
-        seen = true;
-        let mut c = core.take().expect("put back below");
-        for event in lock(&control).drain() {
-            c.handle(seat.granted(event));
-        }
-        let scene = shared.scene();
-        // A frame is begun in line: an update of a few changes coded as a change frame is
-        // made there (microseconds). Anything heavier (more changes, a rebuild, a key
-        // frame's coding: milliseconds at large budgets) is left unfinished and finished on
-        // a blocking thread, so it never holds up the other viewers' tasks.
-        // At most one fewer blocking frame maker than cores ([`Shared::makers`]): the
-        // world thread always finds a core, whatever the viewers ask for.
-        let started = std::time::Instant::now();
-        // The first frame (a rebuild and a key frame) is made whole on the maker, for the
-        // vehicle where it is when the maker starts: made for where it was when the frame
-        // was begun, a first frame that waited behind many joins (1.6 s for 40 at once)
-        // showed a place the vehicle had long left, so the second frame rebuilt and was a
-        // key frame again (41 of 81 key frames for 40 joins, `key_larger`).
-        let first = *sent.borrow() == 0;
-        let inline = if first {
-            None
-        } else {
-            c.begin_frame(&scene, &state)
-        };
-        let (c, made, snap) = match inline {
-            Some(made) => (c, made, snap),
-            None => {
-                // The permit goes with the job: it is held until the job ends, even if
-                // this viewer's task is dropped while waiting for it.
-                let Ok(permit) = shared.makers.acquire(first).await else {
-                    return FramesEnd::Failed("the server is shutting down");
-                };
-                let shared2 = shared.clone();
-                match tokio::task::spawn_blocking(move || {
-                    let _permit = permit;
-                    // Below the async workers: frames first ([`super::makers`]).
-                    super::makers::lower_this_thread();
-                    let scene = shared2.scene();
-                    if !first {
-                        let made = c.finish_frame(&scene);
-                        return Some((c, made, snap));
-                    }
-                    let snap: Arc<Snapshot> = shared2.snapshots.borrow().clone();
-                    let state = match snap.vehicles.iter().find(|v| v.id == vehicle) {
-                        Some(v) => v.state,
-                        None if replay.is_some() => state,
-                        None => return None,
-                    };
-                    let made = c.make_frame(&scene, &state);
-                    Some((c, made, snap))
-                })
-                .await
-                {
-                    Ok(Some(r)) => r,
-                    Ok(None) => return FramesEnd::VehicleLeft,
-                    Err(_) => return FramesEnd::Failed("the frame maker failed"),
-                }
-            }
-        };
-        let stats = &shared.stats;
-        stats.add(&stats.make_ns, started.elapsed().as_nanos() as u64);
-        stats.add(&stats.frames, 1);
-        sent.send_modify(|n| *n += 1);
-        let tx = conn.quic().stats().udp_tx.bytes;
-        stats.add(&stats.bytes_out, tx.saturating_sub(bytes_out));
-        bytes_out = tx;
-        let acked = c.acked();
-        let pending_key = c.pending_key();
-        core = Some(c);
-        let frame = made.frame;
-        let key = made.base.is_none();
-        stats.add(&stats.key_frames, u64::from(key));
-        match made.key {
-            Some(KeyCause::Asked) => stats.add(&stats.key_asked, 1),
-            Some(KeyCause::Behind) => stats.add(&stats.key_behind, 1),
-            Some(KeyCause::Larger) => stats.add(&stats.key_larger, 1),
-            Some(KeyCause::First) | None => {}
-        }
-        let msg = frame_message(&shared.terrain, &snap, made, vehicle, driver);
-        let mut bytes = Vec::new();
-        if roam_protocol::messages::encode(&msg, &mut bytes).is_err() {
-            return FramesEnd::Failed("a frame over the message limit");
-        }
-        // Latest frame wins: the previous change frame's stream is reset unless the viewer
-        // has acknowledged it, whether it is still being written or already handed to quinn
-        // (a finished stream still waits in the send buffer on a slow path). The key frame
-        // is the exception: it goes on until it is no longer pending (acknowledged,
-        // superseded by a newer key frame, or another asked for).
-        if let Some(k) = key_in_flight.take_if(|k| pending_key != Some(k.frame)) {
-            k.abandon_unless(acked).await;
-        }
-        if let Some(previous) = in_flight.take() {
-            previous.abandon_unless(acked).await;
-        }
-        // A change frame that fits in one datagram goes as one: no stream to open, finish
-        // or reset, one packet. A lost one is simply never a base; the viewer keeps the
-        // newest. A key frame goes on a stream, reliably: the frames after it are coded
-        // against it.
-        if !key
-            && conn
-                .max_datagram_size()
-                .is_some_and(|max| bytes.len() <= max)
-        {
-            let stats = conn.quic().stats();
-            loss.update(stats.path.lost_packets, stats.path.sent_packets);
-            if loss.repeat(bytes.len()) {
-                // A second copy in a packet of its own, a few milliseconds later (a lost
-                // copy is repaired before the next frame; the viewer takes one of them).
-                let (conn, copy) = (conn.clone(), bytes.clone());
-                tokio::spawn(async move {
-                    tokio::time::sleep(REPEAT_AFTER).await;
-                    let _ = conn.send_datagram(copy.into());
-                });
-            }
-            match conn.send_datagram(bytes.clone().into()) {
-                Ok(()) => continue,
-                Err(DatagramError::Lost) => return FramesEnd::ConnectionLost,
-                // Not allowed or too large after all: the stream takes it.
-                Err(DatagramError::Refused) => {}
-            }
-        }
-        let Some(mut stream) = conn.open_uni().await else {
-            return FramesEnd::ConnectionLost;
-        };
-        // Newer frames first, and a key frame before all: the frames after it need it.
-        stream.set_priority(if key { i32::MAX } else { frame as i32 });
-        let (cancel, cancelled) = oneshot::channel::<()>();
-        let task = tokio::spawn(async move {
-            tokio::select! {
-                r = stream.write_all(&bytes) => {
-                    if r.is_ok() && stream.finish() {
-                        return Some(stream);
-                    }
-                    None
-                }
-                _ = cancelled => {
-                    stream.reset(0);
-                    None
-                }
-            }
-        });
-        let sending = Sending {
-            cancel,
-            task,
-            frame,
-        };
-        if key {
-            key_in_flight = Some(sending);
-        } else {
-            in_flight = Some(sending);
-        }
-    }
-}
-
-/// A frame being sent on a stream of its own.
-struct Sending {
-    /// Resets the stream while it is still being written.
-    cancel: oneshot::Sender<()>,
-    /// Writes the frame; the stream once it is all handed to quinn.
-    task: tokio::task::JoinHandle<Option<SendStream>>,
-    frame: u64,
-}
-
-impl Sending {
-    /// Abandons the frame (resets its stream: quinn stops sending and retransmitting it)
-    /// unless the viewer has acknowledged it.
-    async fn abandon_unless(self, acked: Option<u64>) {
-        if acked.is_some_and(|a| a >= self.frame) {
-            return; // delivered: the stream is finished, nothing to stop
-        }
-        if !self.task.is_finished() {
-            let _ = self.cancel.send(());
-        } else if let Ok(Some(mut stream)) = self.task.await {
-            stream.reset(0);
-        }
     }
 }

@@ -1,7 +1,6 @@
 //! A deterministic simulated network, in the spirit of `quinn-proto`'s `Pair` test harness:
-//! the server's sans-IO cores ([`WorldCore`], and per viewer a [`ViewerCore`] with its
-//! [`Mailbox`] and [`KeyGate`]) and the viewer's sans-IO cores ([`ClientCore`] for frames,
-//! [`KeyCore`] for keys) driven together by virtual time, with no socket, task, thread or
+//! the server's sans-IO cores ([`WorldCore`], and per viewer a [`Conversation`]) and the
+//! viewer's sans-IO cores ([`ClientCore`] for frames, [`KeyCore`] for keys) driven together by virtual time, with no socket, task, thread or
 //! clock. Tests add viewers over [`Path`]s, run virtual time, steer the viewers and break
 //! their paths, and read what each viewer took ([`Stats`], [`TakenFrame`]s, a driver's
 //! [`TrackPoint`]s) and what the world holds.
@@ -13,24 +12,23 @@
 //! step: arrivals at the server, the world's tick if due, frames due, arrivals at the
 //! viewers, their keys, takes and control messages, then the paths send).
 //!
-//! **Composition** (as `net::viewer` and `net::world_loop` do it):
+//! **Composition** (as `net::viewer`, `net::frames` and `net::world_loop` do it):
 //!
 //! - The world ticks every 10 ms of virtual time; what arrived up to the tick belongs to
 //!   it. Its newest snapshot is what frames show (the shell's `watch`, latest wins).
 //! - A viewer sends its hello on the control stream; the server answers a driver's with a
 //!   [`world_core::Event::Join`] (a spectator follows a vehicle of the snapshot) and a
-//!   welcome, and from then on makes a frame every `1 / frame_rate` s (60 here): the
-//!   mailbox drained into the core, [`ViewerCore::make_frame`] for the followed vehicle's
-//!   state in the newest snapshot, [`frame_message`], [`messages::encode`]. A change frame
-//!   of at most [`MAX_DATAGRAM`] bytes goes as a datagram, a larger one on a reliable
-//!   stream of its own, reset when the next frame is made unless the viewer has
-//!   acknowledged its frame (the shell's `in_flight`). A key frame, whatever its size, goes
-//!   on a reliable stream of its own that is not reset while it is pending
-//!   ([`ViewerCore::pending_key`]); once it is not (superseded by a newer key frame, or
-//!   another asked for) it is reset unless acknowledged (the shell's `key_in_flight`).
-//! - Control messages arriving at the server go into the [`Mailbox`] (a goodbye, or a
-//!   second hello, ends the connection); key datagrams go through the driver's [`KeyGate`]
-//!   into the world.
+//!   welcome, and from then on its [`Conversation`] (the one `net::frames` drives) makes a
+//!   frame every `1 / frame_rate` s (60 here) for the followed vehicle's state in the
+//!   newest snapshot, its heavy part run in place, and says how each goes: a change frame
+//!   of at most [`MAX_DATAGRAM`] bytes as a datagram (twice, a few milliseconds apart,
+//!   while the path loses packets), a larger one on a reliable stream of its own, reset
+//!   when the next frame is made unless the viewer has acknowledged its frame; a key
+//!   frame, whatever its size, on a reliable stream of its own that is not reset while it
+//!   is pending ([`ViewerCore::pending_key`]). This harness only moves those transmits.
+//! - Control messages and key datagrams arriving at the server go into the conversation
+//!   (a goodbye, or a second hello, ends the connection; a driver's keys go on into the
+//!   world).
 //! - The viewer, once welcomed, sends a key datagram every 10 ms with its script's next
 //!   step ([`roam_protocol::script::Script::steps`], then no keys) from its [`KeyCore`],
 //!   offers every frame that arrives (datagrams, and each stream once complete, whatever
@@ -83,18 +81,13 @@
 //! as its shell composes them) and `client.rs` (the viewer's, as `session.rs` does), and
 //! `sim.rs` (the harness: time, viewers, what a test does and reads).
 //!
-//! [`ViewerCore`]: roam_server::viewer::ViewerCore
-//! [`ViewerCore::make_frame`]: roam_server::viewer::ViewerCore::make_frame
+//! [`Conversation`]: roam_server::viewer::conversation::Conversation
 //! [`ViewerCore::pending_key`]: roam_server::viewer::ViewerCore::pending_key
-//! [`Mailbox`]: roam_server::viewer::conversation::Mailbox
-//! [`KeyGate`]: roam_server::viewer::conversation::KeyGate
-//! [`frame_message`]: roam_server::viewer::conversation::frame_message
 //! [`world_core::Event::Join`]: roam_server::sim::world_core::Event::Join
 //! [`WorldCore`]: roam_server::sim::world_core::WorldCore
 //! [`ClientCore`]: roam_client::core::ClientCore
 //! [`KeyCore`]: roam_client::core::KeyCore
 //! [`KeyCore::applied`]: roam_client::core::KeyCore::applied
-//! [`messages::encode`]: roam_protocol::messages::encode
 //! [`Duration`]: std::time::Duration
 
 mod client;

@@ -1,10 +1,12 @@
 //! The server's side of the simulated network, composed as the `net` shell composes its
-//! sans-IO cores: arrivals at the server (key datagrams through the [`KeyGate`] into the
-//! world, control messages in order into the [`Mailbox`]), the handshake, the world's
-//! tick, and each viewer's frames (made by its [`ViewerCore`], sent as `net::viewer` sends
-//! them), the idle timeout and the last word.
+//! sans-IO cores: arrivals at the server (key datagrams and control messages into each
+//! viewer's [`Conversation`], its key events into the world), the handshake, the world's
+//! tick, and each viewer's frames (the conversation's, every decision of how they go its
+//! own: this file only moves its transmits onto the simulated paths), the idle timeout and
+//! the last word.
 
 use std::collections::VecDeque;
+use std::sync::Arc;
 use std::time::Duration;
 
 use roam_protocol::messages::{self, ClientMessage, Reason, Role, ServerMessage, VERSION, Welcome};
@@ -12,8 +14,10 @@ use roam_server::Terrain;
 use roam_server::sim::world::VehicleId;
 use roam_server::sim::world_core;
 use roam_server::tessellate::Mesh;
-use roam_server::viewer::conversation::{Control, KeyGate, Mailbox, frame_message};
-use roam_server::viewer::{Scene, ViewerCore, ViewerLimits};
+use roam_server::viewer::conversation::{
+    Conversation, End, Event, Handled, Role as ConvRole, Step, Transmit,
+};
+use roam_server::viewer::{Scene, ViewerLimits};
 
 use super::path::Payload;
 use super::state::{
@@ -63,8 +67,8 @@ impl Sim {
                     let ServerState::Serving(s) = &mut v.server.state else {
                         continue;
                     };
-                    if let Some(event) = s.gate.admit(&bytes, instant)
-                        && s.driver
+                    if let Some(Handled::World(event)) =
+                        s.conv.handle(instant, Event::Datagram(&bytes))
                     {
                         self.world.handle(event);
                     }
@@ -93,7 +97,7 @@ impl Sim {
                 if matches!(msg, ClientMessage::KeyFrame) {
                     v.stats.key_frame_requests += 1;
                 }
-                if s.mailbox.push(msg) == Control::End {
+                if s.conv.handle(self.epoch + now, Event::Control(msg)) == Some(Handled::Goodbye) {
                     self.server_close(i, now, None);
                 }
             }
@@ -136,24 +140,23 @@ impl Sim {
                 };
                 let w = welcome(&self.terrain, vehicle, self.snapshot.tick);
                 server_control_send(v, now, &ServerMessage::Welcome(w));
-                let core = ViewerCore::for_hello(
+                let role = ConvRole {
+                    vehicle,
+                    driver,
+                    replay: false,
+                };
+                let now_i = self.epoch + now;
+                let conv = Conversation::new(
                     &self.terrain,
                     self.height_step,
                     &hello,
                     ViewerLimits::default(),
+                    role,
+                    (now_i, self.epoch),
                 );
-                let rate = ViewerCore::frame_rate(&hello, ViewerLimits::default());
                 v.server.state = ServerState::Serving(Box::new(Serving {
-                    core,
-                    mailbox: Mailbox::default(),
-                    gate: KeyGate::new(vehicle),
-                    vehicle,
-                    driver,
-                    seen: false,
-                    period: Duration::from_secs_f64(1.0 / f64::from(rate)),
-                    next_frame: now,
-                    in_flight: None,
-                    key_in_flight: None,
+                    conv,
+                    streams: Vec::new(),
                     next_stream: 0,
                     made: VecDeque::new(),
                 }));
@@ -185,18 +188,19 @@ impl Sim {
     }
 
     pub(super) fn tick(&mut self) {
-        self.snapshot = self.world.tick();
+        self.snapshot = Arc::new(self.world.tick());
         for v in &mut self.viewers {
             let ServerState::Serving(s) = &v.server.state else {
                 continue;
             };
-            if !s.driver {
+            if !s.conv.driver() {
                 continue;
             }
-            if let Some(veh) = self.snapshot.vehicles.iter().find(|x| x.id == s.vehicle) {
+            let vehicle = s.conv.vehicle();
+            if let Some(veh) = self.snapshot.vehicles.iter().find(|x| x.id == vehicle) {
                 v.track.push(TrackPoint {
                     tick: self.snapshot.tick,
-                    applied: self.snapshot.applied_by(s.vehicle),
+                    applied: self.snapshot.applied_by(vehicle),
                     state: veh.state,
                 });
             }
@@ -222,95 +226,92 @@ impl Sim {
         let ServerState::Serving(s) = &mut v.server.state else {
             return;
         };
-        if now < s.next_frame {
-            return;
-        }
-        // The shell's interval, missed ticks skipped.
-        s.next_frame += s.period;
-        while s.next_frame <= now {
-            s.next_frame += s.period;
-        }
-        let Some(veh) = self.snapshot.vehicles.iter().find(|x| x.id == s.vehicle) else {
-            if s.seen {
-                let why = Reason::Unavailable("the vehicle followed has left".into());
-                self.server_close(i, now, Some(ServerMessage::Bye(why)));
-            }
-            return; // a new driver's vehicle appears with the next tick
-        };
-        s.seen = true;
-        for event in s.mailbox.drain() {
-            s.core.handle(event);
-        }
+        let instant = self.epoch + now;
+        let down = v.down.stats;
+        s.conv.handle(
+            instant,
+            Event::Path {
+                max_datagram: Some(MAX_DATAGRAM),
+                lost: down.lost + down.dropped,
+                sent: down.packets,
+            },
+        );
         let scene = Scene {
             terrain: &self.terrain,
             variance: &self.variance,
             scratch: &self.scratch,
         };
-        let made = s.core.make_frame(&scene, &veh.state);
-        let acked = s.core.acked();
-        let pending_key = s.core.pending_key();
-        let frame = made.frame;
-        let key = made.base.is_none();
-        let triangles = made.triangles as usize;
-        let mut mesh = Mesh::default();
-        s.core.mesh(&self.scratch, &mut mesh);
-        s.made.push_back(MadeFrame {
-            frame,
-            key,
-            triangles,
-            mesh: mesh_hash(&mesh.vertices, &mesh.indices),
-        });
-        while s.made.len() > MADE_KEPT {
-            s.made.pop_front();
-        }
-        v.stats.frames_made += 1;
-        v.stats.key_frames_made += u64::from(key);
-        let msg = frame_message(&self.terrain, &self.snapshot, made, s.vehicle, s.driver);
-        let mut bytes = Vec::new();
-        if messages::encode(&msg, &mut bytes).is_err() {
-            let why = Reason::Unavailable("a frame over the message limit".into());
-            self.server_close(i, now, Some(ServerMessage::Bye(why)));
-            return;
-        }
-        // Latest frame wins: the change frame's stream in flight is reset unless its frame
-        // was acknowledged; the key frame's only once it is no longer pending (superseded,
-        // or another asked for) and unless acknowledged.
-        let unacked = |sent: u64| acked.is_none_or(|a| a < sent);
-        let key_done = s
-            .key_in_flight
-            .take_if(|&mut (_, sent)| pending_key != Some(sent));
-        for (stream, sent) in key_done.into_iter().chain(s.in_flight.take()) {
-            if unacked(sent) {
-                v.down.reset(stream);
-                v.stats.streams_reset += 1;
+        // Heavy parts run in place: the cores take no virtual time.
+        let step = match s.conv.frame(instant, &scene, &self.snapshot, &mut |b| b) {
+            Step::Heavy(job) => {
+                let done = job.run(&scene, || self.snapshot.clone());
+                s.conv.finish(instant, &self.terrain, done)
+            }
+            other => other,
+        };
+        match step {
+            Step::Idle | Step::Heavy(_) => {}
+            Step::End(why) => {
+                let why = match why {
+                    End::VehicleLeft => "the vehicle followed has left",
+                    End::Failed(why) => why,
+                };
+                let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
+                self.server_close(i, now, Some(bye));
+                return;
+            }
+            Step::Sent(sent) => {
+                let mut mesh = Mesh::default();
+                if let Some(core) = s.conv.core() {
+                    core.mesh(&self.scratch, &mut mesh);
+                }
+                s.made.push_back(MadeFrame {
+                    frame: sent.frame,
+                    key: sent.key.is_some(),
+                    triangles: sent.triangles as usize,
+                    mesh: mesh_hash(&mesh.vertices, &mesh.indices),
+                });
+                while s.made.len() > MADE_KEPT {
+                    s.made.pop_front();
+                }
+                v.stats.frames_made += 1;
+                v.stats.key_frames_made += u64::from(sent.key.is_some());
+                v.stats.largest_frame = v.stats.largest_frame.max(sent.bytes);
             }
         }
-        v.stats.largest_frame = v.stats.largest_frame.max(bytes.len());
-        // A change frame that fits goes as a datagram; a key frame always on a stream.
-        if !key && bytes.len() <= MAX_DATAGRAM {
-            v.stats.datagram_frames += 1;
-            v.down.send(now, Payload::Datagram(bytes));
-            return;
-        }
-        v.stats.stream_frames += 1;
-        let stream = s.next_stream;
-        s.next_stream += 1;
-        let count = bytes.len().div_ceil(MAX_DATAGRAM) as u32;
-        for (index, chunk) in bytes.chunks(MAX_DATAGRAM).enumerate() {
-            v.down.send(
-                now,
-                Payload::Chunk {
-                    stream,
-                    index: index as u32,
-                    count,
-                    bytes: chunk.to_vec(),
-                },
-            );
-        }
-        if key {
-            s.key_in_flight = Some((stream, frame));
-        } else {
-            s.in_flight = Some((stream, frame));
+        while let Some(t) = s.conv.poll_transmit(instant) {
+            match t {
+                Transmit::Datagram { bytes, .. } => {
+                    v.stats.datagram_frames += 1;
+                    v.down.send(now, Payload::Datagram(bytes));
+                }
+                Transmit::Reset { frame } => {
+                    if let Some(k) = s.streams.iter().position(|(f, _)| *f == frame) {
+                        v.down.reset(s.streams.swap_remove(k).1);
+                        v.stats.streams_reset += 1;
+                    }
+                }
+                Transmit::Stream { frame, bytes, .. } => {
+                    v.stats.stream_frames += 1;
+                    let stream = s.next_stream;
+                    s.next_stream += 1;
+                    // Streams of frames long superseded are of no more use to reset.
+                    s.streams.retain(|(f, _)| f + 64 > frame);
+                    s.streams.push((frame, stream));
+                    let count = bytes.len().div_ceil(MAX_DATAGRAM) as u32;
+                    for (index, chunk) in bytes.chunks(MAX_DATAGRAM).enumerate() {
+                        v.down.send(
+                            now,
+                            Payload::Chunk {
+                                stream,
+                                index: index as u32,
+                                count,
+                                bytes: chunk.to_vec(),
+                            },
+                        );
+                    }
+                }
+            }
         }
     }
 }

@@ -38,7 +38,7 @@ impl Sim {
             variance,
             height_step,
             world,
-            snapshot: Snapshot::default(),
+            snapshot: Arc::new(Snapshot::default()),
             next_tick: TICK,
             viewers: Vec::new(),
         }
@@ -263,7 +263,7 @@ impl Sim {
     /// The vehicle the server gave (or let follow) viewer `i`, while it serves it.
     pub fn vehicle(&self, i: ViewerId) -> Option<VehicleId> {
         match &self.viewers[i].server.state {
-            ServerState::Serving(s) => Some(s.vehicle),
+            ServerState::Serving(s) => Some(s.conv.vehicle()),
             _ => None,
         }
     }
@@ -281,7 +281,7 @@ impl Sim {
     /// The triangle budget the server's core for viewer `i` works to.
     pub fn server_budget(&self, i: ViewerId) -> Option<u32> {
         match &self.viewers[i].server.state {
-            ServerState::Serving(s) => Some(s.core.budget()),
+            ServerState::Serving(s) => s.conv.core().map(|c| c.budget()),
             _ => None,
         }
     }

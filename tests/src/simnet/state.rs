@@ -15,8 +15,7 @@ use roam_server::sim::physics::VehicleState;
 use roam_server::sim::world::VehicleId;
 use roam_server::sim::world_core::{Snapshot, WorldCore};
 use roam_server::terrain::variance::VarianceTree;
-use roam_server::viewer::ViewerCore;
-use roam_server::viewer::conversation::{KeyGate, Mailbox};
+use roam_server::viewer::conversation::Conversation;
 
 use super::path::{InOrder, Wire, WireStats};
 
@@ -150,7 +149,7 @@ pub struct Sim {
     pub(super) scratch: roam_server::tessellate::Scratch,
     pub(super) height_step: u16,
     pub(super) world: WorldCore,
-    pub(super) snapshot: Snapshot,
+    pub(super) snapshot: Arc<Snapshot>,
     pub(super) next_tick: Duration,
     pub(super) viewers: Vec<Viewer>,
 }
@@ -195,21 +194,12 @@ pub(super) struct MadeFrame {
     pub(super) mesh: u64,
 }
 
-/// A viewer's connection as the server's shell holds it.
+/// A viewer's connection as the server's shell holds it: its conversation, and the
+/// stream each frame on one went on.
 pub(super) struct Serving {
-    pub(super) core: ViewerCore,
-    pub(super) mailbox: Mailbox,
-    pub(super) gate: KeyGate,
-    pub(super) vehicle: VehicleId,
-    pub(super) driver: bool,
-    pub(super) seen: bool,
-    pub(super) period: Duration,
-    pub(super) next_frame: Duration,
-    /// The change frame's stream not yet known to be acknowledged: `(stream, frame)`.
-    pub(super) in_flight: Option<(u64, u64)>,
-    /// The newest key frame's stream, kept apart (never reset while the key frame is
-    /// pending): `(stream, frame)`.
-    pub(super) key_in_flight: Option<(u64, u64)>,
+    pub(super) conv: Conversation,
+    /// `(frame, stream)`, for the conversation's resets.
+    pub(super) streams: Vec<(u64, u64)>,
     pub(super) next_stream: u64,
     pub(super) made: VecDeque<MadeFrame>,
 }

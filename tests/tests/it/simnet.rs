@@ -319,7 +319,10 @@ fn a_missing_base_asks_for_a_key_frame_and_decoding_resumes() {
             s.decode_errors, errors,
             "seed {seed}: no failure after the key frame"
         );
-        assert!(errors <= 8, "seed {seed}: {errors} frames failed");
+        // The frames of about a round trip and the key frame's way: at 5 % loss each small
+        // one goes twice, so nearly all of them arrive, and fail (8 before the simulated
+        // server repeated frames as the shell does).
+        assert!(errors <= 10, "seed {seed}: {errors} frames failed");
         let (fps, _) = pace(sim.taken(d), sim.now() - ms(1_000), sim.now());
         assert!(fps >= 50.0, "seed {seed}: {fps:.1} frames a second after");
         assert_meshes_match(s, &format!("seed {seed}"));

@@ -181,6 +181,18 @@ const CLOCK_READERS: &[(&str, &str)] = &[
         "a viewer's connection: its silence watched, its last words waited for",
     ),
     (
+        "server/src/net/clock.rs",
+        "the frame clock's grid: where its phases begin, read once",
+    ),
+    (
+        "server/src/net/frames.rs",
+        "the frame clock: its passes, each viewer's frames when due by the clock",
+    ),
+    (
+        "server/src/viewer/conversation/tests.rs",
+        "the conversation takes `now`; its tests start it from a real `Instant`",
+    ),
+    (
         "server/src/net/control.rs",
         "a viewer's control stream: the colour stream's ticks",
     ),

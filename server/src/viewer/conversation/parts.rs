@@ -1,8 +1,7 @@
-//! What one viewer's connection decides besides its frames, with no socket, task or clock:
+//! The pieces a [`Conversation`](super::Conversation) is made of, each its own decision:
 //! the control messages coalesced between frames ([`Mailbox`]), the key datagrams admitted
 //! and turned into world events ([`KeyGate`]), the welcome ([`welcome`]), the frame message
-//! for a snapshot ([`frame_message`]), and whether small frames go twice ([`LossMeter`]). The `net` shell and the simulated network in the tests both
-//! compose them with the [`ViewerCore`](super::ViewerCore) the same way.
+//! for a snapshot ([`frame_message`]), and whether small frames go twice ([`LossMeter`]).
 
 use std::time::Instant;
 
@@ -11,11 +10,11 @@ use roam_protocol::messages::{
     ViewChange, Welcome,
 };
 
-use super::{Event, Made, ViewerLimits};
 use crate::Terrain;
 use crate::sim::physics::altitude;
 use crate::sim::world::VehicleId;
 use crate::sim::world_core::{self, Snapshot};
+use crate::viewer::{Event, Made, ViewerLimits};
 
 /// The viewer's control messages since the last frame, coalesced (the newest budget and
 /// view, the highest acknowledgement, whether a key frame was asked for), so a viewer

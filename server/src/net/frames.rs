@@ -1,0 +1,248 @@
+//! The frame clock: one task makes every viewer's frames, each pass serving every
+//! [`Conversation`] that is due ([`Served`]), and hands what they say to send to quinn.
+//! A viewer's own task ([`super::viewer`]) only reads its control stream and datagrams
+//! into its conversation, writes colour, and ends the connection.
+//!
+//! **One clock.** Every conversation's frames are due on one grid (`origin + k·period`,
+//! [`Conversation::new`]), so at 60 Hz the clock wakes 60 times a second whatever the
+//! number of viewers, and makes their frames one after another in one pass: a timer and a
+//! task wake-up per viewer-frame gone (they were the shell's largest cost after quinn's).
+//! Between passes it wakes only for what is due sooner: a small frame's second copy on a
+//! lossy path, a viewer that joined (its first frame is due at once).
+//!
+//! **Heavy frames off the pass.** The first frame, and any frame whose cut or coding is
+//! heavy (a rebuild, a key frame's coding, many changes), comes out of the conversation as
+//! a [`Job`], run on a blocking frame maker ([`super::makers`], at a lower priority than
+//! the clock), then given back ([`Conversation::finish`]) and sent from there; the pass
+//! goes on, so a heavy frame never delays the other viewers' frames.
+//!
+//! **How bytes go.** A datagram is handed to quinn at once (refused after all, the
+//! conversation puts the frame on a stream); a stream frame is written by a task of its
+//! own, which a [`Transmit::Reset`] cancels (resetting the stream: quinn stops sending
+//! and retransmitting it) before or after it is all written, until the viewer has it.
+
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use roam_protocol::sync::lock;
+use tokio::sync::oneshot;
+
+use super::clock::{FramesEnd, Served};
+use super::conn::DatagramError;
+use super::shared::Shared;
+use crate::sim::world_core::Snapshot;
+use crate::viewer::KeyCause;
+use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Transmit};
+
+/// Longest sleep between passes with nothing due (a viewer's first frame wakes it).
+const IDLE: Duration = Duration::from_millis(250);
+
+/// Serves every viewer's frames until the server shuts down.
+pub(super) async fn run(shared: Arc<Shared>) {
+    let mut due = Instant::now();
+    loop {
+        let now = Instant::now();
+        // Frames first: a pass that starts behind holds every viewer's colour back.
+        shared.color.frame_started(due, now);
+        let viewers: Vec<Arc<Served>> = {
+            let mut v = lock(&shared.clock.viewers);
+            v.retain(|s| !s.ended());
+            v.clone()
+        };
+        let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
+        let mut next = now + IDLE;
+        for s in &viewers {
+            let at = {
+                let mut c = lock(&s.conv);
+                if c.frame_due(now) {
+                    shared
+                        .stats
+                        .frame_late(now.saturating_duration_since(c.due_at()));
+                }
+                pass(&shared, s, &mut c, now, &snap);
+                c.poll_timeout()
+            };
+            if let Some(at) = at {
+                next = next.min(at);
+            }
+        }
+        due = next;
+        tokio::select! {
+            _ = tokio::time::sleep_until(next.into()) => {}
+            _ = shared.clock.joined.notified() => due = Instant::now(),
+            _ = shared.shutting_down() => return,
+        }
+    }
+}
+
+/// One viewer's turn in a pass: its frame if due, and whatever is due to send.
+fn pass(
+    shared: &Arc<Shared>,
+    s: &Arc<Served>,
+    c: &mut Conversation,
+    now: Instant,
+    snap: &Arc<Snapshot>,
+) {
+    if s.ended() {
+        return;
+    }
+    if c.frame_due(now) {
+        let started = Instant::now();
+        let step = {
+            let mut grant = lock(&s.grant);
+            c.frame(now, &shared.scene(), snap, &mut **grant)
+        };
+        match step {
+            Step::Idle => {}
+            Step::Sent(sent) => counted(shared, s, c, sent, started),
+            Step::Heavy(job) => {
+                tokio::spawn(heavy(shared.clone(), s.clone(), job));
+            }
+            Step::End(why) => return s.stop(ended(why)),
+        }
+        tell(shared, s, c);
+    }
+    transmit(s, c, now);
+}
+
+/// A frame's heavy part on a blocking maker, then sent.
+async fn heavy(shared: Arc<Shared>, s: Arc<Served>, job: Box<Job>) {
+    // The permit goes with the job: held until it ends, even if this task is dropped.
+    let Ok(permit) = shared.makers.acquire(job.first()).await else {
+        return s.stop(FramesEnd::Failed("the server is shutting down"));
+    };
+    let started = Instant::now();
+    let shared2 = shared.clone();
+    let done = tokio::task::spawn_blocking(move || {
+        let _permit = permit;
+        // Below the async workers: frames first ([`super::makers`]).
+        super::makers::lower_this_thread();
+        job.run(&shared2.scene(), || shared2.snapshots.borrow().clone())
+    })
+    .await;
+    let Ok(done) = done else {
+        return s.stop(FramesEnd::Failed("the frame maker failed"));
+    };
+    let now = Instant::now();
+    let mut c = lock(&s.conv);
+    match c.finish(now, &shared.terrain, done) {
+        Step::Sent(sent) => counted(&shared, &s, &c, sent, started),
+        Step::End(why) => return s.stop(ended(why)),
+        Step::Idle | Step::Heavy(_) => {}
+    }
+    tell(&shared, &s, &mut c);
+    transmit(&s, &mut c, now);
+}
+
+fn ended(why: End) -> FramesEnd {
+    match why {
+        End::VehicleLeft => FramesEnd::VehicleLeft,
+        End::Failed(why) => FramesEnd::Failed(why),
+    }
+}
+
+/// The server's counts for a frame made, and the viewer's.
+fn counted(shared: &Shared, s: &Served, c: &Conversation, sent: Sent, started: Instant) {
+    let stats = &shared.stats;
+    stats.add(&stats.make_ns, started.elapsed().as_nanos() as u64);
+    stats.add(&stats.frames, 1);
+    let tx = s.conn.quic().stats().udp_tx.bytes;
+    let before = s.bytes_out.swap(tx, Ordering::Relaxed);
+    stats.add(&stats.bytes_out, tx.saturating_sub(before));
+    stats.add(&stats.key_frames, u64::from(sent.key.is_some()));
+    match sent.key {
+        Some(KeyCause::Asked) => stats.add(&stats.key_asked, 1),
+        Some(KeyCause::Behind) => stats.add(&stats.key_behind, 1),
+        Some(KeyCause::Larger) => stats.add(&stats.key_larger, 1),
+        Some(KeyCause::First) | None => {}
+    }
+    s.sent.send_replace(c.frames());
+}
+
+/// What the conversation tells the shell: whom it follows, a replay's controls.
+fn tell(shared: &Shared, s: &Served, c: &mut Conversation) {
+    while let Some(out) = c.poll_event() {
+        match out {
+            Out::Following(to) => {
+                s.follow.send_replace(to);
+            }
+            Out::Replay(control) => {
+                if let (Some(r), Some(id)) = (&shared.replay, s.replay) {
+                    r.control(id, control);
+                }
+            }
+        }
+    }
+}
+
+/// Hands quinn what the conversation says to send by `now`.
+fn transmit(s: &Arc<Served>, c: &mut Conversation, now: Instant) {
+    let stats = s.conn.quic().stats();
+    c.handle(
+        now,
+        crate::viewer::conversation::Event::Path {
+            max_datagram: s.conn.max_datagram_size(),
+            lost: stats.path.lost_packets,
+            sent: stats.path.sent_packets,
+        },
+    );
+    while let Some(t) = c.poll_transmit(now) {
+        match t {
+            Transmit::Datagram { frame, bytes } => {
+                match s.conn.send_datagram(bytes.clone().into()) {
+                    Ok(()) => {}
+                    Err(DatagramError::Lost) => return s.stop(FramesEnd::ConnectionLost),
+                    Err(DatagramError::Refused) => {
+                        let refused = crate::viewer::conversation::Event::Refused { frame, bytes };
+                        c.handle(now, refused);
+                    }
+                }
+            }
+            Transmit::Reset { frame } => {
+                let mut streams = lock(&s.streams);
+                if let Some(i) = streams.iter().position(|(f, _)| *f == frame) {
+                    let _ = streams.swap_remove(i).1.send(());
+                }
+            }
+            Transmit::Stream {
+                frame,
+                priority,
+                bytes,
+            } => {
+                let (cancel, cancelled) = oneshot::channel();
+                let mut streams = lock(&s.streams);
+                streams.retain(|(_, tx)| !tx.is_closed());
+                streams.push((frame, cancel));
+                tokio::spawn(write_frame(s.clone(), priority, bytes, cancelled));
+            }
+        }
+    }
+}
+
+/// Writes a frame on a stream of its own; resets it if cancelled before the viewer has it.
+async fn write_frame(
+    s: Arc<Served>,
+    priority: i32,
+    bytes: Vec<u8>,
+    mut cancelled: oneshot::Receiver<()>,
+) {
+    let Some(mut stream) = s.conn.open_uni().await else {
+        return s.stop(FramesEnd::ConnectionLost);
+    };
+    stream.set_priority(priority);
+    let written = tokio::select! {
+        r = stream.write_all(&bytes) => r.is_ok() && stream.finish(),
+        Ok(()) = &mut cancelled => false,
+    };
+    if !written {
+        stream.reset(0);
+        return;
+    }
+    // Handed to quinn: a finished stream still waits in the send buffer on a slow path,
+    // so a cancel resets it until the viewer has read it all.
+    tokio::select! {
+        () = stream.stopped() => {}
+        Ok(()) = cancelled => stream.reset(0),
+    }
+}

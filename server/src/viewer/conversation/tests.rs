@@ -1,0 +1,301 @@
+//! The conversation's decisions, one boundary each: when a frame is due, how it goes
+//! (datagram, stream, a copy on a lossy path), what is reset when a newer frame comes, the
+//! budget's clamp, a spectator's switch, and the end when the vehicle leaves.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use roam_protocol::messages::{ClientMessage, Hello, KeyDatagram, KeyState, Role as HelloRole};
+
+use super::*;
+use crate::sim::world_core::WorldCore;
+use crate::terrain::variance::VarianceTree;
+use crate::tessellate::Scratch;
+use crate::viewer::{Scene, ViewerLimits};
+
+struct Fixture {
+    terrain: Arc<Terrain>,
+    variance: VarianceTree,
+    scratch: Scratch,
+    world: WorldCore,
+    t0: Instant,
+}
+
+fn fixture() -> Fixture {
+    let terrain = Arc::new(crate::terrain::generate::synthetic(129, 7));
+    let variance = VarianceTree::build(&terrain.heights, 1, &mut |_, _| {});
+    let scratch = Scratch::new(terrain.heights.side(), 1);
+    let world = WorldCore::new(terrain.clone(), None).expect("no recording to fail");
+    Fixture {
+        terrain,
+        variance,
+        scratch,
+        world,
+        t0: Instant::now(),
+    }
+}
+
+fn hello(budget: u32, role: HelloRole) -> Hello {
+    Hello {
+        version: roam_protocol::messages::VERSION,
+        role,
+        token: "t".into(),
+        viewport: [640, 480],
+        fov_y_deg: 60.0,
+        budget,
+        frame_rate: 50,
+        resume: None,
+        color_window: 4,
+    }
+}
+
+impl Fixture {
+    fn scene(&self) -> Scene<'_> {
+        Scene {
+            terrain: &self.terrain,
+            variance: &self.variance,
+            scratch: &self.scratch,
+        }
+    }
+
+    /// A driver's conversation, its vehicle in the world, and the snapshot showing it.
+    fn driver(&mut self, budget: u32) -> (Conversation, Arc<Snapshot>) {
+        let vehicle = self.world.handle(world_core::Event::Join).expect("room");
+        let snap = Arc::new(self.world.tick());
+        let role = Role {
+            vehicle,
+            driver: true,
+            replay: false,
+        };
+        let h = hello(budget, HelloRole::Driver);
+        let c = Conversation::new(
+            &self.terrain,
+            1,
+            &h,
+            ViewerLimits::default(),
+            role,
+            (self.t0, self.t0),
+        );
+        (c, snap)
+    }
+
+    /// The frame due at `at`, its heavy part run in place.
+    fn frame(&self, c: &mut Conversation, at: Instant, snap: &Arc<Snapshot>) -> Step {
+        match c.frame(at, &self.scene(), snap, &mut |b| b) {
+            Step::Heavy(job) => {
+                let done = job.run(&self.scene(), || snap.clone());
+                c.finish(at, &self.terrain, done)
+            }
+            other => other,
+        }
+    }
+}
+
+fn drain(c: &mut Conversation, now: Instant) -> Vec<String> {
+    std::iter::from_fn(|| c.poll_transmit(now))
+        .map(|t| match t {
+            Transmit::Datagram { frame, .. } => format!("datagram {frame}"),
+            Transmit::Stream {
+                frame, priority, ..
+            } => format!("stream {frame} at {priority}"),
+            Transmit::Reset { frame } => format!("reset {frame}"),
+        })
+        .collect()
+}
+
+const MS: Duration = Duration::from_millis(1);
+
+#[test]
+fn frames_are_due_on_the_grid_of_their_period_missed_ones_skipped() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    assert!(c.frame_due(t0), "the first frame is due at once");
+    assert!(matches!(f.frame(&mut c, t0 + 3 * MS, &snap), Step::Sent(_)));
+    // 50 Hz from the origin: 20 ms, then 40 ms.
+    assert_eq!(c.poll_timeout(), Some(t0 + 20 * MS));
+    assert!(matches!(f.frame(&mut c, t0 + 19 * MS, &snap), Step::Idle));
+    assert!(matches!(
+        f.frame(&mut c, t0 + 20 * MS, &snap),
+        Step::Sent(_)
+    ));
+    assert_eq!(c.poll_timeout(), Some(t0 + 40 * MS));
+    // Late by more than two periods: one frame, then the next grid point after it.
+    assert!(matches!(
+        f.frame(&mut c, t0 + 95 * MS, &snap),
+        Step::Sent(_)
+    ));
+    assert_eq!(c.poll_timeout(), Some(t0 + 100 * MS));
+    assert_eq!(c.frames(), 3);
+}
+
+#[test]
+fn a_key_frame_goes_on_a_stream_and_change_frames_as_datagrams() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    let path = |max| Event::Path {
+        max_datagram: max,
+        lost: 0,
+        sent: 0,
+    };
+    c.handle(t0, path(Some(1200)));
+    let Step::Sent(first) = f.frame(&mut c, t0, &snap) else {
+        panic!("the first frame is made")
+    };
+    assert_eq!(first.key, Some(KeyCause::First));
+    assert_eq!(drain(&mut c, t0), ["stream 0 at 2147483647"]);
+    // Not acknowledged: the next is coded against the pending key frame, a datagram; the
+    // key frame's stream is kept.
+    let t1 = t0 + 20 * MS;
+    f.frame(&mut c, t1, &snap);
+    assert_eq!(drain(&mut c, t1), ["datagram 1"]);
+    // A path that takes no datagram: on a stream, at its frame's priority.
+    c.handle(t1, path(None));
+    let t2 = t0 + 40 * MS;
+    f.frame(&mut c, t2, &snap);
+    assert_eq!(drain(&mut c, t2), ["stream 2 at 2"]);
+    // The viewer asks for a key frame: the old key frame (no longer pending, unacknowledged)
+    // and the change frame's stream are reset.
+    assert_eq!(c.handle(t2, Event::Control(ClientMessage::KeyFrame)), None);
+    let t3 = t0 + 60 * MS;
+    f.frame(&mut c, t3, &snap);
+    assert_eq!(
+        drain(&mut c, t3),
+        ["reset 0", "reset 2", "stream 3 at 2147483647"]
+    );
+    // Acknowledged, nothing is reset.
+    c.handle(t3, Event::Control(ClientMessage::Ack { frame: 3 }));
+    let t4 = t0 + 80 * MS;
+    f.frame(&mut c, t4, &snap);
+    assert_eq!(drain(&mut c, t4), ["stream 4 at 4"]);
+}
+
+#[test]
+fn small_frames_go_twice_on_a_lossy_path_and_a_refused_datagram_takes_a_stream() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    f.frame(&mut c, t0, &snap);
+    drain(&mut c, t0);
+    c.handle(t0, Event::Control(ClientMessage::Ack { frame: 0 }));
+    // 5 % lost over a window.
+    for (lost, sent) in [(0, 0), (10, 200)] {
+        let path = Event::Path {
+            max_datagram: Some(1200),
+            lost,
+            sent,
+        };
+        c.handle(t0, path);
+    }
+    let t1 = t0 + 20 * MS;
+    f.frame(&mut c, t1, &snap);
+    assert_eq!(drain(&mut c, t1), ["datagram 1"]);
+    assert_eq!(
+        c.poll_timeout(),
+        Some(t1 + REPEAT_AFTER),
+        "the copy is due first"
+    );
+    assert_eq!(drain(&mut c, t1 + REPEAT_AFTER), ["datagram 1"]);
+    // The shell could not send it after all: a stream; a copy refused, or an older
+    // frame, is let go.
+    let refused = |frame| Event::Refused {
+        frame,
+        bytes: vec![1, 2, 3],
+    };
+    c.handle(t1, refused(1));
+    c.handle(t1, refused(1));
+    c.handle(t1, refused(0));
+    assert_eq!(drain(&mut c, t1), ["stream 1 at 1"]);
+}
+
+#[test]
+fn a_budget_is_clamped_by_the_limits_then_granted() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    let mut asked = Vec::new();
+    c.handle(t0, Event::Control(ClientMessage::Budget(u32::MAX)));
+    let step = c.frame(t0, &f.scene(), &snap, &mut |b| {
+        asked.push(b);
+        b / 2
+    });
+    let max = ViewerLimits::default().max_budget;
+    assert_eq!(
+        asked,
+        [max],
+        "clamped to the server's limit before the grant"
+    );
+    let Step::Heavy(job) = step else {
+        panic!("a first frame is heavy")
+    };
+    c.finish(t0, &f.terrain, job.run(&f.scene(), || snap.clone()));
+    assert_eq!(c.core().map(|k| k.budget()), Some(max / 2));
+}
+
+#[test]
+fn key_datagrams_become_world_events_for_a_driver_only() {
+    let mut f = fixture();
+    let (mut c, _) = f.driver(2048);
+    let t0 = f.t0;
+    let state = KeyState {
+        seq: 1,
+        held: 1,
+        pressed: 0,
+    };
+    let d = KeyDatagram {
+        states: vec![state],
+    };
+    let mut bytes = Vec::new();
+    roam_protocol::messages::encode(&d, &mut bytes).expect("a small datagram");
+    let got = c.handle(t0 + 5 * MS, Event::Datagram(&bytes));
+    assert_eq!(
+        got,
+        Some(Handled::World(world_core::Event::Keys {
+            vehicle: c.vehicle(),
+            states: vec![state],
+        }))
+    );
+    assert_eq!(c.handle(t0 + 10 * MS, Event::Datagram(b"not one")), None);
+    assert_eq!(
+        c.silent(t0 + 25 * MS, t0),
+        15 * MS,
+        "since the last datagram, any"
+    );
+    assert_eq!(
+        c.handle(
+            t0,
+            Event::Control(ClientMessage::Bye(roam_protocol::messages::Reason::Quit))
+        ),
+        Some(Handled::Goodbye)
+    );
+}
+
+#[test]
+fn a_spectator_switches_to_a_vehicle_there_and_ends_when_its_vehicle_leaves() {
+    let mut f = fixture();
+    let a = f.world.handle(world_core::Event::Join).expect("room");
+    let b = f.world.handle(world_core::Event::Join).expect("room");
+    let snap = Arc::new(f.world.tick());
+    let role = Role {
+        vehicle: a,
+        driver: false,
+        replay: false,
+    };
+    let h = hello(2048, HelloRole::Spectator { follow: Some(a) });
+    let t0 = f.t0;
+    let mut c = Conversation::new(&f.terrain, 1, &h, ViewerLimits::default(), role, (t0, t0));
+    f.frame(&mut c, t0, &snap);
+    c.handle(t0, Event::Control(ClientMessage::Follow(99)));
+    f.frame(&mut c, t0 + 20 * MS, &snap);
+    assert_eq!(c.poll_event(), None, "no vehicle 99: it stays");
+    c.handle(t0, Event::Control(ClientMessage::Follow(b)));
+    f.frame(&mut c, t0 + 40 * MS, &snap);
+    assert_eq!(c.poll_event(), Some(Out::Following(b)));
+    f.world.handle(world_core::Event::Leave(b));
+    let gone = Arc::new(f.world.tick());
+    assert!(matches!(
+        f.frame(&mut c, t0 + 60 * MS, &gone),
+        Step::End(End::VehicleLeft)
+    ));
+}
