@@ -7,8 +7,17 @@
 //! seen with). The viewer's fog hides far error anyway, so the budget goes nearer. Without
 //! fog (density 0: the map has none, the viewer turned it off, or `--fog-priority off`)
 //! the product is skipped and the cut is bit for bit the fog-unaware one (`tests/fog.rs`
-//! pins digests taken before). The transmission is [`F4::exp_neg`], IEEE arithmetic
-//! only, so every build and machine still ranks alike.
+//! pins digests taken before). The transmission is [`F4::exp2_neg`] of
+//! `max(clear, 0) · ρ·log2 e` (the frame's `fog_log2e`), IEEE arithmetic only, so every
+//! build and machine still ranks alike.
+//!
+//! Its cost is latency, not instructions (issue 41): this priority is what a batch's queue
+//! entries wait on, so the fog's product lengthened the chain the split loop waits on.
+//! With the shorter transmission (`lanes.rs`: one multiply fewer here, rounding by a
+//! shifted add, Estrin's scheme) the from-scratch cut with fog went from 1.07× to 0.97×
+//! the time without on `data/kossou` (36.4 → 33.9 ns a triangle, 34.2–34.8 without), and
+//! from 1.05× to 0.90× on a steep map (`bench DIR --budget 65536 --json
+//! --fog-priority on|off`; the table and commands in `lanes.rs`).
 
 use super::lanes::F4;
 use super::{Frame, MIN_DISTANCE, Tessellator, pack};
@@ -110,7 +119,7 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
     // most of it the diamond could show. Without fog nothing is multiplied (by `exp(0)` =
     // 1 it would be exact too): the priority is the fog-unaware one, bit for bit.
     let prio = if f.fogged {
-        prio.mul(clear.max(F4::splat(0.0)).mul(f.fog).exp_neg())
+        prio.mul(clear.max(F4::splat(0.0)).mul(f.fog_log2e).exp2_neg())
     } else {
         prio
     };

@@ -3,8 +3,33 @@
 //! On x86-64 the lanes are an SSE register (SSE2 is part of the baseline, and the
 //! x86-64-v3 build encodes the same operations with VEX); elsewhere they are an array.
 //! Every operation is the IEEE operation of each lane, so both give bit-identical results,
-//! and equal to the same arithmetic on scalars; [`F4::exp_neg`] (the fog's transmission)
+//! and equal to the same arithmetic on scalars; [`F4::exp2_neg`] (the fog's transmission)
 //! is built from such operations too, not taken from the platform's library.
+//!
+//! **The transmission is short in latency** (issue 41). It sits between a batch's
+//! distances and its queue entries, and the split loop waits on that chain: the first
+//! version (`t = x·log2 e`, rounding by truncation and back, a Taylor polynomial by
+//! Horner, about 100 cycles) made the from-scratch cut with fog slower than without
+//! although it ran *fewer* instructions (callgrind, 40 frames of the fly-over: 1.315 G
+//! against 1.321 G, with fewer cache misses and mispredicted branches: it evaluates 57,445
+//! diamonds a frame to 68,897, the fog's cut being nearer the eye). Now `ρ·log2 e` is one
+//! constant of the frame, `t` is rounded by adding and taking off `1.5·2^23` (its bits
+//! give `2^−n` off the chain), and a minimax polynomial is evaluated by Estrin's scheme:
+//! about 45 cycles, 1.294 G instructions, `exp(−x)` within 3.9e-6 over the test's range
+//! (most of it `t`'s rounding; the bound stays 1e-5). `target/release/roam-server bench DIR --budget 65536
+//! --json`, `--fog-priority on` and `off` in turn, five runs each, medians of
+//! `tessellate_ns_per_triangle_median` (ns a triangle, on / off, ratio), on a shared,
+//! busy two-core machine:
+//!
+//! | map | before | after |
+//! |---|---|---|
+//! | `data/kossou` (fog 5e-5) | 36.4 / 34.2, 1.07 | 33.9 / 34.8, 0.97 |
+//! | steep (fog 5e-4) | 35.8 / 34.2, 1.05 | 31.3 / 34.9, 0.90 |
+//!
+//! Steep: `roam-server import data/srtm/n07_w006_3arc_v2.tif /tmp/steep --h-scale 10
+//! --v-scale 5 --crop 0,0,1025` (the importer gives it fog 5e-4). Without fog nothing
+//! changed (the same cuts, bit for bit); with fog the priorities move by the
+//! approximations' difference, a few parts in a million.
 
 #[cfg(target_arch = "x86_64")]
 mod imp {
@@ -98,22 +123,22 @@ mod imp {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe { _mm_movemask_ps(_mm_cmple_ps(self.0, o.0)) as u32 }
         }
-        /// Each lane rounded towards zero (lanes within ±2^31).
+        /// `2^−n` of each lane [`SHIFT`] `+ n`, `n` a whole number in 0 ..= 126 (held in
+        /// the float's low bits): a normal float built from its exponent bits.
         #[inline(always)]
-        pub(crate) fn trunc(self) -> F4 {
-            // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
-            unsafe { F4(_mm_cvtepi32_ps(_mm_cvttps_epi32(self.0))) }
-        }
-        /// `2^−n` of each lane `n`, a whole number in 0 ..= 126 (a normal float built from
-        /// its exponent bits).
-        #[inline(always)]
-        pub(crate) fn exp2_neg_whole(self) -> F4 {
+        pub(crate) fn exp2_neg_shifted(self) -> F4 {
             // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
             unsafe {
-                let n = _mm_cvttps_epi32(self.0);
-                let bits = _mm_slli_epi32::<23>(_mm_sub_epi32(_mm_set1_epi32(127), n));
-                F4(_mm_castsi128_ps(bits))
+                let bits = _mm_castps_si128(self.0);
+                let e = _mm_sub_epi32(_mm_set1_epi32(super::SHIFT_BITS + 127), bits);
+                F4(_mm_castsi128_ps(_mm_slli_epi32::<23>(e)))
             }
+        }
+        /// `self` where `a < b`, else 0, lane by lane.
+        #[inline(always)]
+        pub(crate) fn where_lt(self, a: F4, b: F4) -> F4 {
+            // SAFETY: SSE and SSE2 are part of the x86-64 baseline.
+            unsafe { F4(_mm_and_ps(self.0, _mm_cmplt_ps(a.0, b.0))) }
         }
         /// `self` where bit `i` of `mask` is set, else 0.
         #[inline(always)]
@@ -199,12 +224,15 @@ mod imp {
             self.mask(o, |a, b| a <= b)
         }
         #[inline(always)]
-        pub fn trunc(self) -> F4 {
-            F4(self.0.map(|v| v as i32 as f32))
+        pub fn exp2_neg_shifted(self) -> F4 {
+            let e = |v: f32| (super::SHIFT_BITS as u32 + 127).wrapping_sub(v.to_bits()) << 23;
+            F4(self.0.map(|v| f32::from_bits(e(v))))
         }
         #[inline(always)]
-        pub fn exp2_neg_whole(self) -> F4 {
-            F4(self.0.map(|n| f32::from_bits((127 - n as u32) << 23)))
+        pub fn where_lt(self, a: F4, b: F4) -> F4 {
+            F4(std::array::from_fn(|i| {
+                if a.0[i] < b.0[i] { self.0[i] } else { 0.0 }
+            }))
         }
         #[inline(always)]
         pub fn keep(self, mask: u32) -> F4 {
@@ -223,29 +251,49 @@ impl F4 {
         self.to_array().into_iter().fold(0f32, f32::max)
     }
 
-    /// `exp(−x)` of each lane `x >= 0` (0 for NaN and past 87, where it is below the
-    /// smallest normal `f32`): the fog's transmission. From the lanes' IEEE operations
-    /// alone, so that every build and machine gives the same bits (a library `expf` may
-    /// differ between machines, and its FMA variant from the one without), four lanes at
-    /// once. Relative error below 1e-5 (the rounding of `x · log2 e`; the polynomial's
-    /// own is 2e-7); exactly 1 at 0.
+    /// `2^−t` of each lane `t >= 0` (0 for NaN and from 126 on, where it is below the
+    /// smallest normal `f32`): the fog's transmission `exp(−ρ·d)`, with `t = d · ρ·log2 e`.
+    /// From the lanes' IEEE operations alone, so that every build and machine gives the
+    /// same bits (a library `expf` may differ between machines, and its FMA variant from
+    /// the one without), four lanes at once. Relative error below 3e-7 (the polynomial's
+    /// own 1e-7, and its rounding); exactly 1 at 0.
+    ///
+    /// Short in latency, since a batch's queue entries wait on it (issue 41): `t` rounded
+    /// to the nearest whole `n` by adding and taking off [`SHIFT`] (whose low bits then
+    /// hold `n`, turned into `2^−n` by integer operations beside the polynomial), and
+    /// `2^−f`, `f = t − n` (exact) in −1/2 ..= 1/2, by a degree-5 minimax polynomial
+    /// evaluated by Estrin's scheme (three levels of multiply and add, not five).
     #[inline(always)]
-    pub(super) fn exp_neg(self) -> F4 {
+    pub(super) fn exp2_neg(self) -> F4 {
         let c = F4::splat;
-        // exp(−x) = 2^−t = 2^−n · 2^−f, with t = x · log2 e, n = round(t), |f| <= 1/2.
-        let t = self.mul(c(std::f32::consts::LOG2_E));
-        let live = t.lt(c(126.0)); // not NaN, and 2^−t normal
-        let t = t.max(c(0.0)).min(c(126.0));
-        let n = t.add(c(0.5)).trunc(); // t >= 0: truncation rounds down
-        let f = t.sub(n);
-        // 2^−f = e^u, u = −f · ln 2 in [−0.35, 0.35]: Taylor to u^6 (error u^7 / 7! < 2e-7).
-        let u = c(0.0).sub(f.mul(c(std::f32::consts::LN_2)));
-        let p = [1.0 / 120.0, 1.0 / 24.0, 1.0 / 6.0, 0.5, 1.0, 1.0]
-            .into_iter()
-            .fold(c(1.0 / 720.0), |p, k| p.mul(u).add(c(k)));
-        p.mul(n.exp2_neg_whole()).keep(live)
+        let r = self.add(c(SHIFT));
+        let f = self.sub(r.sub(c(SHIFT)));
+        let (f2, k) = (f.mul(f), EXP2_NEG);
+        let f4 = f2.mul(f2);
+        let lo = c(k[0]).add(c(k[1]).mul(f));
+        let mid = c(k[2]).add(c(k[3]).mul(f));
+        let hi = c(k[4]).add(c(k[5]).mul(f));
+        let p = lo.add(f2.mul(mid)).add(f4.mul(hi));
+        p.mul(r.exp2_neg_shifted()).where_lt(self, c(126.0))
     }
 }
+
+/// `1.5 · 2^23`: added to a float in 0 ..= 2^22, leaves it rounded to the nearest whole
+/// number `n` (ties to even), held in the low bits: the sum's bits are [`SHIFT_BITS`] `+ n`.
+const SHIFT: f32 = 12_582_912.0;
+const SHIFT_BITS: i32 = 0x4B40_0000;
+
+/// `2^−f ≈ Σ k[i]·f^i` for `|f| <= 1/2`, relative error 9.2e-8 (minimax fitted with
+/// `k[0] = 1`, so that `2^−0` is exactly 1). `k[1]` is near `−ln 2` (Taylor's), not it.
+#[allow(clippy::approx_constant)]
+const EXP2_NEG: [f32; 6] = [
+    1.0,
+    -0.693_147,
+    0.240_222_42,
+    -0.055_507_336,
+    0.009_671_513,
+    -0.001_326_472_8,
+];
 
 #[cfg(test)]
 mod tests {
@@ -291,14 +339,16 @@ mod tests {
         );
     }
 
-    /// `exp(−x)` within 1e-5 of the exact value over the range fog gives it, exactly 1 at
-    /// 0, 0 past the normal floats, each lane on its own.
+    /// `exp(−x)`, as `2^−(x · log2 e)`, within 1e-5 of the exact value over the range fog
+    /// gives it, exactly 1 at 0, 0 past the normal floats, each lane on its own.
     #[test]
-    fn exp_neg_is_close_and_exact_at_0() {
-        let exp_neg = |x: f32| F4::splat(x).exp_neg().to_array()[0];
+    fn exp2_neg_is_close_and_exact_at_0() {
+        let exp2_neg = |t: f32| F4::splat(t).exp2_neg().to_array()[0];
+        let exp_neg = |x: f32| exp2_neg(x * std::f32::consts::LOG2_E);
         assert_eq!(exp_neg(0.0).to_bits(), 1f32.to_bits());
         assert_eq!(exp_neg(-0.0).to_bits(), 1f32.to_bits());
         assert_eq!(exp_neg(88.0), 0.0);
+        assert_eq!(exp2_neg(126.0), 0.0);
         assert_eq!(exp_neg(f32::INFINITY), 0.0);
         assert_eq!(exp_neg(f32::NAN), 0.0);
         let mut worst = 0f64;
@@ -309,16 +359,29 @@ mod tests {
             worst = worst.max((got - want).abs() / want);
         }
         assert!(worst < 1e-5, "relative error {worst}");
-        let v = [0.0, 0.25, 90.0, 40.0];
-        let lanes = F4::new(v).exp_neg().to_array();
-        assert_eq!(lanes.map(f32::to_bits), v.map(exp_neg).map(f32::to_bits));
+        // The approximation's own error, `t` exact: whole numbers are exact.
+        let mut worst = 0f64;
+        for i in 0..=1_000_000 {
+            let t = i as f32 * 1.25e-4; // 0 .. 125
+            let got = f64::from(exp2_neg(t));
+            let want = (-f64::from(t)).exp2();
+            worst = worst.max((got - want).abs() / want);
+        }
+        assert!(worst < 3e-7, "relative error {worst}");
+        for n in 0..126 {
+            assert_eq!(exp2_neg(n as f32), 2f32.powi(-n), "2^-{n}");
+        }
+        let v = [0.0, 0.25, 130.0, 57.7];
+        let lanes = F4::new(v).exp2_neg().to_array();
+        assert_eq!(lanes.map(f32::to_bits), v.map(exp2_neg).map(f32::to_bits));
         assert_eq!(
-            F4::new([0.0, 1.0, 126.0, 3.0]).exp2_neg_whole().to_array(),
-            [1.0, 0.5, 2f32.powi(-126), 0.125]
-        );
-        assert_eq!(
-            F4::new([2.9, 0.5, 7.0, 0.0]).trunc().to_array(),
-            [2.0, 0.0, 7.0, 0.0]
+            F4::new([1.0, 2.5, 3.0, 4.0])
+                .where_lt(
+                    F4::new([0.0, 1.0, 2.0, 3.0]),
+                    F4::new([1.0, 1.0, f32::NAN, 9.0])
+                )
+                .to_array(),
+            [1.0, 0.0, 0.0, 4.0]
         );
     }
 
