@@ -23,9 +23,11 @@
 //! The fog-aware cut lets through a third of the error; what it gives up is far error
 //! the fog hides (the fog-unaware measure triples). The served frames cost no more: the
 //! validity bound is tighter with fog, but fewer far diamonds are in the cut to fall due
-//! (the 32 viewers' frames a third cheaper). From scratch costs 15 % more: the fog's
-//! transmission, four lanes at once (one scalar `exp` a lane cost 35 %: 1.19–1.25 ms),
-//! and more forced splits. At 65,536: fogged 0.161 → 0.047 px, unfogged 0.188 → 0.603.
+//! (the 32 viewers' frames a third cheaper). From scratch it cost 15 % more when this was
+//! written (the fog's transmission, four lanes at once; one scalar `exp` a lane cost 35 %),
+//! and 5–7 % more by issue 41; a shorter `exp2` (`F4::exp2_neg`, `tessellate/lanes.rs`)
+//! made it 0.97× the plain cut's ns a triangle on `data/kossou` and 0.90× on a steep map at
+//! 65,536. At 65,536: fogged 0.161 → 0.047 px, unfogged 0.188 → 0.603.
 
 use std::fs::File;
 use std::io::{BufWriter, Write};
