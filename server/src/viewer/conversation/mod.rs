@@ -47,7 +47,7 @@ use crate::sim::world_core::{self, Snapshot};
 mod parts;
 
 pub use parts::{
-    Control, KEY_BURST, KEY_RATE, KeyGate, LossMeter, MAX_REPLAY_CONTROLS, Mailbox,
+    Control, KEY_BURST, KEY_RATE, KeyGate, LossMeter, MAX_REPLAY_CONTROLS, MAX_SHOWN, Mailbox,
     REPEAT_ABOVE_LOSS, REPEAT_MAX_BYTES, frame_message, welcome,
 };
 

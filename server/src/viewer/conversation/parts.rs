@@ -175,8 +175,17 @@ pub fn welcome(
     }
 }
 
-/// The frame message for `made`, showing `snapshot`'s world: every vehicle as the viewer
-/// sees it, and (for a driver) the newest key state of its own the world had applied.
+/// The most vehicles a frame shows: the followed one and those nearest it. Each takes 42
+/// bytes, so a frame showing every vehicle grew with the drivers: at 50 a change frame
+/// was some 2.4 kB, past a datagram, and every frame went on a stream of its own (opened,
+/// written, reset when superseded); a server's bytes grew as the square of its drivers.
+/// Sixteen (672 bytes) leave a change frame room for its payload in one datagram. With no
+/// more vehicles than this, a frame shows them all, as before.
+pub const MAX_SHOWN: usize = 16;
+
+/// The frame message for `made`, showing `snapshot`'s world: the vehicle followed and the
+/// others nearest it, at most [`MAX_SHOWN`] (in the snapshot's order), as the viewer sees
+/// them, and (for a driver) the newest key state of its own the world had applied.
 pub fn frame_message(
     terrain: &Terrain,
     snapshot: &Snapshot,
@@ -184,22 +193,41 @@ pub fn frame_message(
     vehicle: VehicleId,
     driver: bool,
 ) -> Frame {
+    let all = &snapshot.vehicles;
+    let view = |v: &crate::sim::world::Vehicle| VehicleView {
+        id: v.id,
+        x: v.state.x,
+        z: v.state.z,
+        y: altitude(terrain, v.state.x, v.state.z),
+        speed: v.state.speed,
+        heading: v.state.heading,
+    };
+    let vehicles = match all.iter().find(|v| v.id == vehicle) {
+        Some(me) if all.len() > MAX_SHOWN => {
+            // The nearest, the followed one first (at distance 0, then by id: a tie is
+            // decided the same way on every run).
+            let d2 = |v: &crate::sim::world::Vehicle| {
+                let (dx, dz) = (v.state.x - me.state.x, v.state.z - me.state.z);
+                (v.id != vehicle, dx * dx + dz * dz, v.id)
+            };
+            let mut order: Vec<usize> = (0..all.len()).collect();
+            order.select_nth_unstable_by(MAX_SHOWN - 1, |&a, &b| {
+                d2(&all[a])
+                    .partial_cmp(&d2(&all[b]))
+                    .unwrap_or(std::cmp::Ordering::Equal)
+            });
+            order.truncate(MAX_SHOWN);
+            order.sort_unstable();
+            order.into_iter().map(|i| view(&all[i])).collect()
+        }
+        // All of them, or (the followed one not there: a replay's parked camera) the first.
+        _ => all.iter().take(MAX_SHOWN).map(view).collect(),
+    };
     Frame {
         frame: made.frame,
         base: made.base,
         tick: snapshot.tick,
-        vehicles: snapshot
-            .vehicles
-            .iter()
-            .map(|v| VehicleView {
-                id: v.id,
-                x: v.state.x,
-                z: v.state.z,
-                y: altitude(terrain, v.state.x, v.state.z),
-                speed: v.state.speed,
-                heading: v.state.heading,
-            })
-            .collect(),
+        vehicles,
         input_seq: if driver {
             snapshot.applied_by(vehicle)
         } else {

@@ -299,3 +299,55 @@ fn a_spectator_switches_to_a_vehicle_there_and_ends_when_its_vehicle_leaves() {
         Step::End(End::VehicleLeft)
     ));
 }
+
+#[test]
+fn a_frame_shows_the_followed_vehicle_and_those_nearest_it() {
+    let mut f = fixture();
+    let (c, _) = f.driver(2048);
+    let me = c.vehicle();
+    let dist = |snap: &Snapshot, id| {
+        let (a, b) = (
+            snap.vehicles.iter().find(|v| v.id == me),
+            snap.vehicles.iter().find(|v| v.id == id),
+        );
+        let (a, b) = (a.expect("followed").state, b.expect("shown").state);
+        (a.x - b.x).hypot(a.z - b.z)
+    };
+    let check = |snap: &Snapshot, want: usize| {
+        let made = crate::viewer::Made {
+            frame: 0,
+            base: None,
+            payload: Vec::new(),
+            mode: crate::tessellate::Mode::Update,
+            changes: 0,
+            triangles: 0,
+            key: None,
+        };
+        let shown: Vec<VehicleId> = frame_message(&f.terrain, snap, made, me, true)
+            .vehicles
+            .iter()
+            .map(|v| v.id)
+            .collect();
+        assert_eq!(shown.len(), want);
+        assert!(shown.contains(&me), "the followed vehicle is always shown");
+        let order: Vec<VehicleId> = snap
+            .vehicles
+            .iter()
+            .map(|v| v.id)
+            .filter(|id| shown.contains(id))
+            .collect();
+        assert_eq!(shown, order, "in the snapshot's order");
+        let far = shown.iter().map(|&id| dist(snap, id)).fold(0.0, f64::max);
+        for v in snap.vehicles.iter().filter(|v| !shown.contains(&v.id)) {
+            assert!(dist(snap, v.id) >= far, "a nearer vehicle left out");
+        }
+    };
+    for _ in 0..9 {
+        f.world.handle(world_core::Event::Join);
+    }
+    check(&f.world.tick(), 10);
+    for _ in 0..20 {
+        f.world.handle(world_core::Event::Join);
+    }
+    check(&f.world.tick(), MAX_SHOWN);
+}
