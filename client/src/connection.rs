@@ -367,30 +367,37 @@ pub(crate) async fn write_control(send: &mut quinn::SendStream, msg: &ClientMess
 /// the steps since the grid began skipped (`KeySource::InStep`); without, from now.
 pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Phase>) {
     const STEP: Duration = Duration::from_millis(10);
+    let now = tokio::time::Instant::now();
     let start = match phase {
-        Some(Phase::At(phase)) => on_grid(tokio::time::Instant::now(), STEP, phase),
-        Some(Phase::InStep) => {
-            // Step k of the script is played at the grid's start + k steps, by every viewer.
-            let now = tokio::time::Instant::now();
-            let start = on_grid(now, STEP, Duration::ZERO);
-            let since = start.saturating_duration_since(grid_epoch(now));
-            let mut keys = lock(&shared.keys);
-            for _ in 0..since.as_nanos() / STEP.as_nanos() {
-                steps(&mut keys);
-            }
-            start
-        }
-        None => tokio::time::Instant::now(),
+        Some(Phase::At(phase)) => on_grid(now, STEP, phase),
+        Some(Phase::InStep) => on_grid(now, STEP, Duration::ZERO),
+        None => now,
     };
+    let in_step = matches!(phase, Some(Phase::InStep));
+    // In step, step k of the script is played at the grid's start + k steps by every
+    // viewer: the steps of ticks missed (a loaded process) are skipped, never played late.
+    let mut played: u128 = 0;
     let mut tick = tokio::time::interval_at(start, STEP);
-    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    tick.set_missed_tick_behavior(if in_step {
+        tokio::time::MissedTickBehavior::Skip
+    } else {
+        tokio::time::MissedTickBehavior::Delay
+    });
     loop {
-        tick.tick().await;
+        let at = tick.tick().await;
         if shared.ended().is_some() {
             return;
         }
         let datagram = {
             let mut keys = lock(&shared.keys);
+            if in_step {
+                let due = at.saturating_duration_since(grid_epoch(at)).as_nanos() / STEP.as_nanos();
+                while played < due {
+                    steps(&mut keys);
+                    played += 1;
+                }
+                played += 1;
+            }
             let step = steps(&mut keys);
             keys.key_datagram(step, Instant::now())
         };

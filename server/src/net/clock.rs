@@ -90,7 +90,9 @@ const PHASES: u32 = 16;
 /// The clock's viewers, and its alarm for a new one.
 pub(super) struct FrameClock {
     pub(super) viewers: Mutex<Vec<Arc<Served>>>,
-    pub(super) joined: Notify,
+    /// Wakes the clock: a viewer joined (its first frame is due at once), or a heavy
+    /// frame came back (the viewer's next one is due on its grid).
+    pub(super) wake: Notify,
     /// The grid every phase is counted from.
     origin: Instant,
     /// Viewers put on a phase so far.
@@ -101,7 +103,7 @@ impl Default for FrameClock {
     fn default() -> FrameClock {
         FrameClock {
             viewers: Mutex::default(),
-            joined: Notify::new(),
+            wake: Notify::new(),
             origin: Instant::now(),
             phased: AtomicU64::new(0),
         }
@@ -121,12 +123,14 @@ impl FrameClock {
     /// Puts a viewer on the clock: its first frame is made at once.
     pub(super) fn add(&self, served: Arc<Served>) {
         lock(&self.viewers).push(served);
-        self.joined.notify_one();
+        self.wake.notify_one();
     }
 
     /// Takes a viewer off (its frames, and any job of its, are let go).
     pub(super) fn remove(&self, served: &Arc<Served>) {
         served.stop(FramesEnd::ConnectionLost);
+        // The seat goes now, not when the last job holding the viewer ends.
+        *lock(&served.grant) = Box::new(|budget| budget);
         lock(&self.viewers).retain(|s| !Arc::ptr_eq(s, served));
     }
 }

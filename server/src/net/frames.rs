@@ -11,18 +11,24 @@
 //! pass to a sixteenth of the viewers (on one grid, 50 viewers' frames at 200 µs each
 //! came in one burst of 10 ms, the last a tenth of a second late now and then).
 //! Between passes it wakes only for what is due sooner: a small frame's second copy on a
-//! lossy path, a viewer that joined (its first frame is due at once).
+//! lossy path, a viewer that joined (its first frame is due at once), a heavy frame back
+//! (while it was away, the clock did not count on the viewer's next frame).
 //!
 //! What a viewer costs is mostly its cut: profiled (`perf`, 50 driving viewers on one core,
 //! `data/kossou`, 2026-12-07), the coherent tessellator's update took about three fifths
 //! of the server's CPU, the kernel's UDP and quinn a tenth, `malloc` and copies a tenth;
 //! the clock changed the CPU a frame by a few per cent either way (within the noise).
 //!
-//! **Heavy frames off the pass.** The first frame, and any frame whose cut or coding is
-//! heavy (a rebuild, a key frame's coding, many changes), comes out of the conversation as
+//! **Heavy frames off the pass, but first frames in it.** A frame whose cut or coding is
+//! heavy (a rebuild, a key frame's coding, many changes) comes out of the conversation as
 //! a [`Job`], run on a blocking frame maker ([`super::makers`], at a lower priority than
 //! the clock), then given back ([`Conversation::finish`]) and sent from there; the pass
-//! goes on, so a heavy frame never delays the other viewers' frames.
+//! goes on, so a heavy frame never delays the other viewers' frames. A viewer's first frame
+//! (a key frame from scratch, 3–7 ms at 32,768 triangles) is the exception up to
+//! [`INLINE_FIRST_BUDGET`]: the clock makes one a pass itself, yielding between passes.
+//! On the maker, below the frames of those already served, 40 viewers joining at once had
+//! their first frames up to 1.5 s after their joins, 50 up to 2.4 s; one a pass, 0.19–0.29 s
+//! and 0.19–0.22 s (`scripts/capacity.sh 40`, `50`, 2026-12-07).
 //!
 //! **How bytes go.** A datagram is handed to quinn at once (refused after all, the
 //! conversation puts the frame on a stream); a stream frame is written by a task of its
@@ -43,16 +49,18 @@ use crate::sim::world_core::Snapshot;
 use crate::viewer::KeyCause;
 use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Transmit};
 
+/// The largest budget whose first frame the clock makes itself (one a pass), rather than
+/// a blocking frame maker (the module's header says why): a pass's other frames wait for
+/// one first frame at most, some 15 ms at this budget.
+const INLINE_FIRST_BUDGET: u32 = 65_536;
+
 /// Longest sleep between passes with nothing due (a viewer's first frame wakes it).
 const IDLE: Duration = Duration::from_millis(250);
 
 /// Serves every viewer's frames until the server shuts down.
 pub(super) async fn run(shared: Arc<Shared>) {
-    let mut due = Instant::now();
     loop {
         let now = Instant::now();
-        // Frames first: a pass that starts behind holds every viewer's colour back.
-        shared.color.frame_started(due, now);
         let viewers: Vec<Arc<Served>> = {
             let mut v = lock(&shared.clock.viewers);
             v.retain(|s| !s.ended());
@@ -60,25 +68,39 @@ pub(super) async fn run(shared: Arc<Shared>) {
         };
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let mut next = now + IDLE;
+        let mut first_made = false;
         for s in &viewers {
             let at = {
                 let mut c = lock(&s.conv);
                 if c.frame_due(now) {
+                    // A frame that starts behind holds every viewer's colour back.
+                    let started = Instant::now();
+                    shared.color.frame_started(c.due_at(), started);
                     shared
                         .stats
-                        .frame_late(now.saturating_duration_since(c.due_at()));
+                        .frame_late(started.saturating_duration_since(c.due_at()));
                 }
-                pass(&shared, s, &mut c, now, &snap);
+                // A frame that could not be made ends its viewer, never the clock.
+                let turn = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                    pass(&shared, s, &mut c, (now, &snap), &mut first_made)
+                }));
+                if turn.is_err() {
+                    s.stop(FramesEnd::Failed("the frame maker failed"));
+                }
                 c.poll_timeout()
             };
             if let Some(at) = at {
                 next = next.min(at);
             }
         }
-        due = next;
+        if next <= Instant::now() {
+            // Due again at once (joining viewers' first frames, one a pass): the rest of
+            // the server (quinn's connections, the readers, colour) runs first.
+            tokio::task::yield_now().await;
+        }
         tokio::select! {
             _ = tokio::time::sleep_until(next.into()) => {}
-            _ = shared.clock.joined.notified() => due = Instant::now(),
+            _ = shared.clock.wake.notified() => {}
             _ = shared.shutting_down() => return,
         }
     }
@@ -89,17 +111,27 @@ fn pass(
     shared: &Arc<Shared>,
     s: &Arc<Served>,
     c: &mut Conversation,
-    now: Instant,
-    snap: &Arc<Snapshot>,
+    (now, snap): (Instant, &Arc<Snapshot>),
+    first_made: &mut bool,
 ) {
     if s.ended() {
         return;
     }
-    if c.frame_due(now) {
+    // One first frame a pass is made here; another joining viewer waits for the next pass.
+    if c.frame_due(now) && !(c.frames() == 0 && *first_made) {
         let started = Instant::now();
+        path(s, c, now);
         let step = {
             let mut grant = lock(&s.grant);
             c.frame(now, &shared.scene(), snap, &mut **grant)
+        };
+        let step = match step {
+            Step::Heavy(job) if job.first() && job.budget() <= INLINE_FIRST_BUDGET => {
+                *first_made = true;
+                let done = job.run(&shared.scene(), || shared.snapshots.borrow().clone());
+                c.finish(Instant::now(), &shared.terrain, done)
+            }
+            other => other,
         };
         match step {
             Step::Idle => {}
@@ -120,6 +152,9 @@ async fn heavy(shared: Arc<Shared>, s: Arc<Served>, job: Box<Job>) {
     let Ok(permit) = shared.makers.acquire(job.first()).await else {
         return s.stop(FramesEnd::Failed("the server is shutting down"));
     };
+    if s.ended() {
+        return; // the viewer left while the job waited
+    }
     let started = Instant::now();
     let shared2 = shared.clone();
     let done = tokio::task::spawn_blocking(move || {
@@ -134,6 +169,7 @@ async fn heavy(shared: Arc<Shared>, s: Arc<Served>, job: Box<Job>) {
     };
     let now = Instant::now();
     let mut c = lock(&s.conv);
+    path(&s, &mut c, now);
     match c.finish(now, &shared.terrain, done) {
         Step::Sent(sent) => counted(&shared, &s, &c, sent, started),
         Step::End(why) => return s.stop(ended(why)),
@@ -141,6 +177,9 @@ async fn heavy(shared: Arc<Shared>, s: Arc<Served>, job: Box<Job>) {
     }
     tell(&shared, &s, &mut c);
     transmit(&s, &mut c, now);
+    drop(c);
+    // The clock may be asleep past this viewer's next frame (it did not count on it).
+    shared.clock.wake.notify_one();
 }
 
 fn ended(why: End) -> FramesEnd {
@@ -184,17 +223,19 @@ fn tell(shared: &Shared, s: &Served, c: &mut Conversation) {
     }
 }
 
+/// Tells the conversation the path's figures (before a frame: how it goes depends on them).
+fn path(s: &Served, c: &mut Conversation, now: Instant) {
+    let stats = s.conn.quic().stats();
+    let path = crate::viewer::conversation::Event::Path {
+        max_datagram: s.conn.max_datagram_size(),
+        lost: stats.path.lost_packets,
+        sent: stats.path.sent_packets,
+    };
+    c.handle(now, path);
+}
+
 /// Hands quinn what the conversation says to send by `now`.
 fn transmit(s: &Arc<Served>, c: &mut Conversation, now: Instant) {
-    let stats = s.conn.quic().stats();
-    c.handle(
-        now,
-        crate::viewer::conversation::Event::Path {
-            max_datagram: s.conn.max_datagram_size(),
-            lost: stats.path.lost_packets,
-            sent: stats.path.sent_packets,
-        },
-    );
     while let Some(t) = c.poll_transmit(now) {
         match t {
             Transmit::Datagram { frame, bytes } => {
@@ -235,7 +276,12 @@ async fn write_frame(
     bytes: Vec<u8>,
     mut cancelled: oneshot::Receiver<()>,
 ) {
-    let Some(mut stream) = s.conn.open_uni().await else {
+    // Superseded before the viewer gave it a stream (a slow or silent viewer): it goes.
+    let opened = tokio::select! {
+        o = s.conn.open_uni() => o,
+        Ok(()) = &mut cancelled => return,
+    };
+    let Some(mut stream) = opened else {
         return s.stop(FramesEnd::ConnectionLost);
     };
     stream.set_priority(priority);

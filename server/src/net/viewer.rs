@@ -203,6 +203,7 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
                         _ => "the vehicle followed has left",
                     };
                     let bye = ServerMessage::Bye(Reason::Unavailable(why.into()));
+                    shared.clock.remove(&served); // frames stop before the goodbye
                     goodbye(&send, &color.0, &bye).await;
                     conn.close(close::BYE, why.as_bytes());
                     why.into()
@@ -240,12 +241,14 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
         }
         why = tell_news(&send, shared.remote.clone(), driver) => {
             let bye = ServerMessage::Bye(Reason::Unavailable(why.clone()));
+            shared.clock.remove(&served); // frames stop before the goodbye
             goodbye(&send, &color.0, &bye).await;
             conn.close(close::BYE, why.as_bytes());
             why
         }
         _ = shared.shutting_down() => {
             let bye = ServerMessage::Bye(Reason::Shutdown);
+            shared.clock.remove(&served); // frames stop before the goodbye
             goodbye(&send, &color.0, &bye).await;
             if conn.via() == super::conn::Via::Web {
                 // A browser closes its session on the goodbye; closed from here first, a
@@ -256,6 +259,8 @@ pub(super) async fn serve(viewer: Viewer, seat: Seat, shared: Arc<Shared>) {
             "the server is shutting down".into()
         }
     };
+    // No more frames (a goodbye may have gone; nothing should follow it).
+    shared.clock.remove(&served);
     keys.abort();
     ctl.abort();
     drop(color);

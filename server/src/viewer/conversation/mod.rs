@@ -175,6 +175,11 @@ impl Job {
         self.first
     }
 
+    /// The budget the frame is made to.
+    pub fn budget(&self) -> u32 {
+        self.core.budget()
+    }
+
     /// Makes the frame. `newest` is the world's newest snapshot when the job runs: a first
     /// frame that waited behind many joins is made for where its vehicle is then, not
     /// where it was when begun (else the next frame rebuilt, and was a key frame again).

@@ -211,10 +211,13 @@ pub fn frame_message(
                 (v.id != vehicle, dx * dx + dz * dz, v.id)
             };
             let mut order: Vec<usize> = (0..all.len()).collect();
+            // A total order (`total_cmp`): a position that is not a number cannot panic the
+            // selection.
             order.select_nth_unstable_by(MAX_SHOWN - 1, |&a, &b| {
-                d2(&all[a])
-                    .partial_cmp(&d2(&all[b]))
-                    .unwrap_or(std::cmp::Ordering::Equal)
+                let (a, b) = (d2(&all[a]), d2(&all[b]));
+                (a.0.cmp(&b.0))
+                    .then(a.1.total_cmp(&b.1))
+                    .then(a.2.cmp(&b.2))
             });
             order.truncate(MAX_SHOWN);
             order.sort_unstable();
