@@ -64,6 +64,13 @@ if [[ "${1:-}" == "--join-storm" ]]; then
 fi
 COUNTS=("$@")
 ((${#COUNTS[@]})) || COUNTS=(5 10 15 20 25 30 35 40)
+# More viewers than the server admits by default (64): it is told to take them all.
+most=0
+for n in "${COUNTS[@]}"; do ((n > most)) && most=$n; done
+if ((most > 64)); then
+    SERVE_ARGS="--max-viewers $most ${SERVE_ARGS:-}"
+    export SERVE_ARGS
+fi
 if (($(nproc) < 2)); then
     echo "error: needs two CPUs (one for the server, one for the load generator)" >&2
     exit 1
