@@ -6,7 +6,7 @@
 
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use roam_protocol::messages::Hello;
 use roam_protocol::sync::lock;
@@ -114,8 +114,7 @@ impl FrameClock {
     /// Where the next viewer's frames fall (`origin + k·period`, [`Conversation::new`]):
     /// on one of [`PHASES`] phases of its period, in turn.
     pub(super) fn origin(&self, hello: &Hello, limits: ViewerLimits) -> Instant {
-        let rate = crate::viewer::ViewerCore::frame_rate(hello, limits);
-        let period = Duration::from_secs_f64(1.0 / f64::from(rate));
+        let period = Conversation::period(hello, limits);
         let n = self.phased.fetch_add(1, Ordering::Relaxed) % u64::from(PHASES);
         self.origin + period * n as u32 / PHASES
     }

@@ -51,7 +51,9 @@ use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Trans
 
 /// The largest budget whose first frame the clock makes itself (one a pass), rather than
 /// a blocking frame maker (the module's header says why): a pass's other frames wait for
-/// one first frame at most, some 15 ms at this budget.
+/// one first frame at most, some 15 ms at this budget. It borrows its tessellator from the
+/// makers' [`crate::tessellate::Scratch`] (no map-sized state is added), waiting for a
+/// maker's job to return one if all are lent.
 const INLINE_FIRST_BUDGET: u32 = 65_536;
 
 /// Longest sleep between passes with nothing due (a viewer's first frame wakes it).
@@ -72,14 +74,6 @@ pub(super) async fn run(shared: Arc<Shared>) {
         for s in &viewers {
             let at = {
                 let mut c = lock(&s.conv);
-                if c.frame_due(now) {
-                    // A frame that starts behind holds every viewer's colour back.
-                    let started = Instant::now();
-                    shared.color.frame_started(c.due_at(), started);
-                    shared
-                        .stats
-                        .frame_late(started.saturating_duration_since(c.due_at()));
-                }
                 // A frame that could not be made ends its viewer, never the clock.
                 let turn = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     pass(&shared, s, &mut c, (now, &snap), &mut first_made)
@@ -120,6 +114,10 @@ fn pass(
     // One first frame a pass is made here; another joining viewer waits for the next pass.
     if c.frame_due(now) && !(c.frames() == 0 && *first_made) {
         let started = Instant::now();
+        // A frame that starts behind holds every viewer's colour back.
+        shared.color.frame_started(c.due_at(), started);
+        let late = started.saturating_duration_since(c.due_at());
+        shared.stats.frame_late(late);
         path(s, c, now);
         let step = {
             let mut grant = lock(&s.grant);

@@ -227,8 +227,7 @@ pub struct Conversation {
     /// The frame clock's phase: frames after the first are due at `origin + k·period`.
     origin: Instant,
     next_frame: Instant,
-    frames: u64,
-    /// The newest frame made.
+    /// The newest frame made (they are numbered from 0).
     newest: Option<u64>,
     /// The change frame on a stream, and the key frame on one (kept apart: it is never
     /// abandoned while it is pending).
@@ -266,8 +265,7 @@ impl Conversation {
         role: Role,
         (now, origin): (Instant, Instant),
     ) -> Conversation {
-        let rate = ViewerCore::frame_rate(hello, limits);
-        let period = Duration::from_secs_f64(1.0 / f64::from(rate));
+        let period = Conversation::period(hello, limits);
         let core = ViewerCore::for_hello(terrain, height_step, hello, limits);
         Conversation {
             core: Some(core),
@@ -282,7 +280,6 @@ impl Conversation {
             period,
             next_frame: now,
             origin,
-            frames: 0,
             newest: None,
             in_flight: None,
             key_in_flight: None,
@@ -293,6 +290,12 @@ impl Conversation {
             repeats: VecDeque::new(),
             events: VecDeque::new(),
         }
+    }
+
+    /// The time between two frames of a viewer that said `hello`, served within `limits`.
+    pub fn period(hello: &Hello, limits: ViewerLimits) -> Duration {
+        let rate = ViewerCore::frame_rate(hello, limits);
+        Duration::from_secs_f64(1.0 / f64::from(rate))
     }
 
     /// Takes what arrived at `now`.
@@ -337,7 +340,7 @@ impl Conversation {
 
     /// Frames made.
     pub fn frames(&self) -> u64 {
-        self.frames
+        self.newest.map_or(0, |f| f + 1)
     }
 
     /// The viewer's core, unless a [`Job`] has it.
@@ -440,7 +443,7 @@ impl Conversation {
                 other => other,
             });
         }
-        let first = self.frames == 0;
+        let first = self.newest.is_none();
         let inline = if first {
             None
         } else {
@@ -491,7 +494,6 @@ impl Conversation {
             triangles,
             bytes: bytes.len(),
         };
-        self.frames += 1;
         self.newest = Some(frame);
         // Latest frame wins: the change frame on a stream is reset unless the viewer has
         // acknowledged it; the key frame goes on until it is no longer pending.
