@@ -399,7 +399,16 @@ pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Opti
                 played += 1;
             }
             let step = steps(&mut keys);
-            keys.key_datagram(step, Instant::now())
+            // The frames are acknowledged here (the core, made again on a reconnection,
+            // keeps the setting).
+            let acked = {
+                let mut core = lock(&shared.core);
+                if !core.acks_in_datagrams() {
+                    core.set_acks_in_datagrams();
+                }
+                core.acked()
+            };
+            keys.key_datagram(step, Instant::now(), acked)
         };
         let conn = lock(&shared.conn).clone();
         let mut bytes = Vec::new();
@@ -646,6 +655,9 @@ impl Connections {
             // after the new connection's first frames).
             if core.is_replay() {
                 fresh.set_replay();
+            }
+            if core.acks_in_datagrams() {
+                fresh.set_acks_in_datagrams();
             }
             self.shared
                 .bytes_before

@@ -264,6 +264,9 @@ pub struct ClientCore {
     /// The largest budget asked for: frames tessellated before a cut may still come.
     limit: u32,
     outbox: VecDeque<ClientMessage>,
+    /// Frames are acknowledged in the key datagrams ([`ClientCore::set_acks_in_datagrams`]),
+    /// not on the control stream.
+    acks_in_datagrams: bool,
     bytes_in: u64,
     /// The cut as drawn, with geomorphs ([`ClientCore::set_morph`]): the diamonds the
     /// frames toggled since it last followed them (each once, with its height), and the
@@ -310,6 +313,7 @@ impl ClientCore {
             budget,
             limit: budget,
             outbox: VecDeque::new(),
+            acks_in_datagrams: false,
             bytes_in: 0,
             morph: None,
             pending: DiamondMap::new(),
@@ -347,6 +351,25 @@ impl ClientCore {
     /// may go back when sought, and a jump of it shows the cut there at once.
     pub fn set_replay(&mut self) {
         self.replay = true;
+    }
+
+    /// Frames taken from now on are acknowledged by the key datagrams ([`Self::acked`] in
+    /// each, [`KeyDatagram::acked`]) rather than by [`ClientMessage::Ack`]s: a driver sends
+    /// a datagram every 10 ms, so its frames need no control message.
+    pub fn set_acks_in_datagrams(&mut self) {
+        self.acks_in_datagrams = true;
+        self.outbox
+            .retain(|m| !matches!(m, ClientMessage::Ack { .. }));
+    }
+
+    /// Whether frames are acknowledged by the key datagrams.
+    pub fn acks_in_datagrams(&self) -> bool {
+        self.acks_in_datagrams
+    }
+
+    /// The newest frame taken: what a key datagram acknowledges.
+    pub fn acked(&self) -> Option<u64> {
+        self.newest
     }
 
     /// Whether the server said it serves a recording being watched.
@@ -580,8 +603,10 @@ impl ClientCore {
             }
         }
         self.awaiting_base = 0;
-        self.outbox
-            .push_back(ClientMessage::Ack { frame: frame.frame });
+        if !self.acks_in_datagrams {
+            self.outbox
+                .push_back(ClientMessage::Ack { frame: frame.frame });
+        }
         self.newest = Some(frame.frame);
         self.newest_tick = Some(frame.tick);
         Ok(Taken::Frame(Received {
@@ -649,8 +674,10 @@ impl KeyCore {
     }
 
     /// The datagram for one physics step of keys taken at `now`: the new state, numbered,
-    /// and the [`messages::KEY_HISTORY`] before it (a lost datagram loses nothing).
-    pub fn key_datagram(&mut self, step: KeyStep, now: Instant) -> KeyDatagram {
+    /// and the [`messages::KEY_HISTORY`] before it (a lost datagram loses nothing), with
+    /// the frame acknowledgement `acked` ([`ClientCore::acked`] when the frames are
+    /// acknowledged by datagram, else `None`).
+    pub fn key_datagram(&mut self, step: KeyStep, now: Instant, acked: Option<u64>) -> KeyDatagram {
         self.seq = self.seq.wrapping_add(1);
         if step.held != self.last_held || !step.pressed.is_empty() {
             self.pending.push_back((self.seq, now));
@@ -667,6 +694,7 @@ impl KeyCore {
         self.history.truncate(messages::KEY_HISTORY);
         KeyDatagram {
             states: self.history.iter().copied().collect(),
+            acked,
         }
     }
 

@@ -6,7 +6,8 @@
 //! - the **control stream** (reliable, ordered, one per connection): [`ClientMessage`]s one
 //!   way, [`ServerMessage`]s the other, each preceded by its length as a `u32`;
 //! - **key-state datagrams** ([`KeyDatagram`]): the latest key states, repeated, so a lost
-//!   datagram costs nothing and a transient press survives;
+//!   datagram costs nothing and a transient press survives, and a driver's acknowledgement
+//!   of the newest frame it decoded;
 //! - **frames** ([`Frame`]): one QUIC datagram each when the frame fits one (nearly all
 //!   change frames do), otherwise a unidirectional stream of its own, abandoned (reset)
 //!   when a newer frame is ready first.
@@ -42,8 +43,9 @@ pub use crate::tiles::{ColorLayout, MAX_TILE_BYTES, MAX_WINDOW};
 /// [`crate::normals`]), for lighting per pixel. 8: a spectator may follow another vehicle
 /// ([`ClientMessage::Follow`], [`ServerMessage::Following`]), and a server serving a
 /// recording (`serve --replay`) says how it stands and takes its controls
-/// ([`ServerMessage::Replay`], [`ClientMessage::Replay`]).
-pub const VERSION: u16 = 8;
+/// ([`ServerMessage::Replay`], [`ClientMessage::Replay`]). 9: a key datagram may carry the
+/// frame acknowledgement ([`KeyDatagram::acked`]), so a driver sends no [`ClientMessage::Ack`].
+pub const VERSION: u16 = 9;
 /// The largest message (a frame with its mesh).
 pub const MAX_MESSAGE: usize = 16 << 20;
 /// The largest key datagram.
@@ -352,11 +354,20 @@ pub struct KeyState {
     pub pressed: u8,
 }
 
-/// The viewer's latest key states, newest first, at most [`KEY_HISTORY`].
+/// The viewer's latest key states, newest first, at most [`KEY_HISTORY`], and the newest
+/// frame it decoded.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct KeyDatagram {
     #[serde(deserialize_with = "key_states")]
     pub states: Vec<KeyState>,
+    /// The newest frame decoded, as [`ClientMessage::Ack`] says it; `None` from a viewer
+    /// that acknowledges on the control stream. A driver's datagrams go 100 a second and
+    /// each repeats it, so a lost one costs nothing: its frames need no control message (60
+    /// a second of a server's received packets, each decrypted and acknowledged, and a
+    /// wake of the viewer's reader). Unordered with the control stream: an
+    /// acknowledgement older than a key-frame request reaches the server after it at
+    /// times, and the server takes none of a frame made before the request.
+    pub acked: Option<u64>,
 }
 
 /// Why bytes are not a message.

@@ -202,6 +202,7 @@ pub fn seeds(grid: Grid) -> Vec<Vec<u8>> {
                 };
                 4
             ],
+            acked: Some(2),
         }),
     ];
     let heights = heights(grid);

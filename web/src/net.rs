@@ -179,7 +179,7 @@ impl Live {
             }),
             None => self.keys.take_keys(),
         };
-        let datagram = self.keys.key_datagram(step, Instant::now());
+        let datagram = self.keys.key_datagram(step, Instant::now(), None);
         let mut bytes = Vec::new();
         if let Some(s) = &self.session
             && messages::encode(&datagram, &mut bytes).is_ok()

@@ -159,6 +159,11 @@ fn every_message_round_trips() {
                 pressed: (i % 2) as u8,
             })
             .collect(),
+        acked: Some(u64::MAX),
+    });
+    round_trip(&KeyDatagram {
+        states: vec![],
+        acked: None,
     });
 }
 
@@ -252,6 +257,7 @@ fn limits() {
                 };
                 n
             ],
+            acked: None,
         })
     };
     let mb16 = 16 << 20;

@@ -225,6 +225,7 @@ async fn drive(
                 held: Keys::UP.bits(),
                 pressed: 0,
             }],
+            acked: None,
         };
         let mut bytes = Vec::new();
         messages::encode(&d, &mut bytes)?;

@@ -252,6 +252,10 @@ pub struct ViewerCore {
     /// for another, or a newer key frame supersedes it.
     pending_key: Option<u64>,
     key_requested: bool,
+    /// The first frame made after the newest key-frame request: an acknowledgement of an
+    /// older one is not taken (a key datagram's, unordered with the control stream, may
+    /// arrive after the request it preceded; the viewer's cut is not that frame's).
+    ack_floor: u64,
     /// What [`Self::begin_frame`] left to [`Self::finish_frame`].
     left: Option<Left>,
     next: u64,
@@ -321,6 +325,7 @@ impl ViewerCore {
             acked: None,
             pending_key: None,
             key_requested: false,
+            ack_floor: 0,
             left: None,
             next: 0,
             changes: Vec::new(),
@@ -330,15 +335,17 @@ impl ViewerCore {
     pub fn handle(&mut self, event: Event) {
         match event {
             Event::Budget(b) => self.budget = self.caps.budget(b),
-            // Only frames made can be acknowledged; a later ack wins. An ack of the pending
-            // key frame, or of a frame after it (decoded against it), ends its wait.
-            Event::Acked(f) if f < self.next => {
+            // Only frames made can be acknowledged, none made before the newest key-frame
+            // request; a later ack wins. An ack of the pending key frame, or of a frame
+            // after it (decoded against it), ends its wait.
+            Event::Acked(f) if (self.ack_floor..self.next).contains(&f) => {
                 self.acked = Some(self.acked.map_or(f, |a| a.max(f)));
                 self.pending_key = self.pending_key.filter(|&k| k > f);
             }
             Event::Acked(_) => {}
             Event::KeyFrame => {
                 self.key_requested = true;
+                self.ack_floor = self.next;
                 self.acked = None;
                 self.pending_key = None;
             }

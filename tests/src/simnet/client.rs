@@ -58,8 +58,13 @@ impl Sim {
                     for msg in v.client.control_in.accept(seq, bytes) {
                         match messages::decode::<ServerMessage>(&msg) {
                             Ok(ServerMessage::Welcome(w)) => {
-                                let core = ClientCore::new(&w, v.client.hello.budget)
+                                let mut core = ClientCore::new(&w, v.client.hello.budget)
                                     .expect("the welcome's grid is one the protocol has");
+                                // A driver acknowledges its frames in its key datagrams,
+                                // as `roam-client` does.
+                                if v.client.steps.is_some() {
+                                    core.set_acks_in_datagrams();
+                                }
                                 v.client.core = Some(core);
                                 v.client.welcome = Some(w);
                                 v.client.next_key = now;
@@ -113,7 +118,8 @@ impl Sim {
                     pressed: Keys::NONE,
                 });
                 v.client.next_step += 1;
-                let datagram = v.client.keys.key_datagram(step, epoch + now);
+                let acked = core.acks_in_datagrams().then(|| core.acked()).flatten();
+                let datagram = v.client.keys.key_datagram(step, epoch + now, acked);
                 v.up.send(now, Payload::Datagram(encoded(&datagram)));
                 v.stats.key_datagrams += 1;
                 v.client.next_key += TICK;

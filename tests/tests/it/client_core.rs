@@ -89,6 +89,28 @@ fn growing_cuts(grid: Grid, n: usize) -> Vec<BitSet> {
         .collect()
 }
 
+/// A driver's core acknowledges in its key datagrams: taking frames queues no control
+/// message, and `acked` names the newest taken (an acknowledgement queued before is
+/// dropped).
+#[test]
+fn frames_acknowledged_by_datagram_send_no_control_message() {
+    let (grid, heights, welcome) = small_grid();
+    let cuts = growing_cuts(grid, 3);
+    let key = frame_bytes(grid, &heights, 0, &cuts[1], None);
+    let delta = frame_bytes(grid, &heights, 1, &cuts[2], Some((0, &cuts[1])));
+    let mut core = ClientCore::new(&welcome, 1_000).expect("a valid grid");
+    let now = Instant::now();
+    assert_eq!(core.acked(), None);
+    core.offer(&key, now);
+    assert!(matches!(core.take(true), Ok(Taken::Frame(_))));
+    core.set_acks_in_datagrams();
+    assert_eq!(core.acked(), Some(0));
+    core.offer(&delta, now);
+    assert!(matches!(core.take(true), Ok(Taken::Frame(_))));
+    assert_eq!(core.acked(), Some(1));
+    assert_eq!(core.poll_control(), None, "no Ack on the control stream");
+}
+
 /// The server codes the frames after a key frame against it before the viewer has it, and
 /// the key frame (larger, on a stream) may come after them: the viewer passes over a frame
 /// whose base has not come (no error, no key-frame request), keeps the key frame apart when

@@ -303,8 +303,11 @@ impl Conversation {
         match event {
             Event::Datagram(bytes) => {
                 self.heard = Some(now);
-                let e = self.gate.admit(bytes, now)?;
-                self.driver.then_some(Handled::World(e))
+                let (keys, acked) = self.gate.admit(bytes, now)?;
+                if let Some(frame) = acked {
+                    self.mailbox.ack(frame);
+                }
+                self.driver.then_some(Handled::World(keys))
             }
             Event::Control(msg) => {
                 (self.mailbox.push(msg) == Control::End).then_some(Handled::Goodbye)

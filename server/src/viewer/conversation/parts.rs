@@ -124,8 +124,13 @@ impl KeyGate {
         }
     }
 
-    /// A datagram arrived at `now`: the world's event for it, if it is taken.
-    pub fn admit(&mut self, bytes: &[u8], now: Instant) -> Option<world_core::Event> {
+    /// A datagram arrived at `now`: if it is taken, the world's event for it and the frame
+    /// it acknowledges ([`KeyDatagram::acked`]).
+    pub fn admit(
+        &mut self,
+        bytes: &[u8],
+        now: Instant,
+    ) -> Option<(world_core::Event, Option<u64>)> {
         let since = self
             .refilled
             .map_or(0.0, |t| now.saturating_duration_since(t).as_secs_f64());
@@ -136,10 +141,11 @@ impl KeyGate {
         }
         self.tokens -= 1.0;
         let d = messages::decode::<KeyDatagram>(bytes).ok()?;
-        Some(world_core::Event::Keys {
+        let keys = world_core::Event::Keys {
             vehicle: self.vehicle,
             states: d.states,
-        })
+        };
+        Some((keys, d.acked))
     }
 }
 

@@ -245,6 +245,7 @@ fn key_datagrams_become_world_events_for_a_driver_only() {
     };
     let d = KeyDatagram {
         states: vec![state],
+        acked: None,
     };
     let mut bytes = Vec::new();
     roam_protocol::messages::encode(&d, &mut bytes).expect("a small datagram");
@@ -269,6 +270,61 @@ fn key_datagrams_become_world_events_for_a_driver_only() {
         ),
         Some(Handled::Goodbye)
     );
+}
+
+/// The frame a driver's key datagram acknowledges, as the conversation takes it: the core's
+/// acknowledged frame after the next frame, and whether that frame is a key frame.
+fn acked_by_datagram(
+    f: &Fixture,
+    c: &mut Conversation,
+    acked: Option<u64>,
+    at: Instant,
+    snap: &Arc<Snapshot>,
+) -> (Option<u64>, Option<KeyCause>) {
+    let d = KeyDatagram {
+        states: vec![],
+        acked,
+    };
+    let mut bytes = Vec::new();
+    roam_protocol::messages::encode(&d, &mut bytes).expect("a small datagram");
+    c.handle(at, Event::Datagram(&bytes));
+    let Step::Sent(sent) = f.frame(c, at, snap) else {
+        panic!("a frame is due every 20 ms")
+    };
+    (c.core().and_then(ViewerCore::acked), sent.key)
+}
+
+#[test]
+fn a_key_datagram_acknowledges_frames_but_none_made_before_a_key_frame_request() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    assert!(matches!(f.frame(&mut c, t0, &snap), Step::Sent(_)));
+    let mut check = |acked, k: u32, control: Option<ClientMessage>, want| {
+        if let Some(m) = control {
+            c.handle(t0, Event::Control(m));
+        }
+        let at = t0 + k * 20 * MS;
+        assert_eq!(
+            acked_by_datagram(&f, &mut c, acked, at, &snap),
+            want,
+            "frame {k}"
+        );
+    };
+    // Frame 0 acknowledged: frame 1 is coded against it.
+    check(Some(0), 1, None, (Some(0), None));
+    // An acknowledgement of a frame not made yet is not taken.
+    check(Some(9), 2, None, (Some(0), None));
+    // A key frame asked for, then frame 2 (made before the request) acknowledged by a
+    // datagram that arrived late: not taken, the key frame made.
+    check(
+        Some(2),
+        3,
+        Some(ClientMessage::KeyFrame),
+        (None, Some(KeyCause::Asked)),
+    );
+    // The key frame acknowledged: taken.
+    check(Some(3), 4, None, (Some(3), None));
 }
 
 #[test]
