@@ -2,8 +2,8 @@
 # Viewers served per server core (docs/figures.md, command E), every viewer driving.
 #
 # The server runs pinned to CPU 0; the load generator (`roam-client --headless --viewers N
-# --skip-decode`: N viewers that acknowledge every frame without decoding it) runs pinned
-# to CPU 1. Every viewer drives: `scripts/capacity-drive.txt` (45 s of throttle, brakes and
+# --skip-decode`: N viewers that acknowledge every frame without decoding it, and let colour
+# tiles go undecoded after the join's) runs pinned to CPU 1. Every viewer drives: `scripts/capacity-drive.txt` (45 s of throttle, brakes and
 # turns both ways), played again each time it ends (`--loop-inputs`), each viewer from
 # another of its lines. For each N, one JSON line: the generator's report (its keys, see
 # `client/src/stats.rs`) and

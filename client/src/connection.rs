@@ -17,7 +17,7 @@
 //! and the supervisor; the supervisor decides whether a connection's end ends the session.
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -82,6 +82,10 @@ pub(crate) struct Shared {
     pub(crate) colors: Mutex<ColorCache>,
     /// Colour bytes of the connections before this one.
     pub(crate) color_bytes_before: AtomicU64,
+    /// Colour and normal tiles are counted, not decoded ([`crate::Session::skip_color`]).
+    pub(crate) skip_color: AtomicBool,
+    /// The bytes of the tiles not decoded, every connection's.
+    pub(crate) color_bytes_skipped: AtomicU64,
     /// Locked apart from the frames: a key state never waits on a decode. For the session.
     pub(crate) keys: Mutex<KeyCore>,
     /// Woken when a frame is offered or the session ends.
@@ -258,6 +262,14 @@ pub(crate) async fn read_control(
             Err(e) => break End::Final(format!("the server's control stream: {e}")),
         };
         shared.heard();
+        if shared.skip_color.load(Ordering::Relaxed)
+            && let ServerMessage::ColorTile { data, .. } | ServerMessage::NormalTile { data, .. } =
+                &msg
+        {
+            let bytes = data.len() as u64;
+            shared.color_bytes_skipped.fetch_add(bytes, Ordering::Relaxed);
+            continue;
+        }
         match take_control(&msg, &mut rgb, || lock(&shared.colors)) {
             Ok(None) => {}
             Ok(Some(Told::News(news))) => shared.news(news),

@@ -41,8 +41,8 @@ pub struct ViewerOptions {
     pub viewport: [u32; 2],
     pub fov_y_deg: f32,
     pub frame_rate: u16,
-    /// Acknowledge frames without decoding them (a load generator measuring the server,
-    /// not itself).
+    /// Acknowledge frames without decoding them, and count colour and normal tiles without
+    /// decoding them after the join's (a load generator measuring the server, not itself).
     pub skip_decode: bool,
     /// Keep the scene and the last mesh (for a screenshot).
     pub keep_last: bool,
@@ -195,6 +195,9 @@ pub async fn measure_any(
         Keep::Masks
     };
     let session = Session::join_any(addrs, fingerprint, hello, keys, opts.patience, keep).await?;
+    if opts.skip_decode {
+        session.skip_color();
+    }
     let said = tokio::spawn(say_world(session.status_changes()));
     let mut stats = ViewerStats {
         scene: opts.keep_last.then(|| session.scene.clone()),

@@ -100,8 +100,10 @@ struct Cli {
     /// draw with them; other headless viewers draw nothing.
     #[arg(long, default_value_t = roam_client::render::MORPH_TICKS)]
     morph_ticks: u16,
-    /// Acknowledge frames without decoding them: a load generator that measures the
-    /// server, not its own decoding (the wire and decode figures are then empty).
+    /// Acknowledge frames without decoding them, and let colour and normal tiles go
+    /// undecoded after the join's (counted in the colour bytes): a load generator that
+    /// measures the server, not its own decoding (the wire and decode figures are then
+    /// empty).
     #[arg(long)]
     skip_decode: bool,
     /// Frames a second each headless viewer asks for (the server serves at most its

@@ -33,7 +33,7 @@
 //! [`WorldNews::Edges`]: roam_protocol::messages::WorldNews::Edges
 
 use std::net::SocketAddr;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -187,6 +187,8 @@ impl Session {
             core: Mutex::new(core),
             colors: Mutex::new(colors),
             color_bytes_before: AtomicU64::new(0),
+            skip_color: AtomicBool::new(false),
+            color_bytes_skipped: AtomicU64::new(0),
             keys: Mutex::new(KeyCore::default()),
             notify: Notify::new(),
             epoch: AtomicU64::new(0),
@@ -279,7 +281,18 @@ impl Session {
 
     /// Colour tile bytes received so far, every connection's.
     pub fn color_bytes(&self) -> u64 {
-        self.shared.color_bytes_before.load(Ordering::Relaxed) + self.colors().bytes()
+        self.shared.color_bytes_before.load(Ordering::Relaxed)
+            + self.shared.color_bytes_skipped.load(Ordering::Relaxed)
+            + self.colors().bytes()
+    }
+
+    /// From now on, colour and normal tiles are counted ([`Self::color_bytes`]) and let go
+    /// undecoded: a load generator measures the server, not its own decoding (`roam-client
+    /// --skip-decode`). Decoding them was three quarters of a generator's CPU with 50
+    /// driving viewers (`perf`, 2026-12-07: `colormap::run`), the frames being undecoded
+    /// already. The cache keeps what came before (the join's window).
+    pub fn skip_color(&self) {
+        self.shared.skip_color.store(true, Ordering::Relaxed);
     }
 
     /// Where the session stands, its gaps and its newest welcome.
