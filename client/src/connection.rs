@@ -267,7 +267,9 @@ pub(crate) async fn read_control(
                 &msg
         {
             let bytes = data.len() as u64;
-            shared.color_bytes_skipped.fetch_add(bytes, Ordering::Relaxed);
+            shared
+                .color_bytes_skipped
+                .fetch_add(bytes, Ordering::Relaxed);
             continue;
         }
         match take_control(&msg, &mut rgb, || lock(&shared.colors)) {

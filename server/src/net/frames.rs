@@ -14,6 +14,15 @@
 //! lossy path, a viewer that joined (its first frame is due at once), a heavy frame back
 //! (while it was away, the clock did not count on the viewer's next frame).
 //!
+//! **A pass in slices.** A pass lets the rest of the server run every [`PASS_SLICE`]: on
+//! the one core a server is given, nothing is sent or read while the clock runs, and with
+//! 64 viewers turning together a pass took 30 ms and more. Its first frames then waited in
+//! quinn for its last, their streams were superseded before they left, the viewers took
+//! none, fell behind and got key frames (the summary's `key_behind`: 20 to 55 in half a
+//! second), which loaded the core more. Sliced (`scripts/capacity.sh --in-step 64`,
+//! `FRAMES=1800`, 2026-12-07, in turn): the slowest viewer 42.2–43.2 → 51.7 frames/s, every
+//! frame sent taken, the longest gap 937–992 → 131–168 ms, 207–213 → 151–153 µs a frame.
+//!
 //! What a viewer costs is mostly its cut: profiled (`perf`, 50 driving viewers on one core,
 //! `data/kossou`, 2026-12-07), the coherent tessellator's update took about three fifths
 //! of the server's CPU, the kernel's UDP and quinn a tenth, `malloc` and copies a tenth;
@@ -25,10 +34,15 @@
 //! the clock), then given back ([`Conversation::finish`]) and sent from there; the pass
 //! goes on, so a heavy frame never delays the other viewers' frames. A viewer's first frame
 //! (a key frame from scratch, 3–7 ms at 32,768 triangles) is the exception up to
-//! [`INLINE_FIRST_BUDGET`]: the clock makes one a pass itself, yielding between passes.
-//! On the maker, below the frames of those already served, 40 viewers joining at once had
-//! their first frames up to 1.5 s after their joins, 50 up to 2.4 s; one a pass, 0.19–0.29 s
-//! and 0.19–0.22 s (`scripts/capacity.sh 40`, `50`, 2026-12-07).
+//! [`INLINE_FIRST_BUDGET`]: the clock makes them itself, one at a time, at least
+//! [`FIRST_EVERY`] apart. On the maker, below the frames of those already served, 40
+//! viewers joining at once had their first frames up to 1.5 s after their joins, 50 up to
+//! 2.4 s; one a pass, 0.19–0.29 s and 0.19–0.22 s (`scripts/capacity.sh 40`, `50`,
+//! 2026-12-07). Once passes were sliced, one a pass came 0.32–0.37 s after the join (the
+//! slices let the joins' colour and handshakes run), one a slice 0.22–0.24 s with the
+//! longest gap after a first frame 0.23–0.30 s (the joins took most of the core); 4 ms
+//! apart, 0.15–0.27 s, gaps 0.17–0.25 s (0.04–0.14 s one a pass): the first frame's bound
+//! is the must kept (`scripts/capacity.sh 40`, both maps, twice each).
 //!
 //! **How bytes go.** A datagram is handed to quinn at once (refused after all, the
 //! conversation puts the frame on a stream); a stream frame is written by a task of its
@@ -49,9 +63,9 @@ use crate::sim::world_core::Snapshot;
 use crate::viewer::KeyCause;
 use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Transmit};
 
-/// The largest budget whose first frame the clock makes itself (one a pass), rather than
-/// a blocking frame maker (the module's header says why): a pass's other frames wait for
-/// one first frame at most, some 15 ms at this budget. It borrows its tessellator from the
+/// The largest budget whose first frame the clock makes itself ([`FIRST_EVERY`] apart),
+/// rather than a blocking frame maker (the module's header says why): a pass's other
+/// frames wait for one first frame at most, some 15 ms at this budget. It borrows its tessellator from the
 /// makers' [`crate::tessellate::Scratch`] (no map-sized state is added), waiting for a
 /// maker's job to return one if all are lent.
 const INLINE_FIRST_BUDGET: u32 = 65_536;
@@ -59,8 +73,23 @@ const INLINE_FIRST_BUDGET: u32 = 65_536;
 /// Longest sleep between passes with nothing due (a viewer's first frame wakes it).
 const IDLE: Duration = Duration::from_millis(250);
 
+/// The longest a pass runs before it lets the rest of the server run (quinn's connections
+/// send the frames made so far and read what came in, the frame writers write), then goes
+/// on. On the one core a server is given, a pass of 64 viewers turning together took 30 ms
+/// and more, with nothing sent or read meanwhile: the frames made first waited for the
+/// last, their streams were superseded before they left, and with no frame taken the
+/// viewers fell behind and got key frames.
+const PASS_SLICE: Duration = Duration::from_millis(2);
+
+/// The least time from the end of one first frame the clock makes to the start of the
+/// next: the frames of the viewers already served, and the rest of the server, run
+/// between.
+const FIRST_EVERY: Duration = Duration::from_millis(4);
+
 /// Serves every viewer's frames until the server shuts down.
 pub(super) async fn run(shared: Arc<Shared>) {
+    // When the clock last made a first frame.
+    let mut last_first: Option<Instant> = None;
     loop {
         let now = Instant::now();
         let viewers: Vec<Arc<Served>> = {
@@ -70,26 +99,35 @@ pub(super) async fn run(shared: Arc<Shared>) {
         };
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let mut next = now + IDLE;
-        let mut first_made = false;
+        let mut slice = Instant::now();
         for s in &viewers {
+            if slice.elapsed() >= PASS_SLICE {
+                tokio::task::yield_now().await;
+                slice = Instant::now();
+            }
             let at = {
                 let mut c = lock(&s.conv);
                 // A frame that could not be made ends its viewer, never the clock.
                 let turn = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    pass(&shared, s, &mut c, (now, &snap), &mut first_made)
+                    pass(&shared, s, &mut c, (now, &snap), &mut last_first)
                 }));
                 if turn.is_err() {
                     s.stop(FramesEnd::Failed("the frame maker failed"));
                 }
-                c.poll_timeout()
+                // A first frame waiting its turn is due when the turn comes, not before.
+                let turn = last_first.map(|t| t + FIRST_EVERY);
+                match (c.poll_timeout(), turn) {
+                    (Some(at), Some(turn)) if c.frames() == 0 => Some(at.max(turn)),
+                    (at, _) => at,
+                }
             };
             if let Some(at) = at {
                 next = next.min(at);
             }
         }
         if next <= Instant::now() {
-            // Due again at once (joining viewers' first frames, one a pass): the rest of
-            // the server (quinn's connections, the readers, colour) runs first.
+            // Due again at once (a frame come due during the pass): the rest of the server
+            // (quinn's connections, the readers, colour) runs first.
             tokio::task::yield_now().await;
         }
         tokio::select! {
@@ -106,13 +144,15 @@ fn pass(
     s: &Arc<Served>,
     c: &mut Conversation,
     (now, snap): (Instant, &Arc<Snapshot>),
-    first_made: &mut bool,
+    last_first: &mut Option<Instant>,
 ) {
     if s.ended() {
         return;
     }
-    // One first frame a pass is made here; another joining viewer waits for the next pass.
-    if c.frame_due(now) && !(c.frames() == 0 && *first_made) {
+    // First frames are made here one at a time, `FIRST_EVERY` apart; a joining viewer whose
+    // turn it is not waits for a later pass.
+    let first_waits = last_first.is_some_and(|t| t.elapsed() < FIRST_EVERY);
+    if c.frame_due(now) && !(c.frames() == 0 && first_waits) {
         let started = Instant::now();
         // A frame that starts behind holds every viewer's colour back.
         shared.color.frame_started(c.due_at(), started);
@@ -125,7 +165,7 @@ fn pass(
         };
         let step = match step {
             Step::Heavy(job) if job.first() && job.budget() <= INLINE_FIRST_BUDGET => {
-                *first_made = true;
+                *last_first = Some(Instant::now());
                 let done = job.run(&shared.scene(), || shared.snapshots.borrow().clone());
                 c.finish(Instant::now(), &shared.terrain, done)
             }
