@@ -381,6 +381,9 @@ pub(crate) async fn write_control(send: &mut quinn::SendStream, msg: &ClientMess
 /// the steps since the grid began skipped (`KeySource::InStep`); without, from now.
 pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Option<Phase>) {
     const STEP: Duration = Duration::from_millis(10);
+    // The key datagrams acknowledge the frames from now on (a core made again on a
+    // reconnection keeps the setting: `Connections::adopt`).
+    lock(&shared.core).set_acks_in_datagrams();
     let now = tokio::time::Instant::now();
     let start = match phase {
         Some(Phase::At(phase)) => on_grid(now, STEP, phase),
@@ -413,15 +416,7 @@ pub(crate) async fn send_keys(shared: Arc<Shared>, mut steps: Steps, phase: Opti
                 played += 1;
             }
             let step = steps(&mut keys);
-            // The frames are acknowledged here (the core, made again on a reconnection,
-            // keeps the setting).
-            let acked = {
-                let mut core = lock(&shared.core);
-                if !core.acks_in_datagrams() {
-                    core.set_acks_in_datagrams();
-                }
-                core.acked()
-            };
+            let acked = lock(&shared.core).acked();
             keys.key_datagram(step, Instant::now(), acked)
         };
         let conn = lock(&shared.conn).clone();

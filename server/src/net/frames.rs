@@ -65,9 +65,9 @@ use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Trans
 
 /// The largest budget whose first frame the clock makes itself ([`FIRST_EVERY`] apart),
 /// rather than a blocking frame maker (the module's header says why): a pass's other
-/// frames wait for one first frame at most, some 15 ms at this budget. It borrows its tessellator from the
-/// makers' [`crate::tessellate::Scratch`] (no map-sized state is added), waiting for a
-/// maker's job to return one if all are lent.
+/// frames wait for one first frame at most, some 15 ms at this budget. It borrows its
+/// tessellator from the makers' [`crate::tessellate::Scratch`] (no map-sized state is
+/// added), waiting for a maker's job to return one if all are lent.
 const INLINE_FIRST_BUDGET: u32 = 65_536;
 
 /// Longest sleep between passes with nothing due (a viewer's first frame wakes it).
@@ -85,6 +85,11 @@ const PASS_SLICE: Duration = Duration::from_millis(2);
 /// next: the frames of the viewers already served, and the rest of the server, run
 /// between.
 const FIRST_EVERY: Duration = Duration::from_millis(4);
+
+/// When the next first frame may start, the last having been made at `last`.
+fn first_turn(last: Option<Instant>) -> Option<Instant> {
+    last.map(|t| t + FIRST_EVERY)
+}
 
 /// Serves every viewer's frames until the server shuts down.
 pub(super) async fn run(shared: Arc<Shared>) {
@@ -115,9 +120,8 @@ pub(super) async fn run(shared: Arc<Shared>) {
                     s.stop(FramesEnd::Failed("the frame maker failed"));
                 }
                 // A first frame waiting its turn is due when the turn comes, not before.
-                let turn = last_first.map(|t| t + FIRST_EVERY);
-                match (c.poll_timeout(), turn) {
-                    (Some(at), Some(turn)) if c.frames() == 0 => Some(at.max(turn)),
+                match (c.poll_timeout(), first_turn(last_first)) {
+                    (Some(at), Some(first)) if c.frames() == 0 => Some(at.max(first)),
                     (at, _) => at,
                 }
             };
@@ -151,7 +155,7 @@ fn pass(
     }
     // First frames are made here one at a time, `FIRST_EVERY` apart; a joining viewer whose
     // turn it is not waits for a later pass.
-    let first_waits = last_first.is_some_and(|t| t.elapsed() < FIRST_EVERY);
+    let first_waits = first_turn(*last_first).is_some_and(|t| t > Instant::now());
     if c.frame_due(now) && !(c.frames() == 0 && first_waits) {
         let started = Instant::now();
         // A frame that starts behind holds every viewer's colour back.
