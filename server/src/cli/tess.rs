@@ -122,6 +122,10 @@ pub(crate) struct BenchArgs {
     /// `scripts/capacity-drive.txt`.
     #[arg(long, value_name = "FILE")]
     pub drive: Option<PathBuf>,
+    /// The most changes a viewer's cut makes a frame once within its budget, as a loaded
+    /// server allows (`net/frames.rs`); the rest waits for the frames after. Unset: none.
+    #[arg(long, value_name = "CHANGES")]
+    pub allowance: Option<u32>,
 }
 
 fn parse_vec3(s: &str) -> Result<[f64; 3], String> {
@@ -293,8 +297,9 @@ pub(crate) fn bench(args: BenchArgs) -> Result<()> {
             .expect("the built-in drive is a valid script"),
     };
     let caps = args.cut.limits(ViewerLimits::default());
-    let serve = serve_bench(&terrain, &vt, limits, caps, &script)?;
-    let many = serve_many_bench(&terrain, &vt, limits, caps, &script);
+    let allowance = args.allowance.unwrap_or(u32::MAX);
+    let serve = serve_bench(&terrain, &vt, limits, caps, allowance, &script)?;
+    let many = serve_many_bench(&terrain, &vt, limits, caps, allowance, &script);
     let samples = f64::from(terrain.heights.side()).powi(2);
     let resident = (terrain.heights.bytes() + vt.bytes()) as f64 / samples;
     let mut report = serde_json::json!({
@@ -355,6 +360,8 @@ pub(crate) fn bench(args: BenchArgs) -> Result<()> {
         ),
         ("fog_density", serde_json::json!(terrain.map.fog_density)),
         ("swap_margin_pct", serde_json::json!(caps.swap_margin_pct)),
+        ("allowance", serde_json::json!(args.allowance)),
+        ("serve_short_share", serde_json::json!(serve.short_share)),
         ("serve_many_frame_us_median", serde_json::json!(many.median)),
         ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
         ("serve_many_frame_us_p90", serde_json::json!(many.p90)),
@@ -478,6 +485,8 @@ struct ServeFigures {
     viewer_bytes: usize,
     /// The most the core had reserved after any frame of the drive.
     viewer_bytes_peak: usize,
+    /// The share of frames whose update stopped at the allowance.
+    short_share: f64,
     /// Where the cut's bytes go (`Coherent::heap_parts`).
     viewer_parts: Vec<serde_json::Value>,
 }
@@ -487,6 +496,7 @@ fn serve_bench(
     vt: &VarianceTree,
     limits: Limits,
     caps: ViewerLimits,
+    allowance: u32,
     script: &roam_protocol::script::Script,
 ) -> Result<ServeFigures> {
     use roam_protocol::{BitSet, Follower, Grid, mesh};
@@ -509,6 +519,7 @@ fn serve_bench(
         limits.budget,
     )
     .with_caps(caps);
+    core.set_allowance(allowance);
     let pool = roam_server::tessellate::Scratch::new(terrain.heights.side(), 1);
     let scene = Scene {
         terrain,
@@ -525,7 +536,7 @@ fn serve_bench(
     let (mut fogged, mut unfogged) = (vec![], vec![]);
     let (side, density) = (terrain.heights.side(), terrain.map.fog_density as f32);
     let (mut bytes, mut evaluated, mut popped, mut rebuilds) = (vec![], vec![], vec![], 0);
-    let mut peak = 0;
+    let (mut peak, mut short) = (0, 0);
     for (k, cam) in cameras.iter().enumerate() {
         let started = Instant::now();
         let made = core.make_frame_at(&scene, cam);
@@ -538,6 +549,7 @@ fn serve_bench(
             evaluated.push(f64::from(core.cut().stats().evaluated));
             popped.push(f64::from(core.cut().stats().popped));
             rebuilds += usize::from(made.mode == Mode::Rebuild);
+            short += usize::from(core.cut().stats().short);
         }
         decoder.decode(made.frame, &made.payload, made.base, u32::MAX)?;
         decoder.mirror(&mut split, &mut heights);
@@ -606,6 +618,7 @@ fn serve_bench(
         bytes_per_triangle_first: bytes.first().copied().unwrap_or(0.0),
         bytes_per_triangle_steady: quantile(bytes.get(1..).unwrap_or(&[]), 0.5),
         rebuilds,
+        short_share: short as f64 / us.len().max(1) as f64,
         evaluated_median: quantile(&evaluated, 0.5),
         popped_median: quantile(&popped, 0.5),
         viewer_bytes: core.heap_bytes(),
@@ -643,6 +656,7 @@ fn serve_many_bench(
     vt: &VarianceTree,
     limits: Limits,
     caps: ViewerLimits,
+    allowance: u32,
     script: &roam_protocol::script::Script,
 ) -> ManyFigures {
     use roam_server::viewer::{Event, Scene, ViewerCore};
@@ -667,6 +681,9 @@ fn serve_many_bench(
             .with_caps(caps)
         })
         .collect();
+    for core in &mut cores {
+        core.set_allowance(allowance);
+    }
     let n = cameras.len();
     let mut us = Vec::with_capacity(n * MANY_VIEWERS);
     // Changes, evaluations and schedule entries taken, summed over the timed frames.

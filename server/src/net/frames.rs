@@ -60,8 +60,8 @@ use super::clock::{FramesEnd, Served};
 use super::conn::DatagramError;
 use super::shared::Shared;
 use crate::sim::world_core::Snapshot;
-use crate::viewer::KeyCause;
 use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Transmit};
+use crate::viewer::{Allowance, KeyCause};
 
 /// The largest budget whose first frame the clock makes itself ([`FIRST_EVERY`] apart),
 /// rather than a blocking frame maker (the module's header says why): a pass's other
@@ -95,6 +95,8 @@ fn first_turn(last: Option<Instant>) -> Option<Instant> {
 pub(super) async fn run(shared: Arc<Shared>) {
     // When the clock last made a first frame.
     let mut last_first: Option<Instant> = None;
+    // What each cut may change a frame, from how late the passes' frames start.
+    let mut allowance = Allowance::default();
     loop {
         let now = Instant::now();
         let viewers: Vec<Arc<Served>> = {
@@ -105,6 +107,7 @@ pub(super) async fn run(shared: Arc<Shared>) {
         let snap: Arc<Snapshot> = shared.snapshots.borrow().clone();
         let mut next = now + IDLE;
         let mut slice = Instant::now();
+        let mut latest: Option<Duration> = None;
         for s in &viewers {
             if slice.elapsed() >= PASS_SLICE {
                 tokio::task::yield_now().await;
@@ -113,9 +116,13 @@ pub(super) async fn run(shared: Arc<Shared>) {
             let at = {
                 let mut c = lock(&s.conv);
                 // A frame that could not be made ends its viewer, never the clock.
+                c.set_allowance(allowance.changes());
                 let turn = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
                     pass(&shared, s, &mut c, (now, &snap), &mut last_first)
                 }));
+                if let Ok(Some(late)) = turn {
+                    latest = latest.max(Some(late));
+                }
                 if turn.is_err() {
                     s.stop(FramesEnd::Failed("the frame maker failed"));
                 }
@@ -129,6 +136,8 @@ pub(super) async fn run(shared: Arc<Shared>) {
                 next = next.min(at);
             }
         }
+        allowance.pass(latest);
+        shared.stats.allowance(allowance.level());
         if next <= Instant::now() {
             // Due again at once (a frame come due during the pass): the rest of the server
             // (quinn's connections, the readers, colour) runs first.
@@ -142,17 +151,19 @@ pub(super) async fn run(shared: Arc<Shared>) {
     }
 }
 
-/// One viewer's turn in a pass: its frame if due, and whatever is due to send.
+/// One viewer's turn in a pass: its frame if due, and whatever is due to send. Returns
+/// how late after its tick a frame started (`None`: none was made).
 fn pass(
     shared: &Arc<Shared>,
     s: &Arc<Served>,
     c: &mut Conversation,
     (now, snap): (Instant, &Arc<Snapshot>),
     last_first: &mut Option<Instant>,
-) {
+) -> Option<Duration> {
     if s.ended() {
-        return;
+        return None;
     }
+    let mut made = None;
     // First frames are made here one at a time, `FIRST_EVERY` apart; a joining viewer whose
     // turn it is not waits for a later pass.
     let first_waits = first_turn(*last_first).is_some_and(|t| t > Instant::now());
@@ -162,6 +173,7 @@ fn pass(
         shared.color.frame_started(c.due_at(), started);
         let late = started.saturating_duration_since(c.due_at());
         shared.stats.frame_late(late);
+        made = Some(late);
         path(s, c, now);
         let step = {
             let mut grant = lock(&s.grant);
@@ -181,11 +193,15 @@ fn pass(
             Step::Heavy(job) => {
                 tokio::spawn(heavy(shared.clone(), s.clone(), job));
             }
-            Step::End(why) => return s.stop(ended(why)),
+            Step::End(why) => {
+                s.stop(ended(why));
+                return made;
+            }
         }
         tell(shared, s, c);
     }
     transmit(s, c, now);
+    made
 }
 
 /// A frame's heavy part on a blocking maker, then sent.
@@ -239,6 +255,7 @@ fn counted(shared: &Shared, s: &Served, c: &Conversation, sent: Sent, started: I
     let tx = s.conn.quic().stats().udp_tx.bytes;
     let before = s.bytes_out.swap(tx, Ordering::Relaxed);
     stats.add(&stats.bytes_out, tx.saturating_sub(before));
+    stats.add(&stats.short, u64::from(sent.short));
     stats.add(&stats.key_frames, u64::from(sent.key.is_some()));
     match sent.key {
         Some(KeyCause::Asked) => stats.add(&stats.key_asked, 1),

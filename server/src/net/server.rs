@@ -465,6 +465,9 @@ async fn summary_loop(
         let dropped = world.dropped();
         let pending_longest_ms = shared.stats.summarized();
         let late_ms_max = shared.stats.late_longest_us() as f64 / 1e3;
+        // The least allowance a frame's cut had (`-`: none all along).
+        let allowance = shared.stats.allowance_least();
+        let allowance_min = allowance.map_or("-".to_string(), |a| a.to_string());
         tracing::info!(
             viewers,
             memory_mb = format_args!("{:.1}", reserved as f64 / f64::from(1u32 << 20)),
@@ -480,6 +483,8 @@ async fn summary_loop(
             key_behind = now.1.key_behind - last.1.key_behind,
             key_larger = now.1.key_larger - last.1.key_larger,
             late_ms_max = format_args!("{late_ms_max:.1}"),
+            short_frames = now.1.short - last.1.short,
+            allowance_min,
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
             color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
             normal_kbytes_per_s = format_args!("{:.1}", s.normal_bytes_per_s / 1e3),

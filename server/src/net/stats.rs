@@ -24,6 +24,8 @@ pub struct ServeStats {
     pub key_asked: AtomicU64,
     pub key_behind: AtomicU64,
     pub key_larger: AtomicU64,
+    /// Frames whose cut stopped at the clock's allowance ([`crate::viewer::Allowance`]).
+    pub short: AtomicU64,
     /// Colour tile messages written to viewers' control streams, and their bytes (the
     /// coarsest tile sent before the first frame included).
     pub color_tiles: AtomicU64,
@@ -55,6 +57,9 @@ pub struct ServeStats {
     /// The latest a frame started after its tick was due since the last summary,
     /// microseconds (the core was busy: [`super::color_budget`] holds colour back then).
     late_longest_us: AtomicU64,
+    /// How far below none the allowance went since the last summary: `u32::MAX` less the
+    /// least allowance (0: none all along, so that the default is right).
+    allowance_below: AtomicU64,
 }
 
 /// Refusals logged one line each between two summaries; the rest are counted (and logged
@@ -71,6 +76,7 @@ pub struct Counts {
     pub key_asked: u64,
     pub key_behind: u64,
     pub key_larger: u64,
+    pub short: u64,
     pub color_tiles: u64,
     pub color_bytes: u64,
     pub normal_tiles: u64,
@@ -114,6 +120,18 @@ impl ServeStats {
         self.pending_longest_ms.swap(0, Ordering::Relaxed)
     }
 
+    /// The clock's allowance ([`crate::viewer::Allowance::level`]) after a pass.
+    pub fn allowance(&self, level: Option<u32>) {
+        let below = level.map_or(0, |l| u64::from(u32::MAX - l));
+        self.allowance_below.fetch_max(below, Ordering::Relaxed);
+    }
+
+    /// The least allowance since the last call (`None`: none all along), started over.
+    pub fn allowance_least(&self) -> Option<u64> {
+        let below = self.allowance_below.swap(0, Ordering::Relaxed);
+        (below != 0).then(|| u64::from(u32::MAX) - below)
+    }
+
     /// The latest a frame started since the last call (microseconds), started over.
     pub fn late_longest_us(&self) -> u64 {
         self.late_longest_us.swap(0, Ordering::Relaxed)
@@ -129,6 +147,7 @@ impl ServeStats {
             key_asked: get(&self.key_asked),
             key_behind: get(&self.key_behind),
             key_larger: get(&self.key_larger),
+            short: get(&self.short),
             color_tiles: get(&self.color_tiles),
             color_bytes: get(&self.color_bytes),
             normal_tiles: get(&self.normal_tiles),
@@ -239,6 +258,19 @@ mod tests {
         assert_eq!((s.junk, s.retried, s.refused), (3, 4, 0));
         let idle = Summary::between(&b, &b, 10.0, None);
         assert_eq!((idle.cpu_per_frame_us, idle.make_us), (None, None));
+    }
+
+    #[test]
+    fn the_least_allowance_is_kept_and_started_over_at_each_summary() {
+        let s = ServeStats::default();
+        assert_eq!(s.allowance_least(), None, "none before any pass");
+        s.allowance(Some(500));
+        s.allowance(None);
+        s.allowance(Some(24));
+        s.allowance(Some(300));
+        assert_eq!(s.allowance_least(), Some(24));
+        s.allowance(None);
+        assert_eq!(s.allowance_least(), None);
     }
 
     #[test]

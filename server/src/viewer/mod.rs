@@ -56,11 +56,13 @@ use crate::tessellate::camera::Camera;
 use crate::tessellate::{Coherent, Limits, Mode, Scales, Scratch, Step};
 
 pub mod admission;
+mod allowance;
 mod camera;
 pub mod color;
 pub mod conversation;
 mod cut_args;
 
+pub use allowance::Allowance;
 pub use camera::apply_view;
 pub use cut_args::{CutArgs, FogPriority};
 
@@ -395,6 +397,12 @@ impl ViewerCore {
         } else {
             0.0
         }
+    }
+
+    /// The most changes a frame's cut makes once within its budget
+    /// ([`Coherent::set_allowance`]; `u32::MAX`: none).
+    pub fn set_allowance(&mut self, changes: u32) {
+        self.coherent.set_allowance(changes);
     }
 
     /// The cut carried from the last frame (for tests and benchmarks).

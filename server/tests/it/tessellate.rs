@@ -7,7 +7,7 @@ use roam_protocol::bintree::Triangle;
 use roam_protocol::validate::check_mesh;
 use roam_server::Heightfield;
 use roam_server::terrain::variance::{VarianceTree, triangle_error};
-use roam_server::tessellate::{Coherent, Limits, Mesh, Scratch, Tessellator, measured_error};
+use roam_server::tessellate::{Coherent, Limits, Mesh, Mode, Scratch, Tessellator, measured_error};
 use tess::{camera, check_frustum, run, scales, terrain};
 
 /// One step of a camera path.
@@ -75,10 +75,11 @@ fn path_case() -> impl Strategy<Value = PathCase> {
 }
 
 /// Runs the split/merge tessellator (twice, for determinism) with a swap margin of
-/// `margin` percent and from-scratch split-only along a path, checking every frame;
-/// returns each frame's measured screen-space error of the served cut over that of the
-/// from-scratch cut at the same camera and budget.
-fn walk(case: &PathCase, margin: u16) -> Result<Vec<f32>, String> {
+/// `margin` percent and an allowance of `allowance` changes a frame (`u32::MAX`: none),
+/// and from-scratch split-only along a path, checking every frame; returns each frame's
+/// measured screen-space error of the served cut over that of the from-scratch cut at the
+/// same camera and budget.
+fn walk(case: &PathCase, margin: u16, allowance: u32) -> Result<Vec<f32>, String> {
     let hf = terrain(case.levels, case.seed, case.rough);
     let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
     let size = f64::from(hf.size());
@@ -88,12 +89,16 @@ fn walk(case: &PathCase, margin: u16) -> Result<Vec<f32>, String> {
     let (mut a, mut b) = (Coherent::new(hf.side()), Coherent::new(hf.side()));
     a.set_swap_margin(margin);
     b.set_swap_margin(margin);
+    a.set_allowance(allowance);
+    b.set_allowance(allowance);
     let pool = Scratch::new(hf.side(), 1);
     let (mut mesh, mut scratch) = (Mesh::default(), Mesh::default());
     let mut t = Tessellator::new(hf.side());
     let mut ratios = Vec::new();
     // The cut as a viewer rebuilds it from the change logs alone.
     let mut replayed = std::collections::BTreeSet::new();
+    // The error bound the last frame not stopped at its allowance left.
+    let mut settled = None;
     for (k, st) in case.path.iter().enumerate() {
         match *st {
             Step::Forward(d) => {
@@ -142,7 +147,27 @@ fn walk(case: &PathCase, margin: u16) -> Result<Vec<f32>, String> {
                 a.triangles()
             )));
         }
-        check_frustum(&hf, &vt, &cam, a.split_diamonds()).map_err(&fail)?;
+        // A frame stopped at its allowance leaves what left the view for the frames after.
+        if !a.stats().short {
+            check_frustum(&hf, &vt, &cam, a.split_diamonds()).map_err(&fail)?;
+        }
+        // A frame stopped at its allowance made as many changes at least, and leaves no
+        // split worth more than a pixel, or twice what the last whole frame left (with no
+        // threshold's drops in the bound).
+        if a.stats().short {
+            let lag = settled.map_or(1.0, |s: f32| (2.0 * s).max(1.0));
+            if a.changes().len() < allowance as usize
+                || (case.threshold == 0.0 && a.error_bound_px() > lag)
+            {
+                return Err(fail(format!(
+                    "stopped after {} of {allowance} changes, {} px left, {lag} allowed",
+                    a.changes().len(),
+                    a.error_bound_px()
+                )));
+            }
+        } else {
+            settled = Some(a.error_bound_px());
+        }
         t.tessellate(&hf, &vt, scales(), &cam, limits, &mut scratch);
         let measure =
             |split: Vec<(u32, u32)>| measured_error(&hf, &vt, scales(), &cam, limits, split);
@@ -196,7 +221,7 @@ fn check_error_ratio(margin: u16, most: f32) {
             .new_tree(&mut runner)
             .expect("the strategy makes values")
             .current();
-        let r = walk(&case, margin).unwrap_or_else(|e| panic!("{case:?}: {e}"));
+        let r = walk(&case, margin, u32::MAX).unwrap_or_else(|e| panic!("{case:?}: {e}"));
         ratios.extend(r);
     }
     ratios.sort_by(f32::total_cmp);
@@ -262,13 +287,16 @@ proptest! {
     /// jumps, budget changes; half of them in fog): after every frame the cut is conforming, within budget,
     /// splits nothing outside the view pyramid unless forced, keeps its frontiers exactly,
     /// knows its own error, and its change logs add up to it; the same path gives the same
-    /// cuts and logs; with a swap margin or none.
+    /// cuts and logs; with a swap margin or none, with an allowance of changes a frame or
+    /// none (the frame stopped there then may keep what left the view, and no more
+    /// changes than the allowance and one split's forced chain).
     #[test]
     fn split_merge_cuts_stay_conforming_exact_and_deterministic(
         case in path_case(),
         margin in prop_oneof![Just(0u16), 0u16..=100],
+        allowance in prop_oneof![3 => Just(u32::MAX), 1 => 1u32..64],
     ) {
-        walk(&case, margin).map_err(TestCaseError::fail)?;
+        walk(&case, margin, allowance).map_err(TestCaseError::fail)?;
     }
 
     #[test]
@@ -453,4 +481,62 @@ fn a_higher_threshold_gives_fewer_triangles_and_a_bound_below_it() {
         assert!(mesh.triangle_count() <= last);
         last = mesh.triangle_count();
     }
+}
+
+/// A cut held to a few changes a frame while the view turns (as a loaded server holds it)
+/// lags, stopping at its allowance once what is left is worth no more than a pixel (the
+/// error of its last whole frame being under half a pixel), and catches up once the
+/// camera rests: it then passes the whole audit (nothing kept that left the view), and its
+/// error is that of a cut that never had an allowance, within 10 %.
+#[test]
+fn a_cut_held_to_an_allowance_lags_a_turn_and_catches_up_at_rest() {
+    let hf = terrain(7, 11, 0.8);
+    let vt = VarianceTree::build(&hf, 1, &mut |_, _| {});
+    let size = f64::from(hf.size());
+    let limits = Limits {
+        budget: 3000,
+        threshold_px: 0.0,
+        fog_density: 0.0,
+        guard_deg: 0.0,
+    };
+    let pool = Scratch::new(hf.side(), 1);
+    let (mut held, mut free) = (Coherent::new(hf.side()), Coherent::new(hf.side()));
+    held.set_allowance(8);
+    let cam_at = |yaw: f64| camera(&hf, size / 2.0, size / 2.0, 20.0, yaw, -10.0, 60.0);
+    let mut short = 0;
+    for k in 0..=40 {
+        let cam = cam_at(f64::from(k) * 4.0);
+        free.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
+        held.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
+        let st = held.stats();
+        if k > 0 {
+            assert_eq!(held.mode(), Mode::Update, "frame {k}");
+            if st.short {
+                short += 1;
+                assert!(held.error_bound_px() <= 1.0, "frame {k}: {st:?}");
+            }
+        }
+    }
+    assert!(
+        short >= 30,
+        "the turn is held back: {short} of 40 frames short"
+    );
+    let cam = cam_at(160.0);
+    let mut rest = 0;
+    while held.stats().short {
+        rest += 1;
+        assert!(rest <= 2000, "caught up within 2,000 frames at rest");
+        held.frame(&hf, &vt, scales(), &cam, limits, false, &pool);
+    }
+    held.audit(&hf, &vt, scales(), &cam, limits)
+        .unwrap_or_else(|e| panic!("after {rest} frames at rest: {e}"));
+    check_frustum(&hf, &vt, &cam, held.split_diamonds()).expect("nothing kept out of view");
+    let measure =
+        |c: &Coherent| measured_error(&hf, &vt, scales(), &cam, limits, c.split_diamonds());
+    let (h, f) = (measure(&held), measure(&free));
+    assert!(
+        h <= 1.1 * f,
+        "held {h} px, free {f} px, after {rest} frames at rest"
+    );
+    assert!(rest > 1, "the turn left work for the frames at rest");
 }

@@ -21,9 +21,9 @@ impl Coherent {
     /// each frontier's index finds every member where it is, each member is queued exactly
     /// once, in the bucket its kept evaluation gives (or in none), and scheduled on both
     /// odometers when it has error (on neither when it is exact), each schedule's lists
-    /// well formed; and every split diamond that nothing forces (a merge candidate) is
-    /// worth splitting at this camera: in view (or under the eye), with error, at or above
-    /// the threshold.
+    /// well formed; and, unless the frame stopped at its allowance, every split diamond
+    /// that nothing forces (a merge candidate) is worth splitting at this camera: in view
+    /// (or under the eye), with error, at or above the threshold.
     pub fn audit(
         &self,
         hf: &Heightfield,
@@ -118,6 +118,11 @@ impl Coherent {
                 }
             })
         })?;
+        // A frame stopped at its allowance may leave splits that are no longer wanted,
+        // for the frames after to merge.
+        if self.stats.short {
+            return Ok(());
+        }
         for chunk in merges.chunks(4) {
             let lanes = self.evaluate_at(&f, chunk);
             for (i, &p) in chunk.iter().enumerate() {

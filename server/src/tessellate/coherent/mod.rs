@@ -92,7 +92,7 @@ use super::{Frame, Limits, Mesh, Scales, Scratch, pack, unpack};
 use crate::terrain::heightfield::Heightfield;
 use crate::terrain::variance::VarianceTree;
 use crate::tessellate::camera::Camera;
-use crate::tessellate::queue::TOP;
+use crate::tessellate::queue::{TOP, bucket_of};
 
 /// How the last frame's cut was made.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -123,6 +123,9 @@ pub struct CoherentStats {
     pub merges: u32,
     /// Members taken from the two frontiers' schedules, due.
     pub popped: u32,
+    /// The update stopped at its allowance ([`Coherent::set_allowance`]), with changes
+    /// perhaps still worth making: the frames after go on from there.
+    pub short: bool,
 }
 
 /// The camera and limits of the last frame, to tell a jump from a step.
@@ -226,7 +229,21 @@ pub struct Coherent {
     /// A merge makes room for a split only when the split's priority exceeds the merge's
     /// times this (1: ROAM's rule).
     swap_margin: f32,
+    /// The most changes an update makes in a frame once the cut is within its budget.
+    allowance: u32,
+    /// The error bound the last frame not stopped at its allowance left, pixels.
+    settled_px: f32,
 }
+
+/// Past its allowance ([`Coherent::set_allowance`]) a frame's update still makes the splits
+/// whose priority (the screen-space error they remove, pixels) is above this, or above
+/// [`LAG_FACTOR`] times the error the last whole frame left, whichever is more: what a
+/// loaded server lets lag is detail under a pixel, or under twice what the budget gets
+/// where it cannot get that far. With an allowance alone, of 64 changes a frame, the error
+/// left along `scripts/capacity-drive.txt` (p99, 32 viewers' cuts) went from 0.14 to 0.68
+/// px on `data/kossou` and from 2.5 to 52 px on the steep map; of 32, to 3.4 and 1,270 px.
+const LAG_PX: f32 = 1.0;
+const LAG_FACTOR: f32 = 2.0;
 
 /// A frame's log keeps at most this much reserved into the next frame.
 const LOG_KEPT: usize = 1024;
@@ -258,7 +275,14 @@ impl Coherent {
             mode: Mode::Rebuild,
             stats: CoherentStats::default(),
             swap_margin: 1.0,
+            allowance: u32::MAX,
+            settled_px: 0.0,
         }
+    }
+
+    /// Past its allowance, a frame makes only the splits above this priority, pixels.
+    fn lag_px(&self) -> f32 {
+        LAG_PX.max(LAG_FACTOR * self.settled_px)
     }
 
     /// A merge makes room for a split, once the cut is at its budget, only when the split's
@@ -269,6 +293,18 @@ impl Coherent {
     /// driver sees). Rebuilds are the spec's split-only ROAM either way.
     pub fn set_swap_margin(&mut self, pct: u16) {
         self.swap_margin = 1.0 + f32::from(pct) / 100.0;
+    }
+
+    /// An update stops after `changes` changes (forced splits counted, a split's chain
+    /// finished) once the cut is within its budget, and the frame is made with the cut it
+    /// reached; the frames after go on from there, the most important changes first (both
+    /// queues are in priority order). ROAM's optimisation may stop at any time with the
+    /// best cut so far: this is what lets a loaded server keep its frame rate, the cut
+    /// lagging a turn by a few frames instead of every viewer losing frames
+    /// (`net/frames.rs` sets it from how late frames start). `u32::MAX` (the default):
+    /// no allowance. A rebuild is never stopped.
+    pub fn set_allowance(&mut self, changes: u32) {
+        self.allowance = changes.max(1);
     }
 
     /// Triangles in the cut.
@@ -458,6 +494,9 @@ impl Coherent {
         match self.update(f, limits, changes, most) {
             Ok(()) => {
                 self.error_bound_px = self.bound(limits);
+                if !self.stats.short {
+                    self.settled_px = self.error_bound_px;
+                }
                 self.mode = Mode::Update;
                 Step::Done(Mode::Update)
             }
@@ -548,6 +587,7 @@ impl Coherent {
         self.stats.splits += (self.log.len() - logged) as u32;
         self.rebuild_frontiers(f, &new);
         self.error_bound_px = self.bound(limits);
+        self.settled_px = self.error_bound_px;
     }
 
     /// Splits and merges the old cut towards the new camera from `changes` done: `Ok`
@@ -565,6 +605,18 @@ impl Coherent {
         loop {
             if changes > bound {
                 return Err(None);
+            }
+            // Past the allowance, the splits in the lag's bucket and above go on (with the
+            // merges that make room for them): what is left is below the lag.
+            if changes >= self.allowance
+                && self.triangles <= budget
+                && self
+                    .splits
+                    .peek()
+                    .is_none_or(|(b, _)| b < bucket_of(self.lag_px()))
+            {
+                self.stats.short = true;
+                break;
             }
             if changes >= most {
                 return Err(Some(changes));

@@ -125,6 +125,8 @@ pub struct Sent {
     pub triangles: u32,
     /// The frame message's bytes.
     pub bytes: usize,
+    /// Its cut stopped at the allowance ([`Conversation::set_allowance`]).
+    pub short: bool,
 }
 
 /// What [`Conversation::frame`] did.
@@ -240,6 +242,8 @@ pub struct Conversation {
     /// Second copies of small frames, each when due.
     repeats: VecDeque<(Instant, u64, Vec<u8>)>,
     events: VecDeque<Out>,
+    /// The most changes a frame's cut makes ([`ViewerCore::set_allowance`]).
+    allowance: u32,
 }
 
 /// Who a conversation serves.
@@ -289,7 +293,14 @@ impl Conversation {
             transmits: VecDeque::new(),
             repeats: VecDeque::new(),
             events: VecDeque::new(),
+            allowance: u32::MAX,
         }
+    }
+
+    /// The most changes the frames' cuts make from now on, once within their budget
+    /// (`u32::MAX`: none): what a loaded server allows ([`crate::viewer::Allowance`]).
+    pub fn set_allowance(&mut self, changes: u32) {
+        self.allowance = changes;
     }
 
     /// The time between two frames of a viewer that said `hello`, served within `limits`.
@@ -447,6 +458,7 @@ impl Conversation {
             });
         }
         let first = self.newest.is_none();
+        core.set_allowance(self.allowance);
         let inline = if first {
             None
         } else {
@@ -484,6 +496,7 @@ impl Conversation {
             .as_ref()
             .expect("the core is back before a frame is sent");
         let (acked, pending_key) = (core.acked(), core.pending_key());
+        let short = made.mode == crate::tessellate::Mode::Update && core.cut().stats().short;
         let (frame, key) = (made.frame, made.base.is_none());
         let (cause, triangles) = (made.key, made.triangles);
         let msg = frame_message(terrain, snapshot, made, self.vehicle, self.driver);
@@ -496,6 +509,7 @@ impl Conversation {
             key: cause,
             triangles,
             bytes: bytes.len(),
+            short,
         };
         self.newest = Some(frame);
         // Latest frame wins: the change frame on a stream is reset unless the viewer has

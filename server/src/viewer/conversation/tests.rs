@@ -407,3 +407,36 @@ fn a_frame_shows_the_followed_vehicle_and_those_nearest_it() {
     }
     check(&f.world.tick(), MAX_SHOWN);
 }
+
+/// The clock's allowance reaches the cut: the same view change (the eye pitched 25° down)
+/// stops short with an allowance of 4 changes, after fewer changes than without one,
+/// and the frame says so; without one, the frame is whole.
+#[test]
+fn an_allowance_holds_a_frames_cut_back_and_the_frame_says_so() {
+    let run = |allowance: u32| {
+        let mut f = fixture();
+        let (mut c, snap) = f.driver(2048);
+        let t0 = f.t0;
+        f.frame(&mut c, t0, &snap);
+        c.handle(t0, Event::Control(ClientMessage::Ack { frame: 0 }));
+        c.set_allowance(allowance);
+        let view = roam_protocol::messages::ViewChange {
+            pitch_deg: -30.0,
+            eye_above: 0.0,
+            viewport: [640, 480],
+            fog: true,
+        };
+        c.handle(t0, Event::Control(ClientMessage::View(view)));
+        let Step::Sent(sent) = f.frame(&mut c, t0 + 20 * MS, &snap) else {
+            panic!("the second frame is made");
+        };
+        let core = c.core().expect("the frame is made in line");
+        (sent.short, core.cut().changes().len())
+    };
+    let (held, free) = (run(4), run(u32::MAX));
+    assert!(held.0 && !free.0, "held {held:?}, free {free:?}");
+    assert!(
+        4 <= held.1 && held.1 < free.1,
+        "held {held:?}, free {free:?}"
+    );
+}

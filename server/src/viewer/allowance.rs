@@ -1,0 +1,135 @@
+//! How many changes each viewer's cut may make a frame while the server is loaded
+//! ([`Allowance`]): the frame clock's one decision about load, clock-free (it is told how
+//! late frames start) so that tests drive it with made-up lateness.
+//!
+//! **Why.** A cut's upkeep follows the view: driving straight, a frame makes a few changes
+//! (12 µs, the median of `serve_many` along `scripts/capacity-drive.txt`); turning at the
+//! fastest rate, some 400 (665 µs). Viewers that turn together (`scripts/capacity.sh
+//! --in-step`) load the one core many times over for a second and leave it idle after: 100
+//! such viewers got 38 frames a second from a core 63 % busy (2026-12-07), their frames
+//! skipped while the turns' cuts were made. ROAM's optimisation may stop at any time with
+//! the best cut so far (the queues are in priority order), so under load each cut makes at
+//! most this many changes a frame and finishes its turn in the frames after, inside the
+//! guard band (10° each side: eight frames of the fastest turn), and the frames keep
+//! coming.
+//!
+//! **How.** The signal is how late frames start after their tick, the one figure that says
+//! the core is short whatever takes it (the cuts, quinn, the kernel, colour). After each
+//! pass of the clock: a frame more than [`LATE`] late cuts the allowance by a quarter
+//! (down to [`FLOOR`]); every frame within [`ON_TIME`] raises it by [`RISE`] (up to
+//! [`CEILING`], which is none); in between it holds. Down fast, up slowly (as TCP's window),
+//! so that the core does not swing between late and idle every few passes.
+
+use std::time::Duration;
+
+/// The least allowance: a frame still makes this many changes, the most important first.
+const FLOOR: u32 = 24;
+
+/// At this allowance there is none (a frame's cut makes every change it wants, up to the
+/// update's own bound, `crate::tessellate::Coherent`).
+const CEILING: u32 = 1024;
+
+/// A frame started later than this after its tick says the core is short.
+const LATE: Duration = Duration::from_millis(4);
+
+/// Frames that all start within this of their ticks say there is room.
+const ON_TIME: Duration = Duration::from_millis(1);
+
+/// What a pass of frames on time adds to the allowance.
+const RISE: u32 = 8;
+
+/// The changes a viewer's cut may make a frame, from how late the clock's frames start.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Allowance {
+    changes: u32,
+}
+
+impl Default for Allowance {
+    fn default() -> Self {
+        Allowance { changes: CEILING }
+    }
+}
+
+impl Allowance {
+    /// The allowance now, for [`crate::viewer::ViewerCore::set_allowance`]: `u32::MAX` (none)
+    /// at the ceiling.
+    pub fn changes(&self) -> u32 {
+        if self.changes >= CEILING {
+            u32::MAX
+        } else {
+            self.changes
+        }
+    }
+
+    /// The allowance now, `None` at the ceiling (for the server's summary).
+    pub fn level(&self) -> Option<u32> {
+        (self.changes < CEILING).then_some(self.changes)
+    }
+
+    /// A pass of the clock made frames, the latest starting `latest` after its tick
+    /// (`None`: the pass made no frame, and says nothing).
+    pub fn pass(&mut self, latest: Option<Duration>) {
+        match latest {
+            Some(late) if late > LATE => self.changes = (self.changes * 3 / 4).max(FLOOR),
+            Some(late) if late <= ON_TIME => self.changes = (self.changes + RISE).min(CEILING),
+            _ => {}
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Feeds passes of the given lateness (ms; `None`: no frame) and returns the
+    /// allowance after each.
+    fn run(start: u32, passes: &[Option<u64>]) -> Vec<Option<u32>> {
+        let mut a = Allowance { changes: start };
+        passes
+            .iter()
+            .map(|p| {
+                a.pass(p.map(Duration::from_millis));
+                a.level()
+            })
+            .collect()
+    }
+
+    fn check(start: u32, passes: &[Option<u64>], expected: &[Option<u32>]) {
+        assert_eq!(
+            run(start, passes),
+            expected,
+            "from {start}, passes {passes:?}"
+        );
+    }
+
+    #[test]
+    fn late_frames_cut_it_by_a_quarter_down_to_the_floor() {
+        check(
+            CEILING,
+            &[Some(5), Some(9), Some(20)],
+            &[Some(768), Some(576), Some(432)],
+        );
+        check(30, &[Some(5), Some(5)], &[Some(FLOOR), Some(FLOOR)]);
+    }
+
+    #[test]
+    fn frames_on_time_raise_it_slowly_up_to_none() {
+        check(FLOOR, &[Some(0), Some(1)], &[Some(32), Some(40)]);
+        check(1020, &[Some(0), Some(0)], &[None, None]);
+    }
+
+    #[test]
+    fn between_on_time_and_late_and_without_frames_it_holds() {
+        check(
+            500,
+            &[Some(2), Some(4), None, Some(3)],
+            &[Some(500), Some(500), Some(500), Some(500)],
+        );
+    }
+
+    #[test]
+    fn none_is_no_allowance_for_the_cut() {
+        assert_eq!(Allowance::default().changes(), u32::MAX);
+        assert_eq!(Allowance { changes: 100 }.changes(), 100);
+    }
+}
