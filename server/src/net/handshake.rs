@@ -205,6 +205,7 @@ async fn handshake(
         None => role_name(&hello.role),
     };
     let refuse = async |send: &mut SendStream, reason: Reason, why: &str| {
+        let web = via == Via::Web;
         // One line per refusal, up to a bound per summary interval: a peer without the
         // token can send hellos as fast as handshakes, and must not fill the disk.
         let via = via.name();
@@ -215,6 +216,14 @@ async fn handshake(
         }
         shared.stats.add(&shared.stats.refused, 1);
         viewer::last_word(send, &ServerMessage::Refused(reason)).await;
+        // A browser has the refusal once its QUIC stack acknowledges it, not once the page
+        // has read it, and a session closed meanwhile may take both the message and the
+        // close's reason with it (the page saw only "Connection lost" in a run of the whole
+        // suite on a loaded machine): the page closes its session once it has read the
+        // refusal, so that close is waited for, as long as a last word may take.
+        if web {
+            let _ = tokio::time::timeout(viewer::LAST_WORD_WAIT, conn.closed()).await;
+        }
         conn.close(close::REFUSED, why.as_bytes());
     };
     if hello.version != VERSION {

@@ -58,7 +58,7 @@ use crate::viewer::conversation::{self, Conversation, Handled, Role};
 /// The wait ends as soon as the peer has it; 250 ms was too short for a browser on a
 /// loaded 2-core machine (the page saw the connection lost, not the refusal, in one run
 /// of the whole test suite).
-const LAST_WORD_WAIT: Duration = Duration::from_secs(2);
+pub(super) const LAST_WORD_WAIT: Duration = Duration::from_secs(2);
 
 /// How long a shutdown waits for browsers to close their sessions after the goodbye (the
 /// endpoint waits a little longer, for the viewer tasks' own closes).

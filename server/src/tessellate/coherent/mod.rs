@@ -34,6 +34,11 @@
 //! 3. The frame's changes are logged in order (a diamond may appear twice: split, then
 //!    merged); the codec composes logs into the difference from any base a viewer holds.
 //!
+//! A loaded server gives the loop an allowance ([`Coherent::set_allowance`]): past it the
+//! frame goes on only with the splits above [`LAG_PX`] (or [`LAG_FACTOR`] times the error
+//! its last whole frame left) and the merges that make room for them, and the frames after
+//! carry on from there.
+//!
 //! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
 //! the bound, a camera jump (a turn of more than 30°, a move of more than 64 grid cells),
 //! a new field of view or viewport, a new threshold, guard band or fog density (the viewer
