@@ -362,6 +362,7 @@ pub(crate) fn bench(args: BenchArgs) -> Result<()> {
         ("swap_margin_pct", serde_json::json!(caps.swap_margin_pct)),
         ("allowance", serde_json::json!(args.allowance)),
         ("serve_short_share", serde_json::json!(serve.short_share)),
+        ("serve_first_frame_us", serde_json::json!(serve.first_us)),
         ("serve_many_frame_us_median", serde_json::json!(many.median)),
         ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
         ("serve_many_frame_us_p90", serde_json::json!(many.p90)),
@@ -487,6 +488,8 @@ struct ServeFigures {
     viewer_bytes_peak: usize,
     /// The share of frames whose update stopped at the allowance.
     short_share: f64,
+    /// The first frame (a cut from scratch, its frontiers, a key frame), µs.
+    first_us: f64,
     /// Where the cut's bytes go (`Coherent::heap_parts`).
     viewer_parts: Vec<serde_json::Value>,
 }
@@ -536,14 +539,16 @@ fn serve_bench(
     let (mut fogged, mut unfogged) = (vec![], vec![]);
     let (side, density) = (terrain.heights.side(), terrain.map.fog_density as f32);
     let (mut bytes, mut evaluated, mut popped, mut rebuilds) = (vec![], vec![], vec![], 0);
-    let (mut peak, mut short) = (0, 0);
+    let (mut peak, mut short, mut first_us) = (0, 0, 0.0);
     for (k, cam) in cameras.iter().enumerate() {
         let started = Instant::now();
         let made = core.make_frame_at(&scene, cam);
         let elapsed = started.elapsed().as_nanos() as f64 / 1e3;
         let tris = f64::from(made.triangles.max(1));
         bytes.push(made.payload.len() as f64 / tris);
-        if k > 0 {
+        if k == 0 {
+            first_us = elapsed;
+        } else {
             us.push(elapsed);
             changes.push(f64::from(made.changes));
             evaluated.push(f64::from(core.cut().stats().evaluated));
@@ -619,6 +624,7 @@ fn serve_bench(
         bytes_per_triangle_steady: quantile(bytes.get(1..).unwrap_or(&[]), 0.5),
         rebuilds,
         short_share: short as f64 / us.len().max(1) as f64,
+        first_us,
         evaluated_median: quantile(&evaluated, 0.5),
         popped_median: quantile(&popped, 0.5),
         viewer_bytes: core.heap_bytes(),

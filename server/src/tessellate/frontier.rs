@@ -53,6 +53,12 @@ fn slots_for(members: usize) -> usize {
     (members * 5 / 3).max(MIN_SLOTS)
 }
 
+/// Slots for a table about to hold `members`: three quarters full then, within
+/// [`out_of_bounds`] (a table grown one member at a time ends between 60 and 80 % full).
+fn reserved_slots(members: usize) -> usize {
+    (members * 4 / 3 + 1).max(MIN_SLOTS)
+}
+
 /// Whether a table of `slots` holding `members` is to be resized: over 80 % full, or under
 /// 40 % (and larger than the smallest).
 #[inline(always)]
@@ -227,6 +233,15 @@ impl PosSet {
         !self.table.is_empty() && self.table[self.find(pos)] == pos
     }
 
+    /// Makes room for `members` without resizing on the way there (a table grows by a
+    /// third at a time, so an empty one filled with a cut rehashes it four times over).
+    pub(super) fn reserve(&mut self, members: usize) {
+        let slots = reserved_slots(members);
+        if slots > self.table.len() {
+            self.resize(slots);
+        }
+    }
+
     /// Adds `pos` (not 0); false when it was there already.
     pub(super) fn insert(&mut self, pos: u32) -> bool {
         debug_assert_ne!(pos, 0, "position 0 is a corner, not a diamond");
@@ -378,6 +393,14 @@ impl PosIndex {
             return None;
         }
         self.find(pos, at).ok().map(|i| self.table[i] & INDEX_MASK)
+    }
+
+    /// Makes room for `members` without resizing on the way there ([`PosSet::reserve`]).
+    pub(super) fn reserve(&mut self, members: usize, at: impl Fn(u32) -> u32) {
+        let slots = reserved_slots(members);
+        if slots > self.table.len() {
+            self.resize(slots, &at);
+        }
     }
 
     /// Records that `pos` (not a member) is at `index` of the caller's list.

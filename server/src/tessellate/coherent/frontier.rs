@@ -254,6 +254,12 @@ impl Frontier {
         self.index.get(pos, |i| m[i as usize].pos)
     }
 
+    /// Makes room for `members` in the index without resizing on the way there.
+    pub(super) fn reserve(&mut self, members: usize) {
+        let m = &self.members;
+        self.index.reserve(members, |i| m[i as usize].pos);
+    }
+
     #[inline]
     pub(super) fn contains(&self, pos: u32) -> bool {
         self.find(pos).is_some()

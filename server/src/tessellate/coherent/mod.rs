@@ -583,6 +583,7 @@ impl Coherent {
                 (None, None) => break,
             }
         }
+        self.split.reserve(new.len());
         for k in logged..self.log.len() {
             let p = self.log[k];
             if !self.split.remove(p) {

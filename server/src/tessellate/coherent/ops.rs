@@ -116,6 +116,10 @@ impl Coherent {
     pub(super) fn rebuild_frontiers(&mut self, f: &Frame, new: &[u32]) {
         self.splits.clear();
         self.merges.clear();
+        // About as many split candidates as split diamonds, and a quarter as many merge
+        // candidates (on `kossou` at 65,536 triangles: 30,781 and 8,496 of 32,913).
+        self.splits.reserve(new.len());
+        self.merges.reserve(new.len() / 4);
         let root = self.root();
         if new.is_empty() {
             self.splits.insert(root);
