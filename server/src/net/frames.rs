@@ -31,9 +31,9 @@
 //! **Under load the cuts lag, not the frames.** After each pass the clock's [`Allowance`]
 //! hears how late its frames started and says how many changes each cut may make a frame
 //! (`Coherent::set_allowance`: past it only the splits above a bounded error go on). With
-//! none, 100 viewers spread out took 50.5 frames/s on `data/kossou` and 30.8 on the steep
-//! map, the core chasing detail under a pixel through every turn; with it 57.7 and 56.9, in
-//! step 37.2 → 52.4 and 37.0 → 43.4 (`scripts/capacity.sh`, 2026-12-07; docs/figures.md).
+//! none, 100 viewers spread out took 50.5 frames/s on `data/kossou`, the core chasing
+//! detail under a pixel through every turn; with it 57.5, and in step 37.2 → 52.7
+//! (`scripts/capacity.sh`, 2026-12-07; the steep map gains little: docs/figures.md).
 //!
 //! **Heavy frames off the pass, but first frames in it.** A frame whose cut or coding is
 //! heavy (a rebuild, a key frame's coding, many changes) comes out of the conversation as
@@ -149,8 +149,13 @@ pub(super) async fn run(shared: Arc<Shared>) {
                 next = next.min(at);
             }
         }
+        if viewers.is_empty() {
+            allowance = Allowance::default();
+        }
         allowance.pass(latest);
-        shared.stats.allowance(allowance.level());
+        if latest.is_some() {
+            shared.stats.allowance(allowance.level());
+        }
         if next <= Instant::now() {
             // Due again at once (a frame come due during the pass): the rest of the server
             // (quinn's connections, the readers, colour) runs first.
@@ -165,7 +170,8 @@ pub(super) async fn run(shared: Arc<Shared>) {
 }
 
 /// One viewer's turn in a pass: its frame if due, and whatever is due to send. Returns
-/// how late after its tick a frame started (`None`: none was made).
+/// how late a frame started for want of the core (`None`: none was made, or a first one:
+/// [`Conversation::late`]).
 fn pass(
     shared: &Arc<Shared>,
     s: &Arc<Served>,
@@ -186,7 +192,7 @@ fn pass(
         shared.color.frame_started(c.due_at(), started);
         let late = started.saturating_duration_since(c.due_at());
         shared.stats.frame_late(late);
-        made = Some(late);
+        made = c.late(started);
         path(s, c, now);
         let step = {
             let mut grant = lock(&s.grant);

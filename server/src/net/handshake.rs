@@ -215,15 +215,20 @@ async fn handshake(
             tracing::debug!(%peer, via, role, reason = why, "refused");
         }
         shared.stats.add(&shared.stats.refused, 1);
-        viewer::last_word(send, &ServerMessage::Refused(reason)).await;
         // A browser has the refusal once its QUIC stack acknowledges it, not once the page
         // has read it, and a session closed meanwhile may take both the message and the
         // close's reason with it (the page saw only "Connection lost" in a run of the whole
         // suite on a loaded machine): the page closes its session once it has read the
-        // refusal, so that close is waited for, as long as a last word may take.
-        if web {
-            let _ = tokio::time::timeout(viewer::LAST_WORD_WAIT, conn.closed()).await;
-        }
+        // refusal, so that close is waited for. The whole refusal has one deadline, a last
+        // word's: a peer that never takes the message, or never closes, holds nothing
+        // longer (refusals are past the pending cap's count).
+        let answer = async {
+            viewer::last_word(send, &ServerMessage::Refused(reason)).await;
+            if web {
+                conn.closed().await;
+            }
+        };
+        let _ = tokio::time::timeout(viewer::LAST_WORD_WAIT, answer).await;
         conn.close(close::REFUSED, why.as_bytes());
     };
     if hello.version != VERSION {

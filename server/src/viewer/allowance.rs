@@ -18,7 +18,12 @@
 //! pass of the clock: a frame more than [`LATE`] late cuts the allowance by a quarter
 //! (down to [`FLOOR`]); every frame within [`ON_TIME`] raises it by [`RISE`] (up to
 //! [`CEILING`], which is none); in between it holds. Down fast, up slowly (as TCP's window),
-//! so that the core does not swing between late and idle every few passes.
+//! so that the core does not swing between late and idle every few passes. Lateness is
+//! counted for want of the core only (`Conversation::late`: not a first frame's wait for
+//! its turn, not a frame's wait for its core to come back from a heavy job). Passes come
+//! more often the more viewers there are (16 phases a period), so the rise is per pass,
+//! not per second: from the floor to none in about 0.13 s with many viewers, 2 s with
+//! one; a clock with no viewers starts over at none.
 
 use std::time::Duration;
 
@@ -26,11 +31,11 @@ use std::time::Duration;
 /// (and past it every split above the lag the cut allows, `crate::tessellate::Coherent`,
 /// which is what bounds the error, not this). With 24, 100 viewers in step on
 /// `data/kossou` got 48.9 frames/s; with 4, 52.4 (`scripts/capacity.sh --in-step 100`,
-/// `FRAMES=1200`, 2026-12-07). Along `scripts/capacity-drive.txt` with 4 on every frame
-/// (`roam-server bench DIR --budget 32768 --drive ... --allowance 4`: the most a loaded
-/// server holds back), 32 viewers' cuts cost 28 µs a frame instead of 62 on `data/kossou`,
-/// leaving 1.0 px instead of 0.14 (p99), and 70 instead of 116 µs on the steep map,
-/// leaving 3.75 px instead of 2.5.
+/// `FRAMES=1200`, 2026-12-07, the first version of the lag). Along
+/// `scripts/capacity-drive.txt` with 4 on every frame (`roam-server bench DIR --budget
+/// 32768 --drive ... --allowance 4`: the most a loaded server holds back), 32 viewers' cuts
+/// cost 29 µs a frame instead of 62 on `data/kossou`, leaving 1.0 px instead of 0.14 (p99);
+/// on the steep map, where the budget leaves 2.5 px, little is held back (121 µs, 2.8 px).
 const FLOOR: u32 = 4;
 
 /// At this allowance there is none (a frame's cut makes every change it wants, up to the

@@ -36,7 +36,7 @@
 //!
 //! A loaded server gives the loop an allowance ([`Coherent::set_allowance`]): past it the
 //! frame goes on only with the splits above [`LAG_PX`] (or [`LAG_FACTOR`] times the error
-//! its last whole frame left) and the merges that make room for them, and the frames after
+//! the budget gets the cut to) and the merges that make room for them, and the frames after
 //! carry on from there.
 //!
 //! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
@@ -236,15 +236,15 @@ pub struct Coherent {
     swap_margin: f32,
     /// The most changes an update makes in a frame once the cut is within its budget.
     allowance: u32,
-    /// The error bound the last frame not stopped at its allowance left, pixels.
-    settled_px: f32,
 }
 
 /// Past its allowance ([`Coherent::set_allowance`]) a frame's update still makes the splits
 /// whose priority (the screen-space error they remove, pixels) is above this, or above
-/// [`LAG_FACTOR`] times the error the last whole frame left, whichever is more: what a
-/// loaded server lets lag is detail under a pixel, or under twice what the budget gets
-/// where it cannot get that far. With an allowance alone, of 64 changes a frame, the error
+/// [`LAG_FACTOR`] times the error the budget gets the cut to (its cheapest merge candidate:
+/// [`Coherent::lag_px`]), whichever is more: what a loaded server lets lag is detail under
+/// a pixel, or under twice what the budget gets where it cannot get that far. (Read from
+/// the last whole frame instead, the bound froze under load wherever that frame was: a
+/// review measured 42–119 px left where a cut with no allowance left 0–38.) With an allowance alone, of 64 changes a frame, the error
 /// left along `scripts/capacity-drive.txt` (p99, 32 viewers' cuts) went from 0.14 to 0.68
 /// px on `data/kossou` and from 2.5 to 52 px on the steep map; of 32, to 3.4 and 1,270 px.
 const LAG_PX: f32 = 1.0;
@@ -281,13 +281,36 @@ impl Coherent {
             stats: CoherentStats::default(),
             swap_margin: 1.0,
             allowance: u32::MAX,
-            settled_px: 0.0,
         }
     }
 
-    /// Past its allowance, a frame makes only the splits above this priority, pixels.
-    fn lag_px(&self) -> f32 {
-        LAG_PX.max(LAG_FACTOR * self.settled_px)
+    /// Past its allowance, a frame makes only the splits above this priority, pixels: a
+    /// pixel, or twice the error the budget gets the cut to, read from the cheapest merge
+    /// candidate it would trade (the two queues meet there once the cut has caught up); a
+    /// pixel while the cut is under its budget (it could then take every split). Read
+    /// under the budget too, the lag let 24 px through in a spin on the steep map (p99,
+    /// 4 changes a frame), and 158 px against 52 in the test beside a cut with none.
+    pub fn lag_px(&self, budget: u32) -> f32 {
+        let level = if self.triangles < budget {
+            0.0
+        } else {
+            self.peek_merge().map_or(0.0, |(_, prio)| prio)
+        };
+        LAG_PX.max(LAG_FACTOR * level)
+    }
+
+    /// Whether an update stopped now would leave anything it would do: an unwanted split to
+    /// merge, or a split candidate that fits the budget or beats the cheapest merge.
+    fn work_left(&self, budget: u32) -> bool {
+        let merge = self.peek_merge();
+        if merge.is_some_and(|(b, _)| b == TOP) {
+            return true;
+        }
+        let Some((b, split)) = self.splits.peek() else {
+            return false;
+        };
+        let gain = if b == TOP { f32::INFINITY } else { split.prio };
+        self.triangles < budget || merge.is_some_and(|(_, loss)| loss * self.swap_margin < gain)
     }
 
     /// A merge makes room for a split, once the cut is at its budget, only when the split's
@@ -499,9 +522,6 @@ impl Coherent {
         match self.update(f, limits, changes, most) {
             Ok(()) => {
                 self.error_bound_px = self.bound(limits);
-                if !self.stats.short {
-                    self.settled_px = self.error_bound_px;
-                }
                 self.mode = Mode::Update;
                 Step::Done(Mode::Update)
             }
@@ -593,7 +613,6 @@ impl Coherent {
         self.stats.splits += (self.log.len() - logged) as u32;
         self.rebuild_frontiers(f, &new);
         self.error_bound_px = self.bound(limits);
-        self.settled_px = self.error_bound_px;
     }
 
     /// Splits and merges the old cut towards the new camera from `changes` done: `Ok`
@@ -619,9 +638,9 @@ impl Coherent {
                 && self
                     .splits
                     .peek()
-                    .is_none_or(|(b, _)| b < bucket_of(self.lag_px()))
+                    .is_none_or(|(b, _)| b < bucket_of(self.lag_px(budget)))
             {
-                self.stats.short = true;
+                self.stats.short = self.work_left(budget);
                 break;
             }
             if changes >= most {

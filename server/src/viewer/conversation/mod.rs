@@ -244,6 +244,8 @@ pub struct Conversation {
     events: VecDeque<Out>,
     /// The most changes a frame's cut makes ([`ViewerCore::set_allowance`]).
     allowance: u32,
+    /// When the core last came back from a [`Job`].
+    back: Option<Instant>,
 }
 
 /// Who a conversation serves.
@@ -294,6 +296,7 @@ impl Conversation {
             repeats: VecDeque::new(),
             events: VecDeque::new(),
             allowance: u32::MAX,
+            back: None,
         }
     }
 
@@ -382,6 +385,17 @@ impl Conversation {
     /// When the next frame is due.
     pub fn due_at(&self) -> Instant {
         self.next_frame
+    }
+
+    /// How late a frame started at `started` is for want of the core, for the clock's
+    /// [`crate::viewer::Allowance`]: from when it was due, or from when the core came back
+    /// from a [`Job`] if later (a frame cannot start while its core is away); `None` for a
+    /// first frame (its wait for its turn is the clock's own doing).
+    pub fn late(&self, started: Instant) -> Option<Duration> {
+        let from = self
+            .back
+            .map_or(self.next_frame, |b| b.max(self.next_frame));
+        (self.newest.is_some()).then(|| started.saturating_duration_since(from))
     }
 
     /// Whether a frame is due at `now` (and the core is here to make it).
@@ -483,6 +497,7 @@ impl Conversation {
     /// Takes back what a [`Job`] made, at `now`, and queues the frame.
     pub fn finish(&mut self, now: Instant, terrain: &Terrain, done: Finished) -> Step {
         self.core = Some(done.core);
+        self.back = Some(now);
         match done.made {
             Some((made, snap)) => self.sent(now, terrain, made, &snap),
             None => Step::End(End::VehicleLeft),

@@ -440,3 +440,26 @@ fn an_allowance_holds_a_frames_cut_back_and_the_frame_says_so() {
         "held {held:?}, free {free:?}"
     );
 }
+
+/// What the clock's allowance hears of a frame's lateness is the wait for the core only:
+/// nothing for a first frame (its wait for its turn is the clock's own), and for a frame
+/// whose core came back from a job after the frame was due, from when it came back.
+#[test]
+fn a_frames_lateness_counts_only_the_wait_for_the_core() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    assert_eq!(c.late(t0 + 30 * MS), None, "a first frame");
+    let Step::Heavy(job) = c.frame(t0, &f.scene(), &snap, &mut |b| b) else {
+        panic!("a first frame is made off the pass");
+    };
+    let done = job.run(&f.scene(), || snap.clone());
+    // Due again 20 ms after t0 (50 Hz); the core comes back 50 ms after it.
+    let back = t0 + 50 * MS;
+    assert!(matches!(c.finish(back, &f.terrain, done), Step::Sent(_)));
+    assert!(c.due_at() < back);
+    assert_eq!(c.late(back + 2 * MS), Some(2 * MS));
+    f.frame(&mut c, back + 2 * MS, &snap);
+    let due = c.due_at();
+    assert_eq!(c.late(due + 3 * MS), Some(3 * MS), "on the grid again");
+}
