@@ -86,12 +86,14 @@ mod audit_error;
 mod buckets;
 mod eval;
 mod frontier;
+mod odometer;
 mod ops;
 
 pub use audit::{fogged_error_px, measured_error};
 pub use audit_error::{AuditError, ListError};
 
 use self::frontier::{DROPPED, Frontier};
+use self::odometer::{Odometer, TRAVEL_SCALE, TURN_SCALE};
 use super::frontier::PosSet;
 use super::{Frame, Limits, Mesh, Scales, Scratch, pack, unpack};
 use crate::terrain::heightfield::Heightfield;
@@ -148,61 +150,6 @@ enum Left {
     /// The cut is to be rebuilt from scratch.
     Rebuild,
 }
-
-/// An odometer (how far the eye has travelled, world units, or turned, radians, summed
-/// over the frames), and the keys its schedules are kept in: readings in fixed point
-/// (`SCALE` steps a unit) from a base, rounded down, so a member is evaluated no later
-/// than its reading (at most one step early). Before the keys of the reading now pass
-/// 2^31, the base moves up to it and every key shifts down (a few times a day of driving
-/// or turning, if ever: 2^31 steps are 524 km, or 2,048 radians).
-#[derive(Clone, Copy)]
-struct Odometer {
-    reading: f64,
-    base: f64,
-    scale: f64,
-}
-
-impl Odometer {
-    fn new(scale: f64) -> Odometer {
-        Odometer {
-            reading: 0.0,
-            base: 0.0,
-            scale,
-        }
-    }
-
-    /// The key of reading `at` (saturating: a key too large is due early, never late).
-    #[inline]
-    fn key_of(&self, at: f64) -> u32 {
-        ((at - self.base) * self.scale).floor() as u32
-    }
-
-    /// The key of the reading now.
-    fn now(&self) -> u32 {
-        self.key_of(self.reading)
-    }
-
-    /// The key at which an evaluation with this `slack` falls due (`None`: never).
-    #[inline]
-    fn key(&self, slack: f32) -> Option<u32> {
-        slack
-            .is_finite()
-            .then(|| self.key_of(self.reading + f64::from(slack)))
-    }
-
-    /// Moves the base to the reading now once its key passes 2^31: the shift of the keys.
-    fn rebase(&mut self) -> Option<u32> {
-        let shift = self.now();
-        (shift >= 1 << 31).then(|| {
-            self.base += f64::from(shift) / self.scale;
-            shift
-        })
-    }
-}
-
-/// Steps per world unit of the travel odometer, per radian of the turn odometer.
-const TRAVEL_SCALE: f64 = 4096.0;
-const TURN_SCALE: f64 = 1048576.0;
 
 /// One viewer's cut, carried from frame to frame.
 pub struct Coherent {
@@ -727,26 +674,6 @@ fn motion(a: &Camera, b: &Camera) -> (f64, f64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// A rebase shifts every key by what it says, exactly, and leaves the odometer's
-    /// key now near 0.
-    #[test]
-    fn odometer_rebase_shifts_keys() {
-        let mut o = Odometer::new(TRAVEL_SCALE);
-        o.reading = 600_000.0;
-        let before: Vec<u32> = [0.0, 0.001, 5.5, 1e4]
-            .map(|s| o.key(s).expect("finite"))
-            .into();
-        let shift = o.rebase().expect("600 km is past 2^31 steps");
-        let after: Vec<u32> = [0.0, 0.001, 5.5, 1e4]
-            .map(|s| o.key(s).expect("finite"))
-            .into();
-        for (b, a) in before.iter().zip(&after) {
-            assert_eq!(b - shift, *a);
-        }
-        assert_eq!((o.now(), o.rebase()), (0, None));
-        assert_eq!(o.key(f32::INFINITY), None, "exact: never due");
-    }
 
     /// A cut carried across odometer rebases (both odometers started just short of one)
     /// passes the audit every frame: every schedule shifted with its odometer, nothing due
