@@ -189,11 +189,12 @@ pub struct Coherent {
 /// whose priority (the screen-space error they remove, pixels) is above this, or above
 /// [`LAG_FACTOR`] times the error the budget gets the cut to (its cheapest merge candidate:
 /// [`Coherent::lag_px`]), whichever is more: what a loaded server lets lag is detail under
-/// a pixel, or under twice what the budget gets where it cannot get that far. (Read from
+/// a pixel, or under twice what the budget gets where it cannot get that far. Read from
 /// the last whole frame instead, the bound froze under load wherever that frame was: a
-/// review measured 42–119 px left where a cut with no allowance left 0–38.) With an allowance alone, of 64 changes a frame, the error
-/// left along `scripts/capacity-drive.txt` (p99, 32 viewers' cuts) went from 0.14 to 0.68
-/// px on `data/kossou` and from 2.5 to 52 px on the steep map; of 32, to 3.4 and 1,270 px.
+/// review measured 42–119 px left where a cut with no allowance left 0–38. With an
+/// allowance alone, of 64 changes a frame, the error left along
+/// `scripts/capacity-drive.txt` (p99, 32 viewers' cuts) went from 0.14 to 0.68 px on
+/// `data/kossou` and from 2.5 to 52 px on the steep map; of 32, to 3.4 and 1,270 px.
 const LAG_PX: f32 = 1.0;
 const LAG_FACTOR: f32 = 2.0;
 

@@ -25,7 +25,7 @@ impl Odometer {
 
     /// The key of reading `at` (saturating: a key too large is due early, never late).
     #[inline]
-    pub(super) fn key_of(&self, at: f64) -> u32 {
+    fn key_of(&self, at: f64) -> u32 {
         ((at - self.base) * self.scale).floor() as u32
     }
 
