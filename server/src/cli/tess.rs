@@ -364,6 +364,11 @@ pub(crate) fn bench(args: BenchArgs) -> Result<()> {
         ("serve_short_share", serde_json::json!(serve.short_share)),
         ("serve_first_frame_us", serde_json::json!(serve.first_us)),
         ("serve_many_frame_us_median", serde_json::json!(many.median)),
+        (
+            "serve_join_frame_us_median",
+            serde_json::json!(many.first[0]),
+        ),
+        ("serve_join_frame_us_max", serde_json::json!(many.first[1])),
         ("serve_many_frame_us_p99", serde_json::json!(many.p99)),
         ("serve_many_frame_us_p90", serde_json::json!(many.p90)),
         ("serve_many_frame_us_mean", serde_json::json!(many.mean)),
@@ -650,13 +655,16 @@ struct ManyFigures {
     mean: f64,
     /// Changes, evaluations and schedule entries taken, a frame on average.
     per_frame: [f64; 3],
+    /// The cores' first frames (a join's: a cut from scratch, its frontiers, a key frame),
+    /// each at another point of the drive, µs: median and slowest.
+    first: [f64; 2],
 }
 
 /// The serving path as a server with many viewers runs it: [`MANY_VIEWERS`] per-viewer
 /// cores along the codec's drive, each from another point of it, making their frames in
 /// turn (so each finds its own state gone from the caches, as it does when a server
 /// serves many viewers), every frame acknowledged at once. Each core's first frame (a
-/// rebuild) is not timed.
+/// rebuild, as a join's) is timed apart: `first`.
 fn serve_many_bench(
     terrain: &std::sync::Arc<Terrain>,
     vt: &VarianceTree,
@@ -694,6 +702,7 @@ fn serve_many_bench(
     let mut us = Vec::with_capacity(n * MANY_VIEWERS);
     // Changes, evaluations and schedule entries taken, summed over the timed frames.
     let mut counts = [0f64; 3];
+    let mut first = Vec::with_capacity(MANY_VIEWERS);
     for k in 0..n {
         for (i, core) in cores.iter_mut().enumerate() {
             let cam = &cameras[(k + i * n / MANY_VIEWERS) % n];
@@ -706,6 +715,8 @@ fn serve_many_bench(
                 counts[0] += f64::from(made.changes);
                 counts[1] += f64::from(st.evaluated);
                 counts[2] += f64::from(st.popped);
+            } else {
+                first.push(elapsed);
             }
             core.handle(Event::Acked(made.frame));
         }
@@ -716,5 +727,6 @@ fn serve_many_bench(
         p99: quantile(&us, 0.99),
         mean: us.iter().sum::<f64>() / us.len().max(1) as f64,
         per_frame: counts.map(|c| c / us.len().max(1) as f64),
+        first: [quantile(&first, 0.5), quantile(&first, 1.0)],
     }
 }

@@ -40,16 +40,20 @@
 //! a [`Job`], run on a blocking frame maker ([`super::makers`], at a lower priority than
 //! the clock), then given back ([`Conversation::finish`]) and sent from there; the pass
 //! goes on, so a heavy frame never delays the other viewers' frames. A viewer's first frame
-//! (a key frame from scratch, 3–7 ms at 32,768 triangles) is the exception up to
-//! [`INLINE_FIRST_BUDGET`]: the clock makes them itself, one at a time, at least
-//! [`FIRST_EVERY`] apart. On the maker, below the frames of those already served, 40
-//! viewers joining at once had their first frames up to 1.5 s after their joins, 50 up to
-//! 2.4 s; one a pass, 0.19–0.29 s and 0.19–0.22 s (`scripts/capacity.sh 40`, `50`,
-//! 2026-12-07). Once passes were sliced, one a pass came 0.32–0.37 s after the join (the
-//! slices let the joins' colour and handshakes run), one a slice 0.22–0.24 s with the
-//! longest gap after a first frame 0.23–0.30 s (the joins took most of the core); 4 ms
-//! apart, 0.15–0.27 s, gaps 0.17–0.25 s (0.04–0.14 s one a pass): the first frame's bound
-//! is the must kept (`scripts/capacity.sh 40`, both maps, twice each).
+//! (a key frame from scratch, 5 ms at 32,768 triangles) is the exception up to
+//! [`INLINE_FIRST_BUDGET`]: the clock makes them itself, **one a pass, after the pass's
+//! other frames**, the earliest joined first. A pass that leaves first frames waiting is
+//! due again at once, so joins take what the served viewers leave of the core, and a served
+//! viewer's frame waits for one first frame at most. Before, first frames were made in the
+//! pass's order, 4 ms apart counted from each one's start: at 7.8 ms each, 40 joining at
+//! once were made back to back in one pass while the viewers served before them waited
+//! (their frames up to 0.27 s late in the server's summary). With this order and the
+//! cheaper first frames (docs/figures.md, "What a join costs"), `scripts/capacity.sh 40` on
+//! `data/kossou` (2026-12-07, three to eight runs each): the last first frame 0.20–0.25 →
+//! 0.11–0.19 s after its join, the served viewers' frames at most 12 ms late in the
+//! server, the longest gap a viewer saw 0.12–0.26 → 0.04–0.15 s. (Earlier ways, measured
+//! then: on a maker below the served frames, 40 had their first frames up to 1.5 s after
+//! their joins; one a slice of the pass, 0.22–0.24 s with gaps of 0.23–0.30 s.)
 //!
 //! **How bytes go.** A datagram is handed to quinn at once (refused after all, the
 //! conversation puts the frame on a stream); a stream frame is written by a task of its
@@ -70,9 +74,9 @@ use crate::sim::world_core::Snapshot;
 use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Transmit};
 use crate::viewer::{Allowance, KeyCause};
 
-/// The largest budget whose first frame the clock makes itself ([`FIRST_EVERY`] apart),
-/// rather than a blocking frame maker (the module's header says why): a pass's other
-/// frames wait for one first frame at most, some 15 ms at this budget. It borrows its
+/// The largest budget whose first frame the clock makes itself (one a pass, after the
+/// pass's other frames), rather than a blocking frame maker (the module's header says why):
+/// a viewer's frame waits for one first frame at most, some 12 ms at this budget. It borrows its
 /// tessellator from the makers' [`crate::tessellate::Scratch`] (no map-sized state is
 /// added), waiting for a maker's job to return one if all are lent.
 const INLINE_FIRST_BUDGET: u32 = 65_536;
@@ -88,27 +92,8 @@ const IDLE: Duration = Duration::from_millis(250);
 /// viewers fell behind and got key frames.
 const PASS_SLICE: Duration = Duration::from_millis(2);
 
-/// The least time from the start of one first frame the clock makes to the start of the
-/// next. A first frame took 7.5–9.5 ms on average in a join of 40 (the summary's `make_us`,
-/// `--log-every 0.25`), so the next may start as soon as the pass has yielded once: the
-/// frames of the viewers already served, and the rest of the server, run between, but
-/// short of the core. Counted from each first frame's end instead, 40 first frames would
-/// take some 0.45 s, past the join's must of 0.3 s; as it is, the viewers already served
-/// wait up to 0.23–0.33 s for a frame during a join of 40 (the must is 0.1 s): both need
-/// cheaper first frames (where their time goes: docs/figures.md, "What a join costs"; a
-/// first cut at part of the budget grown by the frames after would cost more, at some
-/// 2 µs a coherent change against 67 ns a split from scratch).
-const FIRST_EVERY: Duration = Duration::from_millis(4);
-
-/// When the next first frame may start, the last having started at `last`.
-fn first_turn(last: Option<Instant>) -> Option<Instant> {
-    last.map(|t| t + FIRST_EVERY)
-}
-
 /// Serves every viewer's frames until the server shuts down.
 pub(super) async fn run(shared: Arc<Shared>) {
-    // When the clock last made a first frame.
-    let mut last_first: Option<Instant> = None;
     // What each cut may change a frame, from how late the passes' frames start.
     let mut allowance = Allowance::default();
     loop {
@@ -122,32 +107,29 @@ pub(super) async fn run(shared: Arc<Shared>) {
         let mut next = now + IDLE;
         let mut slice = Instant::now();
         let mut latest: Option<Duration> = None;
+        // The viewers whose first frame is due, in the order they joined: one is made a
+        // pass, after the others' frames.
+        let mut joining: Vec<&Arc<Served>> = Vec::new();
         for s in &viewers {
             if slice.elapsed() >= PASS_SLICE {
                 tokio::task::yield_now().await;
                 slice = Instant::now();
             }
-            let at = {
-                let mut c = lock(&s.conv);
-                // A frame that could not be made ends its viewer, never the clock.
-                c.set_allowance(allowance.changes());
-                let turn = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                    pass(&shared, s, &mut c, (now, &snap), &mut last_first)
-                }));
-                if let Ok(Some(late)) = turn {
-                    latest = latest.max(Some(late));
-                }
-                if turn.is_err() {
-                    s.stop(FramesEnd::Failed("the frame maker failed"));
-                }
-                // A first frame waiting its turn is due when the turn comes, not before.
-                match (c.poll_timeout(), first_turn(last_first)) {
-                    (Some(at), Some(first)) if c.frames() == 0 => Some(at.max(first)),
-                    (at, _) => at,
-                }
-            };
+            let (at, first_due) = turn(&shared, s, (now, &snap), &allowance, &mut latest, false);
+            if first_due {
+                joining.push(s);
+            }
             if let Some(at) = at {
                 next = next.min(at);
+            }
+        }
+        for s in joining {
+            let (at, waiting) = turn(&shared, s, (now, &snap), &allowance, &mut latest, true);
+            if let Some(at) = at {
+                next = next.min(at);
+            }
+            if !waiting {
+                break; // made (or away on a maker): the next one waits for the next pass
             }
         }
         if viewers.is_empty() {
@@ -170,29 +152,58 @@ pub(super) async fn run(shared: Arc<Shared>) {
     }
 }
 
-/// One viewer's turn in a pass: its frame if due, and whatever is due to send. Returns
-/// how late a frame started for want of the core (`None`: none was made, or a first one:
-/// [`Conversation::late`]).
+/// One viewer's turn in a pass, under its lock ([`pass`]): when it is due next, and
+/// whether it is still waiting for its first frame with its core at hand (left for the
+/// pass's end when `may_first` is false; not made when true: its vehicle is not in the
+/// world yet). The latest lateness of a frame made goes into `latest`.
+fn turn(
+    shared: &Arc<Shared>,
+    s: &Arc<Served>,
+    (now, snap): (Instant, &Arc<Snapshot>),
+    allowance: &Allowance,
+    latest: &mut Option<Duration>,
+    may_first: bool,
+) -> (Option<Instant>, bool) {
+    let mut c = lock(&s.conv);
+    // A frame that could not be made ends its viewer, never the clock.
+    c.set_allowance(allowance.changes());
+    let made = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        pass(shared, s, &mut c, (now, snap), may_first)
+    }));
+    match made {
+        Ok(Some(late)) => *latest = (*latest).max(Some(late)),
+        Ok(None) => {}
+        Err(_) => s.stop(FramesEnd::Failed("the frame maker failed")),
+    }
+    let waiting = !s.ended() && c.frames() == 0 && c.core().is_some();
+    let first_due = waiting && (may_first || c.frame_due(now));
+    (c.poll_timeout(), first_due)
+}
+
+/// One viewer's frame if due, and whatever is due to send. A first frame is made only when
+/// `may_first` says so (the pass's end). Returns how late a frame started for want of the
+/// core (`None`: none was made, or a first one: [`Conversation::late`]).
 fn pass(
     shared: &Arc<Shared>,
     s: &Arc<Served>,
     c: &mut Conversation,
     (now, snap): (Instant, &Arc<Snapshot>),
-    last_first: &mut Option<Instant>,
+    may_first: bool,
 ) -> Option<Duration> {
     if s.ended() {
         return None;
     }
     let mut made = None;
-    // First frames are made here one at a time, `FIRST_EVERY` apart; a joining viewer whose
-    // turn it is not waits for a later pass.
-    let first_waits = first_turn(*last_first).is_some_and(|t| t > Instant::now());
-    if c.frame_due(now) && !(c.frames() == 0 && first_waits) {
+    if c.frame_due(now) && (c.frames() > 0 || may_first) {
         let started = Instant::now();
         // A frame that starts behind holds every viewer's colour back.
         shared.color.frame_started(c.due_at(), started);
-        let late = started.saturating_duration_since(c.due_at());
-        shared.stats.frame_late(late);
+        // A first frame's wait is its join's (the viewer reports it), not a served viewer's.
+        if c.frames() > 0 {
+            shared
+                .stats
+                .frame_late(started.saturating_duration_since(c.due_at()));
+        }
         made = c.late(started);
         path(s, c, now);
         let step = {
@@ -201,7 +212,6 @@ fn pass(
         };
         let step = match step {
             Step::Heavy(job) if job.first() && job.budget() <= INLINE_FIRST_BUDGET => {
-                *last_first = Some(Instant::now());
                 let done = job.run(&shared.scene(), || shared.snapshots.borrow().clone());
                 c.finish(Instant::now(), &shared.terrain, done)
             }

@@ -531,31 +531,29 @@ impl Coherent {
         });
         new.sort_unstable();
         self.split_count = new.len() as u32;
-        // The difference of two row-major lists (packed positions sort row-major).
+        // The difference of two row-major lists (packed positions sort row-major), made in
+        // the split set as it is logged (one probe a change: a first frame inserts the cut).
+        self.split.reserve(new.len());
         let (mut i, mut j) = (0, 0);
         while i < old.len() || j < new.len() {
             match (old.get(i), new.get(j)) {
                 (Some(a), Some(b)) if a == b => (i, j) = (i + 1, j + 1),
                 (Some(&a), Some(&b)) if a < b => {
                     self.log.push(a);
+                    self.split.remove(a);
                     i += 1;
                 }
                 (Some(&a), None) => {
                     self.log.push(a);
+                    self.split.remove(a);
                     i += 1;
                 }
                 (_, Some(&b)) => {
                     self.log.push(b);
+                    self.split.insert(b);
                     j += 1;
                 }
                 (None, None) => break,
-            }
-        }
-        self.split.reserve(new.len());
-        for k in logged..self.log.len() {
-            let p = self.log[k];
-            if !self.split.remove(p) {
-                self.split.insert(p);
             }
         }
         self.stats.splits += (self.log.len() - logged) as u32;
