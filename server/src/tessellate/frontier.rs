@@ -508,6 +508,30 @@ mod tests {
         (1 + ((*seed >> 33) % 700) as u32 * 97, *seed >> 63 == 0)
     }
 
+    /// A table reserved for a cut keeps its slots while the cut goes in: the shrink test,
+    /// asked on insertions too, once shrank it at the first and the rest grew it a third
+    /// at a time.
+    #[test]
+    fn a_reserved_table_keeps_its_slots_while_it_fills() {
+        let members: Vec<u32> = (1..=10_000).map(|p| p * 3).collect();
+        let mut set = PosSet::default();
+        set.reserve(members.len());
+        let reserved = set.heap_bytes();
+        for &p in &members {
+            assert!(set.insert(p));
+            assert_eq!(set.heap_bytes(), reserved, "after {p}");
+        }
+        let mut index = PosIndex::default();
+        let at = |i: u32| members[i as usize];
+        index.reserve(members.len(), at);
+        let reserved = index.heap_bytes();
+        for (i, &p) in members.iter().enumerate() {
+            index.insert(p, i as u32, at);
+            assert_eq!(index.heap_bytes(), reserved, "after {p}");
+        }
+        assert!(reserved >= members.len() * 4, "room for every member");
+    }
+
     /// Random inserts and removes against a sorted reference.
     #[test]
     fn set_matches_a_reference_set() {
