@@ -59,6 +59,13 @@ pub enum Keep {
     Texels,
     /// Nothing: residency and counts only (a headless viewer that never draws).
     Masks,
+    /// As [`Keep::Masks`], and tiles are not even decoded: their level and place are
+    /// checked, their bytes counted, the coarsest colour tile's payload kept as received
+    /// (a reconnection compares it: the same server sends the same bytes). For a load
+    /// generator measuring the server (`roam-client --skip-decode`): decoding the join's
+    /// tiles was 56 % of a generator's core while 40 viewers joined at once (`perf`,
+    /// `colormap::run`, 2026-12-07), which its viewers' gaps then measured.
+    Counted,
 }
 
 /// A message the cache refuses: the field, and what was wrong with it.
@@ -172,7 +179,8 @@ impl ColorCache {
         c
     }
 
-    /// The coarsest level's tile as received (RGB), empty before it.
+    /// The coarsest level's tile as received (RGB; its payload with [`Keep::Counted`]),
+    /// empty before it.
     pub fn coarsest(&self) -> &[u8] {
         &self.coarsest
     }
@@ -289,6 +297,14 @@ impl ColorCache {
     pub fn apply(&mut self, msg: &ServerMessage) -> Result<bool, ColorError> {
         match msg {
             ServerMessage::ColorWindow { level, x0, z0 } => self.apply_window(*level, *x0, *z0)?,
+            ServerMessage::ColorTile { level, x, z, data } if self.keep == Keep::Counted => {
+                self.check_tile("ColorTile", *level, *x, *z)?;
+                self.put(*level, *x, *z, data, data.len());
+            }
+            ServerMessage::NormalTile { level, x, z, data } if self.keep == Keep::Counted => {
+                self.check_tile("NormalTile", *level, *x, *z)?;
+                self.put_codes(*level, *x, *z, &[], data.len());
+            }
             ServerMessage::ColorTile { level, x, z, data } => {
                 self.apply_tile(*level, *x, *z, data)?
             }
@@ -432,8 +448,8 @@ impl ColorCache {
         Ok(())
     }
 
-    /// Makes tile `(x, z)` of `level` resident with these RGB texels (checked), counting
-    /// `payload` bytes.
+    /// Makes tile `(x, z)` of `level` resident with these RGB texels (checked; its payload
+    /// with [`Keep::Counted`]), counting `payload` bytes.
     fn put(&mut self, level: u8, x: u32, z: u32, rgb: &[u8], payload: usize) {
         if level + 1 == self.layout.levels {
             self.coarsest.clear();

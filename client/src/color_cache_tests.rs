@@ -335,3 +335,45 @@ fn a_whole_map_fills_every_window_with_its_pyramid() {
     assert_eq!(window_for(1024), 4);
     assert_eq!(window_for(100), 1);
 }
+
+/// A counting cache (a load generator's) makes tiles resident and counts their bytes
+/// without decoding them, keeps the coarsest tile's payload (what a reconnection compares),
+/// and still refuses a tile outside its level's window.
+#[test]
+fn a_counting_cache_checks_places_and_counts_bytes_without_decoding() {
+    let (coarsest, tile) = (payload(8, 1), payload(8, 2));
+    let mut counted = cache(Keep::Counted);
+    let mut masks = cache(Keep::Masks);
+    for c in [&mut counted, &mut masks] {
+        for (level, x, z, data) in [(3, 0, 0, &coarsest), (0, 0, 0, &tile)] {
+            let msg = ServerMessage::ColorTile {
+                level,
+                x,
+                z,
+                data: data.clone(),
+            };
+            assert_eq!(c.apply(&msg), Ok(true));
+        }
+    }
+    assert_eq!(counted.resident(), masks.resident());
+    assert_eq!(counted.bytes(), masks.bytes());
+    assert_eq!(counted.coarsest(), &coarsest[..], "the payload, undecoded");
+    assert_eq!(masks.coarsest().len(), 8 * 8 * 3, "decoded RGB");
+    // Bytes that would not decode are counted all the same: nothing decodes them.
+    let junk = ServerMessage::ColorTile {
+        level: 0,
+        x: 1,
+        z: 0,
+        data: vec![0xff; 7],
+    };
+    assert_eq!(counted.apply(&junk), Ok(true));
+    assert!(masks.apply(&junk).is_err());
+    let outside = ServerMessage::ColorTile {
+        level: 0,
+        x: 5,
+        z: 5,
+        data: tile.clone(),
+    };
+    let e = counted.apply(&outside).expect_err("outside the window");
+    assert_eq!(e.field, "ColorTile.x/z");
+}

@@ -192,12 +192,14 @@ pub struct TerrainId {
     /// and resident masks are laid out for the first connection's window, so a server
     /// offering another one is another terrain for this session.
     color: (u32, u32, u8, u8),
-    /// The decoded coarsest colour tile (one tile: at most 256² RGB texels).
+    /// The decoded coarsest colour tile (one tile: at most 256² RGB texels), or its
+    /// payload for a session that decodes no tile ([`crate::color_cache::Keep::Counted`]).
     colors: Vec<u8>,
 }
 
 impl TerrainId {
-    /// The terrain of `welcome`, whose coarsest colour tile is `coarsest` (RGB).
+    /// The terrain of `welcome`, whose coarsest colour tile is `coarsest` (RGB, or its
+    /// payload: [`crate::color_cache::ColorCache::coarsest`]).
     pub fn of(welcome: &Welcome, coarsest: &[u8]) -> TerrainId {
         let c = &welcome.color;
         TerrainId {

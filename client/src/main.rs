@@ -101,7 +101,7 @@ struct Cli {
     #[arg(long, default_value_t = roam_client::render::MORPH_TICKS)]
     morph_ticks: u16,
     /// Acknowledge frames without decoding them, and let colour and normal tiles go
-    /// undecoded after the join's (counted in the colour bytes): a load generator that
+    /// undecoded, the join's too (counted in the colour bytes): a load generator that
     /// measures the server, not its own decoding (the wire and decode figures are then
     /// empty).
     #[arg(long)]

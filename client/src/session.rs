@@ -290,7 +290,8 @@ impl Session {
     /// undecoded: a load generator measures the server, not its own decoding (`roam-client
     /// --skip-decode`). Decoding them was three quarters of a generator's CPU with 50
     /// driving viewers (`perf`, 2026-12-07: `colormap::run`), the frames being undecoded
-    /// already. The cache keeps what came before (the join's window).
+    /// already. The cache keeps what came before (the join's window); a session joined
+    /// with [`crate::color_cache::Keep::Counted`] decoded none of it either.
     pub fn skip_color(&self) {
         self.shared.skip_color.store(true, Ordering::Relaxed);
     }

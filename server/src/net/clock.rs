@@ -90,8 +90,9 @@ const PHASES: u32 = 16;
 /// The clock's viewers, and its alarm for a new one.
 pub(super) struct FrameClock {
     pub(super) viewers: Mutex<Vec<Arc<Served>>>,
-    /// Wakes the clock: a viewer joined (its first frame is due at once), or a heavy
-    /// frame came back (the viewer's next one is due on its grid).
+    /// Wakes the clock: a viewer joined (its first frame is due: the clock makes it after
+    /// the served viewers' frames and the earlier joiners' first frames, one a pass), or a
+    /// heavy frame came back (the viewer's next one is due on its grid).
     pub(super) wake: Notify,
     /// The grid every phase is counted from.
     origin: Instant,
@@ -119,7 +120,8 @@ impl FrameClock {
         self.origin + period * n as u32 / PHASES
     }
 
-    /// Puts a viewer on the clock: its first frame is made at once.
+    /// Puts a viewer on the clock: its first frame is due at once (made in its turn, one
+    /// a pass: `net/frames.rs`).
     pub(super) fn add(&self, served: Arc<Served>) {
         lock(&self.viewers).push(served);
         self.wake.notify_one();

@@ -40,20 +40,22 @@
 //! a [`Job`], run on a blocking frame maker ([`super::makers`], at a lower priority than
 //! the clock), then given back ([`Conversation::finish`]) and sent from there; the pass
 //! goes on, so a heavy frame never delays the other viewers' frames. A viewer's first frame
-//! (a key frame from scratch, 5 ms at 32,768 triangles) is the exception up to
+//! (a key frame from scratch, 4.6 ms at 32,768 triangles) is the exception up to
 //! [`INLINE_FIRST_BUDGET`]: the clock makes them itself, **one a pass, after the pass's
 //! other frames**, the earliest joined first. A pass that leaves first frames waiting is
 //! due again at once, so joins take what the served viewers leave of the core, and a served
-//! viewer's frame waits for one first frame at most. Before, first frames were made in the
-//! pass's order, 4 ms apart counted from each one's start: at 7.8 ms each, 40 joining at
-//! once were made back to back in one pass while the viewers served before them waited
-//! (their frames up to 0.27 s late in the server's summary). With this order and the
-//! cheaper first frames (docs/figures.md, "What a join costs"), `scripts/capacity.sh 40` on
-//! `data/kossou` (2026-12-07, three to eight runs each): the last first frame 0.20–0.25 →
-//! 0.11–0.19 s after its join, the served viewers' frames at most 12 ms late in the
-//! server, the longest gap a viewer saw 0.12–0.26 → 0.04–0.15 s. (Earlier ways, measured
-//! then: on a maker below the served frames, 40 had their first frames up to 1.5 s after
-//! their joins; one a slice of the pass, 0.22–0.24 s with gaps of 0.23–0.30 s.)
+//! viewer's frame waits for one first frame at most. The wait counts as lateness: while
+//! viewers join, the served viewers' cuts are held back ([`Allowance`]) and their colour
+//! waits, so the joins get the core. Before, first frames were made in the pass's order, 4
+//! ms apart counted from each one's start: at 7.8 ms each, 40 joining at once were made back
+//! to back in one pass while the viewers served before them waited (their frames up to 0.27
+//! s late in the server's summary; now at most 17 ms). With this order and the cheaper
+//! first frames (docs/figures.md, "What a join costs"), `scripts/capacity.sh 40`
+//! (2026-12-07, the load generator decoding no tile): the last first frame 175–298 ms
+//! after its join on `data/kossou`, 248–286 ms on the steep map; the longest gap after a
+//! first frame 29–53 and 31–47 ms. (Earlier ways, measured then: on a maker below the
+//! served frames, 40 had their first frames up to 1.5 s after their joins; one a slice of
+//! the pass, 0.22–0.24 s with gaps of 0.23–0.30 s.)
 //!
 //! **How bytes go.** A datagram is handed to quinn at once (refused after all, the
 //! conversation puts the frame on a stream); a stream frame is written by a task of its
@@ -76,7 +78,7 @@ use crate::viewer::{Allowance, KeyCause};
 
 /// The largest budget whose first frame the clock makes itself (one a pass, after the
 /// pass's other frames), rather than a blocking frame maker (the module's header says why):
-/// a viewer's frame waits for one first frame at most, some 12 ms at this budget. It borrows its
+/// a viewer's frame waits for one first frame at most, some 10 ms at this budget. It borrows its
 /// tessellator from the makers' [`crate::tessellate::Scratch`] (no map-sized state is
 /// added), waiting for a maker's job to return one if all are lent.
 const INLINE_FIRST_BUDGET: u32 = 65_536;
@@ -110,27 +112,35 @@ pub(super) async fn run(shared: Arc<Shared>) {
         // The viewers whose first frame is due, in the order they joined: one is made a
         // pass, after the others' frames.
         let mut joining: Vec<&Arc<Served>> = Vec::new();
+        let p = Pass {
+            now,
+            snap: &snap,
+            allowance: &allowance,
+        };
         for s in &viewers {
             if slice.elapsed() >= PASS_SLICE {
                 tokio::task::yield_now().await;
                 slice = Instant::now();
             }
-            let (at, first_due) = turn(&shared, s, (now, &snap), &allowance, &mut latest, false);
+            let (at, first_due) = turn(&shared, s, &p, &mut latest, false);
             if first_due {
                 joining.push(s);
-            }
-            if let Some(at) = at {
+            } else if let Some(at) = at {
                 next = next.min(at);
             }
         }
-        for s in joining {
-            let (at, waiting) = turn(&shared, s, (now, &snap), &allowance, &mut latest, true);
+        let mut left = joining.into_iter();
+        for s in left.by_ref() {
+            let (at, waiting) = turn(&shared, s, &p, &mut latest, true);
             if let Some(at) = at {
                 next = next.min(at);
             }
             if !waiting {
                 break; // made (or away on a maker): the next one waits for the next pass
             }
+        }
+        if left.next().is_some() {
+            next = now; // first frames still wait: the next pass at once
         }
         if viewers.is_empty() {
             allowance = Allowance::default();
@@ -152,6 +162,13 @@ pub(super) async fn run(shared: Arc<Shared>) {
     }
 }
 
+/// What a pass's turns share: when it began, the world it shows, the cuts' allowance.
+struct Pass<'a> {
+    now: Instant,
+    snap: &'a Arc<Snapshot>,
+    allowance: &'a Allowance,
+}
+
 /// One viewer's turn in a pass, under its lock ([`pass`]): when it is due next, and
 /// whether it is still waiting for its first frame with its core at hand (left for the
 /// pass's end when `may_first` is false; not made when true: its vehicle is not in the
@@ -159,16 +176,15 @@ pub(super) async fn run(shared: Arc<Shared>) {
 fn turn(
     shared: &Arc<Shared>,
     s: &Arc<Served>,
-    (now, snap): (Instant, &Arc<Snapshot>),
-    allowance: &Allowance,
+    p: &Pass,
     latest: &mut Option<Duration>,
     may_first: bool,
 ) -> (Option<Instant>, bool) {
     let mut c = lock(&s.conv);
     // A frame that could not be made ends its viewer, never the clock.
-    c.set_allowance(allowance.changes());
+    c.set_allowance(p.allowance.changes());
     let made = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        pass(shared, s, &mut c, (now, snap), may_first)
+        pass(shared, s, &mut c, p, may_first)
     }));
     match made {
         Ok(Some(late)) => *latest = (*latest).max(Some(late)),
@@ -176,27 +192,31 @@ fn turn(
         Err(_) => s.stop(FramesEnd::Failed("the frame maker failed")),
     }
     let waiting = !s.ended() && c.frames() == 0 && c.core().is_some();
-    let first_due = waiting && (may_first || c.frame_due(now));
+    let first_due = waiting && (may_first || c.frame_due(p.now));
     (c.poll_timeout(), first_due)
 }
 
 /// One viewer's frame if due, and whatever is due to send. A first frame is made only when
 /// `may_first` says so (the pass's end). Returns how late a frame started for want of the
-/// core (`None`: none was made, or a first one: [`Conversation::late`]).
+/// core (`None`: none was made, or a first one: [`Conversation::late`]). A wait behind the
+/// clock's own first frames counts: while viewers join, the cuts of those served are held
+/// back ([`Allowance`]) and the joins get the core they leave.
 fn pass(
     shared: &Arc<Shared>,
     s: &Arc<Served>,
     c: &mut Conversation,
-    (now, snap): (Instant, &Arc<Snapshot>),
+    p: &Pass,
     may_first: bool,
 ) -> Option<Duration> {
+    let (now, snap) = (p.now, p.snap);
     if s.ended() {
         return None;
     }
     let mut made = None;
     if c.frame_due(now) && (c.frames() > 0 || may_first) {
         let started = Instant::now();
-        // A frame that starts behind holds every viewer's colour back.
+        // A frame that starts behind holds every viewer's colour back, a first frame
+        // waiting its turn too (the joins want the core more than colour does).
         shared.color.frame_started(c.due_at(), started);
         // A first frame's wait is its join's (the viewer reports it), not a served viewer's.
         if c.frames() > 0 {

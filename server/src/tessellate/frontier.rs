@@ -75,6 +75,14 @@ fn too_empty(members: usize, slots: usize) -> bool {
     5 * members < 2 * slots && slots > MIN_SLOTS
 }
 
+/// Whether a reserve for `slots` gives back an empty table of `table` slots: one over
+/// twice that size (a frontier cleared for a rebuild at a much lower budget would keep its
+/// peak's table, since only removals shrink a table).
+#[inline]
+fn given_back(len: usize, table: usize, slots: usize) -> bool {
+    len == 0 && table > 2 * slots
+}
+
 /// Records per chunk of a [`Chunks`].
 const CHUNK: usize = 1024;
 
@@ -246,7 +254,7 @@ impl PosSet {
     /// third at a time, so an empty one filled with a cut rehashes it four times over).
     pub(super) fn reserve(&mut self, members: usize) {
         let slots = reserved_slots(members);
-        if slots > self.table.len() {
+        if slots > self.table.len() || given_back(self.len, self.table.len(), slots) {
             self.resize(slots);
         }
     }
@@ -407,7 +415,7 @@ impl PosIndex {
     /// Makes room for `members` without resizing on the way there ([`PosSet::reserve`]).
     pub(super) fn reserve(&mut self, members: usize, at: impl Fn(u32) -> u32) {
         let slots = reserved_slots(members);
-        if slots > self.table.len() {
+        if slots > self.table.len() || given_back(self.len, self.table.len(), slots) {
             self.resize(slots, &at);
         }
     }
@@ -510,7 +518,7 @@ mod tests {
 
     /// A table reserved for a cut keeps its slots while the cut goes in: the shrink test,
     /// asked on insertions too, once shrank it at the first and the rest grew it a third
-    /// at a time.
+    /// at a time. A cleared one reserved for far fewer gives its slots back.
     #[test]
     fn a_reserved_table_keeps_its_slots_while_it_fills() {
         let members: Vec<u32> = (1..=10_000).map(|p| p * 3).collect();
@@ -530,6 +538,10 @@ mod tests {
             assert_eq!(index.heap_bytes(), reserved, "after {p}");
         }
         assert!(reserved >= members.len() * 4, "room for every member");
+        // Cleared (a rebuild) and reserved for a tenth: the table is given back.
+        index.clear();
+        index.reserve(members.len() / 10, at);
+        assert!(index.heap_bytes() < reserved / 4, "{}", index.heap_bytes());
     }
 
     /// Random inserts and removes against a sorted reference.

@@ -523,41 +523,49 @@ impl Coherent {
         // hold the cut twice over.
         let mut old: Vec<u32> = self.split.iter().collect();
         old.sort_unstable();
-        let mut new = Vec::new();
-        self.triangles = scratch.with(|t| {
+        // The frontiers are built while the tessellator is still lent: its bitset says
+        // what is split, a bit test where the split set's table is a probe.
+        scratch.with(|t| {
             t.cut(hf, variance, scales, camera, limits);
-            new.extend_from_slice(&t.active_list);
-            t.triangles
-        });
-        new.sort_unstable();
-        self.split_count = new.len() as u32;
-        // The difference of two row-major lists (packed positions sort row-major), made in
-        // the split set as it is logged (one probe a change: a first frame inserts the cut).
-        self.split.reserve(new.len());
-        let (mut i, mut j) = (0, 0);
-        while i < old.len() || j < new.len() {
-            match (old.get(i), new.get(j)) {
-                (Some(a), Some(b)) if a == b => (i, j) = (i + 1, j + 1),
-                (Some(&a), Some(&b)) if a < b => {
-                    self.log.push(a);
-                    self.split.remove(a);
-                    i += 1;
+            self.triangles = t.triangles;
+            let mut new = t.active_list.clone();
+            new.sort_unstable();
+            self.split_count = new.len() as u32;
+            // The difference of two row-major lists (packed positions sort row-major),
+            // logged; what left the cut is removed on the way, then the set is sized for
+            // the new cut before it goes in (removals first, so none shrinks a table sized
+            // for it).
+            let (mut i, mut j) = (0, 0);
+            while i < old.len() || j < new.len() {
+                match (old.get(i), new.get(j)) {
+                    (Some(a), Some(b)) if a == b => (i, j) = (i + 1, j + 1),
+                    (Some(&a), Some(&b)) if a < b => {
+                        self.log.push(a);
+                        self.split.remove(a);
+                        i += 1;
+                    }
+                    (Some(&a), None) => {
+                        self.log.push(a);
+                        self.split.remove(a);
+                        i += 1;
+                    }
+                    (_, Some(&b)) => {
+                        self.log.push(b);
+                        j += 1;
+                    }
+                    (None, None) => break,
                 }
-                (Some(&a), None) => {
-                    self.log.push(a);
-                    self.split.remove(a);
-                    i += 1;
-                }
-                (_, Some(&b)) => {
-                    self.log.push(b);
-                    self.split.insert(b);
-                    j += 1;
-                }
-                (None, None) => break,
             }
-        }
-        self.stats.splits += (self.log.len() - logged) as u32;
-        self.rebuild_frontiers(f, &new);
+            self.split.reserve(new.len());
+            for &p in &new {
+                self.split.insert(p);
+            }
+            self.stats.splits += (self.log.len() - logged) as u32;
+            self.rebuild_frontiers(f, &new, |p| {
+                let (x, z) = unpack(p);
+                t.is_active(x, z)
+            });
+        });
         self.error_bound_px = self.bound(limits);
     }
 

@@ -113,7 +113,12 @@ impl Coherent {
     }
 
     /// The frontiers of the cut `new` (sorted), made afresh and every member evaluated.
-    pub(super) fn rebuild_frontiers(&mut self, f: &Frame, new: &[u32]) {
+    pub(super) fn rebuild_frontiers(
+        &mut self,
+        f: &Frame,
+        new: &[u32],
+        split: impl Fn(u32) -> bool,
+    ) {
         self.splits.clear();
         self.merges.clear();
         // About as many split candidates as split diamonds, and a quarter as many merge
@@ -124,15 +129,27 @@ impl Coherent {
         if new.is_empty() {
             self.splits.insert(root);
         }
+        let size = i64::from(self.size);
         for &p in new {
             let (x, z) = unpack(p);
             let mut any = false;
             for c in self.children(x, z).into_iter().flatten() {
-                if self.split.contains(c) {
+                if split(c) {
                     any = true;
-                } else {
-                    self.splits.insert(c);
+                    continue;
                 }
+                // Listed once, by its first split parent in `new`'s order: the other parent
+                // is this one mirrored through the child (`codec::next_candidates_by`).
+                let (cx, cz) = unpack(c);
+                let (ox, oz) = (
+                    2 * i64::from(cx) - i64::from(x),
+                    2 * i64::from(cz) - i64::from(z),
+                );
+                let on_map = (0..=size).contains(&ox) && (0..=size).contains(&oz);
+                if on_map && pack(ox as u32, oz as u32) < p && split(pack(ox as u32, oz as u32)) {
+                    continue;
+                }
+                self.splits.insert(c);
             }
             if !any {
                 self.merges.insert(p);
