@@ -46,16 +46,19 @@
 //! due again at once, so joins take what the served viewers leave of the core, and a served
 //! viewer's frame waits for one first frame at most. The wait counts as lateness: while
 //! viewers join, the served viewers' cuts are held back ([`Allowance`]) and their colour
-//! waits, so the joins get the core. Before, first frames were made in the pass's order, 4
-//! ms apart counted from each one's start: at 7.8 ms each, 40 joining at once were made back
-//! to back in one pass while the viewers served before them waited (their frames up to 0.27
-//! s late in the server's summary; now at most 17 ms). With this order and the cheaper
-//! first frames (docs/figures.md, "What a join costs"), `scripts/capacity.sh 40`
-//! (2026-12-07, the load generator decoding no tile): the last first frame 175–298 ms
-//! after its join on `data/kossou`, 248–286 ms on the steep map; the longest gap after a
-//! first frame 29–53 and 31–47 ms. (Earlier ways, measured then: on a maker below the
-//! served frames, 40 had their first frames up to 1.5 s after their joins; one a slice of
-//! the pass, 0.22–0.24 s with gaps of 0.23–0.30 s.)
+//! waits, and while a pass leaves first frames waiting, each served viewer gets every other
+//! frame ([`Conversation::pass_over`]: never two missed in a row), so the joins get the
+//! core. Before, first frames were made in the pass's order, 4 ms apart counted from each
+//! one's start: at 7.8 ms each, 40 joining at once were made back to back in one pass
+//! while the viewers served before them waited (their frames up to 0.27 s late in the
+//! server's summary; now at most 17 ms). With this order and the cheaper first frames
+//! (docs/figures.md, "What a join costs"), `scripts/capacity.sh 40` (2026-12-07, the load
+//! generator decoding no tile): the last first frame 175–298 ms after its join on
+//! `data/kossou` (248–286 on the steep map), the longest gap after a first frame 29–53 ms
+//! (31–47); with every other frame passed over, 165–206 ms (184–204), gaps 44–59 ms
+//! (43–49). (Earlier ways, measured then: on a maker below the served frames, 40 had
+//! their first frames up to 1.5 s after their joins; one a slice of the pass, 0.22–0.24 s
+//! with gaps of 0.23–0.30 s.)
 //!
 //! **How bytes go.** A datagram is handed to quinn at once (refused after all, the
 //! conversation puts the frame on a stream); a stream frame is written by a task of its
@@ -98,6 +101,9 @@ const PASS_SLICE: Duration = Duration::from_millis(2);
 pub(super) async fn run(shared: Arc<Shared>) {
     // What each cut may change a frame, from how late the passes' frames start.
     let mut allowance = Allowance::default();
+    // Whether the last pass left first frames waiting: the served viewers then get every
+    // other frame ([`Conversation::pass_over`]), and the joins the core that frees.
+    let mut joins_waiting = false;
     loop {
         let now = Instant::now();
         let viewers: Vec<Arc<Served>> = {
@@ -116,6 +122,7 @@ pub(super) async fn run(shared: Arc<Shared>) {
             now,
             snap: &snap,
             allowance: &allowance,
+            joins_waiting,
         };
         for s in &viewers {
             if slice.elapsed() >= PASS_SLICE {
@@ -139,7 +146,8 @@ pub(super) async fn run(shared: Arc<Shared>) {
                 break; // made (or away on a maker): the next one waits for the next pass
             }
         }
-        if left.next().is_some() {
+        joins_waiting = left.next().is_some();
+        if joins_waiting {
             next = now; // first frames still wait: the next pass at once
         }
         if viewers.is_empty() {
@@ -162,11 +170,13 @@ pub(super) async fn run(shared: Arc<Shared>) {
     }
 }
 
-/// What a pass's turns share: when it began, the world it shows, the cuts' allowance.
+/// What a pass's turns share: when it began, the world it shows, the cuts' allowance, and
+/// whether first frames were left waiting by the pass before.
 struct Pass<'a> {
     now: Instant,
     snap: &'a Arc<Snapshot>,
     allowance: &'a Allowance,
+    joins_waiting: bool,
 }
 
 /// One viewer's turn in a pass, under its lock ([`pass`]): when it is due next, and
@@ -213,6 +223,10 @@ fn pass(
         return None;
     }
     let mut made = None;
+    if p.joins_waiting && c.pass_over(now) {
+        transmit(s, c, now);
+        return None;
+    }
     if c.frame_due(now) && (c.frames() > 0 || may_first) {
         let started = Instant::now();
         // A frame that starts behind holds every viewer's colour back, a first frame

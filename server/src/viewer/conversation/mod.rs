@@ -246,6 +246,8 @@ pub struct Conversation {
     allowance: u32,
     /// When the core last came back from a [`Job`].
     back: Option<Instant>,
+    /// Whether the last frame due was passed over ([`Conversation::pass_over`]).
+    passed_over: bool,
 }
 
 /// Who a conversation serves.
@@ -296,6 +298,7 @@ impl Conversation {
             repeats: VecDeque::new(),
             events: VecDeque::new(),
             allowance: u32::MAX,
+            passed_over: false,
             back: None,
         }
     }
@@ -403,6 +406,20 @@ impl Conversation {
         self.core.is_some() && now >= self.next_frame
     }
 
+    /// Passes over the frame due at `now`, if any and if the last one due was made: the
+    /// next is due on the grid after `now`. For a clock short of core while viewers join
+    /// (their first frames wait): a served viewer then gets every other frame, never two
+    /// missed in a row, and never its first. True when it passed one over.
+    pub fn pass_over(&mut self, now: Instant) -> bool {
+        // The flag clears when a frame is made ([`Conversation::frame`]).
+        if !self.frame_due(now) || self.newest.is_none() || self.passed_over {
+            return false;
+        }
+        self.next_frame = next_on_grid(now, self.origin, self.period);
+        self.passed_over = true;
+        true
+    }
+
     /// The next thing to send, by `now`.
     pub fn poll_transmit(&mut self, now: Instant) -> Option<Transmit> {
         if let Some(t) = self.transmits.pop_front() {
@@ -433,6 +450,7 @@ impl Conversation {
             return Step::Idle;
         }
         self.next_frame = next_on_grid(now, self.origin, self.period);
+        self.passed_over = false;
         let asked = self.mailbox.take_follow();
         for c in self.mailbox.take_replay() {
             if self.replay {

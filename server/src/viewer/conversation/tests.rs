@@ -129,6 +129,32 @@ fn frames_are_due_on_the_grid_of_their_period_missed_ones_skipped() {
     assert_eq!(c.frames(), 3);
 }
 
+/// While viewers join, a served viewer's due frame may be passed over: never its first,
+/// never two in a row, and the next is due on its grid.
+#[test]
+fn frames_passed_over_while_viewers_join_alternate_and_keep_the_grid() {
+    let mut f = fixture();
+    let (mut c, snap) = f.driver(2048);
+    let t0 = f.t0;
+    assert!(!c.pass_over(t0), "a first frame is never passed over");
+    assert!(matches!(f.frame(&mut c, t0, &snap), Step::Sent(_)));
+    assert!(!c.pass_over(t0 + 10 * MS), "nothing due yet");
+    // Due at 20 ms (50 Hz): passed over, the next due at 40 ms.
+    assert!(c.pass_over(t0 + 21 * MS));
+    assert_eq!(c.poll_timeout(), Some(t0 + 40 * MS));
+    assert!(!c.frame_due(t0 + 30 * MS));
+    // Not twice in a row, however often asked between.
+    assert!(!c.pass_over(t0 + 30 * MS));
+    assert!(!c.pass_over(t0 + 40 * MS));
+    assert!(matches!(
+        f.frame(&mut c, t0 + 40 * MS, &snap),
+        Step::Sent(_)
+    ));
+    // Made: the next may be passed over again.
+    assert!(c.pass_over(t0 + 60 * MS));
+    assert_eq!(c.frames(), 2);
+}
+
 #[test]
 fn a_key_frame_goes_on_a_stream_and_change_frames_as_datagrams() {
     let mut f = fixture();
