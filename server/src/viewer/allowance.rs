@@ -15,10 +15,16 @@
 //!
 //! **How.** The signal is how late frames start after their tick, the one figure that says
 //! the core is short whatever takes it (the cuts, quinn, the kernel, colour). After each
-//! pass of the clock: a frame more than [`LATE`] late cuts the allowance by a quarter
-//! (down to [`FLOOR`]); every frame within [`ON_TIME`] raises it by [`RISE`] (up to
-//! [`CEILING`], which is none); in between it holds. Down fast, up slowly (as TCP's window),
-//! so that the core does not swing between late and idle every few passes. Lateness is
+//! pass of the clock: a frame more than [`LATE`] late cuts the allowance by a quarter,
+//! more than twice that to a quarter, more than a frame period ([`FAR_BEHIND`]) to the
+//! [`FLOOR`]; every frame within [`ON_TIME`] raises it by [`RISE`] (up to [`CEILING`],
+//! which is none); in between it holds. Down fast, up slowly (as TCP's window), so that the
+//! core does not swing between late and idle every few passes. The deeper cuts are for the
+//! start of a turn taken together: a quarter a pass took some 19 passes from none to the
+//! floor while every cut made its turn's hundreds of changes, and the frames fell a tenth
+//! of a second behind. With them, 100 viewers in step on `data/kossou` took 54.6–55.1 →
+//! 59.1 frames/s (every frame sent taken), 64 on the steep map 56.3 → 56.5
+//! (`scripts/capacity.sh --in-step`, `FRAMES=1800`, 2026-12-07, in turn). Lateness is
 //! counted for want of the core only (`Conversation::late`: not a first frame's wait for
 //! its turn, not a frame's wait for its core to come back from a heavy job). Passes come
 //! more often the more viewers there are (16 phases a period), so the rise is per pass,
@@ -44,6 +50,11 @@ const CEILING: u32 = 1024;
 
 /// A frame started later than this after its tick says the core is short.
 const LATE: Duration = Duration::from_millis(4);
+
+/// A frame started later than this (a frame period at 60 Hz) says frames are being
+/// skipped: every cut goes to the [`FLOOR`] at once. Between it and twice [`LATE`], a pass
+/// cuts the allowance to a quarter.
+const FAR_BEHIND: Duration = Duration::from_millis(16);
 
 /// Frames that all start within this of their ticks say there is room.
 const ON_TIME: Duration = Duration::from_millis(1);
@@ -83,6 +94,8 @@ impl Allowance {
     /// (`None`: the pass made no frame, and says nothing).
     pub fn pass(&mut self, latest: Option<Duration>) {
         match latest {
+            Some(late) if late > FAR_BEHIND => self.changes = FLOOR,
+            Some(late) if late > 2 * LATE => self.changes = (self.changes / 4).max(FLOOR),
             Some(late) if late > LATE => self.changes = (self.changes * 3 / 4).max(FLOOR),
             Some(late) if late <= ON_TIME => self.changes = (self.changes + RISE).min(CEILING),
             _ => {}
@@ -119,10 +132,22 @@ mod tests {
     fn late_frames_cut_it_by_a_quarter_down_to_the_floor() {
         check(
             CEILING,
-            &[Some(5), Some(9), Some(20)],
+            &[Some(5), Some(6), Some(8)],
             &[Some(768), Some(576), Some(432)],
         );
         check(6, &[Some(5), Some(5)], &[Some(FLOOR), Some(FLOOR)]);
+    }
+
+    #[test]
+    fn frames_far_behind_cut_it_deeper() {
+        // More than twice LATE: to a quarter; more than a frame period: to the floor.
+        check(CEILING, &[Some(9), Some(12)], &[Some(256), Some(64)]);
+        check(CEILING, &[Some(17)], &[Some(FLOOR)]);
+        check(
+            CEILING,
+            &[Some(16), Some(8), Some(5)],
+            &[Some(256), Some(192), Some(144)],
+        );
     }
 
     #[test]
