@@ -23,12 +23,14 @@
 //! [`ColorError`] naming the field: a level past the layout's, a window origin that does
 //! not keep the window inside its level (or a window for a level held whole), a tile
 //! outside its level or the level's current window, a payload longer than
-//! [`ColorLayout::max_tile_bytes`] or one that does not decode to the tile's side.
+//! [`ColorLayout::max_tile_bytes`] or one that does not decode to the tile's side (with
+//! [`Keep::Counted`] nothing is decoded: the place and the length are checked).
 //!
 //! **Bounded.** At most one tile of each kind per slot: `Σ_l min(tiles_l, W)²` tiles, so
 //! never more than `levels × S²` texels of each (6 bytes a texel in all, RGBA and the
 //! normal's code, waiting to be uploaded; plus the coarsest tile's RGB, at most `T² · 3`
-//! bytes, which a reconnection compares), and each upload queue holds at most one entry
+//! bytes, or its payload, at most [`ColorLayout::max_tile_bytes`], which a reconnection
+//! compares), and each upload queue holds at most one entry
 //! per slot (an entry is removed with its tile when a window moves). With
 //! [`Keep::Masks`] (a headless viewer that never draws) no texel is kept at all: tiles are
 //! decoded to check them, counted, and dropped. Uploaded texels are freed here (the GPU has
@@ -61,7 +63,8 @@ pub enum Keep {
     Masks,
     /// As [`Keep::Masks`], and tiles are not even decoded: their level and place are
     /// checked, their bytes counted, the coarsest colour tile's payload kept as received
-    /// (a reconnection compares it: the same server sends the same bytes). For a load
+    /// (a reconnection compares it: the same server sends the same bytes; a server whose
+    /// tile encoder changed would read as another map). For a load
     /// generator measuring the server (`roam-client --skip-decode`): decoding the join's
     /// tiles was 56 % of a generator's core while 40 viewers joined at once (`perf`,
     /// `colormap::run`, 2026-12-07), which its viewers' gaps then measured.
@@ -123,7 +126,8 @@ pub struct ColorCache {
     colors: TileSlots,
     normals: TileSlots,
     scratch: Vec<u8>,
-    /// The coarsest level's tile (RGB): what a reconnection compares to know the map.
+    /// The coarsest level's tile (RGB; its payload with [`Keep::Counted`]): what a
+    /// reconnection compares to know the map.
     coarsest: Vec<u8>,
 }
 
@@ -298,10 +302,12 @@ impl ColorCache {
         match msg {
             ServerMessage::ColorWindow { level, x0, z0 } => self.apply_window(*level, *x0, *z0)?,
             ServerMessage::ColorTile { level, x, z, data } if self.keep == Keep::Counted => {
+                check_payload(&self.layout, "ColorTile", *level, *x, *z, data)?;
                 self.check_tile("ColorTile", *level, *x, *z)?;
                 self.put(*level, *x, *z, data, data.len());
             }
             ServerMessage::NormalTile { level, x, z, data } if self.keep == Keep::Counted => {
+                check_payload(&self.layout, "NormalTile", *level, *x, *z, data)?;
                 self.check_tile("NormalTile", *level, *x, *z)?;
                 self.put_codes(*level, *x, *z, &[], data.len());
             }

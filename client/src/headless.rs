@@ -3,7 +3,7 @@
 //! time without frames included. A session lost for good midway still reports what it
 //! measured ([`measure`]), with the error beside. Colour tiles are decoded and checked,
 //! and kept only for a screenshot ([`Keep::Masks`] otherwise: a load generator of many
-//! viewers holds no texels; with `--skip-decode`, [`Keep::Counted`], none is decoded); the window asked is the default one
+//! viewers holds no texels; with `--skip-decode`, [`Keep::Counted`]: none is decoded); the window asked is the default one
 //! ([`roam_protocol::tiles::DEFAULT_WINDOW`]), as a viewer with a GPU asks. Given several
 //! addresses (the edges of one world, [`measure_any`]) it goes from one to the next as
 //! the session does; an edge's word that its world is gone, and back, is one line each on

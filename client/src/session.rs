@@ -187,7 +187,9 @@ impl Session {
             core: Mutex::new(core),
             colors: Mutex::new(colors),
             color_bytes_before: AtomicU64::new(0),
-            skip_color: AtomicBool::new(false),
+            // Set from the start for a session that decodes no tile (the tiles read
+            // before `skip_color` is called are not decoded either).
+            skip_color: AtomicBool::new(keep == Keep::Counted),
             color_bytes_skipped: AtomicU64::new(0),
             keys: Mutex::new(KeyCore::default()),
             notify: Notify::new(),

@@ -4,16 +4,18 @@
 //!
 //! A viewer's cut lives in its [`super::Coherent`] as a hash set sized by the cut; it
 //! borrows a [`Tessellator`] from the [`Scratch`] only for what needs a bitset over the
-//! map: a rebuild (split-only ROAM from scratch), a key frame (the codec walks a bitset)
-//! and, for tests and benchmarks, the mesh. Those run on the server's blocking frame
-//! makers, at most one fewer than the cores (`net/makers.rs`); measured at 32769², a
-//! viewer carried its own (145 MB) before.
+//! map: a rebuild (split-only ROAM from scratch, and its frontiers' members found on the
+//! bitset), a key frame (the codec walks a bitset) and, for tests and benchmarks, the
+//! mesh. Those run on the server's blocking frame makers, at most one fewer than the cores
+//! (`net/makers.rs`), and a joining viewer's first frame on the frame clock; measured at
+//! 32769², a viewer carried its own (145 MB) before.
 //!
 //! **Bounded by the makers.** The pool is given the number of users that borrow at once
 //! (the server's frame makers; 1 for a single-threaded test or bench) and never makes more
 //! tessellators than that: a borrower beyond it waits for one to come back rather than
-//! making another. The makers' permits already keep the server's borrowers within it, so
-//! there the wait never happens; it is what keeps any other caller (a new path that
+//! making another. The makers' permits keep the makers within it; the frame clock's first
+//! frames borrow beside them and may wait for one to come back (`net/frames.rs`,
+//! `INLINE_FIRST_BUDGET`). The bound is what keeps any other caller (a new path that
 //! borrows off the makers, a test with many threads) from growing the pool one map-sized
 //! tessellator per concurrent borrower, as a pool that made one whenever all were lent
 //! did. A borrower that panics drops its tessellator (its state may be torn) and frees

@@ -51,7 +51,7 @@ const CEILING: u32 = 1024;
 /// A frame started later than this after its tick says the core is short.
 const LATE: Duration = Duration::from_millis(4);
 
-/// A frame started later than this (a frame period at 60 Hz) says frames are being
+/// A frame started later than this (about a frame period at 60 Hz) says frames are being
 /// skipped: every cut goes to the [`FLOOR`] at once. Between it and twice [`LATE`], a pass
 /// cuts the allowance to a quarter.
 const FAR_BEHIND: Duration = Duration::from_millis(16);

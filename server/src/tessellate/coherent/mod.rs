@@ -523,18 +523,19 @@ impl Coherent {
         // hold the cut twice over.
         let mut old: Vec<u32> = self.split.iter().collect();
         old.sort_unstable();
-        // The frontiers are built while the tessellator is still lent: its bitset says
-        // what is split, a bit test where the split set's table is a probe.
+        // The frontiers' members are found while the tessellator is still lent (its bitset
+        // says what is split: a bit test where the split set's table is a probe); the
+        // split set and the evaluations come after it is given back.
+        let mut new = Vec::new();
+        let mut added = Vec::new();
         scratch.with(|t| {
             t.cut(hf, variance, scales, camera, limits);
             self.triangles = t.triangles;
-            let mut new = t.active_list.clone();
+            new.extend_from_slice(&t.active_list);
             new.sort_unstable();
-            self.split_count = new.len() as u32;
             // The difference of two row-major lists (packed positions sort row-major),
-            // logged; what left the cut is removed on the way, then the set is sized for
-            // the new cut before it goes in (removals first, so none shrinks a table sized
-            // for it).
+            // logged; what left the cut is removed on the way, what joined it kept for
+            // after (removals first, so none shrinks a table sized for the new cut).
             let (mut i, mut j) = (0, 0);
             while i < old.len() || j < new.len() {
                 match (old.get(i), new.get(j)) {
@@ -551,21 +552,24 @@ impl Coherent {
                     }
                     (_, Some(&b)) => {
                         self.log.push(b);
+                        added.push(b);
                         j += 1;
                     }
                     (None, None) => break,
                 }
             }
-            self.split.reserve(new.len());
-            for &p in &new {
-                self.split.insert(p);
-            }
-            self.stats.splits += (self.log.len() - logged) as u32;
-            self.rebuild_frontiers(f, &new, |p| {
+            self.rebuild_frontiers(&new, |p| {
                 let (x, z) = unpack(p);
                 t.is_active(x, z)
             });
         });
+        self.split_count = new.len() as u32;
+        self.split.reserve(new.len());
+        for &p in &added {
+            self.split.insert(p);
+        }
+        self.stats.splits += (self.log.len() - logged) as u32;
+        self.evaluate_frontiers(f);
         self.error_bound_px = self.bound(limits);
     }
 

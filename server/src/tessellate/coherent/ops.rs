@@ -112,13 +112,9 @@ impl Coherent {
         }
     }
 
-    /// The frontiers of the cut `new` (sorted), made afresh and every member evaluated.
-    pub(super) fn rebuild_frontiers(
-        &mut self,
-        f: &Frame,
-        new: &[u32],
-        split: impl Fn(u32) -> bool,
-    ) {
+    /// The frontiers' members for the cut `new` (sorted; `split` says what it splits), made
+    /// afresh, not yet evaluated ([`Self::evaluate_frontiers`]).
+    pub(super) fn rebuild_frontiers(&mut self, new: &[u32], split: impl Fn(u32) -> bool) {
         self.splits.clear();
         self.merges.clear();
         // About as many split candidates as split diamonds, and a quarter as many merge
@@ -155,6 +151,10 @@ impl Coherent {
                 self.merges.insert(p);
             }
         }
+    }
+
+    /// Evaluates every member of both frontiers (after [`Self::rebuild_frontiers`]).
+    pub(super) fn evaluate_frontiers(&mut self, f: &Frame) {
         for merges in [false, true] {
             let cands = if merges { &self.merges } else { &self.splits };
             let list: Vec<u32> = cands.places().collect();

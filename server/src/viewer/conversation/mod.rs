@@ -246,7 +246,8 @@ pub struct Conversation {
     allowance: u32,
     /// When the core last came back from a [`Job`].
     back: Option<Instant>,
-    /// Whether the last frame due was passed over ([`Conversation::pass_over`]).
+    /// Whether the last frame due was passed over ([`Conversation::pass_over`]); cleared
+    /// when [`Conversation::frame`] runs with a frame due.
     passed_over: bool,
 }
 
@@ -409,10 +410,12 @@ impl Conversation {
     /// Passes over the frame due at `now`, if any and if the last one due was made: the
     /// next is due on the grid after `now`. For a clock short of core while viewers join
     /// (their first frames wait): a served viewer then gets every other frame, never two
-    /// missed in a row, and never its first. True when it passed one over.
+    /// missed in a row, and never its first; a viewer at 30 frames a second or fewer is
+    /// never passed over (a missed frame would be a gap of 67 ms and more). True when it
+    /// passed one over.
     pub fn pass_over(&mut self, now: Instant) -> bool {
-        // The flag clears when a frame is made ([`Conversation::frame`]).
-        if !self.frame_due(now) || self.newest.is_none() || self.passed_over {
+        let slow = self.period > Duration::from_millis(34);
+        if slow || !self.frame_due(now) || self.newest.is_none() || self.passed_over {
             return false;
         }
         self.next_frame = next_on_grid(now, self.origin, self.period);
