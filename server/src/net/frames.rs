@@ -224,6 +224,7 @@ fn pass(
     }
     let mut made = None;
     if p.joins_waiting && c.pass_over(now) {
+        shared.stats.add(&shared.stats.passed_over, 1);
         transmit(s, c, now);
         return None;
     }

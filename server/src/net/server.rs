@@ -485,6 +485,7 @@ async fn summary_loop(
             late_ms_max = format_args!("{late_ms_max:.1}"),
             short_frames = now.1.short - last.1.short,
             allowance_min,
+            passed_over = now.1.passed_over - last.1.passed_over,
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
             color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
             normal_kbytes_per_s = format_args!("{:.1}", s.normal_bytes_per_s / 1e3),

@@ -26,6 +26,9 @@ pub struct ServeStats {
     pub key_larger: AtomicU64,
     /// Frames whose cut stopped at the clock's allowance ([`crate::viewer::Allowance`]).
     pub short: AtomicU64,
+    /// Served viewers' frames passed over while joining viewers' first frames waited
+    /// ([`crate::viewer::conversation::Conversation::pass_over`]).
+    pub passed_over: AtomicU64,
     /// Colour tile messages written to viewers' control streams, and their bytes (the
     /// coarsest tile sent before the first frame included).
     pub color_tiles: AtomicU64,
@@ -77,6 +80,7 @@ pub struct Counts {
     pub key_behind: u64,
     pub key_larger: u64,
     pub short: u64,
+    pub passed_over: u64,
     pub color_tiles: u64,
     pub color_bytes: u64,
     pub normal_tiles: u64,
@@ -148,6 +152,7 @@ impl ServeStats {
             key_behind: get(&self.key_behind),
             key_larger: get(&self.key_larger),
             short: get(&self.short),
+            passed_over: get(&self.passed_over),
             color_tiles: get(&self.color_tiles),
             color_bytes: get(&self.color_bytes),
             normal_tiles: get(&self.normal_tiles),
