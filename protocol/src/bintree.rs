@@ -92,6 +92,19 @@ pub fn added(size: u32, x: u32, z: u32) -> u32 {
     }
 }
 
+/// The parent of `child` other than `parent` (one of its [`parents`]) on a map of side
+/// `size + 1`: `parent` mirrored through the child (a diamond's two parents lie on either
+/// side of it at the same distance), or none where that falls off the map (a rotated
+/// diamond on the map's edge). No look-up of the parents' shapes: the codec and the
+/// frontiers ask it for every child of a cut.
+#[inline]
+pub fn other_parent(size: u32, parent: Vertex, child: Vertex) -> Option<Vertex> {
+    let x = 2 * i64::from(child.0) - i64::from(parent.0);
+    let z = 2 * i64::from(child.1) - i64::from(parent.1);
+    let on = |v: i64| (0..=i64::from(size)).contains(&v);
+    (on(x) && on(z)).then_some((x as u32, z as u32))
+}
+
 /// The hypotenuse ends of the diamond centred at `(x, z)`: the corners that are not its
 /// parents.
 #[inline]
@@ -252,6 +265,12 @@ impl Grid {
     #[inline]
     pub fn children(&self, x: u32, z: u32) -> [Option<(u32, u32)>; 4] {
         children(self.size, x, z)
+    }
+
+    /// The parent of `child` other than `parent`: [`other_parent`].
+    #[inline]
+    pub fn other_parent(&self, parent: (u32, u32), child: (u32, u32)) -> Option<(u32, u32)> {
+        other_parent(self.size, parent, child)
     }
 }
 

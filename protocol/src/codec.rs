@@ -205,13 +205,12 @@ fn next_candidates(grid: &Grid, list: &[u32], split: &BitSet, next: &mut Vec<u32
 
 /// [`next_candidates`] over any split set: `split(i)` says whether diamond `i` is split.
 ///
-/// A child's two parents lie on either side of it at the same distance ([`Grid::parents`]),
-/// so the other parent of a child `c` of `i` is `i` mirrored through `c`: `(2cx − x, 2cz −
-/// z)`, of index `2c − i`, or none where that falls off the map (a rotated diamond on the
-/// map's edge). The child is `i`'s to list when that parent is none, or is split and of a
-/// higher index (`c > i`): one look-up a child at most, where asking [`Grid::parents`] for
-/// both and looking both up made this a fifth of a first frame's time on the server
-/// (`perf`, `data/kossou`, 32,768 triangles, 2026-12-07).
+/// The other parent of a child `c` of `i` is `i` mirrored through `c`
+/// ([`Grid::other_parent`]), of index `2c − i`. The child is `i`'s to list when that
+/// parent is none, or is split and of a higher index (`c > i`): one look-up a child at
+/// most, where asking [`Grid::parents`] for both and looking both up made this a fifth of
+/// a first frame's time on the server (`perf`, `data/kossou`, 32,768 triangles,
+/// 2026-12-07).
 pub(crate) fn next_candidates_by(
     grid: &Grid,
     list: &[u32],
@@ -219,7 +218,7 @@ pub(crate) fn next_candidates_by(
     next: &mut Vec<u32>,
 ) {
     next.clear();
-    let (side, size) = (grid.side(), i64::from(grid.side() - 1));
+    let side = grid.side();
     for &i in list {
         if !split(i) {
             continue;
@@ -227,12 +226,8 @@ pub(crate) fn next_candidates_by(
         let (x, z) = (i % side, i / side);
         for (cx, cz) in grid.children(x, z).into_iter().flatten() {
             let c = cz * side + cx;
-            let (px, pz) = (
-                2 * i64::from(cx) - i64::from(x),
-                2 * i64::from(cz) - i64::from(z),
-            );
-            let other = (0..=size).contains(&px) && (0..=size).contains(&pz);
-            if !other || (c > i && split(2 * c - i)) {
+            let other = grid.other_parent((x, z), (cx, cz));
+            if other.is_none() || (c > i && split(2 * c - i)) {
                 next.push(c);
             }
         }

@@ -80,10 +80,10 @@ use crate::viewer::conversation::{Conversation, End, Job, Out, Sent, Step, Trans
 use crate::viewer::{Allowance, KeyCause};
 
 /// The largest budget whose first frame the clock makes itself (one a pass, after the
-/// pass's other frames), rather than a blocking frame maker (the module's header says why):
-/// a viewer's frame waits for one first frame at most, some 10 ms at this budget. It borrows its
-/// tessellator from the makers' [`crate::tessellate::Scratch`] (no map-sized state is
-/// added), waiting for a maker's job to return one if all are lent.
+/// pass's other frames), rather than a blocking frame maker (the module's header says
+/// why): a viewer's frame waits for one first frame at most, some 10 ms at this budget. It
+/// borrows its tessellator from the makers' [`crate::tessellate::Scratch`] (no map-sized
+/// state is added), waiting for a maker's job to return one if all are lent.
 const INLINE_FIRST_BUDGET: u32 = 65_536;
 
 /// Longest sleep between passes with nothing due (a viewer's first frame wakes it).

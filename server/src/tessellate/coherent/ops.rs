@@ -125,7 +125,6 @@ impl Coherent {
         if new.is_empty() {
             self.splits.insert(root);
         }
-        let size = i64::from(self.size);
         for &p in new {
             let (x, z) = unpack(p);
             let mut any = false;
@@ -134,15 +133,10 @@ impl Coherent {
                     any = true;
                     continue;
                 }
-                // Listed once, by its first split parent in `new`'s order: the other parent
-                // is this one mirrored through the child (`codec::next_candidates_by`).
-                let (cx, cz) = unpack(c);
-                let (ox, oz) = (
-                    2 * i64::from(cx) - i64::from(x),
-                    2 * i64::from(cz) - i64::from(z),
-                );
-                let on_map = (0..=size).contains(&ox) && (0..=size).contains(&oz);
-                if on_map && pack(ox as u32, oz as u32) < p && split(pack(ox as u32, oz as u32)) {
+                // Listed once, by its first split parent in `new`'s order (the other
+                // parent: `bintree::other_parent`).
+                let other = bintree::other_parent(self.size, (x, z), unpack(c));
+                if other.is_some_and(|(ox, oz)| pack(ox, oz) < p && split(pack(ox, oz))) {
                     continue;
                 }
                 self.splits.insert(c);

@@ -410,12 +410,14 @@ impl Conversation {
     /// Passes over the frame due at `now`, if any and if the last one due was made: the
     /// next is due on the grid after `now`. For a clock short of core while viewers join
     /// (their first frames wait): a served viewer then gets every other frame, never two
-    /// missed in a row, and never its first; a viewer at 30 frames a second or fewer is
-    /// never passed over (a missed frame would be a gap of 67 ms and more). True when it
-    /// passed one over.
+    /// missed in a row, and never its first; a viewer whose period is over
+    /// [`PASS_OVER_PERIOD`] is never passed over. True when it passed one over.
     pub fn pass_over(&mut self, now: Instant) -> bool {
-        let slow = self.period > Duration::from_millis(34);
-        if slow || !self.frame_due(now) || self.newest.is_none() || self.passed_over {
+        if self.period > PASS_OVER_PERIOD
+            || !self.frame_due(now)
+            || self.newest.is_none()
+            || self.passed_over
+        {
             return false;
         }
         self.next_frame = next_on_grid(now, self.origin, self.period);
@@ -586,6 +588,10 @@ impl Conversation {
         }
     }
 }
+
+/// The longest period whose frames [`Conversation::pass_over`] may pass over: a viewer
+/// at 30 frames a second or fewer would see a gap of 67 ms and more.
+const PASS_OVER_PERIOD: Duration = Duration::from_millis(34);
 
 /// The first instant of `origin + k·period` after `now` (`origin` itself if later).
 fn next_on_grid(now: Instant, origin: Instant, period: Duration) -> Instant {
