@@ -70,6 +70,16 @@ pub(super) struct Priority {
     /// entering it): world units.
     pub inside_by: F4,
     pub outside_by: F4,
+    /// The same over the two side planes alone (left and right: the guard band widens
+    /// them) and over the bottom and top ones.
+    pub inside_by_sides: F4,
+    pub outside_by_sides: F4,
+    pub inside_by_ends: F4,
+    pub outside_by_ends: F4,
+    /// A lower bound on how far the prism is from the vertical through the eye: its
+    /// horizontal distance, less the vertical one and the reach (world units; negative
+    /// near the eye).
+    pub aside: F4,
     /// The eye's ground position from the centre, grid units.
     pub ex: F4,
     pub ez: F4,
@@ -88,8 +98,9 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
     let (xf, zf) = (b.x, b.z);
     // Outside if any of the four planes puts the bounding prism wholly behind it.
     let mut outside = 0;
-    let (mut inside_by, mut outside_by) = (F4::splat(f32::INFINITY), F4::splat(0.0));
-    for (p, offset) in f.planes.iter().zip(&s.offsets) {
+    let mut inside = [F4::splat(f32::INFINITY); 2];
+    let mut outside_by = [F4::splat(0.0); 2];
+    for (k, (p, offset)) in f.planes.iter().zip(&s.offsets).enumerate() {
         let d =
             p.a.mul(xf)
                 .add(p.b.mul(yc))
@@ -97,8 +108,8 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
                 .add(*offset)
                 .add(hy.mul(p.abs_b));
         outside |= d.lt(F4::splat(0.0));
-        inside_by = inside_by.min(d);
-        outside_by = F4::splat(0.0).sub(d).max(outside_by);
+        inside[k / 2] = inside[k / 2].min(d);
+        outside_by[k / 2] = F4::splat(0.0).sub(d).max(outside_by[k / 2]);
     }
     // The ground under the eye is refined first, in view or not.
     let (ex, ez) = (f.eye_x.sub(xf), f.eye_z.sub(zf));
@@ -113,6 +124,7 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
     let reach = s.reach.add(f.vs.mul(hy));
     let dist = dx.mul(dx).add(dy.mul(dy)).add(dz.mul(dz)).sqrt();
     let clear = dist.sub(reach);
+    let aside = dx.mul(dx).add(dz.mul(dz)).sqrt().sub(dy.abs()).sub(reach);
     let d = clear.max(F4::splat(MIN_DISTANCE));
     let prio = b.e.mul(f.px).div(d);
     // What the fog lets through of the error, at the nearest distance to the prism: the
@@ -129,8 +141,13 @@ pub(super) fn priority(f: &Frame, b: &Batch, s: &Shape4) -> Priority {
         under,
         clear,
         far: dist.add(reach),
-        inside_by,
-        outside_by,
+        inside_by: inside[0].min(inside[1]),
+        outside_by: outside_by[0].max(outside_by[1]),
+        inside_by_sides: inside[0],
+        outside_by_sides: outside_by[0],
+        inside_by_ends: inside[1],
+        outside_by_ends: outside_by[1],
+        aside,
         ex,
         ez,
     }

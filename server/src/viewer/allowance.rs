@@ -18,7 +18,9 @@
 //! pass of the clock: a frame more than [`LATE`] late cuts the allowance by a quarter,
 //! more than twice that to a quarter, more than a frame period ([`FAR_BEHIND`]) to the
 //! [`FLOOR`]; every frame within [`ON_TIME`] raises it by [`RISE`] (up to [`CEILING`],
-//! which is none); in between it holds. Down fast, up slowly (as TCP's window), so that the
+//! which is none); in between it holds. At the floor the cut's lag is [`LAG_AT_FLOOR`]
+//! times higher, and under any allowance its kept evaluations lag a turn inside the guard
+//! band (`crate::tessellate::Coherent::set_allowance`). Down fast, up slowly (as TCP's window), so that the
 //! core does not swing between late and idle every few passes. The deeper cuts are for the
 //! start of a turn taken together: a quarter a pass took some 19 passes from none to the
 //! floor while every cut made its turn's hundreds of changes, and the frames fell a tenth
@@ -43,6 +45,25 @@ use std::time::Duration;
 /// cost 29 µs a frame instead of 62 on `data/kossou`, leaving 1.0 px instead of 0.14 (p99);
 /// on the steep map, where the budget leaves 2.5 px, little is held back (121 µs, 2.8 px).
 const FLOOR: u32 = 4;
+
+/// At the [`FLOOR`], what a cut lets lag past it is this many times more
+/// ([`crate::tessellate::Coherent::set_lag_scale`]): where the budget leaves pixels (the
+/// steep map), the splits above the lag's bound were most of a held frame's work. Along
+/// `scripts/capacity-drive.txt`, 32 viewers' cuts at 4 changes a frame (`roam-server bench
+/// DIR --budget 32768 --drive ... --allowance 4`, 2026-12-08, with the turn lag), ×1 / ×2 /
+/// ×4: the steep map 146 / 126 / 84 µs a frame, 30.7 / 30.4 / 15.7 changes, the error left
+/// (p99) 2.0–3.7 / 2.0 / 4.0 px; `data/kossou` 28 / 24 / 33 µs (its held frames are
+/// evaluations: 5–6 changes), 1.0 / 2.0 / 3.5 px. In step, 100 viewers on the steep map
+/// (`scripts/capacity.sh --in-step 100`, `DATA=/tmp/steep`, same day, in turn): 34.4 frames/s
+/// with ×2, 41.3 with ×4; `data/kossou` 57.3 and 57.8. Only at the floor: a server that got
+/// there is a frame period behind, and a few pixels for the frames of a turn beat frames
+/// skipped.
+const LAG_AT_FLOOR: f32 = 4.0;
+
+/// What the lag's bound is multiplied by at an allowance of `changes` a frame.
+pub(super) fn lag_scale(changes: u32) -> f32 {
+    if changes <= FLOOR { LAG_AT_FLOOR } else { 1.0 }
+}
 
 /// At this allowance there is none (a frame's cut makes every change it wants, up to the
 /// update's own bound, `crate::tessellate::Coherent`).
@@ -163,6 +184,12 @@ mod tests {
             &[Some(2), Some(4), None, Some(3)],
             &[Some(500), Some(500), Some(500), Some(500)],
         );
+    }
+
+    #[test]
+    fn only_the_floor_lets_more_lag() {
+        let scales = [FLOOR - 1, FLOOR, FLOOR + 1, 64, u32::MAX].map(lag_scale);
+        assert_eq!(scales, [LAG_AT_FLOOR, LAG_AT_FLOOR, 1.0, 1.0, 1.0]);
     }
 
     #[test]

@@ -400,9 +400,11 @@ impl ViewerCore {
     }
 
     /// The most changes a frame's cut makes once within its budget
-    /// ([`Coherent::set_allowance`]; `u32::MAX`: none).
+    /// ([`Coherent::set_allowance`]; `u32::MAX`: none), and the lag that goes with it
+    /// ([`allowance::lag_scale`]).
     pub fn set_allowance(&mut self, changes: u32) {
         self.coherent.set_allowance(changes);
+        self.coherent.set_lag_scale(allowance::lag_scale(changes));
     }
 
     /// The cut carried from the last frame (for tests and benchmarks).

@@ -36,8 +36,9 @@
 //!
 //! A loaded server gives the loop an allowance ([`Coherent::set_allowance`]): past it the
 //! frame goes on only with the splits above [`LAG_PX`] (or [`LAG_FACTOR`] times the error
-//! the budget gets the cut to) and the merges that make room for them, and the frames after
-//! carry on from there.
+//! the budget gets the cut to, times [`Coherent::set_lag_scale`]) and the merges that make
+//! room for them, and the frames after carry on from there; its kept evaluations then lag
+//! a turn inside the guard band ([`TURN_LAG_SHARE`]).
 //!
 //! The loop is bounded (a quarter of the budget plus 256 changes); a frame that reaches
 //! the bound, a camera jump (a turn of more than 30°, a move of more than 64 grid cells),
@@ -183,6 +184,11 @@ pub struct Coherent {
     swap_margin: f32,
     /// The most changes an update makes in a frame once the cut is within its budget.
     allowance: u32,
+    /// What the lag's bound is multiplied by past the allowance ([`Coherent::set_lag_scale`]).
+    lag_scale: f32,
+    /// Under an allowance, what a kept evaluation may lag a turn by, radians (see
+    /// [`TURN_LAG_SHARE`]; 0 without).
+    turn_lag: f32,
 }
 
 /// Past its allowance ([`Coherent::set_allowance`]) a frame's update still makes the splits
@@ -197,6 +203,22 @@ pub struct Coherent {
 /// `data/kossou` and from 2.5 to 52 px on the steep map; of 32, to 3.4 and 1,270 px.
 const LAG_PX: f32 = 1.0;
 const LAG_FACTOR: f32 = 2.0;
+
+/// Under an allowance, a kept evaluation falls due later in a turn than its frustum
+/// margin says, by up to this share of the guard band (the side planes only: the band
+/// widens them; scaled down near the vertical through the eye, where the band is
+/// narrow: `eval.rs`): a diamond entering the view is evaluated again by the time it is
+/// that far into the band, still outside the view, and one leaving it stays split a little
+/// longer. Most of a turn's evaluations are of diamonds near the frustum's edges, each
+/// evaluated several times as its margin shrinks. Along `scripts/capacity-drive.txt`, 32
+/// viewers' cuts held to 4 changes a frame (`roam-server bench DIR --budget 32768 --drive
+/// ... --allowance 4`, 2026-12-08): on `data/kossou` 112 → 71 evaluations a frame, 44 → 28
+/// µs, the error left (p99) 1.0 px either way; on the steep map 415 → 309 evaluations
+/// (its held frames are changes: [`crate::viewer::Allowance`]'s lag at the floor). The
+/// first version lagged every plane by the whole share: a test turning low over rough
+/// ground found 13 million pixels left at the foot of the eye. Without a guard band (the
+/// spec's split-only ROAM) there is no lag.
+const TURN_LAG_SHARE: f32 = 0.5;
 
 /// A frame's log keeps at most this much reserved into the next frame.
 const LOG_KEPT: usize = 1024;
@@ -229,6 +251,8 @@ impl Coherent {
             stats: CoherentStats::default(),
             swap_margin: 1.0,
             allowance: u32::MAX,
+            lag_scale: 1.0,
+            turn_lag: 0.0,
         }
     }
 
@@ -244,7 +268,7 @@ impl Coherent {
         } else {
             self.peek_merge().map_or(0.0, |(_, prio)| prio)
         };
-        LAG_PX.max(LAG_FACTOR * level)
+        self.lag_scale * LAG_PX.max(LAG_FACTOR * level)
     }
 
     /// Whether an update stopped now would leave anything it would do: an unwanted split to
@@ -279,8 +303,17 @@ impl Coherent {
     /// lagging a turn by a few frames instead of every viewer losing frames
     /// (`net/frames.rs` sets it from how late frames start). `u32::MAX` (the default):
     /// no allowance. A rebuild is never stopped.
+    ///
+    /// Under an allowance the kept evaluations also lag a turn by half the guard band
+    /// ([`TURN_LAG_SHARE`]).
     pub fn set_allowance(&mut self, changes: u32) {
         self.allowance = changes.max(1);
+    }
+
+    /// Past its allowance, a frame makes only the splits above `scale` (at least 1) times
+    /// [`Coherent::lag_px`]'s bound: how much more a server far behind lets lag.
+    pub fn set_lag_scale(&mut self, scale: f32) {
+        self.lag_scale = scale.max(1.0);
     }
 
     /// Triangles in the cut.
@@ -431,6 +464,11 @@ impl Coherent {
             camera: *camera,
             limits,
         });
+        self.turn_lag = if self.allowance < u32::MAX {
+            (limits.guard_deg.max(0.0) * TURN_LAG_SHARE).to_radians()
+        } else {
+            0.0
+        };
         if jump {
             self.left = Some(Left::Rebuild);
             return Step::Unfinished;
