@@ -184,33 +184,38 @@ impl Coherent {
         // (a share of the guard band, which widens the side planes: `TURN_LAG_SHARE`),
         // the bottom and top planes not at all.
         let turned = if self.turn_lag > 0.0 {
+            // The band between a side plane and the widened one is as wide as the diamond
+            // is far from their common line (near the vertical through the eye): at the
+            // foot of the eye it is nothing. So the lag is scaled by how far aside the
+            // diamond is (a bound, with a tenth to spare for the pitch).
+            let aside = p.aside.mul(F4::splat(0.9)).div(far);
+            let lag = aside
+                .max(zero)
+                .min(F4::splat(1.0))
+                .mul(F4::splat(self.turn_lag));
             let per = F4::splat(1.0).sub(share).div(far);
-            let lag = F4::splat(self.turn_lag);
+            let scaled = |v: F4| v.max(zero).mul(per);
+            let inside = scaled(p.inside_by_sides)
+                .add(lag)
+                .min(scaled(p.inside_by_ends));
+            let behind_sides = zero.lt(p.outside_by_sides);
+            let (inside, sides_out, ends_out) = (
+                inside.to_array(),
+                scaled(p.outside_by_sides).add(lag).to_array(),
+                scaled(p.outside_by_ends).to_array(),
+            );
             let lagged = F4::new(std::array::from_fn(|i| {
-                let [sides_in, ends_in, sides_out, ends_out] = [
-                    p.inside_by_sides,
-                    p.inside_by_ends,
-                    p.outside_by_sides,
-                    p.outside_by_ends,
-                ]
-                .map(|v| v.max(zero).mul(per).to_array()[i]);
-                // The band between a side plane and the widened one is as wide as the
-                // diamond is far from their common line (near the vertical through the
-                // eye): at the foot of the eye it is nothing. So the lag is scaled by how
-                // far aside the diamond is (a bound, with a tenth to spare for the pitch).
-                let aside = (0.9 * p.aside.to_array()[i] / far.to_array()[i]).clamp(0.0, 1.0);
-                let lag = lag.to_array()[i] * aside;
-                if p.outside >> i & 1 != 0 {
+                if p.outside >> i & 1 == 0 {
+                    inside[i]
+                } else {
                     // In view once no plane has it wholly behind: past a side plane, the
                     // band too.
-                    let sides = if sides_out > 0.0 {
-                        sides_out + lag
+                    let sides = if behind_sides >> i & 1 != 0 {
+                        sides_out[i]
                     } else {
                         0.0
                     };
-                    sides.max(ends_out)
-                } else {
-                    (sides_in + lag).min(ends_in)
+                    sides.max(ends_out[i])
                 }
             }));
             lagged.max(turned)
