@@ -270,12 +270,16 @@ impl Check {
     }
 }
 
-/// Encodes meshes of one grid, reusing its buffers.
+/// Encodes meshes of one grid.
+///
+/// A key frame's lists of candidates (a depth's and the next's) are made for each call and
+/// given back after it: a server keeps an encoder per viewer and makes key frames rarely
+/// (a join, a viewer that fell behind), and keeping the lists' capacity cost each viewer
+/// about 130 KB at 65,536 triangles (heaptrack, `data/kossou`, five driving viewers,
+/// 2026-12-08), a tenth of issue 41's memory must.
 pub struct MeshEncoder {
     grid: Grid,
     models: Box<Models>,
-    list: Vec<u32>,
-    next: Vec<u32>,
     step: u16,
 }
 
@@ -290,8 +294,6 @@ impl MeshEncoder {
         MeshEncoder {
             grid,
             models: Models::new(),
-            list: Vec::new(),
-            next: Vec::new(),
             step: step.max(1),
         }
     }
@@ -325,9 +327,10 @@ impl MeshEncoder {
         let mut check = Check::new(&grid, heights);
         let mut rc = range::Encoder::new(std::mem::take(out));
         let (mut splits, mut triangles) = (0u32, 2u32);
-        start_at_root(&grid, &mut self.list);
+        let (mut list, mut next) = (Vec::new(), Vec::new());
+        start_at_root(&grid, &mut list);
         for depth in 0..grid.depths() as usize {
-            for &i in &self.list {
+            for &i in &list {
                 let is_split = split.contains(i);
                 let in_base = base.is_some_and(|b| b.contains(i));
                 rc.bit(&mut m.split[depth][usize::from(in_base)], is_split);
@@ -351,8 +354,8 @@ impl MeshEncoder {
                     encode_residual(&mut rc, m, depth, r / step);
                 }
             }
-            next_candidates(&grid, &self.list, split, &mut self.next);
-            std::mem::swap(&mut self.list, &mut self.next);
+            next_candidates(&grid, &list, split, &mut next);
+            std::mem::swap(&mut list, &mut next);
         }
         let total = split.len();
         if total != splits as usize {

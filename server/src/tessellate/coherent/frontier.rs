@@ -265,6 +265,22 @@ impl Frontier {
         self.find(pos).is_some()
     }
 
+    /// Asks for the index slot of `pos` ahead of a look-up, so that a change's look-ups
+    /// (its children, its parents) wait for their cache misses together.
+    #[inline(always)]
+    pub(super) fn prefetch(&self, pos: u32) {
+        self.index.prefetch(pos);
+    }
+
+    /// Then asks for the record of member `pos`, if it likely is one (its index slot read:
+    /// best after [`Self::prefetch`]).
+    #[inline(always)]
+    pub(super) fn prefetch_member(&self, pos: u32) {
+        if let Some(i) = self.index.likely(pos) {
+            self.members.prefetch(i as usize);
+        }
+    }
+
     /// The bucket a member's evaluation queues it in, if any. A split candidate goes in its
     /// priority's bucket (under the eye: the top one) when it is worth splitting; otherwise
     /// in none. A merge candidate goes first (the top bucket) when unwanted, else lowest
