@@ -212,20 +212,25 @@ pub fn frame_message(
         Some(me) if all.len() > MAX_SHOWN => {
             // The nearest, the followed one first (at distance 0, then by id: a tie is
             // decided the same way on every run).
-            let d2 = |v: &crate::sim::world::Vehicle| {
-                let (dx, dz) = (v.state.x - me.state.x, v.state.z - me.state.z);
-                (v.id != vehicle, dx * dx + dz * dz, v.id)
-            };
-            let mut order: Vec<usize> = (0..all.len()).collect();
+            // Each key computed once, not at each comparison: with 100 viewers in step the
+            // selection was 2 % of the server's time (`perf`, 2026-12-08), a frame per
+            // viewer over every vehicle.
+            let mut keyed: Vec<_> = all
+                .iter()
+                .enumerate()
+                .map(|(i, v)| {
+                    let (dx, dz) = (v.state.x - me.state.x, v.state.z - me.state.z);
+                    (v.id != vehicle, dx * dx + dz * dz, v.id, i)
+                })
+                .collect();
             // A total order (`total_cmp`): a position that is not a number cannot panic the
             // selection.
-            order.select_nth_unstable_by(MAX_SHOWN - 1, |&a, &b| {
-                let (a, b) = (d2(&all[a]), d2(&all[b]));
+            keyed.select_nth_unstable_by(MAX_SHOWN - 1, |a, b| {
                 (a.0.cmp(&b.0))
                     .then(a.1.total_cmp(&b.1))
                     .then(a.2.cmp(&b.2))
             });
-            order.truncate(MAX_SHOWN);
+            let mut order: Vec<usize> = keyed[..MAX_SHOWN].iter().map(|k| k.3).collect();
             order.sort_unstable();
             order.into_iter().map(|i| view(&all[i])).collect()
         }
