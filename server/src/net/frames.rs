@@ -256,6 +256,9 @@ fn pass(
             Step::Idle => {}
             Step::Sent(sent) => counted(shared, s, c, sent, started),
             Step::Heavy(job) => {
+                if !job.first() {
+                    shared.stats.add(&shared.stats.heavy, 1);
+                }
                 tokio::spawn(heavy(shared.clone(), s.clone(), job));
             }
             Step::End(why) => {

@@ -530,6 +530,7 @@ async fn summary_loop(
             short_frames = now.1.short - last.1.short,
             allowance_min,
             passed_over = now.1.passed_over - last.1.passed_over,
+            heavy_frames = now.1.heavy - last.1.heavy,
             kbytes_out_per_s = format_args!("{:.1}", s.bytes_out_per_s / 1e3),
             color_kbytes_per_s = format_args!("{:.1}", s.color_bytes_per_s / 1e3),
             normal_kbytes_per_s = format_args!("{:.1}", s.normal_bytes_per_s / 1e3),

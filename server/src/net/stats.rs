@@ -29,6 +29,9 @@ pub struct ServeStats {
     /// Served viewers' frames passed over while joining viewers' first frames waited
     /// ([`crate::viewer::conversation::Conversation::pass_over`]).
     pub passed_over: AtomicU64,
+    /// Served viewers' frames made on a frame maker, off the clock's pass (a rebuild, a key
+    /// frame's coding, more than `INLINE_CHANGES` changes).
+    pub heavy: AtomicU64,
     /// Colour tile messages written to viewers' control streams, and their bytes (the
     /// coarsest tile sent before the first frame included).
     pub color_tiles: AtomicU64,
@@ -81,6 +84,7 @@ pub struct Counts {
     pub key_larger: u64,
     pub short: u64,
     pub passed_over: u64,
+    pub heavy: u64,
     pub color_tiles: u64,
     pub color_bytes: u64,
     pub normal_tiles: u64,
@@ -153,6 +157,7 @@ impl ServeStats {
             key_larger: get(&self.key_larger),
             short: get(&self.short),
             passed_over: get(&self.passed_over),
+            heavy: get(&self.heavy),
             color_tiles: get(&self.color_tiles),
             color_bytes: get(&self.color_bytes),
             normal_tiles: get(&self.normal_tiles),
