@@ -1,7 +1,8 @@
 //! A running server: its [`Options`] and their defaults, [`Server::start`] (the checks on
 //! the data set, the QUIC endpoint, the world thread, a replay or the remote world in its
-//! place, the browser viewer's endpoints) and [`Server::shutdown`], the accept loop, and
-//! the summary logged every [`Options::summary_every`].
+//! place, the browser viewer's endpoints) and [`Server::shutdown`], the accept loop, the
+//! summary logged every [`Options::summary_every`], and the allocator's free memory given
+//! back every [`TRIM_EVERY`].
 
 use std::collections::HashMap;
 use std::net::SocketAddr;
@@ -442,12 +443,12 @@ const TRIM_EVERY: std::time::Duration = std::time::Duration::from_secs(2);
 /// its tables as it changes, and what a table leaves free in the heaps below the
 /// mmap threshold (`cli/net.rs`) stays resident until something of its size is asked for
 /// again: read over a drive (`scripts/viewer_memory.sh /tmp/synth-16385`, 65,536
-/// triangles, the medians of 17 samples a run, 2026-12-08), a viewer held 3.95–4.07 MB
+/// triangles, the medians of 17 samples a run, 2026-12-08), a viewer held 3.95–4.13 MB
 /// of anonymous memory where its cut's tables were 2.8 MB (the bench's
-/// `serve_viewer_heap_bytes` along the same drive); trimmed, 3.43 (3.84 at the most, just
-/// before a trim). A trim took 0.1–4.2 ms with 100 viewers driving in step, and their
-/// frames the same (`scripts/capacity.sh --in-step 100`: 59.0 frames/s, 123.6 µs a frame,
-/// against 59.0 and 123.7 untrimmed).
+/// `serve_viewer_heap_bytes` along the same drive); trimmed, 3.38–3.41 (3.71–3.72 at the
+/// most, just before a trim). A trim took 0.1–4.2 ms with 100 viewers driving in step,
+/// and their frames were the same (`scripts/capacity.sh --in-step 100`: 59.0–59.1
+/// frames/s, 116–124 µs a frame, against 59.0–59.2 and 121–124 untrimmed).
 async fn trim_loop() {
     let mut ticker = tokio::time::interval(TRIM_EVERY);
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);

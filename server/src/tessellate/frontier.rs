@@ -45,18 +45,26 @@ fn home(h: u32, len: usize) -> usize {
     ((u64::from(h) * len as u64) >> 32) as usize
 }
 
-/// Asks the processor to bring `table[i]` into the cache (nothing past its end).
+/// Asks the processor to bring `r` into the cache (nothing for `None`): for look-ups of
+/// scattered places known ahead, so that their cache misses overlap rather than wait one
+/// for the other.
 #[inline(always)]
-fn prefetch_slot(table: &[u32], i: usize) {
+fn prefetch<T>(r: Option<&T>) {
     #[cfg(target_arch = "x86_64")]
-    if let Some(r) = table.get(i) {
+    if let Some(r) = r {
         use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-        // SAFETY: a prefetch reads nothing and cannot fault; the address is a live slot's,
-        // and SSE is in every x86_64 processor.
-        unsafe { _mm_prefetch::<_MM_HINT_T0>((r as *const u32).cast()) };
+        // SAFETY: a prefetch reads nothing and cannot fault; the address is a live
+        // reference's, and SSE is in every x86_64 processor.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>((r as *const T).cast()) };
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (table, i);
+    let _ = r;
+}
+
+/// Asks for the home slot of `pos` in an open-addressed `table` ([`prefetch`]).
+#[inline(always)]
+fn prefetch_home(table: &[u32], pos: u32) {
+    prefetch(table.get(home(hash(pos), table.len())));
 }
 
 /// Smallest table.
@@ -176,20 +184,10 @@ impl<T: Copy> Chunks<T> {
         self.chunks.iter().flatten()
     }
 
-    /// Asks the processor to bring record `i` into the cache (nothing if there is none):
-    /// for loops over scattered records whose places are known ahead, so that their cache
-    /// misses overlap rather than wait one for the other.
+    /// Asks for record `i` ahead (nothing if there is none: [`prefetch`]).
     #[inline(always)]
     pub(super) fn prefetch(&self, i: usize) {
-        #[cfg(target_arch = "x86_64")]
-        if let Some(r) = self.chunks.get(i / CHUNK).and_then(|c| c.get(i % CHUNK)) {
-            use std::arch::x86_64::{_MM_HINT_T0, _mm_prefetch};
-            // SAFETY: a prefetch reads nothing and cannot fault; the address is a live
-            // record's, and SSE is in every x86_64 processor.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>((r as *const T).cast()) };
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = i;
+        prefetch(self.chunks.get(i / CHUNK).and_then(|c| c.get(i % CHUNK)));
     }
 }
 
@@ -264,10 +262,10 @@ impl PosSet {
         !self.table.is_empty() && self.table[self.find(pos)] == pos
     }
 
-    /// Asks for `pos`'s home slot ahead of a look-up ([`prefetch_slot`]).
+    /// Asks for `pos`'s home slot ahead of a look-up ([`prefetch_home`]).
     #[inline(always)]
     pub(super) fn prefetch(&self, pos: u32) {
-        prefetch_slot(&self.table, home(hash(pos), self.table.len()));
+        prefetch_home(&self.table, pos);
     }
 
     /// Makes room for `members` without resizing on the way there (a table grows by a
@@ -423,10 +421,10 @@ impl PosIndex {
         }
     }
 
-    /// Asks for `pos`'s home slot ahead of a look-up ([`prefetch_slot`]).
+    /// Asks for `pos`'s home slot ahead of a look-up ([`prefetch_home`]).
     #[inline(always)]
     pub(super) fn prefetch(&self, pos: u32) {
-        prefetch_slot(&self.table, home(hash(pos), self.table.len()));
+        prefetch_home(&self.table, pos);
     }
 
     /// The place the first slot of `pos`'s run whose hash bits and distance match holds

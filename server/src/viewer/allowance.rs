@@ -20,8 +20,8 @@
 //! [`FLOOR`]; every frame within [`ON_TIME`] raises it by [`RISE`] (up to [`CEILING`],
 //! which is none); in between it holds. At the floor the cut's lag is [`LAG_AT_FLOOR`]
 //! times higher, and under any allowance its kept evaluations lag a turn inside the guard
-//! band (`crate::tessellate::Coherent::set_allowance`). Down fast, up slowly (as TCP's window), so that the
-//! core does not swing between late and idle every few passes. The deeper cuts are for the
+//! band (`crate::tessellate::Coherent::set_allowance`). Down fast, up slowly (as TCP's
+//! window), so that the core does not swing between late and idle every few passes. The deeper cuts are for the
 //! start of a turn taken together: a quarter a pass took some 19 passes from none to the
 //! floor while every cut made its turn's hundreds of changes, and the frames fell a tenth
 //! of a second behind. With them, 100 viewers in step on `data/kossou` took 54.6–55.1 →

@@ -174,43 +174,41 @@ impl Coherent {
         self.merges.pop().map(|(_, pos, _)| pos)
     }
 
-    /// Asks for the index slots a split (`splitting`) or merge of `pos` looks up: its own
-    /// in the split set and both frontiers, its children's in the split candidates, its
-    /// parents' in the merge candidates. With many viewers' cuts nothing of one is in the
-    /// cache, and a change's half-dozen look-ups otherwise wait for their misses one after
-    /// another: `Frontier::find` was a tenth of a server's time serving 100 viewers in step,
-    /// and over a third of their cuts' updates (`perf`, `data/kossou`, 2026-12-08). With
-    /// this and [`Self::prefetch_members`], 120 viewers in step (`scripts/capacity.sh
-    /// --in-step 120`, `FRAMES=1800`, in turn with the build before) took 112–117 µs a
-    /// frame instead of 120–121; the frames are the same bit for bit.
-    fn prefetch(
-        &self,
-        pos: u32,
-        children: &[Option<u32>; 4],
-        parents: &[Option<u32>; 2],
-        splitting: bool,
-    ) {
+    /// Asks for the index slots a split or merge of `pos` looks up: its own in the split
+    /// set and both frontiers, its children's in the split candidates, its parents' in the
+    /// merge candidates. With many viewers' cuts nothing of one is in the cache, and a
+    /// change's half-dozen look-ups otherwise wait for their misses one after another:
+    /// `Frontier::find` was a tenth of a server's time serving 100 viewers in step, and
+    /// over a third of their cuts' updates (`perf`, `data/kossou`, 2026-12-08). With this
+    /// and [`Self::prefetch_members`], 120 viewers in step (`scripts/capacity.sh --in-step
+    /// 120`, `FRAMES=1800`, in turn with the build before) took 112–117 µs a frame instead
+    /// of 120–121; the frames are the same bit for bit.
+    fn prefetch(&self, pos: u32, children: &[Option<u32>; 4], parents: &[Option<u32>; 2]) {
         self.split.prefetch(pos);
         self.splits.prefetch(pos);
         self.merges.prefetch(pos);
         for &c in children.iter().flatten() {
             self.splits.prefetch(c);
-            if !splitting {
-                // A merge asks whether each child keeps a split parent.
-                let (cx, cz) = unpack(c);
-                for q in self.parents(cx, cz).into_iter().flatten() {
-                    self.split.prefetch(q);
-                }
-            }
         }
         for &p in parents.iter().flatten() {
             self.merges.prefetch(p);
-            if !splitting {
-                // And whether each parent keeps a split child.
-                let (px, pz) = unpack(p);
-                for q in self.children(px, pz).into_iter().flatten() {
-                    self.split.prefetch(q);
-                }
+        }
+    }
+
+    /// And for a merge, the split set's slots of what it asks besides: whether each child
+    /// keeps a split parent (its other parent, [`bintree::other_parent`]) and each parent
+    /// a split child.
+    fn prefetch_merge(&self, pos: u32, children: &[Option<u32>; 4], parents: &[Option<u32>; 2]) {
+        let at = unpack(pos);
+        for &c in children.iter().flatten() {
+            if let Some((ox, oz)) = bintree::other_parent(self.size, at, unpack(c)) {
+                self.split.prefetch(pack(ox, oz));
+            }
+        }
+        for &p in parents.iter().flatten() {
+            let (px, pz) = unpack(p);
+            for q in self.children(px, pz).into_iter().flatten() {
+                self.split.prefetch(q);
             }
         }
     }
@@ -233,7 +231,7 @@ impl Coherent {
     pub(super) fn split(&mut self, f: &Frame, pos: u32) {
         let (x, z) = unpack(pos);
         let (children, parents) = (self.children(x, z), self.parents(x, z));
-        self.prefetch(pos, &children, &parents, true);
+        self.prefetch(pos, &children, &parents);
         self.split.insert(pos);
         self.prefetch_members(pos, &children, &parents);
         self.triangles += self.added(x, z);
@@ -281,7 +279,8 @@ impl Coherent {
     pub(super) fn merge(&mut self, f: &Frame, pos: u32) {
         let (x, z) = unpack(pos);
         let (children, parents) = (self.children(x, z), self.parents(x, z));
-        self.prefetch(pos, &children, &parents, false);
+        self.prefetch(pos, &children, &parents);
+        self.prefetch_merge(pos, &children, &parents);
         self.split.remove(pos);
         self.prefetch_members(pos, &children, &parents);
         self.triangles -= self.added(x, z);
